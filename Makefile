@@ -1,0 +1,37 @@
+# The two user commands: `make demo` and `make test`. Both create the virtual
+# environment when it is missing and (re)install the project when
+# pyproject.toml changed, so a fresh clone needs nothing else.
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed-stamp
+RUN_DIR ?= runs/demo
+# No telemetry from Rerun, ever; no window unless asked for.
+export RERUN_ANALYTICS := 0
+export RERUN_TELEMETRY := 0
+export MUJOCO_GL ?= egl
+
+.PHONY: demo test lint venv clean
+
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e ".[test]"
+	@touch $(STAMP)
+
+demo: $(STAMP)
+	@mkdir -p $(RUN_DIR)
+	$(BIN)/teleop run path-following --inprocess --duration 60 --seed 0 \
+		--summary-json $(RUN_DIR)/summary.json
+
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+test: lint
+	$(BIN)/python -m pytest
+
+clean:
+	rm -rf runs .pytest_cache

@@ -1,0 +1,144 @@
+"""The ``teleop`` command: a thin shell over the library.
+
+    teleop run path-following --inprocess --duration 60 --seed 0 --summary-json out.json
+    teleop run path-following --mode lockstep --duration 20 --rrd out.rrd
+    teleop up | status | down
+
+Every command reads the typed config (``--config``, default ``deploy/teleop.toml``)
+and applies ``--set dotted.key=value`` overrides; flags such as ``--duration`` are
+shorthands for the matching ``--set``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+from teleop.config import Config, ConfigError, load_config
+from teleop.kinematics import ModelError
+
+SCENARIOS = ("path-following",)
+DEFAULT_RUN_DIR = Path("runs") / "latest"
+
+# Exit codes: 0 success, 1 the run failed its own checks, 2 bad usage or config.
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+
+
+def _add_config_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help="TOML config file (default: deploy/teleop.toml of this checkout)",
+    )
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config value, e.g. --set control.compensation=false (repeatable)",
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="teleop",
+        description="zenoh-teleop: real-time simulator for teleoperated and autonomous robot arms.",
+    )
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    run = commands.add_parser(
+        "run",
+        help="run a scenario and print its summary",
+        description=(
+            "Run a scenario. --inprocess couples plant and controller in one process "
+            "(no bus); otherwise the services run as separate processes under supervisord."
+        ),
+    )
+    run.add_argument("scenario", choices=SCENARIOS, help="what to run")
+    where = run.add_mutually_exclusive_group()
+    where.add_argument(
+        "--inprocess", action="store_true", help="plant and controller in one process, no bus"
+    )
+    where.add_argument(
+        "--mode",
+        choices=("lockstep", "realtime"),
+        default="realtime",
+        help="services timing: realtime keeps wall-clock time; lockstep is deterministic "
+        "and as fast as the machine allows (default: realtime)",
+    )
+    run.add_argument("--duration", type=float, help="simulated seconds (run.duration_s)")
+    run.add_argument("--seed", type=int, help="random seed (run.seed)")
+    run.add_argument("--summary-json", type=Path, help="also write the summary to this file")
+    run.add_argument("--rrd", type=Path, help="Rerun recording to write (services runs)")
+    run.add_argument(
+        "--run-dir",
+        type=Path,
+        default=DEFAULT_RUN_DIR,
+        help=f"logs and supervisord files of a services run (default: {DEFAULT_RUN_DIR})",
+    )
+    run.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    _add_config_arguments(run)
+    return parser
+
+
+def _config_from(args: argparse.Namespace) -> Config:
+    overrides = list(args.overrides)
+    if getattr(args, "duration", None) is not None:
+        overrides.append(f"run.duration_s={args.duration}")
+    if getattr(args, "seed", None) is not None:
+        overrides.append(f"run.seed={args.seed}")
+    return load_config(args.config, overrides)
+
+
+def _emit_summary(summary: dict[str, object], path: Path | None) -> None:
+    text = json.dumps(summary, indent=2, sort_keys=False)
+    print(text)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text + "\n")
+
+
+def _run(args: argparse.Namespace) -> int:
+    from teleop import experiments
+
+    config = _config_from(args)
+    progress = None if args.quiet else experiments.print_progress
+    if args.inprocess:
+        if args.rrd is not None:
+            raise ConfigError("--rrd needs the services run (drop --inprocess)")
+        print(
+            f"path following in-process: {config.run.duration_s:g} s simulated, "
+            f"seed {config.run.seed}",
+            file=sys.stderr,
+        )
+        summary = experiments.run_path_following_inprocess(config, progress=progress)
+    else:
+        raise ConfigError("services runs are not available yet: use --inprocess")
+    _emit_summary(summary, args.summary_json)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``teleop`` console script."""
+    os.environ.setdefault("RERUN_ANALYTICS", "0")
+    args = build_parser().parse_args(argv)
+    try:
+        if args.command == "run":
+            return _run(args)
+    except (ConfigError, ModelError) as exc:
+        print(f"teleop: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("teleop: interrupted", file=sys.stderr)
+        return 130
+    return EXIT_USAGE
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,318 @@
+"""Typed configuration, loaded from a TOML file in ``deploy/`` with ``--set`` overrides.
+
+Every service receives one :class:`Config`. Each section is a frozen dataclass that
+validates itself at construction, so a bad value fails at start-up with a message
+that names the key, never later inside a control loop.
+
+Overrides use dotted keys and TOML literals: ``control.compensation=false``,
+``path.center_m=[0.1, 0.0, 0.35]``, ``robot.robot_id="arm1"``. A value that is not
+a TOML literal is taken as a string.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import types
+import typing
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+DEPLOY_DIR = REPO_ROOT / "deploy"
+ASSETS_DIR = Path(__file__).resolve().parent / "assets"
+DEFAULT_CONFIG_FILE = DEPLOY_DIR / "teleop.toml"
+
+
+class ConfigError(ValueError):
+    """A configuration value is missing, mistyped or out of range."""
+
+
+def _require(ok: bool, message: str) -> None:
+    if not ok:
+        raise ConfigError(message)
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    """Which model file to load and which of its names the code relies on.
+
+    Nothing else in the code assumes a particular arm: point ``scene_file`` at another
+    MJCF scene and list its joint, actuator and site names here.
+    """
+
+    robot_id: str = "arm0"
+    # A file name inside teleop/assets/, or a path (absolute, or relative to the repo root).
+    scene_file: str = "scene_arm6.xml"
+    arm_joints: tuple[str, ...] = (
+        "shoulder_pan",
+        "shoulder_lift",
+        "elbow",
+        "wrist_1",
+        "wrist_2",
+        "wrist_3",
+    )
+    # Velocity actuators (the arm's low-level joint velocity loops), same order as arm_joints.
+    arm_actuators: tuple[str, ...] = (
+        "shoulder_pan_vel",
+        "shoulder_lift_vel",
+        "elbow_vel",
+        "wrist_1_vel",
+        "wrist_2_vel",
+        "wrist_3_vel",
+    )
+    tool_site: str = "tool"
+    # Start configuration (rad), arm_joints order: tool 0.4 m above the table, pointing down.
+    home_q_rad: tuple[float, ...] = (0.0, -0.25, 1.75, 0.05, -1.5708, -1.5708)
+    gripper_actuator: str = "gripper"
+    # Joints that are not part of the arm chain (fingers): locked in the Pinocchio model.
+    gripper_joints: tuple[str, ...] = ("finger_left", "finger_right")
+    # Names of scene bodies whose poses the plant publishes (graspable objects).
+    object_bodies: tuple[str, ...] = ("cube",)
+    # Prefix of the non-colliding geoms that are virtual obstacles.
+    obstacle_prefix: str = "obstacle"
+
+    def __post_init__(self) -> None:
+        _require(
+            bool(self.robot_id) and "/" not in self.robot_id, "robot.robot_id: non-empty, no '/'"
+        )
+        _require(len(self.arm_joints) >= 3, "robot.arm_joints: at least 3 joints")
+        _require(
+            len(self.arm_actuators) == len(self.arm_joints),
+            "robot.arm_actuators: one actuator per arm joint",
+        )
+        _require(
+            len(self.home_q_rad) == len(self.arm_joints),
+            "robot.home_q_rad: one angle per arm joint",
+        )
+
+    @property
+    def scene_path(self) -> Path:
+        """The scene MJCF as an absolute path."""
+        candidate = Path(self.scene_file)
+        if candidate.is_absolute():
+            return candidate
+        if (ASSETS_DIR / candidate).exists():
+            return ASSETS_DIR / candidate
+        return REPO_ROOT / candidate
+
+
+@dataclass(frozen=True)
+class PlantConfig:
+    """The MuJoCo plant: physics period and command watchdog."""
+
+    timestep_s: float = 0.001
+    # A command older than this makes the plant brake to zero joint velocity.
+    watchdog_s: float = 0.020
+
+    def __post_init__(self) -> None:
+        _require(0 < self.timestep_s <= 0.01, "plant.timestep_s in (0, 0.01]")
+        _require(self.watchdog_s >= self.timestep_s, "plant.watchdog_s >= plant.timestep_s")
+
+
+@dataclass(frozen=True)
+class PathConfig:
+    """The paper's experiment-1 path, in the world frame (z up, origin at the arm base).
+
+    P(s) = (r sin(w s) + c_x, r cos(w s) + c_y, c_z + a sin(w_z s)).
+    The default centre puts the whole circle 0.25-0.45 m from the base axis at
+    0.30-0.40 m height, inside the reach of the 6-DOF arm with a good margin.
+    """
+
+    center_m: tuple[float, float, float] = (0.10, 0.0, 0.35)
+    radius_m: float = 0.35
+    omega_rad: float = 0.2  # angular rate of the circle per unit of path parameter s
+    z_amplitude_m: float = 0.05
+    z_omega_rad: float = 0.1  # rate of the slow vertical sinusoid per unit of s
+
+    def __post_init__(self) -> None:
+        _require(self.radius_m > 0, "path.radius_m > 0")
+        _require(self.omega_rad > 0, "path.omega_rad > 0")
+
+
+@dataclass(frozen=True)
+class ControlConfig:
+    """Gains and limits of the kinematic controller and its dynamic compensation."""
+
+    # Path speed v_P and its slow-down with error: |v_hd| = v_P / (1 + k |h~|).
+    path_speed_m_s: float = 0.10
+    speed_error_gain_per_m: float = 50.0
+    # K in J# (v_d + K tanh(h~ / e0)) e0: position error gain and its saturation length.
+    position_gain_per_s: float = 20.0
+    position_saturation_m: float = 0.05
+    # L: manipulability ascent gain in the task null space.
+    null_space_gain: float = 0.5
+    # Dynamic compensation q'_ref = M (q''_c + Kd (q'_c - q')) + C q' + g.
+    compensation: bool = True
+    velocity_gain_per_s: float = 50.0
+    # Joint speed limit applied to every reference sent to the plant.
+    max_joint_speed_rad_s: float = math.pi
+    # Damping of the pseudo-inverse near singularities (m).
+    damping_m: float = 1e-4
+
+    def __post_init__(self) -> None:
+        for name in (
+            "path_speed_m_s",
+            "position_gain_per_s",
+            "position_saturation_m",
+            "velocity_gain_per_s",
+            "max_joint_speed_rad_s",
+        ):
+            _require(getattr(self, name) > 0, f"control.{name} > 0")
+        _require(self.speed_error_gain_per_m >= 0, "control.speed_error_gain_per_m >= 0")
+        _require(self.null_space_gain >= 0, "control.null_space_gain >= 0")
+        _require(self.damping_m >= 0, "control.damping_m >= 0")
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """How services reach each other over Zenoh."""
+
+    # Zenoh json5 config: a file name inside deploy/zenoh/, or a path.
+    zenoh_config: str = "local.json5"
+    # Where the run's first service listens and every other connects (loopback only).
+    endpoint: str = "tcp/127.0.0.1:7447"
+    shm: bool = True
+    shm_pool_bytes: int = 16 * 1024 * 1024
+
+    def __post_init__(self) -> None:
+        _require("/" in self.endpoint, "bus.endpoint like tcp/127.0.0.1:7447")
+        _require(self.shm_pool_bytes >= 1 << 16, "bus.shm_pool_bytes >= 65536")
+
+    @property
+    def zenoh_config_path(self) -> Path:
+        candidate = Path(self.zenoh_config)
+        if candidate.is_absolute():
+            return candidate
+        if (DEPLOY_DIR / "zenoh" / candidate).exists():
+            return DEPLOY_DIR / "zenoh" / candidate
+        return REPO_ROOT / candidate
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """A scenario run: how long, which seed, when the accuracy measurement starts."""
+
+    duration_s: float = 60.0
+    seed: int = 0
+    settle_s: float = 10.0
+    # Initial arm configuration (rad), one per arm joint; empty = robot.home_q_rad.
+    initial_q_rad: tuple[float, ...] = ()
+    # Standard deviation of the random perturbation of the initial configuration (rad).
+    initial_q_noise_rad: float = 0.05
+
+    def __post_init__(self) -> None:
+        _require(self.duration_s > 0, "run.duration_s > 0")
+        _require(0 <= self.settle_s, "run.settle_s >= 0")
+        _require(self.initial_q_noise_rad >= 0, "run.initial_q_noise_rad >= 0")
+
+
+@dataclass(frozen=True)
+class Config:
+    robot: RobotConfig = field(default_factory=RobotConfig)
+    plant: PlantConfig = field(default_factory=PlantConfig)
+    path: PathConfig = field(default_factory=PathConfig)
+    control: ControlConfig = field(default_factory=ControlConfig)
+    bus: BusConfig = field(default_factory=BusConfig)
+    run: RunConfig = field(default_factory=RunConfig)
+
+
+def _coerce(value: Any, annotation: Any, key: str) -> Any:
+    """Convert a TOML value to the field's annotated type, or raise ConfigError."""
+    origin = typing.get_origin(annotation)
+    if dataclasses.is_dataclass(annotation):
+        _require(isinstance(value, Mapping), f"{key}: expected a table")
+        return _build(annotation, value, key)
+    if annotation is bool:
+        _require(isinstance(value, bool), f"{key}: expected true or false, got {value!r}")
+        return value
+    if annotation is int:
+        _require(
+            isinstance(value, int) and not isinstance(value, bool), f"{key}: expected an integer"
+        )
+        return value
+    if annotation is float:
+        _require(
+            isinstance(value, int | float) and not isinstance(value, bool),
+            f"{key}: expected a number, got {value!r}",
+        )
+        _require(math.isfinite(value), f"{key}: must be finite")
+        return float(value)
+    if annotation is str:
+        _require(isinstance(value, str), f"{key}: expected a string, got {value!r}")
+        return value
+    if origin is tuple:
+        _require(isinstance(value, list | tuple), f"{key}: expected a list")
+        args = typing.get_args(annotation)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], f"{key}[{i}]") for i, v in enumerate(value))
+        _require(len(value) == len(args), f"{key}: expected {len(args)} items")
+        return tuple(
+            _coerce(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=True))
+        )
+    if origin in (typing.Union, types.UnionType):
+        raise ConfigError(f"{key}: unsupported union type")
+    return value
+
+
+def _build(cls: type, table: Mapping[str, Any], prefix: str) -> Any:
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(table) - names)
+    _require(not unknown, f"{prefix or 'config'}: unknown key(s) {', '.join(unknown)}")
+    kwargs = {
+        name: _coerce(value, hints[name], f"{prefix}.{name}" if prefix else name)
+        for name, value in table.items()
+    }
+    return cls(**kwargs)
+
+
+def _parse_override(text: str) -> tuple[list[str], Any]:
+    key, sep, raw = text.partition("=")
+    _require(bool(sep) and bool(key.strip()), f"--set {text!r}: expected dotted.key=value")
+    try:
+        value = tomllib.loads(f"v = {raw.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw.strip()
+    return key.strip().split("."), value
+
+
+def _merge_override(table: dict[str, Any], path: list[str], value: Any) -> None:
+    node = table
+    for part in path[:-1]:
+        node = node.setdefault(part, {})
+        _require(isinstance(node, dict), f"--set {'.'.join(path)}: {part} is not a table")
+    node[path[-1]] = value
+
+
+def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -> Config:
+    """Read a TOML config (default ``deploy/teleop.toml``), apply ``--set`` overrides.
+
+    Missing keys take the dataclass defaults; unknown keys are an error, so a typo in
+    a key never passes silently.
+    """
+    config_path = Path(path) if path is not None else DEFAULT_CONFIG_FILE
+    table: dict[str, Any] = {}
+    if path is not None or config_path.exists():
+        try:
+            with open(config_path, "rb") as f:
+                table = tomllib.load(f)
+        except FileNotFoundError as exc:
+            raise ConfigError(f"config file not found: {config_path}") from exc
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{config_path}: {exc}") from exc
+    for text in overrides:
+        keys, value = _parse_override(text)
+        _merge_override(table, keys, value)
+    try:
+        return _build(Config, table, "")
+    except TypeError as exc:
+        raise ConfigError(str(exc)) from exc
+
+
+def to_dict(config: Config) -> dict[str, Any]:
+    """The config as plain data (for summaries and for handing to child processes)."""
+    return dataclasses.asdict(config)

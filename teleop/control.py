@@ -1,0 +1,196 @@
+"""Control laws of the paper's family: path following and dynamic compensation.
+
+Kinematic controller (position task, redundant arm):
+    q'_c = J# (v_hd + K e0 tanh(h~ / e0)) + (I - J# J) L grad w(q)
+with h~ = P(s*) - h the error to the closest path point P(s*), v_hd the desired
+velocity along the path's tangent with speed v_P / (1 + k |h~|), J# the (damped)
+pseudo-inverse of the 3xN position Jacobian and w the manipulability.
+
+Dynamic compensation turns the commanded joint velocities q'_c into references for
+the arm's velocity loops, q'_ref, using the model M q'' + C q' + g = q'_ref with
+M = H^-1 M0, C q' = H^-1 (c0 + (D + H) q'), g = H^-1 g0 and H = diag(kv) read
+from the MJCF actuators (see ``kinematics.ServoParameters``):
+    q'_ref = M (q''_c + Kd (q'_c - q')) + C q' + g.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from teleop.config import ControlConfig, PathConfig
+from teleop.kinematics import (
+    ArmModel,
+    joint_space_dynamics,
+    manipulability,
+    manipulability_gradient,
+    tool_position_and_jacobian,
+)
+
+# Closest-point search: samples per path period for the first, global search, and
+# Newton iterations for the local refinement that follows the point along the path.
+GLOBAL_SEARCH_SAMPLES = 720
+NEWTON_ITERATIONS = 3
+
+
+class DesiredPath:
+    """The paper's path P(s), its derivatives, and the closest point to a given point."""
+
+    def __init__(self, config: PathConfig) -> None:
+        self.center_m = np.asarray(config.center_m, dtype=float)
+        self.radius_m = config.radius_m
+        self.omega = config.omega_rad
+        self.z_amplitude_m = config.z_amplitude_m
+        self.z_omega = config.z_omega_rad
+        # Start-up search window: one period of the slower of the two motions.
+        slowest = (
+            min(self.omega, self.z_omega) if self.z_amplitude_m and self.z_omega else self.omega
+        )
+        self.search_window_s = 2 * np.pi / slowest
+
+    def point(self, s: float) -> np.ndarray:
+        """P(s) in m, world frame."""
+        return self.center_m + np.array(
+            [
+                self.radius_m * np.sin(self.omega * s),
+                self.radius_m * np.cos(self.omega * s),
+                self.z_amplitude_m * np.sin(self.z_omega * s),
+            ]
+        )
+
+    def derivatives(self, s: float) -> tuple[np.ndarray, np.ndarray]:
+        """(dP/ds, d2P/ds2) at s."""
+        r, w, a, wz = self.radius_m, self.omega, self.z_amplitude_m, self.z_omega
+        first = np.array([r * w * np.cos(w * s), -r * w * np.sin(w * s), a * wz * np.cos(wz * s)])
+        second = np.array(
+            [-r * w * w * np.sin(w * s), -r * w * w * np.cos(w * s), -a * wz * wz * np.sin(wz * s)]
+        )
+        return first, second
+
+    def closest_global(self, p_m: np.ndarray) -> float:
+        """Path parameter of the closest point over one whole period (start-up)."""
+        samples = np.linspace(0.0, self.search_window_s, GLOBAL_SEARCH_SAMPLES, endpoint=False)
+        points = np.stack([self.point(s) for s in samples])
+        s0 = float(samples[np.argmin(np.linalg.norm(points - p_m, axis=1))])
+        return self.closest_local(p_m, s0)
+
+    def closest_local(self, p_m: np.ndarray, s_guess: float) -> float:
+        """Refine the closest point near ``s_guess`` (Newton on (P(s) - p) . P'(s) = 0)."""
+        s = s_guess
+        for _ in range(NEWTON_ITERATIONS):
+            diff = self.point(s) - p_m
+            first, second = self.derivatives(s)
+            slope = first @ first + diff @ second
+            if slope <= 0:
+                break
+            s -= (diff @ first) / slope
+        return s
+
+
+@dataclass(frozen=True)
+class ControlOutput:
+    """One control cycle's command and what it was computed from (world frame, SI)."""
+
+    qd_ref_rad_s: np.ndarray  # (n,) sent to the plant's velocity loops
+    qd_c_rad_s: np.ndarray  # (n,) kinematic command, before dynamic compensation
+    tool_p_m: np.ndarray  # (3,) tool point h
+    desired_p_m: np.ndarray  # (3,) closest path point P(s*)
+    path_error_m: float  # |h~|
+    manipulability: float
+    path_s: float
+
+
+def damped_pseudo_inverse(jacobian: np.ndarray, damping: float) -> np.ndarray:
+    """J# = J^T (J J^T + damping^2 I)^-1, (n, m); plain pseudo-inverse when damping is 0."""
+    m = jacobian.shape[0]
+    return jacobian.T @ np.linalg.inv(jacobian @ jacobian.T + damping**2 * np.eye(m))
+
+
+def limit_speed(qd_rad_s: np.ndarray, max_rad_s: np.ndarray | float) -> np.ndarray:
+    """Scale the whole vector down (keeping its direction) so every joint is within limits."""
+    ratio = float(np.max(np.abs(qd_rad_s) / max_rad_s))
+    return qd_rad_s / ratio if ratio > 1.0 else qd_rad_s
+
+
+def dynamic_compensation(
+    arm: ArmModel,
+    q_rad: np.ndarray,
+    qd_rad_s: np.ndarray,
+    qd_c_rad_s: np.ndarray,
+    qdd_c_rad_s2: np.ndarray,
+    velocity_gain_per_s: float,
+) -> np.ndarray:
+    """q'_ref such that the velocity loops make q' follow q'_c despite the arm's dynamics."""
+    mass, coriolis, gravity = joint_space_dynamics(arm, q_rad, qd_rad_s)
+    servo = arm.servo
+    qdd_ref = qdd_c_rad_s2 + velocity_gain_per_s * (qd_c_rad_s - qd_rad_s)
+    torque = mass @ qdd_ref + coriolis + gravity + servo.damping_nms_per_rad * qd_rad_s
+    return qd_rad_s + torque / servo.kv_nms_per_rad
+
+
+class PathFollowingController:
+    """Experiment 1: follow the desired path with no time law, maximising manipulability.
+
+    Holds only what must persist between cycles: the tracked path parameter and the
+    previous kinematic command (to differentiate it for the compensation).
+    """
+
+    def __init__(
+        self, arm: ArmModel, control: ControlConfig, path: PathConfig, period_s: float
+    ) -> None:
+        self.arm = arm
+        self.control = control
+        self.path = DesiredPath(path)
+        self.period_s = period_s
+        self.max_speed_rad_s = np.minimum(control.max_joint_speed_rad_s, arm.servo.max_speed_rad_s)
+        self._s: float | None = None
+        self._previous_qd_c: np.ndarray | None = None
+
+    def reset(self) -> None:
+        self._s = None
+        self._previous_qd_c = None
+
+    def update(self, q_rad: np.ndarray, qd_rad_s: np.ndarray) -> ControlOutput:
+        """One control cycle from the measured joint state."""
+        ctl = self.control
+        tool_p, jacobian = tool_position_and_jacobian(self.arm, q_rad)
+        jv = jacobian[:3]
+        if self._s is None:
+            self._s = self.path.closest_global(tool_p)
+        else:
+            self._s = self.path.closest_local(tool_p, self._s)
+        desired_p = self.path.point(self._s)
+        error = desired_p - tool_p
+        error_norm = float(np.linalg.norm(error))
+        tangent, _ = self.path.derivatives(self._s)
+        speed = ctl.path_speed_m_s / (1.0 + ctl.speed_error_gain_per_m * error_norm)
+        v_desired = speed * tangent / np.linalg.norm(tangent)
+        e0 = ctl.position_saturation_m
+        v_task = v_desired + ctl.position_gain_per_s * e0 * np.tanh(error / e0)
+
+        j_pinv = damped_pseudo_inverse(jv, ctl.damping_m)
+        null_projector = np.eye(self.arm.n_joints) - j_pinv @ jv
+        qd_c = j_pinv @ v_task + null_projector @ (
+            ctl.null_space_gain * manipulability_gradient(jacobian)
+        )
+        qd_c = limit_speed(qd_c, self.max_speed_rad_s)
+
+        if ctl.compensation:
+            previous = self._previous_qd_c if self._previous_qd_c is not None else qd_rad_s
+            qdd_c = (qd_c - previous) / self.period_s
+            qd_ref = dynamic_compensation(
+                self.arm, q_rad, qd_rad_s, qd_c, qdd_c, ctl.velocity_gain_per_s
+            )
+        else:
+            qd_ref = qd_c
+        self._previous_qd_c = qd_c
+        return ControlOutput(
+            qd_ref_rad_s=limit_speed(qd_ref, self.max_speed_rad_s),
+            qd_c_rad_s=qd_c,
+            tool_p_m=tool_p,
+            desired_p_m=desired_p,
+            path_error_m=error_norm,
+            manipulability=manipulability(jv),
+            path_s=self._s,
+        )

@@ -1,0 +1,170 @@
+"""Kinematics and dynamics of the arm, computed by Pinocchio from the scene MJCF.
+
+The controller's model is built from the SAME file as the MuJoCo plant
+(``pinocchio.buildModelFromMJCF``); the gripper's finger joints are locked, which
+leaves the serial arm chain with the fingers' mass lumped into the gripper link.
+
+Model/data split: :func:`build_arm_model` runs once; everything else is a pure
+function of ``(arm, q, ...)`` that writes only into ``arm.data`` scratch space.
+All vectors are in the world frame (z up, origin at the arm base); ``q_rad`` and
+``qd_rad_s`` are in the order of ``RobotConfig.arm_joints``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+import pinocchio as pin
+
+from teleop.config import RobotConfig
+
+
+class ModelError(ValueError):
+    """The model file does not contain what the configuration names."""
+
+
+@dataclass(frozen=True)
+class ServoParameters:
+    """The arm's low-level velocity loops, read from the MJCF actuators and joints.
+
+    The plant obeys M0 q'' + c0(q, q') + g0(q) = kv (q'_ref - q') - damping q', the
+    paper's model M q'' + C q' + g = q'_ref scaled by H = diag(kv).
+    """
+
+    kv_nms_per_rad: np.ndarray  # (n,) velocity-loop gain of each joint
+    damping_nms_per_rad: np.ndarray  # (n,) joint viscous damping
+    max_speed_rad_s: np.ndarray  # (n,) actuator ctrlrange bound on q'_ref
+
+
+@dataclass
+class ArmModel:
+    """Pinocchio model and scratch data of the arm chain, plus its servo parameters."""
+
+    model: pin.Model
+    data: pin.Data
+    tool_frame_id: int
+    joint_names: tuple[str, ...]
+    servo: ServoParameters
+
+    @property
+    def n_joints(self) -> int:
+        return self.model.nv
+
+
+def _servo_parameters(robot: RobotConfig) -> ServoParameters:
+    """Read kv, damping and speed limits from the MJCF through MuJoCo's compiled model."""
+    mj = mujoco.MjModel.from_xml_path(str(robot.scene_path))
+    kv, damping, speed = [], [], []
+    for joint_name, actuator_name in zip(robot.arm_joints, robot.arm_actuators, strict=True):
+        joint_id = mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_JOINT, joint_name)
+        actuator_id = mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_ACTUATOR, actuator_name)
+        if joint_id < 0 or actuator_id < 0:
+            raise ModelError(
+                f"{robot.scene_path}: no joint {joint_name!r} or actuator {actuator_name!r}"
+            )
+        if mj.actuator_trnid[actuator_id, 0] != joint_id:
+            raise ModelError(f"actuator {actuator_name!r} does not drive joint {joint_name!r}")
+        # A MuJoCo velocity actuator has gain kv on ctrl and bias -kv on the joint velocity.
+        gain = float(mj.actuator_gainprm[actuator_id, 0])
+        if gain <= 0 or not np.isclose(mj.actuator_biasprm[actuator_id, 2], -gain):
+            raise ModelError(f"actuator {actuator_name!r} is not a velocity actuator")
+        kv.append(gain)
+        damping.append(float(mj.dof_damping[mj.jnt_dofadr[joint_id]]))
+        limited = mj.actuator_ctrllimited[actuator_id]
+        speed.append(float(mj.actuator_ctrlrange[actuator_id, 1]) if limited else np.inf)
+    return ServoParameters(np.array(kv), np.array(damping), np.array(speed))
+
+
+def build_arm_model(robot: RobotConfig) -> ArmModel:
+    """Build the reduced Pinocchio model of the arm chain from the scene file.
+
+    Every joint that is not in ``robot.arm_joints`` (fingers) is locked at its
+    neutral position. Raises :class:`ModelError` when a configured name is missing or
+    the arm joints are not the model's chain in the configured order.
+    """
+    path = robot.scene_path
+    if not path.exists():
+        raise ModelError(f"scene file not found: {path}")
+    full = pin.buildModelFromMJCF(str(path))
+    full_names = [full.names[i] for i in range(1, full.njoints)]
+    missing = [name for name in robot.arm_joints if name not in full_names]
+    if missing:
+        raise ModelError(f"{path}: Pinocchio model has no joint(s) {missing}; has {full_names}")
+    lock = [full.getJointId(name) for name in full_names if name not in robot.arm_joints]
+    model = pin.buildReducedModel(full, lock, pin.neutral(full)) if lock else full
+    names = tuple(model.names[i] for i in range(1, model.njoints))
+    if names != tuple(robot.arm_joints):
+        raise ModelError(f"arm joints in the model are {names}, config lists {robot.arm_joints}")
+    for i in range(1, model.njoints):
+        if model.joints[i].nq != 1 or "R" not in model.joints[i].shortname():
+            raise ModelError(
+                f"joint {model.names[i]!r}: only 1-DOF revolute arm joints are supported"
+            )
+    if not model.existFrame(robot.tool_site):
+        raise ModelError(f"{path}: no site/frame {robot.tool_site!r} for the tool point")
+    return ArmModel(
+        model=model,
+        data=model.createData(),
+        tool_frame_id=model.getFrameId(robot.tool_site),
+        joint_names=names,
+        servo=_servo_parameters(robot),
+    )
+
+
+def tool_position_and_jacobian(arm: ArmModel, q_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Tool-point position world_p_tool (3,) in m and its Jacobian (6, n).
+
+    The Jacobian is Pinocchio's LOCAL_WORLD_ALIGNED frame Jacobian: rows 0-2 map joint
+    rates to the tool point's linear velocity (m/s), rows 3-5 to angular velocity, both
+    in world axes.
+    """
+    pin.computeJointJacobians(arm.model, arm.data, q_rad)
+    pin.updateFramePlacements(arm.model, arm.data)
+    position = arm.data.oMf[arm.tool_frame_id].translation.copy()
+    jacobian = pin.getFrameJacobian(
+        arm.model, arm.data, arm.tool_frame_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+    )
+    return position, jacobian
+
+
+def manipulability(jacobian_position: np.ndarray) -> float:
+    """Yoshikawa's measure w = sqrt(det(J J^T)) of the (3, n) position Jacobian."""
+    det = np.linalg.det(jacobian_position @ jacobian_position.T)
+    return float(np.sqrt(max(det, 0.0)))
+
+
+def manipulability_gradient(jacobian: np.ndarray) -> np.ndarray:
+    """Gradient dw/dq (n,) of the position manipulability, exact for revolute chains.
+
+    Uses the Jacobian's own columns: for a revolute chain with joint axes z_i
+    (angular rows) and position columns v_i, dv_i/dq_k = z_k x v_i when k <= i and
+    z_i x v_k when k > i; then dw/dq_k = w tr((J J^T)^-1 dJ/dq_k J^T).
+    """
+    jv, z = jacobian[:3], jacobian[3:]
+    n = jv.shape[1]
+    jjt = jv @ jv.T
+    w = float(np.sqrt(max(np.linalg.det(jjt), 0.0)))
+    if w == 0.0:
+        return np.zeros(n)
+    a_inv_j = np.linalg.solve(jjt, jv)  # (3, n): (J J^T)^-1 J
+    cross = np.cross(z.T[:, None, :], jv.T[None, :, :])  # (n, n, 3): z_a x v_b
+    k_le_i = np.triu(np.ones((n, n), dtype=bool))[:, :, None]
+    d_jacobian = np.where(k_le_i, cross, cross.transpose(1, 0, 2))  # [k, i] = dv_i/dq_k
+    return w * np.einsum("ri,kir->k", a_inv_j, d_jacobian)
+
+
+def joint_space_dynamics(
+    arm: ArmModel, q_rad: np.ndarray, qd_rad_s: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rigid-body terms of M0(q) q'' + c0(q, q') + g0(q) = tau (SI units).
+
+    Returns ``(M0 (n, n) in kg m^2, c0 = C0(q, q') q' (n,) in N m, g0 (n,) in N m)``.
+    M0 includes the rotor armature read from the MJCF.
+    """
+    mass = pin.crba(arm.model, arm.data, q_rad)
+    mass = np.triu(mass) + np.triu(mass, 1).T  # crba fills the upper triangle only
+    gravity = pin.computeGeneralizedGravity(arm.model, arm.data, q_rad).copy()
+    coriolis = pin.nonLinearEffects(arm.model, arm.data, q_rad, qd_rad_s) - gravity
+    return mass, coriolis, gravity

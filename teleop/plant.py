@@ -1,0 +1,155 @@
+"""The simulated plant: a MuJoCo model of the arm and its scene, stepped at 1 kHz.
+
+The plant knows nothing about controllers or the bus: it takes joint velocity
+references for the arm's velocity loops (and a gripper opening), advances physics
+one step, and exposes what a real robot's drives and sensors would report. The
+plant service and the in-process runner both drive it through the same methods,
+which is what makes their results bit-identical.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from teleop.config import Config
+from teleop.kinematics import ModelError
+
+# Hold mode of the drives (the "brake"): stiffness of the position hold, per second.
+# q'_ref = HOLD_GAIN_PER_S (q_hold - q) + gravity / kv keeps the arm where it stopped.
+HOLD_GAIN_PER_S = 20.0
+
+
+@dataclass(frozen=True)
+class JointSample:
+    """What the drives report after a physics step (arm joints only, config order)."""
+
+    step: int
+    sim_time_ns: int
+    q_rad: np.ndarray  # (n,)
+    qd_rad_s: np.ndarray  # (n,)
+    gripper_opening_m: float
+
+
+class Plant:
+    """MuJoCo model + data, with name lookups resolved once from the config."""
+
+    def __init__(self, config: Config) -> None:
+        robot = config.robot
+        path = robot.scene_path
+        if not path.exists():
+            raise ModelError(f"scene file not found: {path}")
+        self.model = mujoco.MjModel.from_xml_path(str(path))
+        if not np.isclose(self.model.opt.timestep, config.plant.timestep_s):
+            raise ModelError(
+                f"{path}: timestep {self.model.opt.timestep} s differs from "
+                f"plant.timestep_s {config.plant.timestep_s} s"
+            )
+        self.data = mujoco.MjData(self.model)
+        self.timestep_ns = round(self.model.opt.timestep * 1e9)
+        self._config = config
+
+        def lookup(kind: mujoco.mjtObj, name: str) -> int:
+            index = mujoco.mj_name2id(self.model, kind, name)
+            if index < 0:
+                raise ModelError(f"{path}: no {kind.name.removeprefix('mjOBJ_').lower()} {name!r}")
+            return index
+
+        joints = [lookup(mujoco.mjtObj.mjOBJ_JOINT, n) for n in robot.arm_joints]
+        self.qpos_index = np.array([self.model.jnt_qposadr[j] for j in joints])
+        self.dof_index = np.array([self.model.jnt_dofadr[j] for j in joints])
+        self.actuator_index = np.array(
+            [lookup(mujoco.mjtObj.mjOBJ_ACTUATOR, n) for n in robot.arm_actuators]
+        )
+        self.kv = self.model.actuator_gainprm[self.actuator_index, 0].copy()
+        self.gripper_actuator = lookup(mujoco.mjtObj.mjOBJ_ACTUATOR, robot.gripper_actuator)
+        self.gripper_range_m = self.model.actuator_ctrlrange[self.gripper_actuator].copy()
+        self.finger_qpos_index = np.array(
+            [
+                self.model.jnt_qposadr[lookup(mujoco.mjtObj.mjOBJ_JOINT, n)]
+                for n in robot.gripper_joints
+            ]
+        )
+        self.tool_site = lookup(mujoco.mjtObj.mjOBJ_SITE, robot.tool_site)
+        self.object_bodies = np.array(
+            [lookup(mujoco.mjtObj.mjOBJ_BODY, n) for n in robot.object_bodies], dtype=int
+        )
+        self.step_count = 0
+        self._hold_q_rad: np.ndarray | None = None
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.qpos_index)
+
+    def reset(self, q_rad: np.ndarray, gripper_open: float = 1.0) -> None:
+        """Put the arm at ``q_rad`` at rest, the gripper at the given opening fraction."""
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[self.qpos_index] = q_rad
+        opening = self._gripper_ctrl(gripper_open)
+        self.data.qpos[self.finger_qpos_index] = opening
+        self.data.ctrl[self.gripper_actuator] = opening
+        mujoco.mj_forward(self.model, self.data)
+        self.step_count = 0
+        self._hold_q_rad = None
+
+    def _gripper_ctrl(self, gripper_cmd: float) -> float:
+        low, high = self.gripper_range_m
+        return float(low + np.clip(gripper_cmd, 0.0, 1.0) * (high - low))
+
+    def step(self, qd_ref_rad_s: np.ndarray, gripper_cmd: float) -> None:
+        """Apply velocity references (rad/s, clipped by the actuators) and advance one step."""
+        self._hold_q_rad = None
+        self.data.ctrl[self.actuator_index] = qd_ref_rad_s
+        self.data.ctrl[self.gripper_actuator] = self._gripper_ctrl(gripper_cmd)
+        mujoco.mj_step(self.model, self.data)
+        self.step_count += 1
+
+    def step_braking(self) -> None:
+        """Hold the arm where braking began (watchdog): no drift, gravity held by the drives."""
+        q = self.data.qpos[self.qpos_index]
+        if self._hold_q_rad is None:
+            self._hold_q_rad = q.copy()
+        gravity_nm = self.data.qfrc_bias[self.dof_index]  # at rest the bias is gravity
+        qd_ref = HOLD_GAIN_PER_S * (self._hold_q_rad - q) + gravity_nm / self.kv
+        self.data.ctrl[self.actuator_index] = qd_ref
+        mujoco.mj_step(self.model, self.data)
+        self.step_count += 1
+
+    @property
+    def braking(self) -> bool:
+        return self._hold_q_rad is not None
+
+    def sample(self) -> JointSample:
+        return JointSample(
+            step=self.step_count,
+            sim_time_ns=self.step_count * self.timestep_ns,
+            q_rad=self.data.qpos[self.qpos_index].copy(),
+            qd_rad_s=self.data.qvel[self.dof_index].copy(),
+            gripper_opening_m=float(np.mean(self.data.qpos[self.finger_qpos_index])),
+        )
+
+    def tool_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """world_p_tool (3,) in m and world_q_tool as a wxyz quaternion (4,)."""
+        position = self.data.site_xpos[self.tool_site].copy()
+        quat = np.empty(4)
+        mujoco.mju_mat2Quat(quat, self.data.site_xmat[self.tool_site])
+        return position, quat
+
+    def tool_jacobian(self) -> np.ndarray:
+        """MuJoCo's own (3, n) position Jacobian of the tool site, for cross-checks."""
+        jacp = np.zeros((3, self.model.nv))
+        mujoco.mj_jacSite(self.model, self.data, jacp, None, self.tool_site)
+        return jacp[:, self.dof_index]
+
+    def set_arm_configuration(self, q_rad: np.ndarray) -> None:
+        """Pose the arm kinematically (no dynamics), for model cross-checks."""
+        self.data.qpos[self.qpos_index] = q_rad
+        mujoco.mj_kinematics(self.model, self.data)
+        mujoco.mj_comPos(self.model, self.data)
+
+    def state_sha256(self) -> str:
+        """sha256 of the full qpos and qvel bytes: equal hashes mean identical runs."""
+        return hashlib.sha256(self.data.qpos.tobytes() + self.data.qvel.tobytes()).hexdigest()

@@ -1,0 +1,52 @@
+"""The typed config: file, defaults and --set overrides agree; bad input is refused clearly."""
+
+from __future__ import annotations
+
+import pytest
+
+from teleop.config import Config, ConfigError, load_config
+
+
+def test_deploy_file_matches_dataclass_defaults():
+    assert load_config() == Config()
+
+
+def test_overrides_parse_toml_literals():
+    config = load_config(
+        None,
+        [
+            "control.compensation=false",
+            "path.center_m=[0.2, 0.1, 0.3]",
+            "run.seed=7",
+            "robot.robot_id=arm9",
+            "run.duration_s=5",
+        ],
+    )
+    assert config.control.compensation is False
+    assert config.path.center_m == (0.2, 0.1, 0.3)
+    assert config.run.seed == 7
+    assert config.robot.robot_id == "arm9"
+    assert config.run.duration_s == 5.0 and isinstance(config.run.duration_s, float)
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("control.bogus=1", "unknown key"),
+        ("nosection.x=1", "unknown key"),
+        ("control.compensation=3", "true or false"),
+        ("run.duration_s=-1", "run.duration_s > 0"),
+        ("run.duration_s=nan", "finite"),
+        ("path.center_m=[1, 2]", "path.center_m: expected 3 items"),
+        ("robot.arm_actuators=['a']", "one actuator per arm joint"),
+        ("missing-equals", "dotted.key=value"),
+    ],
+)
+def test_bad_values_are_refused_with_the_key_named(override, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(None, [override])
+
+
+def test_missing_file_is_a_config_error(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "nope.toml")

@@ -1,0 +1,91 @@
+"""One model file for both: Pinocchio's kinematics and dynamics agree with MuJoCo's."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+
+from teleop.kinematics import (
+    ModelError,
+    build_arm_model,
+    joint_space_dynamics,
+    manipulability,
+    manipulability_gradient,
+    tool_position_and_jacobian,
+)
+from teleop.plant import Plant
+
+N_CONFIGURATIONS = 50
+TOLERANCE = 1e-9
+
+
+def random_configurations(plant: Plant, count: int, seed: int) -> np.ndarray:
+    """Uniform samples inside each arm joint's range (a wide box for unlimited joints)."""
+    rng = np.random.default_rng(seed)
+    joint_ids = plant.model.dof_jntid[plant.dof_index]
+    low = np.where(plant.model.jnt_limited[joint_ids], plant.model.jnt_range[joint_ids, 0], -np.pi)
+    high = np.where(plant.model.jnt_limited[joint_ids], plant.model.jnt_range[joint_ids, 1], np.pi)
+    return rng.uniform(low, high, size=(count, len(low)))
+
+
+def test_tool_position_and_jacobian_match_mujoco(any_arm_config):
+    plant = Plant(any_arm_config)
+    arm = build_arm_model(any_arm_config.robot)
+    for q in random_configurations(plant, N_CONFIGURATIONS, seed=1):
+        plant.set_arm_configuration(q)
+        position, jacobian = tool_position_and_jacobian(arm, q)
+        np.testing.assert_allclose(position, plant.tool_pose()[0], atol=TOLERANCE, rtol=0)
+        np.testing.assert_allclose(jacobian[:3], plant.tool_jacobian(), atol=TOLERANCE, rtol=0)
+
+
+def test_dynamics_match_mujoco(any_arm_config):
+    """M0 (with armature) and g0 from Pinocchio equal MuJoCo's, fingers closed."""
+    plant = Plant(any_arm_config)
+    arm = build_arm_model(any_arm_config.robot)
+    model, data = plant.model, plant.data
+    dofs = plant.dof_index
+    for q in random_configurations(plant, 10, seed=2):
+        mujoco.mj_resetData(model, data)
+        data.qpos[plant.qpos_index] = q
+        mujoco.mj_forward(model, data)
+        full_mass = np.zeros((model.nv, model.nv))
+        mujoco.mj_fullM(model, data, full_mass)
+        mass, coriolis, gravity = joint_space_dynamics(arm, q, np.zeros_like(q))
+        np.testing.assert_allclose(mass, full_mass[np.ix_(dofs, dofs)], atol=1e-9, rtol=1e-9)
+        np.testing.assert_allclose(gravity, data.qfrc_bias[dofs], atol=1e-9, rtol=1e-9)
+        np.testing.assert_allclose(coriolis, 0.0, atol=1e-12)
+
+
+def test_manipulability_gradient_matches_finite_differences(any_arm_config):
+    arm = build_arm_model(any_arm_config.robot)
+    step = 1e-6
+    rng = np.random.default_rng(3)
+    for q in rng.uniform(-2.0, 2.0, size=(10, arm.n_joints)):
+        _, jacobian = tool_position_and_jacobian(arm, q)
+        analytic = manipulability_gradient(jacobian)
+        numeric = np.empty(arm.n_joints)
+        for k in range(arm.n_joints):
+            dq = np.zeros(arm.n_joints)
+            dq[k] = step
+            w_plus = manipulability(tool_position_and_jacobian(arm, q + dq)[1][:3])
+            w_minus = manipulability(tool_position_and_jacobian(arm, q - dq)[1][:3])
+            numeric[k] = (w_plus - w_minus) / (2 * step)
+        np.testing.assert_allclose(analytic, numeric, atol=1e-7)
+
+
+def test_servo_parameters_come_from_the_mjcf(config):
+    arm = build_arm_model(config.robot)
+    plant = Plant(config)
+    np.testing.assert_array_equal(arm.servo.kv_nms_per_rad, plant.kv)
+    assert np.all(arm.servo.max_speed_rad_s == pytest.approx(np.pi, abs=1e-4))
+
+
+def test_unknown_names_fail_clearly(config):
+    from dataclasses import replace
+
+    with pytest.raises(ModelError, match="no joint"):
+        names = tuple(f"missing_{i}" for i in range(6))
+        build_arm_model(replace(config.robot, arm_joints=names, arm_actuators=names))
+    with pytest.raises(ModelError, match="tool"):
+        build_arm_model(replace(config.robot, tool_site="nope"))
