@@ -1,0 +1,59 @@
+"""The one topic registry: every Zenoh key expression of a robot, built from its id.
+
+Services take a :class:`Topics` and never spell a key string themselves, so a rename
+or a new robot id is one change here. All keys live under ``teleop/<robot_id>/``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+ROOT = "teleop"  # first chunk of every key expression of the project
+
+
+def _key(robot_id: str, stream: str) -> str:
+    return f"{ROOT}/{robot_id}/{stream}"
+
+
+@dataclass(frozen=True)
+class Topics:
+    """Key expressions of one robot (``robot_id`` from ``RobotConfig``)."""
+
+    robot_id: str
+    joint_state: str = field(init=False)  # plant -> controller, JOINT_STATE, 1 kHz
+    tool_pose: str = field(init=False)  # plant -> all, TOOL_POSE, 1 kHz
+    contact: str = field(init=False)  # plant -> controller, CONTACT, 1 kHz
+    objects: str = field(init=False)  # plant -> recorder/operator, OBJECT_POSES
+    joint_command: str = field(init=False)  # controller -> plant, JOINT_COMMAND
+    control_status: str = field(init=False)  # controller -> recorder, CONTROL_STATUS
+    alive_all: str = field(init=False)  # every service's liveliness token
+
+    def __post_init__(self) -> None:
+        if not self.robot_id or any(c in self.robot_id for c in "/*$?#"):
+            raise ValueError(f"robot_id {self.robot_id!r}: non-empty, no '/', '*', '$', '?', '#'")
+        streams = {
+            "joint_state": "state/joints",
+            "tool_pose": "state/tool_pose",
+            "contact": "state/contact",
+            "objects": "state/objects",
+            "joint_command": "cmd/joint_velocity",
+            "control_status": "control/status",
+            "alive_all": "alive/*",
+        }
+        for name, stream in streams.items():
+            object.__setattr__(self, name, _key(self.robot_id, stream))
+
+    @property
+    def all_streams(self) -> str:
+        """Every key of this robot (for a recorder that logs everything)."""
+        return _key(self.robot_id, "**")
+
+    def alive(self, service: str) -> str:
+        """Liveliness token key of one service, e.g. ``teleop/arm0/alive/plant``."""
+        if not service or any(c in service for c in "/*$?#"):
+            raise ValueError(f"service name {service!r}: non-empty, one key chunk")
+        return _key(self.robot_id, f"alive/{service}")
+
+    def service_of(self, alive_key: str) -> str:
+        """The service name of a liveliness key (inverse of :meth:`alive`)."""
+        return str(alive_key).rsplit("/", 1)[-1]

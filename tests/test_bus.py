@@ -1,0 +1,285 @@
+"""Bus layer over real Zenoh sessions in real processes (no mocks).
+
+Each test gets its own free loopback port (multicast scouting is off in every session),
+so concurrent runs cannot see each other. Child processes are spawned (not forked: the
+parent may already run Zenoh threads) and report through a multiprocessing queue.
+Nothing waits on a fixed sleep: liveliness tokens, matching status and first samples.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import queue
+import socket
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+import zenoh
+
+from shm.provider import SHM_THRESHOLD_BYTES, get_provider, took_shm_path
+from teleop import bus
+from teleop import messages as m
+from teleop.config import BusConfig
+from teleop.topics import Topics
+
+TIMEOUT_S = 10.0  # generous bound on any single wait; passing runs take well under 1 s
+ROBOT = "testarm"
+BIG_BYTES = 64 * 1024
+SMALL_BYTES = 64
+RAW_KEY = f"teleop/{ROBOT}/test/raw"  # a test-only stream, not part of the registry
+
+SPAWN = mp.get_context("spawn")
+
+
+def free_endpoint() -> str:
+    """A loopback TCP endpoint on a port the OS just reported free."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    return f"tcp/127.0.0.1:{port}"
+
+
+def _bus(endpoint: str, shm: bool = True) -> BusConfig:
+    return BusConfig(endpoint=endpoint, shm=shm, zenoh_config="local.json5")
+
+
+def _child(fn: Callable[..., None], *args: object) -> None:
+    """Run ``fn(*args)`` in a child, forwarding any exception to the report queue."""
+    report = args[-1]
+    try:
+        fn(*args)
+    except BaseException as exc:  # the parent must see child failures
+        report.put(("error", repr(exc)))
+        raise
+
+
+def _start(fn: Callable[..., None], *args: object) -> mp.process.BaseProcess:
+    proc = SPAWN.Process(target=_child, args=(fn, *args), daemon=True)
+    proc.start()
+    return proc
+
+
+def _get(report: mp.Queue, tag: str) -> tuple:
+    """The next report with ``tag``; fails on a child error or after TIMEOUT_S."""
+    item = report.get(timeout=TIMEOUT_S)
+    assert item[0] != "error", f"child failed: {item[1]}"
+    assert item[0] == tag, item
+    return item
+
+
+def _join(*procs: mp.process.BaseProcess) -> None:
+    for proc in procs:
+        proc.join(TIMEOUT_S)
+        assert proc.exitcode == 0, f"{proc.name} exit code {proc.exitcode}"
+
+
+# --- child process bodies ------------------------------------------------------------------
+
+
+def state_producer(endpoint: str, stop: mp.Event, report: mp.Queue) -> None:
+    """Connect, wait for the consumer, send one bad record and one good JOINT_STATE."""
+    topics = Topics(ROBOT)
+    session = bus.open_session(_bus(endpoint), listen=False)
+    pub = bus.Publisher.declare(session, topics.joint_state, m.JOINT_STATE)
+    token = bus.declare_alive(session, topics, "producer")
+    try:
+        bus.wait_alive(session, topics, ["consumer"], TIMEOUT_S)
+        assert pub.wait_matched(TIMEOUT_S)
+        bad = m.JOINT_STATE.new()
+        bad["q_rad"][0] = np.nan
+        pub.put_bytes(bad.tobytes())
+        rec = m.JOINT_STATE.new()
+        rec["seq"] = 42
+        rec["n_joints"] = 6
+        rec["q_rad"][:6] = np.arange(6) * 0.1
+        rec["t_source_ns"] = time.monotonic_ns()
+        pub.put(rec)
+        report.put(("sent", int(rec["t_source_ns"])))
+        stop.wait(TIMEOUT_S)
+    finally:
+        bus.close_session(session, pub, token)
+
+
+def gossip_peer(endpoint: str, role: str, stop: mp.Event, report: mp.Queue) -> None:
+    """Peer B publishes to peer C; both only know the listener A's endpoint."""
+    topics = Topics(ROBOT)
+    session = bus.open_session(_bus(endpoint), listen=False)
+    entities: list = []
+    try:
+        if role == "C":
+            got = threading.Event()
+            received: list[int] = []
+
+            def on_cmd(rec: np.ndarray, rx_ns: int) -> None:
+                received.append(int(rec["seq"]))
+                got.set()
+
+            drops = m.DropCounter()
+            entities.append(
+                bus.subscribe(session, topics.joint_command, m.JOINT_COMMAND, on_cmd, drops)
+            )
+            entities.append(bus.declare_alive(session, topics, "C"))
+            assert got.wait(TIMEOUT_S), "C got nothing from B"
+            peers = sorted(str(z) for z in session.info.peers_zid())
+            report.put(("C", received[0], str(session.info.zid()), peers))
+        else:
+            pub = bus.Publisher.declare(session, topics.joint_command, m.JOINT_COMMAND)
+            entities.append(pub)
+            entities.append(bus.declare_alive(session, topics, "B"))
+            bus.wait_alive(session, topics, ["C"], TIMEOUT_S)
+            assert pub.wait_matched(TIMEOUT_S)
+            rec = m.JOINT_COMMAND.new()
+            rec["seq"] = 7
+            pub.put(rec)
+            report.put(("B", str(session.info.zid())))
+        stop.wait(TIMEOUT_S)
+    finally:
+        bus.close_session(session, *entities)
+
+
+def early_connector(endpoint: str, stop: mp.Event, report: mp.Queue) -> None:
+    """Start before any listener exists; must keep retrying, then announce itself."""
+    topics = Topics(ROBOT)
+    t0 = time.monotonic()
+    session = bus.open_session(_bus(endpoint), listen=False)
+    token = bus.declare_alive(session, topics, "early")
+    report.put(("opened", time.monotonic() - t0))
+    try:
+        stop.wait(TIMEOUT_S)
+    finally:
+        bus.close_session(session, token)
+
+
+def raw_sink(endpoint: str, shm: bool, n_expected: int, report: mp.Queue) -> None:
+    """Report (size, took_shm_path) of each raw sample on the test key."""
+    topics = Topics(ROBOT)
+    session = bus.open_session(_bus(endpoint, shm=shm), listen=False)
+    samples: queue.Queue = queue.Queue()
+    sub = session.declare_subscriber(RAW_KEY, samples.put)
+    token = bus.declare_alive(session, topics, "sink")
+    try:
+        for _ in range(n_expected):
+            sample = samples.get(timeout=TIMEOUT_S)
+            report.put(("sample", len(sample.payload), took_shm_path(sample)))
+    finally:
+        bus.close_session(session, sub, token)
+
+
+# --- tests ---------------------------------------------------------------------------------
+
+
+def test_record_crosses_processes_and_bad_record_is_dropped():
+    endpoint = free_endpoint()
+    topics = Topics(ROBOT)
+    session = bus.open_session(_bus(endpoint), listen=True)
+    latest = bus.Latest()
+    drops = m.DropCounter()
+    sub = bus.subscribe(session, topics.joint_state, m.JOINT_STATE, latest, drops)
+    token = bus.declare_alive(session, topics, "consumer")
+    stop, report = SPAWN.Event(), SPAWN.Queue()
+    proc = _start(state_producer, endpoint, stop, report)
+    try:
+        got = latest.wait_newer(-1, TIMEOUT_S)
+        assert got is not None
+        rec, rx_ns = got
+        assert int(rec["seq"]) == 42 and int(rec["n_joints"]) == 6
+        np.testing.assert_allclose(rec["q_rad"][:6], np.arange(6) * 0.1)
+        _, t_source_ns = _get(report, "sent")
+        assert rx_ns >= t_source_ns  # one host, one monotonic clock
+        assert drops.counts() == {(int(m.Kind.JOINT_STATE), m.Reason.NON_FINITE.value): 1}
+        assert latest.wait_newer(42, 0.0) is None
+    finally:
+        stop.set()
+        _join(proc)
+        bus.close_session(session, sub, token)
+        bus.close_session(session, sub, token)  # twice is fine
+    assert session.is_closed()
+
+
+def test_peers_connecting_to_one_listener_reach_each_other_directly():
+    """A listens; B and C only connect to A. B's command must reach C over a B-C link."""
+    endpoint = free_endpoint()
+    a = bus.open_session(_bus(endpoint), listen=True)
+    stop, report = SPAWN.Event(), SPAWN.Queue()
+    c = _start(gossip_peer, endpoint, "C", stop, report)
+    b = _start(gossip_peer, endpoint, "B", stop, report)
+    try:
+        results = {}
+        for _ in range(2):
+            item = report.get(timeout=TIMEOUT_S)
+            assert item[0] != "error", item
+            results[item[0]] = item
+        _, seq, c_zid, c_peers = results["C"]
+        _, b_zid = results["B"]
+        assert seq == 7
+        assert b_zid in c_peers, "C has no direct link to B"
+        assert str(a.info.zid()) in c_peers
+    finally:
+        stop.set()
+        _join(b, c)
+        bus.close_session(a)
+
+
+def test_connecting_peer_started_before_listener_keeps_retrying():
+    endpoint = free_endpoint()
+    topics = Topics(ROBOT)
+    stop, report = SPAWN.Event(), SPAWN.Queue()
+    proc = _start(early_connector, endpoint, stop, report)
+    _get(report, "opened")  # its session is open and nobody listens yet
+    session = bus.open_session(_bus(endpoint), listen=True)
+    try:
+        bus.wait_alive(session, topics, ["early"], TIMEOUT_S)
+    finally:
+        stop.set()
+        _join(proc)
+        bus.close_session(session)
+
+
+def test_wait_alive_names_missing_services():
+    endpoint = free_endpoint()
+    topics = Topics(ROBOT)
+    session = bus.open_session(_bus(endpoint), listen=True)
+    token = bus.declare_alive(session, topics, "plant")
+    try:
+        bus.wait_alive(session, topics, ["plant"], TIMEOUT_S)
+        with pytest.raises(TimeoutError, match="controller, haptic"):
+            bus.wait_alive(session, topics, ["plant", "haptic", "controller"], 0.05)
+    finally:
+        bus.close_session(session, token)
+
+
+@pytest.mark.parametrize("shm", [True, False], ids=["shm", "noshm"])
+def test_payload_path_shm_above_threshold_inline_below(shm: bool):
+    assert SMALL_BYTES < SHM_THRESHOLD_BYTES <= BIG_BYTES
+    endpoint = free_endpoint()
+    topics = Topics(ROBOT)
+    config = _bus(endpoint, shm=shm)
+    session = bus.open_session(config, listen=True)
+    report = SPAWN.Queue()
+    proc = _start(raw_sink, endpoint, shm, 2, report)
+    # The publisher always offers SHM buffers for big payloads; the session config decides.
+    provider = get_provider(config.shm_pool_bytes)
+    pub = bus.Publisher.declare(session, RAW_KEY, m.JOINT_STATE, shm=provider)
+    try:
+        bus.wait_alive(session, topics, ["sink"], TIMEOUT_S)
+        assert pub.wait_matched(TIMEOUT_S)
+        pub.put_bytes(bytes(range(256)) * (BIG_BYTES // 256))
+        pub.put_bytes(b"\x01" * SMALL_BYTES)
+        got = [_get(report, "sample")[1:] for _ in range(2)]
+        assert got == [(BIG_BYTES, shm), (SMALL_BYTES, False)]
+    finally:
+        _join(proc)
+        bus.close_session(session, pub)
+
+
+def test_close_session_is_idempotent_and_tolerates_none():
+    session = bus.open_session(_bus(free_endpoint()), listen=True)
+    pub = session.declare_publisher("teleop/testarm/x")
+    bus.close_session(session, pub, None)
+    bus.close_session(session, pub, None)
+    bus.close_session(None)
+    assert session.is_closed()
+    assert isinstance(session, zenoh.Session)
