@@ -17,7 +17,7 @@ import os
 import sys
 from pathlib import Path
 
-from teleop.config import Config, ConfigError, load_config
+from teleop.config import ConfigError, load_config
 from teleop.kinematics import ModelError
 
 SCENARIOS = ("path-following",)
@@ -87,13 +87,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _config_from(args: argparse.Namespace) -> Config:
+def _overrides(args: argparse.Namespace) -> list[str]:
+    """The user's --set list, with the shorthand flags turned into their --set form."""
     overrides = list(args.overrides)
     if getattr(args, "duration", None) is not None:
         overrides.append(f"run.duration_s={args.duration}")
     if getattr(args, "seed", None) is not None:
         overrides.append(f"run.seed={args.seed}")
-    return load_config(args.config, overrides)
+    return overrides
 
 
 def _emit_summary(summary: dict[str, object], path: Path | None) -> None:
@@ -107,19 +108,30 @@ def _emit_summary(summary: dict[str, object], path: Path | None) -> None:
 def _run(args: argparse.Namespace) -> int:
     from teleop import experiments
 
-    config = _config_from(args)
-    progress = None if args.quiet else experiments.print_progress
+    overrides = _overrides(args)
     if args.inprocess:
         if args.rrd is not None:
             raise ConfigError("--rrd needs the services run (drop --inprocess)")
-        print(
-            f"path following in-process: {config.run.duration_s:g} s simulated, "
-            f"seed {config.run.seed}",
-            file=sys.stderr,
-        )
+    else:
+        overrides.append(f'run.mode="{args.mode}"')
+        if args.rrd is not None:
+            overrides.append(f'recorder.rrd_path="{args.rrd.absolute()}"')
+    config = load_config(args.config, overrides)
+    progress = None if args.quiet else experiments.print_progress
+    where = "in process" if args.inprocess else f"on services, {config.run.mode}"
+    print(
+        f"{args.scenario} {where}: {config.run.duration_s:g} s simulated, seed {config.run.seed}",
+        file=sys.stderr,
+    )
+    if args.inprocess:
         summary = experiments.run_path_following_inprocess(config, progress=progress)
     else:
-        raise ConfigError("services runs are not available yet: use --inprocess")
+        from teleop.stack import run_on_services
+
+        print(f"  logs and summaries in {args.run_dir}", file=sys.stderr)
+        summary = run_on_services(
+            config, args.config, overrides, args.scenario, args.run_dir, progress
+        )
     _emit_summary(summary, args.summary_json)
     return 0
 

@@ -107,9 +107,14 @@ class PlantConfig:
     timestep_s: float = 0.001
     # A command older than this makes the plant brake to zero joint velocity.
     watchdog_s: float = 0.020
+    # Rate of the scene streams (tool pose, contact force, object poses); joint state is 1/step.
+    scene_rate_hz: float = 100.0
 
     def __post_init__(self) -> None:
         _require(0 < self.timestep_s <= 0.01, "plant.timestep_s in (0, 0.01]")
+        _require(
+            0 < self.scene_rate_hz <= 1 / self.timestep_s, "plant.scene_rate_hz in (0, 1/timestep]"
+        )
         _require(self.watchdog_s >= self.timestep_s, "plant.watchdog_s >= plant.timestep_s")
 
 
@@ -193,11 +198,31 @@ class BusConfig:
 
 
 @dataclass(frozen=True)
+class RecorderConfig:
+    """The Rerun recorder service."""
+
+    # Recording file; empty = <run dir>/recording.rrd.
+    rrd_path: str = ""
+    # Also open the native Rerun viewer (never in tests or CI).
+    spawn: bool = False
+    # Buffered samples are sent to Rerun in columns this often (s).
+    flush_period_s: float = 0.1
+
+    def __post_init__(self) -> None:
+        _require(0 < self.flush_period_s <= 5, "recorder.flush_period_s in (0, 5]")
+
+
+TIMING_MODES = ("realtime", "lockstep")
+
+
+@dataclass(frozen=True)
 class RunConfig:
     """A scenario run: how long, which seed, when the accuracy measurement starts."""
 
     duration_s: float = 60.0
     seed: int = 0
+    # realtime: the plant keeps wall-clock time; lockstep: one step per controller command.
+    mode: str = "realtime"
     settle_s: float = 10.0
     # Initial arm configuration (rad), one per arm joint; empty = robot.home_q_rad.
     initial_q_rad: tuple[float, ...] = ()
@@ -206,6 +231,7 @@ class RunConfig:
 
     def __post_init__(self) -> None:
         _require(self.duration_s > 0, "run.duration_s > 0")
+        _require(self.mode in TIMING_MODES, f"run.mode: one of {', '.join(TIMING_MODES)}")
         _require(0 <= self.settle_s, "run.settle_s >= 0")
         _require(self.initial_q_noise_rad >= 0, "run.initial_q_noise_rad >= 0")
 
@@ -217,6 +243,7 @@ class Config:
     path: PathConfig = field(default_factory=PathConfig)
     control: ControlConfig = field(default_factory=ControlConfig)
     bus: BusConfig = field(default_factory=BusConfig)
+    recorder: RecorderConfig = field(default_factory=RecorderConfig)
     run: RunConfig = field(default_factory=RunConfig)
 
 

@@ -15,6 +15,7 @@ from the MJCF actuators (see ``kinematics.ServoParameters``):
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,9 +23,8 @@ import numpy as np
 from teleop.config import ControlConfig, PathConfig
 from teleop.kinematics import (
     ArmModel,
-    joint_space_dynamics,
-    manipulability,
-    manipulability_gradient,
+    inverse_dynamics,
+    manipulability_and_gradient,
     tool_position_and_jacobian,
 )
 
@@ -51,21 +51,27 @@ class DesiredPath:
 
     def point(self, s: float) -> np.ndarray:
         """P(s) in m, world frame."""
-        return self.center_m + np.array(
-            [
-                self.radius_m * np.sin(self.omega * s),
-                self.radius_m * np.cos(self.omega * s),
-                self.z_amplitude_m * np.sin(self.z_omega * s),
-            ]
+        return np.array(self._point(s))
+
+    def _point(self, s: float) -> tuple[float, float, float]:
+        c = self.center_m
+        return (
+            self.radius_m * math.sin(self.omega * s) + c[0],
+            self.radius_m * math.cos(self.omega * s) + c[1],
+            self.z_amplitude_m * math.sin(self.z_omega * s) + c[2],
         )
 
     def derivatives(self, s: float) -> tuple[np.ndarray, np.ndarray]:
         """(dP/ds, d2P/ds2) at s."""
+        first, second = self._derivatives(s)
+        return np.array(first), np.array(second)
+
+    def _derivatives(self, s: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
         r, w, a, wz = self.radius_m, self.omega, self.z_amplitude_m, self.z_omega
-        first = np.array([r * w * np.cos(w * s), -r * w * np.sin(w * s), a * wz * np.cos(wz * s)])
-        second = np.array(
-            [-r * w * w * np.sin(w * s), -r * w * w * np.cos(w * s), -a * wz * wz * np.sin(wz * s)]
-        )
+        sin_ws, cos_ws = math.sin(w * s), math.cos(w * s)
+        sin_wzs, cos_wzs = math.sin(wz * s), math.cos(wz * s)
+        first = (r * w * cos_ws, -r * w * sin_ws, a * wz * cos_wzs)
+        second = (-r * w * w * sin_ws, -r * w * w * cos_ws, -a * wz * wz * sin_wzs)
         return first, second
 
     def closest_global(self, p_m: np.ndarray) -> float:
@@ -76,15 +82,21 @@ class DesiredPath:
         return self.closest_local(p_m, s0)
 
     def closest_local(self, p_m: np.ndarray, s_guess: float) -> float:
-        """Refine the closest point near ``s_guess`` (Newton on (P(s) - p) . P'(s) = 0)."""
+        """Refine the closest point near ``s_guess`` (Newton on (P(s) - p) . P'(s) = 0).
+
+        Scalar arithmetic on purpose: this runs every control cycle, and three small
+        numpy arrays per iteration cost more than the math itself.
+        """
+        px, py, pz = (float(v) for v in p_m)
         s = s_guess
         for _ in range(NEWTON_ITERATIONS):
-            diff = self.point(s) - p_m
-            first, second = self.derivatives(s)
-            slope = first @ first + diff @ second
+            x, y, z = self._point(s)
+            dx, dy, dz = x - px, y - py, z - pz
+            (f1, f2, f3), (g1, g2, g3) = self._derivatives(s)
+            slope = f1 * f1 + f2 * f2 + f3 * f3 + dx * g1 + dy * g2 + dz * g3
             if slope <= 0:
                 break
-            s -= (diff @ first) / slope
+            s -= (dx * f1 + dy * f2 + dz * f3) / slope
         return s
 
 
@@ -122,10 +134,9 @@ def dynamic_compensation(
     velocity_gain_per_s: float,
 ) -> np.ndarray:
     """q'_ref such that the velocity loops make q' follow q'_c despite the arm's dynamics."""
-    mass, coriolis, gravity = joint_space_dynamics(arm, q_rad, qd_rad_s)
     servo = arm.servo
     qdd_ref = qdd_c_rad_s2 + velocity_gain_per_s * (qd_c_rad_s - qd_rad_s)
-    torque = mass @ qdd_ref + coriolis + gravity + servo.damping_nms_per_rad * qd_rad_s
+    torque = inverse_dynamics(arm, q_rad, qd_rad_s, qdd_ref) + servo.damping_nms_per_rad * qd_rad_s
     return qd_rad_s + torque / servo.kv_nms_per_rad
 
 
@@ -171,9 +182,8 @@ class PathFollowingController:
 
         j_pinv = damped_pseudo_inverse(jv, ctl.damping_m)
         null_projector = np.eye(self.arm.n_joints) - j_pinv @ jv
-        qd_c = j_pinv @ v_task + null_projector @ (
-            ctl.null_space_gain * manipulability_gradient(jacobian)
-        )
+        w, w_gradient = manipulability_and_gradient(jacobian)
+        qd_c = j_pinv @ v_task + null_projector @ (ctl.null_space_gain * w_gradient)
         qd_c = limit_speed(qd_c, self.max_speed_rad_s)
 
         if ctl.compensation:
@@ -191,6 +201,6 @@ class PathFollowingController:
             tool_p_m=tool_p,
             desired_p_m=desired_p,
             path_error_m=error_norm,
-            manipulability=manipulability(jv),
+            manipulability=w,
             path_s=self._s,
         )

@@ -135,8 +135,8 @@ def manipulability(jacobian_position: np.ndarray) -> float:
     return float(np.sqrt(max(det, 0.0)))
 
 
-def manipulability_gradient(jacobian: np.ndarray) -> np.ndarray:
-    """Gradient dw/dq (n,) of the position manipulability, exact for revolute chains.
+def manipulability_and_gradient(jacobian: np.ndarray) -> tuple[float, np.ndarray]:
+    """w = sqrt(det(Jv Jv^T)) and its gradient dw/dq (n,), exact for revolute chains.
 
     Uses the Jacobian's own columns: for a revolute chain with joint axes z_i
     (angular rows) and position columns v_i, dv_i/dq_k = z_k x v_i when k <= i and
@@ -147,12 +147,33 @@ def manipulability_gradient(jacobian: np.ndarray) -> np.ndarray:
     jjt = jv @ jv.T
     w = float(np.sqrt(max(np.linalg.det(jjt), 0.0)))
     if w == 0.0:
-        return np.zeros(n)
+        return w, np.zeros(n)
     a_inv_j = np.linalg.solve(jjt, jv)  # (3, n): (J J^T)^-1 J
-    cross = np.cross(z.T[:, None, :], jv.T[None, :, :])  # (n, n, 3): z_a x v_b
-    k_le_i = np.triu(np.ones((n, n), dtype=bool))[:, :, None]
-    d_jacobian = np.where(k_le_i, cross, cross.transpose(1, 0, 2))  # [k, i] = dv_i/dq_k
-    return w * np.einsum("ri,kir->k", a_inv_j, d_jacobian)
+    upper = _upper_triangle_mask(n)
+    grad = np.zeros(n)
+    # Component r of z_a x v_b for all (a, b) at once: z[r1, a] v[r2, b] - z[r2, a] v[r1, b].
+    for r, (r1, r2) in enumerate(((1, 2), (2, 0), (0, 1))):
+        cross_r = np.outer(z[r1], jv[r2]) - np.outer(z[r2], jv[r1])  # [a, b]: (z_a x v_b)_r
+        d_jacobian_r = np.where(upper, cross_r, cross_r.T)  # [k, i]: (dv_i/dq_k)_r
+        grad += d_jacobian_r @ a_inv_j[r]
+    return w, w * grad
+
+
+def _upper_triangle_mask(n: int) -> np.ndarray:
+    mask = _UPPER_MASKS.get(n)
+    if mask is None:
+        mask = _UPPER_MASKS[n] = np.triu(np.ones((n, n), dtype=bool))
+    return mask
+
+
+_UPPER_MASKS: dict[int, np.ndarray] = {}
+
+
+def inverse_dynamics(
+    arm: ArmModel, q_rad: np.ndarray, qd_rad_s: np.ndarray, qdd_rad_s2: np.ndarray
+) -> np.ndarray:
+    """tau = M0(q) q'' + c0(q, q') + g0(q) (N m), one recursive Newton-Euler pass."""
+    return pin.rnea(arm.model, arm.data, q_rad, qd_rad_s, qdd_rad_s2)
 
 
 def joint_space_dynamics(

@@ -61,6 +61,7 @@ class Kind(enum.IntEnum):
     CONTACT = 4
     OBJECT_POSES = 5
     CONTROL_STATUS = 6
+    RUN_EVENT = 7
 
 
 class Stage(enum.IntEnum):
@@ -85,6 +86,15 @@ class Flag(enum.IntFlag):
 
     NONE = 0
     BRAKING = 1 << 0  # JOINT_STATE: the plant's command watchdog is braking the arm
+
+
+class Event(enum.IntEnum):
+    """What a RUN_EVENT record announces; wire values are stable, never reuse one."""
+
+    STARTED = 1  # the plant began a run (state seq and step restart at 0)
+    FINISHED = 2  # the plant completed the run's duration and holds the arm
+    WATCHDOG_BRAKE = 3  # commands went stale: the plant brakes and holds
+    WATCHDOG_RESUME = 4  # fresh commands again: the plant follows them
 
 
 class Reason(enum.StrEnum):
@@ -386,9 +396,27 @@ CONTROL_STATUS = Schema(
     ],
 )
 
+RUN_EVENT = Schema(
+    Kind.RUN_EVENT,
+    [
+        _sim_time(),
+        Field("step", "u8", doc="plant physics step at the event"),
+        Field("value", "f8", doc="event-specific number (e.g. stale command age, s)"),
+        Field("event", "u2", lo=min(Event), hi=max(Event), doc="Event"),
+    ],
+)
+
 SCHEMAS: Mapping[Kind, Schema] = {
     s.kind: s
-    for s in (JOINT_STATE, JOINT_COMMAND, TOOL_POSE, CONTACT, OBJECT_POSES, CONTROL_STATUS)
+    for s in (
+        JOINT_STATE,
+        JOINT_COMMAND,
+        TOOL_POSE,
+        CONTACT,
+        OBJECT_POSES,
+        CONTROL_STATUS,
+        RUN_EVENT,
+    )
 }
 
 

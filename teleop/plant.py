@@ -77,8 +77,20 @@ class Plant:
         self.object_bodies = np.array(
             [lookup(mujoco.mjtObj.mjOBJ_BODY, n) for n in robot.object_bodies], dtype=int
         )
+        # The gripper: every body in the subtree of the tool site's body (palm and fingers).
+        gripper_root = self.model.site_bodyid[self.tool_site]
+        self.gripper_bodies = {
+            b for b in range(self.model.nbody) if self._in_subtree(b, gripper_root)
+        }
         self.step_count = 0
         self._hold_q_rad: np.ndarray | None = None
+
+    def _in_subtree(self, body: int, root: int) -> bool:
+        while body != 0:
+            if body == root:
+                return True
+            body = self.model.body_parentid[body]
+        return root == 0
 
     @property
     def n_joints(self) -> int:
@@ -137,6 +149,35 @@ class Plant:
         quat = np.empty(4)
         mujoco.mju_mat2Quat(quat, self.data.site_xmat[self.tool_site])
         return position, quat
+
+    def gripper_contact_force(self) -> tuple[np.ndarray, int]:
+        """Total contact force on the gripper (N, world frame) and the number of contacts.
+
+        MuJoCo's contact frame has its normal pointing from geom1 to geom2 and
+        ``mj_contactForce`` gives the force geom1 exerts on geom2 in that frame.
+        """
+        total = np.zeros(3)
+        wrench = np.zeros(6)
+        count = 0
+        geom_body = self.model.geom_bodyid
+        for i in range(self.data.ncon):
+            contact = self.data.contact[i]
+            on_geom2 = geom_body[contact.geom2] in self.gripper_bodies
+            on_geom1 = geom_body[contact.geom1] in self.gripper_bodies
+            if on_geom1 == on_geom2:  # not the gripper's, or gripper against itself
+                continue
+            mujoco.mj_contactForce(self.model, self.data, i, wrench)
+            force_world = contact.frame.reshape(3, 3).T @ wrench[:3]
+            total += force_world if on_geom2 else -force_world
+            count += 1
+        return total, count
+
+    def object_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (k, 3) in m and wxyz quaternions (k, 4) of RobotConfig.object_bodies."""
+        return (
+            self.data.xpos[self.object_bodies].copy(),
+            self.data.xquat[self.object_bodies].copy(),
+        )
 
     def tool_jacobian(self) -> np.ndarray:
         """MuJoCo's own (3, n) position Jacobian of the tool site, for cross-checks."""

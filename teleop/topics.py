@@ -26,6 +26,7 @@ class Topics:
     objects: str = field(init=False)  # plant -> recorder/operator, OBJECT_POSES
     joint_command: str = field(init=False)  # controller -> plant, JOINT_COMMAND
     control_status: str = field(init=False)  # controller -> recorder, CONTROL_STATUS
+    events: str = field(init=False)  # plant -> all, RUN_EVENT (start, finish, watchdog)
     alive_all: str = field(init=False)  # every service's liveliness token
 
     def __post_init__(self) -> None:
@@ -38,6 +39,7 @@ class Topics:
             "objects": "state/objects",
             "joint_command": "cmd/joint_velocity",
             "control_status": "control/status",
+            "events": "events",
             "alive_all": "alive/*",
         }
         for name, stream in streams.items():

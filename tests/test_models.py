@@ -10,8 +10,9 @@ from teleop.kinematics import (
     ModelError,
     build_arm_model,
     joint_space_dynamics,
+    inverse_dynamics,
     manipulability,
-    manipulability_gradient,
+    manipulability_and_gradient,
     tool_position_and_jacobian,
 )
 from teleop.plant import Plant
@@ -55,6 +56,12 @@ def test_dynamics_match_mujoco(any_arm_config):
         np.testing.assert_allclose(mass, full_mass[np.ix_(dofs, dofs)], atol=1e-9, rtol=1e-9)
         np.testing.assert_allclose(gravity, data.qfrc_bias[dofs], atol=1e-9, rtol=1e-9)
         np.testing.assert_allclose(coriolis, 0.0, atol=1e-12)
+        qd = np.linspace(-1.0, 1.0, len(q))
+        qdd = np.linspace(0.5, -0.5, len(q))
+        mass, coriolis, gravity = joint_space_dynamics(arm, q, qd)
+        np.testing.assert_allclose(
+            inverse_dynamics(arm, q, qd, qdd), mass @ qdd + coriolis + gravity, atol=1e-9
+        )
 
 
 def test_manipulability_gradient_matches_finite_differences(any_arm_config):
@@ -63,7 +70,8 @@ def test_manipulability_gradient_matches_finite_differences(any_arm_config):
     rng = np.random.default_rng(3)
     for q in rng.uniform(-2.0, 2.0, size=(10, arm.n_joints)):
         _, jacobian = tool_position_and_jacobian(arm, q)
-        analytic = manipulability_gradient(jacobian)
+        w, analytic = manipulability_and_gradient(jacobian)
+        assert w == manipulability(jacobian[:3])
         numeric = np.empty(arm.n_joints)
         for k in range(arm.n_joints):
             dq = np.zeros(arm.n_joints)

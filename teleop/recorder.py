@@ -1,0 +1,505 @@
+"""The recorder service: every stream of a robot, logged to Rerun in columns.
+
+Zenoh callbacks only copy the record's bytes into a bounded per-stream buffer; the
+service thread swaps the buffers every ``recorder.flush_period_s`` and sends each
+stream to Rerun with ``send_columns`` (one call per entity per flush, never one per
+sample), so a 1 kHz stream costs a few Rerun calls per flush, not a thousand.
+
+Every sample is logged at its own time, never at its arrival time:
+
+- ``sim_time`` (duration): the record's ``sim_time_ns`` (plant simulation time), for
+  every kind that carries it (all but JOINT_COMMAND);
+- ``source_time`` (duration): the header's ``t_source_ns``, the producer's monotonic
+  clock, for every record.
+
+The entity paths below are an API: the blueprint and the tests look them up by name.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+import rerun as rr
+import zenoh
+
+from teleop.bus import subscribe
+from teleop.config import Config, ConfigError
+from teleop.messages import (
+    CONTACT,
+    CONTROL_STATUS,
+    JOINT_COMMAND,
+    JOINT_STATE,
+    MAX_JOINTS,
+    MAX_OBJECTS,
+    OBJECT_POSES,
+    RUN_EVENT,
+    TOOL_POSE,
+    Event,
+    Schema,
+)
+from teleop.service import Service, ServiceOptions
+
+logger = logging.getLogger(__name__)
+
+APPLICATION_ID = "zenoh-teleop"  # Rerun application id: the viewer groups recordings by it
+RRD_FILE_NAME = "recording.rrd"  # in the run directory when recorder.rrd_path is empty
+
+# --- Timelines ------------------------------------------------------------------------------
+TIMELINE_SIM = "sim_time"  # duration timeline from sim_time_ns
+TIMELINE_SOURCE = "source_time"  # duration timeline from the header's t_source_ns
+
+# --- Entity paths (an API: the blueprint and tests use these names) -------------------------
+ENTITY_JOINT_Q = "robot/joints/q_rad"  # + /<joint name>, Scalars
+ENTITY_JOINT_QD = "robot/joints/qd_rad_s"  # + /<joint name>, Scalars
+ENTITY_GRIPPER_OPENING = "robot/gripper_opening_m"  # Scalars
+ENTITY_CONTACT_FORCE = "robot/contact_force_n"  # + /x, /y, /z, Scalars (world frame)
+ENTITY_CONTACT_COUNT = "robot/n_contacts"  # Scalars
+ENTITY_QD_REF = "control/qd_ref_rad_s"  # + /<joint name>, Scalars (JOINT_COMMAND)
+ENTITY_GRIPPER_CMD = "control/gripper_cmd"  # Scalars, 0 closed .. 1 open
+ENTITY_PATH_ERROR = "control/path_error_m"  # Scalars
+ENTITY_MANIPULABILITY = "control/manipulability"  # Scalars
+ENTITY_PATH_S = "control/path_s"  # Scalars
+ENTITY_DESIRED_P = "control/desired_p_m"  # + /x, /y, /z, Scalars (world frame)
+ENTITY_TOOL_P = "control/tool_p_m"  # + /x, /y, /z, Scalars (world frame)
+ENTITY_TOOL = "world/tool"  # Transform3D: world_T_tool
+ENTITY_TOOL_TRACE = "world/tool_trace"  # LineStrips3D of recent tool positions
+ENTITY_OBJECTS = "world/objects"  # + /<body name>, Transform3D: world_T_object
+ENTITY_EVENTS = "events"  # TextLog, "<EVENT NAME> at step <step>"
+ENTITY_STATS = "recorder/stats"  # TextDocument (JSON), static, written at close
+AXES = ("x", "y", "z")  # suffixes of the per-coordinate scalar entities
+
+
+def joint_entity(base: str, joint_name: str) -> str:
+    """Entity of one joint's scalar series, e.g. ``robot/joints/q_rad/elbow``."""
+    return f"{base}/{joint_name}"
+
+
+def axis_entity(base: str, axis: str) -> str:
+    """Entity of one coordinate's scalar series, e.g. ``control/tool_p_m/x``."""
+    return f"{base}/{axis}"
+
+
+def object_entity(body_name: str) -> str:
+    """Entity of one object's pose, e.g. ``world/objects/cube``."""
+    return f"{ENTITY_OBJECTS}/{body_name}"
+
+
+# --- Tuning -------------------------------------------------------------------------------
+# Per-stream buffer bound (records): 20 s of a 1 kHz stream, about 6 MB of JOINT_STATE.
+# A flush that falls further behind drops the oldest records and counts them.
+BUFFER_CAPACITY_RECORDS = 20_000
+# The tool trace keeps one point per this much sim time (ns) ...
+TOOL_TRACE_PERIOD_NS = 20_000_000
+# ... and at most this many points (10 s of motion at the period above).
+TOOL_TRACE_MAX_POINTS = 500
+# Length of the axes drawn at the tool and object frames (m).
+FRAME_AXIS_LENGTH_M = 0.05
+# How long close() waits for Rerun to write the last chunks to the file (s).
+RRD_FLUSH_TIMEOUT_S = 10.0
+# TextLog level of each run event; the watchdog braking is worth a warning.
+LEVEL_INFO = "INFO"  # Rerun TextLog level names
+LEVEL_WARN = "WARN"
+EVENT_LEVELS: Mapping[Event, str] = {
+    Event.STARTED: LEVEL_INFO,
+    Event.FINISHED: LEVEL_INFO,
+    Event.WATCHDOG_BRAKE: LEVEL_WARN,
+    Event.WATCHDOG_RESUME: LEVEL_INFO,
+}
+
+# Every stream of the Topics registry with its schema; the name is the Topics attribute
+# and the key of the per-stream counters in the summary.
+STREAM_SCHEMAS: Mapping[str, Schema] = {
+    "joint_state": JOINT_STATE,
+    "tool_pose": TOOL_POSE,
+    "contact": CONTACT,
+    "objects": OBJECT_POSES,
+    "joint_command": JOINT_COMMAND,
+    "control_status": CONTROL_STATUS,
+    "events": RUN_EVENT,
+}
+
+
+def wxyz_to_xyzw(q_wxyz: np.ndarray) -> np.ndarray:
+    """Quaternions (..., 4) from the wire order (w, x, y, z) to Rerun's (x, y, z, w)."""
+    return q_wxyz[..., [1, 2, 3, 0]]
+
+
+def event_text(event: int, step: int, value: float) -> str:
+    """One TextLog line of a RUN_EVENT, e.g. ``WATCHDOG_BRAKE at step 123 (value 0.021)``."""
+    try:
+        name = Event(event).name
+    except ValueError:  # a newer producer's event: keep the number rather than drop it
+        name = f"EVENT_{event}"
+    text = f"{name} at step {step}"
+    return f"{text} (value {value:g})" if value else text
+
+
+class StreamBuffer:
+    """Bounded FIFO of one stream's records, filled by a Zenoh callback.
+
+    The callback copies the record's bytes (``tobytes``: the received record is a
+    read-only view) and appends under the shared lock, nothing more. ``take`` swaps the
+    FIFO out and turns it into one structured array of shape (N,) with a single
+    ``frombuffer``, ready for column slicing. When full, the oldest record is dropped
+    and counted, so memory stays bounded if flushing falls behind.
+    """
+
+    def __init__(self, schema: Schema, capacity: int, cond: threading.Condition) -> None:
+        if capacity <= 0:
+            raise ValueError("StreamBuffer capacity must be positive")
+        self.schema = schema
+        self.capacity = capacity
+        self._cond = cond
+        self._items: deque[bytes] = deque(maxlen=capacity)
+        self.received = 0  # records handed to the callback since creation
+        self.overflow = 0  # records dropped because the buffer was full
+
+    def __call__(self, rec: np.ndarray, rx_ns: int) -> None:
+        data = rec.tobytes()
+        with self._cond:
+            if len(self._items) == self.capacity:
+                self.overflow += 1
+            self._items.append(data)
+            self.received += 1
+            self._cond.notify_all()
+
+    def take(self) -> np.ndarray:
+        """Every buffered record, oldest first, as a read-only (N,) structured array."""
+        with self._cond:
+            items = self._items
+            self._items = deque(maxlen=self.capacity)
+        return np.frombuffer(b"".join(items), dtype=self.schema.dtype)
+
+
+class RecorderService(Service):
+    """Subscribes to every stream of the robot and logs it to a Rerun recording.
+
+    The recording is its own ``RecordingStream`` (no global Rerun state), saved to
+    ``recorder.rrd_path`` or ``<run_dir>/recording.rrd``, and streamed to a spawned
+    native viewer as well when ``recorder.spawn`` is set.
+    """
+
+    name: ClassVar[str] = "recorder"
+
+    def __init__(
+        self,
+        config: Config,
+        options: ServiceOptions | None = None,
+        *,
+        buffer_capacity: int = BUFFER_CAPACITY_RECORDS,
+    ) -> None:
+        super().__init__(config, options)
+        self.rrd_path = self._resolve_rrd_path()
+        self._cond = threading.Condition()
+        self._buffers = {
+            name: StreamBuffer(schema, buffer_capacity, self._cond)
+            for name, schema in STREAM_SCHEMAS.items()
+        }
+        self._writers: Mapping[str, Callable[[np.ndarray], None]] = {
+            "joint_state": self._write_joint_state,
+            "tool_pose": self._write_tool_pose,
+            "contact": self._write_contact,
+            "objects": self._write_objects,
+            "joint_command": self._write_joint_command,
+            "control_status": self._write_control_status,
+            "events": self._write_events,
+        }
+        self._joint_names: Sequence[str] = config.robot.arm_joints[:MAX_JOINTS]
+        self._object_names: Sequence[str] = config.robot.object_bodies[:MAX_OBJECTS]
+        self._rec: rr.RecordingStream | None = None
+        self._subscribers: list[zenoh.Subscriber] = []
+        self._recording_closed = False
+        self._logged = dict.fromkeys(STREAM_SCHEMAS, 0)
+        self._flushes = 0
+        self._flush_wall_s_max = 0.0
+        self._flush_wall_s_total = 0.0
+        self._rerun_errors = 0
+        self._rerun_error_logged: set[str] = set()
+        self._trace: deque[np.ndarray] = deque(maxlen=TOOL_TRACE_MAX_POINTS)
+        self._trace_bucket: int | None = None  # sim-time bucket of the newest trace point
+        self._cpu_start_s = time.process_time()
+        self._wall_start_ns = time.monotonic_ns()
+
+    def _resolve_rrd_path(self) -> Path:
+        if self.config.recorder.rrd_path:
+            return Path(self.config.recorder.rrd_path)
+        if self.options.run_dir is not None:
+            return self.options.run_dir / RRD_FILE_NAME
+        raise ConfigError("recorder.rrd_path is empty and no --run-dir was given")
+
+    # -- lifecycle ---------------------------------------------------------------------
+    def open(self) -> None:
+        """Open the session and the recording, subscribe to every stream, then announce.
+
+        The liveliness token comes last, so a producer that waits for it knows that
+        nothing it publishes from then on is missed. On failure, everything opened so
+        far is closed again (``__exit__`` does not run when ``__enter__`` raises).
+        """
+        try:
+            super().open()
+            assert self.session is not None
+            self._rec = self._open_recording()
+            for name, schema in STREAM_SCHEMAS.items():
+                key = getattr(self.topics, name)
+                sub = subscribe(self.session, key, schema, self._buffers[name], self.drops)
+                self._subscribers.append(self.keep(sub))
+            self.announce()
+        except BaseException:
+            self.close()
+            raise
+
+    def _open_recording(self) -> rr.RecordingStream:
+        self.rrd_path.parent.mkdir(parents=True, exist_ok=True)
+        rec = rr.RecordingStream(APPLICATION_ID)
+        if self.config.recorder.spawn:
+            rec.spawn(connect=False)
+            rec.set_sinks(rr.GrpcSink(), rr.FileSink(self.rrd_path))
+        else:
+            rec.save(self.rrd_path)
+        # Frames are drawn as axes; these are static and never change during a run.
+        for entity in (ENTITY_TOOL, *(object_entity(n) for n in self._object_names)):
+            rec.log(entity, rr.TransformAxes3D(FRAME_AXIS_LENGTH_M), static=True)
+        return rec
+
+    def run(self, stop: threading.Event) -> None:
+        """Flush every ``flush_period_s`` until ``stop`` is set, then flush the rest."""
+        period_s = self.config.recorder.flush_period_s
+        while not stop.wait(period_s):
+            self.flush()
+        self.flush()
+
+    def close(self) -> None:
+        """Stop the subscribers, log what is left and the stats, close the file, then
+        the session. Safe to call twice."""
+        if not self._recording_closed:
+            self._recording_closed = True
+            for sub in self._subscribers:
+                try:
+                    sub.undeclare()
+                except zenoh.ZError as exc:  # session already gone
+                    logger.debug("undeclare %r: %s", sub, exc)
+            try:
+                self._close_recording()
+            except Exception:  # the summary and the session close must still happen
+                logger.exception("closing the Rerun recording failed")
+        super().close()
+
+    def _close_recording(self) -> None:
+        if self._rec is None:
+            return
+        self.flush()
+        self._rec.log(
+            ENTITY_STATS,
+            rr.TextDocument(json.dumps(self._stats(), indent=2), media_type="text/markdown"),
+            static=True,
+        )
+        self._rec.flush(timeout_sec=RRD_FLUSH_TIMEOUT_S)
+        self._rec.disconnect()
+        self._rec = None
+
+    # -- flushing ----------------------------------------------------------------------
+    def flush(self) -> None:
+        """Send every buffered record to Rerun, one ``send_columns`` per entity.
+
+        A Rerun error on one stream is counted and logged once per stream; the other
+        streams and later flushes go on.
+        """
+        if self._rec is None:
+            return
+        start_ns = time.monotonic_ns()
+        for name, buffer in self._buffers.items():
+            records = buffer.take()
+            if records.size == 0:
+                continue
+            try:
+                self._writers[name](records)
+            except Exception as exc:  # Rerun raises assorted types (ValueError, arrow errors)
+                self._rerun_errors += 1
+                if name not in self._rerun_error_logged:
+                    self._rerun_error_logged.add(name)
+                    logger.warning("Rerun rejected %s (%s); further errors only counted", name, exc)
+                continue
+            self._logged[name] += int(records.size)
+        elapsed_s = (time.monotonic_ns() - start_ns) * 1e-9
+        self._flush_wall_s_max = max(self._flush_wall_s_max, elapsed_s)
+        self._flush_wall_s_total += elapsed_s
+        with self._cond:
+            self._flushes += 1
+            self._cond.notify_all()
+
+    def _send(self, entity: str, indexes: list[rr.TimeColumn], columns: Any) -> None:
+        assert self._rec is not None
+        self._rec.send_columns(entity, indexes=indexes, columns=columns, strict=True)
+
+    def _send_scalars(self, entity: str, indexes: list[rr.TimeColumn], values: np.ndarray) -> None:
+        self._send(entity, indexes, rr.Scalars.columns(scalars=np.ascontiguousarray(values)))
+
+    @staticmethod
+    def _indexes(records: np.ndarray, mask: np.ndarray | None = None) -> list[rr.TimeColumn]:
+        """The time columns of ``records`` (optionally a row subset): their own times."""
+        if mask is not None:
+            records = records[mask]
+        source = records["t_source_ns"].astype("timedelta64[ns]")
+        indexes = [rr.TimeColumn(TIMELINE_SOURCE, duration=source)]
+        if "sim_time_ns" in records.dtype.names:
+            sim = records["sim_time_ns"].astype("timedelta64[ns]")
+            indexes.append(rr.TimeColumn(TIMELINE_SIM, duration=sim))
+        return indexes
+
+    def _send_per_joint(self, records: np.ndarray, field: str, base: str) -> None:
+        """One scalar series per named joint; rows whose ``n_joints`` excludes it skipped."""
+        n_joints = records["n_joints"]
+        all_indexes = self._indexes(records)
+        values = records[field]
+        for j, joint in enumerate(self._joint_names):
+            rows = n_joints > j
+            if rows.all():
+                self._send_scalars(joint_entity(base, joint), all_indexes, values[:, j])
+            elif rows.any():
+                indexes = self._indexes(records, rows)
+                self._send_scalars(joint_entity(base, joint), indexes, values[rows, j])
+
+    def _send_xyz(self, indexes: list[rr.TimeColumn], base: str, xyz: np.ndarray) -> None:
+        for axis, column in zip(AXES, xyz.T, strict=True):
+            self._send_scalars(axis_entity(base, axis), indexes, column)
+
+    def _write_joint_state(self, records: np.ndarray) -> None:
+        self._send_per_joint(records, "q_rad", ENTITY_JOINT_Q)
+        self._send_per_joint(records, "qd_rad_s", ENTITY_JOINT_QD)
+        self._send_scalars(
+            ENTITY_GRIPPER_OPENING, self._indexes(records), records["gripper_opening_m"]
+        )
+
+    def _write_joint_command(self, records: np.ndarray) -> None:
+        self._send_per_joint(records, "qd_ref_rad_s", ENTITY_QD_REF)
+        self._send_scalars(ENTITY_GRIPPER_CMD, self._indexes(records), records["gripper_cmd"])
+
+    def _write_tool_pose(self, records: np.ndarray) -> None:
+        indexes = self._indexes(records)
+        world_p_tool_m = records["world_p_tool_m"]
+        self._send(
+            ENTITY_TOOL,
+            indexes,
+            rr.Transform3D.columns(
+                translation=world_p_tool_m,
+                quaternion=wxyz_to_xyzw(records["world_q_tool_wxyz"]),
+            ),
+        )
+        self._update_trace(records["sim_time_ns"], world_p_tool_m)
+        if len(self._trace) >= 2:
+            last = self._indexes(records[-1:])
+            strip = np.stack(self._trace)
+            self._send(ENTITY_TOOL_TRACE, last, rr.LineStrips3D.columns(strips=[strip]))
+
+    def _update_trace(self, sim_time_ns: np.ndarray, world_p_m: np.ndarray) -> None:
+        """Keep the first position of every TOOL_TRACE_PERIOD_NS bucket of sim time.
+
+        Vectorised over the flush; a jump back in sim time (a new run) restarts the
+        trace so it never draws a line from one run into the next.
+        """
+        buckets = sim_time_ns // TOOL_TRACE_PERIOD_NS
+        if self._trace_bucket is not None and buckets[0] < self._trace_bucket:
+            self._trace.clear()
+            self._trace_bucket = None
+        previous = np.empty_like(buckets)
+        previous[0] = -1 if self._trace_bucket is None else self._trace_bucket
+        previous[1:] = buckets[:-1]
+        self._trace.extend(world_p_m[buckets != previous])
+        self._trace_bucket = int(buckets[-1])
+
+    def _write_contact(self, records: np.ndarray) -> None:
+        indexes = self._indexes(records)
+        self._send_xyz(indexes, ENTITY_CONTACT_FORCE, records["world_f_contact_n"])
+        self._send_scalars(ENTITY_CONTACT_COUNT, indexes, records["n_contacts"].astype(float))
+
+    def _write_objects(self, records: np.ndarray) -> None:
+        n_objects = records["n_objects"]
+        for i, body in enumerate(self._object_names):
+            rows = n_objects > i
+            if not rows.any():
+                continue
+            subset = records[rows]
+            self._send(
+                object_entity(body),
+                self._indexes(subset),
+                rr.Transform3D.columns(
+                    translation=subset["world_p_m"][:, i],
+                    quaternion=wxyz_to_xyzw(subset["world_q_wxyz"][:, i]),
+                ),
+            )
+
+    def _write_control_status(self, records: np.ndarray) -> None:
+        indexes = self._indexes(records)
+        self._send_scalars(ENTITY_PATH_ERROR, indexes, records["path_error_m"])
+        self._send_scalars(ENTITY_MANIPULABILITY, indexes, records["manipulability"])
+        self._send_scalars(ENTITY_PATH_S, indexes, records["path_s"])
+        self._send_xyz(indexes, ENTITY_DESIRED_P, records["desired_p_m"])
+        self._send_xyz(indexes, ENTITY_TOOL_P, records["tool_p_m"])
+
+    def _write_events(self, records: np.ndarray) -> None:
+        texts = [event_text(int(r["event"]), int(r["step"]), float(r["value"])) for r in records]
+        levels = [EVENT_LEVELS.get(int(e), LEVEL_INFO) for e in records["event"]]
+        self._send(
+            ENTITY_EVENTS, self._indexes(records), rr.TextLog.columns(text=texts, level=levels)
+        )
+
+    # -- reporting ---------------------------------------------------------------------
+    def wait_received(self, counts: Mapping[str, int], timeout_s: float) -> bool:
+        """Wait until each named stream has received at least its count of records.
+
+        Event driven (the callbacks notify a condition); for tests and tools that must
+        know the recorder has everything before they stop it.
+        """
+        with self._cond:
+            return self._cond.wait_for(
+                lambda: all(self._buffers[n].received >= c for n, c in counts.items()),
+                timeout_s,
+            )
+
+    @property
+    def flushes(self) -> int:
+        """Flushes completed so far."""
+        with self._cond:
+            return self._flushes
+
+    def wait_flushes(self, count: int, timeout_s: float) -> bool:
+        """Wait until at least ``count`` flushes have completed (event driven)."""
+        with self._cond:
+            return self._cond.wait_for(lambda: self._flushes >= count, timeout_s)
+
+    def _stats(self) -> dict[str, Any]:
+        with self._cond:
+            received = {n: b.received for n, b in self._buffers.items()}
+            overflow = {n: b.overflow for n, b in self._buffers.items()}
+        wall_s = (time.monotonic_ns() - self._wall_start_ns) * 1e-9
+        cpu_s = time.process_time() - self._cpu_start_s
+        return {
+            "rrd_path": str(self.rrd_path),
+            "samples_logged": dict(self._logged),
+            "samples_received": received,
+            "overflow_drops": overflow,
+            "decode_drops": self.drops.total,
+            "rerun_errors": self._rerun_errors,
+            "flushes": self._flushes,
+            "flush_wall_s_max": self._flush_wall_s_max,
+            "flush_wall_s_total": self._flush_wall_s_total,
+            "cpu_time_s": cpu_s,
+            "wall_time_s": wall_s,
+            "cpu_share": cpu_s / wall_s if wall_s > 0 else 0.0,
+        }
+
+    def summary(self) -> dict[str, Any]:
+        """The base summary plus samples per stream, drops, flushes and CPU share.
+
+        ``cpu_time_s`` is ``time.process_time()`` of the whole process (Zenoh and Rerun
+        threads included) since construction; ``cpu_share`` divides it by wall time.
+        """
+        return {**super().summary(), **self._stats()}

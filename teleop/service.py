@@ -1,0 +1,191 @@
+"""The one service lifecycle: open -> run -> close, shared by every process.
+
+A service module in ``services/`` is three lines: it hands its class to
+:func:`service_main`, which parses the common command line, loads the typed config,
+turns SIGINT/SIGTERM into a stop event, and runs ``open -> run(stop) -> close``.
+``close`` is safe to call twice and writes the service's summary to
+``<run_dir>/<name>.summary.json`` (atomically), which ``teleop run`` collects.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from types import FrameType, TracebackType
+from typing import Any, ClassVar
+
+import zenoh
+
+from teleop.bus import close_session, declare_alive, open_session, wait_alive
+from teleop.config import Config, ConfigError, load_config
+from teleop.kinematics import ModelError
+from teleop.messages import DropCounter
+from teleop.topics import Topics
+
+logger = logging.getLogger(__name__)
+
+# While waiting for peers, wake this often to notice a stop request (s).
+STOP_POLL_S = 0.25
+# Exit code of a service whose config or model is unusable (supervisord will not retry
+# it forever: startretries bounds it, and the log says why).
+EXIT_CONFIG = 2
+
+
+@dataclass(frozen=True)
+class ServiceOptions:
+    """Per-process settings that are not part of the shared config."""
+
+    run_dir: Path | None = None
+    # Hold the run's bus endpoint (the listener) instead of connecting to it.
+    listen: bool = False
+    # Services whose liveliness tokens must be present before the work starts.
+    await_services: tuple[str, ...] = ()
+    # Run until stopped instead of for run.duration_s (``teleop up``).
+    continuous: bool = False
+
+
+class Service:
+    """Base of every service: a Zenoh session, a liveliness token, drop counters."""
+
+    name: ClassVar[str] = "service"
+
+    def __init__(self, config: Config, options: ServiceOptions | None = None) -> None:
+        self.config = config
+        self.options = options or ServiceOptions()
+        self.topics = Topics(config.robot.robot_id)
+        self.drops = DropCounter()
+        self.session: zenoh.Session | None = None
+        self._entities: list[Any] = []
+        self._closed = False
+
+    # -- lifecycle ---------------------------------------------------------------------
+    def open(self) -> None:
+        """Open the session; subclasses declare their publishers and subscribers after."""
+        self.session = open_session(self.config.bus, listen=self.options.listen)
+
+    def announce(self) -> None:
+        """Declare this service alive: call once its subscribers are in place."""
+        assert self.session is not None
+        self.keep(declare_alive(self.session, self.topics, self.name))
+
+    def keep(self, entity: Any) -> Any:
+        """Remember a Zenoh entity so close() undeclares it; returns it."""
+        self._entities.append(entity)
+        return entity
+
+    def run(self, stop: threading.Event) -> None:
+        raise NotImplementedError
+
+    def summary(self) -> dict[str, Any]:
+        """What this service reports at close; subclasses extend it."""
+        return {"service": self.name, "dropped_messages": self.drops.total}
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self.write_summary()
+        finally:
+            close_session(self.session, *reversed(self._entities))
+            self._entities.clear()
+
+    def __enter__(self) -> Service:
+        self.open()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    # -- helpers -----------------------------------------------------------------------
+    def wait_for_peers(self, stop: threading.Event) -> bool:
+        """Wait (event driven) for ``options.await_services``; False if stopped first."""
+        assert self.session is not None
+        if not self.options.await_services:
+            return True
+        while not stop.is_set():
+            try:
+                wait_alive(self.session, self.topics, self.options.await_services, STOP_POLL_S)
+                return True
+            except TimeoutError:
+                continue
+        return False
+
+    def write_summary(self) -> None:
+        if self.options.run_dir is None:
+            return
+        path = self.options.run_dir / f"{self.name}.summary.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(self.summary(), indent=2) + "\n")
+        os.replace(tmp, path)
+
+
+def build_service_parser(name: str) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog=f"teleop-{name}",
+        description=f"zenoh-teleop {name} service (normally started by `teleop run` or "
+        "`teleop up` under supervisord).",
+    )
+    parser.add_argument("--config", type=Path, default=None, help="TOML config file")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--run-dir", type=Path, default=None, help="where to write the summary")
+    parser.add_argument("--listen", action="store_true", help="hold the bus endpoint")
+    parser.add_argument(
+        "--await",
+        dest="await_services",
+        default="",
+        help="comma-separated services to wait for before starting",
+    )
+    parser.add_argument("--continuous", action="store_true", help="run until stopped")
+    return parser
+
+
+def service_main(service_class: type[Service], argv: list[str] | None = None) -> int:
+    """Entry point of a service process: parse, build, run until stopped, close."""
+    logging.basicConfig(
+        level=logging.INFO,
+        format=f"%(asctime)s {service_class.name} %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+    args = build_service_parser(service_class.name).parse_args(argv)
+    try:
+        config = load_config(args.config, args.overrides)
+    except ConfigError as exc:
+        logger.error("config: %s", exc)
+        return EXIT_CONFIG
+    options = ServiceOptions(
+        run_dir=args.run_dir,
+        listen=args.listen,
+        await_services=tuple(s for s in args.await_services.split(",") if s),
+        continuous=args.continuous,
+    )
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        logger.info("signal %s: stopping", signal.Signals(signum).name)
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    try:
+        with service_class(config, options) as service:
+            logger.info("running (robot %s)", config.robot.robot_id)
+            service.run(stop)
+    except ModelError as exc:
+        logger.error("model: %s", exc)
+        return EXIT_CONFIG
+    logger.info("stopped")
+    return 0

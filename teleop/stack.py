@@ -1,0 +1,222 @@
+"""The teleop stack under supervisord: which programs, and a scenario run on them.
+
+``teleop run SCENARIO`` (not ``--inprocess``) calls :func:`run_on_services`:
+
+1. the runner opens its own Zenoh session as the run's listener on a free loopback
+   port, subscribes to the run's events and announces itself;
+2. supervisord starts plant, controller and recorder, all connecting to that port;
+   the plant waits for every peer's liveliness token (runner included) before its
+   first step, so nothing is published before everybody listens;
+3. the runner waits for the plant's FINISHED event (printing progress), stops the
+   stack (each service writes ``<run_dir>/<service>.summary.json`` on close, the
+   recorder completes its .rrd) and merges the summaries.
+
+``teleop up`` starts the same programs detached with the plant as listener and no
+end (``--continuous``); ``teleop down`` stops them.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from teleop.bus import Latest, close_session, declare_alive, open_session, subscribe, wait_alive
+from teleop.config import Config
+from teleop.messages import RUN_EVENT, TOOL_POSE, DropCounter, Event
+from teleop.supervise import Program, Stack
+from teleop.topics import Topics
+
+SERVICES = ("plant", "controller", "recorder")
+RUNNER = "runner"
+# Start order (supervisord priority: lower first); services still wait on liveliness.
+PRIORITY = {"recorder": 10, "controller": 20, "plant": 30}
+# Environment of every service: no telemetry, headless rendering, unbuffered logs.
+SERVICE_ENVIRONMENT = {
+    "RERUN_ANALYTICS": "0",
+    "MUJOCO_GL": "egl",
+    "PYTHONUNBUFFERED": "1",
+    # Small matrices only: BLAS worker threads would just compete for the 2 cores.
+    "OPENBLAS_NUM_THREADS": "1",
+    "OMP_NUM_THREADS": "1",
+}
+# Waiting for all services to announce themselves (imports, model build, session) (s).
+ALIVE_TIMEOUT_S = 60.0
+# A run that does not finish within this many times its duration (plus slack) failed.
+LOCKSTEP_TIMEOUT_FACTOR = 20.0
+REALTIME_TIMEOUT_FACTOR = 2.0
+RUN_TIMEOUT_SLACK_S = 30.0
+# Progress lines: one every this fraction of the run.
+PROGRESS_FRACTION = 0.1
+
+ProgressFn = Callable[[float, float], None]
+
+
+class RunError(RuntimeError):
+    """A services run did not complete; the message says which service and why."""
+
+
+def free_loopback_port() -> int:
+    """A TCP port on 127.0.0.1 that is free now (the OS picks it)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def service_programs(
+    config_file: Path | None,
+    overrides: Sequence[str],
+    run_dir: Path,
+    *,
+    listener: str | None,
+    await_services: dict[str, Sequence[str]],
+    continuous: bool,
+) -> list[Program]:
+    """The supervisord programs of the stack, each given the same config and overrides."""
+    programs = []
+    for name in SERVICES:
+        command = [sys.executable, "-m", f"services.{name}", "--run-dir", str(run_dir)]
+        if config_file is not None:
+            command += ["--config", str(Path(config_file).absolute())]
+        for override in overrides:
+            command += ["--set", override]
+        if name == listener:
+            command.append("--listen")
+        if await_services.get(name):
+            command += ["--await", ",".join(await_services[name])]
+        if continuous:
+            command.append("--continuous")
+        programs.append(
+            Program(
+                name=name,
+                command=command,
+                priority=PRIORITY[name],
+                environment=dict(SERVICE_ENVIRONMENT),
+            )
+        )
+    return programs
+
+
+def _read_summary(run_dir: Path, service: str) -> dict[str, Any]:
+    path = run_dir / f"{service}.summary.json"
+    if not path.exists():
+        raise RunError(f"{service} wrote no summary ({path}); see {run_dir / 'logs'}")
+    return json.loads(path.read_text())
+
+
+def run_on_services(
+    config: Config,
+    config_file: Path | None,
+    overrides: Sequence[str],
+    scenario: str,
+    run_dir: Path,
+    progress: ProgressFn | None = None,
+) -> dict[str, Any]:
+    """Run ``scenario`` on the supervised services; return the merged summary."""
+    run_dir = run_dir.absolute()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    for stale in run_dir.glob("*.summary.json"):
+        stale.unlink()
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    run_overrides = [*overrides, f'bus.endpoint="{endpoint}"', f'run.mode="{config.run.mode}"']
+    if not config.recorder.rrd_path:
+        run_overrides.append(f'recorder.rrd_path="{run_dir / "recording.rrd"}"')
+    bus = replace(config.bus, endpoint=endpoint)
+    topics = Topics(config.robot.robot_id)
+    drops = DropCounter()
+    finished = threading.Event()
+    tool = Latest()
+
+    def on_event(rec: np.ndarray, rx_ns: int) -> None:
+        if int(rec["event"]) == Event.FINISHED:
+            finished.set()
+
+    session = open_session(bus, listen=True)
+    entities: list[Any] = []
+    try:
+        entities.append(subscribe(session, topics.events, RUN_EVENT, on_event, drops))
+        entities.append(subscribe(session, topics.tool_pose, TOOL_POSE, tool, drops))
+        entities.append(declare_alive(session, topics, RUNNER))
+        programs = service_programs(
+            config_file,
+            run_overrides,
+            run_dir,
+            listener=None,
+            await_services={"plant": [*SERVICES[1:], RUNNER]},
+            continuous=False,
+        )
+        factor = (
+            LOCKSTEP_TIMEOUT_FACTOR if config.run.mode == "lockstep" else REALTIME_TIMEOUT_FACTOR
+        )
+        deadline_s = config.run.duration_s * factor + RUN_TIMEOUT_SLACK_S
+        wall_start = time.perf_counter()
+        with Stack(run_dir, programs) as stack:
+            wait_alive(session, topics, SERVICES, ALIVE_TIMEOUT_S)
+            _wait_finished(finished, tool, config, deadline_s, stack, progress)
+        wall_s = time.perf_counter() - wall_start
+    finally:
+        close_session(session, *reversed(entities))
+
+    plant = _read_summary(run_dir, "plant")
+    controller = _read_summary(run_dir, "controller")
+    recorder = _read_summary(run_dir, "recorder")
+    dropped = sum(s.get("dropped_messages", 0) for s in (plant, controller, recorder))
+    return {
+        "scenario": scenario,
+        "mode": config.run.mode,
+        "duration_s": config.run.duration_s,
+        "seed": config.run.seed,
+        "settle_s": controller["settle_s"],
+        "compensation": controller["compensation"],
+        "path_error_rms_m": controller["path_error_rms_m"],
+        "path_error_max_m": controller["path_error_max_m"],
+        "min_manipulability": controller["min_manipulability"],
+        "steps": plant["steps"],
+        "wall_s": plant["wall_s"],
+        "realtime_factor": plant["realtime_factor"],
+        "overrun_fraction": plant["overrun_fraction"],
+        "stale_commands": plant["stale_commands"],
+        "dropped_messages": dropped + drops.total,
+        "skipped_states": controller["skipped_states"],
+        "final_state_sha256": plant["final_state_sha256"],
+        "stack_wall_s": wall_s,
+        "rrd": recorder.get("rrd_path"),
+        "run_dir": str(run_dir),
+        "services": {"plant": plant, "controller": controller, "recorder": recorder},
+    }
+
+
+def _wait_finished(
+    finished: threading.Event,
+    tool: Latest,
+    config: Config,
+    deadline_s: float,
+    stack: Stack,
+    progress: ProgressFn | None,
+) -> None:
+    """Wait for the plant's FINISHED event, reporting progress from the scene stream."""
+    start = time.monotonic()
+    next_report = PROGRESS_FRACTION
+    while not finished.wait(timeout=0.5):
+        if time.monotonic() - start > deadline_s:
+            raise RunError(f"run did not finish within {deadline_s:g} s: {stack.status()}")
+        failed = {n: s for n, s in stack.status().items() if s not in ("RUNNING", "STARTING")}
+        if failed:
+            raise RunError(f"service(s) stopped during the run: {failed}")
+        latest = tool.get()
+        if progress is not None and latest is not None:
+            sim_s = int(latest[0]["sim_time_ns"]) * 1e-9
+            fraction = sim_s / config.run.duration_s
+            if fraction >= next_report:
+                progress(fraction, sim_s)
+                next_report = (int(fraction / PROGRESS_FRACTION) + 1) * PROGRESS_FRACTION
+    if progress is not None:
+        progress(1.0, config.run.duration_s)
