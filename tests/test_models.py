@@ -9,8 +9,8 @@ import pytest
 from teleop.kinematics import (
     ModelError,
     build_arm_model,
-    joint_space_dynamics,
     inverse_dynamics,
+    joint_space_dynamics,
     manipulability,
     manipulability_and_gradient,
     tool_position_and_jacobian,
