@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed-stamp
 RUN_DIR ?= runs/demo
 # No telemetry from Rerun, ever; no window unless asked for.
 export RERUN_ANALYTICS := 0
-export RERUN_TELEMETRY := 0
+export TELEMETRY_ENABLED := false
 export MUJOCO_GL ?= egl
 
 .PHONY: demo test lint venv clean
@@ -19,6 +19,8 @@ $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e ".[test]"
+	@# Rerun's analytics are switched off in its own settings, not by an environment variable.
+	$(BIN)/rerun analytics disable >/dev/null
 	@touch $(STAMP)
 
 demo: $(STAMP)

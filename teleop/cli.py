@@ -2,7 +2,7 @@
 
     teleop run path-following --inprocess --duration 60 --seed 0 --summary-json out.json
     teleop run path-following --mode lockstep --duration 20 --rrd out.rrd
-    teleop up | status | down
+    teleop up | status | down        (a long-running stack, realtime by default)
 
 Every command reads the typed config (``--config``, default ``deploy/teleop.toml``)
 and applies ``--set dotted.key=value`` overrides; flags such as ``--duration`` are
@@ -22,6 +22,7 @@ from teleop.kinematics import ModelError
 
 SCENARIOS = ("path-following",)
 DEFAULT_RUN_DIR = Path("runs") / "latest"
+DEFAULT_UP_DIR = Path("runs") / "up"
 
 # Exit codes: 0 success, 1 the run failed its own checks, 2 bad usage or config.
 EXIT_FAILED = 1
@@ -84,6 +85,28 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     _add_config_arguments(run)
+
+    up = commands.add_parser(
+        "up",
+        help="start the services under supervisord and leave them running",
+        description=(
+            "Start plant, controller and recorder under a detached supervisord. The plant "
+            "listens on bus.endpoint and runs path following until `teleop down`; the "
+            "recorder writes <run-dir>/recording.rrd (add --set recorder.spawn=true for a "
+            "live viewer)."
+        ),
+    )
+    up.add_argument("--mode", choices=("lockstep", "realtime"), default="realtime")
+    up.add_argument("--run-dir", type=Path, default=DEFAULT_UP_DIR, help="(default: %(default)s)")
+    _add_config_arguments(up)
+    for name, text in (
+        ("status", "show the state of each service started by `teleop up`"),
+        ("down", "stop everything `teleop up` started"),
+    ):
+        sub = commands.add_parser(name, help=text, description=text)
+        sub.add_argument(
+            "--run-dir", type=Path, default=DEFAULT_UP_DIR, help="(default: %(default)s)"
+        )
     return parser
 
 
@@ -136,13 +159,50 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _up(args: argparse.Namespace) -> int:
+    from teleop.stack import start_detached
+
+    overrides = [*args.overrides, f'run.mode="{args.mode}"']
+    config = load_config(args.config, overrides)
+    status = start_detached(config, args.config, overrides, args.run_dir)
+    for name, state in status.items():
+        print(f"{name:12s} {state}")
+    print(f"bus: {config.bus.endpoint}   logs: {args.run_dir / 'logs'}   stop: teleop down")
+    return 0
+
+
+def _status(args: argparse.Namespace) -> int:
+    from teleop.supervise import Stack, StackError
+
+    try:
+        status = Stack.attach(args.run_dir).status()
+    except StackError as exc:
+        print(f"teleop: nothing running in {args.run_dir}: {exc}", file=sys.stderr)
+        return EXIT_FAILED
+    for name, state in status.items():
+        print(f"{name:12s} {state}")
+    return 0 if all(state == "RUNNING" for state in status.values()) else EXIT_FAILED
+
+
+def _down(args: argparse.Namespace) -> int:
+    from teleop.supervise import Stack, StackError
+
+    try:
+        Stack.attach(args.run_dir).stop()
+    except StackError as exc:
+        print(f"teleop: nothing running in {args.run_dir}: {exc}", file=sys.stderr)
+        return EXIT_FAILED
+    print(f"stopped the stack in {args.run_dir}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``teleop`` console script."""
     os.environ.setdefault("RERUN_ANALYTICS", "0")
     args = build_parser().parse_args(argv)
     try:
-        if args.command == "run":
-            return _run(args)
+        handler = {"run": _run, "up": _up, "status": _status, "down": _down}[args.command]
+        return handler(args)
     except (ConfigError, ModelError) as exc:
         print(f"teleop: {exc}", file=sys.stderr)
         return EXIT_USAGE

@@ -91,6 +91,10 @@ def run_path_following_inprocess(
         plant.step(output.qd_ref_rad_s, gripper_cmd=1.0)
         if progress is not None and (k + 1) % report_every == 0:
             progress((k + 1) / steps, plant.sample().sim_time_ns * 1e-9)
+    # The final state is measured too, as the controller service does with the last
+    # state the plant publishes (its command is never applied).
+    final = plant.sample()
+    metrics.add(final.sim_time_ns * 1e-9, controller.update(final.q_rad, final.qd_rad_s))
     wall_s = time.perf_counter() - wall_start
     return {
         "scenario": "path-following",

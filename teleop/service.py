@@ -184,8 +184,8 @@ def service_main(service_class: type[Service], argv: list[str] | None = None) ->
         with service_class(config, options) as service:
             logger.info("running (robot %s)", config.robot.robot_id)
             service.run(stop)
-    except ModelError as exc:
-        logger.error("model: %s", exc)
+    except (ConfigError, ModelError) as exc:
+        logger.error("%s", exc)
         return EXIT_CONFIG
     logger.info("stopped")
     return 0

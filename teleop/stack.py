@@ -220,3 +220,24 @@ def _wait_finished(
                 next_report = (int(fraction / PROGRESS_FRACTION) + 1) * PROGRESS_FRACTION
     if progress is not None:
         progress(1.0, config.run.duration_s)
+
+
+def start_detached(
+    config: Config, config_file: Path | None, overrides: Sequence[str], run_dir: Path
+) -> dict[str, str]:
+    """``teleop up``: the stack with the plant as listener, running until stopped."""
+    run_dir = run_dir.absolute()
+    run_overrides = list(overrides)
+    if not config.recorder.rrd_path:
+        run_overrides.append(f'recorder.rrd_path="{run_dir / "recording.rrd"}"')
+    programs = service_programs(
+        config_file,
+        run_overrides,
+        run_dir,
+        listener="plant",
+        await_services={"plant": list(SERVICES[1:])},
+        continuous=True,
+    )
+    stack = Stack(run_dir, programs)
+    stack.start(detach=True)
+    return stack.status()

@@ -1,0 +1,358 @@
+"""Recorder service over a real Zenoh bus and a real Rerun file (no mocks).
+
+The recorder runs in-process on a thread with its own loopback endpoint; a second
+session publishes known records once the recorder's liveliness token is up. The
+``.rrd`` is then read back with ``rerun.chunk.RrdReader`` and every value and time
+compared with what was sent: samples must sit at their own sim_time / source_time,
+not at their arrival time.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import threading
+from collections import defaultdict
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pytest
+import zenoh
+from rerun.chunk import RrdReader
+
+from teleop import bus
+from teleop import messages as m
+from teleop import recorder as r
+from teleop.config import Config, ConfigError, load_config
+from teleop.service import ServiceOptions
+
+os.environ.setdefault("RERUN_ANALYTICS", "0")
+os.environ.setdefault("TELEMETRY_ENABLED", "false")
+
+TIMEOUT_S = 10.0  # bound on any single wait; passing runs take well under 1 s each
+FLUSH_PERIOD_S = 0.05  # short, so a test spans several flushes
+ROBOT = "rectest"
+JOINTS = ("j1", "j2", "j3", "j4", "j5", "j6")
+OBJECTS = ("cube", "ball")
+SIM_T0_NS = 5_000_000_000  # sim times far from any monotonic arrival time
+SIM_STEP_NS = 1_000_000  # 1 kHz
+F32_TOLERANCE = 1e-6  # positions go through float32 in Rerun
+SOURCE_T0_NS = 123_000_000_000  # producer clock values, also far from arrival times
+N = {  # records sent per stream
+    "joint_state": 400,
+    "tool_pose": 400,
+    "contact": 60,
+    "objects": 50,
+    "joint_command": 400,
+    "control_status": 120,
+    "events": 3,
+}
+EVENTS = (
+    (m.Event.STARTED, 0, 0.0),
+    (m.Event.WATCHDOG_BRAKE, 123, 0.025),
+    (m.Event.WATCHDOG_RESUME, 200, 0.0),
+)
+
+
+def free_endpoint() -> str:
+    """A loopback TCP endpoint on a port the OS just reported free."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    return f"tcp/127.0.0.1:{port}"
+
+
+def make_config(rrd_path: Path | str, endpoint: str) -> Config:
+    return load_config(
+        None,
+        (
+            f'bus.endpoint="{endpoint}"',
+            f'robot.robot_id="{ROBOT}"',
+            f"robot.arm_joints={json.dumps(list(JOINTS))}",
+            f"robot.arm_actuators={json.dumps([j + '_vel' for j in JOINTS])}",
+            f"robot.home_q_rad={[0.0] * len(JOINTS)}",
+            f"robot.object_bodies={json.dumps(list(OBJECTS))}",
+            f'recorder.rrd_path="{rrd_path}"',
+            f"recorder.flush_period_s={FLUSH_PERIOD_S}",
+        ),
+    )
+
+
+# --- what the producer sends: record i of each stream is fully determined by i -------------
+
+
+def sim_ns(i: int) -> int:
+    return SIM_T0_NS + i * SIM_STEP_NS
+
+
+def source_ns(i: int) -> int:
+    return SOURCE_T0_NS + 3 * i * SIM_STEP_NS + 7
+
+
+def build(stream: str, i: int) -> np.ndarray:
+    rec = r.STREAM_SCHEMAS[stream].new()
+    rec["seq"] = i
+    rec["t_source_ns"] = source_ns(i)
+    if "sim_time_ns" in rec.dtype.names:
+        rec["sim_time_ns"] = sim_ns(i)
+    if stream == "joint_state":
+        rec["n_joints"] = len(JOINTS)
+        rec["q_rad"][: len(JOINTS)] = 0.001 * i + np.arange(len(JOINTS))
+        rec["qd_rad_s"][: len(JOINTS)] = -0.002 * i
+        rec["step"] = i
+    elif stream == "joint_command":
+        rec["n_joints"] = len(JOINTS)
+        rec["qd_ref_rad_s"][: len(JOINTS)] = 0.01 * i - np.arange(len(JOINTS))
+    elif stream == "tool_pose":
+        rec["world_p_tool_m"] = (0.3, 0.0, 0.001 * i)
+        rec["world_q_tool_wxyz"] = (1.0, 0.0, 0.0, 0.0)
+    elif stream == "contact":
+        rec["world_f_contact_n"] = (0.0, 0.0, float(i))
+        rec["n_contacts"] = i % 3
+    elif stream == "objects":
+        rec["n_objects"] = 1 if i % 2 else 2  # the ball is only in the even records
+        rec["world_p_m"][:2] = ((0.1, 0.2, 0.001 * i), (0.5, 0.5, 0.5))
+        rec["world_q_wxyz"][:2] = (0.0, 0.0, 0.0, 1.0)  # 180 deg about z
+    elif stream == "control_status":
+        rec["path_error_m"] = 0.0001 * i
+        rec["manipulability"] = 0.05
+        rec["desired_p_m"] = (0.1, 0.2, 0.3)
+        rec["tool_p_m"] = (0.1, 0.2, 0.3 + 0.0001 * i)
+    elif stream == "events":
+        event, step, value = EVENTS[i]
+        rec["event"], rec["step"], rec["value"] = event, step, value
+    return rec
+
+
+# --- reading the .rrd back ---------------------------------------------------------------
+
+
+def read_rrd(path: Path) -> dict[str, dict[str, list[Any]]]:
+    """{entity: {column: values}} over every chunk of the file's recording.
+
+    Duration time columns come back as int nanoseconds; one-element lists (a Scalars
+    row) are unwrapped. Rows keep chunk order, so compare sorted or per sim time.
+    """
+    out: dict[str, dict[str, list[Any]]] = defaultdict(lambda: defaultdict(list))
+    for chunk in RrdReader(path).stream():
+        batch = chunk.to_record_batch()
+        entity = chunk.entity_path.lstrip("/")
+        for name in batch.schema.names:
+            column = batch.column(name)
+            if pa.types.is_duration(column.type):
+                column = column.cast(pa.int64())
+            out[entity][name].extend(column.to_pylist())
+    return out
+
+
+def series(data: dict[str, dict[str, list[Any]]], entity: str) -> dict[int, float]:
+    """A Scalars entity as {sim_time or source_time ns: value}."""
+    cols = data[entity]
+    times = cols.get(r.TIMELINE_SIM) or cols[r.TIMELINE_SOURCE]
+    values = [v[0] for v in cols["Scalars:scalars"]]
+    assert len(times) == len(values) == len(set(times)), entity
+    return dict(zip(times, values, strict=True))
+
+
+# --- a recorder on a thread plus a producer session ----------------------------------------
+
+
+@dataclass
+class Rig:
+    service: r.RecorderService
+    session: zenoh.Session  # the producer's
+    stop: threading.Event
+    thread: threading.Thread
+
+    def publish(self, counts: dict[str, int], first: int = 0) -> None:
+        """Send records ``first .. first + counts[stream] - 1`` of each stream, interleaved,
+        then wait until the recorder has received them all."""
+        topics = self.service.topics
+        pubs = {
+            s: bus.Publisher.declare(self.session, getattr(topics, s), r.STREAM_SCHEMAS[s])
+            for s in counts
+        }
+        try:
+            for pub in pubs.values():
+                assert pub.wait_matched(TIMEOUT_S)
+            for i in range(max(counts.values())):
+                for stream, n in counts.items():
+                    if i < n:
+                        pubs[stream].put(build(stream, first + i))
+            expected = {s: first + n for s, n in counts.items()}
+            assert self.service.wait_received(expected, TIMEOUT_S), "recorder missed records"
+        finally:
+            for pub in pubs.values():
+                pub.undeclare()
+
+    def finish(self) -> None:
+        self.stop.set()
+        self.thread.join(TIMEOUT_S)
+        assert not self.thread.is_alive()
+        self.service.close()
+
+
+@pytest.fixture
+def rig_factory(tmp_path: Path) -> Iterator[Any]:
+    rigs: list[Rig] = []
+
+    def start(service_class: type[r.RecorderService] = r.RecorderService) -> Rig:
+        endpoint = free_endpoint()
+        config = make_config(tmp_path / "out" / "rec.rrd", endpoint)
+        service = service_class(config, ServiceOptions(run_dir=tmp_path, listen=True))
+        service.open()
+        stop = threading.Event()
+        thread = threading.Thread(target=service.run, args=(stop,), name="recorder")
+        thread.start()
+        session = bus.open_session(config.bus, listen=False)
+        rig = Rig(service, session, stop, thread)
+        rigs.append(rig)
+        bus.wait_alive(session, service.topics, [r.RecorderService.name], TIMEOUT_S)
+        return rig
+
+    yield start
+    for rig in rigs:
+        rig.stop.set()
+        rig.thread.join(TIMEOUT_S)
+        rig.service.close()
+        bus.close_session(rig.session)
+
+
+# --- tests ---------------------------------------------------------------------------------
+
+
+def test_every_stream_is_logged_at_its_own_time(rig_factory, tmp_path):
+    rig = rig_factory()
+    rig.publish(N)
+    rig.finish()
+    summary = json.loads((tmp_path / "recorder.summary.json").read_text())
+    assert summary["samples_logged"] == N
+    assert summary["rerun_errors"] == 0 and summary["dropped_messages"] == 0
+    assert sum(summary["overflow_drops"].values()) == 0
+    assert summary["flushes"] >= 1 and summary["wall_time_s"] > 0
+    assert summary["rrd_path"] == str(rig.service.rrd_path)
+
+    data = read_rrd(rig.service.rrd_path)
+    sims = [sim_ns(i) for i in range(N["joint_state"])]
+    for j, joint in enumerate(JOINTS):
+        q = series(data, r.joint_entity(r.ENTITY_JOINT_Q, joint))
+        assert sorted(q) == sims  # sim_time = the records' own sim_time_ns
+        assert all(q[sim_ns(i)] == pytest.approx(0.001 * i + j) for i in range(N["joint_state"]))
+        qd = series(data, r.joint_entity(r.ENTITY_JOINT_QD, joint))
+        assert len(qd) == N["joint_state"]
+        # JOINT_COMMAND has no sim time: only the producer's source_time timeline.
+        cmd_cols = data[r.joint_entity(r.ENTITY_QD_REF, joint)]
+        assert r.TIMELINE_SIM not in cmd_cols
+        cmd = series(data, r.joint_entity(r.ENTITY_QD_REF, joint))
+        assert sorted(cmd) == [source_ns(i) for i in range(N["joint_command"])]
+        assert cmd[source_ns(5)] == pytest.approx(0.05 - j)
+    q_cols = data[r.joint_entity(r.ENTITY_JOINT_Q, JOINTS[0])]
+    by_sim = dict(zip(q_cols[r.TIMELINE_SIM], q_cols[r.TIMELINE_SOURCE], strict=True))
+    assert by_sim == {sim_ns(i): source_ns(i) for i in range(N["joint_state"])}
+
+    tool = data[r.ENTITY_TOOL]
+    assert sorted(tool[r.TIMELINE_SIM]) == sims
+    rows = dict(zip(tool[r.TIMELINE_SIM], tool["Transform3D:translation"], strict=True))
+    # One translation per row; Rerun stores Vec3D as float32.
+    assert rows[sim_ns(10)][0] == pytest.approx([0.3, 0.0, 0.01], abs=F32_TOLERANCE)
+    assert tool["Transform3D:quaternion"][0][0] == pytest.approx([0.0, 0.0, 0.0, 1.0])  # xyzw
+    trace = data[r.ENTITY_TOOL_TRACE]["LineStrips3D:strips"]
+    assert trace and len(trace[-1][0]) > 1  # re-logged per flush, never per sample
+
+    force_z = series(data, r.axis_entity(r.ENTITY_CONTACT_FORCE, "z"))
+    assert force_z == {sim_ns(i): float(i) for i in range(N["contact"])}
+    cube = data[r.object_entity("cube")][r.TIMELINE_SIM]
+    ball = data[r.object_entity("ball")][r.TIMELINE_SIM]
+    assert sorted(cube) == [sim_ns(i) for i in range(N["objects"])]
+    assert sorted(ball) == [sim_ns(i) for i in range(0, N["objects"], 2)]
+
+    error = series(data, r.ENTITY_PATH_ERROR)
+    assert sorted(error) == [sim_ns(i) for i in range(N["control_status"])]
+    assert error[sim_ns(7)] == pytest.approx(0.0007)
+    for base in (r.ENTITY_DESIRED_P, r.ENTITY_TOOL_P):
+        for axis in r.AXES:
+            assert len(series(data, r.axis_entity(base, axis))) == N["control_status"]
+    assert len(series(data, r.ENTITY_MANIPULABILITY)) == N["control_status"]
+
+    events = data[r.ENTITY_EVENTS]
+    texts = dict(zip(events[r.TIMELINE_SIM], events["TextLog:text"], strict=True))
+    assert texts[sim_ns(1)] == ["WATCHDOG_BRAKE at step 123 (value 0.025)"]
+    assert texts[sim_ns(0)] == ["STARTED at step 0"]
+    levels = dict(zip(events[r.TIMELINE_SIM], events["TextLog:level"], strict=True))
+    assert levels[sim_ns(1)] == [r.LEVEL_WARN]
+
+    stats = json.loads(data[r.ENTITY_STATS]["TextDocument:text"][0][0])
+    assert stats["samples_logged"] == N
+
+
+class FaultyRecorder(r.RecorderService):
+    """Sends a malformed contact batch (more values than times): a real Rerun error."""
+
+    def _write_contact(self, records: np.ndarray) -> None:
+        values = np.zeros(records.size + 1)
+        self._send_scalars(
+            r.axis_entity(r.ENTITY_CONTACT_FORCE, "x"), self._indexes(records), values
+        )
+
+
+def test_rerun_error_is_counted_and_recording_goes_on(rig_factory, tmp_path):
+    rig = rig_factory(FaultyRecorder)
+    n = 50
+    counts = {"contact": n, "joint_state": n}
+    rig.publish(counts)
+    # The first batch is flushed (and rejected) before the second one arrives.
+    # (+2: the flush under way when the wait starts may have missed the last records.)
+    assert rig.service.wait_flushes(rig.service.flushes + 2, TIMEOUT_S)
+    rig.publish(counts, first=n)
+    rig.finish()
+    summary = json.loads((tmp_path / "recorder.summary.json").read_text())
+    assert summary["rerun_errors"] >= 2  # one per flush that held contact records
+    assert summary["samples_logged"]["contact"] == 0
+    assert summary["samples_logged"]["joint_state"] == 2 * n
+    data = read_rrd(rig.service.rrd_path)
+    q = series(data, r.joint_entity(r.ENTITY_JOINT_Q, JOINTS[0]))
+    assert sorted(q) == [sim_ns(i) for i in range(2 * n)]
+    assert r.axis_entity(r.ENTITY_CONTACT_FORCE, "x") not in data
+
+
+def test_buffer_is_bounded_and_keeps_the_newest():
+    capacity, sent = 10, 25
+    buffer = r.StreamBuffer(m.JOINT_STATE, capacity, threading.Condition())
+    for i in range(sent):
+        buffer(build("joint_state", i), 0)
+    assert (buffer.received, buffer.overflow) == (sent, sent - capacity)
+    records = buffer.take()
+    assert list(records["seq"]) == list(range(sent - capacity, sent))
+    assert records["sim_time_ns"][0] == sim_ns(sent - capacity)
+    assert buffer.take().size == 0
+
+
+def test_record_copy_outlives_the_received_bytes():
+    buffer = r.StreamBuffer(m.TOOL_POSE, 4, threading.Condition())
+    wire = bytearray(m.TOOL_POSE.encode(build("tool_pose", 3)))
+    buffer(np.frombuffer(wire, m.TOOL_POSE.dtype, 1).reshape(()), 0)
+    wire[:] = bytes(len(wire))  # the receive buffer is reused
+    assert int(buffer.take()["seq"][0]) == 3
+
+
+def test_no_rrd_path_and_no_run_dir_is_a_config_error():
+    config = make_config("", free_endpoint())
+    with pytest.raises(ConfigError, match="rrd_path"):
+        r.RecorderService(config, ServiceOptions(run_dir=None))
+
+
+def test_default_rrd_path_is_in_the_run_dir(tmp_path):
+    service = r.RecorderService(make_config("", free_endpoint()), ServiceOptions(run_dir=tmp_path))
+    assert service.rrd_path == tmp_path / r.RRD_FILE_NAME
+
+
+def test_event_text_and_quaternion_order():
+    assert r.event_text(int(m.Event.WATCHDOG_BRAKE), 123, 0.0) == "WATCHDOG_BRAKE at step 123"
+    assert r.event_text(99, 1, 0.0) == "EVENT_99 at step 1"
+    q_wxyz = np.array([[0.5, 0.1, 0.2, 0.3]])
+    np.testing.assert_array_equal(r.wxyz_to_xyzw(q_wxyz), [[0.1, 0.2, 0.3, 0.5]])
