@@ -157,6 +157,8 @@ class ControlConfig:
     max_joint_speed_rad_s: float = math.pi
     # Damping of the pseudo-inverse near singularities (m).
     damping_m: float = 1e-4
+    # Rate of CONTROL_STATUS (plots, recorder); the control cycle itself runs per state.
+    status_rate_hz: float = 100.0
 
     def __post_init__(self) -> None:
         for name in (
@@ -170,6 +172,7 @@ class ControlConfig:
         _require(self.speed_error_gain_per_m >= 0, "control.speed_error_gain_per_m >= 0")
         _require(self.null_space_gain >= 0, "control.null_space_gain >= 0")
         _require(self.damping_m >= 0, "control.damping_m >= 0")
+        _require(self.status_rate_hz > 0, "control.status_rate_hz > 0")
 
 
 @dataclass(frozen=True)

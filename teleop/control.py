@@ -113,12 +113,6 @@ class ControlOutput:
     path_s: float
 
 
-def damped_pseudo_inverse(jacobian: np.ndarray, damping: float) -> np.ndarray:
-    """J# = J^T (J J^T + damping^2 I)^-1, (n, m); plain pseudo-inverse when damping is 0."""
-    m = jacobian.shape[0]
-    return jacobian.T @ np.linalg.inv(jacobian @ jacobian.T + damping**2 * np.eye(m))
-
-
 def limit_speed(qd_rad_s: np.ndarray, max_rad_s: np.ndarray | float) -> np.ndarray:
     """Scale the whole vector down (keeping its direction) so every joint is within limits."""
     ratio = float(np.max(np.abs(qd_rad_s) / max_rad_s))
@@ -155,6 +149,7 @@ class PathFollowingController:
         self.path = DesiredPath(path)
         self.period_s = period_s
         self.max_speed_rad_s = np.minimum(control.max_joint_speed_rad_s, arm.servo.max_speed_rad_s)
+        self._damping_matrix = control.damping_m**2 * np.eye(3)
         self._s: float | None = None
         self._previous_qd_c: np.ndarray | None = None
 
@@ -173,17 +168,18 @@ class PathFollowingController:
             self._s = self.path.closest_local(tool_p, self._s)
         desired_p = self.path.point(self._s)
         error = desired_p - tool_p
-        error_norm = float(np.linalg.norm(error))
+        error_norm = math.sqrt(float(error @ error))
         tangent, _ = self.path.derivatives(self._s)
         speed = ctl.path_speed_m_s / (1.0 + ctl.speed_error_gain_per_m * error_norm)
-        v_desired = speed * tangent / np.linalg.norm(tangent)
+        v_desired = tangent * (speed / math.sqrt(float(tangent @ tangent)))
         e0 = ctl.position_saturation_m
         v_task = v_desired + ctl.position_gain_per_s * e0 * np.tanh(error / e0)
 
-        j_pinv = damped_pseudo_inverse(jv, ctl.damping_m)
-        null_projector = np.eye(self.arm.n_joints) - j_pinv @ jv
+        # J# v + (I - J# J) g with J# = J^T A^-1, A = J J^T + damping^2 I, in one solve:
+        # J^T A^-1 (v - J g) + g, where g = L grad w is the null-space objective.
         w, w_gradient = manipulability_and_gradient(jacobian)
-        qd_c = j_pinv @ v_task + null_projector @ (ctl.null_space_gain * w_gradient)
+        g = ctl.null_space_gain * w_gradient
+        qd_c = jv.T @ np.linalg.solve(jv @ jv.T + self._damping_matrix, v_task - jv @ g) + g
         qd_c = limit_speed(qd_c, self.max_speed_rad_s)
 
         if ctl.compensation:

@@ -50,6 +50,9 @@ class ControllerService(Service):
             self.arm, self.config.control, self.config.path, period_s=self.config.plant.timestep_s
         )
         self.metrics = PathMetrics(settle_s=self.config.run.settle_s)
+        self.status_every_steps = max(
+            1, round(1.0 / (self.config.control.status_rate_hz * self.config.plant.timestep_s))
+        )
         self.command_pub = self.keep(
             Publisher.declare(self.session, self.topics.joint_command, JOINT_COMMAND)
         )
@@ -114,7 +117,8 @@ class ControllerService(Service):
         cmd["t_source_ns"] = now_ns
         self.command_pub.put(cmd)
         self.metrics.add(sim_time_ns * 1e-9, output)
-        self._publish_status(output, sim_time_ns, now_ns)
+        if int(state["step"]) % self.status_every_steps == 0:
+            self._publish_status(output, sim_time_ns, now_ns)
 
     def _publish_status(self, output: ControlOutput, sim_time_ns: int, now_ns: int) -> None:
         n = self.arm.n_joints
