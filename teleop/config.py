@@ -176,6 +176,145 @@ class ControlConfig:
 
 
 @dataclass(frozen=True)
+class SceneConfig:
+    """Where things are in the scene, applied by the plant over the MJCF's own values.
+
+    Empty tuples keep the model file's values. Positions are world frame (m).
+    """
+
+    cube_p_m: tuple[float, ...] = ()
+    bin_p_m: tuple[float, ...] = ()
+    # One (x, y, z) per obstacle geom, in the order of their names (obstacle_0, ...).
+    obstacle_p_m: tuple[tuple[float, float, float], ...] = ()
+    obstacle_radius_m: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        _require(len(self.cube_p_m) in (0, 3), "scene.cube_p_m: empty or x, y, z")
+        _require(len(self.bin_p_m) in (0, 3), "scene.bin_p_m: empty or x, y, z")
+        _require(all(r > 0 for r in self.obstacle_radius_m), "scene.obstacle_radius_m > 0")
+
+
+@dataclass(frozen=True)
+class HapticConfig:
+    """The emulated Falcon-like 3-DOF device (paper notes: ~0.1 m cube, ~8 N, 1 kHz)."""
+
+    handle_mass_kg: float = 0.15
+    # Physical viscous damping b of the handle; bounds the stiffness it can render stably.
+    damping_n_s_per_m: float = 3.0
+    workspace_half_m: float = 0.05  # the handle moves within +-this per axis (end stops)
+    peak_force_n: float = 8.0
+    encoder_resolution_m: float = 2e-5  # position quantisation of the encoders
+    # Kalman velocity estimate: white-acceleration process noise (m/s^2) of the model.
+    kf_accel_noise_m_s2: float = 30.0
+    # Feedback older than this is stale: the rendered force fades to zero over fade_s.
+    stale_feedback_s: float = 0.020
+    fade_s: float = 0.020
+    # The operator's hand, a spring-damper pulling the handle to the hand's target.
+    hand_stiffness_n_per_m: float = 200.0
+    hand_damping_n_s_per_m: float = 8.0
+
+    def __post_init__(self) -> None:
+        for name in (
+            "handle_mass_kg",
+            "damping_n_s_per_m",
+            "workspace_half_m",
+            "peak_force_n",
+            "encoder_resolution_m",
+            "kf_accel_noise_m_s2",
+            "stale_feedback_s",
+            "fade_s",
+        ):
+            _require(getattr(self, name) > 0, f"haptic.{name} > 0")
+
+
+@dataclass(frozen=True)
+class HmdConfig:
+    """The emulated head-mounted display: scripted head motion, noise, filter, prediction."""
+
+    rate_hz: float = 90.0
+    # Where the operator's head is (world frame) and the yaw it faces (rad, 0 = +x).
+    head_p_m: tuple[float, float, float] = (-0.45, 0.0, 0.65)
+    head_yaw_rad: float = 0.0
+    # Scripted motion: slow yaw sway and a small sideways sway.
+    yaw_amplitude_rad: float = 0.25
+    sway_amplitude_m: float = 0.03
+    motion_period_s: float = 7.0
+    # Sensor noise (standard deviations) of the tracker.
+    position_noise_m: float = 0.002
+    yaw_noise_rad: float = 0.004
+    # Prediction horizon: the measured motion-to-use latency (s); 0 = none.
+    prediction_s: float = 0.020
+
+    def __post_init__(self) -> None:
+        _require(0 < self.rate_hz <= 1000, "hmd.rate_hz in (0, 1000]")
+        _require(self.motion_period_s > 0, "hmd.motion_period_s > 0")
+        _require(0 <= self.prediction_s < 1, "hmd.prediction_s in [0, 1)")
+
+
+@dataclass(frozen=True)
+class TeleopConfig:
+    """Teleoperation in the controller: rate control, limits and force feedback."""
+
+    # Handle offset from the device centre (m) -> tool velocity (m/s): v = gain (x - deadband).
+    rate_gain_per_s: float = 6.0
+    deadband_m: float = 0.004
+    max_tool_speed_m_s: float = 0.25
+    # Slow down near singularities (MoveIt Servo): full speed below the first condition
+    # number of the position Jacobian, stop at the second.
+    singularity_slowdown_cond: float = 17.0
+    singularity_stop_cond: float = 30.0
+    # Slow down within this distance of a joint limit (rad), stop at the limit.
+    joint_limit_margin_rad: float = 0.15
+    # Robot-side force (N) -> device force (N).
+    force_scale: float = 0.5
+    # Virtual obstacles: repulsion within the influence distance, felt and obeyed.
+    obstacle_influence_m: float = 0.08
+    obstacle_stiffness_n_per_m: float = 60.0
+    obstacle_avoid_gain_per_s: float = 4.0
+    # Workspace spring of the handle (device frame): pulls it back beyond this radius.
+    workspace_free_m: float = 0.04
+    workspace_stiffness_n_per_m: float = 300.0
+    # Grasp detection: both fingers touch the object.
+    object_mass_kg: float = 0.2
+
+    def __post_init__(self) -> None:
+        _require(self.rate_gain_per_s > 0, "teleop.rate_gain_per_s > 0")
+        _require(self.deadband_m >= 0, "teleop.deadband_m >= 0")
+        _require(self.max_tool_speed_m_s > 0, "teleop.max_tool_speed_m_s > 0")
+        _require(
+            self.singularity_stop_cond > self.singularity_slowdown_cond > 1,
+            "teleop: singularity_stop_cond > singularity_slowdown_cond > 1",
+        )
+        _require(self.force_scale >= 0, "teleop.force_scale >= 0")
+
+
+@dataclass(frozen=True)
+class OperatorConfig:
+    """The scripted operator: what it does, how fast it reacts, how it moves its hand."""
+
+    # Task file: a name in deploy/scenarios/, or a path.
+    scenario_file: str = "grasp.toml"
+    reaction_delay_s: float = 0.2
+    decision_rate_hz: float = 100.0
+    # Tool-position error (m) -> hand offset on the handle (m), and the largest offset.
+    hand_gain: float = 0.6
+    max_hand_offset_m: float = 0.045
+
+    def __post_init__(self) -> None:
+        _require(self.reaction_delay_s >= 0, "operator.reaction_delay_s >= 0")
+        _require(0 < self.decision_rate_hz <= 1000, "operator.decision_rate_hz in (0, 1000]")
+
+    @property
+    def scenario_path(self) -> Path:
+        candidate = Path(self.scenario_file)
+        if candidate.is_absolute():
+            return candidate
+        if (DEPLOY_DIR / "scenarios" / candidate).exists():
+            return DEPLOY_DIR / "scenarios" / candidate
+        return REPO_ROOT / candidate
+
+
+@dataclass(frozen=True)
 class BusConfig:
     """How services reach each other over Zenoh."""
 
@@ -245,6 +384,11 @@ class Config:
     plant: PlantConfig = field(default_factory=PlantConfig)
     path: PathConfig = field(default_factory=PathConfig)
     control: ControlConfig = field(default_factory=ControlConfig)
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    haptic: HapticConfig = field(default_factory=HapticConfig)
+    hmd: HmdConfig = field(default_factory=HmdConfig)
+    teleop: TeleopConfig = field(default_factory=TeleopConfig)
+    operator: OperatorConfig = field(default_factory=OperatorConfig)
     bus: BusConfig = field(default_factory=BusConfig)
     recorder: RecorderConfig = field(default_factory=RecorderConfig)
     run: RunConfig = field(default_factory=RunConfig)

@@ -45,6 +45,7 @@ POSITION_LIMIT_M = 100.0  # |coordinate| of any point in the world frame
 QUAT_COMPONENT_LIMIT = 1.0 + 1e-6  # unit quaternion components, with rounding slack
 GRIPPER_OPENING_LIMIT_M = 1.0
 FORCE_LIMIT_N = 1.0e6
+SPEED_LIMIT_M_S = 100.0  # |component| of any linear velocity
 MANIPULABILITY_LIMIT = 1.0e6
 PATH_PARAMETER_LIMIT = 1.0e12  # path_s grows with time; this only rules out garbage
 F64_MAX = sys.float_info.max  # "no limit" bound that still rejects +-inf and NaN
@@ -62,6 +63,12 @@ class Kind(enum.IntEnum):
     OBJECT_POSES = 5
     CONTROL_STATUS = 6
     RUN_EVENT = 7
+    HAPTIC_STATE = 8
+    HAND_INPUT = 9
+    FORCE_FEEDBACK = 10
+    HEAD_POSE = 11
+    OBSTACLE_PROXIMITY = 12
+    TELEOP_STATUS = 13
 
 
 class Stage(enum.IntEnum):
@@ -86,6 +93,15 @@ class Flag(enum.IntFlag):
 
     NONE = 0
     BRAKING = 1 << 0  # JOINT_STATE: the plant's command watchdog is braking the arm
+    STALE = 1 << 1  # HAPTIC_STATE: the device is fading out a stale feedback force
+
+
+class Button(enum.IntFlag):
+    """Bits of the haptic device's ``buttons`` field (HAPTIC_STATE, HAND_INPUT)."""
+
+    NONE = 0
+    GRIPPER_CLOSE = 1 << 0  # held: close the gripper; released: open it
+    CLUTCH = 1 << 1  # held: the handle moves without moving the robot (reposition)
 
 
 class Event(enum.IntEnum):
@@ -95,6 +111,8 @@ class Event(enum.IntEnum):
     FINISHED = 2  # the plant completed the run's duration and holds the arm
     WATCHDOG_BRAKE = 3  # commands went stale: the plant brakes and holds
     WATCHDOG_RESUME = 4  # fresh commands again: the plant follows them
+    GRASP = 5  # the controller detects the object held between the fingers
+    RELEASE = 6  # the held object left the gripper
 
 
 class Reason(enum.StrEnum):
@@ -406,6 +424,101 @@ RUN_EVENT = Schema(
     ],
 )
 
+_FORCE = {"lo": -FORCE_LIMIT_N, "hi": FORCE_LIMIT_N, "unit": "N"}
+_SPEED = {"lo": -SPEED_LIMIT_M_S, "hi": SPEED_LIMIT_M_S, "unit": "m/s"}
+
+
+def _tick() -> Field:
+    return Field("tick", "u8", doc="plant state seq (sim tick) this record belongs to")
+
+
+HAPTIC_STATE = Schema(
+    Kind.HAPTIC_STATE,
+    [
+        _sim_time(),
+        _tick(),
+        Field("device_p_m", "f8", (3,), **_POS, doc="handle position, device frame, centred"),
+        Field("device_v_m_s", "f8", (3,), **_SPEED, doc="handle velocity (Kalman estimate)"),
+        Field("device_f_n", "f8", (3,), **_FORCE, doc="force rendered on the handle"),
+        Field("buttons", "u1", lo=0, hi=max(Button) * 2 - 1, doc="Button bits"),
+    ],
+)
+
+HAND_INPUT = Schema(
+    Kind.HAND_INPUT,
+    [
+        Field("valid_from_tick", "u8", doc="first plant tick this input applies to"),
+        Field(
+            "target_p_m", "f8", (3,), **_POS, doc="where the hand pulls the handle, device frame"
+        ),
+        Field("buttons", "u1", lo=0, hi=max(Button) * 2 - 1, doc="Button bits"),
+    ],
+)
+
+FORCE_FEEDBACK = Schema(
+    Kind.FORCE_FEEDBACK,
+    [
+        _sim_time(),
+        _tick(),
+        Field("device_f_n", "f8", (3,), **_FORCE, doc="force to render, device frame, saturated"),
+        Field("world_f_contact_n", "f8", (3,), **_FORCE, doc="contact component, world frame"),
+        Field("world_f_weight_n", "f8", (3,), **_FORCE, doc="held object's weight, world frame"),
+        Field("world_f_obstacle_n", "f8", (3,), **_FORCE, doc="virtual obstacle repulsion"),
+        Field("device_f_workspace_n", "f8", (3,), **_FORCE, doc="workspace spring, device frame"),
+    ],
+)
+
+HEAD_POSE = Schema(
+    Kind.HEAD_POSE,
+    [
+        _sim_time(),
+        Field("valid_from_tick", "u8", doc="first plant tick the predicted pose applies to"),
+        Field("measured_p_m", "f8", (3,), **_POS, doc="noisy head position, world frame"),
+        Field("measured_yaw_rad", "f8", lo=-4.0, hi=4.0, unit="rad", doc="noisy head yaw"),
+        Field("filtered_p_m", "f8", (3,), **_POS, doc="Kalman-filtered head position"),
+        Field("predicted_p_m", "f8", (3,), **_POS, doc="position predicted ahead"),
+        Field("predicted_yaw_rad", "f8", lo=-4.0, hi=4.0, unit="rad", doc="yaw predicted ahead"),
+        Field(
+            "predicted_pitch_rad", "f8", lo=-4.0, hi=4.0, unit="rad", doc="pitch predicted ahead"
+        ),
+        Field("horizon_s", "f8", lo=0.0, hi=1.0, unit="s", doc="prediction horizon"),
+    ],
+)
+
+OBSTACLE_PROXIMITY = Schema(
+    Kind.OBSTACLE_PROXIMITY,
+    [
+        _sim_time(),
+        _tick(),
+        Field(
+            "distance_m",
+            "f8",
+            lo=-POSITION_LIMIT_M,
+            hi=POSITION_LIMIT_M,
+            unit="m",
+            doc="signed distance arm-obstacle (closest pair); large when none",
+        ),
+        Field("world_p_arm_m", "f8", (3,), **_POS, doc="closest point on the arm"),
+        Field("world_p_obstacle_m", "f8", (3,), **_POS, doc="closest point on the obstacle"),
+        Field("arm_body", "u2", doc="MuJoCo body id holding world_p_arm_m"),
+        Field("obstacle", "u1", doc="index among the obstacle geoms"),
+    ],
+)
+
+TELEOP_STATUS = Schema(
+    Kind.TELEOP_STATUS,
+    [
+        _sim_time(),
+        _tick(),
+        Field("world_v_ref_m_s", "f8", (3,), **_SPEED, doc="operator's reference tool velocity"),
+        Field("world_v_tool_m_s", "f8", (3,), **_SPEED, doc="actual tool velocity"),
+        Field("world_p_tool_m", "f8", (3,), **_POS, doc="tool position"),
+        Field("speed_scale", "f8", lo=0.0, hi=1.0, unit="1", doc="limit/singularity scaling"),
+        Field("gripper_cmd", "f8", lo=0.0, hi=1.0, unit="1", doc="0 closed .. 1 open"),
+        Field("holding", "u1", lo=0, hi=1, doc="1 while an object is held"),
+    ],
+)
+
 SCHEMAS: Mapping[Kind, Schema] = {
     s.kind: s
     for s in (
@@ -416,6 +529,12 @@ SCHEMAS: Mapping[Kind, Schema] = {
         OBJECT_POSES,
         CONTROL_STATUS,
         RUN_EVENT,
+        HAPTIC_STATE,
+        HAND_INPUT,
+        FORCE_FEEDBACK,
+        HEAD_POSE,
+        OBSTACLE_PROXIMITY,
+        TELEOP_STATUS,
     )
 }
 

@@ -26,7 +26,13 @@ class Topics:
     objects: str = field(init=False)  # plant -> recorder/operator, OBJECT_POSES
     joint_command: str = field(init=False)  # controller -> plant, JOINT_COMMAND
     control_status: str = field(init=False)  # controller -> recorder, CONTROL_STATUS
-    events: str = field(init=False)  # plant -> all, RUN_EVENT (start, finish, watchdog)
+    events: str = field(init=False)  # plant/controller -> all, RUN_EVENT
+    haptic_state: str = field(init=False)  # haptic -> controller, HAPTIC_STATE, 1 kHz
+    hand_input: str = field(init=False)  # operator -> haptic, HAND_INPUT, 100 Hz
+    force_feedback: str = field(init=False)  # controller -> haptic, FORCE_FEEDBACK, 1 kHz
+    head_pose: str = field(init=False)  # hmd -> controller/operator, HEAD_POSE, 90 Hz
+    obstacle_proximity: str = field(init=False)  # plant -> controller, 1 kHz
+    teleop_status: str = field(init=False)  # controller -> recorder/operator, 100 Hz
     alive_all: str = field(init=False)  # every service's liveliness token
 
     def __post_init__(self) -> None:
@@ -40,6 +46,12 @@ class Topics:
             "joint_command": "cmd/joint_velocity",
             "control_status": "control/status",
             "events": "events",
+            "haptic_state": "haptic/state",
+            "hand_input": "operator/hand",
+            "force_feedback": "haptic/feedback",
+            "head_pose": "hmd/pose",
+            "obstacle_proximity": "state/obstacle_proximity",
+            "teleop_status": "control/teleop",
             "alive_all": "alive/*",
         }
         for name, stream in streams.items():
