@@ -71,7 +71,7 @@ class RobotConfig:
     # Joints that are not part of the arm chain (fingers): locked in the Pinocchio model.
     gripper_joints: tuple[str, ...] = ("finger_left", "finger_right")
     # Names of scene bodies whose poses the plant publishes (graspable objects).
-    object_bodies: tuple[str, ...] = ("cube",)
+    object_bodies: tuple[str, ...] = ("cube", "bin")
     # Prefix of the non-colliding geoms that are virtual obstacles.
     obstacle_prefix: str = "obstacle"
 

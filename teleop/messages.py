@@ -113,6 +113,9 @@ class Event(enum.IntEnum):
     WATCHDOG_RESUME = 4  # fresh commands again: the plant follows them
     GRASP = 5  # the controller detects the object held between the fingers
     RELEASE = 6  # the held object left the gripper
+    PHASE = 7  # operator: a task phase began (value: phase index in the scenario)
+    TASK_DONE = 8  # operator: task over (value: 1 success, 0 gave up); the plant finishes
+    #               the run at tick ``step`` (a tick still ahead, so lockstep stays exact)
 
 
 class Reason(enum.StrEnum):
