@@ -2,6 +2,7 @@
 
     teleop run path-following --inprocess --duration 60 --seed 0 --summary-json out.json
     teleop run path-following --mode lockstep --duration 20 --rrd out.rrd
+    teleop run grasp --mode realtime --seed 0 --rrd out.rrd --summary-json out.json
     teleop up | status | down        (a long-running stack, realtime by default)
 
 Every command reads the typed config (``--config``, default ``deploy/teleop.toml``)
@@ -17,10 +18,9 @@ import os
 import sys
 from pathlib import Path
 
-from teleop.config import ConfigError, load_config
+from teleop.config import SCENARIOS, ConfigError, load_config
 from teleop.kinematics import ModelError
 
-SCENARIOS = ("path-following",)
 DEFAULT_RUN_DIR = Path("runs") / "latest"
 DEFAULT_UP_DIR = Path("runs") / "up"
 
@@ -131,8 +131,10 @@ def _emit_summary(summary: dict[str, object], path: Path | None) -> None:
 def _run(args: argparse.Namespace) -> int:
     from teleop import experiments
 
-    overrides = _overrides(args)
+    overrides = [*_overrides(args), f'run.scenario="{args.scenario}"']
     if args.inprocess:
+        if args.scenario != "path-following":
+            raise ConfigError(f"--inprocess runs path-following only, not {args.scenario}")
         if args.rrd is not None:
             raise ConfigError("--rrd needs the services run (drop --inprocess)")
     else:
@@ -152,10 +154,11 @@ def _run(args: argparse.Namespace) -> int:
         from teleop.stack import run_on_services
 
         print(f"  logs and summaries in {args.run_dir}", file=sys.stderr)
-        summary = run_on_services(
-            config, args.config, overrides, args.scenario, args.run_dir, progress
-        )
+        summary = run_on_services(config, args.config, overrides, args.run_dir, progress)
     _emit_summary(summary, args.summary_json)
+    if summary.get("success") is False:
+        print("teleop: the task did not succeed", file=sys.stderr)
+        return EXIT_FAILED
     return 0
 
 

@@ -205,7 +205,7 @@ class HapticConfig:
     peak_force_n: float = 8.0
     encoder_resolution_m: float = 2e-5  # position quantisation of the encoders
     # Kalman velocity estimate: white-acceleration process noise (m/s^2) of the model.
-    kf_accel_noise_m_s2: float = 30.0
+    kf_accel_noise_m_s2: float = 3.0  # 30 made it noisier than finite differences (tested)
     # Feedback older than this is stale: the rendered force fades to zero over fade_s.
     stale_feedback_s: float = 0.020
     fade_s: float = 0.020
@@ -296,8 +296,8 @@ class OperatorConfig:
     scenario_file: str = "grasp.toml"
     reaction_delay_s: float = 0.2
     decision_rate_hz: float = 100.0
-    # Tool-position error (m) -> hand offset on the handle (m), and the largest offset.
-    hand_gain: float = 0.6
+    # The largest offset the hand gives the handle (m); the operator's gain follows from
+    # reaction_delay_s (no overshoot for a delayed P loop, see teleop/operator.py).
     max_hand_offset_m: float = 0.045
 
     def __post_init__(self) -> None:
@@ -355,6 +355,7 @@ class RecorderConfig:
 
 
 TIMING_MODES = ("realtime", "lockstep")
+SCENARIOS = ("path-following", "grasp")
 
 
 @dataclass(frozen=True)
@@ -365,6 +366,8 @@ class RunConfig:
     seed: int = 0
     # realtime: the plant keeps wall-clock time; lockstep: one step per controller command.
     mode: str = "realtime"
+    # path-following: paper experiment 1 (autonomous); grasp: experiment 2 (teleoperation).
+    scenario: str = "path-following"
     settle_s: float = 10.0
     # Initial arm configuration (rad), one per arm joint; empty = robot.home_q_rad.
     initial_q_rad: tuple[float, ...] = ()
@@ -374,6 +377,7 @@ class RunConfig:
     def __post_init__(self) -> None:
         _require(self.duration_s > 0, "run.duration_s > 0")
         _require(self.mode in TIMING_MODES, f"run.mode: one of {', '.join(TIMING_MODES)}")
+        _require(self.scenario in SCENARIOS, f"run.scenario: one of {', '.join(SCENARIOS)}")
         _require(0 <= self.settle_s, "run.settle_s >= 0")
         _require(self.initial_q_noise_rad >= 0, "run.initial_q_noise_rad >= 0")
 

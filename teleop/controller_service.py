@@ -1,12 +1,22 @@
 """The controller service: one control cycle per plant state, event driven.
 
-Each JOINT_STATE is handled in the Zenoh callback that delivers it (measured: a
-hand-off to a service thread cost about 60 us per cycle on this 2-core machine,
-for a compute of about 100-150 us): the cycle computes the path-following command
-with the same :class:`PathFollowingController` as the in-process run and publishes
-a JOINT_COMMAND that names the state it answers (``state_seq``), then a
-CONTROL_STATUS for the recorder. A controller too slow for the plant's rate makes
-its commands stale, and the plant's watchdog brakes: the safe failure.
+Two tasks share the service (``run.scenario``):
+
+- path-following (paper experiment 1): each JOINT_STATE is handled in the Zenoh
+  callback that delivers it (a hand-off to a service thread cost about 60 us per
+  cycle on this 2-core machine) with the same :class:`PathFollowingController` as
+  the in-process run.
+- grasp (experiment 2, bilateral teleoperation): the cycle also needs the haptic
+  handle, the contact force and the obstacle proximity of the same tick (and the
+  HMD view yaw). In lockstep a :class:`TickBarrier` joins them, so the run is
+  deterministic; in realtime the newest of each is used, and a handle sample older
+  than ``haptic.stale_feedback_s`` counts as "no input" (the tool holds still).
+  Each cycle publishes the FORCE_FEEDBACK first (the haptic device waits for it in
+  lockstep), then the JOINT_COMMAND.
+
+Every command names the state it answers (``state_seq``). A controller too slow for
+the plant's rate makes its commands stale and the plant's watchdog brakes: the safe
+failure.
 """
 
 from __future__ import annotations
@@ -16,27 +26,42 @@ import threading
 import time
 from typing import Any
 
+import mujoco
 import numpy as np
 
-from teleop.bus import Publisher, subscribe
+from teleop.bus import Latest, Publisher, subscribe
 from teleop.control import ControlOutput, PathFollowingController
 from teleop.experiments import PathMetrics
+from teleop.feedback import check_stability, device_force, feedback_components
 from teleop.kinematics import build_arm_model
 from teleop.messages import (
+    CONTACT,
     CONTROL_STATUS,
+    FORCE_FEEDBACK,
+    HAPTIC_STATE,
+    HEAD_POSE,
     JOINT_COMMAND,
     JOINT_STATE,
+    OBSTACLE_PROXIMITY,
+    TELEOP_STATUS,
+    Button,
     DecodeError,
     Kind,
     Reason,
     Stage,
 )
+from teleop.proximity import ProximitySample, body_names
 from teleop.service import Service
+from teleop.teleop_control import TeleopController, TeleopOutput, teleop_reference
+from teleop.ticks import TickBarrier, TickedInputs, expected_valid_from
 
 logger = logging.getLogger(__name__)
 
 # The path-following task keeps the gripper open (fraction of full opening).
 GRIPPER_OPEN = 1.0
+GRIPPER_CLOSED = 0.0
+# Lockstep: how long a cycle waits for the HMD record that applies at its tick (s).
+HEAD_POSE_WAIT_S = 1.0
 
 
 class ControllerService(Service):
@@ -46,32 +71,29 @@ class ControllerService(Service):
         super().open()
         assert self.session is not None
         self.arm = build_arm_model(self.config.robot)
-        self.controller = PathFollowingController(
-            self.arm, self.config.control, self.config.path, period_s=self.config.plant.timestep_s
-        )
-        self.metrics = PathMetrics(settle_s=self.config.run.settle_s)
+        self.timestep_s = self.config.plant.timestep_s
         self.status_every_steps = max(
-            1, round(1.0 / (self.config.control.status_rate_hz * self.config.plant.timestep_s))
+            1, round(1.0 / (self.config.control.status_rate_hz * self.timestep_s))
         )
         self.command_pub = self.keep(
             Publisher.declare(self.session, self.topics.joint_command, JOINT_COMMAND)
         )
-        self.status_pub = self.keep(
-            Publisher.declare(self.session, self.topics.control_status, CONTROL_STATUS)
-        )
+        self._command = JOINT_COMMAND.new()
         self._lock = threading.Lock()
         self._last_seq = -1
+        self.cycles = 0
+        self.skipped_states = 0
+        self.runs = 0
+        self.compute_ns_total = 0
+        if self.config.run.scenario == "grasp":
+            self.task: PathTask | TeleopTask = TeleopTask(self)
+        else:
+            self.task = PathTask(self)
         self.keep(
             subscribe(
                 self.session, self.topics.joint_state, JOINT_STATE, self._on_state, self.drops
             )
         )
-        self._command = JOINT_COMMAND.new()
-        self._status = CONTROL_STATUS.new()
-        self.cycles = 0
-        self.skipped_states = 0
-        self.runs = 0
-        self.compute_ns_total = 0
         self.announce()
 
     def _on_state(self, rec: np.ndarray, rx_ns: int) -> None:
@@ -81,50 +103,88 @@ class ControllerService(Service):
             return
         with self._lock:
             seq = int(rec["seq"])
-            if seq == 0:  # a new run began (or the plant restarted): forget the path state
-                self.controller.reset()
-                self.metrics = PathMetrics(settle_s=self.config.run.settle_s)
+            if seq == 0:  # a new run began (or the plant restarted): forget the task state
+                self.task.reset()
                 self.runs += 1
             elif seq <= self._last_seq:
                 return  # a re-sent state this controller has already answered
             elif self._last_seq >= 0 and seq > self._last_seq + 1:
                 self.skipped_states += seq - self._last_seq - 1
             self._last_seq = seq
-            self._cycle(rec, rx_ns)
+        self.task.on_state(rec, rx_ns)
 
-    def run(self, stop: threading.Event) -> None:
-        """The work happens in the state callback; this thread only waits to be stopped."""
-        stop.wait()
-
-    def _cycle(self, state: np.ndarray, rx_ns: int) -> None:
+    def publish_command(
+        self, state: np.ndarray, qd_ref_rad_s: np.ndarray, gripper_cmd: float, trace: np.ndarray
+    ) -> None:
+        """Send the joint velocity references that answer ``state``."""
         n = self.arm.n_joints
-        t0 = time.monotonic_ns()
-        output = self.controller.update(state["q_rad"][:n], state["qd_rad_s"][:n])
-        self.compute_ns_total += time.monotonic_ns() - t0
-        sim_time_ns = int(state["sim_time_ns"])
         self.cycles += 1
-
         cmd = self._command
         cmd["seq"] = self.cycles
         cmd["state_seq"] = state["seq"]
         cmd["n_joints"] = n
-        cmd["qd_ref_rad_s"][:n] = output.qd_ref_rad_s
-        cmd["gripper_cmd"] = GRIPPER_OPEN
-        cmd["trace_ns"][:] = state["trace_ns"]
-        cmd["trace_ns"][Stage.CONTROLLER_RX] = rx_ns
+        cmd["qd_ref_rad_s"][:n] = qd_ref_rad_s
+        cmd["gripper_cmd"] = gripper_cmd
+        cmd["trace_ns"][:] = trace
         now_ns = time.monotonic_ns()
         cmd["trace_ns"][Stage.CONTROLLER_TX] = now_ns
         cmd["t_source_ns"] = now_ns
         self.command_pub.put(cmd)
-        self.metrics.add(sim_time_ns * 1e-9, output)
-        if int(state["step"]) % self.status_every_steps == 0:
-            self._publish_status(output, sim_time_ns, now_ns)
 
-    def _publish_status(self, output: ControlOutput, sim_time_ns: int, now_ns: int) -> None:
-        n = self.arm.n_joints
+    def run(self, stop: threading.Event) -> None:
+        """The work happens in the bus callbacks; this thread only waits to be stopped."""
+        stop.wait()
+
+    def summary(self) -> dict[str, Any]:
+        mean_compute_us = self.compute_ns_total / self.cycles / 1e3 if self.cycles else None
+        return {
+            **super().summary(),
+            **self.task.summary(),
+            "cycles": self.cycles,
+            "skipped_states": self.skipped_states,
+            "runs": self.runs,
+            "compute_mean_us": mean_compute_us,
+        }
+
+
+class PathTask:
+    """Paper experiment 1: autonomous path following."""
+
+    def __init__(self, service: ControllerService) -> None:
+        self.service = service
+        config = service.config
+        self.controller = PathFollowingController(
+            service.arm, config.control, config.path, period_s=service.timestep_s
+        )
+        self.metrics = PathMetrics(settle_s=config.run.settle_s)
+        assert service.session is not None
+        self.status_pub = service.keep(
+            Publisher.declare(service.session, service.topics.control_status, CONTROL_STATUS)
+        )
+        self._status = CONTROL_STATUS.new()
+
+    def reset(self) -> None:
+        self.controller.reset()
+        self.metrics = PathMetrics(settle_s=self.service.config.run.settle_s)
+
+    def on_state(self, state: np.ndarray, rx_ns: int) -> None:
+        n = self.service.arm.n_joints
+        t0 = time.monotonic_ns()
+        output = self.controller.update(state["q_rad"][:n], state["qd_rad_s"][:n])
+        self.service.compute_ns_total += time.monotonic_ns() - t0
+        trace = state["trace_ns"].copy()
+        trace[Stage.CONTROLLER_RX] = rx_ns
+        self.service.publish_command(state, output.qd_ref_rad_s, GRIPPER_OPEN, trace)
+        sim_time_ns = int(state["sim_time_ns"])
+        self.metrics.add(sim_time_ns * 1e-9, output)
+        if int(state["step"]) % self.service.status_every_steps == 0:
+            self._publish_status(output, sim_time_ns)
+
+    def _publish_status(self, output: ControlOutput, sim_time_ns: int) -> None:
+        n = self.service.arm.n_joints
         rec = self._status
-        rec["seq"] = self.cycles
-        rec["t_source_ns"] = now_ns
+        rec["seq"] = self.service.cycles
+        rec["t_source_ns"] = time.monotonic_ns()
         rec["sim_time_ns"] = sim_time_ns
         rec["desired_p_m"] = output.desired_p_m
         rec["tool_p_m"] = output.tool_p_m
@@ -136,14 +196,254 @@ class ControllerService(Service):
         self.status_pub.put(rec)
 
     def summary(self) -> dict[str, Any]:
-        mean_compute_us = self.compute_ns_total / self.cycles / 1e3 if self.cycles else None
         return {
-            **super().summary(),
             **self.metrics.summary(),
             "settle_s": self.metrics.settle_s,
-            "compensation": self.config.control.compensation,
-            "cycles": self.cycles,
-            "skipped_states": self.skipped_states,
-            "runs": self.runs,
-            "compute_mean_us": mean_compute_us,
+            "compensation": self.service.config.control.compensation,
+        }
+
+
+class TeleopTask:
+    """Paper experiment 2: bilateral teleoperation through the haptic device."""
+
+    INPUTS = ("state", "haptic", "contact", "proximity")
+
+    def __init__(self, service: ControllerService) -> None:
+        self.service = service
+        config = service.config
+        session = service.session
+        assert session is not None
+        topics = service.topics
+        self.lockstep = config.run.mode == "lockstep"
+        self.stability = check_stability(config.teleop, config.haptic, service.timestep_s)
+        mj_model = mujoco.MjModel.from_xml_path(str(config.robot.scene_path))
+        self.controller = TeleopController(
+            service.arm,
+            config.teleop,
+            config.control,
+            period_s=service.timestep_s,
+            mj_body_names=body_names(mj_model),
+        )
+        self.hmd_lead_ticks = round(config.hmd.prediction_s / service.timestep_s)
+        self.stale_ticks = round(config.haptic.stale_feedback_s / service.timestep_s)
+        self.feedback_pub = service.keep(
+            Publisher.declare(session, topics.force_feedback, FORCE_FEEDBACK)
+        )
+        self.status_pub = service.keep(
+            Publisher.declare(session, topics.teleop_status, TELEOP_STATUS)
+        )
+        self._feedback = FORCE_FEEDBACK.new()
+        self._status = TELEOP_STATUS.new()
+        self.head_poses = TickedInputs()
+        self.haptic = Latest()
+        self.contact = Latest()
+        self.proximity = Latest()
+        self.barrier = TickBarrier(self.INPUTS, self._on_tick)
+        drops = service.drops
+        service.keep(subscribe(session, topics.haptic_state, HAPTIC_STATE, self._on_haptic, drops))
+        service.keep(subscribe(session, topics.contact, CONTACT, self._on_contact, drops))
+        service.keep(
+            subscribe(
+                session, topics.obstacle_proximity, OBSTACLE_PROXIMITY, self._on_proximity, drops
+            )
+        )
+        service.keep(subscribe(session, topics.head_pose, HEAD_POSE, self._on_head_pose, drops))
+        self._reset_metrics()
+
+    def _reset_metrics(self) -> None:
+        self.tracking_sq_sum = 0.0
+        self.tracking_count = 0
+        self.max_obstacle_force_n = 0.0
+        self.max_device_force_n = 0.0
+        self.held_weight_sum_n = 0.0
+        self.held_count = 0
+        self.no_input_cycles = 0
+        self.missing_head_poses = 0
+
+    def reset(self) -> None:
+        self.controller.reset()
+        self.barrier.reset()
+        self._reset_metrics()
+
+    # -- inputs --------------------------------------------------------------------------
+    def _tick_of(self, rec: np.ndarray) -> int:
+        return round(int(rec["sim_time_ns"]) * 1e-9 / self.service.timestep_s)
+
+    def _on_haptic(self, rec: np.ndarray, rx_ns: int) -> None:
+        rec = rec.copy()
+        if self.lockstep:
+            self.barrier.put("haptic", int(rec["tick"]), rec)
+        else:
+            self.haptic(rec, rx_ns)
+
+    def _on_contact(self, rec: np.ndarray, rx_ns: int) -> None:
+        rec = rec.copy()
+        if self.lockstep:
+            self.barrier.put("contact", self._tick_of(rec), rec)
+        else:
+            self.contact(rec, rx_ns)
+
+    def _on_proximity(self, rec: np.ndarray, rx_ns: int) -> None:
+        rec = rec.copy()
+        if self.lockstep:
+            self.barrier.put("proximity", int(rec["tick"]), rec)
+        else:
+            self.proximity(rec, rx_ns)
+
+    def _on_head_pose(self, rec: np.ndarray, rx_ns: int) -> None:
+        self.head_poses.put(int(rec["valid_from_tick"]), rec.copy())
+
+    def on_state(self, state: np.ndarray, rx_ns: int) -> None:
+        state = state.copy()
+        state["trace_ns"][Stage.CONTROLLER_RX] = rx_ns
+        if self.lockstep:
+            self.barrier.put("state", int(state["seq"]), state)
+            return
+        latest = {"haptic": self.haptic.get(), "contact": self.contact.get()}
+        latest["proximity"] = self.proximity.get()
+        records = {name: value[0] for name, value in latest.items() if value is not None}
+        records["state"] = state
+        self._on_tick(int(state["seq"]), records)
+
+    def _head_yaw_rad(self, tick: int) -> float:
+        """The HMD's predicted view yaw that applies at ``tick`` (config yaw before any)."""
+        hmd = self.service.config.hmd
+        valid_from = expected_valid_from(tick, hmd.rate_hz, self.service.timestep_s,
+                                         self.hmd_lead_ticks)  # fmt: skip
+        if valid_from is None:
+            return hmd.head_yaw_rad
+        if self.lockstep:
+            rec = self.head_poses.wait_for(valid_from, HEAD_POSE_WAIT_S)
+        else:
+            rec = self.head_poses.latest_at(tick)
+        if rec is None:
+            self.missing_head_poses += 1
+            return hmd.head_yaw_rad
+        return float(rec["predicted_yaw_rad"])
+
+    # -- the cycle -----------------------------------------------------------------------
+    def _on_tick(self, tick: int, records: dict[str, np.ndarray]) -> None:
+        service = self.service
+        config = service.config
+        state = records["state"]
+        haptic = records.get("haptic")
+        if haptic is not None and tick - int(haptic["tick"]) > self.stale_ticks:
+            haptic = None  # the handle went silent: no reference, the tool holds still
+        n = service.arm.n_joints
+        t0 = time.monotonic_ns()
+        if haptic is None:
+            self.no_input_cycles += 1
+            handle_d_m = np.zeros(3)
+            buttons = Button.NONE
+        else:
+            handle_d_m = np.array(haptic["device_p_m"])
+            buttons = Button(int(haptic["buttons"]))
+        clutch = bool(buttons & Button.CLUTCH)
+        gripper_cmd = GRIPPER_CLOSED if buttons & Button.GRIPPER_CLOSE else GRIPPER_OPEN
+        yaw_rad = self._head_yaw_rad(tick)
+        v_ref = teleop_reference(handle_d_m, yaw_rad, clutch, config.teleop)
+        obstacle = self._proximity_sample(records.get("proximity"))
+        output = self.controller.update(
+            state["q_rad"][:n], state["qd_rad_s"][:n], v_ref, obstacle, gripper_cmd, clutch
+        )
+        contact = records.get("contact")
+        world_f_gripper_n = np.array(contact["world_f_contact_n"]) if contact else np.zeros(3)
+        held_mass = float(contact["held_mass_kg"]) if contact else 0.0
+        components = feedback_components(
+            world_f_gripper_n, held_mass, obstacle, handle_d_m, config.teleop
+        )
+        device_f_n = device_force(components, yaw_rad, config.teleop, config.haptic)
+        service.compute_ns_total += time.monotonic_ns() - t0
+
+        trace = state["trace_ns"].copy()
+        if haptic is not None:
+            trace[Stage.HAPTIC_SAMPLE] = haptic["trace_ns"][Stage.HAPTIC_SAMPLE]
+        self._publish_feedback(tick, state, components, device_f_n, trace)
+        service.publish_command(state, output.qd_ref_rad_s, gripper_cmd, trace)
+        self._measure(output, components, device_f_n, held_mass)
+        if tick % service.status_every_steps == 0:
+            self._publish_status(tick, state, output, held_mass > 0)
+
+    @staticmethod
+    def _proximity_sample(rec: np.ndarray | None) -> ProximitySample | None:
+        if rec is None or int(rec["obstacle_geom"]) < 0:
+            return None
+        return ProximitySample(
+            distance_m=float(rec["distance_m"]),
+            world_p_arm_m=np.array(rec["world_p_arm_m"]),
+            world_p_obstacle_m=np.array(rec["world_p_obstacle_m"]),
+            world_n_away=np.array(rec["world_n_away"]),
+            arm_body=int(rec["arm_body"]),
+            obstacle=int(rec["obstacle_geom"]),
+        )
+
+    def _publish_feedback(
+        self,
+        tick: int,
+        state: np.ndarray,
+        components: Any,
+        device_f_n: np.ndarray,
+        trace: np.ndarray,
+    ) -> None:
+        rec = self._feedback
+        rec["seq"] += 1
+        rec["tick"] = tick
+        rec["sim_time_ns"] = state["sim_time_ns"]
+        rec["device_f_n"] = device_f_n
+        rec["world_f_contact_n"] = components.world_contact_f_n
+        rec["world_f_weight_n"] = components.world_weight_f_n
+        rec["world_f_obstacle_n"] = components.world_obstacle_f_n
+        rec["device_f_workspace_n"] = components.device_workspace_f_n
+        rec["trace_ns"][:] = trace
+        now_ns = time.monotonic_ns()
+        rec["trace_ns"][Stage.FEEDBACK_TX] = now_ns
+        rec["t_source_ns"] = now_ns
+        self.feedback_pub.put(rec)
+
+    def _measure(
+        self, output: TeleopOutput, components: Any, device_f_n: np.ndarray, held_mass: float
+    ) -> None:
+        error = output.world_v_ref_m_s - output.world_v_tool_m_s
+        self.tracking_sq_sum += float(error @ error)
+        self.tracking_count += 1
+        obstacle_n = float(np.linalg.norm(components.world_obstacle_f_n))
+        self.max_obstacle_force_n = max(self.max_obstacle_force_n, obstacle_n)
+        self.max_device_force_n = max(self.max_device_force_n, float(np.linalg.norm(device_f_n)))
+        if held_mass > 0:
+            self.held_weight_sum_n += float(np.linalg.norm(components.world_weight_f_n))
+            self.held_count += 1
+
+    def _publish_status(
+        self, tick: int, state: np.ndarray, output: TeleopOutput, holding: bool
+    ) -> None:
+        rec = self._status
+        rec["seq"] += 1
+        rec["t_source_ns"] = time.monotonic_ns()
+        rec["tick"] = tick
+        rec["sim_time_ns"] = state["sim_time_ns"]
+        rec["world_v_ref_m_s"] = output.world_v_ref_m_s
+        rec["world_v_tool_m_s"] = output.world_v_tool_m_s
+        rec["world_p_tool_m"] = output.world_p_tool_m
+        rec["speed_scale"] = min(1.0, max(0.0, output.speed_scale))
+        rec["gripper_cmd"] = output.gripper_cmd
+        rec["holding"] = int(holding)
+        self.status_pub.put(rec)
+
+    def summary(self) -> dict[str, Any]:
+        rms = (self.tracking_sq_sum / self.tracking_count) ** 0.5 if self.tracking_count else None
+        held = self.held_weight_sum_n / self.held_count if self.held_count else None
+        return {
+            "velocity_tracking_rms_m_s": rms,
+            "max_obstacle_force_n": self.max_obstacle_force_n,
+            "max_device_force_command_n": self.max_device_force_n,
+            "held_weight_n": held,
+            "held_cycles": self.held_count,
+            "no_input_cycles": self.no_input_cycles,
+            "missing_head_poses": self.missing_head_poses,
+            "barrier_dropped": self.barrier.dropped,
+            "stability": {
+                "k_max_n_per_m": self.stability.k_max_n_per_m,
+                "k_workspace_n_per_m": self.stability.k_workspace_n_per_m,
+                "k_obstacle_handle_n_per_m": self.stability.k_obstacle_handle_n_per_m,
+            },
         }

@@ -352,6 +352,7 @@ CONTACT = Schema(
     Kind.CONTACT,
     [
         _sim_time(),
+        Field("held_body", "i8", doc="MuJoCo body id of the object pinched by both fingers; -1"),
         Field(
             "world_f_contact_n",
             "f8",
@@ -361,6 +362,7 @@ CONTACT = Schema(
             unit="N",
             doc="total contact force on the gripper, world frame",
         ),
+        Field("held_mass_kg", "f8", lo=0.0, hi=1.0e3, unit="kg", doc="mass of the held object"),
         Field("n_contacts", "u2", doc="number of active gripper contacts"),
     ],
 )
@@ -493,18 +495,27 @@ OBSTACLE_PROXIMITY = Schema(
     [
         _sim_time(),
         _tick(),
+        Field("obstacle_geom", "i8", doc="MuJoCo geom id of the obstacle; -1: none in reach"),
+        Field("arm_body", "i8", doc="MuJoCo body id holding world_p_arm_m; -1: none"),
         Field(
             "distance_m",
             "f8",
             lo=-POSITION_LIMIT_M,
-            hi=POSITION_LIMIT_M,
+            hi=POSITION_LIMIT_M * 10,
             unit="m",
-            doc="signed distance arm-obstacle (closest pair); large when none",
+            doc="signed distance arm-obstacle (closest pair); 1000 when none in reach",
         ),
         Field("world_p_arm_m", "f8", (3,), **_POS, doc="closest point on the arm"),
         Field("world_p_obstacle_m", "f8", (3,), **_POS, doc="closest point on the obstacle"),
-        Field("arm_body", "u2", doc="MuJoCo body id holding world_p_arm_m"),
-        Field("obstacle", "u1", doc="index among the obstacle geoms"),
+        Field(
+            "world_n_away",
+            "f8",
+            (3,),
+            lo=-1.0,
+            hi=1.0,
+            unit="1",
+            doc="unit direction from the obstacle to the arm point",
+        ),
     ],
 )
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from teleop.config import Config
 from teleop.kinematics import ModelError
+from teleop.proximity import apply_scene_overrides
 
 # Hold mode of the drives (the "brake"): stiffness of the position hold, per second.
 # q'_ref = HOLD_GAIN_PER_S (q_hold - q) + gravity / kv keeps the arm where it stopped.
@@ -48,6 +49,7 @@ class Plant:
                 f"{path}: timestep {self.model.opt.timestep} s differs from "
                 f"plant.timestep_s {config.plant.timestep_s} s"
             )
+        apply_scene_overrides(self.model, config.scene, config.robot)
         self.data = mujoco.MjData(self.model)
         self.timestep_ns = round(self.model.opt.timestep * 1e9)
         self._config = config
@@ -190,6 +192,29 @@ class Plant:
         self.data.qpos[self.qpos_index] = q_rad
         mujoco.mj_kinematics(self.model, self.data)
         mujoco.mj_comPos(self.model, self.data)
+
+    def tool_speed_m_s(self) -> float:
+        """Linear speed of the tool point (m/s), from MuJoCo's own site velocity."""
+        velocity = np.zeros(6)  # [angular, linear] in the world frame
+        mujoco.mj_objectVelocity(
+            self.model, self.data, mujoco.mjtObj.mjOBJ_SITE, self.tool_site, velocity, 0
+        )
+        return float(np.linalg.norm(velocity[3:]))
+
+    def object_in_bin(self, object_body: str = "cube", bin_body: str = "bin") -> bool:
+        """True when the object's centre lies inside the bin: within its floor's x-y
+        extent and below the top of its walls (the bin's geoms, world frame)."""
+        obj = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, object_body)
+        container = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, bin_body)
+        if obj < 0 or container < 0:
+            raise ModelError(f"no body {object_body!r} or {bin_body!r} in the scene")
+        geoms = np.flatnonzero(self.model.geom_bodyid == container)
+        centres = self.data.geom_xpos[geoms]
+        half = self.model.geom_size[geoms]  # boxes, axis-aligned in this scene
+        low, high = (centres - half).min(axis=0), (centres + half).max(axis=0)
+        p = self.data.xpos[obj]
+        inside_xy = low[0] < p[0] < high[0] and low[1] < p[1] < high[1]
+        return bool(inside_xy and low[2] < p[2] < high[2])
 
     def state_sha256(self) -> str:
         """sha256 of the full qpos and qvel bytes: equal hashes mean identical runs."""

@@ -10,8 +10,9 @@ One code path, two timing modes:
   (``state_seq``) arrives, inside the command callback, so a cycle costs no thread
   hand-off: deterministic, as fast as plant + controller allow.
 
-Published every step: JOINT_STATE. Every ``1 / scene_rate_hz``: TOOL_POSE, CONTACT,
-OBJECT_POSES. On start, finish and watchdog changes: RUN_EVENT.
+Published every step: JOINT_STATE, CONTACT and OBSTACLE_PROXIMITY (both feed the
+1 kHz force feedback). Every ``1 / scene_rate_hz``: TOOL_POSE, OBJECT_POSES. On
+start, finish and watchdog changes: RUN_EVENT.
 """
 
 from __future__ import annotations
@@ -26,11 +27,13 @@ import numpy as np
 from teleop.bus import Latest, Publisher, subscribe
 from teleop.clock import NS_PER_S, LoopTimer, MonotonicClock
 from teleop.experiments import initial_configuration
+from teleop.feedback import finger_bodies, held_mass_kg, held_object
 from teleop.messages import (
     CONTACT,
     JOINT_COMMAND,
     JOINT_STATE,
     OBJECT_POSES,
+    OBSTACLE_PROXIMITY,
     RUN_EVENT,
     TOOL_POSE,
     DecodeError,
@@ -41,6 +44,7 @@ from teleop.messages import (
     Stage,
 )
 from teleop.plant import Plant
+from teleop.proximity import ObstacleProximity
 from teleop.service import Service
 
 logger = logging.getLogger(__name__)
@@ -68,6 +72,13 @@ class PlantService(Service):
         self.contact_pub = self.keep(Publisher.declare(declare, topics.contact, CONTACT))
         self.objects_pub = self.keep(Publisher.declare(declare, topics.objects, OBJECT_POSES))
         self.events_pub = self.keep(Publisher.declare(declare, topics.events, RUN_EVENT))
+        self.proximity_pub = self.keep(
+            Publisher.declare(declare, topics.obstacle_proximity, OBSTACLE_PROXIMITY)
+        )
+        self.proximity = ObstacleProximity(self.plant.model, self.plant.data, self.config.robot)
+        self._fingers = finger_bodies(self.plant.model, self.config.robot)
+        self._held_body = -1
+        self.keep(subscribe(self.session, topics.events, RUN_EVENT, self._on_event, self.drops))
         self.commands = Latest()
         self.keep(
             subscribe(
@@ -79,6 +90,13 @@ class PlantService(Service):
         self._contact = CONTACT.new()
         self._objects = OBJECT_POSES.new()
         self._event = RUN_EVENT.new()
+        self._proximity = OBSTACLE_PROXIMITY.new()
+        # Figures of merit over the run (world frame, SI).
+        self.max_contact_force_n = 0.0
+        self.min_obstacle_clearance_m = float("inf")
+        self.max_tool_speed_m_s = 0.0
+        # The operator's TASK_DONE names the tick at which the run ends (None: duration).
+        self.finish_tick: int | None = None
         self.timer: LoopTimer | None = None
         self.state_seq = -1
         self.commands_applied = 0
@@ -93,6 +111,17 @@ class PlantService(Service):
         self._lockstep_running = False
         self._lockstep_done = threading.Event()
         self.announce()
+
+    def _on_event(self, rec: np.ndarray, rx_ns: int) -> None:
+        if int(rec["event"]) == Event.TASK_DONE:
+            self.finish_tick = int(rec["step"])
+            logger.info("task done: the run ends at tick %d", self.finish_tick)
+
+    def _should_step(self, steps: int | None) -> bool:
+        """False once the run's duration, or the tick the operator asked for, is reached."""
+        if steps is not None and self.plant.step_count >= steps:
+            return False
+        return self.finish_tick is None or self.plant.step_count < self.finish_tick
 
     def _on_command(self, rec: np.ndarray, rx_ns: int) -> None:
         """Accept commands for exactly this arm; anything else is counted and dropped."""
@@ -139,22 +168,56 @@ class PlantService(Service):
         rec["t_source_ns"] = now_ns
         rec["trace_ns"][Stage.PLANT_STATE_TX] = now_ns
         self.state_pub.put(rec)
+        self._publish_proximity(sample.step, sample.sim_time_ns, now_ns)
+        self._publish_contact(sample.sim_time_ns, now_ns)
         if sample.step % self.scene_every_steps == 0:
             self._publish_scene(sample.sim_time_ns, now_ns)
+        self.max_tool_speed_m_s = max(self.max_tool_speed_m_s, self.plant.tool_speed_m_s())
+
+    def _publish_proximity(self, tick: int, sim_time_ns: int, now_ns: int) -> None:
+        closest = self.proximity.closest()
+        self.min_obstacle_clearance_m = min(self.min_obstacle_clearance_m, closest.distance_m)
+        rec = self._proximity
+        rec["seq"] += 1
+        rec["t_source_ns"] = now_ns
+        rec["sim_time_ns"] = sim_time_ns
+        rec["tick"] = tick
+        rec["distance_m"] = closest.distance_m
+        rec["world_p_arm_m"] = closest.world_p_arm_m
+        rec["world_p_obstacle_m"] = closest.world_p_obstacle_m
+        rec["world_n_away"] = closest.world_n_away
+        rec["arm_body"] = closest.arm_body
+        rec["obstacle_geom"] = closest.obstacle
+        self.proximity_pub.put(rec)
+
+    def _publish_contact(self, sim_time_ns: int, now_ns: int) -> None:
+        """Contact force on the gripper every step: it is rendered at 1 kHz as feedback."""
+        force_n, count = self.plant.gripper_contact_force()
+        self.max_contact_force_n = max(self.max_contact_force_n, float(np.linalg.norm(force_n)))
+        model, data = self.plant.model, self.plant.data
+        held = held_object(model, data, self._fingers, self.plant.object_bodies) if count else -1
+        if (held >= 0) != (self._held_body >= 0):
+            self._publish_event(Event.GRASP if held >= 0 else Event.RELEASE, float(max(held, 0)))
+        self._held_body = held
+        rec = self._contact
+        rec["held_body"] = held
+        rec["held_mass_kg"] = held_mass_kg(model, held, 0.0)
+        rec["seq"] += 1
+        rec["t_source_ns"] = now_ns
+        rec["sim_time_ns"] = sim_time_ns
+        rec["world_f_contact_n"] = force_n
+        rec["n_contacts"] = count
+        self.contact_pub.put(rec)
 
     def _publish_scene(self, sim_time_ns: int, now_ns: int) -> None:
         position, quat = self.plant.tool_pose()
-        for rec in (self._tool, self._contact, self._objects):
+        for rec in (self._tool, self._objects):
             rec["seq"] += 1
             rec["t_source_ns"] = now_ns
             rec["sim_time_ns"] = sim_time_ns
         self._tool["world_p_tool_m"] = position
         self._tool["world_q_tool_wxyz"] = quat
         self.tool_pub.put(self._tool)
-        force_n, count = self.plant.gripper_contact_force()
-        self._contact["world_f_contact_n"] = force_n
-        self._contact["n_contacts"] = count
-        self.contact_pub.put(self._contact)
         positions, quats = self.plant.object_poses()
         n = len(positions)
         self._objects["n_objects"] = n
@@ -167,6 +230,8 @@ class PlantService(Service):
         if not self.wait_for_peers(stop):
             return
         self.plant.reset(initial_configuration(self.config))
+        self.finish_tick = None
+        self._held_body = -1
         steps = None
         if not self.options.continuous:
             steps = round(self.config.run.duration_s / self.config.plant.timestep_s)
@@ -188,7 +253,7 @@ class PlantService(Service):
         self.timer = LoopTimer(self.period_ns, MonotonicClock())
         braking = False
         last_applied_seq = -1
-        while not stop.is_set() and (steps is None or self.plant.step_count < steps):
+        while not stop.is_set() and self._should_step(steps):
             self.timer.wait()
             latest = self.commands.get()
             command, rx_ns = latest if latest is not None else (None, 0)
@@ -250,7 +315,7 @@ class PlantService(Service):
                 command["qd_ref_rad_s"][: self.plant.n_joints], float(command["gripper_cmd"])
             )
             self.commands_applied += 1
-            if self._lockstep_steps is not None and self.plant.step_count >= self._lockstep_steps:
+            if not self._should_step(self._lockstep_steps):
                 self._lockstep_done.set()
             self._publish_state(command, rx_ns, applied_ns)
 
@@ -273,4 +338,14 @@ class PlantService(Service):
             "stale_steps": self.stale_steps,
             "unanswered_commands": self.unanswered_commands,
             "final_state_sha256": self.plant.state_sha256(),
+            "max_contact_force_n": self.max_contact_force_n,
+            "obstacle_min_clearance_m": self.min_obstacle_clearance_m,
+            "tool_speed_max_m_s": self.max_tool_speed_m_s,
+            "object_in_box": self.plant.object_in_bin(),
+            "object_poses_m": {
+                name: self.plant.data.xpos[body].tolist()
+                for name, body in zip(
+                    self.config.robot.object_bodies, self.plant.object_bodies, strict=True
+                )
+            },
         }

@@ -8,9 +8,14 @@ sample), so a 1 kHz stream costs a few Rerun calls per flush, not a thousand.
 Every sample is logged at its own time, never at its arrival time:
 
 - ``sim_time`` (duration): the record's ``sim_time_ns`` (plant simulation time), for
-  every kind that carries it (all but JOINT_COMMAND);
+  every kind that carries it (all but JOINT_COMMAND and HAND_INPUT); HAND_INPUT is
+  logged at the start of the tick it applies to, ``valid_from_tick * plant.timestep_s``;
 - ``source_time`` (duration): the header's ``t_source_ns``, the producer's monotonic
   clock, for every record.
+
+A few entities are drawn once per flush from the newest sample instead of per sample:
+the tool trace and the force arrows at the tool (a 3D view only shows the latest
+value anyway, and re-logging them at 1 kHz would cost a Rerun row per sample).
 
 The entity paths below are an API: the blueprint and the tests look them up by name.
 """
@@ -19,6 +24,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import threading
 import time
 from collections import deque
@@ -35,12 +41,18 @@ from teleop.config import Config, ConfigError
 from teleop.messages import (
     CONTACT,
     CONTROL_STATUS,
+    FORCE_FEEDBACK,
+    HAND_INPUT,
+    HAPTIC_STATE,
+    HEAD_POSE,
     JOINT_COMMAND,
     JOINT_STATE,
     MAX_JOINTS,
     MAX_OBJECTS,
     OBJECT_POSES,
+    OBSTACLE_PROXIMITY,
     RUN_EVENT,
+    TELEOP_STATUS,
     TOOL_POSE,
     Event,
     Schema,
@@ -74,6 +86,35 @@ ENTITY_TOOL_TRACE = "world/tool_trace"  # LineStrips3D of recent tool positions
 ENTITY_OBJECTS = "world/objects"  # + /<body name>, Transform3D: world_T_object
 ENTITY_EVENTS = "events"  # TextLog, "<EVENT NAME> at step <step>"
 ENTITY_STATS = "recorder/stats"  # TextDocument (JSON), static, written at close
+# Haptic device (HAPTIC_STATE), device frame: handle centred in its workspace.
+ENTITY_HAPTIC_P = "haptic/device_p_m"  # + /x, /y, /z, Scalars
+ENTITY_HAPTIC_V = "haptic/device_v_m_s"  # + /x, /y, /z, Scalars (Kalman estimate)
+ENTITY_HAPTIC_F = "haptic/device_f_n"  # + /x, /y, /z, Scalars (force rendered)
+ENTITY_HAPTIC_BUTTONS = "haptic/buttons"  # Scalars, the Button bits as a number
+# Scripted operator's hand (HAND_INPUT), device frame.
+ENTITY_HAND_TARGET = "operator/hand_target_m"  # + /x, /y, /z, Scalars
+ENTITY_HAND_BUTTONS = "operator/buttons"  # Scalars, the Button bits as a number
+# Force feedback (FORCE_FEEDBACK): the commanded device force and its components.
+ENTITY_FEEDBACK_DEVICE_F = "feedback/device_f_n"  # + /x, /y, /z, Scalars (device frame)
+ENTITY_FEEDBACK_CONTACT_F = "feedback/contact_n"  # + /x, /y, /z, Scalars (world frame)
+ENTITY_FEEDBACK_WEIGHT_F = "feedback/weight_n"  # + /x, /y, /z, Scalars (world frame)
+ENTITY_FEEDBACK_OBSTACLE_F = "feedback/obstacle_n"  # + /x, /y, /z, Scalars (world frame)
+ENTITY_FEEDBACK_WORKSPACE_F = "feedback/workspace_n"  # + /x, /y, /z, Scalars (device frame)
+ENTITY_FEEDBACK_NORM = "feedback/norm_n"  # + /<component>, Scalars, |force| (N)
+ENTITY_FORCES = "world/forces"  # + /<component>, Arrows3D at the tool, once per flush
+# Head-mounted display (HEAD_POSE), world frame.
+ENTITY_HMD_MEASURED_YAW = "hmd/measured_yaw_rad"  # Scalars
+ENTITY_HMD_PREDICTED_YAW = "hmd/predicted_yaw_rad"  # Scalars
+ENTITY_HMD_FILTERED_P = "hmd/filtered_p_m"  # + /x, /y, /z, Scalars
+ENTITY_HMD_MEASURED_P = "hmd/measured_p_m"  # + /x, /y, /z, Scalars
+ENTITY_HMD = "world/hmd"  # Transform3D: world_T_head (predicted) + static Pinhole
+# Obstacle proximity (OBSTACLE_PROXIMITY) and teleoperation status (TELEOP_STATUS).
+ENTITY_OBSTACLE_DISTANCE = "obstacles/distance_m"  # Scalars, signed
+ENTITY_TELEOP_V_REF = "teleop/v_ref_m_s"  # + /x, /y, /z, Scalars (world frame)
+ENTITY_TELEOP_V_TOOL = "teleop/v_tool_m_s"  # + /x, /y, /z, Scalars (world frame)
+ENTITY_TELEOP_SPEED_SCALE = "teleop/speed_scale"  # Scalars, 0 .. 1
+ENTITY_TELEOP_GRIPPER_CMD = "teleop/gripper_cmd"  # Scalars, 0 closed .. 1 open
+ENTITY_TELEOP_HOLDING = "teleop/holding"  # Scalars, 1 while an object is held
 AXES = ("x", "y", "z")  # suffixes of the per-coordinate scalar entities
 
 
@@ -92,6 +133,27 @@ def object_entity(body_name: str) -> str:
     return f"{ENTITY_OBJECTS}/{body_name}"
 
 
+# FORCE_FEEDBACK components by name (the suffix of their norm and arrow entities):
+# (record field, entity base of its x/y/z scalars).
+FEEDBACK_COMPONENTS: Mapping[str, tuple[str, str]] = {
+    "device": ("device_f_n", ENTITY_FEEDBACK_DEVICE_F),
+    "contact": ("world_f_contact_n", ENTITY_FEEDBACK_CONTACT_F),
+    "weight": ("world_f_weight_n", ENTITY_FEEDBACK_WEIGHT_F),
+    "obstacle": ("world_f_obstacle_n", ENTITY_FEEDBACK_OBSTACLE_F),
+    "workspace": ("device_f_workspace_n", ENTITY_FEEDBACK_WORKSPACE_F),
+}
+
+
+def norm_entity(component: str) -> str:
+    """Entity of one feedback force's norm, e.g. ``feedback/norm_n/contact``."""
+    return f"{ENTITY_FEEDBACK_NORM}/{component}"
+
+
+def force_arrow_entity(component: str) -> str:
+    """Entity of one world-frame force arrow at the tool, e.g. ``world/forces/weight``."""
+    return f"{ENTITY_FORCES}/{component}"
+
+
 # --- Tuning -------------------------------------------------------------------------------
 # Per-stream buffer bound (records): 20 s of a 1 kHz stream, about 6 MB of JOINT_STATE.
 # A flush that falls further behind drops the oldest records and counts them.
@@ -102,6 +164,20 @@ TOOL_TRACE_PERIOD_NS = 20_000_000
 TOOL_TRACE_MAX_POINTS = 500
 # Length of the axes drawn at the tool and object frames (m).
 FRAME_AXIS_LENGTH_M = 0.05
+# Force arrows at the tool: drawn length per newton (m/N), so the device's peak force
+# (about 8 N) draws a 0.16 m arrow in a workspace of about a metre.
+FORCE_ARROW_M_PER_N = 0.02
+# Colour (RGB) of each world-frame force arrow.
+FORCE_ARROW_COLORS: Mapping[str, tuple[int, int, int]] = {
+    "contact": (230, 60, 60),
+    "weight": (60, 120, 230),
+    "obstacle": (240, 160, 30),
+}
+# The HMD frustum: vertical field of view (rad, a typical headset's ~90 degrees), width
+# over height, and the distance of the drawn image plane from the eye (m).
+HMD_FOV_Y_RAD = math.radians(90.0)
+HMD_ASPECT_RATIO = 1.0
+HMD_IMAGE_PLANE_M = 0.1
 # How long close() waits for Rerun to write the last chunks to the file (s).
 RRD_FLUSH_TIMEOUT_S = 10.0
 # TextLog level of each run event; the watchdog braking is worth a warning.
@@ -112,7 +188,13 @@ EVENT_LEVELS: Mapping[Event, str] = {
     Event.FINISHED: LEVEL_INFO,
     Event.WATCHDOG_BRAKE: LEVEL_WARN,
     Event.WATCHDOG_RESUME: LEVEL_INFO,
+    Event.GRASP: LEVEL_INFO,
+    Event.RELEASE: LEVEL_INFO,
+    Event.PHASE: LEVEL_INFO,
+    Event.TASK_DONE: LEVEL_INFO,
 }
+# TASK_DONE's value: 1 success, 0 the operator gave up.
+TASK_OUTCOMES: Mapping[bool, str] = {True: "success", False: "gave up"}
 
 # Every stream of the Topics registry with its schema; the name is the Topics attribute
 # and the key of the per-stream counters in the summary.
@@ -124,6 +206,12 @@ STREAM_SCHEMAS: Mapping[str, Schema] = {
     "joint_command": JOINT_COMMAND,
     "control_status": CONTROL_STATUS,
     "events": RUN_EVENT,
+    "haptic_state": HAPTIC_STATE,
+    "hand_input": HAND_INPUT,
+    "force_feedback": FORCE_FEEDBACK,
+    "head_pose": HEAD_POSE,
+    "obstacle_proximity": OBSTACLE_PROXIMITY,
+    "teleop_status": TELEOP_STATUS,
 }
 
 
@@ -132,12 +220,31 @@ def wxyz_to_xyzw(q_wxyz: np.ndarray) -> np.ndarray:
     return q_wxyz[..., [1, 2, 3, 0]]
 
 
+def yaw_pitch_to_xyzw(yaw_rad: np.ndarray, pitch_rad: np.ndarray) -> np.ndarray:
+    """Quaternions (N, 4) in Rerun's (x, y, z, w) order of ``Rz(yaw) @ Ry(pitch)``.
+
+    The HMD convention (teleop.hmd): yaw about world z, then pitch about the head's own
+    y axis (positive = nose down), so the head's +x is where it looks.
+    """
+    cy, sy = np.cos(0.5 * yaw_rad), np.sin(0.5 * yaw_rad)
+    cp, sp = np.cos(0.5 * pitch_rad), np.sin(0.5 * pitch_rad)
+    return np.stack([-sy * sp, cy * sp, sy * cp, cy * cp], axis=-1)
+
+
 def event_text(event: int, step: int, value: float) -> str:
-    """One TextLog line of a RUN_EVENT, e.g. ``WATCHDOG_BRAKE at step 123 (value 0.021)``."""
+    """One TextLog line of a RUN_EVENT, e.g. ``WATCHDOG_BRAKE at step 123 (value 0.021)``.
+
+    Events whose value is an index or an outcome say so in words: ``PHASE 3 at step
+    1200``, ``TASK_DONE (success) at step 5000``.
+    """
     try:
         name = Event(event).name
     except ValueError:  # a newer producer's event: keep the number rather than drop it
         name = f"EVENT_{event}"
+    if event == Event.PHASE:
+        return f"{name} {round(value)} at step {step}"
+    if event == Event.TASK_DONE:
+        return f"{name} ({TASK_OUTCOMES[bool(value)]}) at step {step}"
     text = f"{name} at step {step}"
     return f"{text} (value {value:g})" if value else text
 
@@ -211,6 +318,12 @@ class RecorderService(Service):
             "joint_command": self._write_joint_command,
             "control_status": self._write_control_status,
             "events": self._write_events,
+            "haptic_state": self._write_haptic_state,
+            "hand_input": self._write_hand_input,
+            "force_feedback": self._write_force_feedback,
+            "head_pose": self._write_head_pose,
+            "obstacle_proximity": self._write_obstacle_proximity,
+            "teleop_status": self._write_teleop_status,
         }
         self._joint_names: Sequence[str] = config.robot.arm_joints[:MAX_JOINTS]
         self._object_names: Sequence[str] = config.robot.object_bodies[:MAX_OBJECTS]
@@ -225,6 +338,8 @@ class RecorderService(Service):
         self._rerun_error_logged: set[str] = set()
         self._trace: deque[np.ndarray] = deque(maxlen=TOOL_TRACE_MAX_POINTS)
         self._trace_bucket: int | None = None  # sim-time bucket of the newest trace point
+        self._timestep_ns = round(config.plant.timestep_s * 1e9)  # plant tick (HAND_INPUT)
+        self._tool_p_m: np.ndarray | None = None  # newest tool position (world), for arrows
         self._cpu_start_s = time.process_time()
         self._wall_start_ns = time.monotonic_ns()
 
@@ -267,6 +382,23 @@ class RecorderService(Service):
         # Frames are drawn as axes; these are static and never change during a run.
         for entity in (ENTITY_TOOL, *(object_entity(n) for n in self._object_names)):
             rec.log(entity, rr.TransformAxes3D(FRAME_AXIS_LENGTH_M), static=True)
+        # The head camera: its frame is the head's (x forward, y left, z up), hence FLU.
+        rec.log(
+            ENTITY_HMD,
+            rr.Pinhole(
+                fov_y=HMD_FOV_Y_RAD,
+                aspect_ratio=HMD_ASPECT_RATIO,
+                camera_xyz=rr.ViewCoordinates.FLU,
+                image_plane_distance=HMD_IMAGE_PLANE_M,
+            ),
+            static=True,
+        )
+        for component, color in FORCE_ARROW_COLORS.items():
+            rec.log(
+                force_arrow_entity(component),
+                rr.Arrows3D.from_fields(colors=[color]),
+                static=True,
+            )
         return rec
 
     def run(self, stop: threading.Event) -> None:
@@ -385,6 +517,7 @@ class RecorderService(Service):
     def _write_tool_pose(self, records: np.ndarray) -> None:
         indexes = self._indexes(records)
         world_p_tool_m = records["world_p_tool_m"]
+        self._tool_p_m = world_p_tool_m[-1].copy()
         self._send(
             ENTITY_TOOL,
             indexes,
@@ -450,6 +583,75 @@ class RecorderService(Service):
         self._send(
             ENTITY_EVENTS, self._indexes(records), rr.TextLog.columns(text=texts, level=levels)
         )
+
+    def _write_haptic_state(self, records: np.ndarray) -> None:
+        indexes = self._indexes(records)
+        self._send_xyz(indexes, ENTITY_HAPTIC_P, records["device_p_m"])
+        self._send_xyz(indexes, ENTITY_HAPTIC_V, records["device_v_m_s"])
+        self._send_xyz(indexes, ENTITY_HAPTIC_F, records["device_f_n"])
+        self._send_scalars(ENTITY_HAPTIC_BUTTONS, indexes, records["buttons"].astype(float))
+
+    def _write_hand_input(self, records: np.ndarray) -> None:
+        """HAND_INPUT has no sim time: it sits at the start of the tick it applies to."""
+        indexes = self._indexes(records)
+        sim_ns = records["valid_from_tick"].astype(np.int64) * self._timestep_ns
+        indexes.append(rr.TimeColumn(TIMELINE_SIM, duration=sim_ns.astype("timedelta64[ns]")))
+        self._send_xyz(indexes, ENTITY_HAND_TARGET, records["target_p_m"])
+        self._send_scalars(ENTITY_HAND_BUTTONS, indexes, records["buttons"].astype(float))
+
+    def _write_force_feedback(self, records: np.ndarray) -> None:
+        """Every component per sample, then the world-frame ones as arrows at the tool.
+
+        The arrows are one row per flush, from the newest feedback record, drawn from the
+        newest tool position: TOOL_POSE comes before FORCE_FEEDBACK in STREAM_SCHEMAS, so
+        this flush's tool records are already seen. No arrows before the first tool pose.
+        """
+        indexes = self._indexes(records)
+        for component, (field, base) in FEEDBACK_COMPONENTS.items():
+            force_n = records[field]
+            self._send_xyz(indexes, base, force_n)
+            self._send_scalars(norm_entity(component), indexes, np.linalg.norm(force_n, axis=1))
+        if self._tool_p_m is None:
+            return
+        newest = records[-1:]
+        last = self._indexes(newest)
+        origin = self._tool_p_m[np.newaxis]
+        for component in FORCE_ARROW_COLORS:
+            field, _ = FEEDBACK_COMPONENTS[component]
+            vectors = newest[field] * FORCE_ARROW_M_PER_N
+            self._send(
+                force_arrow_entity(component),
+                last,
+                rr.Arrows3D.columns(vectors=vectors, origins=origin),
+            )
+
+    def _write_head_pose(self, records: np.ndarray) -> None:
+        indexes = self._indexes(records)
+        self._send_scalars(ENTITY_HMD_MEASURED_YAW, indexes, records["measured_yaw_rad"])
+        self._send_scalars(ENTITY_HMD_PREDICTED_YAW, indexes, records["predicted_yaw_rad"])
+        self._send_xyz(indexes, ENTITY_HMD_FILTERED_P, records["filtered_p_m"])
+        self._send_xyz(indexes, ENTITY_HMD_MEASURED_P, records["measured_p_m"])
+        self._send(
+            ENTITY_HMD,
+            indexes,
+            rr.Transform3D.columns(
+                translation=records["predicted_p_m"],
+                quaternion=yaw_pitch_to_xyzw(
+                    records["predicted_yaw_rad"], records["predicted_pitch_rad"]
+                ),
+            ),
+        )
+
+    def _write_obstacle_proximity(self, records: np.ndarray) -> None:
+        self._send_scalars(ENTITY_OBSTACLE_DISTANCE, self._indexes(records), records["distance_m"])
+
+    def _write_teleop_status(self, records: np.ndarray) -> None:
+        indexes = self._indexes(records)
+        self._send_xyz(indexes, ENTITY_TELEOP_V_REF, records["world_v_ref_m_s"])
+        self._send_xyz(indexes, ENTITY_TELEOP_V_TOOL, records["world_v_tool_m_s"])
+        self._send_scalars(ENTITY_TELEOP_SPEED_SCALE, indexes, records["speed_scale"])
+        self._send_scalars(ENTITY_TELEOP_GRIPPER_CMD, indexes, records["gripper_cmd"])
+        self._send_scalars(ENTITY_TELEOP_HOLDING, indexes, records["holding"].astype(float))
 
     # -- reporting ---------------------------------------------------------------------
     def wait_received(self, counts: Mapping[str, int], timeout_s: float) -> bool:

@@ -35,10 +35,21 @@ from teleop.messages import RUN_EVENT, TOOL_POSE, DropCounter, Event
 from teleop.supervise import Program, Stack
 from teleop.topics import Topics
 
-SERVICES = ("plant", "controller", "recorder")
+# The processes of each scenario; the plant comes first and waits for all the others.
+SCENARIO_SERVICES = {
+    "path-following": ("plant", "controller", "recorder"),
+    "grasp": ("plant", "controller", "haptic", "hmd", "operator", "recorder"),
+}
 RUNNER = "runner"
 # Start order (supervisord priority: lower first); services still wait on liveliness.
-PRIORITY = {"recorder": 10, "controller": 20, "plant": 30}
+PRIORITY = {
+    "recorder": 10,
+    "controller": 20,
+    "haptic": 20,
+    "hmd": 20,
+    "operator": 20,
+    "plant": 30,
+}
 # Environment of every service: no telemetry, headless rendering, unbuffered logs.
 SERVICE_ENVIRONMENT = {
     "RERUN_ANALYTICS": "0",
@@ -72,6 +83,7 @@ def free_loopback_port() -> int:
 
 
 def service_programs(
+    services: Sequence[str],
     config_file: Path | None,
     overrides: Sequence[str],
     run_dir: Path,
@@ -82,7 +94,7 @@ def service_programs(
 ) -> list[Program]:
     """The supervisord programs of the stack, each given the same config and overrides."""
     programs = []
-    for name in SERVICES:
+    for name in services:
         command = [sys.executable, "-m", f"services.{name}", "--run-dir", str(run_dir)]
         if config_file is not None:
             command += ["--config", str(Path(config_file).absolute())]
@@ -116,17 +128,22 @@ def run_on_services(
     config: Config,
     config_file: Path | None,
     overrides: Sequence[str],
-    scenario: str,
     run_dir: Path,
     progress: ProgressFn | None = None,
 ) -> dict[str, Any]:
-    """Run ``scenario`` on the supervised services; return the merged summary."""
+    """Run ``config.run.scenario`` on the supervised services; return the merged summary."""
+    services = SCENARIO_SERVICES[config.run.scenario]
     run_dir = run_dir.absolute()
     run_dir.mkdir(parents=True, exist_ok=True)
     for stale in run_dir.glob("*.summary.json"):
         stale.unlink()
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
-    run_overrides = [*overrides, f'bus.endpoint="{endpoint}"', f'run.mode="{config.run.mode}"']
+    run_overrides = [
+        *overrides,
+        f'bus.endpoint="{endpoint}"',
+        f'run.mode="{config.run.mode}"',
+        f'run.scenario="{config.run.scenario}"',
+    ]
     if not config.recorder.rrd_path:
         run_overrides.append(f'recorder.rrd_path="{run_dir / "recording.rrd"}"')
     bus = replace(config.bus, endpoint=endpoint)
@@ -146,11 +163,12 @@ def run_on_services(
         entities.append(subscribe(session, topics.tool_pose, TOOL_POSE, tool, drops))
         entities.append(declare_alive(session, topics, RUNNER))
         programs = service_programs(
+            services,
             config_file,
             run_overrides,
             run_dir,
             listener=None,
-            await_services={"plant": [*SERVICES[1:], RUNNER]},
+            await_services={"plant": [*services[1:], RUNNER]},
             continuous=False,
         )
         factor = (
@@ -159,38 +177,69 @@ def run_on_services(
         deadline_s = config.run.duration_s * factor + RUN_TIMEOUT_SLACK_S
         wall_start = time.perf_counter()
         with Stack(run_dir, programs) as stack:
-            wait_alive(session, topics, SERVICES, ALIVE_TIMEOUT_S)
+            wait_alive(session, topics, services, ALIVE_TIMEOUT_S)
             _wait_finished(finished, tool, config, deadline_s, stack, progress)
         wall_s = time.perf_counter() - wall_start
     finally:
         close_session(session, *reversed(entities))
 
-    plant = _read_summary(run_dir, "plant")
-    controller = _read_summary(run_dir, "controller")
-    recorder = _read_summary(run_dir, "recorder")
-    dropped = sum(s.get("dropped_messages", 0) for s in (plant, controller, recorder))
-    return {
-        "scenario": scenario,
+    summaries = {name: _read_summary(run_dir, name) for name in services}
+    plant, controller = summaries["plant"], summaries["controller"]
+    dropped = sum(s.get("dropped_messages", 0) for s in summaries.values()) + drops.total
+    summary: dict[str, Any] = {
+        "scenario": config.run.scenario,
         "mode": config.run.mode,
-        "duration_s": config.run.duration_s,
         "seed": config.run.seed,
-        "settle_s": controller["settle_s"],
-        "compensation": controller["compensation"],
-        "path_error_rms_m": controller["path_error_rms_m"],
-        "path_error_max_m": controller["path_error_max_m"],
-        "min_manipulability": controller["min_manipulability"],
-        "steps": plant["steps"],
-        "wall_s": plant["wall_s"],
-        "realtime_factor": plant["realtime_factor"],
-        "overrun_fraction": plant["overrun_fraction"],
-        "stale_commands": plant["stale_commands"],
-        "dropped_messages": dropped + drops.total,
-        "skipped_states": controller["skipped_states"],
-        "final_state_sha256": plant["final_state_sha256"],
-        "stack_wall_s": wall_s,
-        "rrd": recorder.get("rrd_path"),
-        "run_dir": str(run_dir),
-        "services": {"plant": plant, "controller": controller, "recorder": recorder},
+    }
+    if config.run.scenario == "grasp":
+        summary.update(_grasp_summary(summaries))
+    else:
+        summary.update(
+            {
+                "duration_s": config.run.duration_s,
+                "settle_s": controller["settle_s"],
+                "compensation": controller["compensation"],
+                "path_error_rms_m": controller["path_error_rms_m"],
+                "path_error_max_m": controller["path_error_max_m"],
+                "min_manipulability": controller["min_manipulability"],
+            }
+        )
+    summary.update(
+        {
+            "steps": plant["steps"],
+            "wall_s": plant["wall_s"],
+            "realtime_factor": plant["realtime_factor"],
+            "overrun_fraction": plant["overrun_fraction"],
+            "stale_commands": plant["stale_commands"],
+            "dropped_messages": dropped,
+            "skipped_states": controller["skipped_states"],
+            "final_state_sha256": plant["final_state_sha256"],
+            "stack_wall_s": wall_s,
+            "rrd": summaries["recorder"].get("rrd_path"),
+            "run_dir": str(run_dir),
+            "services": summaries,
+        }
+    )
+    return summary
+
+
+def _grasp_summary(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """The teleoperation task's figures of merit, from the services that measured them."""
+    plant, controller = summaries["plant"], summaries["controller"]
+    haptic, operator = summaries["haptic"], summaries["operator"]
+    return {
+        "success": bool(operator.get("success")) and bool(plant["object_in_box"]),
+        "object_in_box": plant["object_in_box"],
+        "duration_s": operator.get("task_duration_s"),
+        "max_device_force_n": haptic.get("max_rendered_force_n"),
+        "max_contact_force_n": plant["max_contact_force_n"],
+        "obstacle_min_clearance_m": plant["obstacle_min_clearance_m"],
+        "tool_speed_max_m_s": plant["tool_speed_max_m_s"],
+        "velocity_tracking_rms_m_s": controller.get("velocity_tracking_rms_m_s"),
+        "stale_feedback_events": haptic.get("stale_feedback_events"),
+        "max_obstacle_force_n": controller.get("max_obstacle_force_n"),
+        "held_weight_n": controller.get("held_weight_n"),
+        "phases": operator.get("phases"),
     }
 
 
@@ -230,12 +279,14 @@ def start_detached(
     run_overrides = list(overrides)
     if not config.recorder.rrd_path:
         run_overrides.append(f'recorder.rrd_path="{run_dir / "recording.rrd"}"')
+    services = SCENARIO_SERVICES[config.run.scenario]
     programs = service_programs(
+        services,
         config_file,
         run_overrides,
         run_dir,
         listener="plant",
-        await_services={"plant": list(SERVICES[1:])},
+        await_services={"plant": list(services[1:])},
         continuous=True,
     )
     stack = Stack(run_dir, programs)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
 
 import numpy as np
 
@@ -79,3 +80,54 @@ class TickedInputs:
     def clear(self) -> None:
         with self._cond:
             self._records.clear()
+
+
+class TickBarrier:
+    """Joins per-tick records of several streams; calls back once a tick is complete.
+
+    Lockstep needs every input of a cycle to belong to the same plant tick (the records
+    of different publishers arrive in no guaranteed order). ``put`` may be called from
+    any Zenoh callback; the callback that completes a tick runs ``on_complete(tick,
+    records)`` itself (no thread hand-off), in increasing tick order. A tick older than
+    the newest completed one can no longer complete and is dropped.
+    """
+
+    def __init__(
+        self,
+        streams: tuple[str, ...],
+        on_complete: Callable[[int, dict[str, np.ndarray]], None],
+        keep_ticks: int = 64,
+    ) -> None:
+        self.streams = frozenset(streams)
+        self._on_complete = on_complete
+        self._lock = threading.Lock()
+        self._pending: dict[int, dict[str, np.ndarray]] = {}
+        self._last_completed = -1
+        self._keep_ticks = keep_ticks
+        self.dropped = 0  # records of ticks that could no longer complete
+
+    def put(self, stream: str, tick: int, rec: np.ndarray) -> None:
+        with self._lock:
+            if tick <= self._last_completed:
+                self.dropped += 1
+                return
+            records = self._pending.setdefault(tick, {})
+            records[stream] = rec
+            if records.keys() != self.streams:
+                if len(self._pending) > self._keep_ticks:
+                    oldest = min(self._pending)
+                    del self._pending[oldest]
+                    self.dropped += 1
+                return
+            del self._pending[tick]
+            for stale in [t for t in self._pending if t < tick]:
+                del self._pending[stale]
+                self.dropped += 1
+            self._last_completed = tick
+            self._on_complete(tick, records)
+
+    def reset(self) -> None:
+        """Forget everything (a new run starts at tick 0 again)."""
+        with self._lock:
+            self._pending.clear()
+            self._last_completed = -1

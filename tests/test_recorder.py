@@ -50,13 +50,28 @@ N = {  # records sent per stream
     "objects": 50,
     "joint_command": 400,
     "control_status": 120,
-    "events": 3,
+    "events": 7,
+}
+N_BILATERAL = {  # records sent per stream of the bilateral teleoperation test
+    "haptic_state": 300,
+    "hand_input": 30,
+    "force_feedback": 300,
+    "head_pose": 27,
+    "obstacle_proximity": 300,
+    "teleop_status": 30,
 }
 EVENTS = (
     (m.Event.STARTED, 0, 0.0),
     (m.Event.WATCHDOG_BRAKE, 123, 0.025),
     (m.Event.WATCHDOG_RESUME, 200, 0.0),
+    (m.Event.GRASP, 900, 0.0),
+    (m.Event.PHASE, 1200, 3.0),
+    (m.Event.TASK_DONE, 5000, 1.0),
+    (m.Event.TASK_DONE, 6000, 0.0),
 )
+HAND_TICK0 = 4_000  # first valid_from_tick of the HAND_INPUT records
+CONTACT_FEEDBACK_N = (3.0, 4.0, 0.0)  # norm 5 N
+WEIGHT_FEEDBACK_N = (0.0, 0.0, -1.962)  # 0.2 kg held
 
 
 def free_endpoint() -> str:
@@ -126,6 +141,43 @@ def build(stream: str, i: int) -> np.ndarray:
     elif stream == "events":
         event, step, value = EVENTS[i]
         rec["event"], rec["step"], rec["value"] = event, step, value
+    elif stream == "haptic_state":
+        rec["tick"] = i
+        rec["device_p_m"] = (0.0001 * i, -0.0001 * i, 0.01)
+        rec["device_v_m_s"] = (0.1, 0.0, -0.001 * i)
+        rec["device_f_n"] = (0.0, 0.0, 0.01 * i)
+        rec["buttons"] = i % 4
+    elif stream == "hand_input":
+        rec["valid_from_tick"] = HAND_TICK0 + i
+        rec["target_p_m"] = (0.001 * i, 0.0, -0.02)
+        rec["buttons"] = m.Button.GRIPPER_CLOSE if i % 2 else m.Button.NONE
+    elif stream == "force_feedback":
+        rec["tick"] = i
+        rec["device_f_n"] = (0.01 * i, 0.0, 0.0)
+        rec["world_f_contact_n"] = CONTACT_FEEDBACK_N
+        rec["world_f_weight_n"] = WEIGHT_FEEDBACK_N
+        rec["world_f_obstacle_n"] = (0.0, 0.001 * i, 0.0)
+        rec["device_f_workspace_n"] = (0.0, 0.0, -0.5)
+    elif stream == "head_pose":
+        rec["valid_from_tick"] = i + 20
+        rec["measured_p_m"] = (-0.45, 0.001 * i, 0.65)
+        rec["measured_yaw_rad"] = 0.01 * i
+        rec["filtered_p_m"] = (-0.45, 0.0, 0.65 + 0.001 * i)
+        rec["predicted_p_m"] = (-0.45, 0.0, 0.65)
+        rec["predicted_yaw_rad"] = 0.02 * i
+        rec["predicted_pitch_rad"] = 0.05
+        rec["horizon_s"] = 0.02
+    elif stream == "obstacle_proximity":
+        rec["tick"] = i
+        rec["distance_m"] = 0.5 - 0.001 * i
+    elif stream == "teleop_status":
+        rec["tick"] = i
+        rec["world_v_ref_m_s"] = (0.01 * i, 0.0, 0.0)
+        rec["world_v_tool_m_s"] = (0.009 * i, 0.0, 0.0)
+        rec["world_p_tool_m"] = (0.3, 0.0, 0.2)
+        rec["speed_scale"] = 1.0 - 0.01 * i
+        rec["gripper_cmd"] = i % 2
+        rec["holding"] = i % 2
     return rec
 
 
@@ -231,7 +283,7 @@ def test_every_stream_is_logged_at_its_own_time(rig_factory, tmp_path):
     rig.publish(N)
     rig.finish()
     summary = json.loads((tmp_path / "recorder.summary.json").read_text())
-    assert summary["samples_logged"] == N
+    assert summary["samples_logged"] == {**dict.fromkeys(r.STREAM_SCHEMAS, 0), **N}
     assert summary["rerun_errors"] == 0 and summary["dropped_messages"] == 0
     assert sum(summary["overflow_drops"].values()) == 0
     assert summary["flushes"] >= 1 and summary["wall_time_s"] > 0
@@ -283,11 +335,116 @@ def test_every_stream_is_logged_at_its_own_time(rig_factory, tmp_path):
     texts = dict(zip(events[r.TIMELINE_SIM], events["TextLog:text"], strict=True))
     assert texts[sim_ns(1)] == ["WATCHDOG_BRAKE at step 123 (value 0.025)"]
     assert texts[sim_ns(0)] == ["STARTED at step 0"]
+    assert texts[sim_ns(3)] == ["GRASP at step 900"]
+    assert texts[sim_ns(4)] == ["PHASE 3 at step 1200"]
+    assert texts[sim_ns(5)] == ["TASK_DONE (success) at step 5000"]
+    assert texts[sim_ns(6)] == ["TASK_DONE (gave up) at step 6000"]
     levels = dict(zip(events[r.TIMELINE_SIM], events["TextLog:level"], strict=True))
     assert levels[sim_ns(1)] == [r.LEVEL_WARN]
 
     stats = json.loads(data[r.ENTITY_STATS]["TextDocument:text"][0][0])
-    assert stats["samples_logged"] == N
+    assert stats["samples_logged"] == summary["samples_logged"]
+
+
+def test_bilateral_streams_are_logged_at_their_own_time(rig_factory, tmp_path):
+    rig = rig_factory()
+    n_tool = 20
+    rig.publish({"tool_pose": n_tool})  # first, so the force arrows start at tool n_tool - 1
+    rig.publish(N_BILATERAL)
+    rig.finish()
+    summary = json.loads((tmp_path / "recorder.summary.json").read_text())
+    assert summary["samples_logged"] == {
+        **dict.fromkeys(r.STREAM_SCHEMAS, 0),
+        "tool_pose": n_tool,
+        **N_BILATERAL,
+    }
+    assert summary["rerun_errors"] == 0 and summary["dropped_messages"] == 0
+    data = read_rrd(rig.service.rrd_path)
+
+    def sims(stream: str) -> list[int]:
+        return [sim_ns(i) for i in range(N_BILATERAL[stream])]
+
+    # Haptic device: every coordinate at the records' own sim and source times.
+    for base in (r.ENTITY_HAPTIC_P, r.ENTITY_HAPTIC_V, r.ENTITY_HAPTIC_F):
+        for axis in r.AXES:
+            assert sorted(series(data, r.axis_entity(base, axis))) == sims("haptic_state")
+    haptic_px = data[r.axis_entity(r.ENTITY_HAPTIC_P, "x")]
+    by_sim = dict(zip(haptic_px[r.TIMELINE_SIM], haptic_px[r.TIMELINE_SOURCE], strict=True))
+    assert by_sim == {sim_ns(i): source_ns(i) for i in range(N_BILATERAL["haptic_state"])}
+    assert series(data, r.axis_entity(r.ENTITY_HAPTIC_F, "z"))[sim_ns(7)] == pytest.approx(0.07)
+    assert series(data, r.ENTITY_HAPTIC_BUTTONS)[sim_ns(3)] == 3.0
+
+    # Hand input: sim_time from valid_from_tick and the plant timestep.
+    timestep_ns = round(rig.service.config.plant.timestep_s * 1e9)
+    hand_x = series(data, r.axis_entity(r.ENTITY_HAND_TARGET, "x"))
+    ticks = range(HAND_TICK0, HAND_TICK0 + N_BILATERAL["hand_input"])
+    assert sorted(hand_x) == [t * timestep_ns for t in ticks]
+    assert hand_x[(HAND_TICK0 + 5) * timestep_ns] == pytest.approx(0.005)
+    hand_cols = data[r.ENTITY_HAND_BUTTONS]
+    assert sorted(hand_cols[r.TIMELINE_SOURCE]) == [
+        source_ns(i) for i in range(N_BILATERAL["hand_input"])
+    ]
+    assert series(data, r.ENTITY_HAND_BUTTONS)[(HAND_TICK0 + 1) * timestep_ns] == 1.0
+
+    # Force feedback: each component and its norm per sample.
+    for _, base in r.FEEDBACK_COMPONENTS.values():
+        for axis in r.AXES:
+            assert sorted(series(data, r.axis_entity(base, axis))) == sims("force_feedback")
+    for component in r.FEEDBACK_COMPONENTS:
+        assert sorted(series(data, r.norm_entity(component))) == sims("force_feedback")
+    assert set(series(data, r.norm_entity("contact")).values()) == {5.0}  # |(3, 4, 0)|
+    device_norm = series(data, r.norm_entity("device"))
+    assert device_norm[sim_ns(40)] == pytest.approx(0.4)
+    obstacle_y = series(data, r.axis_entity(r.ENTITY_FEEDBACK_OBSTACLE_F, "y"))
+    assert obstacle_y[sim_ns(40)] == pytest.approx(0.04)
+
+    # Force arrows: one row per flush (not per sample), the newest at the newest feedback,
+    # from the newest tool position.
+    last = N_BILATERAL["force_feedback"] - 1
+    newest_tool_m = build("tool_pose", n_tool - 1)["world_p_tool_m"]
+    for component, newest_n in (
+        ("contact", CONTACT_FEEDBACK_N),
+        ("weight", WEIGHT_FEEDBACK_N),
+        ("obstacle", build("force_feedback", last)["world_f_obstacle_n"]),
+    ):
+        arrows = data[r.force_arrow_entity(component)]
+        times = arrows[r.TIMELINE_SIM]
+        assert 1 <= len(times) <= summary["flushes"] < N_BILATERAL["force_feedback"]
+        newest = times.index(max(times))
+        assert times[newest] == sim_ns(last)
+        vectors = np.asarray(arrows["Arrows3D:vectors"][newest])
+        origins = np.asarray(arrows["Arrows3D:origins"][newest])
+        expected_m = np.asarray(newest_n) * r.FORCE_ARROW_M_PER_N
+        np.testing.assert_allclose(vectors, [expected_m], atol=F32_TOLERANCE)
+        np.testing.assert_allclose(origins, [newest_tool_m], atol=F32_TOLERANCE)
+        assert arrows["Arrows3D:colors"]  # static, one colour per component
+
+    # Head pose: scalars, and the camera transform at the predicted pose plus a frustum.
+    assert sorted(series(data, r.ENTITY_HMD_MEASURED_YAW)) == sims("head_pose")
+    assert series(data, r.ENTITY_HMD_PREDICTED_YAW)[sim_ns(10)] == pytest.approx(0.2)
+    for base in (r.ENTITY_HMD_FILTERED_P, r.ENTITY_HMD_MEASURED_P):
+        for axis in r.AXES:
+            assert sorted(series(data, r.axis_entity(base, axis))) == sims("head_pose")
+    hmd = data[r.ENTITY_HMD]
+    assert sorted(hmd[r.TIMELINE_SIM]) == sims("head_pose")
+    quats = dict(zip(hmd[r.TIMELINE_SIM], hmd["Transform3D:quaternion"], strict=True))
+    expected_q = r.yaw_pitch_to_xyzw(np.array(0.2), np.array(0.05))
+    np.testing.assert_allclose(quats[sim_ns(10)][0], expected_q, atol=F32_TOLERANCE)
+    assert hmd["Pinhole:image_from_camera"]  # static: the viewer draws a frustum
+    assert hmd["Pinhole:camera_xyz"]
+
+    # Obstacle proximity and teleoperation status.
+    distance = series(data, r.ENTITY_OBSTACLE_DISTANCE)
+    assert sorted(distance) == sims("obstacle_proximity")
+    assert distance[sim_ns(100)] == pytest.approx(0.4)
+    for base in (r.ENTITY_TELEOP_V_REF, r.ENTITY_TELEOP_V_TOOL):
+        for axis in r.AXES:
+            assert sorted(series(data, r.axis_entity(base, axis))) == sims("teleop_status")
+    for entity in (r.ENTITY_TELEOP_SPEED_SCALE, r.ENTITY_TELEOP_GRIPPER_CMD):
+        assert sorted(series(data, entity)) == sims("teleop_status")
+    holding = series(data, r.ENTITY_TELEOP_HOLDING)
+    assert (holding[sim_ns(4)], holding[sim_ns(5)]) == (0.0, 1.0)
+    assert series(data, r.ENTITY_TELEOP_SPEED_SCALE)[sim_ns(10)] == pytest.approx(0.9)
 
 
 class FaultyRecorder(r.RecorderService):
@@ -356,3 +513,27 @@ def test_event_text_and_quaternion_order():
     assert r.event_text(99, 1, 0.0) == "EVENT_99 at step 1"
     q_wxyz = np.array([[0.5, 0.1, 0.2, 0.3]])
     np.testing.assert_array_equal(r.wxyz_to_xyzw(q_wxyz), [[0.1, 0.2, 0.3, 0.5]])
+
+
+def rotate(q_xyzw: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Reference: v rotated by the unit quaternion q, v' = v + 2w (u x v) + 2u x (u x v)."""
+    u, w = q_xyzw[:3], q_xyzw[3]
+    return v + 2.0 * w * np.cross(u, v) + 2.0 * np.cross(u, np.cross(u, v))
+
+
+@pytest.mark.parametrize(
+    ("yaw_rad", "pitch_rad"), [(0.0, 0.0), (0.7, 0.0), (0.3, 0.2), (-2.5, -0.4)]
+)
+def test_head_quaternion_looks_along_yaw_and_pitch(yaw_rad, pitch_rad):
+    q = r.yaw_pitch_to_xyzw(np.array([yaw_rad]), np.array([pitch_rad]))[0]
+    assert np.linalg.norm(q) == pytest.approx(1.0)
+    # The head's +x (forward): yaw turns it toward +y, positive pitch lowers the nose.
+    forward = [
+        np.cos(yaw_rad) * np.cos(pitch_rad),
+        np.sin(yaw_rad) * np.cos(pitch_rad),
+        -np.sin(pitch_rad),
+    ]
+    np.testing.assert_allclose(rotate(q, np.array([1.0, 0.0, 0.0])), forward, atol=1e-12)
+    # The head's +z (up) stays in the plane of forward and world z: no roll.
+    up = rotate(q, np.array([0.0, 0.0, 1.0]))
+    assert np.cross(forward, [0.0, 0.0, 1.0]) @ up == pytest.approx(0.0, abs=1e-12)

@@ -132,6 +132,7 @@ def realtime_pair(tmp_path):
     programs = [
         p
         for p in service_programs(
+            ("plant", "controller"),
             None,
             overrides,
             tmp_path,
@@ -139,7 +140,6 @@ def realtime_pair(tmp_path):
             await_services={"plant": ["controller", OBSERVER]},
             continuous=True,
         )
-        if p.name in ("plant", "controller")
     ]
     stack = Stack(tmp_path, programs)
     try:

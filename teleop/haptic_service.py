@@ -1,0 +1,323 @@
+"""The haptic service: one device step per plant tick, in realtime or lockstep.
+
+Inputs: FORCE_FEEDBACK (the force to render, from the controller), HAND_INPUT (where the
+operator's hand pulls the handle, keyed by the plant tick it applies from) and
+JOINT_STATE, used only as the simulation clock (its ``seq`` is the plant tick). Output:
+HAPTIC_STATE per step, with the encoder position, the Kalman velocity and the force
+actually rendered, in the device frame.
+
+- realtime: a :class:`LoopTimer` at the plant period steps the device on wall-clock
+  deadlines with the newest feedback (faded out by :class:`FeedbackHold` when stale) and
+  the hand input valid at the newest plant tick seen.
+- lockstep: deterministic and event driven. Tick k steps once JOINT_STATE k, the
+  FORCE_FEEDBACK of tick k-1 (k >= 1) and the HAND_INPUT that applies at k (if any) are
+  all in; the callback that completes the set does the step (no thread hand-off, as in the
+  plant). A hand input still missing after ``HAND_INPUT_WAIT_S`` means there is no
+  operator: log once and go on without waiting for hand inputs until one arrives.
+
+JOINT_STATE seq 0 after a later seq (or as the first state) starts a new run: the handle
+goes back to the centre at rest and every stored input is forgotten. A state with a seq
+already seen is a plant re-send (nobody answered it): it never steps the device again;
+if it names the tick last stepped, that tick's HAPTIC_STATE is sent again unchanged (same
+seq), in case the first copy was lost to a late subscriber.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from teleop.bus import Publisher, subscribe
+from teleop.clock import NS_PER_S, LoopTimer, MonotonicClock
+from teleop.haptics import EmulatedDevice, FeedbackHold, max_stable_stiffness_n_per_m
+from teleop.messages import (
+    FORCE_FEEDBACK,
+    HAND_INPUT,
+    HAPTIC_STATE,
+    JOINT_STATE,
+    Button,
+    Flag,
+    Stage,
+)
+from teleop.service import STOP_POLL_S, Service
+from teleop.ticks import TickedInputs, expected_valid_from
+
+logger = logging.getLogger(__name__)
+
+# Lockstep: how long a tick waits for its hand input before the operator counts as absent (s).
+HAND_INPUT_WAIT_S = 1.0
+# Feedback whose norm exceeds this multiple of the peak force is garbage, not a saturation case.
+OVERSIZED_FEEDBACK_FACTOR = 10.0
+# Lockstep feedback records kept by tick (a few ahead of the device is all that can happen).
+FEEDBACK_KEEP = 64
+
+
+class HapticService(Service):
+    name = "haptic"
+
+    def open(self) -> None:
+        super().open()
+        assert self.session is not None
+        cfg = self.config
+        self.period_s = cfg.plant.timestep_s
+        self.period_ns = round(self.period_s * NS_PER_S)
+        self.lockstep = cfg.run.mode == "lockstep"
+        self.hand_rate_hz = cfg.operator.decision_rate_hz
+        self.lead_ticks = round(1.0 / (self.hand_rate_hz * self.period_s))
+        self.max_feedback_n = OVERSIZED_FEEDBACK_FACTOR * cfg.haptic.peak_force_n
+        self.device = EmulatedDevice(cfg.haptic, self.period_s)
+        self.hold = FeedbackHold(cfg.haptic.stale_feedback_s, cfg.haptic.fade_s)
+        self.hand_inputs = TickedInputs()
+        self.timer: LoopTimer | None = None
+        # Everything below is shared by the Zenoh callbacks and the run thread.
+        self._cond = threading.Condition()
+        self._state_seq = -1  # newest JOINT_STATE seq of this run; -1: none yet
+        self._state_sim_ns = 0  # its sim_time_ns
+        self._first_tick = 0  # first tick of the run this service saw (joined mid-run: > 0)
+        self._last_tick = -1  # lockstep: last tick stepped
+        self._feedback: dict[int, np.ndarray] = {}  # lockstep: device_f_n by tick
+        self._hand_blocked_since_ns: int | None = None  # lockstep: tick waits for its hand
+        self._operator_absent = False
+        self._last_missing_valid_from: int | None = None
+        self._record = HAPTIC_STATE.new()
+        # Counters for the summary.
+        self.steps = 0
+        self.runs = 0
+        self.lockstep_waits = 0
+        self.missing_hand_inputs = 0
+        self.oversized_feedback = 0
+        self.republished_states = 0
+        self.max_force_n = 0.0
+        self.max_abs_position_m = 0.0
+        self._warned_oversized = False
+        self._warned_no_operator = False
+
+        self.state_pub = self.keep(
+            Publisher.declare(self.session, self.topics.haptic_state, HAPTIC_STATE)
+        )
+        topics, drops = self.topics, self.drops
+        self.keep(
+            subscribe(self.session, topics.force_feedback, FORCE_FEEDBACK, self._on_feedback, drops)
+        )
+        self.keep(subscribe(self.session, topics.hand_input, HAND_INPUT, self._on_hand, drops))
+        self.keep(subscribe(self.session, topics.joint_state, JOINT_STATE, self._on_state, drops))
+        logger.info(
+            "%s mode; stiffness a feedback law may render: K_max = 2 b / T = %.0f N/m",
+            self.config.run.mode,
+            max_stable_stiffness_n_per_m(cfg.haptic, self.period_s),
+        )
+        self.announce()
+
+    # -- callbacks ---------------------------------------------------------------------
+    def _on_state(self, rec: np.ndarray, rx_ns: int) -> None:
+        seq = int(rec["seq"])
+        with self._cond:
+            if seq == 0 and self._state_seq != 0:
+                self._new_run()
+            elif seq <= self._state_seq:
+                if self.lockstep and seq == self._last_tick:
+                    self.republished_states += 1
+                    self.state_pub.put(self._record)
+                return
+            elif self._state_seq < 0:  # joined a run already under way
+                self._first_tick = seq
+                self._last_tick = seq - 1
+            self._state_seq = seq
+            self._state_sim_ns = int(rec["sim_time_ns"])
+            if self.lockstep:
+                self._try_steps()
+                if self._last_tick < seq:
+                    self.lockstep_waits += 1
+
+    def _on_feedback(self, rec: np.ndarray, rx_ns: int) -> None:
+        force = np.array(rec["device_f_n"], dtype=np.float64)
+        if float(np.linalg.norm(force)) > self.max_feedback_n:
+            with self._cond:
+                self.oversized_feedback += 1
+                first = not self._warned_oversized
+                self._warned_oversized = True
+            if first:
+                logger.warning(
+                    "dropping feedback of %.3g N (> %g x peak); further ones are only counted",
+                    float(np.linalg.norm(force)),
+                    OVERSIZED_FEEDBACK_FACTOR,
+                )
+            return
+        with self._cond:
+            if not self.lockstep:
+                self.hold.receive(force, rx_ns)
+                return
+            tick = int(rec["tick"])
+            if tick < self._last_tick:
+                return  # late: its step has been taken
+            self._feedback[tick] = force
+            if len(self._feedback) > FEEDBACK_KEEP:
+                del self._feedback[min(self._feedback)]
+            self._try_steps()
+
+    def _on_hand(self, rec: np.ndarray, rx_ns: int) -> None:
+        self.hand_inputs.put(int(rec["valid_from_tick"]), rec.copy())
+        with self._cond:
+            self._operator_absent = False
+            if self.lockstep:
+                self._try_steps()
+
+    # -- run boundaries ----------------------------------------------------------------
+    def _new_run(self) -> None:
+        """Handle to the centre at rest, inputs forgotten (caller holds the lock)."""
+        self.device.reset()
+        self.hold.clear()
+        self.hand_inputs.clear()
+        self._feedback.clear()
+        self._first_tick = 0
+        self._last_tick = -1
+        self._hand_blocked_since_ns = None
+        self._operator_absent = False
+        self._last_missing_valid_from = None
+        self.runs += 1
+
+    # -- lockstep ----------------------------------------------------------------------
+    def _hand_for(self, tick: int) -> tuple[np.ndarray | None, bool]:
+        """(hand input that applies at ``tick`` or None, still waiting for it)."""
+        valid_from = expected_valid_from(tick, self.hand_rate_hz, self.period_s, self.lead_ticks)
+        if valid_from is None:
+            return None, False  # before the operator's first input can apply
+        rec = self.hand_inputs.wait_for(valid_from, 0.0)
+        if rec is not None:
+            return rec, False
+        if not self._operator_absent:
+            return None, True
+        if valid_from != self._last_missing_valid_from:
+            self._last_missing_valid_from = valid_from
+            self.missing_hand_inputs += 1
+        return self.hand_inputs.latest_at(tick), False  # keep the last hand pose, if any
+
+    def _try_steps(self) -> None:
+        """Step every tick whose inputs are all in, in order (caller holds the lock)."""
+        while True:
+            tick = self._last_tick + 1
+            if tick > self._state_seq:
+                return
+            force = self._feedback.get(tick - 1)
+            if force is None and tick > self._first_tick:
+                return
+            hand, waiting = self._hand_for(tick)
+            if waiting:
+                if self._hand_blocked_since_ns is None:
+                    self._hand_blocked_since_ns = time.monotonic_ns()
+                    self._cond.notify_all()  # the run thread times the wait
+                return
+            self._hand_blocked_since_ns = None
+            t_ns = tick * self.period_ns
+            if force is not None:
+                self.hold.receive(force, t_ns - self.period_ns)
+                del self._feedback[tick - 1]
+            sim_ns = self._state_sim_ns - (self._state_seq - tick) * self.period_ns
+            self._step(tick, sim_ns, hand, t_ns)
+            self._last_tick = tick
+
+    def _run_lockstep(self, stop: threading.Event) -> None:
+        """Steps happen in the callbacks; this thread only times out a missing hand input."""
+        wait_ns = round(HAND_INPUT_WAIT_S * NS_PER_S)
+        with self._cond:
+            while not stop.is_set():
+                timeout_s = STOP_POLL_S
+                since_ns = self._hand_blocked_since_ns
+                if since_ns is not None:
+                    left_ns = since_ns + wait_ns - time.monotonic_ns()
+                    if left_ns <= 0:
+                        self._give_up_on_hand()
+                        continue
+                    timeout_s = min(timeout_s, left_ns / NS_PER_S)
+                self._cond.wait(timeout_s)
+
+    def _give_up_on_hand(self) -> None:
+        """No hand input for HAND_INPUT_WAIT_S: go on without an operator (lock held)."""
+        if not self._warned_no_operator:
+            self._warned_no_operator = True
+            logger.warning(
+                "no HAND_INPUT for tick %d after %g s: no operator, stepping without one",
+                self._last_tick + 1,
+                HAND_INPUT_WAIT_S,
+            )
+        self._operator_absent = True
+        self._hand_blocked_since_ns = None
+        self._try_steps()
+
+    # -- realtime ----------------------------------------------------------------------
+    def _run_realtime(self, stop: threading.Event) -> None:
+        self.timer = LoopTimer(self.period_ns, MonotonicClock())
+        while not stop.is_set():
+            self.timer.wait()
+            with self._cond:
+                tick = max(self._state_seq, 0)
+                hand = self.hand_inputs.latest_at(tick) if self._state_seq >= 0 else None
+                self._step(tick, self._state_sim_ns, hand, time.monotonic_ns())
+
+    # -- shared ------------------------------------------------------------------------
+    def run(self, stop: threading.Event) -> None:
+        if self.lockstep:
+            self._run_lockstep(stop)
+        else:
+            self._run_realtime(stop)
+        logger.info("stopped: %s", self.summary())
+
+    def _step(self, tick: int, sim_time_ns: int, hand: np.ndarray | None, t_ns: int) -> None:
+        """Render, integrate one period, sample, publish (caller holds the lock).
+
+        ``t_ns`` is the feedback clock (monotonic in realtime, sim time in lockstep).
+        """
+        force, stale = self.hold.force_at(t_ns)
+        self.device.render(force)
+        if hand is None:
+            self.device.step(self.period_s, None, Button.NONE)
+        else:
+            self.device.step(self.period_s, hand["target_p_m"], Button(int(hand["buttons"])))
+        sample = self.device.read()
+        sample_ns = time.monotonic_ns()
+        self.steps += 1
+        self.max_force_n = max(self.max_force_n, float(np.linalg.norm(sample.f_n)))
+        self.max_abs_position_m = max(self.max_abs_position_m, float(np.abs(sample.p_m).max()))
+        rec = self._record
+        rec["seq"] = self.steps
+        rec["flags"] = Flag.STALE if stale else Flag.NONE
+        rec["t_source_ns"] = sample_ns
+        rec["trace_ns"][:] = 0
+        rec["trace_ns"][Stage.HAPTIC_SAMPLE] = sample_ns
+        rec["sim_time_ns"] = sim_time_ns
+        rec["tick"] = tick
+        rec["device_p_m"] = sample.p_m
+        rec["device_v_m_s"] = sample.v_m_s
+        rec["device_f_n"] = sample.f_n
+        rec["buttons"] = int(sample.buttons)
+        self.state_pub.put(rec)
+
+    def close(self) -> None:
+        device = getattr(self, "device", None)  # None if open() failed before building it
+        if device is not None:
+            device.close()
+        super().close()
+
+    def summary(self) -> dict[str, Any]:
+        timer = self.timer.summary() if self.timer is not None else {}
+        return {
+            **super().summary(),
+            "mode": self.config.run.mode,
+            "steps": self.steps,
+            "runs": self.runs,
+            "stale_feedback_events": self.hold.stale_events,
+            "max_rendered_force_n": self.max_force_n,
+            "max_abs_position_m": self.max_abs_position_m,
+            "lockstep_waits": self.lockstep_waits,
+            "missing_hand_inputs": self.missing_hand_inputs,
+            "oversized_feedback": self.oversized_feedback,
+            "republished_states": self.republished_states,
+            "max_stable_stiffness_n_per_m": max_stable_stiffness_n_per_m(
+                self.config.haptic, self.period_s
+            ),
+            "loop": timer,
+        }

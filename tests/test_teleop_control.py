@@ -1,0 +1,311 @@
+"""Teleoperation control law: rate command, clutch, orientation hold, safety scaling,
+obstacle avoidance, and the proximity query and scene overrides that feed it.
+
+Closed-loop tests run the MuJoCo plant in process with the controller (no bus), one
+controller update per physics step, as the lockstep mode does.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import mujoco
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from teleop.config import Config, SceneConfig, TeleopConfig, load_config
+from teleop.kinematics import ArmModel, build_arm_model, tool_position_and_jacobian
+from teleop.plant import Plant
+from teleop.proximity import (
+    FAR_DISTANCE_M,
+    ObstacleProximity,
+    apply_scene_overrides,
+    body_names,
+    obstacle_geoms,
+)
+from teleop.teleop_control import (
+    TeleopController,
+    joint_limit_scale,
+    point_jacobian_along,
+    position_condition_number,
+    rate_command,
+    singularity_scale,
+    teleop_reference,
+)
+
+# Tool speed cap: the measured speed may exceed it by the drives' tracking error only.
+SPEED_TOLERANCE = 1.005
+# A stretched arm, tool pointing outward along -x (wrist_2 = 0), at condition number ~8.
+STRETCHED_Q_RAD = (0.0, -1.5708, 0.8, -0.8, 0.0, 0.0)
+
+
+@pytest.fixture(scope="module")
+def cfg() -> Config:
+    return load_config()
+
+
+@pytest.fixture
+def arm(cfg: Config) -> ArmModel:
+    return build_arm_model(cfg.robot)
+
+
+def make_plant(cfg: Config, q_rad=None, scene: SceneConfig | None = None) -> Plant:
+    plant = Plant(cfg)
+    if scene is not None:
+        apply_scene_overrides(plant.model, scene, cfg.robot)
+    plant.reset(np.array(q_rad if q_rad is not None else cfg.robot.home_q_rad))
+    return plant
+
+
+def run_teleop(cfg, arm, plant, v_ref_of_t, steps, proximity=None, clutch=False, avoid=True):
+    """Step plant and controller together; return per-step records.
+
+    With ``avoid=False`` the proximity is recorded but not given to the controller.
+    """
+    ctl = TeleopController(
+        arm, cfg.teleop, cfg.control, cfg.plant.timestep_s, body_names(plant.model)
+    )
+    records = []
+    for k in range(steps):
+        sample = plant.sample()
+        obstacle = proximity.closest() if proximity is not None else None
+        v_ref = np.asarray(v_ref_of_t(k * cfg.plant.timestep_s), dtype=float)
+        seen = obstacle if avoid else None
+        out = ctl.update(sample.q_rad, sample.qd_rad_s, v_ref, seen, 1.0, clutch=clutch)
+        plant.step(out.qd_ref_rad_s, out.gripper_cmd)
+        axis = plant.data.site_xmat[plant.tool_site].reshape(3, 3)[:, 2].copy()
+        records.append((out, obstacle, axis))
+    return records
+
+
+# --- rate command and clutch -------------------------------------------------------------
+
+
+def test_rate_command_deadband_is_radial_and_continuous():
+    cfg = TeleopConfig()
+    direction = np.array([1.0, 2.0, -2.0]) / 3.0
+    assert np.all(rate_command(direction * cfg.deadband_m * 0.99, 0.0, cfg) == 0)
+    just_beyond = rate_command(direction * (cfg.deadband_m + 1e-6), 0.0, cfg)
+    assert np.linalg.norm(just_beyond) == pytest.approx(cfg.rate_gain_per_s * 1e-6)
+    v = rate_command(direction * (cfg.deadband_m + 0.01), 0.0, cfg)
+    np.testing.assert_allclose(v, cfg.rate_gain_per_s * 0.01 * direction)
+
+
+def test_rate_command_caps_speed_and_rotates_by_yaw():
+    cfg = TeleopConfig()
+    forward = np.array([0.05, 0.0, 0.0])  # 6/s * 0.046 m = 0.276 m/s before the cap
+    v = rate_command(forward, 0.0, cfg)
+    assert np.linalg.norm(v) == pytest.approx(cfg.max_tool_speed_m_s)
+    # Looking along +y (yaw 90 deg), "forward" on the handle is world +y; "left" is -x.
+    np.testing.assert_allclose(
+        rate_command(forward, math.pi / 2, cfg), [0, cfg.max_tool_speed_m_s, 0], atol=1e-12
+    )
+    left = rate_command(np.array([0.0, 0.01, 0.0]), math.pi / 2, cfg)
+    assert left[0] < 0 and abs(left[1]) < 1e-12
+
+
+def test_clutch_zeroes_the_reference_and_the_tool_stays(cfg, arm):
+    assert np.all(teleop_reference(np.array([0.03, 0.0, 0.0]), 0.0, True, cfg.teleop) == 0)
+    plant = make_plant(cfg)
+    p0 = plant.tool_pose()[0]
+    records = run_teleop(cfg, arm, plant, lambda t: [0.2, 0.0, 0.0], 300, clutch=True)
+    assert all(np.all(out.world_v_ref_m_s == 0) for out, _, _ in records)
+    assert np.linalg.norm(plant.tool_pose()[0] - p0) < 1e-3
+
+
+# --- closed loop in the plant --------------------------------------------------------------
+
+
+def test_orientation_hold_tracking_and_speed_cap_during_teleop_motion(cfg, arm):
+    """2 s of a 3D figure: tool axis within 1 deg, velocity tracked, speed capped."""
+    plant = make_plant(cfg)
+
+    def v_ref(t: float) -> list[float]:
+        if t < 1.0:  # constant velocity: the tracking check
+            return [0.08, -0.12, 0.05]
+        phase = 2 * math.pi * (t - 1.0)
+        return [0.3 * math.cos(phase), 0.3 * math.sin(phase), -0.05]  # asks beyond the cap
+
+    records = run_teleop(cfg, arm, plant, v_ref, 2000)
+    axis0 = records[0][2]
+    worst_deg = max(math.degrees(math.acos(min(1.0, float(a @ axis0)))) for _, _, a in records)
+    assert worst_deg < 1.0
+    # After a 0.2 s transient the tool follows the constant reference within 3 %.
+    for out, _, _ in records[200:1000]:
+        error = np.linalg.norm(out.world_v_tool_m_s - out.world_v_ref_m_s)
+        assert error <= 0.03 * np.linalg.norm(out.world_v_ref_m_s)
+    speeds = [np.linalg.norm(out.world_v_tool_m_s) for out, _, _ in records]
+    assert max(speeds) <= cfg.teleop.max_tool_speed_m_s * SPEED_TOLERANCE
+    assert max(speeds) > 0.95 * cfg.teleop.max_tool_speed_m_s  # the cap was reached
+
+
+def test_tool_holds_position_without_reference(cfg, arm):
+    plant = make_plant(cfg)
+    p0 = plant.tool_pose()[0]
+    run_teleop(cfg, arm, plant, lambda t: [0.0, 0.0, 0.0], 1000)
+    assert np.linalg.norm(plant.tool_pose()[0] - p0) < 5e-4
+
+
+def test_obstacle_avoidance_keeps_clearance_while_pushed_into_it(cfg, arm):
+    """A sphere right in front of the tool; the operator pushes into it at full speed."""
+    p_tool = make_plant(cfg).tool_pose()[0]
+    scene = SceneConfig(obstacle_p_m=(tuple(p_tool + [0.15, 0.0, 0.0]),), obstacle_radius_m=(0.05,))
+    plant = make_plant(cfg, scene=scene)
+    proximity = ObstacleProximity(plant.model, plant.data, cfg.robot)
+    records = run_teleop(cfg, arm, plant, lambda t: [0.25, 0.0, 0.0], 2000, proximity)
+    clearance = min(obstacle.distance_m for _, obstacle, _ in records)
+    assert clearance > 0.0
+    assert any(out.obstacle_active for out, _, _ in records)
+    # Without avoidance the same command drives the gripper into the sphere.
+    plant = make_plant(cfg, scene=scene)
+    proximity = ObstacleProximity(plant.model, plant.data, cfg.robot)
+    records = run_teleop(cfg, arm, plant, lambda t: [0.25, 0.0, 0.0], 1000, proximity, avoid=False)
+    assert min(obstacle.distance_m for _, obstacle, _ in records) < 0.0
+
+
+def test_singularity_scaling_stops_a_stretching_arm(cfg, arm):
+    plant = make_plant(cfg, q_rad=STRETCHED_Q_RAD)
+    records = run_teleop(cfg, arm, plant, lambda t: [-0.25, 0.0, 0.0], 1500)
+    scales = [out.speed_scale for out, _, _ in records]
+    assert scales[0] == 1.0 and scales[-1] == 0.0
+    assert np.linalg.norm(records[-1][0].world_v_tool_m_s) < 1e-3
+    assert max(out.cond for out, _, _ in records) < 2 * cfg.teleop.singularity_stop_cond
+    # Moving back inward, away from the singularity, is allowed at full speed.
+    sample = plant.sample()
+    ctl = TeleopController(arm, cfg.teleop, cfg.control, cfg.plant.timestep_s)
+    out = ctl.update(sample.q_rad, sample.qd_rad_s, np.array([0.1, 0.0, 0.0]), None, 1.0)
+    assert out.cond > cfg.teleop.singularity_stop_cond and out.speed_scale == 1.0
+
+
+def test_singularity_scale_is_linear_between_the_thresholds():
+    cfg = TeleopConfig()
+    low, high = cfg.singularity_slowdown_cond, cfg.singularity_stop_cond
+    assert singularity_scale(low, cfg) == 1.0
+    assert singularity_scale((low + high) / 2, cfg) == pytest.approx(0.5)
+    assert singularity_scale(high, cfg) == 0.0
+    assert singularity_scale(math.inf, cfg) == 0.0
+
+
+def test_condition_number_matches_numpy(cfg, arm):
+    for q in (cfg.robot.home_q_rad, STRETCHED_Q_RAD):
+        jv = tool_position_and_jacobian(arm, np.array(q))[1][:3]
+        assert position_condition_number(jv) == pytest.approx(np.linalg.cond(jv), rel=1e-6)
+
+
+# --- joint limits ------------------------------------------------------------------------
+
+
+def test_joint_limit_scale_only_slows_motion_toward_a_limit():
+    lower, upper, margin = np.full(3, -1.0), np.full(3, 1.0), 0.2
+    q = np.array([0.9, 1.0, -0.95])
+    toward = joint_limit_scale(q, np.array([1.0, 1.0, -1.0]), lower, upper, margin)
+    np.testing.assert_allclose(toward, [0.5, 0.0, 0.25])
+    away = joint_limit_scale(q, np.array([-1.0, -1.0, 1.0]), lower, upper, margin)
+    np.testing.assert_allclose(away, [1.0, 1.0, 1.0])
+
+
+def test_joint_limit_scaling_stops_the_elbow_at_its_limit(cfg, arm):
+    """Kinematic integration (q += q'_c dt): the elbow bends toward a lowered limit."""
+    elbow = 2
+    limit = cfg.robot.home_q_rad[elbow] + 0.15
+    arm.model.upperPositionLimit[elbow] = limit
+    control = dataclasses.replace(cfg.control, compensation=False)
+    ctl = TeleopController(arm, cfg.teleop, control, cfg.plant.timestep_s)
+    q = np.array(cfg.robot.home_q_rad)
+    qd = np.zeros_like(q)
+    elbow_q = []
+    for _ in range(3000):  # tool toward the base: the elbow folds
+        out = ctl.update(q, qd, np.array([-0.1, 0.0, 0.0]), None, 1.0)
+        qd = out.qd_c_rad_s
+        q = q + qd * cfg.plant.timestep_s
+        elbow_q.append(q[elbow])
+    assert max(elbow_q) <= limit
+    assert elbow_q[-1] > limit - 0.01
+    assert out.joint_limit_scale < 0.1
+
+
+def test_continuous_joints_are_not_limited(cfg, arm):
+    ctl = TeleopController(arm, cfg.teleop, cfg.control, cfg.plant.timestep_s)
+    # The shoulder pan and the +-2 pi wrists are continuous; lift and elbow are limited.
+    assert np.isinf(ctl.upper_rad[[0, 3, 4, 5]]).all()
+    assert np.isfinite(ctl.upper_rad[[1, 2]]).all()
+
+
+# --- proximity and scene overrides ---------------------------------------------------------
+
+
+def test_proximity_is_the_closest_pair_with_an_outward_normal(cfg):
+    p_tool = make_plant(cfg).tool_pose()[0]
+    center = p_tool + np.array([0.0, 0.0, -0.12])  # below the fingertips (0.02 below tool)
+    scene = SceneConfig(obstacle_p_m=(tuple(center),), obstacle_radius_m=(0.04,))
+    plant = make_plant(cfg, scene=scene)
+    plant.reset(np.array(cfg.robot.home_q_rad), gripper_open=0.0)  # fingers on the axis
+    proximity = ObstacleProximity(plant.model, plant.data, cfg.robot)
+    sample = proximity.closest()
+    obstacle = obstacle_geoms(plant.model, cfg.robot.obstacle_prefix)[0]
+    reference = min(
+        mujoco.mj_geomDistance(plant.model, plant.data, g, obstacle, 1.0, None)
+        for g in proximity.arm_geoms
+    )
+    assert sample.distance_m == pytest.approx(reference)
+    assert sample.distance_m == pytest.approx(0.12 - 0.02 - 0.04, abs=5e-3)
+    assert sample.world_n_away[2] > 0.99  # from the obstacle up to the fingers
+    assert sample.arm_body in plant.gripper_bodies
+    assert np.linalg.norm(sample.world_p_obstacle_m - center) == pytest.approx(0.04)
+
+
+def test_proximity_reports_far_when_nothing_is_near(cfg):
+    plant = make_plant(cfg)
+    sample = ObstacleProximity(plant.model, plant.data, cfg.robot).closest()
+    assert not sample.near and sample.distance_m == FAR_DISTANCE_M
+
+
+def test_scene_overrides_move_cube_bin_and_obstacles(cfg):
+    scene = SceneConfig(
+        cube_p_m=(0.3, 0.1, 0.025),
+        bin_p_m=(0.2, -0.4, 0.0),
+        obstacle_p_m=((0.1, 0.2, 0.3),),
+        obstacle_radius_m=(0.07,),
+    )
+    plant = make_plant(cfg, scene=scene)
+    model, data = plant.model, plant.data
+    np.testing.assert_allclose(plant.object_poses()[0][0], scene.cube_p_m)
+    bin_body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "bin")
+    np.testing.assert_allclose(data.xpos[bin_body], scene.bin_p_m)
+    obstacle = obstacle_geoms(model, cfg.robot.obstacle_prefix)[0]
+    np.testing.assert_allclose(data.geom_xpos[obstacle], scene.obstacle_p_m[0])
+    assert model.geom_size[obstacle, 0] == model.geom_rbound[obstacle] == 0.07
+    # The cube rests where it was put (no fall, no jump) after a few steps of physics.
+    for _ in range(100):
+        plant.step(np.zeros(plant.n_joints), 1.0)
+    np.testing.assert_allclose(plant.object_poses()[0][0], scene.cube_p_m, atol=1e-3)
+
+
+def test_scene_overrides_reject_a_wrong_number_of_obstacles(cfg):
+    model = Plant(cfg).model
+    two = SceneConfig(obstacle_p_m=((0.1, 0.2, 0.3), (0.2, 0.2, 0.3)))
+    with pytest.raises(ValueError, match="obstacle_p_m: 2 value.*1 obstacle"):
+        apply_scene_overrides(model, two, cfg.robot)
+    with pytest.raises(ValueError, match="obstacle_radius_m"):
+        apply_scene_overrides(model, SceneConfig(obstacle_radius_m=(0.1, 0.2)), cfg.robot)
+
+
+def test_point_jacobian_matches_finite_differences(cfg, arm):
+    """The avoidance's body-frame Jacobian shifted to a point, against a numerical one."""
+    q = np.array(cfg.robot.home_q_rad)
+    tool_position_and_jacobian(arm, q)
+    frame = arm.model.getFrameId("wrist_2_link", pin.FrameType.BODY)
+    point = arm.data.oMf[frame].translation + np.array([0.03, -0.02, 0.05])
+    n = np.array([2.0, -1.0, 2.0]) / 3.0
+    analytic = point_jacobian_along(arm, frame, point, n)
+    local = arm.data.oMf[frame].actInv(point)
+    numeric = np.zeros(arm.n_joints)
+    step = 1e-6
+    for i in range(arm.n_joints):
+        dq = np.zeros(arm.n_joints)
+        dq[i] = step
+        tool_position_and_jacobian(arm, q + dq)
+        numeric[i] = n @ (arm.data.oMf[frame].act(local) - point) / step
+    np.testing.assert_allclose(analytic, numeric, atol=1e-5)
