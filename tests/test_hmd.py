@@ -29,7 +29,7 @@ from teleop.hmd import (
     Tracker,
     wrap_angle,
 )
-from teleop.messages import HEAD_POSE, JOINT_STATE, DropCounter
+from teleop.messages import HEAD_POSE, TOOL_POSE, DropCounter
 from teleop.stack import free_loopback_port
 from teleop.ticks import last_sample_tick
 from teleop.topics import Topics
@@ -208,7 +208,7 @@ def test_error_stats_wrap_the_yaw():
 
 
 def test_hmd_process_publishes_on_the_sample_ticks(tmp_path):
-    """services/hmd.py on an isolated bus, clocked by JOINT_STATE ticks from this test."""
+    """services/hmd.py on an isolated bus, clocked by TOOL_POSE ticks from this test."""
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     overrides = [f'bus.endpoint="{endpoint}"', "run.seed=9"]
     config = load_config(None, overrides)
@@ -217,7 +217,6 @@ def test_hmd_process_publishes_on_the_sample_ticks(tmp_path):
     last_tick = 300
     sample_ticks = [k for k in range(last_tick + 1) if schedule.is_sample(k)]
     assert last_sample_tick(last_tick, schedule.rate_hz, schedule.timestep_s) == sample_ticks[-1]
-    resent_tick = sample_ticks[2]  # a lockstep-style re-send must not give a second record
 
     received: list[np.ndarray] = []
     cond = threading.Condition()
@@ -235,7 +234,7 @@ def test_hmd_process_publishes_on_the_sample_ticks(tmp_path):
 
     session = open_session(config.bus, listen=True)
     sub = subscribe(session, topics.head_pose, HEAD_POSE, on_pose, drops)
-    state_pub = Publisher.declare(session, topics.joint_state, JOINT_STATE)
+    state_pub = Publisher.declare(session, topics.tool_pose, TOOL_POSE)
     command = [sys.executable, "-m", "services.hmd", "--run-dir", str(tmp_path)]
     for override in overrides:
         command += ["--set", override]
@@ -243,11 +242,12 @@ def test_hmd_process_publishes_on_the_sample_ticks(tmp_path):
     try:
         wait_alive(session, topics, ["hmd"], ALIVE_TIMEOUT_S)
         assert state_pub.wait_matched(ALIVE_TIMEOUT_S)
-        state = JOINT_STATE.new()
-        for run in range(2):  # the second run (seq 0 again) must reset the filter
-            for k in range(last_tick + 1):
-                state["seq"] = k
-                state["step"] = k
+        state = TOOL_POSE.new()
+        scene_period = round(1 / (config.plant.scene_rate_hz * config.plant.timestep_s))
+        resent_tick = scene_period * 2  # a re-sent clock tick must not give more records
+        for run in range(2):  # the second run (tick 0 again) must reset the filter
+            for k in range(0, last_tick + 1, scene_period):
+                state["seq"] += 1
                 state["sim_time_ns"] = k * round(config.plant.timestep_s * 1e9)
                 state_pub.put(state)
                 if k == resent_tick:
