@@ -276,6 +276,9 @@ class TeleopConfig:
     workspace_stiffness_n_per_m: float = 300.0
     # Grasp detection: both fingers touch the object.
     object_mass_kg: float = 0.2
+    # Hold the tool pointing straight down (top grasps), keeping its start heading;
+    # false: hold whatever orientation the tool has when teleoperation starts.
+    approach_down: bool = True
 
     def __post_init__(self) -> None:
         _require(self.rate_gain_per_s > 0, "teleop.rate_gain_per_s > 0")

@@ -38,6 +38,8 @@ from teleop.proximity import ProximitySample
 # POSITION_HOLD_GAIN_PER_S * POSITION_HOLD_MAX_ERROR_M = 0.05 m/s.
 POSITION_HOLD_GAIN_PER_S = 10.0
 POSITION_HOLD_MAX_ERROR_M = 0.005
+# Below this horizontal length the tool x axis gives no heading (it points up or down).
+MIN_HEADING_NORM = 1e-6
 # Orientation hold: angular velocity (rad/s) per rad of orientation error.
 ORIENTATION_GAIN_PER_S = 10.0
 # Adaptive damping of the 6D least squares: below this singular value of the 6xN
@@ -172,6 +174,23 @@ def point_jacobian_along(
     return n @ frame_jacobian[:3] - n_cross_r @ frame_jacobian[3:]
 
 
+def approach_down_orientation(world_r_tool: np.ndarray) -> np.ndarray:
+    """The tool orientation with its approach axis (z) straight down, heading kept.
+
+    A top grasp needs the fingers vertical: a few degrees of tilt left over from the
+    start pose put one fingertip on the table before the tool reaches the object's
+    centre. The heading is the tool x axis projected on the horizontal plane.
+    """
+    x_axis = np.array([world_r_tool[0, 0], world_r_tool[1, 0], 0.0])
+    norm = float(np.linalg.norm(x_axis))
+    if norm < MIN_HEADING_NORM:  # x axis vertical: fall back to the y axis's heading
+        x_axis = np.cross(world_r_tool[:, 1], [0.0, 0.0, 1.0])
+        norm = float(np.linalg.norm(x_axis))
+    x_axis /= norm
+    z_axis = np.array([0.0, 0.0, -1.0])
+    return np.column_stack((x_axis, np.cross(z_axis, x_axis), z_axis))
+
+
 @dataclass(frozen=True)
 class TeleopOutput:
     """One teleoperation cycle (world frame, SI units)."""
@@ -232,7 +251,8 @@ class TeleopController:
         self._previous_tool_speed = 0.0
 
     def reset(self) -> None:
-        """Forget the held pose: the next update holds the orientation it finds."""
+        """Forget the held pose: the next update holds the orientation it finds
+        (straightened to point down when ``teleop.approach_down``)."""
         self._p_des = None
         self._r_des = None
         self._previous_qd_c = None
@@ -254,7 +274,7 @@ class TeleopController:
         tool_r = self.arm.data.oMf[self.arm.tool_frame_id].rotation
         v_ref = np.zeros(3) if clutch else np.asarray(world_v_ref_m_s, dtype=float)
         if self._r_des is None:
-            self._r_des = tool_r.copy()
+            self._r_des = approach_down_orientation(tool_r) if tcfg.approach_down else tool_r.copy()
         if self._p_des is None or clutch:
             self._p_des = tool_p.copy()
         # Integrate the operator's reference, but never let the goal run away from a tool

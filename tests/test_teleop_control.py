@@ -37,6 +37,8 @@ from teleop.teleop_control import (
 
 # Tool speed cap: the measured speed may exceed it by the drives' tracking error only.
 SPEED_TOLERANCE = 1.005
+# Steps (1 ms) the orientation hold takes to straighten the start pose's tilt.
+STRAIGHTEN_STEPS = 300
 # A stretched arm, tool pointing outward along -x (wrist_2 = 0), at condition number ~8.
 STRETCHED_Q_RAD = (0.0, -1.5708, 0.8, -0.8, 0.0, 0.0)
 
@@ -129,11 +131,15 @@ def test_orientation_hold_tracking_and_speed_cap_during_teleop_motion(cfg, arm):
         return [0.3 * math.cos(phase), 0.3 * math.sin(phase), -0.05]  # asks beyond the cap
 
     records = run_teleop(cfg, arm, plant, v_ref, 2000)
-    axis0 = records[0][2]
-    worst_deg = max(math.degrees(math.acos(min(1.0, float(a @ axis0)))) for _, _, a in records)
+    # teleop.approach_down: the start pose's small tilt is straightened out at once, then
+    # the approach axis stays vertical.
+    down = np.array([0.0, 0.0, -1.0])
+    settled = records[STRAIGHTEN_STEPS:]
+    worst_deg = max(math.degrees(math.acos(min(1.0, float(a @ down)))) for _, _, a in settled)
     assert worst_deg < 1.0
-    # After a 0.2 s transient the tool follows the constant reference within 3 %.
-    for out, _, _ in records[200:1000]:
+    # After the transient (straightening included) the tool follows the constant
+    # reference within 3 %.
+    for out, _, _ in records[STRAIGHTEN_STEPS:1000]:
         error = np.linalg.norm(out.world_v_tool_m_s - out.world_v_ref_m_s)
         assert error <= 0.03 * np.linalg.norm(out.world_v_ref_m_s)
     speeds = [np.linalg.norm(out.world_v_tool_m_s) for out, _, _ in records]
@@ -166,6 +172,8 @@ def test_obstacle_avoidance_keeps_clearance_while_pushed_into_it(cfg, arm):
 
 
 def test_singularity_scaling_stops_a_stretching_arm(cfg, arm):
+    # The tool points outward here: hold that orientation rather than turning it down.
+    cfg = dataclasses.replace(cfg, teleop=dataclasses.replace(cfg.teleop, approach_down=False))
     plant = make_plant(cfg, q_rad=STRETCHED_Q_RAD)
     records = run_teleop(cfg, arm, plant, lambda t: [-0.25, 0.0, 0.0], 1500)
     scales = [out.speed_scale for out, _, _ in records]
