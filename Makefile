@@ -23,10 +23,12 @@ $(STAMP): pyproject.toml
 	$(BIN)/rerun analytics disable >/dev/null
 	@touch $(STAMP)
 
+# The teleoperation demo: every service under supervisord, the scripted operator
+# grasps the cube and drops it in the bin, realtime and headless.
 demo: $(STAMP)
 	@mkdir -p $(RUN_DIR)
-	$(BIN)/teleop run path-following --inprocess --duration 60 --seed 0 \
-		--summary-json $(RUN_DIR)/summary.json
+	$(BIN)/teleop run grasp --mode realtime --seed 0 --run-dir $(RUN_DIR) \
+		--rrd $(RUN_DIR)/recording.rrd --summary-json $(RUN_DIR)/summary.json
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
