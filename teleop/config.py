@@ -469,6 +469,17 @@ def _merge_override(table: dict[str, Any], path: list[str], value: Any) -> None:
     node[path[-1]] = value
 
 
+def read_toml(path: Path, error: type[ConfigError] = ConfigError) -> dict[str, Any]:
+    """A TOML file as a table; ``error`` (a ConfigError) names the file on any problem."""
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except FileNotFoundError as exc:
+        raise error(f"{path.name} not found: {path}") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise error(f"{path}: {exc}") from exc
+
+
 def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -> Config:
     """Read a TOML config (default ``deploy/teleop.toml``), apply ``--set`` overrides.
 
@@ -478,13 +489,7 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -
     config_path = Path(path) if path is not None else DEFAULT_CONFIG_FILE
     table: dict[str, Any] = {}
     if path is not None or config_path.exists():
-        try:
-            with open(config_path, "rb") as f:
-                table = tomllib.load(f)
-        except FileNotFoundError as exc:
-            raise ConfigError(f"config file not found: {config_path}") from exc
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"{config_path}: {exc}") from exc
+        table = read_toml(config_path)
     for text in overrides:
         keys, value = _parse_override(text)
         _merge_override(table, keys, value)

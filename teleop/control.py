@@ -134,6 +134,29 @@ def dynamic_compensation(
     return qd_rad_s + torque / servo.kv_nms_per_rad
 
 
+def velocity_reference(
+    arm: ArmModel,
+    control: ControlConfig,
+    q_rad: np.ndarray,
+    qd_rad_s: np.ndarray,
+    qd_c_rad_s: np.ndarray,
+    previous_qd_c_rad_s: np.ndarray | None,
+    period_s: float,
+) -> np.ndarray:
+    """q'_ref for the velocity loops from the kinematic command q'_c.
+
+    With ``control.compensation``: the dynamic compensation, q''_c taken as the change of
+    q'_c since the previous cycle (from the measured q' on the first one). Without: q'_c.
+    """
+    if not control.compensation:
+        return qd_c_rad_s
+    previous = previous_qd_c_rad_s if previous_qd_c_rad_s is not None else qd_rad_s
+    qdd_c = (qd_c_rad_s - previous) / period_s
+    return dynamic_compensation(
+        arm, q_rad, qd_rad_s, qd_c_rad_s, qdd_c, control.velocity_gain_per_s
+    )
+
+
 class PathFollowingController:
     """Experiment 1: follow the desired path with no time law, maximising manipulability.
 
@@ -182,14 +205,9 @@ class PathFollowingController:
         qd_c = jv.T @ np.linalg.solve(jv @ jv.T + self._damping_matrix, v_task - jv @ g) + g
         qd_c = limit_speed(qd_c, self.max_speed_rad_s)
 
-        if ctl.compensation:
-            previous = self._previous_qd_c if self._previous_qd_c is not None else qd_rad_s
-            qdd_c = (qd_c - previous) / self.period_s
-            qd_ref = dynamic_compensation(
-                self.arm, q_rad, qd_rad_s, qd_c, qdd_c, ctl.velocity_gain_per_s
-            )
-        else:
-            qd_ref = qd_c
+        qd_ref = velocity_reference(
+            self.arm, ctl, q_rad, qd_rad_s, qd_c, self._previous_qd_c, self.period_s
+        )
         self._previous_qd_c = qd_c
         return ControlOutput(
             qd_ref_rad_s=limit_speed(qd_ref, self.max_speed_rad_s),

@@ -57,7 +57,6 @@ from __future__ import annotations
 import bisect
 import math
 import threading
-import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -65,7 +64,14 @@ from typing import Any
 
 import numpy as np
 
-from teleop.config import ConfigError, HapticConfig, OperatorConfig, RobotConfig, TeleopConfig
+from teleop.config import (
+    ConfigError,
+    HapticConfig,
+    OperatorConfig,
+    RobotConfig,
+    TeleopConfig,
+    read_toml,
+)
 from teleop.messages import Button
 
 # --- Gains and human limits --------------------------------------------------------------
@@ -221,13 +227,7 @@ class Scenario:
     ) -> Scenario:
         """Read and validate a scenario file; ScenarioError names the file and the phase."""
         path = Path(path)
-        try:
-            with open(path, "rb") as f:
-                table = tomllib.load(f)
-        except FileNotFoundError as exc:
-            raise ScenarioError(f"scenario file not found: {path}") from exc
-        except tomllib.TOMLDecodeError as exc:
-            raise ScenarioError(f"{path}: {exc}") from exc
+        table = read_toml(path, ScenarioError)
         return cls.from_table(table, object_names, source=str(path))
 
     @classmethod

@@ -28,7 +28,7 @@ import numpy as np
 import pinocchio as pin
 
 from teleop.config import ControlConfig, TeleopConfig
-from teleop.control import dynamic_compensation, limit_speed
+from teleop.control import limit_speed, velocity_reference
 from teleop.kinematics import ArmModel, tool_position_and_jacobian
 from teleop.proximity import ProximitySample
 
@@ -317,14 +317,9 @@ class TeleopController:
         qd_c = limit_speed(qd_c, self.max_speed_rad_s)
         self._previous_tool_speed = _norm(jv @ qd_c)
 
-        if self.control.compensation:
-            previous = self._previous_qd_c if self._previous_qd_c is not None else qd_rad_s
-            qdd_c = (qd_c - previous) / dt
-            qd_ref = dynamic_compensation(
-                self.arm, q_rad, qd_rad_s, qd_c, qdd_c, self.control.velocity_gain_per_s
-            )
-        else:
-            qd_ref = qd_c
+        qd_ref = velocity_reference(
+            self.arm, self.control, q_rad, qd_rad_s, qd_c, self._previous_qd_c, dt
+        )
         self._previous_qd_c = qd_c
         return TeleopOutput(
             qd_ref_rad_s=limit_speed(qd_ref, self.max_speed_rad_s),
