@@ -133,6 +133,17 @@ class Service:
         os.replace(tmp, path)
 
 
+def pin_to_cpus(cpus: tuple[int, ...]) -> None:
+    """Run this process on the given CPUs (those that exist); no-op when none is given."""
+    available = os.sched_getaffinity(0)
+    wanted = set(cpus) & available
+    if cpus and not wanted:
+        logger.warning("cpu affinity %s: no such CPU here (have %s), not pinned", cpus, available)
+    if wanted:
+        os.sched_setaffinity(0, wanted)
+        logger.info("pinned to CPU(s) %s", sorted(wanted))
+
+
 def build_service_parser(name: str) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog=f"teleop-{name}",
@@ -172,6 +183,7 @@ def service_main(service_class: type[Service], argv: list[str] | None = None) ->
         await_services=tuple(s for s in args.await_services.split(",") if s),
         continuous=args.continuous,
     )
+    pin_to_cpus(tuple(getattr(config.cpu, service_class.name, ())))
     stop = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
