@@ -10,9 +10,10 @@ One code path, two timing modes:
   (``state_seq``) arrives, inside the command callback, so a cycle costs no thread
   hand-off: deterministic, as fast as plant + controller allow.
 
-Published every step: JOINT_STATE, CONTACT and OBSTACLE_PROXIMITY (both feed the
-1 kHz force feedback). Every ``1 / scene_rate_hz``: TOOL_POSE, OBJECT_POSES. On
-start, finish and watchdog changes: RUN_EVENT.
+Published every step: JOINT_STATE, and in teleoperation CONTACT and
+OBSTACLE_PROXIMITY (they feed the 1 kHz force feedback; otherwise they go at the scene
+rate). Every ``1 / scene_rate_hz``: TOOL_POSE, OBJECT_POSES. On start, finish and
+watchdog changes: RUN_EVENT.
 """
 
 from __future__ import annotations
@@ -64,6 +65,11 @@ class PlantService(Service):
         self.scene_every_steps = max(
             1, round(1.0 / (self.config.plant.scene_rate_hz * self.config.plant.timestep_s))
         )
+        # Contact and obstacle proximity feed the 1 kHz force feedback of teleoperation;
+        # otherwise only the recorder reads them, at the scene rate (measured: two fewer
+        # messages per tick speed lockstep path following up, see README).
+        teleoperated = self.config.run.scenario == "grasp"
+        self.interaction_every_steps = 1 if teleoperated else self.scene_every_steps
         self.watchdog_steps = int(self.config.plant.watchdog_s / self.config.plant.timestep_s)
         declare = self.session
         topics = self.topics
@@ -168,8 +174,9 @@ class PlantService(Service):
         rec["t_source_ns"] = now_ns
         rec["trace_ns"][Stage.PLANT_STATE_TX] = now_ns
         self.state_pub.put(rec)
-        self._publish_proximity(sample.step, sample.sim_time_ns, now_ns)
-        self._publish_contact(sample.sim_time_ns, now_ns)
+        if sample.step % self.interaction_every_steps == 0:
+            self._publish_proximity(sample.step, sample.sim_time_ns, now_ns)
+            self._publish_contact(sample.sim_time_ns, now_ns)
         if sample.step % self.scene_every_steps == 0:
             self._publish_scene(sample.sim_time_ns, now_ns)
         self.max_tool_speed_m_s = max(self.max_tool_speed_m_s, self.plant.tool_speed_m_s())

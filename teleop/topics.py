@@ -22,7 +22,7 @@ class Topics:
     robot_id: str
     joint_state: str = field(init=False)  # plant -> controller, JOINT_STATE, 1 kHz
     tool_pose: str = field(init=False)  # plant -> all, TOOL_POSE, plant.scene_rate_hz
-    contact: str = field(init=False)  # plant -> controller, CONTACT, 1 kHz
+    contact: str = field(init=False)  # plant -> controller, CONTACT, 1 kHz in teleoperation
     objects: str = field(init=False)  # plant -> recorder/operator, OBJECT_POSES
     joint_command: str = field(init=False)  # controller -> plant, JOINT_COMMAND
     control_status: str = field(init=False)  # controller -> recorder, CONTROL_STATUS
