@@ -25,6 +25,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import threading
 import time
 from collections import deque
@@ -359,6 +360,8 @@ class RecorderService(Service):
         far is closed again (``__exit__`` does not run when ``__enter__`` raises).
         """
         try:
+            if self.config.recorder.nice:
+                os.nice(self.config.recorder.nice)
             super().open()
             assert self.session is not None
             self._rec = self._open_recording()
