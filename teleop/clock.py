@@ -5,7 +5,7 @@ itself with :class:`LoopTimer` on top of a :class:`Clock`. Services get a
 :class:`MonotonicClock`; tests get a :class:`FakeClock`, so deadline arithmetic, overruns
 and stall handling are checked deterministically without waiting on the wall clock.
 
-Times are integer nanoseconds of a monotonic clock (never ``time.time()``): wall time jumps
+Times are integer nanoseconds of a monotonic clock (never the wall clock): wall time jumps
 under NTP and would corrupt both pacing and latency measurements.
 """
 

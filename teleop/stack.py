@@ -22,7 +22,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -31,6 +31,7 @@ import numpy as np
 
 from teleop.bus import Latest, close_session, declare_alive, open_session, subscribe, wait_alive
 from teleop.config import Config
+from teleop.experiments import PROGRESS_FRACTION, ProgressFn
 from teleop.messages import RUN_EVENT, TOOL_POSE, DropCounter, Event
 from teleop.supervise import Program, Stack
 from teleop.topics import Topics
@@ -65,10 +66,6 @@ ALIVE_TIMEOUT_S = 60.0
 LOCKSTEP_TIMEOUT_FACTOR = 20.0
 REALTIME_TIMEOUT_FACTOR = 2.0
 RUN_TIMEOUT_SLACK_S = 30.0
-# Progress lines: one every this fraction of the run.
-PROGRESS_FRACTION = 0.1
-
-ProgressFn = Callable[[float, float], None]
 
 
 class RunError(RuntimeError):
