@@ -33,7 +33,9 @@ from typing import Any
 from supervisor.xmlrpc import SupervisorTransport
 
 # Seconds supervisord waits after the stop signal (SIGINT) before SIGKILLing a program's group.
-STOP_WAIT_S = 5
+# A clean stop takes well under a second; a recorder finishing its .rrd on a starved 2-core
+# machine was seen to need more than 5 s (then it was killed and wrote no summary).
+STOP_WAIT_S = 15
 # Default time for start(): supervisord up plus every program RUNNING (startsecs included), s.
 DEFAULT_START_TIMEOUT_S = 15.0
 # Default time for stop(): supervisord's own graceful stop must fit (STOP_WAIT_S per program
