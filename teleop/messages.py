@@ -7,7 +7,7 @@ controller in another language can replace ours from the tables in ``docs/protoc
 
 Body fields are ordered 8-byte integers, then ``f64`` fields, then small integers.
 Every multi-byte field therefore sits at an offset that is a multiple of its size (the
-header is 88 bytes), and all the ``f64`` values of a record form one contiguous block,
+header is 104 bytes), and all the ``f64`` values of a record form one contiguous block,
 which lets :meth:`Schema.decode` check finiteness and every limit with one vectorised
 comparison.
 
@@ -33,10 +33,10 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-PROTOCOL_VERSION = 1  # bumped on any incompatible change of a layout below
+PROTOCOL_VERSION = 2  # bumped on any incompatible change of a layout below (2: 10 trace stages)
 MAX_JOINTS = 8  # joint arrays are padded with zeros to this length; n_joints says how many count
 MAX_OBJECTS = 8  # object pose arrays are padded to this length; n_objects says how many count
-N_STAGES = 8  # length of the header's trace_ns array (one slot per Stage)
+N_STAGES = 10  # length of the header's trace_ns array (one slot per Stage)
 
 # Declared per-field limits (validated on decode; a record outside them is dropped).
 JOINT_POSITION_LIMIT_RAD = 100.0
@@ -75,17 +75,22 @@ class Stage(enum.IntEnum):
     """Index into the header's ``trace_ns`` array: where a latency stamp was taken.
 
     Each stamp is ``time.monotonic_ns()`` of the host at that stage; 0 means unset.
-    A record copies the stamps of the record it answers, then adds its own.
+    A record copies the stamps of the record it answers, then adds its own. In
+    teleoperation the indices follow the bilateral loop in order, so the stamps of one
+    loop are non-decreasing from the handle sample to the rendered force:
+    haptic -> controller -> plant -> controller -> haptic (see docs/protocol.md).
     """
 
-    HAPTIC_SAMPLE = 0
-    CONTROLLER_RX = 1
-    CONTROLLER_TX = 2
-    PLANT_RX = 3
-    PLANT_APPLIED = 4
-    PLANT_STATE_TX = 5
-    FEEDBACK_TX = 6
-    FEEDBACK_RENDERED = 7
+    HAPTIC_SAMPLE = 0  # haptic: the handle is sampled (HAPTIC_STATE published)
+    CONTROLLER_RX = 1  # controller: the haptic sample (path following: the state) arrives
+    CONTROLLER_TX = 2  # controller: the JOINT_COMMAND computed from it is published
+    PLANT_RX = 3  # plant: the command arrives
+    PLANT_APPLIED = 4  # plant: the command enters a physics step
+    PLANT_STATE_TX = 5  # plant: the JOINT_STATE after that step is published
+    CONTROLLER_STATE_RX = 6  # controller: that state arrives
+    FEEDBACK_TX = 7  # controller: the FORCE_FEEDBACK computed from it is published
+    FEEDBACK_RX = 8  # haptic: the feedback arrives
+    FEEDBACK_RENDERED = 9  # haptic: the force is set on the handle's motors
 
 
 class Flag(enum.IntFlag):

@@ -39,7 +39,7 @@ def _filled(schema: m.Schema, rng: np.random.Generator) -> np.ndarray:
 
 
 def test_header_layout_is_fixed():
-    assert m.HEADER_SIZE == 88
+    assert m.HEADER_SIZE == 104
     offsets = {name: m.HEADER_DTYPE.fields[name][1] for name in m.HEADER_DTYPE.names}
     assert offsets == {
         "version": 0,
@@ -85,7 +85,12 @@ def test_header_values_are_little_endian_on_the_wire():
     rec["flags"] = m.Flag.BRAKING
     buf = m.JOINT_STATE.encode(rec)
     version, kind, flags, seq = struct.unpack_from("<HHIQ", buf, 0)
-    assert (version, kind, flags, seq) == (1, m.Kind.JOINT_STATE, 1, 0x0102030405060708)
+    assert (version, kind, flags, seq) == (
+        m.PROTOCOL_VERSION,
+        m.Kind.JOINT_STATE,
+        1,
+        0x0102030405060708,
+    )
 
 
 def test_encode_rejects_a_record_of_another_kind():
@@ -105,7 +110,7 @@ def test_rejects_wrong_size_version_kind():
     _expect(m.JOINT_STATE, good[:-1], m.Reason.SIZE)
     _expect(m.JOINT_STATE, good + b"\0", m.Reason.SIZE)
     _expect(m.JOINT_STATE, b"", m.Reason.SIZE)
-    _expect(m.JOINT_STATE, struct.pack("<H", 2) + good[2:], m.Reason.VERSION)
+    _expect(m.JOINT_STATE, struct.pack("<H", m.PROTOCOL_VERSION + 1) + good[2:], m.Reason.VERSION)
     wrong_kind = struct.pack("<HH", 1, m.Kind.TOOL_POSE) + good[4:]
     _expect(m.JOINT_STATE, wrong_kind, m.Reason.KIND)
 
