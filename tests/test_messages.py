@@ -111,7 +111,7 @@ def test_rejects_wrong_size_version_kind():
     _expect(m.JOINT_STATE, good + b"\0", m.Reason.SIZE)
     _expect(m.JOINT_STATE, b"", m.Reason.SIZE)
     _expect(m.JOINT_STATE, struct.pack("<H", m.PROTOCOL_VERSION + 1) + good[2:], m.Reason.VERSION)
-    wrong_kind = struct.pack("<HH", 1, m.Kind.TOOL_POSE) + good[4:]
+    wrong_kind = struct.pack("<HH", m.PROTOCOL_VERSION, m.Kind.TOOL_POSE) + good[4:]
     _expect(m.JOINT_STATE, wrong_kind, m.Reason.KIND)
 
 
