@@ -4,6 +4,7 @@
     teleop run path-following --mode lockstep --duration 20 --rrd out.rrd
     teleop run grasp --mode realtime --seed 0 --rrd out.rrd --summary-json out.json
     teleop up | status | down        (a long-running stack, realtime by default)
+    teleop latency --duration 60 --json out.json --png out.png
 
 Every command reads the typed config (``--config``, default ``deploy/teleop.toml``)
 and applies ``--set dotted.key=value`` overrides; flags such as ``--duration`` are
@@ -23,6 +24,7 @@ from teleop.kinematics import ModelError
 
 DEFAULT_RUN_DIR = Path("runs") / "latest"
 DEFAULT_UP_DIR = Path("runs") / "up"
+DEFAULT_LATENCY_DIR = Path("runs") / "latency"
 
 # Exit codes: 0 success, 1 the run failed its own checks, 2 bad usage or config.
 EXIT_FAILED = 1
@@ -85,6 +87,49 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     _add_config_arguments(run)
+
+    latency = commands.add_parser(
+        "latency",
+        help="measure the bilateral loop's latency, hop by hop, against the transport floor",
+        description=(
+            "Run the realtime teleoperation stack (every service and the recorder, the "
+            "scripted operator moving) for --duration seconds and report the round trip "
+            "(haptic sample -> force rendered) and every hop, against baselines measured in "
+            "the same command: a bare Zenoh relay chain with the same legs (paced at 1 kHz "
+            "and back to back), the stack with shared memory off, a payload sweep with "
+            "shared memory on and off, and the stack with the loop's old timing."
+        ),
+    )
+    latency.add_argument(
+        "--duration", type=float, default=60.0, help="seconds of the stack run (default: 60)"
+    )
+    latency.add_argument(
+        "--baseline-duration",
+        type=float,
+        default=None,
+        help="seconds of each baseline run (paced floor, SHM-off stack, old timing); "
+        "default: the duration, at most 20",
+    )
+    latency.add_argument("--json", type=Path, help="write the report here")
+    latency.add_argument("--png", type=Path, help="write the histograms figure here")
+    latency.add_argument(
+        "--rrd", type=Path, help="Rerun recording of the figures (default: <run-dir>/latency.rrd)"
+    )
+    latency.add_argument(
+        "--sweep-count", type=int, default=None, help="round trips per payload size (default 200)"
+    )
+    latency.add_argument(
+        "--no-old-timing",
+        action="store_true",
+        help="skip the comparison run with the plant's tick and the device step",
+    )
+    latency.add_argument(
+        "--run-dir",
+        type=Path,
+        default=DEFAULT_LATENCY_DIR,
+        help=f"logs, summaries and raw stamps of every run (default: {DEFAULT_LATENCY_DIR})",
+    )
+    _add_config_arguments(latency)
 
     up = commands.add_parser(
         "up",
@@ -162,6 +207,39 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _latency(args: argparse.Namespace) -> int:
+    from teleop import latency
+
+    if args.duration <= latency.WARMUP_S:
+        raise ConfigError(f"--duration must exceed the {latency.WARMUP_S:g} s warm-up")
+    latency.config_of(args.config, args.overrides)  # bad --set values fail here, exit 2
+    kwargs = {}
+    if args.sweep_count is not None:
+        kwargs["sweep_count"] = args.sweep_count
+    print(f"latency: {args.duration:g} s stack run plus baselines", file=sys.stderr)
+    print(f"  logs, summaries and raw stamps in {args.run_dir}", file=sys.stderr)
+    report, raw = latency.measure(
+        args.config,
+        args.overrides,
+        args.run_dir,
+        args.duration,
+        baseline_s=args.baseline_duration,
+        old_timing=not args.no_old_timing,
+        progress=latency.print_progress,
+        **kwargs,
+    )
+    rrd = args.rrd if args.rrd is not None else args.run_dir / "latency.rrd"
+    latency.log_to_rerun(report, raw, rrd)
+    report["rrd"] = str(rrd)
+    if args.png is not None:
+        latency.write_png(report, raw, args.png)
+    if args.json is not None:
+        latency.write_json(report, args.json)
+    for line in report["conclusions"]:
+        print(line)
+    return 0
+
+
 def _up(args: argparse.Namespace) -> int:
     from teleop.stack import start_detached
 
@@ -204,7 +282,13 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("RERUN_ANALYTICS", "0")
     args = build_parser().parse_args(argv)
     try:
-        handler = {"run": _run, "up": _up, "status": _status, "down": _down}[args.command]
+        handler = {
+            "run": _run,
+            "latency": _latency,
+            "up": _up,
+            "status": _status,
+            "down": _down,
+        }[args.command]
         return handler(args)
     except (ConfigError, ModelError) as exc:
         print(f"teleop: {exc}", file=sys.stderr)

@@ -62,6 +62,13 @@ class Topics:
         """Every key of this robot (for a recorder that logs everything)."""
         return _key(self.robot_id, "**")
 
+    def floor(self, leg: str) -> str:
+        """Key of one leg of the transport-floor relay chain (``teleop latency``), e.g.
+        ``teleop/arm0/floor/command``: apart from the real streams, same QoS and config."""
+        if not leg or any(c in leg for c in "/*$?#"):
+            raise ValueError(f"leg name {leg!r}: non-empty, one key chunk")
+        return _key(self.robot_id, f"floor/{leg}")
+
     def alive(self, service: str) -> str:
         """Liveliness token key of one service, e.g. ``teleop/arm0/alive/plant``."""
         if not service or any(c in service for c in "/*$?#"):
