@@ -72,6 +72,9 @@ def open_session(bus: BusConfig, *, listen: bool) -> zenoh.Session:
             f"{shm_key}/transport_optimization/message_size_threshold",
             _json(SHM_THRESHOLD_BYTES),
         )
+    for entry in bus.zenoh_overrides:
+        path, _, value = entry.partition("=")
+        conf.insert_json5(path.strip(), value.strip())
     return zenoh.open(conf)
 
 

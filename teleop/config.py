@@ -360,9 +360,16 @@ class BusConfig:
     endpoint: str = "tcp/127.0.0.1:7447"
     shm: bool = True
     shm_pool_bytes: int = 16 * 1024 * 1024
+    # Zenoh config entries set over the file, last: "path=json5", e.g.
+    # 'transport/unicast/lowlatency=true' (the tuning benchmark tries variants this way).
+    zenoh_overrides: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         _require("/" in self.endpoint, "bus.endpoint like tcp/127.0.0.1:7447")
+        _require(
+            all("=" in entry for entry in self.zenoh_overrides),
+            "bus.zenoh_overrides: entries like path=json5value",
+        )
         _require(self.shm_pool_bytes >= 1 << 16, "bus.shm_pool_bytes >= 65536")
 
     @property

@@ -66,6 +66,12 @@ GRIPPER_OPEN = 1.0
 GRIPPER_CLOSED = 0.0
 # Lockstep: how long a cycle waits for the HMD record that applies at its tick (s).
 HEAD_POSE_WAIT_S = 1.0
+# Realtime: a haptic sample or state older than this when its callback runs (stamp of
+# its producer to now) is shed, not answered: the controller is behind (a CPU stall), its
+# answer would be late anyway, and answering every queued input in order would keep it
+# behind (measured on an overloaded host: a 0.5 s backlog). Far above a healthy hop
+# (0.1-0.3 ms), below the plant's 20 ms watchdog.
+SHED_AGE_NS = 5_000_000
 
 
 class ControllerService(Service):
@@ -264,6 +270,8 @@ class TeleopTask:
         self.haptic_lost = 0  # HAPTIC_STATE seq gaps (realtime)
         self.haptic_reordered = 0  # HAPTIC_STATE not newer than the last one (realtime)
         self.haptic_before_state = 0  # samples that arrived before any plant state
+        self.haptic_shed = 0  # samples too old to answer (the controller was behind)
+        self.states_shed = 0  # states too old to answer with feedback
         self._reset_metrics()
 
     def _reset_metrics(self) -> None:
@@ -335,6 +343,9 @@ class TeleopTask:
             if self._last_haptic_seq >= 0:
                 self.haptic_lost += seq - self._last_haptic_seq - 1
             self._last_haptic_seq = seq
+            if time.monotonic_ns() - int(haptic["trace_ns"][Stage.HAPTIC_SAMPLE]) > SHED_AGE_NS:
+                self.haptic_shed += 1
+                return
             latest_state = self.states.get()
             if latest_state is None:
                 self.haptic_before_state += 1
@@ -370,6 +381,9 @@ class TeleopTask:
     def _feedback_realtime(self, state: np.ndarray) -> None:
         """One JOINT_STATE -> one FORCE_FEEDBACK (its trace continues the command's)."""
         with self._rt_lock:
+            if time.monotonic_ns() - int(state["trace_ns"][Stage.PLANT_STATE_TX]) > SHED_AGE_NS:
+                self.states_shed += 1
+                return
             service = self.service
             config = service.config
             tick = int(state["seq"])
@@ -536,6 +550,8 @@ class TeleopTask:
             "haptic_lost": self.haptic_lost,
             "haptic_reordered": self.haptic_reordered,
             "haptic_before_state": self.haptic_before_state,
+            "haptic_shed": self.haptic_shed,
+            "states_shed": self.states_shed,
             "stability": {
                 "k_max_n_per_m": self.stability.k_max_n_per_m,
                 "k_workspace_n_per_m": self.stability.k_workspace_n_per_m,

@@ -531,10 +531,25 @@ def measure(
         old = run_stack(
             "old_timing", config_file, [*overrides, *OLD_TIMING], base_s, run_dir / "stack-old"
         )
+    report, raw = build_report(stack, stack_tcp, floor, floor_tcp, old)
+    report["duration_s"] = duration_s
+    report["baseline_duration_s"] = base_s
+    report["machine"]["loadavg_before"] = load_before
+    report["wall_s"] = time.monotonic() - started
+    report["run_dir"] = str(run_dir)
+    return report, raw
+
+
+def build_report(
+    stack: StackRun,
+    stack_tcp: StackRun,
+    floor: FloorRun,
+    floor_tcp: FloorRun,
+    old: StackRun | None,
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """The report (JSON-ready) and the raw round trips (ns) by series, from the runs."""
     lost, reordered = stream_counters(stack.summary["services"])
     report: dict[str, Any] = {
-        "duration_s": duration_s,
-        "baseline_duration_s": base_s,
         "round_trip_us": stack.analysis["round_trip_us"],
         "hops": stack.analysis["hops"],
         "floor_us": floor.paced["round_trip_us"],
@@ -555,13 +570,7 @@ def measure(
         "deadline_misses": deadline_misses(stack.summary),
         "payload_sweep": sweep_table(floor, floor_tcp),
         "dropped_messages": stack.summary.get("dropped_messages"),
-        "machine": {
-            "cpus": os.cpu_count(),
-            "loadavg_before": load_before,
-            "loadavg_after": _loadavg(),
-        },
-        "wall_s": time.monotonic() - started,
-        "run_dir": str(run_dir),
+        "machine": {"cpus": os.cpu_count(), "loadavg_after": _loadavg()},
     }
     if old is not None:
         report["old_timing_round_trip_us"] = old.analysis["round_trip_us"]
