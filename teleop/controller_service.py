@@ -56,6 +56,7 @@ from teleop.messages import (
 )
 from teleop.proximity import ProximitySample, body_names
 from teleop.service import Service
+from teleop.stamps import StampLog, shed_path
 from teleop.teleop_control import TeleopController, TeleopOutput, teleop_reference
 from teleop.ticks import TickBarrier, TickedInputs, expected_valid_from
 
@@ -144,6 +145,13 @@ class ControllerService(Service):
     def run(self, stop: threading.Event) -> None:
         """The task's own loop, if it has one; else the work is all in bus callbacks."""
         self.task.run(stop)
+
+    def close(self) -> None:
+        task = getattr(self, "task", None)
+        if self.options.run_dir is not None and isinstance(task, TeleopTask):
+            with task._rt_lock:
+                task.shed_log.save(shed_path(self.options.run_dir, self.name))
+        super().close()
 
     def summary(self) -> dict[str, Any]:
         mean_compute_us = self.compute_ns_total / self.cycles / 1e3 if self.cycles else None
@@ -272,6 +280,7 @@ class TeleopTask:
         self.haptic_before_state = 0  # samples that arrived before any plant state
         self.haptic_shed = 0  # samples too old to answer (the controller was behind)
         self.states_shed = 0  # states too old to answer with feedback
+        self.shed_log = StampLog(1)  # HAPTIC_SAMPLE stamps of the loops shed here
         self._reset_metrics()
 
     def _reset_metrics(self) -> None:
@@ -343,8 +352,10 @@ class TeleopTask:
             if self._last_haptic_seq >= 0:
                 self.haptic_lost += seq - self._last_haptic_seq - 1
             self._last_haptic_seq = seq
-            if time.monotonic_ns() - int(haptic["trace_ns"][Stage.HAPTIC_SAMPLE]) > SHED_AGE_NS:
+            sample_ns = int(haptic["trace_ns"][Stage.HAPTIC_SAMPLE])
+            if time.monotonic_ns() - sample_ns > SHED_AGE_NS:
                 self.haptic_shed += 1
+                self.shed_log.append((sample_ns,))
                 return
             latest_state = self.states.get()
             if latest_state is None:
@@ -383,6 +394,8 @@ class TeleopTask:
         with self._rt_lock:
             if time.monotonic_ns() - int(state["trace_ns"][Stage.PLANT_STATE_TX]) > SHED_AGE_NS:
                 self.states_shed += 1
+                if int(state["trace_ns"][Stage.HAPTIC_SAMPLE]) > 0:
+                    self.shed_log.append((int(state["trace_ns"][Stage.HAPTIC_SAMPLE]),))
                 return
             service = self.service
             config = service.config

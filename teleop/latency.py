@@ -49,6 +49,7 @@ from teleop.stack import (
     free_loopback_port,
     run_on_services,
 )
+from teleop.stamps import SHED_FILE_SUFFIX
 from teleop.supervise import Program, Stack
 from teleop.topics import Topics
 
@@ -177,25 +178,34 @@ def analyse(traces: np.ndarray) -> dict[str, Any]:
     }
 
 
-def chain_accounting(samples: np.ndarray, traces: np.ndarray) -> dict[str, int]:
-    """Did every handle sample come back exactly once?
+def chain_accounting(
+    samples: np.ndarray, traces: np.ndarray, shed_ns: np.ndarray | None = None
+) -> dict[str, int]:
+    """Did every handle sample come back exactly once, or was it shed on purpose?
 
     ``samples`` (n, 2): (seq, HAPTIC_SAMPLE ns) of every published HAPTIC_STATE;
-    ``traces``: the rendered feedback traces. Between the first and the last sample that
-    came back, a sample that never did is ``missing``; one that came back twice or more
-    counts in ``duplicates`` (each extra time).
+    ``traces``: the rendered feedback traces; ``shed_ns``: HAPTIC_SAMPLE stamps of the
+    samples a service shed while behind schedule (its ``.shed.npy`` files). Between the
+    first and the last sample that came back, a sample that never did is ``missing``,
+    ``shed`` if a service says it dropped it, else ``unaccounted`` (must be 0); one that
+    came back twice or more counts in ``duplicates`` (each extra time).
     """
     loops = complete_loops(traces)
+    empty = {"samples": 0, "returned": 0, "missing": 0, "shed": 0, "unaccounted": 0}
     if loops.shape[0] == 0:
-        return {"samples": 0, "returned": 0, "missing": 0, "duplicates": 0}
+        return {**empty, "duplicates": 0}
     returned = loops[:, Stage.HAPTIC_SAMPLE]
     unique, counts = np.unique(returned, return_counts=True)
     sample_ns = np.asarray(samples, dtype=np.int64).reshape(-1, 2)[:, 1]
     window = sample_ns[(sample_ns >= unique.min()) & (sample_ns <= unique.max())]
+    missing = np.setdiff1d(window, unique)
+    shed = np.zeros(0, np.int64) if shed_ns is None else np.asarray(shed_ns).reshape(-1)
     return {
         "samples": int(window.size),
         "returned": int(unique.size),
-        "missing": int(np.setdiff1d(window, unique, assume_unique=True).size),
+        "missing": int(missing.size),
+        "shed": int(np.isin(missing, shed).sum()),
+        "unaccounted": int(np.setdiff1d(missing, shed).size),
         "duplicates": int((counts - 1).sum()),
     }
 
@@ -235,6 +245,7 @@ class StackRun:
     summary: dict[str, Any]
     traces: np.ndarray
     samples: np.ndarray
+    shed_ns: np.ndarray  # HAPTIC_SAMPLE stamps of the samples services shed on purpose
     analysis: dict[str, Any] = field(default_factory=dict)
 
 
@@ -263,25 +274,41 @@ def run_stack(
     """Run the realtime stack for ``duration_s`` in ``run_dir``; read its raw stamps."""
     all_overrides = stack_overrides(duration_s, overrides)
     config = load_config(config_file, all_overrides)
-    for stale in (run_dir / TRACE_FILE, run_dir / SAMPLES_FILE):
+    for stale in (run_dir / TRACE_FILE, run_dir / SAMPLES_FILE, *run_dir.glob("*.shed.npy")):
         stale.unlink(missing_ok=True)
     summary = run_on_services(config, config_file, all_overrides, run_dir, progress=None)
     traces = np.load(run_dir / TRACE_FILE)
     samples = np.load(run_dir / SAMPLES_FILE)
-    run = StackRun(label, summary, traces, samples)
+    shed = [np.load(path).reshape(-1) for path in sorted(run_dir.glob(f"*{SHED_FILE_SUFFIX}"))]
+    run = StackRun(label, summary, traces, samples, np.concatenate([np.zeros(0, np.int64), *shed]))
     run.analysis = analyse(traces)
     return run
 
 
+def shed_counters(services: dict[str, dict[str, Any]]) -> dict[str, int]:
+    """Inputs dropped on purpose because a service was behind (a CPU stall): the
+    controller's too-old haptic samples and states, the plant's queue overflow and
+    commands too old to apply. Each is a handle sample that never comes back."""
+    arrival = services.get("plant", {}).get("arrival", {})
+    controller = services.get("controller", {})
+    return {
+        "haptic": int(controller.get("haptic_shed", 0)),
+        "state": int(controller.get("states_shed", 0)),
+        "command_overflow": int(arrival.get("commands_dropped", 0)),
+        "command_stale": int(arrival.get("commands_stale", 0)),
+    }
+
+
 def stream_counters(services: dict[str, dict[str, Any]]) -> tuple[dict[str, int], dict[str, int]]:
-    """(lost, reordered) per stream, from the services' own sequence checks."""
+    """(lost, reordered) per stream, from the services' own sequence checks: a gap in a
+    stream's ``seq`` is a message the bus never delivered."""
     plant = services.get("plant", {})
     arrival = plant.get("arrival", {})
     controller = services.get("controller", {})
     haptic = services.get("haptic", {})
     lost = {
         "haptic": int(controller.get("haptic_lost", 0)),
-        "command": int(arrival.get("commands_lost", 0)) + int(arrival.get("commands_dropped", 0)),
+        "command": int(arrival.get("commands_lost", 0)),
         "state": int(controller.get("skipped_states", 0)),
         "feedback": int(haptic.get("feedback_lost", 0)),
     }
@@ -359,8 +386,13 @@ def run_floor(
     back_to_back_count: int,
     sweep_sizes: Sequence[int],
     sweep_count: int,
+    relay_cpus: dict[str, Sequence[int]] | None = None,
 ) -> FloorRun:
-    """The bare relay chain under supervisord: paced, back to back, then the sweep."""
+    """The bare relay chain under supervisord: paced, back to back, then the sweep.
+
+    ``relay_cpus``: pin relay processes (by name) to CPUs, as ``cpu.<service>`` pins the
+    stack's services (the tuning benchmark's affinity variant).
+    """
     run_dir = run_dir.absolute()
     run_dir.mkdir(parents=True, exist_ok=True)
     config = load_config(config_file, overrides)
@@ -371,6 +403,9 @@ def run_floor(
     programs = []
     for relay in RELAYS:
         command = [sys.executable, "-m", f"services.{relay.name}", "--run-dir", str(run_dir)]
+        cpus = (relay_cpus or {}).get(relay.name)
+        if cpus:
+            command = ["taskset", "-c", ",".join(str(c) for c in cpus), *command]
         if config_file is not None:
             command += ["--config", str(Path(config_file).absolute())]
         for override in relay_overrides:
@@ -479,7 +514,7 @@ def conclusions(report: dict[str, Any]) -> list[str]:
         f"lost: haptic {lost['haptic']}, command {lost['command']}, feedback "
         f"{lost['feedback']}; reordered: {sum(report['reordered'].values())}; "
         f"samples that never came back: {report['chain']['missing']} of "
-        f"{report['chain']['samples']}"
+        f"{report['chain']['samples']} (shed while behind: {sum(report['shed'].values())})"
     )
     return out
 
@@ -564,7 +599,8 @@ def build_report(
         "overhead": overhead(stack.analysis, floor.paced),
         "lost": lost,
         "reordered": reordered,
-        "chain": chain_accounting(stack.samples, stack.traces),
+        "shed": shed_counters(stack.summary["services"]),
+        "chain": chain_accounting(stack.samples, stack.traces, stack.shed_ns),
         "non_monotonic": stack.analysis["non_monotonic"],
         "rate_hz": service_rates(stack.summary),
         "deadline_misses": deadline_misses(stack.summary),

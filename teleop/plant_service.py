@@ -53,6 +53,7 @@ from teleop.messages import (
 from teleop.plant import Plant
 from teleop.proximity import ObstacleProximity
 from teleop.service import Service
+from teleop.stamps import StampLog, shed_path
 
 logger = logging.getLogger(__name__)
 
@@ -197,6 +198,8 @@ class PlantService(Service):
         self.commands_lost = 0  # JOINT_COMMAND seq gaps (realtime)
         self.commands_reordered = 0  # JOINT_COMMAND not newer than the last one
         self.commands_dropped = 0  # queue overflow after a stall
+        self.commands_stale = 0  # arrived too old to apply (the watchdog brakes instead)
+        self.shed_log = StampLog(1)  # HAPTIC_SAMPLE stamps of the commands dropped here
         self.announce()
 
     def _on_event(self, rec: np.ndarray, rx_ns: int) -> None:
@@ -436,8 +439,9 @@ class PlantService(Service):
                 self._grid.lock(rx_ns)
             self._arrival_queue.append((command, rx_ns))
             while len(self._arrival_queue) > ARRIVAL_QUEUE_MAX:
-                self._arrival_queue.popleft()
+                dropped, _ = self._arrival_queue.popleft()
                 self.commands_dropped += 1
+                self._log_shed(dropped)
             now_ns = time.monotonic_ns()
             if (
                 now_ns >= self._grid.next_open_ns
@@ -448,6 +452,17 @@ class PlantService(Service):
                 self._arrival_step(now_ns)
             else:
                 self._arrival_cond.notify_all()  # the run thread steps it (early or late)
+
+    def _log_shed(self, command: np.ndarray) -> None:
+        sample_ns = int(command["trace_ns"][Stage.HAPTIC_SAMPLE])
+        if sample_ns > 0:
+            self.shed_log.append((sample_ns,))
+
+    def close(self) -> None:
+        if self.options.run_dir is not None and getattr(self, "shed_log", None) is not None:
+            with self._arrival_cond:
+                self.shed_log.save(shed_path(self.options.run_dir, self.name))
+        super().close()
 
     def _arrival_step(self, now_ns: int) -> None:
         """One physics step: the oldest queued command, else the last one held (cond held)."""
@@ -477,6 +492,9 @@ class PlantService(Service):
                 self._last_applied_seq = int(held["seq"])
             self._publish_state(held, rx_ns, applied_ns, traced=command is not None)
         else:
+            if command is not None:
+                self.commands_stale += 1
+                self._log_shed(command)
             if held is not None:
                 self.stale_steps += 1
                 if not self._braking:
@@ -537,6 +555,7 @@ class PlantService(Service):
                 "commands_lost": self.commands_lost,
                 "commands_reordered": self.commands_reordered,
                 "commands_dropped": self.commands_dropped,
+                "commands_stale": self.commands_stale,
             },
         }
 

@@ -55,3 +55,13 @@ class StampLog:
         with open(tmp, "wb") as f:
             np.save(f, self.rows)
         os.replace(tmp, path)
+
+
+# File (in a service's run dir) of the HAPTIC_SAMPLE stamps of the handle samples that
+# service shed on purpose (behind schedule): one column, ``<service>.shed.npy``.
+SHED_FILE_SUFFIX = ".shed.npy"
+
+
+def shed_path(run_dir: Path, service: str) -> Path:
+    """Where ``service`` writes the stamps of the samples it shed."""
+    return Path(run_dir) / f"{service}{SHED_FILE_SUFFIX}"

@@ -99,11 +99,15 @@ def test_chain_accounting_finds_missing_and_duplicate_samples():
         "samples": 100,
         "returned": 100,
         "missing": 0,
+        "shed": 0,
+        "unaccounted": 0,
         "duplicates": 0,
     }
     damaged = np.vstack([np.delete(traces, [40, 41], axis=0), traces[[7]]])
-    counts = latency.chain_accounting(samples, damaged)
+    shed = traces[[41], Stage.HAPTIC_SAMPLE]
+    counts = latency.chain_accounting(samples, damaged, shed)
     assert counts["missing"] == 2 and counts["duplicates"] == 1
+    assert counts["shed"] == 1 and counts["unaccounted"] == 1
 
 
 def test_overhead_is_a_ratio_to_the_floor_and_none_without_a_floor_stage():
@@ -183,13 +187,15 @@ def test_no_sample_lost_or_counted_twice_at_1khz(stack_run):
     lost, reordered = latency.stream_counters(services)
     assert lost == {"haptic": 0, "command": 0, "state": 0, "feedback": 0}
     assert reordered == {"haptic": 0, "command": 0, "feedback": 0}
-    chain = latency.chain_accounting(stack_run.samples, stack_run.traces)
+    chain = latency.chain_accounting(stack_run.samples, stack_run.traces, stack_run.shed_ns)
     assert chain["duplicates"] == 0
-    assert chain["missing"] == 0
-    # Ten seconds at 1 kHz came back (the device loop skips late ticks rather than
-    # bursting, so a loaded machine samples a little less than 1 kHz: never counted twice).
+    # Every handle sample came back exactly once, unless a service behind its schedule
+    # (a CPU stall on a loaded host) shed it on purpose and logged it: nothing vanishes.
+    assert chain["unaccounted"] == 0, chain
+    assert chain["returned"] + chain["missing"] == chain["samples"]
+    # About ten seconds at 1 kHz came back (the device loop skips late ticks rather than
+    # bursting, so a loaded machine samples a little less than 1 kHz).
     period_s = 1e-3
-    assert chain["returned"] == chain["samples"]
     assert chain["returned"] >= 0.5 * (STACK_DURATION_S - latency.WARMUP_S) / period_s
 
 
