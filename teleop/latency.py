@@ -336,6 +336,16 @@ def service_rates(summary: dict[str, Any]) -> dict[str, float | None]:
     }
 
 
+def cpu_share(summary: dict[str, Any]) -> dict[str, float | None]:
+    """Each service's CPU time over the run's wall time (1.0 = one core all the time;
+    start-up included, so a short run overstates it)."""
+    wall_s = summary.get("stack_wall_s") or 0.0
+    return {
+        name: (s["cpu_s"] / wall_s if wall_s > 0 and s.get("cpu_s") is not None else None)
+        for name, s in summary["services"].items()
+    }
+
+
 def deadline_misses(summary: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """Each periodic loop's misses: the plant's windows without a command and late steps,
     the haptic device loop's overruns and skipped ticks."""
@@ -603,6 +613,7 @@ def build_report(
         "chain": chain_accounting(stack.samples, stack.traces, stack.shed_ns),
         "non_monotonic": stack.analysis["non_monotonic"],
         "rate_hz": service_rates(stack.summary),
+        "cpu_share": cpu_share(stack.summary),
         "deadline_misses": deadline_misses(stack.summary),
         "payload_sweep": sweep_table(floor, floor_tcp),
         "dropped_messages": stack.summary.get("dropped_messages"),
