@@ -109,9 +109,10 @@ class PlantConfig:
     watchdog_s: float = 0.020
     # Rate of the scene streams (tool pose, contact force, object poses); joint state is 1/step.
     scene_rate_hz: float = 100.0
-    # Realtime: a command enters a physics step the moment it arrives (one step per
-    # command, the steps phase-locked to the commands' arrival) instead of waiting for the
-    # plant's next 1 kHz tick; without commands the plant still steps once per period.
+    # Realtime teleoperation: a command enters a physics step the moment it arrives (one
+    # step per command, the steps phase-locked to the commands' arrival, which the haptic
+    # device's clock paces) instead of waiting for the plant's next 1 kHz tick; without
+    # commands the plant still steps once per period. Path following always uses the tick.
     # Measured (teleop latency): see README "Latency". false: apply the newest command at
     # each tick of the plant's own clock.
     apply_on_arrival: bool = True

@@ -178,7 +178,10 @@ class PlantService(Service):
         self._lockstep_done = threading.Event()
         # Realtime apply-on-arrival state, shared by the run thread and the command
         # callback (which steps the plant itself when the command's window is open).
-        self.apply_on_arrival = self.config.plant.apply_on_arrival
+        # Only in teleoperation: there the haptic device's clock paces the commands. In
+        # path following each command answers the plant's own state, so the plant's tick
+        # is the loop's only clock and the newest command is the one to apply.
+        self.apply_on_arrival = self.config.plant.apply_on_arrival and teleoperated
         # A window's step may still run this long after the window closed (wake-up
         # lateness of the run thread); later than that the windows passed are skipped.
         self.late_tolerance_ns = round(self.period_ns * ARRIVAL_LATE_TOLERANCE_FRACTION)
