@@ -80,8 +80,8 @@ DEFAULT_BASELINE_MAX_S = 20.0
 LATENCY_SCENARIO_FILE = "latency.toml"
 # A floor figure below this (us) is "no such stage" (a relay does not wait): no ratio.
 MIN_RATIO_BASE_US = 1.0
-# Histogram bins of the figure (log-spaced, us).
-FIGURE_BINS_US = np.logspace(0, 5, 121)
+# Histogram bins of the figure and the recording (log-spaced, 10 us .. 1 s).
+FIGURE_BINS_US = np.logspace(1, 6, 151)
 
 
 @dataclass(frozen=True)
