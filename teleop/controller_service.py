@@ -56,7 +56,7 @@ from teleop.messages import (
 )
 from teleop.proximity import ProximitySample, body_names
 from teleop.service import Service
-from teleop.stamps import StampLog, shed_path
+from teleop.stamps import SHED_AGE_NS, StampLog, shed_path
 from teleop.teleop_control import TeleopController, TeleopOutput, teleop_reference
 from teleop.ticks import TickBarrier, TickedInputs, expected_valid_from
 
@@ -67,12 +67,6 @@ GRIPPER_OPEN = 1.0
 GRIPPER_CLOSED = 0.0
 # Lockstep: how long a cycle waits for the HMD record that applies at its tick (s).
 HEAD_POSE_WAIT_S = 1.0
-# Realtime: a haptic sample or state older than this when its callback runs (stamp of
-# its producer to now) is shed, not answered: the controller is behind (a CPU stall), its
-# answer would be late anyway, and answering every queued input in order would keep it
-# behind (measured on an overloaded host: a 0.5 s backlog). Far above a healthy hop
-# (0.1-0.3 ms), below the plant's 20 ms watchdog.
-SHED_AGE_NS = 5_000_000
 
 
 class ControllerService(Service):

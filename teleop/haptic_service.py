@@ -48,7 +48,7 @@ from teleop.messages import (
     Stage,
 )
 from teleop.service import STOP_POLL_S, Service
-from teleop.stamps import StampLog
+from teleop.stamps import SHED_AGE_NS, StampLog, shed_path
 from teleop.ticks import TickedInputs, expected_valid_from
 
 logger = logging.getLogger(__name__)
@@ -111,6 +111,8 @@ class HapticService(Service):
         self.feedback_lost = 0  # feedback seq gaps
         self.feedback_reordered = 0  # feedback not newer than the last one
         self.feedback_superseded = 0  # replaced before the next step rendered it
+        self.feedback_shed = 0  # too old on arrival (this service was behind): not rendered
+        self.shed_log = StampLog(1)  # HAPTIC_SAMPLE stamps of the loops shed here
         self._warned_oversized = False
         self._warned_no_operator = False
 
@@ -193,6 +195,11 @@ class HapticService(Service):
         if self._last_feedback_seq >= 0:
             self.feedback_lost += seq - self._last_feedback_seq - 1
         self._last_feedback_seq = seq
+        if time.monotonic_ns() - int(rec["trace_ns"][Stage.FEEDBACK_TX]) > SHED_AGE_NS:
+            self.feedback_shed += 1  # a backlog: a newer force is right behind it
+            if int(rec["trace_ns"][Stage.HAPTIC_SAMPLE]) > 0:
+                self.shed_log.append((int(rec["trace_ns"][Stage.HAPTIC_SAMPLE]),))
+            return
         self.hold.receive(force, rx_ns)
         trace = np.array(rec["trace_ns"])
         trace[Stage.FEEDBACK_RX] = rx_ns
@@ -353,6 +360,7 @@ class HapticService(Service):
             with self._cond:
                 self.trace_log.save(run_dir / TRACE_FILE)
                 self.sample_log.save(run_dir / SAMPLES_FILE)
+                self.shed_log.save(shed_path(run_dir, self.name))
         super().close()
 
     def _rate_hz(self) -> float | None:
@@ -379,6 +387,7 @@ class HapticService(Service):
             "feedback_lost": self.feedback_lost,
             "feedback_reordered": self.feedback_reordered,
             "feedback_superseded": self.feedback_superseded,
+            "feedback_shed": self.feedback_shed,
             "feedback_rendered": len(self.trace_log),
             "rate_hz": self._rate_hz(),
             "max_stable_stiffness_n_per_m": max_stable_stiffness_n_per_m(

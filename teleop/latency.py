@@ -287,13 +287,16 @@ def run_stack(
 
 def shed_counters(services: dict[str, dict[str, Any]]) -> dict[str, int]:
     """Inputs dropped on purpose because a service was behind (a CPU stall): the
-    controller's too-old haptic samples and states, the plant's queue overflow and
-    commands too old to apply. Each is a handle sample that never comes back."""
+    controller's too-old haptic samples and states, the haptic device's too-old
+    feedback, the plant's queue overflow and commands too old to apply. Each is a
+    handle sample that never comes back (a state or feedback without one is counted
+    too)."""
     arrival = services.get("plant", {}).get("arrival", {})
     controller = services.get("controller", {})
     return {
         "haptic": int(controller.get("haptic_shed", 0)),
         "state": int(controller.get("states_shed", 0)),
+        "feedback": int(services.get("haptic", {}).get("feedback_shed", 0)),
         "command_overflow": int(arrival.get("commands_dropped", 0)),
         "command_stale": int(arrival.get("commands_stale", 0)),
     }

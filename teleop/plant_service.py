@@ -7,10 +7,10 @@ One code path, two timing modes:
   ``plant.apply_on_arrival`` (the default) each command enters a step the moment it
   arrives, in the Zenoh callback: the step grid is phase-locked to the commands (see
   :class:`ArrivalGrid`), so a command never waits for the plant's tick, and a period
-  without a command is stepped at its end with the last command. Otherwise a :class:`LoopTimer` paces the steps and each
-  applies the newest command. The watchdog brakes (holds the arm where it is) when the
-  command answers a state older than ``plant.watchdog_s``, and resumes as soon as
-  fresh commands arrive.
+  without a command is stepped at its end with the last command. Otherwise a
+  :class:`LoopTimer` paces the steps and each applies the newest command. The
+  watchdog brakes (holds the arm where it is) when the command answers a state older
+  than ``plant.watchdog_s``, and resumes as soon as fresh commands arrive.
 - lockstep: the plant publishes a state and steps when the command that answers it
   (``state_seq``) arrives, inside the command callback, so a cycle costs no thread
   hand-off: deterministic, as fast as plant + controller allow.

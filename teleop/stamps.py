@@ -16,6 +16,12 @@ import numpy as np
 
 # Rows allocated up front: about 65 s at 1 kHz before the first doubling.
 DEFAULT_CAPACITY_ROWS = 65_536
+# Realtime teleoperation: an input of the loop (haptic sample, state, feedback) older than
+# this when its callback runs (its producer's stamp to now) is shed, not answered: the
+# service is behind (a CPU stall), its answer would be late anyway, and answering every
+# queued input in order would keep it behind (measured on an overloaded host: backlogs of
+# 0.3-0.5 s). Far above a healthy hop (0.1-0.3 ms), below the plant's 20 ms watchdog.
+SHED_AGE_NS = 5_000_000
 
 
 class StampLog:
