@@ -299,6 +299,7 @@ def shed_counters(services: dict[str, dict[str, Any]]) -> dict[str, int]:
         "feedback": int(services.get("haptic", {}).get("feedback_shed", 0)),
         "command_overflow": int(arrival.get("commands_dropped", 0)),
         "command_stale": int(arrival.get("commands_stale", 0)),
+        "command_late": int(arrival.get("commands_shed", 0)),
     }
 
 

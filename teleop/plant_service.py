@@ -53,7 +53,7 @@ from teleop.messages import (
 from teleop.plant import Plant
 from teleop.proximity import ObstacleProximity
 from teleop.service import Service
-from teleop.stamps import StampLog, shed_path
+from teleop.stamps import SHED_AGE_NS, StampLog, shed_path
 
 logger = logging.getLogger(__name__)
 
@@ -202,6 +202,7 @@ class PlantService(Service):
         self.commands_reordered = 0  # JOINT_COMMAND not newer than the last one
         self.commands_dropped = 0  # queue overflow after a stall
         self.commands_stale = 0  # arrived too old to apply (the watchdog brakes instead)
+        self.commands_shed = 0  # older than SHED_AGE_NS on arrival (this service was behind)
         self.shed_log = StampLog(1)  # HAPTIC_SAMPLE stamps of the commands dropped here
         self.announce()
 
@@ -438,6 +439,10 @@ class PlantService(Service):
             if self._last_command_seq >= 0:
                 self.commands_lost += seq - self._last_command_seq - 1
             self._last_command_seq = seq
+            if time.monotonic_ns() - int(command["trace_ns"][Stage.CONTROLLER_TX]) > SHED_AGE_NS:
+                self.commands_shed += 1  # a backlog: a newer command is right behind it
+                self._log_shed(command)
+                return
             if not self._grid.locked:
                 self._grid.lock(rx_ns)
             self._arrival_queue.append((command, rx_ns))
@@ -559,6 +564,7 @@ class PlantService(Service):
                 "commands_reordered": self.commands_reordered,
                 "commands_dropped": self.commands_dropped,
                 "commands_stale": self.commands_stale,
+                "commands_shed": self.commands_shed,
             },
         }
 
