@@ -25,6 +25,7 @@ from teleop.kinematics import (
     ArmModel,
     inverse_dynamics,
     manipulability_and_gradient,
+    symmetric_3x3_inverse,
     tool_position_and_jacobian,
 )
 
@@ -115,7 +116,7 @@ class ControlOutput:
 
 def limit_speed(qd_rad_s: np.ndarray, max_rad_s: np.ndarray | float) -> np.ndarray:
     """Scale the whole vector down (keeping its direction) so every joint is within limits."""
-    ratio = float(np.max(np.abs(qd_rad_s) / max_rad_s))
+    ratio = float((np.abs(qd_rad_s) / max_rad_s).max())
     return qd_rad_s / ratio if ratio > 1.0 else qd_rad_s
 
 
@@ -202,7 +203,11 @@ class PathFollowingController:
         # J^T A^-1 (v - J g) + g, where g = L grad w is the null-space objective.
         w, w_gradient = manipulability_and_gradient(jacobian)
         g = ctl.null_space_gain * w_gradient
-        qd_c = jv.T @ np.linalg.solve(jv @ jv.T + self._damping_matrix, v_task - jv @ g) + g
+        inverse, det = symmetric_3x3_inverse(jv @ jv.T + self._damping_matrix)
+        if det > 0.0:
+            qd_c = jv.T @ (inverse @ (v_task - jv @ g)) + g
+        else:  # undamped at an exact singularity: the least-squares solution
+            qd_c = np.linalg.pinv(jv) @ (v_task - jv @ g) + g
         qd_c = limit_speed(qd_c, self.max_speed_rad_s)
 
         qd_ref = velocity_reference(

@@ -12,6 +12,7 @@ All vectors are in the world frame (z up, origin at the arm base); ``q_rad`` and
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import mujoco
@@ -143,26 +144,65 @@ def manipulability_and_gradient(jacobian: np.ndarray) -> tuple[float, np.ndarray
     dw/dq_k = w sum_i a_i . dv_i/dq_k with a_i the columns of (J J^T)^-1 J. The
     triple product turns the sums into prefix/suffix sums, O(n) instead of O(n^2):
     dw/dq_k = w (z_k . sum_{i>=k} v_i x a_i + v_k . sum_{i<k} a_i x z_i).
+
+    Scalar Python on purpose: it runs every 1 kHz cycle, and at n = 6 or 7 the ~20
+    small numpy calls of the vectorised form cost twice as much as the arithmetic.
     """
-    jv, z = jacobian[:3], jacobian[3:]
-    jjt = jv @ jv.T
-    w = float(np.sqrt(max(np.linalg.det(jjt), 0.0)))
-    if w == 0.0:
-        return w, np.zeros(jv.shape[1])
-    a_t = np.linalg.solve(jjt, jv).T  # (n, 3): rows a_i
-    v_t, z_t = jv.T, z.T
-    v_cross_a = _cross_rows(v_t, a_t)
-    a_cross_z = _cross_rows(a_t, z_t)
-    suffix = np.cumsum(v_cross_a[::-1], axis=0)[::-1]  # sum over i >= k
-    prefix = np.cumsum(a_cross_z, axis=0) - a_cross_z  # sum over i < k
-    return w, w * ((z_t * suffix).sum(axis=1) + (v_t * prefix).sum(axis=1))
+    vx, vy, vz, zx, zy, zz = jacobian.tolist()
+    n = len(vx)
+    # J J^T = [[a, b, c], [b, e, f], [c, f, i]] and its adjugate (cofactors).
+    a, b, c = _dot(vx, vx), _dot(vx, vy), _dot(vx, vz)
+    e, f, i = _dot(vy, vy), _dot(vy, vz), _dot(vz, vz)
+    c00, c01, c02 = e * i - f * f, c * f - b * i, b * f - c * e
+    c11, c12, c22 = a * i - c * c, b * c - a * f, a * e - b * b
+    det = a * c00 + b * c01 + c * c02
+    if det <= 0.0:
+        return 0.0, np.zeros(n)
+    w = math.sqrt(det)
+    v_cross_a, a_cross_z = [], []
+    for k in range(n):
+        px, py, pz, ux, uy, uz = vx[k], vy[k], vz[k], zx[k], zy[k], zz[k]
+        ax = (c00 * px + c01 * py + c02 * pz) / det
+        ay = (c01 * px + c11 * py + c12 * pz) / det
+        az = (c02 * px + c12 * py + c22 * pz) / det
+        v_cross_a.append((py * az - pz * ay, pz * ax - px * az, px * ay - py * ax))
+        a_cross_z.append((ay * uz - az * uy, az * ux - ax * uz, ax * uy - ay * ux))
+    gradient = [0.0] * n
+    sx = sy = sz = 0.0  # prefix sum of a_i x z_i over i < k
+    for k in range(n):
+        gradient[k] = vx[k] * sx + vy[k] * sy + vz[k] * sz
+        dx, dy, dz = a_cross_z[k]
+        sx, sy, sz = sx + dx, sy + dy, sz + dz
+    sx = sy = sz = 0.0  # suffix sum of v_i x a_i over i >= k
+    for k in range(n - 1, -1, -1):
+        dx, dy, dz = v_cross_a[k]
+        sx, sy, sz = sx + dx, sy + dy, sz + dz
+        gradient[k] = w * (gradient[k] + zx[k] * sx + zy[k] * sy + zz[k] * sz)
+    return w, np.array(gradient)
 
 
-def _cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross products of (n, 3) arrays (np.cross costs ~10x more at this size)."""
-    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
-    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
-    return np.column_stack((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0))
+def _dot(x: list[float], y: list[float]) -> float:
+    return sum(p * q for p, q in zip(x, y, strict=True))
+
+
+def symmetric_3x3_inverse(m: np.ndarray) -> tuple[np.ndarray, float]:
+    """Inverse and determinant of a symmetric 3x3 matrix by its adjugate.
+
+    The path-following law inverts J J^T + lambda^2 I every 1 kHz cycle; the closed form
+    in Python floats costs a fraction of ``np.linalg.solve`` at this size. A singular
+    matrix gives ``det == 0`` and a NaN inverse: callers check ``det``.
+    """
+    (a, b, c), (_, e, f), (_, _, i) = m.tolist()
+    c00, c01, c02 = e * i - f * f, c * f - b * i, b * f - c * e
+    det = a * c00 + b * c01 + c * c02
+    if det == 0.0:
+        return np.full((3, 3), np.nan), 0.0
+    adjugate = (
+        (c00, c01, c02),
+        (c01, a * i - c * c, b * c - a * f),
+        (c02, b * c - a * f, a * e - b * b),
+    )
+    return np.array(adjugate) / det, det
 
 
 def inverse_dynamics(

@@ -111,7 +111,8 @@ class Plant:
 
     def _gripper_ctrl(self, gripper_cmd: float) -> float:
         low, high = self.gripper_range_m
-        return float(low + np.clip(gripper_cmd, 0.0, 1.0) * (high - low))
+        fraction = min(max(gripper_cmd, 0.0), 1.0)  # scalar clip: np.clip costs 10x here
+        return float(low + fraction * (high - low))
 
     def step(self, qd_ref_rad_s: np.ndarray, gripper_cmd: float) -> None:
         """Apply velocity references (rad/s, clipped by the actuators) and advance one step."""
@@ -142,7 +143,8 @@ class Plant:
             sim_time_ns=self.step_count * self.timestep_ns,
             q_rad=self.data.qpos[self.qpos_index].copy(),
             qd_rad_s=self.data.qvel[self.dof_index].copy(),
-            gripper_opening_m=float(np.mean(self.data.qpos[self.finger_qpos_index])),
+            gripper_opening_m=float(self.data.qpos[self.finger_qpos_index].sum())
+            / len(self.finger_qpos_index),
         )
 
     def tool_pose(self) -> tuple[np.ndarray, np.ndarray]:

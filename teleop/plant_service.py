@@ -114,6 +114,48 @@ class ArrivalGrid:
         self.next_open_ns += self.period_ns
 
 
+# Lockstep cycle breakdown: the newest cycles kept (a ring; 60 s of lockstep fits).
+CYCLE_STATS_CAPACITY = 1 << 16
+
+
+class LockstepCycleStats:
+    """Where a lockstep cycle's wall time goes, from the stamps the records carry.
+
+    One cycle: the plant sends state k (``PLANT_STATE_TX``), the controller receives
+    it and answers (``CONTROLLER_RX``, ``CONTROLLER_TX``), the plant receives the
+    command (``PLANT_RX``), steps (``PLANT_APPLIED``) and sends state k + 1. All stamps
+    are this host's monotonic clock, so the segments are exact and add up to the cycle.
+    """
+
+    SEGMENTS = ("to_controller", "controller", "to_plant", "plant_rx", "plant_step")
+
+    def __init__(self, capacity: int = CYCLE_STATS_CAPACITY) -> None:
+        self._stamps_ns = np.zeros((capacity, len(self.SEGMENTS) + 1), dtype=np.int64)
+        self._count = 0
+
+    _STAGES = [Stage.CONTROLLER_RX, Stage.CONTROLLER_TX, Stage.PLANT_RX, Stage.PLANT_APPLIED,
+               Stage.PLANT_STATE_TX]  # fmt: skip
+
+    def add(self, answered_state_tx_ns: int, trace_ns: np.ndarray) -> None:
+        """Record one cycle from the new state's stamps (they include the command's)."""
+        row = self._stamps_ns[self._count % len(self._stamps_ns)]
+        row[0] = answered_state_tx_ns
+        row[1:] = trace_ns[self._STAGES]
+        self._count += 1
+
+    def summary(self) -> dict[str, float]:
+        """Median microseconds of each segment and of the whole cycle ({} if none)."""
+        rows = self._stamps_ns[: min(self._count, len(self._stamps_ns))]
+        rows = rows[(rows > 0).all(axis=1)]
+        if not len(rows):
+            return {}
+        segments_us = np.diff(rows, axis=1) / 1e3
+        medians = np.median(segments_us, axis=0)
+        result = {name: round(float(m), 1) for name, m in zip(self.SEGMENTS, medians, strict=True)}
+        result["cycle"] = round(float(np.median(rows[:, -1] - rows[:, 0]) / 1e3), 1)
+        return result
+
+
 class PlantService(Service):
     name = "plant"
 
@@ -176,6 +218,7 @@ class PlantService(Service):
         self._lockstep_steps: int | None = None
         self._lockstep_running = False
         self._lockstep_done = threading.Event()
+        self.cycle_stats = LockstepCycleStats()
         # Realtime apply-on-arrival state, shared by the run thread and the command
         # callback (which steps the plant itself when the command's window is open).
         # Only in teleoperation: there the haptic device's clock paces the commands. In
@@ -545,7 +588,9 @@ class PlantService(Service):
             self.commands_applied += 1
             if not self._should_step(self._lockstep_steps):
                 self._lockstep_done.set()
+            answered_tx_ns = int(self._state["trace_ns"][Stage.PLANT_STATE_TX])
             self._publish_state(command, rx_ns, applied_ns)
+            self.cycle_stats.add(answered_tx_ns, self._state["trace_ns"])
 
     def _arrival_summary(self) -> dict[str, Any]:
         """Timing figures of the apply-on-arrival realtime loop (empty otherwise)."""
@@ -586,6 +631,7 @@ class PlantService(Service):
             "stale_commands": self.stale_commands,
             "stale_steps": self.stale_steps,
             "unanswered_commands": self.unanswered_commands,
+            "lockstep_cycle_us": self.cycle_stats.summary(),
             "final_state_sha256": self.plant.state_sha256(),
             "max_contact_force_n": self.max_contact_force_n,
             "obstacle_min_clearance_m": self.min_obstacle_clearance_m,

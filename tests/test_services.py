@@ -184,7 +184,8 @@ def test_plant_drops_bad_commands_counts_them_and_keeps_running(realtime_pair, t
         raw.put(payload)
     typed.put(nan_command)
     typed.put(wrong_arm)
-    before = int(tester.states.get()[0]["seq"])
+    # STARTED and the first state travel on different keys: wait for a state itself.
+    before = int(tester.state_after(-1)["seq"])
     tester.state_after(before + 200)  # still stepping
     stack.stop()
     summary = json.loads((tmp_path / "plant.summary.json").read_text())

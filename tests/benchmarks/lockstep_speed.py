@@ -22,12 +22,13 @@ from teleop.config import load_config
 from teleop.experiments import run_path_following_inprocess
 
 
-def lockstep_run(duration_s: float, run_dir: Path) -> dict:
+def lockstep_run(duration_s: float, run_dir: Path, overrides: list[str]) -> dict:
     out = run_dir / "summary.json"
+    sets = [arg for override in overrides for arg in ("--set", override)]
     subprocess.run(
         [sys.executable, "-m", "teleop.cli", "run", "path-following", "--mode", "lockstep",
          "--duration", str(duration_s), "--run-dir", str(run_dir), "--summary-json", str(out),
-         "--quiet"],
+         "--quiet", *sets],
         check=True, stdout=subprocess.DEVNULL, stdin=subprocess.DEVNULL,
     )  # fmt: skip
     return json.loads(out.read_text())
@@ -38,26 +39,36 @@ def main() -> int:
     parser.add_argument("--duration", type=float, default=10.0, help="simulated s per run")
     parser.add_argument("--repeat", type=int, default=3, help="runs of each kind")
     parser.add_argument("--json", type=Path, default=Path("runs/bench/lockstep_speed.json"))
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE",
+        help="config override for the services runs, e.g. cpu.plant=[] (repeatable)",
+    )  # fmt: skip
     args = parser.parse_args()
     config = load_config(None, [f"run.duration_s={args.duration}"])
-    inprocess, lockstep, compute_us = [], [], []
+    inprocess, lockstep, compute_us, cycles_us = [], [], [], []
     with tempfile.TemporaryDirectory(prefix="bench-") as tmp:
         for i in range(args.repeat):
             reference = run_path_following_inprocess(config, progress=None)
             inprocess.append(reference["realtime_factor"])
-            summary = lockstep_run(args.duration, Path(tmp) / f"run{i}")
+            summary = lockstep_run(args.duration, Path(tmp) / f"run{i}", args.set)
             if summary["final_state_sha256"] != reference["final_state_sha256"]:
                 print("lockstep and in-process runs differ: not comparable", file=sys.stderr)
                 return 1
             lockstep.append(summary["realtime_factor"])
             compute_us.append(summary["services"]["controller"]["compute_mean_us"])
-            print(f"run {i}: in-process {inprocess[-1]:.2f}x, lockstep {lockstep[-1]:.2f}x")
+            cycles_us.append(summary["services"]["plant"]["lockstep_cycle_us"])
+            print(
+                f"run {i}: in-process {inprocess[-1]:.2f}x, lockstep {lockstep[-1]:.2f}x, "
+                f"cycle (median us) {cycles_us[-1]}"
+            )
     report = {
         "duration_s": args.duration,
         "repeat": args.repeat,
         "inprocess_realtime_factor": inprocess,
         "lockstep_realtime_factor": lockstep,
+        "overrides": args.set,
         "controller_compute_mean_us": compute_us,
+        "lockstep_cycle_us": cycles_us,
         "inprocess_median": statistics.median(inprocess),
         "lockstep_median": statistics.median(lockstep),
         "lockstep_over_inprocess": statistics.median(lockstep) / statistics.median(inprocess),
