@@ -264,16 +264,19 @@ class TeleopTask:
             )
         )
         service.keep(subscribe(session, topics.head_pose, HEAD_POSE, self._on_head_pose, drops))
-        # Realtime: both half-cycles run in Zenoh callbacks (haptic and plant links are
-        # served by different threads), one at a time under this lock.
-        self._rt_lock = threading.Lock()
+        # Realtime: both half-cycles run in the Zenoh callbacks (the haptic and plant links
+        # are served by different threads), one at a time (``_rt_busy``); an input that
+        # arrives meanwhile waits in ``_pending``, newest wins (see _dispatch).
+        self._rt_lock = threading.Lock()  # guards the fields below, held briefly
+        self._rt_busy = False
+        self._pending: dict[str, Any] = {}
         self._last_output: TeleopOutput | None = None
         self._last_haptic_seq = -1
         self.haptic_lost = 0  # HAPTIC_STATE seq gaps (realtime)
         self.haptic_reordered = 0  # HAPTIC_STATE not newer than the last one (realtime)
         self.haptic_before_state = 0  # samples that arrived before any plant state
-        self.haptic_shed = 0  # samples too old to answer (the controller was behind)
-        self.states_shed = 0  # states too old to answer with feedback
+        self.haptic_shed = 0  # samples not answered: too old, or superseded while busy
+        self.states_shed = 0  # states not answered with feedback, same reasons
         self.shed_log = StampLog(1)  # HAPTIC_SAMPLE stamps of the loops shed here
         self._reset_metrics()
 
@@ -302,7 +305,7 @@ class TeleopTask:
             self.barrier.put("haptic", int(rec["tick"]), rec)
         else:
             self.haptic(rec, rx_ns)
-            self._command_realtime(rec, rx_ns)
+            self._dispatch("haptic", (rec, rx_ns))
 
     def _on_contact(self, rec: np.ndarray, rx_ns: int) -> None:
         rec = rec.copy()
@@ -329,94 +332,139 @@ class TeleopTask:
         else:
             state["trace_ns"][Stage.CONTROLLER_STATE_RX] = rx_ns
             self.states(state, rx_ns)
-            self._feedback_realtime(state)
+            self._dispatch("state", state)
 
     def run(self, stop: threading.Event) -> None:
         """Nothing to do here: every cycle runs in the bus callbacks (both modes)."""
         stop.wait()
 
     # -- realtime half-cycles ------------------------------------------------------------
+    def _dispatch(self, kind: str, item: Any) -> None:
+        """Run a half-cycle now if the controller is free, else leave it pending.
+
+        The callback that finds the controller free runs its own input, then the inputs
+        that arrived meanwhile (newest of each kind; older ones are superseded: shed and
+        logged). A busy controller thus never makes a Zenoh thread wait, no backlog
+        builds up behind a slow cycle, and with a free controller an input costs no
+        hand-off. One pass only: what arrives during it waits for the next callback
+        (each stream comes at 1 kHz), so no thread loops forever under overload.
+        """
+        with self._rt_lock:
+            if kind == "haptic":
+                seq = int(item[0]["seq"])
+                if seq <= self._last_haptic_seq:
+                    self.haptic_reordered += 1
+                    return
+                if self._last_haptic_seq >= 0:
+                    self.haptic_lost += seq - self._last_haptic_seq - 1
+                self._last_haptic_seq = seq
+            older = self._pending.pop(kind, None)
+            if older is not None:
+                self._supersede(kind, older)
+            if self._rt_busy:
+                self._pending[kind] = item
+                return
+            self._rt_busy = True
+        try:
+            self._half_cycle(kind, item)
+            with self._rt_lock:
+                pending, self._pending = self._pending, {}
+            for name in ("haptic", "state"):
+                if name in pending:
+                    self._half_cycle(name, pending[name])
+        finally:
+            with self._rt_lock:
+                self._rt_busy = False
+
+    def _half_cycle(self, kind: str, item: Any) -> None:
+        if kind == "haptic":
+            self._command_realtime(*item)
+        else:
+            self._feedback_realtime(item)
+
+    def _supersede(self, kind: str, item: Any) -> None:
+        """A pending input replaced by a newer one of its kind (lock held)."""
+        trace = item[0]["trace_ns"] if kind == "haptic" else item["trace_ns"]
+        if kind == "haptic":
+            self.haptic_shed += 1
+        else:
+            self.states_shed += 1
+        if int(trace[Stage.HAPTIC_SAMPLE]) > 0:
+            self.shed_log.append((int(trace[Stage.HAPTIC_SAMPLE]),))
+
+    def _shed(self, kind: str, item: Any) -> None:
+        with self._rt_lock:
+            self._supersede(kind, item)
+
     def _command_realtime(self, haptic: np.ndarray, rx_ns: int) -> None:
         """One HAPTIC_STATE sample -> one JOINT_COMMAND, on the newest plant state."""
-        with self._rt_lock:
-            seq = int(haptic["seq"])
-            if seq <= self._last_haptic_seq:
-                self.haptic_reordered += 1
-                return
-            if self._last_haptic_seq >= 0:
-                self.haptic_lost += seq - self._last_haptic_seq - 1
-            self._last_haptic_seq = seq
-            sample_ns = int(haptic["trace_ns"][Stage.HAPTIC_SAMPLE])
-            if time.monotonic_ns() - sample_ns > SHED_AGE_NS:
-                self.haptic_shed += 1
-                self.shed_log.append((sample_ns,))
-                return
-            latest_state = self.states.get()
-            if latest_state is None:
-                self.haptic_before_state += 1
-                return
-            state = latest_state[0]
-            tick = int(state["seq"])
-            service = self.service
-            config = service.config
-            n = service.arm.n_joints
-            t0 = time.monotonic_ns()
-            handle_d_m = np.array(haptic["device_p_m"])
-            buttons = Button(int(haptic["buttons"]))
-            clutch = bool(buttons & Button.CLUTCH)
-            gripper_cmd = GRIPPER_CLOSED if buttons & Button.GRIPPER_CLOSE else GRIPPER_OPEN
-            yaw_rad = self._head_yaw_rad(tick)
-            v_ref = teleop_reference(handle_d_m, yaw_rad, clutch, config.teleop)
-            latest_proximity = self.proximity.get()
-            obstacle = self._proximity_sample(latest_proximity[0] if latest_proximity else None)
-            output = self.controller.update(
-                state["q_rad"][:n], state["qd_rad_s"][:n], v_ref, obstacle, gripper_cmd, clutch
-            )
-            service.compute_ns_total += time.monotonic_ns() - t0
-            trace = np.zeros_like(state["trace_ns"])
-            trace[Stage.HAPTIC_SAMPLE] = haptic["trace_ns"][Stage.HAPTIC_SAMPLE]
-            trace[Stage.CONTROLLER_RX] = rx_ns
-            service.publish_command(state, output.qd_ref_rad_s, gripper_cmd, trace)
-            self._last_output = output
-            if tick % service.status_every_steps == 0:
-                contact = self.contact.get()
-                holding = contact is not None and float(contact[0]["held_mass_kg"]) > 0
-                self._publish_status(tick, state, output, holding)
+        sample_ns = int(haptic["trace_ns"][Stage.HAPTIC_SAMPLE])
+        if time.monotonic_ns() - sample_ns > SHED_AGE_NS:
+            self._shed("haptic", (haptic, rx_ns))
+            return
+        latest_state = self.states.get()
+        if latest_state is None:
+            self.haptic_before_state += 1
+            return
+        state = latest_state[0]
+        tick = int(state["seq"])
+        service = self.service
+        config = service.config
+        n = service.arm.n_joints
+        t0 = time.monotonic_ns()
+        handle_d_m = np.array(haptic["device_p_m"])
+        buttons = Button(int(haptic["buttons"]))
+        clutch = bool(buttons & Button.CLUTCH)
+        gripper_cmd = GRIPPER_CLOSED if buttons & Button.GRIPPER_CLOSE else GRIPPER_OPEN
+        yaw_rad = self._head_yaw_rad(tick)
+        v_ref = teleop_reference(handle_d_m, yaw_rad, clutch, config.teleop)
+        latest_proximity = self.proximity.get()
+        obstacle = self._proximity_sample(latest_proximity[0] if latest_proximity else None)
+        output = self.controller.update(
+            state["q_rad"][:n], state["qd_rad_s"][:n], v_ref, obstacle, gripper_cmd, clutch
+        )
+        service.compute_ns_total += time.monotonic_ns() - t0
+        trace = np.zeros_like(state["trace_ns"])
+        trace[Stage.HAPTIC_SAMPLE] = haptic["trace_ns"][Stage.HAPTIC_SAMPLE]
+        trace[Stage.CONTROLLER_RX] = rx_ns
+        service.publish_command(state, output.qd_ref_rad_s, gripper_cmd, trace)
+        self._last_output = output
+        if tick % service.status_every_steps == 0:
+            contact = self.contact.get()
+            holding = contact is not None and float(contact[0]["held_mass_kg"]) > 0
+            self._publish_status(tick, state, output, holding)
 
     def _feedback_realtime(self, state: np.ndarray) -> None:
         """One JOINT_STATE -> one FORCE_FEEDBACK (its trace continues the command's)."""
-        with self._rt_lock:
-            if time.monotonic_ns() - int(state["trace_ns"][Stage.PLANT_STATE_TX]) > SHED_AGE_NS:
-                self.states_shed += 1
-                if int(state["trace_ns"][Stage.HAPTIC_SAMPLE]) > 0:
-                    self.shed_log.append((int(state["trace_ns"][Stage.HAPTIC_SAMPLE]),))
-                return
-            service = self.service
-            config = service.config
-            tick = int(state["seq"])
-            latest = self.haptic.get()
-            haptic = latest[0] if latest is not None else None
-            if haptic is not None and tick - int(haptic["tick"]) > self.stale_ticks:
-                haptic = None
-            if haptic is None:
-                self.no_input_cycles += 1
-            t0 = time.monotonic_ns()
-            handle_d_m = np.array(haptic["device_p_m"]) if haptic is not None else np.zeros(3)
-            yaw_rad = self._head_yaw_rad(tick)
-            latest_proximity = self.proximity.get()
-            obstacle = self._proximity_sample(latest_proximity[0] if latest_proximity else None)
-            latest_contact = self.contact.get()
-            contact = latest_contact[0] if latest_contact is not None else None
-            world_f_gripper_n = np.array(contact["world_f_contact_n"]) if contact else np.zeros(3)
-            held_mass = float(contact["held_mass_kg"]) if contact else 0.0
-            components = feedback_components(
-                world_f_gripper_n, held_mass, obstacle, handle_d_m, config.teleop
-            )
-            device_f_n = device_force(components, yaw_rad, config.teleop, config.haptic)
-            service.compute_ns_total += time.monotonic_ns() - t0
-            self._publish_feedback(tick, state, components, device_f_n, state["trace_ns"])
-            if self._last_output is not None:
-                self._measure(self._last_output, components, device_f_n, held_mass)
+        if time.monotonic_ns() - int(state["trace_ns"][Stage.PLANT_STATE_TX]) > SHED_AGE_NS:
+            self._shed("state", state)
+            return
+        service = self.service
+        config = service.config
+        tick = int(state["seq"])
+        latest = self.haptic.get()
+        haptic = latest[0] if latest is not None else None
+        if haptic is not None and tick - int(haptic["tick"]) > self.stale_ticks:
+            haptic = None
+        if haptic is None:
+            self.no_input_cycles += 1
+        t0 = time.monotonic_ns()
+        handle_d_m = np.array(haptic["device_p_m"]) if haptic is not None else np.zeros(3)
+        yaw_rad = self._head_yaw_rad(tick)
+        latest_proximity = self.proximity.get()
+        obstacle = self._proximity_sample(latest_proximity[0] if latest_proximity else None)
+        latest_contact = self.contact.get()
+        contact = latest_contact[0] if latest_contact is not None else None
+        world_f_gripper_n = np.array(contact["world_f_contact_n"]) if contact else np.zeros(3)
+        held_mass = float(contact["held_mass_kg"]) if contact else 0.0
+        components = feedback_components(
+            world_f_gripper_n, held_mass, obstacle, handle_d_m, config.teleop
+        )
+        device_f_n = device_force(components, yaw_rad, config.teleop, config.haptic)
+        service.compute_ns_total += time.monotonic_ns() - t0
+        self._publish_feedback(tick, state, components, device_f_n, state["trace_ns"])
+        if self._last_output is not None:
+            self._measure(self._last_output, components, device_f_n, held_mass)
 
     def _head_yaw_rad(self, tick: int) -> float:
         """The HMD's predicted view yaw that applies at ``tick`` (config yaw before any)."""
