@@ -22,6 +22,7 @@ The entity paths below are an API: the blueprint and the tests look them up by n
 
 from __future__ import annotations
 
+import io
 import json
 import logging
 import math
@@ -34,6 +35,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
+import PIL.Image
 import rerun as rr
 import zenoh
 
@@ -188,6 +190,7 @@ EYE_VIEW_BUFFER_FRAMES = 32
 # Latency samples kept per hop for the eye-view percentiles (the newest ones).
 EYE_VIEW_LATENCY_SAMPLES = 100_000
 NS_PER_MS = 1_000_000
+JPEG_MEDIA_TYPE = "image/jpeg"
 # How long close() waits for Rerun to write the last chunks to the file (s).
 RRD_FLUSH_TIMEOUT_S = 10.0
 # TextLog level of each run event; the watchdog braking is worth a warning.
@@ -337,22 +340,41 @@ class EyeViewFrames:
             self._cond.notify_all()
 
     def write(self, stream: rr.RecordingStream) -> None:
-        """Log every buffered frame at its own times; one Rerun row per frame."""
+        """Log every buffered frame at its own times: one ``send_columns`` per flush.
+
+        (``send_columns`` rather than ``log``: no wall-clock ``log_time`` column, like
+        every other stream of the recording.)
+        """
         with self._cond:
             frames = list(self._frames)
             self._frames.clear()
-        for data, pixels in frames:
-            rec = np.frombuffer(data, EYE_VIEW.dtype, 1).reshape(())
-            image = rr.Image(pixels, color_model="RGB")
-            stream.set_time(TIMELINE_SIM, duration=np.timedelta64(int(rec["sim_time_ns"]), "ns"))
-            stream.set_time(TIMELINE_SOURCE, duration=np.timedelta64(int(rec["t_source_ns"]), "ns"))
-            if self.jpeg_quality:
-                stream.log(ENTITY_EYE_VIEW, image.compress(jpeg_quality=self.jpeg_quality))
-            else:
-                stream.log(ENTITY_EYE_VIEW, image)
-            self.logged += 1
-        if frames:
-            stream.reset_time()
+        if not frames:
+            return
+        records = np.frombuffer(b"".join(data for data, _ in frames), dtype=EYE_VIEW.dtype)
+        indexes = [
+            rr.TimeColumn(
+                TIMELINE_SOURCE, duration=records["t_source_ns"].astype("timedelta64[ns]")
+            ),
+            rr.TimeColumn(TIMELINE_SIM, duration=records["sim_time_ns"].astype("timedelta64[ns]")),
+        ]
+        if self.jpeg_quality:
+            blobs = [self._jpeg(pixels) for _, pixels in frames]
+            columns = rr.EncodedImage.columns(blob=blobs, media_type=[JPEG_MEDIA_TYPE] * len(blobs))
+        else:
+            formats = [
+                rr.components.ImageFormat(
+                    p.shape[1], p.shape[0], color_model="RGB", channel_datatype="U8"
+                )
+                for _, p in frames
+            ]
+            columns = rr.Image.columns(buffer=[p.tobytes() for _, p in frames], format=formats)
+        stream.send_columns(ENTITY_EYE_VIEW, indexes=indexes, columns=columns, strict=True)
+        self.logged += len(frames)
+
+    def _jpeg(self, pixels: np.ndarray) -> bytes:
+        out = io.BytesIO()
+        PIL.Image.fromarray(pixels).save(out, format="JPEG", quality=self.jpeg_quality)
+        return out.getvalue()
 
     def stats(self) -> dict[str, Any]:
         """Frames received (and over SHM), dropped, logged; per-hop latency in ms."""
