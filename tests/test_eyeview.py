@@ -124,10 +124,17 @@ def test_frames_reach_the_recorder_over_shared_memory_and_land_in_the_rrd(tmp_pa
 
 
 def test_without_shared_memory_the_frames_come_over_the_socket(tmp_path):
-    """The SHM assertion above can fail: with SHM off the same frames arrive inline."""
-    eye = _run(tmp_path, "noshm", "bus.shm=false", "eyeview.jpeg_quality=0")["eye_view"]
+    """The SHM assertion above can fail: with SHM off the same frames arrive inline.
+
+    Also logs them raw (``jpeg_quality=0``): RGB images of the configured size."""
+    summary = _run(tmp_path, "noshm", "bus.shm=false", "eyeview.jpeg_quality=0")
+    eye = summary["eye_view"]
     assert eye["frames_received"] > 0
     assert eye["frames_received_shm"] == 0
+    buffers = read_rrd(Path(summary["rrd"]))[r.ENTITY_EYE_VIEW]["Image:buffer"]
+    assert len(buffers) == eye["frames_received"]
+    cfg = load_config().eyeview
+    assert {len(b[0]) for b in buffers} == {cfg.width_px * cfg.height_px * 3}
 
 
 def test_fixed_viewpoint_pitch_is_refused_beyond_straight_down():
