@@ -6,14 +6,17 @@ Two measurements, each against a baseline taken in the same run:
    thread (a tight Python loop) kept from running? If MuJoCo held the GIL while it
    draws, the longest gap would be about one render; if it releases it, gaps stay
    near the interpreter's switch interval.
-2. A plant-like loop: 1 kHz on absolute deadlines, a few ``mj_step`` per tick, run
-   alone, with the renderer as a thread of the same process, and with the renderer
-   as a separate process at ``eyeview.nice``; reports the fraction of ticks that wake
-   more than 0.9 ms late (what the plant counts as overruns) and p99 lateness.
+2. A plant-like loop: 1 kHz on absolute deadlines, a few ``mj_step`` per tick, in
+   interleaved windows alone, with the renderer as a thread of the same process, and
+   with the renderer as a separate process at ``eyeview.nice`` (both at
+   ``eyeview.rate_hz``); reports per variant the median over windows of the fraction
+   of ticks that wake more than 0.9 ms late (what the plant counts as overruns) and of
+   the p99 lateness.
 
-Writes medians over ``--repeat`` rounds to JSON.
+Mesa's software rasteriser (llvmpipe) uses one thread per CPU unless ``LP_NUM_THREADS``
+says otherwise; run it with the value to compare. Writes JSON.
 
-    .venv/bin/python tests/benchmarks/eyeview_placement.py --seconds 10 --repeat 3
+    LP_NUM_THREADS=1 .venv/bin/python tests/benchmarks/eyeview_placement.py --windows 10
 """
 
 from __future__ import annotations
@@ -38,43 +41,61 @@ TICK_S = 0.001  # the plant's period
 LATE_S = 0.0009  # a tick this late is an overrun for the plant's loop timer
 STEPS_PER_TICK = 3  # mj_step calls per tick: about the plant's work per tick
 GIL_PROBE_S = 2.0
+IDLE_POLL_S = 0.01  # renderer threads poll their on/off event this often (s)
+START_TIMEOUT_S = 60.0
 
 
-def _render_frames(stop: threading.Event, render_ms: list[float], paced: bool) -> None:
+def _render_frames(stop: threading.Event, active: threading.Event, render_ms: list[float]) -> None:
+    """Render at ``eyeview.rate_hz`` while ``active`` is set, until ``stop``."""
     config = load_config()
     eye = EyeRenderer(config)
     cfg = config.eyeview
     p_m = np.array(cfg.fixed_p_m)
     period_s = 1.0 / cfg.rate_hz
+    ready.set()
     try:
         while not stop.is_set():
+            if not active.wait(IDLE_POLL_S):
+                continue
             start = time.perf_counter()
             eye.render(p_m, cfg.fixed_yaw_rad, cfg.fixed_pitch_rad)
             render_ms.append((time.perf_counter() - start) * 1e3)
-            if paced:
-                stop.wait(max(0.0, period_s - (time.perf_counter() - start)))
+            time.sleep(max(0.0, period_s - (time.perf_counter() - start)))
     finally:
         eye.close()
 
 
-def _render_process(stop: mp.Event, report: mp.Queue, nice: int) -> None:
-    os.nice(nice)
+ready = threading.Event()  # set by _render_frames once its renderer is built
+
+
+def _render_process(stop: mp.Event, active: mp.Event, started: mp.Event, report: mp.Queue) -> None:
+    os.nice(load_config().eyeview.nice)
     render_ms: list[float] = []
-    flag = threading.Event()
-    watcher = threading.Thread(target=lambda: (stop.wait(), flag.set()), daemon=True)
-    watcher.start()
-    _render_frames(flag, render_ms, paced=True)
+    local_stop, local_active = threading.Event(), threading.Event()
+
+    def mirror() -> None:  # mp events -> thread events, so the render loop is shared code
+        while not stop.is_set():
+            if active.wait(IDLE_POLL_S):
+                local_active.set()
+            else:
+                local_active.clear()
+        local_stop.set()
+
+    threading.Thread(target=mirror, daemon=True).start()
+    threading.Thread(target=lambda: (ready.wait(), started.set()), daemon=True).start()
+    _render_frames(local_stop, local_active, render_ms)
     report.put(statistics.median(render_ms) if render_ms else 0.0)
 
 
 def gil_probe() -> dict:
     """Longest stall of a pure-Python main thread while another thread renders."""
-    stop = threading.Event()
+    stop, active = threading.Event(), threading.Event()
     render_ms: list[float] = []
-    thread = threading.Thread(target=_render_frames, args=(stop, render_ms, False))
+    active.set()
+    thread = threading.Thread(target=_render_frames, args=(stop, active, render_ms))
     thread.start()
     while not render_ms:  # renderer built and one frame done
-        time.sleep(0.01)
+        time.sleep(IDLE_POLL_S)
     gaps: list[float] = []
     end = time.perf_counter() + GIL_PROBE_S
     last = time.perf_counter()
@@ -91,9 +112,8 @@ def gil_probe() -> dict:
     }
 
 
-def plant_like_loop(seconds: float) -> dict:
-    model = mujoco.MjModel.from_xml_path(str(load_config().robot.scene_path))
-    data = mujoco.MjData(model)
+def plant_like_loop(seconds: float) -> np.ndarray:
+    """Wake-up lateness (s) of every tick of a 1 kHz loop doing a plant's work per tick."""
     late = []
     deadline = time.perf_counter()
     end = deadline + seconds
@@ -104,57 +124,93 @@ def plant_like_loop(seconds: float) -> dict:
             time.sleep(pause)
         late.append(time.perf_counter() - deadline)
         for _ in range(STEPS_PER_TICK):
-            mujoco.mj_step(model, data)
-    lateness = np.array(late)
-    return {
-        "late_fraction": float(np.mean(lateness > LATE_S)),
-        "lateness_p99_ms": float(np.percentile(lateness, 99) * 1e3),
-    }
+            mujoco.mj_step(MODEL, DATA)
+    return np.array(late)
 
 
-def one_round(seconds: float) -> dict:
-    out = {"alone": plant_like_loop(seconds)}
-    stop = threading.Event()
-    render_ms: list[float] = []
-    thread = threading.Thread(target=_render_frames, args=(stop, render_ms, True))
+MODEL = mujoco.MjModel.from_xml_path(str(load_config().robot.scene_path))
+DATA = mujoco.MjData(MODEL)
+
+
+def windows(count: int, window_s: float) -> dict:
+    """Interleave 1 kHz windows: alone, with the render thread, with the render process.
+
+    Both renderers stay built for the whole run and render only in their own windows, so
+    slow changes of the machine's load hit every variant alike.
+    """
+    stop, thread_active = threading.Event(), threading.Event()
+    thread_ms: list[float] = []
+    thread = threading.Thread(target=_render_frames, args=(stop, thread_active, thread_ms))
     thread.start()
-    out["render_thread"] = plant_like_loop(seconds)
-    stop.set()
-    thread.join()
-    out["render_thread"]["render_ms_p50"] = statistics.median(render_ms)
     ctx = mp.get_context("spawn")
-    pstop, report = ctx.Event(), ctx.Queue()
-    proc = ctx.Process(target=_render_process, args=(pstop, report, load_config().eyeview.nice))
+    pstop, pactive, pstarted, report = ctx.Event(), ctx.Event(), ctx.Event(), ctx.Queue()
+    proc = ctx.Process(target=_render_process, args=(pstop, pactive, pstarted, report))
     proc.start()
-    time.sleep(2.0)  # let it import and build its renderer (not a sync point of the result)
-    out["render_process"] = plant_like_loop(seconds)
-    pstop.set()
-    out["render_process"]["render_ms_p50"] = report.get(timeout=30)
-    proc.join(30)
-    return out
+    ready.wait(START_TIMEOUT_S)
+    pstarted.wait(START_TIMEOUT_S)
+    late: dict[str, list[float]] = {"alone": [], "render_thread": [], "render_process": []}
+    p99: dict[str, list[float]] = {k: [] for k in late}
+    try:
+        for _ in range(count):
+            for variant, event in (
+                ("alone", None),
+                ("render_thread", thread_active),
+                ("render_process", pactive),
+            ):
+                if event is not None:
+                    event.set()
+                lateness = plant_like_loop(window_s)
+                if event is not None:
+                    event.clear()
+                late[variant].append(float(np.mean(lateness > LATE_S)))
+                p99[variant].append(float(np.percentile(lateness, 99) * 1e3))
+    finally:
+        stop.set()
+        pstop.set()
+        thread.join()
+        process_ms = report.get(timeout=START_TIMEOUT_S)
+        proc.join(START_TIMEOUT_S)
+    return {
+        variant: {
+            "late_fraction_median": statistics.median(late[variant]),
+            "late_fraction_per_window": late[variant],
+            "lateness_p99_ms_median": statistics.median(p99[variant]),
+            **(
+                {"render_ms_p50": statistics.median(thread_ms)}
+                if variant == "render_thread"
+                else {}
+            ),
+            **({"render_ms_p50": process_ms} if variant == "render_process" else {}),
+        }
+        for variant in late
+    }
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seconds", type=float, default=10.0)
-    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--windows", type=int, default=10, help="windows per variant")
+    parser.add_argument("--window-s", type=float, default=1.0)
     parser.add_argument("--json", type=Path, default=Path("runs/bench/eyeview_placement.json"))
     args = parser.parse_args()
-    report: dict = {"load_1min_before": os.getloadavg()[0], "gil": gil_probe(), "rounds": []}
-    for i in range(args.repeat):
-        report["rounds"].append(one_round(args.seconds))
-        print(f"round {i}: {json.dumps(report['rounds'][-1])}", flush=True)
-    report["medians"] = {
-        variant: {
-            key: statistics.median(r[variant][key] for r in report["rounds"])
-            for key in report["rounds"][0][variant]
-        }
-        for variant in ("alone", "render_thread", "render_process")
+    report: dict = {
+        "load_1min_before": os.getloadavg()[0],
+        "lp_num_threads": os.environ.get("LP_NUM_THREADS", "(Mesa default: one per CPU)"),
+        "gil": gil_probe(),
     }
+    ready.clear()
+    report["loop"] = windows(args.windows, args.window_s)
     report["load_1min_after"] = os.getloadavg()[0]
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(report, indent=2) + "\n")
-    print(json.dumps({k: report[k] for k in ("gil", "medians")}, indent=1))
+    summary = {
+        k: {kk: vv for kk, vv in v.items() if "per_window" not in kk}
+        for k, v in report["loop"].items()
+    }
+    print(
+        json.dumps(
+            {"gil": report["gil"], "loop": summary, "lp": report["lp_num_threads"]}, indent=1
+        )
+    )
     return 0
 
 
