@@ -180,7 +180,9 @@ class EyeViewService(Service):
         self.objects = Latest()
         self.heads = Latest()
         self.keep(
-            subscribe(self.session, self.topics.joint_state, JOINT_STATE, self.states, self.drops)
+            subscribe(
+                self.session, self.topics.joint_state, JOINT_STATE, self._on_state, self.drops
+            )
         )
         self.keep(
             subscribe(self.session, self.topics.objects, OBJECT_POSES, self.objects, self.drops)
@@ -212,6 +214,15 @@ class EyeViewService(Service):
         self._wall_start_ns = time.monotonic_ns()
         self.announce()
 
+    def _on_state(self, rec: np.ndarray, rx_ns: int) -> None:
+        """Keep states of exactly this arm; anything else is counted and dropped."""
+        n = int(rec["n_joints"])
+        if n != self.renderer.n_joints:
+            detail = f"n_joints={n}, arm has {self.renderer.n_joints}"
+            self.drops.record(DecodeError(Kind.JOINT_STATE, Reason.COUNT, detail))
+            return
+        self.states(rec, rx_ns)
+
     def run(self, stop: threading.Event) -> None:
         period_ns = round(NS_PER_S / self.config.eyeview.rate_hz)
         self.timer = LoopTimer(period_ns, MonotonicClock())
@@ -231,11 +242,7 @@ class EyeViewService(Service):
             self.frames_without_state += 1
             return False
         state, _ = latest
-        n = int(state["n_joints"])
-        if n != self.renderer.n_joints:
-            detail = f"n_joints={n}, arm has {self.renderer.n_joints}"
-            self.drops.record(DecodeError(Kind.JOINT_STATE, Reason.COUNT, detail))
-            return False
+        n = self.renderer.n_joints
         start_ns = time.monotonic_ns()
         rec = self._frame
         objects = self.objects.get()

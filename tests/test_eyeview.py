@@ -9,6 +9,8 @@ import json
 import math
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -16,15 +18,27 @@ import pytest
 from PIL import Image
 
 from teleop import recorder as r
+from teleop.bus import (
+    Latest,
+    Publisher,
+    close_session,
+    open_session,
+    subscribe_frames,
+    wait_alive,
+)
 from teleop.config import load_config
-from teleop.eyeview import EyeRenderer, camera_forward
-from teleop.stack import EYEVIEW, scenario_services
+from teleop.eyeview import EyeRenderer, EyeViewService, camera_forward
+from teleop.messages import EYE_VIEW, HEAD_POSE, JOINT_STATE, DropCounter
+from teleop.service import ServiceOptions
+from teleop.stack import EYEVIEW, free_loopback_port, scenario_services
+from teleop.topics import Topics
 from tests.test_recorder import read_rrd
 
 # Mean absolute pixel difference (0-255) above which two renders show different scenes;
 # identical inputs give exactly 0.
 CHANGED_MEAN_ABS_DIFF = 1.0
 RUN_TIMEOUT_S = 300
+TIMEOUT_S = 30.0  # bound on one wait on the bus; passing runs take well under a second
 
 
 @pytest.fixture(scope="module")
@@ -140,3 +154,81 @@ def test_without_shared_memory_the_frames_come_over_the_socket(tmp_path):
 def test_fixed_viewpoint_pitch_is_refused_beyond_straight_down():
     with pytest.raises(ValueError, match="fixed_pitch_rad"):
         load_config(None, [f"eyeview.fixed_pitch_rad={math.pi / 2}"])
+
+
+def test_the_service_renders_the_newest_state_and_head_pose_and_survives_bad_input(tmp_path):
+    """EyeViewService on a real Zenoh bus (in a thread: the GL context lives where it was
+    built): bad states are counted and dropped, frames follow the newest state, and the
+    view moves to the HMD's predicted pose once HEAD_POSE arrives.
+
+    Ingress downsampling is set out of the way (``state_rate_hz``): at 100 Hz it would
+    keep only the first of three states sent back to back."""
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    config = load_config(
+        None, [f'bus.endpoint="{endpoint}"', "eyeview.rate_hz=50", "eyeview.state_rate_hz=1e6"]
+    )
+    topics = Topics(config.robot.robot_id)
+    holder: list[EyeViewService] = []
+    stop, opened = threading.Event(), threading.Event()
+
+    def serve() -> None:
+        with EyeViewService(config, ServiceOptions(run_dir=tmp_path, listen=True)) as service:
+            holder.append(service)
+            opened.set()
+            service.run(stop)
+
+    worker = threading.Thread(target=serve)
+    worker.start()
+    session = open_session(config.bus, listen=False)
+    frames = Latest()
+    drops = DropCounter()
+    sub = subscribe_frames(
+        session, topics.eye_view, EYE_VIEW, lambda rec, px, rx, shm: frames(rec.copy(), rx), drops
+    )
+    state_pub = Publisher.declare(session, topics.joint_state, JOINT_STATE)
+    head_pub = Publisher.declare(session, topics.head_pose, HEAD_POSE)
+    try:
+        assert opened.wait(TIMEOUT_S)
+        wait_alive(session, topics, [EYEVIEW], TIMEOUT_S)
+        assert state_pub.wait_matched(TIMEOUT_S)
+        service = holder[0]
+        state_pub.put_bytes(b"garbage")
+        wrong = JOINT_STATE.new()
+        wrong["n_joints"] = 3
+        state_pub.put(wrong)
+        state = JOINT_STATE.new()
+        state["seq"], state["sim_time_ns"], state["n_joints"] = 7, 5_000_000, 6
+        state["q_rad"][:6] = config.robot.home_q_rad
+        state_pub.put(state)
+        got = frames.wait_newer(-1, TIMEOUT_S)
+        assert got is not None
+        while int(got[0]["state_seq"]) != 7:  # frames rendered before the state arrived
+            got = frames.wait_newer(int(got[0]["seq"]), TIMEOUT_S)
+            assert got is not None
+        rec = got[0]
+        assert int(rec["sim_time_ns"]) == 5_000_000 and int(rec["head_t_source_ns"]) == 0
+        np.testing.assert_allclose(rec["world_p_eye_m"], config.eyeview.fixed_p_m)
+        assert service.drops.total == 2  # the garbage and the 3-joint state, nothing else
+
+        head = HEAD_POSE.new()
+        head["seq"], head["t_source_ns"] = 3, time.monotonic_ns()
+        head["predicted_p_m"] = (-0.5, 0.2, 0.7)
+        head["predicted_yaw_rad"], head["predicted_pitch_rad"] = 0.3, 0.1
+        head_pub.put(head)
+        while int(got[0]["head_seq"]) != 3:
+            got = frames.wait_newer(int(got[0]["seq"]), TIMEOUT_S)
+            assert got is not None
+        rec = got[0]
+        assert int(rec["head_t_source_ns"]) == int(head["t_source_ns"])
+        assert int(rec["head_t_source_ns"]) < int(rec["head_rx_ns"]) <= int(rec["render_start_ns"])
+        assert int(rec["render_start_ns"]) < int(rec["render_end_ns"]) <= int(rec["publish_ns"])
+        np.testing.assert_allclose(rec["world_p_eye_m"], head["predicted_p_m"])
+        assert float(rec["yaw_rad"]) == pytest.approx(0.3)
+        assert drops.total == 0
+    finally:
+        stop.set()
+        worker.join(TIMEOUT_S)
+        close_session(session, sub, state_pub, head_pub)
+    assert not worker.is_alive()
+    summary = json.loads((tmp_path / "eyeview.summary.json").read_text())
+    assert summary["frames_from_hmd"] > 0 and summary["dropped_messages"] == 2
