@@ -40,7 +40,7 @@ import zenoh
 from shm.provider import get_provider
 from teleop.bus import Latest, Publisher, open_session, subscribe
 from teleop.clock import NS_PER_S, LoopTimer, MonotonicClock
-from teleop.config import Config
+from teleop.config import Config, ConfigError
 from teleop.messages import (
     EYE_VIEW,
     HEAD_POSE,
@@ -64,6 +64,9 @@ NS_PER_MS = 1_000_000
 # measured, 58 ms median HMD-to-frame latency without the wait, at 10 Hz under load) for
 # at most this many HMD periods; then it renders with the pose it has.
 HEAD_WAIT_PERIODS = 1.5
+# The SHM pool must hold this many frames at once (the one being written, those the
+# recorder has not released yet), else publishing would block on the pool.
+FRAMES_IN_FLIGHT = 4
 # Render-time samples kept for the summary's percentiles (the newest ones).
 RENDER_TIME_SAMPLES = 4096
 
@@ -167,15 +170,22 @@ class EyeViewService(Service):
 
     def open(self) -> None:
         eye = self.config.eyeview
+        frame_bytes = EYE_VIEW.size + eye.width_px * eye.height_px * RGB_CHANNELS
+        if self.config.bus.shm and frame_bytes * FRAMES_IN_FLIGHT > self.config.bus.shm_pool_bytes:
+            raise ConfigError(
+                f"eyeview: a {eye.width_px} x {eye.height_px} frame ({frame_bytes} B) needs "
+                f"bus.shm_pool_bytes >= {frame_bytes * FRAMES_IN_FLIGHT}"
+            )
         if eye.nice:
             os.nice(eye.nice)
+        # Built before the session: if the model or the GL context fails, nothing is open.
+        self.renderer = EyeRenderer(self.config)
         # JOINT_STATE is a 1 kHz stream: take in only what the frames need.
         self.session = open_session(
             self.config.bus,
             listen=self.options.listen,
             ingress_rate_hz={self.topics.joint_state: eye.state_rate_hz},
         )
-        self.renderer = EyeRenderer(self.config)
         self.states = Latest()
         self.objects = Latest()
         self.heads = Latest()
