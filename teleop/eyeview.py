@@ -71,6 +71,19 @@ FRAMES_IN_FLIGHT = 4
 RENDER_TIME_SAMPLES = 4096
 
 
+def lower_priority(nice: int, idle: bool) -> None:
+    """Put this thread (and the threads it starts later: GL, Zenoh) below the control loops.
+
+    ``idle``: Linux SCHED_IDLE, which any normal task preempts at once when it wakes, so a
+    render never delays a 1 kHz wake-up (but gets only CPU time nobody else wants);
+    otherwise ``nice`` (0-19).
+    """
+    if idle:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    elif nice:
+        os.nice(nice)
+
+
 def camera_forward(yaw_rad: float, pitch_rad: float) -> np.ndarray:
     """Unit view direction (world frame) of a head with this yaw and pitch (+ = nose down)."""
     cos_pitch = math.cos(pitch_rad)
@@ -176,8 +189,7 @@ class EyeViewService(Service):
                 f"eyeview: a {eye.width_px} x {eye.height_px} frame ({frame_bytes} B) needs "
                 f"bus.shm_pool_bytes >= {frame_bytes * FRAMES_IN_FLIGHT}"
             )
-        if eye.nice:
-            os.nice(eye.nice)
+        lower_priority(eye.nice, eye.idle_priority)
         # Built before the session: if the model or the GL context fails, nothing is open.
         self.renderer = EyeRenderer(self.config)
         # JOINT_STATE is a 1 kHz stream: take in only what the frames need.

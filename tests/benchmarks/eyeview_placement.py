@@ -8,8 +8,8 @@ Two measurements, each against a baseline taken in the same run:
    near the interpreter's switch interval.
 2. A plant-like loop: 1 kHz on absolute deadlines, a few ``mj_step`` per tick, in
    interleaved windows alone, with the renderer as a thread of the same process, and
-   with the renderer as a separate process at ``eyeview.nice`` (both at
-   ``eyeview.rate_hz``); reports per variant the median over windows of the fraction
+   with the renderer as a separate process at ``eyeview.nice`` or at SCHED_IDLE (all
+   at ``eyeview.rate_hz``); reports per variant the median over windows of the fraction
    of ticks that wake more than 0.9 ms late (what the plant counts as overruns) and of
    the p99 lateness.
 
@@ -35,7 +35,7 @@ import mujoco
 import numpy as np
 
 from teleop.config import load_config
-from teleop.eyeview import EyeRenderer
+from teleop.eyeview import EyeRenderer, lower_priority
 
 TICK_S = 0.001  # the plant's period
 LATE_S = 0.0009  # a tick this late is an overrun for the plant's loop timer
@@ -68,8 +68,10 @@ def _render_frames(stop: threading.Event, active: threading.Event, render_ms: li
 ready = threading.Event()  # set by _render_frames once its renderer is built
 
 
-def _render_process(stop: mp.Event, active: mp.Event, started: mp.Event, report: mp.Queue) -> None:
-    os.nice(load_config().eyeview.nice)
+def _render_process(
+    stop: mp.Event, active: mp.Event, started: mp.Event, report: mp.Queue, idle: bool
+) -> None:
+    lower_priority(load_config().eyeview.nice, idle)
     render_ms: list[float] = []
     local_stop, local_active = threading.Event(), threading.Event()
 
@@ -133,9 +135,10 @@ DATA = mujoco.MjData(MODEL)
 
 
 def windows(count: int, window_s: float) -> dict:
-    """Interleave 1 kHz windows: alone, with the render thread, with the render process.
+    """Interleave 1 kHz windows: alone, with the render thread, with a render process at
+    ``eyeview.nice``, with a render process at SCHED_IDLE.
 
-    Both renderers stay built for the whole run and render only in their own windows, so
+    Every renderer stays built for the whole run and renders only in its own windows, so
     slow changes of the machine's load hit every variant alike.
     """
     stop, thread_active = threading.Event(), threading.Event()
@@ -143,20 +146,23 @@ def windows(count: int, window_s: float) -> dict:
     thread = threading.Thread(target=_render_frames, args=(stop, thread_active, thread_ms))
     thread.start()
     ctx = mp.get_context("spawn")
-    pstop, pactive, pstarted, report = ctx.Event(), ctx.Event(), ctx.Event(), ctx.Queue()
-    proc = ctx.Process(target=_render_process, args=(pstop, pactive, pstarted, report))
-    proc.start()
+    pstop, report = ctx.Event(), ctx.Queue()
+    procs = {}
+    for variant, idle in (("render_process_nice", False), ("render_process_idle", True)):
+        active, started = ctx.Event(), ctx.Event()
+        proc = ctx.Process(target=_render_process, args=(pstop, active, started, report, idle))
+        proc.start()
+        procs[variant] = (proc, active, started)
     ready.wait(START_TIMEOUT_S)
-    pstarted.wait(START_TIMEOUT_S)
-    late: dict[str, list[float]] = {"alone": [], "render_thread": [], "render_process": []}
-    p99: dict[str, list[float]] = {k: [] for k in late}
+    for _, _, started in procs.values():
+        started.wait(START_TIMEOUT_S)
+    events = {"alone": None, "render_thread": thread_active}
+    events.update({variant: active for variant, (_, active, _) in procs.items()})
+    late: dict[str, list[float]] = {variant: [] for variant in events}
+    p99: dict[str, list[float]] = {variant: [] for variant in events}
     try:
         for _ in range(count):
-            for variant, event in (
-                ("alone", None),
-                ("render_thread", thread_active),
-                ("render_process", pactive),
-            ):
+            for variant, event in events.items():
                 if event is not None:
                     event.set()
                 lateness = plant_like_loop(window_s)
@@ -168,22 +174,20 @@ def windows(count: int, window_s: float) -> dict:
         stop.set()
         pstop.set()
         thread.join()
-        process_ms = report.get(timeout=START_TIMEOUT_S)
-        proc.join(START_TIMEOUT_S)
-    return {
+        process_ms = [report.get(timeout=START_TIMEOUT_S) for _ in procs]
+        for proc, _, _ in procs.values():
+            proc.join(START_TIMEOUT_S)
+    out = {
         variant: {
             "late_fraction_median": statistics.median(late[variant]),
             "late_fraction_per_window": late[variant],
             "lateness_p99_ms_median": statistics.median(p99[variant]),
-            **(
-                {"render_ms_p50": statistics.median(thread_ms)}
-                if variant == "render_thread"
-                else {}
-            ),
-            **({"render_ms_p50": process_ms} if variant == "render_process" else {}),
         }
-        for variant in late
+        for variant in events
     }
+    out["render_thread"]["render_ms_p50"] = statistics.median(thread_ms)
+    out["render_ms_p50_processes"] = process_ms
+    return out
 
 
 def main() -> int:
@@ -203,7 +207,7 @@ def main() -> int:
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(report, indent=2) + "\n")
     summary = {
-        k: {kk: vv for kk, vv in v.items() if "per_window" not in kk}
+        k: {kk: vv for kk, vv in v.items() if "per_window" not in kk} if isinstance(v, dict) else v
         for k, v in report["loop"].items()
     }
     print(
