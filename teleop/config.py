@@ -262,6 +262,54 @@ class HmdConfig:
 
 
 @dataclass(frozen=True)
+class EyeViewConfig:
+    """The operator's eye view: the scene rendered from the HMD's predicted pose.
+
+    A service of its own (``teleop/eyeview.py``) renders with MuJoCo's offscreen
+    renderer at ``rate_hz`` and publishes EYE_VIEW frames (over shared memory: a frame
+    is far above the SHM threshold). Without an HMD (path following) it renders from
+    the fixed viewpoint below. Defaults are sized for 2 busy cores (see README).
+    """
+
+    enabled: bool = True
+    rate_hz: float = 10.0
+    width_px: int = 320
+    height_px: int = 240
+    # Vertical field of view (rad): a headset's, about 90 degrees.
+    fov_y_rad: float = 1.5707963267948966
+    # Shadow mapping costs about 10x the rest of a software-rendered frame (measured
+    # here: 60-67 ms against 6.5 ms at 320x240), so it is off by default.
+    shadows: bool = False
+    # JOINT_STATE is taken at most this often (Zenoh ingress downsampling): the renderer
+    # needs one state per frame, not the plant's 1 kHz.
+    state_rate_hz: float = 100.0
+    # Fixed viewpoint when no HEAD_POSE arrives (world frame): where the operator's head
+    # is (as hmd.head_p_m), looking along yaw (0 = +x) and down by pitch (rad).
+    fixed_p_m: tuple[float, float, float] = (-0.45, 0.0, 0.65)
+    fixed_yaw_rad: float = 0.0
+    fixed_pitch_rad: float = 0.5
+    # Scheduling niceness of the renderer process: below the control loops ...
+    nice: int = 10
+    # ... or, when true, Linux SCHED_IDLE instead: it renders only on CPU time no other
+    # task wants, and a waking control loop preempts it at once.
+    idle_priority: bool = False
+    # Recorder: JPEG quality of the logged frames (1-100); 0 logs raw RGB.
+    jpeg_quality: int = 80
+
+    def __post_init__(self) -> None:
+        _require(0 < self.rate_hz <= 120, "eyeview.rate_hz in (0, 120]")
+        for name in ("width_px", "height_px"):
+            _require(16 <= getattr(self, name) <= 4096, f"eyeview.{name} in [16, 4096]")
+        _require(0 < self.fov_y_rad < math.pi, "eyeview.fov_y_rad in (0, pi)")
+        _require(self.state_rate_hz >= self.rate_hz, "eyeview.state_rate_hz >= eyeview.rate_hz")
+        _require(
+            abs(self.fixed_pitch_rad) < math.pi / 2, "eyeview.fixed_pitch_rad in (-pi/2, pi/2)"
+        )
+        _require(0 <= self.nice <= 19, "eyeview.nice in [0, 19]")
+        _require(0 <= self.jpeg_quality <= 100, "eyeview.jpeg_quality in [0, 100]")
+
+
+@dataclass(frozen=True)
 class TeleopConfig:
     """Teleoperation in the controller: rate control, limits and force feedback."""
 
@@ -345,9 +393,10 @@ class CpuConfig:
     hmd: tuple[int, ...] = ()
     operator: tuple[int, ...] = ()
     recorder: tuple[int, ...] = ()
+    eyeview: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
-        for name in ("plant", "controller", "haptic", "hmd", "operator", "recorder"):
+        for name in ("plant", "controller", "haptic", "hmd", "operator", "recorder", "eyeview"):
             _require(all(c >= 0 for c in getattr(self, name)), f"cpu.{name}: CPU numbers >= 0")
 
 
@@ -440,6 +489,7 @@ class Config:
     scene: SceneConfig = field(default_factory=SceneConfig)
     haptic: HapticConfig = field(default_factory=HapticConfig)
     hmd: HmdConfig = field(default_factory=HmdConfig)
+    eyeview: EyeViewConfig = field(default_factory=EyeViewConfig)
     teleop: TeleopConfig = field(default_factory=TeleopConfig)
     operator: OperatorConfig = field(default_factory=OperatorConfig)
     cpu: CpuConfig = field(default_factory=CpuConfig)
