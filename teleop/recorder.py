@@ -17,6 +17,19 @@ A few entities are drawn once per flush from the newest sample instead of per sa
 the tool trace and the force arrows at the tool (a 3D view only shows the latest
 value anyway, and re-logging them at 1 kHz would cost a Rerun row per sample).
 
+The 3D scene comes from the MuJoCo model itself (teleop.scene3d): every visual geom is
+logged once as static, and the arm's bodies move by transforms computed with
+``mj_kinematics`` from JOINT_STATE, at ``recorder.scene_rate_hz`` of sim time (each at
+the sim time of the joint state it was computed from). Every ``recorder.ghost_period_s``
+a ghost of the arm is left behind (the paper's stroboscopic Fig. 7).
+
+Derived series, per flush and per stream: the loop rate (records per second of the
+producer's clock) and the latency of each hop between two stamps of the header's
+``trace_ns`` (named by :class:`~teleop.messages.Stage`). Sequence gaps and restarts,
+dropped records and services leaving or joining the bus go to the event log.
+
+The blueprint (teleop.blueprint) is sent with the recording.
+
 The entity paths below are an API: the blueprint and the tests look them up by name.
 """
 
@@ -39,6 +52,8 @@ import zenoh
 
 from teleop.bus import subscribe
 from teleop.config import Config, ConfigError
+from teleop.control import DesiredPath
+from teleop.kinematics import ModelError
 from teleop.messages import (
     CONTACT,
     CONTROL_STATUS,
@@ -56,9 +71,13 @@ from teleop.messages import (
     TELEOP_STATUS,
     TOOL_POSE,
     Event,
+    Kind,
     Schema,
+    Stage,
 )
+from teleop.scene3d import SceneModel, ghost_entity, ghost_rgba
 from teleop.service import Service, ServiceOptions
+from teleop.teleop_control import view_to_world
 
 logger = logging.getLogger(__name__)
 
@@ -86,6 +105,13 @@ ENTITY_TOOL = "world/tool"  # Transform3D: world_T_tool
 ENTITY_TOOL_TRACE = "world/tool_trace"  # LineStrips3D of recent tool positions
 ENTITY_OBJECTS = "world/objects"  # + /<body name>, Transform3D: world_T_object
 ENTITY_EVENTS = "events"  # TextLog, "<EVENT NAME> at step <step>"
+ENTITY_RECORDER_EVENTS = "events/recorder"  # TextLog: gaps, restarts, drops, services
+ENTITY_WORLD = "world"  # root of the 3D scene (world frame, z up)
+ENTITY_DESIRED_PATH = "world/desired_path"  # LineStrips3D, static (path following)
+ENTITY_EYE_VIEW = "operator/eye_view"  # the operator's eye view image (plant-rendered)
+ENTITY_RATES = "rates"  # + /<stream>, Scalars: records per second of the producer's clock
+ENTITY_LATENCY = "latency"  # + /<stream>/<STAGE>_to_<STAGE>, Scalars (ms)
+ENTITY_TELEOP_V_ERROR = "teleop/v_error_m_s"  # + /x, /y, /z: v_ref - v_tool (Fig. 13)
 ENTITY_STATS = "recorder/stats"  # TextDocument (JSON), static, written at close
 # Haptic device (HAPTIC_STATE), device frame: handle centred in its workspace.
 ENTITY_HAPTIC_P = "haptic/device_p_m"  # + /x, /y, /z, Scalars
@@ -127,6 +153,16 @@ def joint_entity(base: str, joint_name: str) -> str:
 def axis_entity(base: str, axis: str) -> str:
     """Entity of one coordinate's scalar series, e.g. ``control/tool_p_m/x``."""
     return f"{base}/{axis}"
+
+
+def rate_entity(stream: str) -> str:
+    """Entity of one stream's loop rate, e.g. ``rates/joint_state``."""
+    return f"{ENTITY_RATES}/{stream}"
+
+
+def latency_entity(stream: str, first: Stage, second: Stage) -> str:
+    """Entity of one hop's latency, e.g. ``latency/joint_state/PLANT_RX_to_PLANT_APPLIED``."""
+    return f"{ENTITY_LATENCY}/{stream}/{first.name}_to_{second.name}"
 
 
 def object_entity(body_name: str) -> str:
@@ -173,7 +209,32 @@ FORCE_ARROW_COLORS: Mapping[str, tuple[int, int, int]] = {
     "contact": (230, 60, 60),
     "weight": (60, 120, 230),
     "obstacle": (240, 160, 30),
+    "device": (170, 70, 200),  # the total force rendered on the handle, turned into the world
 }
+# Colours of the two series of a "desired vs actual" plot, and of the desired path.
+DESIRED_COLOR = (230, 60, 60)
+ACTUAL_COLOR = (40, 110, 220)
+DESIRED_PATH_POINTS = 720  # points of the static desired path (one period of P(s))
+DESIRED_PATH_RADIUS_M = 0.003
+# Streams whose seq is checked for gaps and restarts (one producer each; RUN_EVENT has
+# several producers with their own counters).
+SEQ_CHECKED_STREAMS = frozenset(
+    {
+        "joint_state",
+        "tool_pose",
+        "contact",
+        "objects",
+        "joint_command",
+        "control_status",
+        "haptic_state",
+        "hand_input",
+        "force_feedback",
+        "head_pose",
+        "obstacle_proximity",
+        "teleop_status",
+    }
+)
+NS_PER_MS = 1e6
 # The HMD frustum: vertical field of view (rad, a typical headset's ~90 degrees), width
 # over height, and the distance of the drawn image plane from the eye (m).
 HMD_FOV_Y_RAD = math.radians(90.0)
@@ -343,6 +404,33 @@ class RecorderService(Service):
         self._tool_p_m: np.ndarray | None = None  # newest tool position (world), for arrows
         self._cpu_start_s = time.process_time()
         self._wall_start_ns = time.monotonic_ns()
+        self._init_observers(config)
+
+    def _init_observers(self, config: Config) -> None:
+        """State of the 3D scene, the ghosts and the derived timing series."""
+        rc = config.recorder
+        self._scene: SceneModel | None = None
+        if rc.scene3d:
+            try:
+                self._scene = SceneModel(config, ENTITY_OBJECTS)
+            except (ModelError, ValueError) as exc:  # the recording goes on without the scene
+                logger.warning("no 3D scene: the model does not match the config (%s)", exc)
+        self._scene_period_ns = round(1e9 / rc.scene_rate_hz)
+        self._scene_bucket: int | None = None  # sim-time bucket of the newest scene frame
+        self._ghost_period_ns = round(rc.ghost_period_s * 1e9)
+        self._ghost_bucket: int | None = None
+        self._ghosts = 0
+        self._run_duration_ns = round(config.run.duration_s * 1e9)
+        self._yaw_rad = 0.0  # newest predicted HMD yaw: device frame -> world (feedback)
+        self._sim_time_ns = 0  # newest sim time seen, for events that carry none
+        self._last_source_ns: dict[str, int] = {}  # per stream: newest t_source_ns
+        self._last_seq: dict[str, int] = {}  # per stream: newest seq
+        self._hop_stream: dict[tuple[Stage, Stage], str] = {}  # hop -> stream that logs it
+        self._seen_drops: dict[tuple[int, str], int] = {}
+        self._seen_overflow = dict.fromkeys(STREAM_SCHEMAS, 0)
+        self._lines: list[tuple[int, int, str, str]] = []  # (source ns, sim ns, level, text)
+        self._lines_lock = threading.Lock()
+        self._liveliness: zenoh.Subscriber | None = None
 
     def _resolve_rrd_path(self) -> Path:
         if self.config.recorder.rrd_path:
@@ -369,6 +457,10 @@ class RecorderService(Service):
                 key = getattr(self.topics, name)
                 sub = subscribe(self.session, key, schema, self._buffers[name], self.drops)
                 self._subscribers.append(self.keep(sub))
+            self._liveliness = self.session.liveliness().declare_subscriber(
+                self.topics.alive_all, self._on_liveliness
+            )
+            self._subscribers.append(self.keep(self._liveliness))
             self.announce()
         except BaseException:
             self.close()
@@ -377,11 +469,17 @@ class RecorderService(Service):
     def _open_recording(self) -> rr.RecordingStream:
         self.rrd_path.parent.mkdir(parents=True, exist_ok=True)
         rec = rr.RecordingStream(APPLICATION_ID)
+        sinks: list[Any] = [rr.FileSink(self.rrd_path)]
         if self.config.recorder.spawn:
             rec.spawn(connect=False)
-            rec.set_sinks(rr.GrpcSink(), rr.FileSink(self.rrd_path))
-        else:
-            rec.save(self.rrd_path)
+            sinks.append(rr.GrpcSink())
+        if self.config.recorder.grpc_url:
+            sinks.append(rr.GrpcSink(self.config.recorder.grpc_url))
+        rec.set_sinks(*sinks)
+        from teleop.blueprint import build_blueprint  # it imports this module's names
+
+        rec.send_blueprint(build_blueprint(self.config))
+        self._log_static_scene(rec)
         # Frames are drawn as axes; these are static and never change during a run.
         for entity in (ENTITY_TOOL, *(object_entity(n) for n in self._object_names)):
             rec.log(entity, rr.TransformAxes3D(FRAME_AXIS_LENGTH_M), static=True)
@@ -403,6 +501,56 @@ class RecorderService(Service):
                 static=True,
             )
         return rec
+
+    def _log_static_scene(self, rec: rr.RecordingStream) -> None:
+        """World axes, the model's geoms, the desired path and the plot series' styles."""
+        rec.log(ENTITY_WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        if self._scene is not None:
+            for entity, archetype in self._scene.static_entities():
+                rec.log(entity, archetype, static=True)
+        if self.config.run.scenario == "path-following":
+            path = DesiredPath(self.config.path)
+            s = np.linspace(0.0, path.search_window_s, DESIRED_PATH_POINTS)
+            points = np.stack([path.point(v) for v in s])
+            rec.log(
+                ENTITY_DESIRED_PATH,
+                rr.LineStrips3D([points], colors=[DESIRED_COLOR], radii=DESIRED_PATH_RADIUS_M),
+                static=True,
+            )
+        if self.config.run.scenario == "path-following":
+            desired, actual = ENTITY_DESIRED_P, ENTITY_TOOL_P
+        else:
+            desired, actual = ENTITY_TELEOP_V_REF, ENTITY_TELEOP_V_TOOL
+        for axis in AXES:
+            for base, color, label in (
+                (desired, DESIRED_COLOR, "desired"),
+                (actual, ACTUAL_COLOR, "actual"),
+            ):
+                rec.log(
+                    axis_entity(base, axis),
+                    rr.SeriesLines(colors=[color], names=[f"{label} {axis}"]),
+                    static=True,
+                )
+        for component, color in FORCE_ARROW_COLORS.items():
+            rec.log(
+                norm_entity(component),
+                rr.SeriesLines(colors=[color], names=[component]),
+                static=True,
+            )
+
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        """A service joined or left the bus: a line in the event log (a restart is both)."""
+        service = self.topics.service_of(str(sample.key_expr))
+        if sample.kind == zenoh.SampleKind.DELETE:
+            level, text = LEVEL_WARN, f"service {service} left the bus"
+        else:
+            level, text = LEVEL_INFO, f"service {service} joined the bus"
+        self._add_line(level, text)
+
+    def _add_line(self, level: str, text: str) -> None:
+        """Queue one recorder event line, at the recorder's clock and the newest sim time."""
+        with self._lines_lock:
+            self._lines.append((time.monotonic_ns(), self._sim_time_ns, level, text))
 
     def run(self, stop: threading.Event) -> None:
         """Flush every ``flush_period_s`` until ``stop`` is set, then flush the rest."""
@@ -463,6 +611,8 @@ class RecorderService(Service):
                     logger.warning("Rerun rejected %s (%s); further errors only counted", name, exc)
                 continue
             self._logged[name] += int(records.size)
+            self._write_timing(name, records)
+        self._write_recorder_events()
         elapsed_s = (time.monotonic_ns() - start_ns) * 1e-9
         self._flush_wall_s_max = max(self._flush_wall_s_max, elapsed_s)
         self._flush_wall_s_total += elapsed_s
@@ -512,6 +662,73 @@ class RecorderService(Service):
         self._send_scalars(
             ENTITY_GRIPPER_OPENING, self._indexes(records), records["gripper_opening_m"]
         )
+        self._sim_time_ns = int(records["sim_time_ns"][-1])
+        if self._scene is not None:
+            self._write_scene(records)
+
+    @staticmethod
+    def _first_of_buckets(
+        sim_time_ns: np.ndarray, period_ns: int, newest: int | None
+    ) -> tuple[np.ndarray, int | None]:
+        """Rows that open a new bucket of ``period_ns`` sim time after bucket ``newest``.
+
+        A jump back in sim time (a new run) starts over. Returns the row mask and the
+        newest bucket.
+        """
+        buckets = sim_time_ns // period_ns
+        if newest is not None and buckets[0] < newest:
+            newest = None
+        previous = np.empty_like(buckets)
+        previous[0] = -1 if newest is None else newest
+        previous[1:] = buckets[:-1]
+        return buckets != previous, int(buckets[-1])
+
+    def _write_scene(self, records: np.ndarray) -> None:
+        """Move the arm's bodies (scene rate) and leave a ghost every ghost period."""
+        assert self._scene is not None
+        sim = records["sim_time_ns"]
+        rows, self._scene_bucket = self._first_of_buckets(
+            sim, self._scene_period_ns, self._scene_bucket
+        )
+        if rows.any():
+            chosen = records[rows]
+            n = int(chosen["n_joints"][0])
+            p_m, q_xyzw = self._scene.frames(chosen["q_rad"][:, :n], chosen["gripper_opening_m"])
+            indexes = self._indexes(chosen)
+            for b, body in enumerate(self._scene.moving_bodies):
+                self._send(
+                    self._scene.body_entity(body),
+                    indexes,
+                    rr.Transform3D.columns(translation=p_m[:, b], quaternion=q_xyzw[:, b]),
+                )
+        ghosts, self._ghost_bucket = self._first_of_buckets(
+            sim, self._ghost_period_ns, self._ghost_bucket
+        )
+        for rec in records[ghosts]:
+            self._write_ghost(rec)
+
+    def _write_ghost(self, rec: np.ndarray) -> None:
+        """One stroboscopic pose: the arm in world-frame primitives at the record's time."""
+        assert self._scene is not None and self._rec is not None
+        n = int(rec["n_joints"])
+        fraction = int(rec["sim_time_ns"]) / max(self._run_duration_ns, 1)
+        entity = ghost_entity(self._ghosts)
+        self._ghosts += 1
+        parts = self._scene.ghost(
+            rec["q_rad"][:n], float(rec["gripper_opening_m"]), ghost_rgba(fraction)
+        )
+        self._log_at(rec, [(f"{entity}/{child}", archetype) for child, archetype in parts])
+
+    def _log_at(self, rec: np.ndarray, items: Sequence[tuple[str, Any]]) -> None:
+        """Log a few archetypes row by row at one record's own times (rare rows only)."""
+        assert self._rec is not None
+        self._rec.set_time(TIMELINE_SOURCE, duration=np.timedelta64(int(rec["t_source_ns"]), "ns"))
+        self._rec.set_time(TIMELINE_SIM, duration=np.timedelta64(int(rec["sim_time_ns"]), "ns"))
+        try:
+            for entity, archetype in items:
+                self._rec.log(entity, archetype)
+        finally:
+            self._rec.reset_time()
 
     def _write_joint_command(self, records: np.ndarray) -> None:
         self._send_per_joint(records, "qd_ref_rad_s", ENTITY_QD_REF)
@@ -541,15 +758,15 @@ class RecorderService(Service):
         Vectorised over the flush; a jump back in sim time (a new run) restarts the
         trace so it never draws a line from one run into the next.
         """
-        buckets = sim_time_ns // TOOL_TRACE_PERIOD_NS
-        if self._trace_bucket is not None and buckets[0] < self._trace_bucket:
+        if (
+            self._trace_bucket is not None
+            and sim_time_ns[0] // TOOL_TRACE_PERIOD_NS < self._trace_bucket
+        ):
             self._trace.clear()
-            self._trace_bucket = None
-        previous = np.empty_like(buckets)
-        previous[0] = -1 if self._trace_bucket is None else self._trace_bucket
-        previous[1:] = buckets[:-1]
-        self._trace.extend(world_p_m[buckets != previous])
-        self._trace_bucket = int(buckets[-1])
+        rows, self._trace_bucket = self._first_of_buckets(
+            sim_time_ns, TOOL_TRACE_PERIOD_NS, self._trace_bucket
+        )
+        self._trace.extend(world_p_m[rows])
 
     def _write_contact(self, records: np.ndarray) -> None:
         indexes = self._indexes(records)
@@ -621,7 +838,10 @@ class RecorderService(Service):
         origin = self._tool_p_m[np.newaxis]
         for component in FORCE_ARROW_COLORS:
             field, _ = FEEDBACK_COMPONENTS[component]
-            vectors = newest[field] * FORCE_ARROW_M_PER_N
+            force_n = newest[field]
+            if component == "device":  # device frame -> world: the view yaw (teleop_control)
+                force_n = force_n @ view_to_world(self._yaw_rad).T
+            vectors = force_n * FORCE_ARROW_M_PER_N
             self._send(
                 force_arrow_entity(component),
                 last,
@@ -630,6 +850,7 @@ class RecorderService(Service):
 
     def _write_head_pose(self, records: np.ndarray) -> None:
         indexes = self._indexes(records)
+        self._yaw_rad = float(records["predicted_yaw_rad"][-1])
         self._send_scalars(ENTITY_HMD_MEASURED_YAW, indexes, records["measured_yaw_rad"])
         self._send_scalars(ENTITY_HMD_PREDICTED_YAW, indexes, records["predicted_yaw_rad"])
         self._send_xyz(indexes, ENTITY_HMD_FILTERED_P, records["filtered_p_m"])
@@ -652,9 +873,92 @@ class RecorderService(Service):
         indexes = self._indexes(records)
         self._send_xyz(indexes, ENTITY_TELEOP_V_REF, records["world_v_ref_m_s"])
         self._send_xyz(indexes, ENTITY_TELEOP_V_TOOL, records["world_v_tool_m_s"])
+        self._send_xyz(
+            indexes, ENTITY_TELEOP_V_ERROR, records["world_v_ref_m_s"] - records["world_v_tool_m_s"]
+        )
         self._send_scalars(ENTITY_TELEOP_SPEED_SCALE, indexes, records["speed_scale"])
         self._send_scalars(ENTITY_TELEOP_GRIPPER_CMD, indexes, records["gripper_cmd"])
         self._send_scalars(ENTITY_TELEOP_HOLDING, indexes, records["holding"].astype(float))
+
+    # -- derived series: loop rates, per-hop latency, sequence checks -------------------
+    def _write_timing(self, name: str, records: np.ndarray) -> None:
+        """Loop rate and per-hop latency of one stream's flushed records; seq checks."""
+        source = records["t_source_ns"]
+        previous = self._last_source_ns.get(name)
+        self._last_source_ns[name] = int(source[-1])
+        if previous is not None and source[-1] > previous:
+            rate_hz = records.size / ((int(source[-1]) - previous) * 1e-9)
+            self._send_scalars(rate_entity(name), self._indexes(records[-1:]), np.array([rate_hz]))
+        self._write_latency(name, records)
+        if name in SEQ_CHECKED_STREAMS:
+            self._check_seq(name, records["seq"].astype(np.int64))
+
+    def _write_latency(self, name: str, records: np.ndarray) -> None:
+        """Each hop between two consecutive stamps (Stage order) set in the records.
+
+        A hop is logged under the first stream that carries it, so one hop is not drawn
+        twice from copies of the same stamps; rows where the later stage is older than
+        the earlier (stamps copied from different cycles) are left out.
+        """
+        trace = records["trace_ns"]
+        stages = [stage for stage in Stage if stage < trace.shape[1] and trace[-1, stage] > 0]
+        for first, second in zip(stages, stages[1:], strict=False):
+            owner = self._hop_stream.setdefault((first, second), name)
+            if owner != name:
+                continue
+            hop_ns = trace[:, second] - trace[:, first]
+            rows = (trace[:, first] > 0) & (trace[:, second] > 0) & (hop_ns >= 0)
+            if rows.any():
+                self._send_scalars(
+                    latency_entity(name, first, second),
+                    self._indexes(records, rows),
+                    hop_ns[rows] / NS_PER_MS,
+                )
+
+    def _check_seq(self, name: str, seq: np.ndarray) -> None:
+        """Gaps (lost records) and restarts (seq going back: the producer restarted)."""
+        previous = self._last_seq.get(name)
+        self._last_seq[name] = int(seq[-1])
+        steps = np.diff(seq, prepend=seq[0] - 1 if previous is None else previous)
+        restarts = int(np.count_nonzero(steps <= 0))
+        missing = int(steps[steps > 1].sum() - np.count_nonzero(steps > 1))
+        if missing:
+            self._add_line(LEVEL_WARN, f"{name}: {missing} record(s) missing (seq gaps)")
+        if restarts:
+            self._add_line(LEVEL_INFO, f"{name}: seq restarted {restarts} time(s)")
+
+    def _write_recorder_events(self) -> None:
+        """Queued lines plus new drops (bad records, buffer overflow) as event-log rows."""
+        for (kind, reason), count in self.drops.counts().items():
+            new = count - self._seen_drops.get((kind, reason), 0)
+            if new > 0:
+                self._seen_drops[(kind, reason)] = count
+                try:
+                    kind_name = Kind(kind).name
+                except ValueError:
+                    kind_name = f"kind {kind}"
+                self._add_line(LEVEL_WARN, f"dropped {new} bad {kind_name} record(s) ({reason})")
+        with self._cond:
+            overflow = {n: b.overflow for n, b in self._buffers.items()}
+        for name, count in overflow.items():
+            new = count - self._seen_overflow[name]
+            if new > 0:
+                self._seen_overflow[name] = count
+                self._add_line(LEVEL_WARN, f"recorder buffer full: dropped {new} {name} record(s)")
+        with self._lines_lock:
+            lines, self._lines = self._lines, []
+        if not lines:
+            return
+        source = np.array([line[0] for line in lines], dtype=np.int64)
+        sim = np.array([line[1] for line in lines], dtype=np.int64)
+        self._send(
+            ENTITY_RECORDER_EVENTS,
+            [
+                rr.TimeColumn(TIMELINE_SOURCE, duration=source.astype("timedelta64[ns]")),
+                rr.TimeColumn(TIMELINE_SIM, duration=sim.astype("timedelta64[ns]")),
+            ],
+            rr.TextLog.columns(text=[line[3] for line in lines], level=[line[2] for line in lines]),
+        )
 
     # -- reporting ---------------------------------------------------------------------
     def wait_received(self, counts: Mapping[str, int], timeout_s: float) -> bool:
