@@ -216,9 +216,9 @@ DESIRED_COLOR = (230, 60, 60)
 ACTUAL_COLOR = (40, 110, 220)
 DESIRED_PATH_POINTS = 720  # points of the static desired path (one period of P(s))
 DESIRED_PATH_RADIUS_M = 0.003
-# Streams whose seq is checked for gaps and restarts (one producer each; RUN_EVENT has
-# several producers with their own counters).
-SEQ_CHECKED_STREAMS = frozenset(
+# Periodic streams: their loop rate is logged and their seq checked for gaps and restarts
+# (one producer each; RUN_EVENT is sporadic and has several producers and counters).
+PERIODIC_STREAMS = frozenset(
     {
         "joint_state",
         "tool_pose",
@@ -234,6 +234,9 @@ SEQ_CHECKED_STREAMS = frozenset(
         "teleop_status",
     }
 )
+# Of those, the streams whose seq goes up by one per record: CONTROL_STATUS carries the
+# controller's cycle counter (one record per status period), so it is not checked.
+SEQ_CHECKED_STREAMS = PERIODIC_STREAMS - {"control_status"}
 NS_PER_MS = 1e6
 # The HMD frustum: vertical field of view (rad, a typical headset's ~90 degrees), width
 # over height, and the distance of the drawn image plane from the eye (m).
@@ -426,6 +429,7 @@ class RecorderService(Service):
         self._last_source_ns: dict[str, int] = {}  # per stream: newest t_source_ns
         self._last_seq: dict[str, int] = {}  # per stream: newest seq
         self._hop_stream: dict[tuple[Stage, Stage], str] = {}  # hop -> stream that logs it
+        self._chains: dict[str, list[Stage]] = {}  # per stream: its stages in time order
         self._seen_drops: dict[tuple[int, str], int] = {}
         self._seen_overflow = dict.fromkeys(STREAM_SCHEMAS, 0)
         self._lines: list[tuple[int, int, str, str]] = []  # (source ns, sim ns, level, text)
@@ -458,7 +462,7 @@ class RecorderService(Service):
                 sub = subscribe(self.session, key, schema, self._buffers[name], self.drops)
                 self._subscribers.append(self.keep(sub))
             self._liveliness = self.session.liveliness().declare_subscriber(
-                self.topics.alive_all, self._on_liveliness
+                self.topics.alive_all, self._on_liveliness, history=True
             )
             self._subscribers.append(self.keep(self._liveliness))
             self.announce()
@@ -720,15 +724,18 @@ class RecorderService(Service):
         self._log_at(rec, [(f"{entity}/{child}", archetype) for child, archetype in parts])
 
     def _log_at(self, rec: np.ndarray, items: Sequence[tuple[str, Any]]) -> None:
-        """Log a few archetypes row by row at one record's own times (rare rows only)."""
-        assert self._rec is not None
-        self._rec.set_time(TIMELINE_SOURCE, duration=np.timedelta64(int(rec["t_source_ns"]), "ns"))
-        self._rec.set_time(TIMELINE_SIM, duration=np.timedelta64(int(rec["sim_time_ns"]), "ns"))
-        try:
-            for entity, archetype in items:
-                self._rec.log(entity, archetype)
-        finally:
-            self._rec.reset_time()
+        """Send a few archetypes as one row each at one record's own times (rare rows).
+
+        Each archetype's component batches become one-row columns, so the row carries
+        sim_time and source_time only, never the SDK's log_time.
+        """
+        indexes = self._indexes(rec[np.newaxis])
+        for entity, archetype in items:
+            columns = [
+                batch.partition([len(batch.as_arrow_array())])
+                for batch in archetype.as_component_batches()
+            ]
+            self._send(entity, indexes, columns)
 
     def _write_joint_command(self, records: np.ndarray) -> None:
         self._send_per_joint(records, "qd_ref_rad_s", ENTITY_QD_REF)
@@ -883,25 +890,45 @@ class RecorderService(Service):
     # -- derived series: loop rates, per-hop latency, sequence checks -------------------
     def _write_timing(self, name: str, records: np.ndarray) -> None:
         """Loop rate and per-hop latency of one stream's flushed records; seq checks."""
+        self._write_latency(name, records)
+        if name not in PERIODIC_STREAMS:
+            return
         source = records["t_source_ns"]
         previous = self._last_source_ns.get(name)
         self._last_source_ns[name] = int(source[-1])
         if previous is not None and source[-1] > previous:
             rate_hz = records.size / ((int(source[-1]) - previous) * 1e-9)
             self._send_scalars(rate_entity(name), self._indexes(records[-1:]), np.array([rate_hz]))
-        self._write_latency(name, records)
         if name in SEQ_CHECKED_STREAMS:
             self._check_seq(name, records["seq"].astype(np.int64))
 
+    def _hop_chain(self, name: str, trace: np.ndarray) -> list[Stage]:
+        """The stages a stream's records stamp, in the order their stamps happen.
+
+        A record copies the stamps of the records it answers, possibly from earlier
+        cycles, so the order is taken from the data (median stamp of each stage over
+        the first batch that has them), not from the Stage values; it is kept for the
+        stream until a stage appears that it did not have, so hop names stay stable.
+        """
+        present = {
+            stage for stage in Stage if stage < trace.shape[1] and (trace[:, stage] > 0).any()
+        }
+        chain = self._chains.get(name)
+        if chain is None or not present <= set(chain):
+            order = {s: float(np.median(trace[trace[:, s] > 0, s])) for s in present}
+            chain = sorted(present, key=lambda s: (order[s], s))
+            self._chains[name] = chain
+        return chain
+
     def _write_latency(self, name: str, records: np.ndarray) -> None:
-        """Each hop between two consecutive stamps (Stage order) set in the records.
+        """Each hop between two consecutive stages of the stream's chain, in ms.
 
         A hop is logged under the first stream that carries it, so one hop is not drawn
-        twice from copies of the same stamps; rows where the later stage is older than
-        the earlier (stamps copied from different cycles) are left out.
+        twice from copies of the same stamps; rows where either stamp is unset, or the
+        later one is older (stamps copied from different cycles), are left out.
         """
         trace = records["trace_ns"]
-        stages = [stage for stage in Stage if stage < trace.shape[1] and trace[-1, stage] > 0]
+        stages = self._hop_chain(name, trace)
         for first, second in zip(stages, stages[1:], strict=False):
             owner = self._hop_stream.setdefault((first, second), name)
             if owner != name:
@@ -925,7 +952,10 @@ class RecorderService(Service):
         if missing:
             self._add_line(LEVEL_WARN, f"{name}: {missing} record(s) missing (seq gaps)")
         if restarts:
-            self._add_line(LEVEL_INFO, f"{name}: seq restarted {restarts} time(s)")
+            self._add_line(
+                LEVEL_INFO,
+                f"{name}: seq went back {restarts} time(s) (producer restart or new run)",
+            )
 
     def _write_recorder_events(self) -> None:
         """Queued lines plus new drops (bad records, buffer overflow) as event-log rows."""
