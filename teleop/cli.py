@@ -262,6 +262,8 @@ def _run_and_report(
 def _view(args: argparse.Namespace) -> int:
     from teleop import viewer
 
+    if not args.rrd.is_file():
+        raise FileNotFoundError(f"no recording {args.rrd}")
     if not args.web:
         return viewer.open_native(args.rrd)
     with viewer.serve_web(args.rrd, web_port=args.web_port, grpc_port=args.grpc_port) as web:

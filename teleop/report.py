@@ -45,6 +45,7 @@ ACTUAL_STYLE = {"color": "tab:blue", "linewidth": 1.0}
 AXIS_COLORS = {"x": "tab:red", "y": "tab:green", "z": "tab:blue"}
 FORCE_COLORS = {name: tuple(c / 255 for c in rgb) for name, rgb in r.FORCE_ARROW_COLORS.items()}
 LATENCY_PERCENTILES = (50.0, 99.0)
+FIG7_MAX_POSES = 8  # ghost poses drawn in the stroboscopic figure (more would clutter it)
 
 
 @dataclass
@@ -202,7 +203,7 @@ def _fig_timing(source: Mapping[str, rrd.Series], report: Report) -> None:
     if names:
         data = [hops[n].values for n in names]
         labels = [n.removeprefix(r.ENTITY_LATENCY + "/").replace("/", "\n") for n in names]
-        ax_hop.boxplot(data, vert=False, showfliers=False, whis=(1, 99))
+        ax_hop.boxplot(data, orientation="horizontal", showfliers=False, whis=(1, 99))
         ax_hop.set_yticks(range(1, len(names) + 1), labels, fontsize=6)
         ax_hop.set_xlabel("latency (ms), whiskers at p1 and p99")
         ax_hop.set_title("Latency per hop (header trace stamps)")
@@ -230,38 +231,59 @@ def _first_strip(value: Any) -> np.ndarray | None:
     return None
 
 
+def _equal_axes(ax: Any, points: np.ndarray) -> None:
+    """Same scale on x, y and z (a circle looks like a circle), around ``points`` (N, 3)."""
+    low, high = points.min(axis=0), points.max(axis=0)
+    centre, half = 0.5 * (low + high), 0.5 * float((high - low).max())
+    for set_lim, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre, strict=True):
+        set_lim(c - half, c + half)
+    ax.set_box_aspect((1.0, 1.0, 1.0))
+
+
 def _fig_stroboscopic(rec: rrd.Recording, report: Report) -> None:
-    """Fig. 7: ghost poses of the arm (skeletons), the tool's path and the desired path."""
-    skeletons = rec.column(ENTITY_GHOSTS, "LineStrips3D:strips")
-    ghosts = sorted(e for e in skeletons if e.endswith("/" + GHOST_SKELETON))
-    if not ghosts:
+    """Fig. 7: ghost poses of the arm (links through the joints), the tool's path and the
+    desired path; at most FIG7_MAX_POSES poses, evenly spread over the run."""
+    entities = sorted(e for e in rec.entities if e.startswith(ENTITY_GHOSTS + "/"))
+    skeletons = [e for e in entities if e.endswith("/" + GHOST_SKELETON)]
+    if not skeletons:
         return
+    data = rec.lists(skeletons)
+    poses: list[tuple[float, np.ndarray]] = []
+    for entity in skeletons:
+        strip = _first_strip(data[entity].get("LineStrips3D:strips", []))
+        times = data[entity].get(r.TIMELINE_SIM) or [0]
+        if strip is not None:
+            poses.append((times[0] * 1e-9, strip))
+    picked = np.unique(np.linspace(0, len(poses) - 1, min(FIG7_MAX_POSES, len(poses))).round())
     fig = plt.figure(figsize=FIG_SIZE_3D_IN)
     ax = fig.add_subplot(projection="3d")
-    shades = np.linspace(0.75, 0.1, len(ghosts))
-    for shade, entity in zip(shades, ghosts, strict=True):
-        strip = _first_strip(skeletons[entity])
-        if strip is None:
-            continue
-        ax.plot(*strip.T, color=str(shade), linewidth=2.0, marker="o", markersize=2.5)
+    shades = np.linspace(0.75, 0.05, len(picked))
+    drawn = []
+    for shade, index in zip(shades, picked.astype(int), strict=True):
+        t_s, strip = poses[index]
+        ax.plot(*strip.T, color=str(shade), linewidth=2.5, marker="o", markersize=3)
+        ax.text(*strip[-1], f" {t_s:.0f} s", color=str(shade), fontsize=7)
+        drawn.append(strip)
     desired = rec.column(r.ENTITY_DESIRED_PATH, "LineStrips3D:strips")
     strip = _first_strip(desired.get(r.ENTITY_DESIRED_PATH, []))
     if strip is not None:
         ax.plot(*strip.T, label="desired path", **DESIRED_STYLE)
+        drawn.append(strip)
     tool = rec.column(r.ENTITY_TOOL, "Transform3D:translation")
     points = [row[0] for row in tool.get(r.ENTITY_TOOL, []) if row]
     if points:
         tool_p = np.asarray(points, dtype=float)
         ax.plot(*tool_p.T, label="tool path", **ACTUAL_STYLE)
+        drawn.append(tool_p)
+    ax.scatter([0.0], [0.0], [0.0], color="k", marker="s", s=30, label="arm base")
+    _equal_axes(ax, np.vstack([*drawn, np.zeros((1, 3))]))
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_zlabel("z (m)")
-    ax.set_title(f"Fig. 7: stroboscopic motion of the arm ({len(ghosts)} poses)")
-    ax.set_box_aspect((1.0, 1.0, 0.8))
-    ax.view_init(elev=25.0, azim=-60.0)
-    if points or strip is not None:
-        ax.legend(loc="upper left", fontsize=8)
-    report.metrics["ghost_poses"] = len(ghosts)
+    ax.set_title(f"Fig. 7: stroboscopic motion of the arm ({len(picked)} poses, light = early)")
+    ax.view_init(elev=22.0, azim=-65.0)
+    ax.legend(loc="upper left", fontsize=8)
+    report.metrics["ghost_poses"] = len(poses)
     _save(fig, report.out_dir / "fig7_stroboscopic.png", report)
 
 

@@ -208,6 +208,7 @@ class SceneModel:
             chain.append(body)
             body = int(model.body_parentid[body])
         self.chain_bodies = tuple(reversed(chain))
+        self.chain_root = body  # the fixed body the chain hangs from (the arm's base)
 
     def _ancestor_in(self, body: int, roots: set[int]) -> int | None:
         while body > 0:
@@ -307,7 +308,7 @@ class SceneModel:
         """The arm at one joint state as world-frame primitives, one colour for all.
 
         Returns (child name, archetype) pairs: one per arm geom, plus the skeleton (a
-        line through the origins of the chain's bodies and the tool site), which the
+        line from the arm's base through the chain's bodies to the tool site), which the
         report draws in its stroboscopic figure.
         """
         self._pose_arm(q_rad, opening_m)
@@ -324,7 +325,11 @@ class SceneModel:
             if made is not None:
                 out.append((geom_name(self.model, sg.geom), made[1]))
         skeleton = np.vstack(
-            [self.data.xpos[list(self.chain_bodies)], self.data.site_xpos[self.plant.tool_site]]
+            [
+                self.data.xpos[self.chain_root],
+                self.data.xpos[list(self.chain_bodies)],
+                self.data.site_xpos[self.plant.tool_site],
+            ]
         )
         out.append(
             (
