@@ -31,6 +31,7 @@ from pathlib import Path
 import matplotlib.image
 import numpy as np
 import pytest
+from websockets.sync.client import ClientConnection, connect
 
 from teleop import recorder as r
 from teleop.blueprint import view_specs
@@ -68,6 +69,7 @@ SCREENSHOT_TIMEOUT_S = 240.0
 # The scene is on screen when this share of the pixels has the table's brown (the model's
 # table rgba 0.55 0.45 0.35, shaded): red well above blue, green above blue.
 TABLE_PIXEL_SHARE = 0.01
+DEVTOOLS_LINE = re.compile(r"DevTools listening on (ws://\S+)")  # Chromium's stderr
 
 
 def _reader(stream: io.TextIOBase, lines: queue.Queue[str]) -> None:
@@ -163,10 +165,8 @@ def table_pixel_share(png: bytes) -> float:
 class DevTools:
     """A minimal Chrome DevTools Protocol client: one page, calls answered in order."""
 
-    def __init__(self, ws_url: str) -> None:
-        from websockets.sync.client import connect
-
-        self._ws = connect(ws_url, max_size=None)
+    def __init__(self, ws: ClientConnection) -> None:
+        self._ws = ws
         self._ids = itertools.count(1)
         target = self.call("Target.createTarget", url="about:blank")["targetId"]
         attached = self.call("Target.attachToTarget", targetId=target, flatten=True)
@@ -184,9 +184,6 @@ class DevTools:
                 assert "error" not in reply, reply["error"]
                 return reply["result"]
 
-    def close(self) -> None:
-        self._ws.close()
-
 
 def screenshot_until_scene(url: str, shot_path: Path) -> float:
     """Open ``url`` in headless Chromium and screenshot it until the scene shows (or the
@@ -200,9 +197,9 @@ def screenshot_until_scene(url: str, shot_path: Path) -> float:
         lines: queue.Queue[str] = queue.Queue()
         threading.Thread(target=_reader, args=(browser.stderr, lines), daemon=True).start()
         try:
-            ws_url = _wait_line(lines, re.compile(r"DevTools listening on (ws://\S+)"), 60.0)
-            tools = DevTools(ws_url)
-            try:
+            ws_url = _wait_line(lines, DEVTOOLS_LINE, EXIT_TIMEOUT_S)
+            with connect(ws_url, max_size=None) as ws:
+                tools = DevTools(ws)
                 tools.call("Page.enable")
                 tools.call("Page.navigate", url=url)
                 share = 0.0
@@ -213,8 +210,6 @@ def screenshot_until_scene(url: str, shot_path: Path) -> float:
                     shot_path.write_bytes(png)
                     share = table_pixel_share(png)
                 return share
-            finally:
-                tools.close()
         finally:
             browser.terminate()
             browser.wait(EXIT_TIMEOUT_S)
