@@ -216,27 +216,6 @@ DESIRED_COLOR = (230, 60, 60)
 ACTUAL_COLOR = (40, 110, 220)
 DESIRED_PATH_POINTS = 720  # points of the static desired path (one period of P(s))
 DESIRED_PATH_RADIUS_M = 0.003
-# Periodic streams: their loop rate is logged and their seq checked for gaps and restarts
-# (one producer each; RUN_EVENT is sporadic and has several producers and counters).
-PERIODIC_STREAMS = frozenset(
-    {
-        "joint_state",
-        "tool_pose",
-        "contact",
-        "objects",
-        "joint_command",
-        "control_status",
-        "haptic_state",
-        "hand_input",
-        "force_feedback",
-        "head_pose",
-        "obstacle_proximity",
-        "teleop_status",
-    }
-)
-# Of those, the streams whose seq goes up by one per record: CONTROL_STATUS carries the
-# controller's cycle counter (one record per status period), so it is not checked.
-SEQ_CHECKED_STREAMS = PERIODIC_STREAMS - {"control_status"}
 NS_PER_MS = 1e6
 # The HMD frustum: vertical field of view (rad, a typical headset's ~90 degrees), width
 # over height, and the distance of the drawn image plane from the eye (m).
@@ -278,6 +257,12 @@ STREAM_SCHEMAS: Mapping[str, Schema] = {
     "obstacle_proximity": OBSTACLE_PROXIMITY,
     "teleop_status": TELEOP_STATUS,
 }
+# Periodic streams: their loop rate is logged and their seq checked for gaps and restarts.
+# RUN_EVENT is sporadic and has several producers, each with its own counter.
+PERIODIC_STREAMS = frozenset(STREAM_SCHEMAS) - {"events"}
+# Of those, the streams whose seq goes up by one per record: CONTROL_STATUS carries the
+# controller's cycle counter (one record per status period), so it is not checked.
+SEQ_CHECKED_STREAMS = PERIODIC_STREAMS - {"control_status"}
 
 
 def wxyz_to_xyzw(q_wxyz: np.ndarray) -> np.ndarray:
@@ -428,7 +413,6 @@ class RecorderService(Service):
         self._sim_time_ns = 0  # newest sim time seen, for events that carry none
         self._last_source_ns: dict[str, int] = {}  # per stream: newest t_source_ns
         self._last_seq: dict[str, int] = {}  # per stream: newest seq
-        self._hop_stream: dict[tuple[Stage, Stage], str] = {}  # hop -> stream that logs it
         self._chains: dict[str, list[Stage]] = {}  # per stream: its stages in time order
         self._seen_drops: dict[tuple[int, str], int] = {}
         self._seen_overflow = dict.fromkeys(STREAM_SCHEMAS, 0)
@@ -923,16 +907,13 @@ class RecorderService(Service):
     def _write_latency(self, name: str, records: np.ndarray) -> None:
         """Each hop between two consecutive stages of the stream's chain, in ms.
 
-        A hop is logged under the first stream that carries it, so one hop is not drawn
-        twice from copies of the same stamps; rows where either stamp is unset, or the
-        later one is older (stamps copied from different cycles), are left out.
+        Streams that copy the stamps of the records they answer show the same hop as
+        seen by each of them (``latency/<stream>/...``). Rows where either stamp is unset,
+        or the later one is older (stamps copied from different cycles), are left out.
         """
         trace = records["trace_ns"]
         stages = self._hop_chain(name, trace)
         for first, second in zip(stages, stages[1:], strict=False):
-            owner = self._hop_stream.setdefault((first, second), name)
-            if owner != name:
-                continue
             hop_ns = trace[:, second] - trace[:, first]
             rows = (trace[:, first] > 0) & (trace[:, second] > 0) & (hop_ns >= 0)
             if rows.any():
