@@ -590,23 +590,30 @@ class RecorderService(Service):
             records = buffer.take()
             if records.size == 0:
                 continue
-            try:
-                self._writers[name](records)
-            except Exception as exc:  # Rerun raises assorted types (ValueError, arrow errors)
-                self._rerun_errors += 1
-                if name not in self._rerun_error_logged:
-                    self._rerun_error_logged.add(name)
-                    logger.warning("Rerun rejected %s (%s); further errors only counted", name, exc)
+            if not self._guarded(name, self._writers[name], records):
                 continue
             self._logged[name] += int(records.size)
-            self._write_timing(name, records)
-        self._write_recorder_events()
+            self._guarded(f"{name} timing", self._write_timing, name, records)
+        self._guarded("events", self._write_recorder_events)
         elapsed_s = (time.monotonic_ns() - start_ns) * 1e-9
         self._flush_wall_s_max = max(self._flush_wall_s_max, elapsed_s)
         self._flush_wall_s_total += elapsed_s
         with self._cond:
             self._flushes += 1
             self._cond.notify_all()
+
+    def _guarded(self, what: str, write: Callable[..., None], *args: Any) -> bool:
+        """Run one writer; a Rerun error is counted, logged once per ``what``, and
+        swallowed so the other streams and later flushes go on. True on success."""
+        try:
+            write(*args)
+        except Exception as exc:  # Rerun raises assorted types (ValueError, arrow errors)
+            self._rerun_errors += 1
+            if what not in self._rerun_error_logged:
+                self._rerun_error_logged.add(what)
+                logger.warning("Rerun rejected %s (%s); further errors only counted", what, exc)
+            return False
+        return True
 
     def _send(self, entity: str, indexes: list[rr.TimeColumn], columns: Any) -> None:
         assert self._rec is not None
@@ -873,7 +880,14 @@ class RecorderService(Service):
 
     # -- derived series: loop rates, per-hop latency, sequence checks -------------------
     def _write_timing(self, name: str, records: np.ndarray) -> None:
-        """Loop rate and per-hop latency of one stream's flushed records; seq checks."""
+        """Loop rate and per-hop latency of one stream's flushed records; seq checks.
+
+        Works on any record kind with the common header (fields t_source_ns, seq,
+        trace_ns); a stream buffered in another form is skipped.
+        """
+        fields = getattr(records.dtype, "names", None) or ()
+        if not {"t_source_ns", "seq", "trace_ns"} <= set(fields):
+            return
         self._write_latency(name, records)
         if name not in PERIODIC_STREAMS:
             return
