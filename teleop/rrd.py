@@ -48,7 +48,9 @@ class Recording:
         reader = RrdReader(self.path)
         self.has_blueprint = bool(reader.blueprints)
         self.batches: dict[str, list[pa.RecordBatch]] = defaultdict(list)
-        for chunk in reader.stream():
+        # collect() compacts the recorder's many small chunks (one per entity and flush)
+        # into a few large ones: about 10x faster to read for a 20 s grasp.
+        for chunk in reader.stream().collect().stream():
             self.batches[chunk.entity_path.lstrip("/")].append(chunk.to_record_batch())
 
     @property
