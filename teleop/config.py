@@ -383,6 +383,8 @@ class RecorderConfig:
     scene_rate_hz: float = 30.0
     # A ghost pose of the arm (stroboscopic view, paper Fig. 7) every this much sim time (s).
     ghost_period_s: float = 3.0
+    # Loop rates are counted over windows of this much of the producer's clock (s).
+    rate_window_s: float = 1.0
     # Buffered samples are sent to Rerun in columns this often (s).
     flush_period_s: float = 0.1
     # Scheduling niceness (0 normal .. 19 lowest): a logger must not delay the loops.
@@ -395,6 +397,7 @@ class RecorderConfig:
         _require(0 <= self.nice <= 19, "recorder.nice in [0, 19]")
         _require(self.scene_rate_hz > 0, "recorder.scene_rate_hz > 0")
         _require(self.ghost_period_s > 0, "recorder.ghost_period_s > 0")
+        _require(self.rate_window_s > 0, "recorder.rate_window_s > 0")
         _require(
             not self.grpc_url or self.grpc_url.startswith(("rerun://", "rerun+http")),
             "recorder.grpc_url: empty or a rerun:// / rerun+http(s):// URL",

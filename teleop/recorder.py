@@ -110,7 +110,7 @@ ENTITY_WORLD = "world"  # root of the 3D scene (world frame, z up)
 ENTITY_DESIRED_PATH = "world/desired_path"  # LineStrips3D, static (path following)
 ENTITY_EYE_VIEW = "operator/eye_view"  # the operator's eye view image (plant-rendered)
 ENTITY_RATES = "rates"  # + /<stream>, Scalars: records per second of the producer's clock
-ENTITY_LATENCY = "latency"  # + /<stream>/<STAGE>_to_<STAGE>, Scalars (ms)
+ENTITY_LATENCY = "latency"  # + /<stream>, Scalars (ms), one series per hop <STAGE>_to_<STAGE>
 ENTITY_TELEOP_V_ERROR = "teleop/v_error_m_s"  # + /x, /y, /z: v_ref - v_tool (Fig. 13)
 ENTITY_STATS = "recorder/stats"  # TextDocument (JSON), static, written at close
 # Haptic device (HAPTIC_STATE), device frame: handle centred in its workspace.
@@ -160,9 +160,14 @@ def rate_entity(stream: str) -> str:
     return f"{ENTITY_RATES}/{stream}"
 
 
-def latency_entity(stream: str, first: Stage, second: Stage) -> str:
-    """Entity of one hop's latency, e.g. ``latency/joint_state/PLANT_RX_to_PLANT_APPLIED``."""
-    return f"{ENTITY_LATENCY}/{stream}/{first.name}_to_{second.name}"
+def latency_entity(stream: str) -> str:
+    """Entity of one stream's hop latencies (one series per hop), e.g. ``latency/joint_state``."""
+    return f"{ENTITY_LATENCY}/{stream}"
+
+
+def hop_name(first: Stage, second: Stage) -> str:
+    """Name of the series of one hop, e.g. ``PLANT_RX_to_PLANT_APPLIED``."""
+    return f"{first.name}_to_{second.name}"
 
 
 def object_entity(body_name: str) -> str:
@@ -411,9 +416,11 @@ class RecorderService(Service):
         self._run_duration_ns = round(config.run.duration_s * 1e9)
         self._yaw_rad = 0.0  # newest predicted HMD yaw: device frame -> world (feedback)
         self._sim_time_ns = 0  # newest sim time seen, for events that carry none
-        self._last_source_ns: dict[str, int] = {}  # per stream: newest t_source_ns
+        self._rate_window_ns = round(rc.rate_window_s * 1e9)
+        self._rate_windows: dict[str, list[int]] = {}  # per stream: [window start ns, count]
         self._last_seq: dict[str, int] = {}  # per stream: newest seq
-        self._chains: dict[str, list[Stage]] = {}  # per stream: its stages in time order
+        self._hops: dict[str, list[tuple[Stage, Stage]]] = {}  # per stream, column order
+        self._chain_stages: dict[str, set[Stage]] = {}  # per stream: stages seen so far
         self._seen_drops: dict[tuple[int, str], int] = {}
         self._seen_overflow = dict.fromkeys(STREAM_SCHEMAS, 0)
         self._lines: list[tuple[int, int, str, str]] = []  # (source ns, sim ns, level, text)
@@ -891,51 +898,85 @@ class RecorderService(Service):
         self._write_latency(name, records)
         if name not in PERIODIC_STREAMS:
             return
-        source = records["t_source_ns"]
-        previous = self._last_source_ns.get(name)
-        self._last_source_ns[name] = int(source[-1])
-        if previous is not None and source[-1] > previous:
-            rate_hz = records.size / ((int(source[-1]) - previous) * 1e-9)
-            self._send_scalars(rate_entity(name), self._indexes(records[-1:]), np.array([rate_hz]))
+        self._write_rate(name, records)
         if name in SEQ_CHECKED_STREAMS:
             self._check_seq(name, records["seq"].astype(np.int64))
 
-    def _hop_chain(self, name: str, trace: np.ndarray) -> list[Stage]:
-        """The stages a stream's records stamp, in the order their stamps happen.
+    def _write_rate(self, name: str, records: np.ndarray) -> None:
+        """Records per second of the producer's clock, once per ``recorder.rate_window_s``.
+
+        The window starts at a record's t_source_ns and counts the records after it; a
+        row is logged at the time of the record that closes the window.
+        """
+        source = records["t_source_ns"]
+        window = self._rate_windows.get(name)
+        if window is None:  # the first record opens the first window
+            window = self._rate_windows[name] = [int(source[0]), 0]
+            source = source[1:]
+            records = records[1:]
+        window[1] += int(source.size)
+        if source.size == 0:
+            return
+        span_ns = int(source[-1]) - window[0]
+        if span_ns >= self._rate_window_ns:
+            rate_hz = window[1] / (span_ns * 1e-9)
+            self._send_scalars(rate_entity(name), self._indexes(records[-1:]), np.array([rate_hz]))
+            window[0], window[1] = int(source[-1]), 0
+
+    def _hop_chain(self, name: str, trace: np.ndarray) -> list[tuple[Stage, Stage]]:
+        """The hops of a stream: pairs of stages its records stamp, consecutive in time.
 
         A record copies the stamps of the records it answers, possibly from earlier
         cycles, so the order is taken from the data (median stamp of each stage over
-        the first batch that has them), not from the Stage values; it is kept for the
-        stream until a stage appears that it did not have, so hop names stay stable.
+        the batch), not from the Stage values. The list only grows (a stage that shows
+        up later adds hops at its end), so each hop keeps its column of the stream's
+        latency entity.
         """
         present = {
             stage for stage in Stage if stage < trace.shape[1] and (trace[:, stage] > 0).any()
         }
-        chain = self._chains.get(name)
-        if chain is None or not present <= set(chain):
+        hops = self._hops.setdefault(name, [])
+        if not present <= self._chain_stages.get(name, set()):
+            self._chain_stages[name] = present | self._chain_stages.get(name, set())
             order = {s: float(np.median(trace[trace[:, s] > 0, s])) for s in present}
             chain = sorted(present, key=lambda s: (order[s], s))
-            self._chains[name] = chain
-        return chain
+            new = [hop for hop in zip(chain, chain[1:], strict=False) if hop not in hops]
+            if new:
+                hops.extend(new)
+                self._send_static(
+                    latency_entity(name),
+                    rr.SeriesLines(names=[hop_name(a, b) for a, b in hops]),
+                )
+        return hops
 
     def _write_latency(self, name: str, records: np.ndarray) -> None:
-        """Each hop between two consecutive stages of the stream's chain, in ms.
+        """Every hop of the stream's records in one multi-series entity, in ms.
 
-        Streams that copy the stamps of the records they answer show the same hop as
-        seen by each of them (``latency/<stream>/...``). Rows where either stamp is unset,
-        or the later one is older (stamps copied from different cycles), are left out.
+        ``latency/<stream>`` holds one scalar per hop (column order: :meth:`_hop_chain`,
+        names in its SeriesLines), so a 1 kHz stream costs one Rerun call per flush.
+        A hop whose stamps are unset, or whose later stamp is older (copied from another
+        cycle), is NaN in that row. Streams that copy the stamps of the records they
+        answer show the same hop as each of them sees it.
         """
         trace = records["trace_ns"]
-        stages = self._hop_chain(name, trace)
-        for first, second in zip(stages, stages[1:], strict=False):
-            hop_ns = trace[:, second] - trace[:, first]
-            rows = (trace[:, first] > 0) & (trace[:, second] > 0) & (hop_ns >= 0)
-            if rows.any():
-                self._send_scalars(
-                    latency_entity(name, first, second),
-                    self._indexes(records, rows),
-                    hop_ns[rows] / NS_PER_MS,
-                )
+        hops = self._hop_chain(name, trace)
+        if not hops:
+            return
+        first = trace[:, [a for a, _ in hops]]
+        second = trace[:, [b for _, b in hops]]
+        hop_ms = (second - first) / NS_PER_MS
+        hop_ms[(first <= 0) | (second <= 0) | (second < first)] = np.nan
+        rows = ~np.isnan(hop_ms).all(axis=1)
+        if rows.any():
+            self._send(
+                latency_entity(name),
+                self._indexes(records, rows),
+                rr.Scalars.columns(scalars=np.ascontiguousarray(hop_ms[rows])),
+            )
+
+    def _send_static(self, entity: str, archetype: Any) -> None:
+        assert self._rec is not None
+        self._rec.log(entity, archetype, static=True)
 
     def _check_seq(self, name: str, seq: np.ndarray) -> None:
         """Gaps (lost records) and restarts (seq going back: the producer restarted)."""

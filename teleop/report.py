@@ -182,10 +182,20 @@ def _fig_forces(sim: Mapping[str, rrd.Series], report: Report, t0: float) -> Non
     _save(fig, report.out_dir / "fig_feedback_forces.png", report)
 
 
-def _fig_timing(source: Mapping[str, rrd.Series], report: Report) -> None:
+def _fig_timing(rec: rrd.Recording, report: Report) -> None:
     """Loop rates over the run and the latency of each hop (box plot, ms)."""
+    source = rec.scalars(r.TIMELINE_SOURCE)
     rates = {e: s for e, s in source.items() if e.startswith(r.ENTITY_RATES + "/")}
-    hops = {e: s for e, s in source.items() if e.startswith(r.ENTITY_LATENCY + "/")}
+    hops: dict[str, np.ndarray] = {}
+    for entity in rec.entities:
+        if entity.startswith(r.ENTITY_LATENCY + "/"):
+            stream = entity.removeprefix(r.ENTITY_LATENCY + "/")
+            _, values, names = rec.multi_series(entity, r.TIMELINE_SOURCE)
+            for j, name in enumerate(names):
+                column = values[:, j]
+                column = column[~np.isnan(column)]
+                if column.size:
+                    hops[f"{stream}/{name}"] = column
     if not rates and not hops:
         return
     fig, (ax_rate, ax_hop) = plt.subplots(2, 1, figsize=FIG_SIZE_AXES_IN)
@@ -199,18 +209,18 @@ def _fig_timing(source: Mapping[str, rrd.Series], report: Report) -> None:
     ax_rate.grid(True, which="both", alpha=0.3)
     ax_rate.legend(loc="lower right", fontsize=7, ncol=3)
     latency: dict[str, dict[str, float]] = {}
-    names = sorted(hops)
+    names = list(hops)
     if names:
-        data = [hops[n].values for n in names]
-        labels = [n.removeprefix(r.ENTITY_LATENCY + "/").replace("/", "\n") for n in names]
+        data = [hops[n] for n in names]
         ax_hop.boxplot(data, orientation="horizontal", showfliers=False, whis=(1, 99))
+        labels = [n.replace("/", "\n") for n in names]
         ax_hop.set_yticks(range(1, len(names) + 1), labels, fontsize=6)
         ax_hop.set_xlabel("latency (ms), whiskers at p1 and p99")
         ax_hop.set_title("Latency per hop (header trace stamps)")
         ax_hop.grid(True, axis="x", alpha=0.3)
         for name, values in zip(names, data, strict=True):
             p50, p99 = np.percentile(values, LATENCY_PERCENTILES)
-            latency[name.removeprefix(r.ENTITY_LATENCY + "/")] = {
+            latency[name] = {
                 "p50_ms": float(p50),
                 "p99_ms": float(p99),
                 "samples": int(values.size),
@@ -385,7 +395,7 @@ def write_report(
         _fig_control_error(sim, report, t0)
     if r.norm_entity("device") in sim:
         _fig_forces(sim, report, t0)
-    _fig_timing(rec.scalars(r.TIMELINE_SOURCE), report)
+    _fig_timing(rec, report)
     summary = _summary_text(path, report, _events(rec), _stats(rec))
     report.summary = report.out_dir / SUMMARY_NAME
     report.summary.write_text(summary)

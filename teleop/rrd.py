@@ -97,6 +97,27 @@ class Recording:
                 out[entity] = Series(t[order], v[order])
         return out
 
+    def multi_series(self, entity: str, timeline: str) -> tuple[np.ndarray, np.ndarray, list[str]]:
+        """A Scalars entity with several series per row: times (N,) ns, values (N, k) with
+        NaN where a row has fewer series, and the series' names (its SeriesLines names,
+        else ``"0"``, ``"1"``, ...). Sorted by time; rows without that timeline skipped."""
+        cols = self.lists([entity])[entity]
+        names = [n for row in cols.get("SeriesLines:names", []) if row for n in row]
+        times = cols.get(timeline, [])
+        rows = [
+            (t, v)
+            for t, v in zip(times, cols.get(SCALARS_COLUMN, []), strict=False)
+            if t is not None and v
+        ]
+        k = max((len(v) for _, v in rows), default=0)
+        values = np.full((len(rows), k), np.nan)
+        for i, (_, v) in enumerate(rows):
+            values[i, : len(v)] = v
+        t_ns = np.array([t for t, _ in rows], dtype=np.int64)
+        order = np.argsort(t_ns, kind="stable")
+        names = names[-k:] if len(names) >= k else [*names, *map(str, range(len(names), k))]
+        return t_ns[order], values[order], names
+
     def column(self, prefix: str, column: str) -> dict[str, list[Any]]:
         """{entity: values of ``column``} for every entity at or under ``prefix``."""
         out: dict[str, list[Any]] = {}

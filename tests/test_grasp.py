@@ -12,6 +12,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from teleop import recorder as r
@@ -117,12 +118,14 @@ def test_grasp_recording_holds_every_entity_the_blueprint_shows(obstacle_run):
     for stream in r.PERIODIC_STREAMS - {"control_status"}:
         n = len(data[r.rate_entity(stream)]["Scalars:scalars"])
         assert 1 <= n <= n_flushes, stream
-    hops = [e for e in data if e.startswith(r.ENTITY_LATENCY + "/")]
-    assert {e.split("/")[1] for e in hops} >= {"joint_state", "force_feedback"}
-    for entity in hops:
-        stream = entity.split("/")[1]
-        assert 0 < len(data[entity]["Scalars:scalars"]) <= logged[stream], entity
-        assert all(v[0] >= 0.0 for v in data[entity]["Scalars:scalars"])
+    hops = {e.split("/")[1]: data[e] for e in data if e.startswith(r.ENTITY_LATENCY + "/")}
+    assert set(hops) >= {"joint_state", "force_feedback"}
+    for stream, cols in hops.items():
+        assert 0 < len(cols["Scalars:scalars"]) <= logged[stream], stream
+        names = cols["SeriesLines:names"][-1]
+        assert all(name.count("_to_") == 1 for name in names)
+        values = np.array([v + [np.nan] * (len(names) - len(v)) for v in cols["Scalars:scalars"]])
+        assert np.nanmin(values) >= 0.0 and not np.isnan(values).all(axis=0).any(), stream
 
     # Events: every RUN_EVENT plus the recorder's lines (services joining the bus).
     assert len(data[r.ENTITY_EVENTS]["TextLog:text"]) == logged["events"]
