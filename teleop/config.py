@@ -440,6 +440,17 @@ class RecorderConfig:
     rrd_path: str = ""
     # Also open the native Rerun viewer (never in tests or CI).
     spawn: bool = False
+    # Also stream to this Rerun gRPC server (``rerun+http://127.0.0.1:PORT/proxy``); empty:
+    # none. ``teleop run --web`` starts a web viewer and sets it.
+    grpc_url: str = ""
+    # Draw the scene in 3D from the MuJoCo model (arm, gripper, table, bin, cube, obstacles).
+    scene3d: bool = True
+    # Rate of the 3D arm pose (Hz of sim time): the joint state is 1 kHz, a view needs less.
+    scene_rate_hz: float = 30.0
+    # A ghost pose of the arm (stroboscopic view, paper Fig. 7) every this much sim time (s).
+    ghost_period_s: float = 3.0
+    # Loop rates are counted over windows of this much of the producer's clock (s).
+    rate_window_s: float = 1.0
     # Buffered samples are sent to Rerun in columns this often (s).
     flush_period_s: float = 0.1
     # Scheduling niceness (0 normal .. 19 lowest): a logger must not delay the loops.
@@ -450,6 +461,13 @@ class RecorderConfig:
     def __post_init__(self) -> None:
         _require(0 < self.flush_period_s <= 5, "recorder.flush_period_s in (0, 5]")
         _require(0 <= self.nice <= 19, "recorder.nice in [0, 19]")
+        _require(self.scene_rate_hz > 0, "recorder.scene_rate_hz > 0")
+        _require(self.ghost_period_s > 0, "recorder.ghost_period_s > 0")
+        _require(self.rate_window_s > 0, "recorder.rate_window_s > 0")
+        _require(
+            not self.grpc_url or self.grpc_url.startswith(("rerun://", "rerun+http")),
+            "recorder.grpc_url: empty or a rerun:// / rerun+http(s):// URL",
+        )
 
 
 TIMING_MODES = ("realtime", "lockstep")
