@@ -388,7 +388,8 @@ class HapticService(Service):
             "feedback_reordered": self.feedback_reordered,
             "feedback_superseded": self.feedback_superseded,
             "feedback_shed": self.feedback_shed,
-            "feedback_rendered": len(self.trace_log),
+            "feedback_rendered": len(self.trace_log) + self.trace_log.overflow,
+            "trace_rows_not_kept": self.trace_log.overflow,
             "rate_hz": self._rate_hz(),
             "max_stable_stiffness_n_per_m": max_stable_stiffness_n_per_m(
                 self.config.haptic, self.period_s

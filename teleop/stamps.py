@@ -16,6 +16,9 @@ import numpy as np
 
 # Rows allocated up front: about 65 s at 1 kHz before the first doubling.
 DEFAULT_CAPACITY_ROWS = 65_536
+# Rows kept at most (10 min at 1 kHz, 48 MB for a trace log): a long-running stack
+# (`teleop up`) must not grow without bound; later rows are only counted.
+DEFAULT_MAX_ROWS = 600_000
 # Realtime teleoperation: an input of the loop (haptic sample, state, feedback) older than
 # this when its callback runs (its producer's stamp to now) is shed, not answered: the
 # service is behind (a CPU stall), its answer would be late anyway, and answering every
@@ -27,22 +30,34 @@ SHED_AGE_NS = 5_000_000
 class StampLog:
     """Append-only table of ``n_columns`` int64 values per row (nanoseconds, seqs).
 
-    Not thread-safe: the owning service appends under its own lock.
+    Keeps the first ``max_rows`` rows; later ones are counted in ``overflow``. Not
+    thread-safe: the owning service appends under its own lock.
     """
 
-    def __init__(self, n_columns: int, capacity_rows: int = DEFAULT_CAPACITY_ROWS) -> None:
-        if n_columns <= 0 or capacity_rows <= 0:
-            raise ValueError("n_columns and capacity_rows must be > 0")
-        self._table = np.zeros((capacity_rows, n_columns), dtype=np.int64)
+    def __init__(
+        self,
+        n_columns: int,
+        capacity_rows: int = DEFAULT_CAPACITY_ROWS,
+        max_rows: int = DEFAULT_MAX_ROWS,
+    ) -> None:
+        if n_columns <= 0 or capacity_rows <= 0 or max_rows <= 0:
+            raise ValueError("n_columns, capacity_rows and max_rows must be > 0")
+        self._table = np.zeros((min(capacity_rows, max_rows), n_columns), dtype=np.int64)
         self._n = 0
+        self.max_rows = max_rows
+        self.overflow = 0
 
     def __len__(self) -> int:
         return self._n
 
     def append(self, row: np.ndarray | Sequence[int]) -> None:
-        """Add one row (``n_columns`` integers)."""
+        """Add one row (``n_columns`` integers); only counted once ``max_rows`` are kept."""
+        if self._n >= self.max_rows:
+            self.overflow += 1
+            return
         if self._n == self._table.shape[0]:
-            grown = np.zeros((2 * self._table.shape[0], self._table.shape[1]), dtype=np.int64)
+            rows = min(2 * self._table.shape[0], self.max_rows)
+            grown = np.zeros((rows, self._table.shape[1]), dtype=np.int64)
             grown[: self._n] = self._table
             self._table = grown
         self._table[self._n] = row

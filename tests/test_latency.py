@@ -122,11 +122,12 @@ def test_overhead_is_a_ratio_to_the_floor_and_none_without_a_floor_stage():
     assert result["plant_wait"]["p50_extra_us"] == pytest.approx(4.999)
 
 
-def test_stamp_log_grows_and_saves(tmp_path):
-    log = StampLog(3, capacity_rows=2)
-    for i in range(5):
+def test_stamp_log_grows_saves_and_stays_bounded(tmp_path):
+    log = StampLog(3, capacity_rows=2, max_rows=5)
+    for i in range(7):
         log.append((i, 2 * i, 3 * i))
     np.testing.assert_array_equal(log.rows[:, 1], [0, 2, 4, 6, 8])
+    assert log.overflow == 2
     log.save(tmp_path / "x.npy")
     np.testing.assert_array_equal(np.load(tmp_path / "x.npy"), log.rows)
 
