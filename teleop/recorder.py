@@ -1039,10 +1039,10 @@ class RecorderService(Service):
         """The hops of a stream: pairs of stages its records stamp, consecutive in time.
 
         A record copies the stamps of the records it answers, possibly from earlier
-        cycles, so the order is taken from the data (median stamp of each stage over
-        the batch), not from the Stage values. The list only grows (a stage that shows
-        up later adds hops at its end), so each hop keeps its column of the stream's
-        latency entity.
+        cycles, so the order is taken from the data (the stamps of the batch's record
+        that has the most of them), not from the Stage values. The list only grows (a
+        stage that shows up later adds hops at its end), so each hop keeps its column of
+        the stream's latency entity.
         """
         present = {
             stage for stage in Stage if stage < trace.shape[1] and (trace[:, stage] > 0).any()
@@ -1050,7 +1050,17 @@ class RecorderService(Service):
         hops = self._hops.setdefault(name, [])
         if not present <= self._chain_stages.get(name, set()):
             self._chain_stages[name] = present | self._chain_stages.get(name, set())
-            order = {s: float(np.median(trace[trace[:, s] > 0, s])) for s in present}
+            # Order by the stamps of one record that has the most of them (stamps of
+            # different records are not comparable: a batch starts before commands flow).
+            stages = sorted(present)
+            counts = (trace[:, stages] > 0).sum(axis=1)
+            fullest = trace[int(np.flatnonzero(counts == counts.max())[-1])]
+            order = {
+                s: float(fullest[s])
+                if fullest[s] > 0
+                else float(np.median(trace[trace[:, s] > 0, s]))
+                for s in present
+            }
             chain = sorted(present, key=lambda s: (order[s], s))
             new = [hop for hop in zip(chain, chain[1:], strict=False) if hop not in hops]
             if new:
