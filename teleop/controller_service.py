@@ -36,7 +36,12 @@ import numpy as np
 from teleop.bus import Latest, Publisher, subscribe
 from teleop.control import ControlOutput, PathFollowingController
 from teleop.experiments import PathMetrics
-from teleop.feedback import check_stability, device_force, feedback_components
+from teleop.feedback import (
+    FeedbackComponents,
+    check_stability,
+    device_force,
+    feedback_components,
+)
 from teleop.kinematics import build_arm_model
 from teleop.messages import (
     CONTACT,
@@ -440,7 +445,6 @@ class TeleopTask:
             self._shed("state", state)
             return
         service = self.service
-        config = service.config
         tick = int(state["seq"])
         latest = self.haptic.get()
         haptic = latest[0] if latest is not None else None
@@ -455,16 +459,28 @@ class TeleopTask:
         obstacle = self._proximity_sample(latest_proximity[0] if latest_proximity else None)
         latest_contact = self.contact.get()
         contact = latest_contact[0] if latest_contact is not None else None
-        world_f_gripper_n = np.array(contact["world_f_contact_n"]) if contact else np.zeros(3)
-        held_mass = float(contact["held_mass_kg"]) if contact else 0.0
-        components = feedback_components(
-            world_f_gripper_n, held_mass, obstacle, handle_d_m, config.teleop
-        )
-        device_f_n = device_force(components, yaw_rad, config.teleop, config.haptic)
+        components, device_f_n, held_mass = self._feedback(contact, obstacle, handle_d_m, yaw_rad)
         service.compute_ns_total += time.monotonic_ns() - t0
         self._publish_feedback(tick, state, components, device_f_n, state["trace_ns"])
         if self._last_output is not None:
             self._measure(self._last_output, components, device_f_n, held_mass)
+
+    def _feedback(
+        self,
+        contact: np.ndarray | None,
+        obstacle: ProximitySample | None,
+        handle_d_m: np.ndarray,
+        yaw_rad: float,
+    ) -> tuple[FeedbackComponents, np.ndarray, float]:
+        """Force feedback components, the device force (N, device frame) and the held mass."""
+        config = self.service.config
+        world_f_gripper_n = np.array(contact["world_f_contact_n"]) if contact else np.zeros(3)
+        held_mass_kg = float(contact["held_mass_kg"]) if contact else 0.0
+        components = feedback_components(
+            world_f_gripper_n, held_mass_kg, obstacle, handle_d_m, config.teleop
+        )
+        device_f_n = device_force(components, yaw_rad, config.teleop, config.haptic)
+        return components, device_f_n, held_mass_kg
 
     def _head_yaw_rad(self, tick: int) -> float:
         """The HMD's predicted view yaw that applies at ``tick`` (config yaw before any)."""
@@ -507,13 +523,9 @@ class TeleopTask:
         output = self.controller.update(
             state["q_rad"][:n], state["qd_rad_s"][:n], v_ref, obstacle, gripper_cmd, clutch
         )
-        contact = records.get("contact")
-        world_f_gripper_n = np.array(contact["world_f_contact_n"]) if contact else np.zeros(3)
-        held_mass = float(contact["held_mass_kg"]) if contact else 0.0
-        components = feedback_components(
-            world_f_gripper_n, held_mass, obstacle, handle_d_m, config.teleop
+        components, device_f_n, held_mass = self._feedback(
+            records.get("contact"), obstacle, handle_d_m, yaw_rad
         )
-        device_f_n = device_force(components, yaw_rad, config.teleop, config.haptic)
         service.compute_ns_total += time.monotonic_ns() - t0
 
         trace = state["trace_ns"].copy()

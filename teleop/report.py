@@ -76,20 +76,42 @@ def _start_s(series: Mapping[str, rrd.Series]) -> float:
     return min(starts) * 1e-9 if starts else 0.0
 
 
-def _fig_paths_xyz(sim: Mapping[str, rrd.Series], report: Report, t0: float) -> None:
-    """Fig. 8: desired vs actual tool position, one panel per axis."""
+def _per_axis_figure(
+    sim: Mapping[str, rrd.Series],
+    report: Report,
+    t0: float,
+    reference: tuple[str, str],
+    actual: tuple[str, str],
+    ylabel: str,
+    title: str,
+    file_name: str,
+) -> None:
+    """Reference vs actual, one panel per world axis (Figs. 8 and 12).
+
+    ``reference`` and ``actual`` are (entity base, legend label with ``{axis}``);
+    ``ylabel`` has ``{axis}`` too.
+    """
     fig, axes = plt.subplots(3, 1, sharex=True, figsize=FIG_SIZE_AXES_IN)
     for ax, axis in zip(axes, r.AXES, strict=True):
-        desired = sim[r.axis_entity(r.ENTITY_DESIRED_P, axis)]
-        actual = sim[r.axis_entity(r.ENTITY_TOOL_P, axis)]
-        ax.plot(desired.t_s - t0, desired.values, label=f"desired {axis}_d", **DESIRED_STYLE)
-        ax.plot(actual.t_s - t0, actual.values, label=f"actual {axis}", **ACTUAL_STYLE)
-        ax.set_ylabel(f"{axis} (m)")
+        for (base, label), style in ((reference, DESIRED_STYLE), (actual, ACTUAL_STYLE)):
+            series = sim[r.axis_entity(base, axis)]
+            ax.plot(series.t_s - t0, series.values, label=label.format(axis=axis), **style)
+        ax.set_ylabel(ylabel.format(axis=axis))
         ax.grid(True, alpha=0.3)
         ax.legend(loc="upper right", fontsize=8)
-    axes[0].set_title("Fig. 8: desired and actual tool path, world frame")
+    axes[0].set_title(title)
     axes[-1].set_xlabel("time (s)")
-    _save(fig, report.out_dir / "fig8_desired_vs_actual_path.png", report)
+    _save(fig, report.out_dir / file_name, report)
+
+
+def _fig_paths_xyz(sim: Mapping[str, rrd.Series], report: Report, t0: float) -> None:
+    """Fig. 8: desired vs actual tool position, one panel per axis."""
+    _per_axis_figure(
+        sim, report, t0,
+        (r.ENTITY_DESIRED_P, "desired {axis}_d"), (r.ENTITY_TOOL_P, "actual {axis}"),
+        "{axis} (m)", "Fig. 8: desired and actual tool path, world frame",
+        "fig8_desired_vs_actual_path.png",
+    )  # fmt: skip
 
 
 def _fig_path_error(
@@ -121,18 +143,13 @@ def _fig_path_error(
 
 def _fig_velocity(sim: Mapping[str, rrd.Series], report: Report, t0: float) -> None:
     """Fig. 12: the operator's reference velocity vs the actual tool velocity, per axis."""
-    fig, axes = plt.subplots(3, 1, sharex=True, figsize=FIG_SIZE_AXES_IN)
-    for ax, axis in zip(axes, r.AXES, strict=True):
-        ref = sim[r.axis_entity(r.ENTITY_TELEOP_V_REF, axis)]
-        tool = sim[r.axis_entity(r.ENTITY_TELEOP_V_TOOL, axis)]
-        ax.plot(ref.t_s - t0, ref.values, label=f"reference v_{axis},ref", **DESIRED_STYLE)
-        ax.plot(tool.t_s - t0, tool.values, label=f"actual v_{axis}", **ACTUAL_STYLE)
-        ax.set_ylabel(f"v_{axis} (m/s)")
-        ax.grid(True, alpha=0.3)
-        ax.legend(loc="upper right", fontsize=8)
-    axes[0].set_title("Fig. 12: operator reference vs actual tool velocity, world frame")
-    axes[-1].set_xlabel("time (s)")
-    _save(fig, report.out_dir / "fig12_reference_vs_actual_velocity.png", report)
+    _per_axis_figure(
+        sim, report, t0,
+        (r.ENTITY_TELEOP_V_REF, "reference v_{axis},ref"),
+        (r.ENTITY_TELEOP_V_TOOL, "actual v_{axis}"),
+        "v_{axis} (m/s)", "Fig. 12: operator reference vs actual tool velocity, world frame",
+        "fig12_reference_vs_actual_velocity.png",
+    )  # fmt: skip
 
 
 def _fig_control_error(sim: Mapping[str, rrd.Series], report: Report, t0: float) -> None:
