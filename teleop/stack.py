@@ -242,6 +242,7 @@ def _eye_view_summary(summaries: dict[str, dict[str, Any]]) -> dict[str, Any] | 
         "frames_published": eyeview["frames_published"],
         "frames_received": received.get("received"),
         "frames_received_shm": received.get("received_shm"),
+        "logged_bytes_per_frame": received.get("logged_bytes_per_frame"),
         "render_ms_p50": eyeview["render_ms_p50"],
         "renderer_cpu_share": eyeview["cpu_share"],
         "recorder_cpu_share": recorder.get("cpu_share"),
