@@ -262,6 +262,10 @@ class EyeViewConfig:
     """
 
     enabled: bool = True
+    # Also in lockstep runs (tests, batch experiments)? Frames are paced on wall-clock
+    # time, so a lockstep run gets few per simulated second, and the renderer's CPU
+    # would slow a run that is meant to go as fast as the machine allows.
+    in_lockstep: bool = False
     rate_hz: float = 10.0
     width_px: int = 320
     height_px: int = 240

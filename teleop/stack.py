@@ -73,9 +73,13 @@ RUN_TIMEOUT_SLACK_S = 30.0
 
 
 def scenario_services(config: Config) -> tuple[str, ...]:
-    """The processes of ``config.run.scenario``, plus the eye view when it is enabled."""
+    """The processes of ``config.run.scenario``, plus the eye view when it is enabled
+    (in realtime runs; in lockstep ones only with ``eyeview.in_lockstep``)."""
     services = SCENARIO_SERVICES[config.run.scenario]
-    return (*services, EYEVIEW) if config.eyeview.enabled else services
+    eye = config.eyeview
+    if eye.enabled and (config.run.mode == "realtime" or eye.in_lockstep):
+        return (*services, EYEVIEW)
+    return services
 
 
 class RunError(RuntimeError):
