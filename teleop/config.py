@@ -266,7 +266,7 @@ class EyeViewConfig:
     # time, so a lockstep run gets few per simulated second, and the renderer's CPU
     # would slow a run that is meant to go as fast as the machine allows.
     in_lockstep: bool = False
-    rate_hz: float = 10.0
+    rate_hz: float = 5.0
     width_px: int = 320
     height_px: int = 240
     # Vertical field of view (rad): a headset's, about 90 degrees.

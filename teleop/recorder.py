@@ -184,7 +184,7 @@ FORCE_ARROW_COLORS: Mapping[str, tuple[int, int, int]] = {
 HMD_FOV_Y_RAD = math.radians(90.0)
 HMD_ASPECT_RATIO = 1.0
 HMD_IMAGE_PLANE_M = 0.1
-# Eye-view frames buffered between flushes (at 10 Hz and 0.1 s flushes about 1 is
+# Eye-view frames buffered between flushes (at 5-10 Hz and 0.1 s flushes about 1 is
 # waiting); beyond this the oldest is dropped and counted, so memory stays bounded.
 EYE_VIEW_BUFFER_FRAMES = 32
 # Latency samples kept per hop for the eye-view percentiles (the newest ones).
