@@ -272,7 +272,11 @@ class EyeViewConfig:
     """
 
     enabled: bool = True
-    rate_hz: float = 10.0
+    # Also in lockstep runs (tests, batch experiments)? Frames are paced on wall-clock
+    # time, so a lockstep run gets few per simulated second, and the renderer's CPU
+    # would slow a run that is meant to go as fast as the machine allows.
+    in_lockstep: bool = False
+    rate_hz: float = 5.0
     width_px: int = 320
     height_px: int = 240
     # Vertical field of view (rad): a headset's, about 90 degrees.
@@ -288,11 +292,10 @@ class EyeViewConfig:
     fixed_p_m: tuple[float, float, float] = (-0.45, 0.0, 0.65)
     fixed_yaw_rad: float = 0.0
     fixed_pitch_rad: float = 0.5
-    # Scheduling niceness of the renderer process: below the control loops ...
+    # Scheduling niceness of the renderer process: below the control loops. (Not
+    # SCHED_IDLE: starved, its Zenoh threads would stop draining the plant's JOINT_STATE,
+    # whose BLOCK publisher would then stall the plant.)
     nice: int = 10
-    # ... or, when true, Linux SCHED_IDLE instead: it renders only on CPU time no other
-    # task wants, and a waking control loop preempts it at once.
-    idle_priority: bool = False
     # Recorder: JPEG quality of the logged frames (1-100); 0 logs raw RGB.
     jpeg_quality: int = 80
 

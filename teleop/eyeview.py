@@ -76,7 +76,9 @@ def lower_priority(nice: int, idle: bool) -> None:
 
     ``idle``: Linux SCHED_IDLE, which any normal task preempts at once when it wakes, so a
     render never delays a 1 kHz wake-up (but gets only CPU time nobody else wants);
-    otherwise ``nice`` (0-19).
+    otherwise ``nice`` (0-19). The service uses ``nice``: a starved SCHED_IDLE process
+    would also starve its Zenoh threads, and a peer that stops reading back-pressures
+    the plant's BLOCK publishers (the placement benchmark compares both).
     """
     if idle:
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
@@ -189,7 +191,7 @@ class EyeViewService(Service):
                 f"eyeview: a {eye.width_px} x {eye.height_px} frame ({frame_bytes} B) needs "
                 f"bus.shm_pool_bytes >= {frame_bytes * FRAMES_IN_FLIGHT}"
             )
-        lower_priority(eye.nice, eye.idle_priority)
+        lower_priority(eye.nice, idle=False)
         # Built before the session: if the model or the GL context fails, nothing is open.
         self.renderer = EyeRenderer(self.config)
         # JOINT_STATE is a 1 kHz stream: take in only what the frames need.

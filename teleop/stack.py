@@ -73,9 +73,13 @@ RUN_TIMEOUT_SLACK_S = 30.0
 
 
 def scenario_services(config: Config) -> tuple[str, ...]:
-    """The processes of ``config.run.scenario``, plus the eye view when it is enabled."""
+    """The processes of ``config.run.scenario``, plus the eye view when it is enabled
+    (in realtime runs; in lockstep ones only with ``eyeview.in_lockstep``)."""
     services = SCENARIO_SERVICES[config.run.scenario]
-    return (*services, EYEVIEW) if config.eyeview.enabled else services
+    eye = config.eyeview
+    if eye.enabled and (config.run.mode == "realtime" or eye.in_lockstep):
+        return (*services, EYEVIEW)
+    return services
 
 
 class RunError(RuntimeError):
@@ -242,6 +246,7 @@ def _eye_view_summary(summaries: dict[str, dict[str, Any]]) -> dict[str, Any] | 
         "frames_published": eyeview["frames_published"],
         "frames_received": received.get("received"),
         "frames_received_shm": received.get("received_shm"),
+        "logged_bytes_per_frame": received.get("logged_bytes_per_frame"),
         "render_ms_p50": eyeview["render_ms_p50"],
         "renderer_cpu_share": eyeview["cpu_share"],
         "recorder_cpu_share": recorder.get("cpu_share"),

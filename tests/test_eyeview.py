@@ -94,6 +94,9 @@ def test_the_stack_runs_the_eye_view_only_when_enabled():
     assert EYEVIEW in scenario_services(grasp)
     assert EYEVIEW in scenario_services(load_config())
     assert EYEVIEW not in scenario_services(load_config(None, ["eyeview.enabled=false"]))
+    lockstep = 'run.mode="lockstep"'
+    assert EYEVIEW not in scenario_services(load_config(None, [lockstep]))
+    assert EYEVIEW in scenario_services(load_config(None, [lockstep, "eyeview.in_lockstep=true"]))
 
 
 def _run(tmp_path: Path, name: str, *overrides: str) -> dict:

@@ -59,6 +59,7 @@ def run(scenario: str, run_dir: Path, duration_s: float, overrides: list[str]) -
         "frames_published": eye.get("frames_published"),
         "frames_received": eye.get("frames_received"),
         "frames_received_shm": eye.get("frames_received_shm"),
+        "logged_bytes_per_frame": eye.get("logged_bytes_per_frame"),
         "latency_ms": eye.get("latency_ms"),
         "rrd_bytes": rrd.stat().st_size if rrd.exists() else None,
         "load_1min_before": load_before,
@@ -73,7 +74,8 @@ def median_of(runs: list[dict], key: str) -> float | None:
 
 def describe(runs_by_variant: dict[str, list[dict]]) -> dict:
     keys = ("realtime_factor", "overrun_fraction", "recorder_cpu_share", "renderer_cpu_share",
-            "render_ms_p50", "rrd_bytes", "load_1min_before")  # fmt: skip
+            "render_ms_p50", "rrd_bytes", "logged_bytes_per_frame", "frames_received",
+            "load_1min_before")  # fmt: skip
     medians = {v: {k: median_of(runs, k) for k in keys} for v, runs in runs_by_variant.items()}
     out: dict = {"medians": medians}
     off = medians.get("off", {})
