@@ -185,7 +185,7 @@ class EyeViewService(Service):
 
     def open(self) -> None:
         eye = self.config.eyeview
-        frame_bytes = EYE_VIEW.size + eye.width_px * eye.height_px * RGB_CHANNELS
+        frame_bytes = EYE_VIEW.frame_bytes(eye.width_px, eye.height_px)
         if self.config.bus.shm and frame_bytes * FRAMES_IN_FLIGHT > self.config.bus.shm_pool_bytes:
             raise ConfigError(
                 f"eyeview: a {eye.width_px} x {eye.height_px} frame ({frame_bytes} B) needs "
@@ -337,7 +337,7 @@ class EyeViewService(Service):
             "frames_from_hmd": self.frames_from_hmd,
             "frames_without_state": self.frames_without_state,
             "states_received": self.states.count,
-            "frame_bytes": EYE_VIEW.size + eye.width_px * eye.height_px * RGB_CHANNELS,
+            "frame_bytes": EYE_VIEW.frame_bytes(eye.width_px, eye.height_px),
             "render_ms_p50": float(p50),
             "render_ms_p99": float(p99),
             "loop": self.timer.summary() if self.timer is not None else {},

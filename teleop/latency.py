@@ -39,9 +39,9 @@ import numpy as np
 
 from teleop.bus import close_session, open_session, wait_alive
 from teleop.clock import NS_PER_S, NS_PER_US
-from teleop.config import Config, load_config
+from teleop.config import Config, EyeViewConfig, load_config
 from teleop.haptic_service import SAMPLES_FILE, TRACE_FILE
-from teleop.messages import JOINT_STATE, Stage
+from teleop.messages import EYE_VIEW, JOINT_STATE, Stage
 from teleop.relay import RELAYS, FloorOrigin
 from teleop.stack import (
     ALIVE_TIMEOUT_S,
@@ -62,8 +62,8 @@ PERCENTILES = {"p50": 50.0, "p90": 90.0, "p99": 99.0, "p999": 99.9}
 # Samples of the first second of a run are start-up (imports warming, links opening,
 # the plant's grid locking to the commands): left out of every figure.
 WARMUP_S = 1.0
-# Eye-view frame of the HMD (issue 5): 640 x 480 RGB, 8 bits per channel.
-EYE_VIEW_FRAME_BYTES = 640 * 480 * 3
+# One eye-view frame at the default size (record + RGB pixels, see EyeViewConfig).
+EYE_VIEW_FRAME_BYTES = EYE_VIEW.frame_bytes(EyeViewConfig().width_px, EyeViewConfig().height_px)
 # The payload sweep, bytes: small record, a page, big records, 1 MiB, one eye-view frame.
 SWEEP_SIZES_BYTES = (64, 4096, 65536, 1 << 20, EYE_VIEW_FRAME_BYTES)
 # Round trips per payload size (back to back) and the time allowed for one size (s).

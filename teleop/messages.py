@@ -313,6 +313,10 @@ class FrameSchema(Schema):
         """Size of the pixel tail ``rec`` announces (bytes)."""
         return int(rec["height_px"]) * int(rec["width_px"]) * int(rec["channels"])
 
+    def frame_bytes(self, width_px: int, height_px: int, channels: int = RGB_CHANNELS) -> int:
+        """Wire size of one whole frame of that image size: record plus pixels (bytes)."""
+        return self.size + width_px * height_px * channels
+
     def encode_frame(self, rec: np.ndarray, pixels: np.ndarray) -> bytes:
         """Record bytes followed by the pixels; ``pixels`` (H, W, C) u1 must match ``rec``."""
         shape = (int(rec["height_px"]), int(rec["width_px"]), int(rec["channels"]))

@@ -109,7 +109,7 @@ def test_grasp_recording_holds_every_entity_the_blueprint_shows(obstacle_run):
             assert len(values) == logged[feeds[entity]], entity
             assert len(set(data[entity][r.TIMELINE_SIM])) == len(values), entity  # own times
         for root in spec.subtrees:
-            if root == r.ENTITY_EYE_VIEW:  # rendered by the plant's eye view, not this branch
+            if root == r.ENTITY_EYE_VIEW:  # rendered in realtime runs only (test_eyeview.py)
                 continue
             assert any(e.startswith(root + "/") or e == root for e in data), root
 
