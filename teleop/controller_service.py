@@ -459,13 +459,15 @@ class TeleopTask:
         obstacle = self._proximity_sample(latest_proximity[0] if latest_proximity else None)
         latest_contact = self.contact.get()
         contact = latest_contact[0] if latest_contact is not None else None
-        components, device_f_n, held_mass = self._feedback(contact, obstacle, handle_d_m, yaw_rad)
+        components, device_f_n, held_mass = self._feedback_force(
+            contact, obstacle, handle_d_m, yaw_rad
+        )
         service.compute_ns_total += time.monotonic_ns() - t0
         self._publish_feedback(tick, state, components, device_f_n, state["trace_ns"])
         if self._last_output is not None:
             self._measure(self._last_output, components, device_f_n, held_mass)
 
-    def _feedback(
+    def _feedback_force(
         self,
         contact: np.ndarray | None,
         obstacle: ProximitySample | None,
@@ -523,7 +525,7 @@ class TeleopTask:
         output = self.controller.update(
             state["q_rad"][:n], state["qd_rad_s"][:n], v_ref, obstacle, gripper_cmd, clutch
         )
-        components, device_f_n, held_mass = self._feedback(
+        components, device_f_n, held_mass = self._feedback_force(
             records.get("contact"), obstacle, handle_d_m, yaw_rad
         )
         service.compute_ns_total += time.monotonic_ns() - t0
