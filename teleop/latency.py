@@ -512,8 +512,8 @@ def conclusions(report: dict[str, Any]) -> list[str]:
     if old and old.get("p50") is not None and rt["p50"] is not None:
         out.append(
             f"old timing (plant tick + device step) round trip p50 {old['p50']:.0f} us, "
-            f"p99 {old['p99']:.0f} us: the event-driven loop takes {old['p50'] / rt['p50']:.1f}x "
-            "less at p50"
+            f"p99 {old['p99']:.0f} us: the event-driven loop's p50 is "
+            f"{rt['p50'] / old['p50']:.2f}x the old timing's"
         )
     for row in report.get("payload_sweep", []):
         if row["bytes"] >= 1 << 20 and row["tcp_over_shm_p50"] is not None:
