@@ -11,7 +11,7 @@ export RERUN_ANALYTICS := 0
 export TELEMETRY_ENABLED := false
 export MUJOCO_GL ?= egl
 
-.PHONY: demo test lint venv clean
+.PHONY: demo test test-web chromium lint venv clean
 
 venv: $(STAMP)
 
@@ -36,6 +36,19 @@ lint: $(STAMP)
 
 test: lint
 	$(BIN)/python -m pytest
+
+# Debian's Chromium, for the headless screenshot of the web viewer served by --web.
+# `make test` runs that test only when Chromium is there (else it checks the page is
+# served and skips the screenshot); `make test-web` installs it and requires it.
+CHROMIUM ?= /usr/bin/chromium
+$(CHROMIUM):
+	apt-get update
+	apt-get install -y --no-install-recommends chromium
+
+chromium: $(CHROMIUM)
+
+test-web: $(STAMP) $(CHROMIUM)
+	TELEOP_REQUIRE_CHROMIUM=1 $(BIN)/python -m pytest tests/test_viewer.py
 
 clean:
 	rm -rf runs .pytest_cache

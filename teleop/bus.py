@@ -15,7 +15,7 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 import numpy as np
@@ -24,7 +24,7 @@ from zenoh.shm import ShmProvider
 
 from shm.provider import SHM_THRESHOLD_BYTES, publish_bytes
 from teleop.config import BusConfig
-from teleop.messages import DecodeError, DropCounter, Schema
+from teleop.messages import DecodeError, DropCounter, FrameSchema, Schema
 from teleop.topics import Topics
 
 logger = logging.getLogger(__name__)
@@ -37,19 +37,27 @@ PEER_LISTEN_ENDPOINT = "tcp/127.0.0.1:0"
 CONNECT_RETRY_FOREVER = -1
 
 RecordCallback = Callable[[np.ndarray, int], None]
+# (record, pixels (H, W, C), rx_ns, arrived over shared memory)
+FrameCallback = Callable[[np.ndarray, np.ndarray, int, bool], None]
 
 
 def _json(value: Any) -> str:
     return json.dumps(value)
 
 
-def open_session(bus: BusConfig, *, listen: bool) -> zenoh.Session:
+def open_session(
+    bus: BusConfig, *, listen: bool, ingress_rate_hz: Mapping[str, float] | None = None
+) -> zenoh.Session:
     """Open a peer session from ``bus.zenoh_config_path`` plus the run's settings.
 
     ``listen=True``: this process is the run's listener on ``bus.endpoint`` (fails if
     the port is taken). ``listen=False``: connect to ``bus.endpoint``; if nobody listens
     yet, ``open`` still returns and Zenoh keeps retrying in the background (config
     ``connect/retry``), so start order does not matter — wait on liveliness instead.
+
+    ``ingress_rate_hz`` maps key expressions to the most puts per second this session
+    takes in (Zenoh's ingress downsampling: the rest are dropped before any Python
+    callback runs), for a consumer that needs a fast stream only now and then.
     """
     conf = zenoh.Config.from_file(str(bus.zenoh_config_path))
     conf.insert_json5("mode", _json("peer"))
@@ -63,6 +71,11 @@ def open_session(bus: BusConfig, *, listen: bool) -> zenoh.Session:
         conf.insert_json5("connect/endpoints", _json([bus.endpoint]))
         conf.insert_json5("connect/timeout_ms", _json(CONNECT_RETRY_FOREVER))
         conf.insert_json5("connect/exit_on_failure", _json(False))
+    if ingress_rate_hz:
+        rules = [{"key_expr": key, "freq": rate} for key, rate in ingress_rate_hz.items()]
+        conf.insert_json5(
+            "downsampling", _json([{"flows": ["ingress"], "messages": ["put"], "rules": rules}])
+        )
     shm_key = "transport/shared_memory"
     conf.insert_json5(f"{shm_key}/enabled", _json(bus.shm))
     if bus.shm:
@@ -72,6 +85,9 @@ def open_session(bus: BusConfig, *, listen: bool) -> zenoh.Session:
             f"{shm_key}/transport_optimization/message_size_threshold",
             _json(SHM_THRESHOLD_BYTES),
         )
+    for entry in bus.zenoh_overrides:
+        path, _, value = entry.partition("=")
+        conf.insert_json5(path.strip(), value.strip())
     return zenoh.open(conf)
 
 
@@ -188,6 +204,33 @@ def subscribe(
             drops.record(err)
             return
         callback(rec, rx_ns)
+
+    return session.declare_subscriber(key, on_sample)
+
+
+def subscribe_frames(
+    session: zenoh.Session,
+    key: str,
+    schema: FrameSchema,
+    callback: FrameCallback,
+    drops: DropCounter,
+) -> zenoh.Subscriber:
+    """Subscribe to image frames; ``callback(record, pixels, rx_ns, via_shm)``.
+
+    Like :func:`subscribe`, for a :class:`FrameSchema`: the pixels are a read-only
+    (H, W, C) view of the received bytes, and ``via_shm`` tells whether the sample
+    came through shared memory (``payload.as_shm()`` is not None).
+    """
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        rx_ns = time.monotonic_ns()
+        via_shm = sample.payload.as_shm() is not None
+        try:
+            rec, pixels = schema.decode_frame(sample.payload.to_bytes())
+        except DecodeError as err:
+            drops.record(err)
+            return
+        callback(rec, pixels, rx_ns, via_shm)
 
     return session.declare_subscriber(key, on_sample)
 

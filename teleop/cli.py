@@ -4,6 +4,10 @@
     teleop run path-following --mode lockstep --duration 20 --rrd out.rrd
     teleop run grasp --mode realtime --seed 0 --rrd out.rrd --summary-json out.json
     teleop up | status | down        (a long-running stack, realtime by default)
+    teleop latency --duration 60 --json out.json --png out.png
+    teleop run grasp --web | --spawn (watch the run in the web / native Rerun viewer)
+    teleop view out.rrd [--web]      (open a saved recording)
+    teleop report out.rrd            (the paper's figures as PNG, and a markdown summary)
 
 Every command reads the typed config (``--config``, default ``deploy/teleop.toml``)
 and applies ``--set dotted.key=value`` overrides; flags such as ``--duration`` are
@@ -17,12 +21,18 @@ import json
 import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from teleop.config import SCENARIOS, ConfigError, load_config
+from teleop.config import SCENARIOS, Config, ConfigError, load_config
 from teleop.kinematics import ModelError
+
+if TYPE_CHECKING:
+    from teleop.viewer import WebViewer
 
 DEFAULT_RUN_DIR = Path("runs") / "latest"
 DEFAULT_UP_DIR = Path("runs") / "up"
+DEFAULT_LATENCY_DIR = Path("runs") / "latency"
+WEB_VIEWER_LOG = "web-viewer.log"  # in the run directory of `teleop run --web`
 
 # Exit codes: 0 success, 1 the run failed its own checks, 2 bad usage or config.
 EXIT_FAILED = 1
@@ -44,6 +54,13 @@ def _add_config_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="KEY=VALUE",
         help="override a config value, e.g. --set control.compensation=false (repeatable)",
     )
+
+
+def _add_web_port_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--web-port", type=int, default=None, help="HTTP port of the web viewer (default: free)"
+    )
+    parser.add_argument("--grpc-port", type=int, default=None, help="its gRPC port (default: free)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -84,7 +101,97 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"logs and supervisord files of a services run (default: {DEFAULT_RUN_DIR})",
     )
     run.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    viewers = run.add_mutually_exclusive_group()
+    viewers.add_argument(
+        "--spawn", action="store_true", help="also stream the run to the native Rerun viewer"
+    )
+    viewers.add_argument(
+        "--web",
+        action="store_true",
+        help="also serve the run in the Rerun web viewer on a loopback port (address "
+        "printed); it keeps serving after the run until Ctrl-C",
+    )
+    _add_web_port_arguments(run)
+    run.add_argument(
+        "--report",
+        action="store_true",
+        help="after the run, write the figures and summary (see `teleop report`)",
+    )
     _add_config_arguments(run)
+
+    latency = commands.add_parser(
+        "latency",
+        help="measure the bilateral loop's latency, hop by hop, against the transport floor",
+        description=(
+            "Run the realtime teleoperation stack (every service and the recorder, the "
+            "scripted operator moving) for --duration seconds and report the round trip "
+            "(haptic sample -> force rendered) and every hop, against baselines measured in "
+            "the same command: a bare Zenoh relay chain with the same legs (paced at 1 kHz "
+            "and back to back), the stack with shared memory off, a payload sweep with "
+            "shared memory on and off, and the stack with the loop's old timing."
+        ),
+    )
+    latency.add_argument(
+        "--duration", type=float, default=60.0, help="seconds of the stack run (default: 60)"
+    )
+    latency.add_argument(
+        "--baseline-duration",
+        type=float,
+        default=None,
+        help="seconds of each baseline run (paced floor, SHM-off stack, old timing); "
+        "default: the duration, at most 20",
+    )
+    latency.add_argument("--json", type=Path, help="write the report here")
+    latency.add_argument("--png", type=Path, help="write the histograms figure here")
+    latency.add_argument(
+        "--rrd", type=Path, help="Rerun recording of the figures (default: <run-dir>/latency.rrd)"
+    )
+    latency.add_argument(
+        "--sweep-count", type=int, default=None, help="round trips per payload size (default 200)"
+    )
+    latency.add_argument(
+        "--no-old-timing",
+        action="store_true",
+        help="skip the comparison run with the plant's tick and the device step",
+    )
+    latency.add_argument(
+        "--run-dir",
+        type=Path,
+        default=DEFAULT_LATENCY_DIR,
+        help=f"logs, summaries and raw stamps of every run (default: {DEFAULT_LATENCY_DIR})",
+    )
+    _add_config_arguments(latency)
+
+    view = commands.add_parser(
+        "view",
+        help="open a saved recording in the Rerun viewer",
+        description="Open a .rrd in the native Rerun viewer, or serve it in the web viewer.",
+    )
+    view.add_argument("rrd", type=Path, help="the recording (.rrd)")
+    view.add_argument(
+        "--web",
+        action="store_true",
+        help="serve the web viewer on a loopback port and print its address (Ctrl-C stops)",
+    )
+    _add_web_port_arguments(view)
+
+    report = commands.add_parser(
+        "report",
+        help="write the paper's figures (PNG) and a markdown summary of a recording",
+        description=(
+            "Read a .rrd back and write the paper's figures as PNG files and report.md "
+            "into <stem>_report/ next to it (or --out)."
+        ),
+    )
+    report.add_argument("rrd", type=Path, help="the recording (.rrd)")
+    report.add_argument("--out", type=Path, help="output directory (default: <stem>_report/)")
+    report.add_argument(
+        "--settle-s",
+        type=float,
+        default=None,
+        help="path error statistics start this many seconds into the run "
+        "(default: run.settle_s of the config)",
+    )
 
     up = commands.add_parser(
         "up",
@@ -129,8 +236,6 @@ def _emit_summary(summary: dict[str, object], path: Path | None) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from teleop import experiments
-
     overrides = [*_overrides(args), f'run.scenario="{args.scenario}"']
     if args.inprocess:
         if args.scenario != "path-following":
@@ -141,7 +246,36 @@ def _run(args: argparse.Namespace) -> int:
         overrides.append(f'run.mode="{args.mode}"')
         if args.rrd is not None:
             overrides.append(f'recorder.rrd_path="{args.rrd.absolute()}"')
+        if args.spawn:
+            overrides.append("recorder.spawn=true")
+    if args.inprocess and (args.spawn or args.web or args.report):
+        raise ConfigError("--spawn, --web and --report need the services run (drop --inprocess)")
     config = load_config(args.config, overrides)
+    web = None
+    if args.web:
+        from teleop.viewer import serve_web
+
+        args.run_dir.mkdir(parents=True, exist_ok=True)
+        web = serve_web(
+            web_port=args.web_port,
+            grpc_port=args.grpc_port,
+            log_path=args.run_dir / WEB_VIEWER_LOG,
+        )
+        overrides.append(f'recorder.grpc_url="{web.grpc_url}"')
+        config = load_config(args.config, overrides)
+        print(f"web viewer: {web.url}", file=sys.stderr, flush=True)
+    try:
+        return _run_and_report(args, config, overrides, web)
+    finally:
+        if web is not None:
+            web.stop()
+
+
+def _run_and_report(
+    args: argparse.Namespace, config: Config, overrides: list[str], web: WebViewer | None
+) -> int:
+    from teleop import experiments
+
     progress = None if args.quiet else experiments.print_progress
     where = "in process" if args.inprocess else f"on services, {config.run.mode}"
     print(
@@ -156,9 +290,73 @@ def _run(args: argparse.Namespace) -> int:
         print(f"  logs and summaries in {args.run_dir}", file=sys.stderr)
         summary = run_on_services(config, args.config, overrides, args.run_dir, progress)
     _emit_summary(summary, args.summary_json)
+    if args.report and summary.get("rrd"):
+        from teleop.report import write_report
+
+        report = write_report(Path(str(summary["rrd"])), settle_s=config.run.settle_s)
+        print(f"report: {report.summary}", file=sys.stderr)
+    if web is not None:
+        print(f"web viewer: {web.url} (Ctrl-C to stop)", file=sys.stderr, flush=True)
+        web.wait()
     if summary.get("success") is False:
         print("teleop: the task did not succeed", file=sys.stderr)
         return EXIT_FAILED
+    return 0
+
+
+def _latency(args: argparse.Namespace) -> int:
+    from teleop import latency
+
+    if args.duration <= latency.WARMUP_S:
+        raise ConfigError(f"--duration must exceed the {latency.WARMUP_S:g} s warm-up")
+    latency.config_of(args.config, args.overrides)  # bad --set values fail here, exit 2
+    kwargs = {}
+    if args.sweep_count is not None:
+        kwargs["sweep_count"] = args.sweep_count
+    print(f"latency: {args.duration:g} s stack run plus baselines", file=sys.stderr)
+    print(f"  logs, summaries and raw stamps in {args.run_dir}", file=sys.stderr)
+    report, raw = latency.measure(
+        args.config,
+        args.overrides,
+        args.run_dir,
+        args.duration,
+        baseline_s=args.baseline_duration,
+        old_timing=not args.no_old_timing,
+        progress=latency.print_progress,
+        **kwargs,
+    )
+    rrd = args.rrd if args.rrd is not None else args.run_dir / "latency.rrd"
+    latency.log_to_rerun(report, raw, rrd)
+    report["rrd"] = str(rrd)
+    if args.png is not None:
+        latency.write_png(report, raw, args.png)
+    if args.json is not None:
+        latency.write_json(report, args.json)
+    for line in report["conclusions"]:
+        print(line)
+    return 0
+
+
+def _view(args: argparse.Namespace) -> int:
+    from teleop import viewer
+
+    if not args.rrd.is_file():
+        raise FileNotFoundError(f"no recording {args.rrd}")
+    if not args.web:
+        return viewer.open_native(args.rrd)
+    with viewer.serve_web(args.rrd, web_port=args.web_port, grpc_port=args.grpc_port) as web:
+        print(f"web viewer: {web.url} (Ctrl-C to stop)", flush=True)
+        return web.wait()
+
+
+def _report(args: argparse.Namespace) -> int:
+    from teleop.report import write_report
+
+    settle_s = args.settle_s if args.settle_s is not None else load_config().run.settle_s
+    report = write_report(args.rrd, args.out, settle_s=settle_s)
+    for figure in report.figures:
+        print(figure)
+    print(report.summary)
     return 0
 
 
@@ -204,9 +402,17 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("RERUN_ANALYTICS", "0")
     args = build_parser().parse_args(argv)
     try:
-        handler = {"run": _run, "up": _up, "status": _status, "down": _down}[args.command]
+        handler = {
+            "run": _run,
+            "latency": _latency,
+            "view": _view,
+            "report": _report,
+            "up": _up,
+            "status": _status,
+            "down": _down,
+        }[args.command]
         return handler(args)
-    except (ConfigError, ModelError) as exc:
+    except (ConfigError, ModelError, FileNotFoundError) as exc:
         print(f"teleop: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:

@@ -109,6 +109,13 @@ class PlantConfig:
     watchdog_s: float = 0.020
     # Rate of the scene streams (tool pose, contact force, object poses); joint state is 1/step.
     scene_rate_hz: float = 100.0
+    # Realtime teleoperation: a command enters a physics step the moment it arrives (one
+    # step per command, the steps phase-locked to the commands' arrival, which the haptic
+    # device's clock paces) instead of waiting for the plant's next 1 kHz tick; without
+    # commands the plant still steps once per period. Path following always uses the tick.
+    # Measured (teleop latency): see README "Latency". false: apply the newest command at
+    # each tick of the plant's own clock.
+    apply_on_arrival: bool = True
 
     def __post_init__(self) -> None:
         _require(0 < self.timestep_s <= 0.01, "plant.timestep_s in (0, 0.01]")
@@ -209,6 +216,9 @@ class HapticConfig:
     # Feedback older than this is stale: the rendered force fades to zero over fade_s.
     stale_feedback_s: float = 0.020
     fade_s: float = 0.020
+    # Realtime: hand a feedback force to the motors the moment it arrives (as a driver
+    # does) instead of at the device loop's next 1 ms step; see README "Latency".
+    render_on_arrival: bool = True
     # The operator's hand, a spring-damper pulling the handle to the hand's target.
     hand_stiffness_n_per_m: float = 200.0
     hand_damping_n_s_per_m: float = 8.0
@@ -249,6 +259,57 @@ class HmdConfig:
         _require(0 < self.rate_hz <= 1000, "hmd.rate_hz in (0, 1000]")
         _require(self.motion_period_s > 0, "hmd.motion_period_s > 0")
         _require(0 <= self.prediction_s < 1, "hmd.prediction_s in [0, 1)")
+
+
+@dataclass(frozen=True)
+class EyeViewConfig:
+    """The operator's eye view: the scene rendered from the HMD's predicted pose.
+
+    A service of its own (``teleop/eyeview.py``) renders with MuJoCo's offscreen
+    renderer at ``rate_hz`` and publishes EYE_VIEW frames (over shared memory: a frame
+    is far above the SHM threshold). Without an HMD (path following) it renders from
+    the fixed viewpoint below. Defaults are sized for 2 busy cores (see README).
+    """
+
+    enabled: bool = True
+    # Also in lockstep runs (tests, batch experiments)? Frames are paced on wall-clock
+    # time, so a lockstep run gets few per simulated second, and the renderer's CPU
+    # would slow a run that is meant to go as fast as the machine allows.
+    in_lockstep: bool = False
+    rate_hz: float = 5.0
+    width_px: int = 320
+    height_px: int = 240
+    # Vertical field of view (rad): a headset's, about 90 degrees.
+    fov_y_rad: float = 1.5707963267948966
+    # Shadow mapping costs about 10x the rest of a software-rendered frame (measured
+    # here: 60-67 ms against 6.5 ms at 320x240), so it is off by default.
+    shadows: bool = False
+    # JOINT_STATE is taken at most this often (Zenoh ingress downsampling): the renderer
+    # needs one state per frame, not the plant's 1 kHz.
+    state_rate_hz: float = 100.0
+    # Fixed viewpoint when no HEAD_POSE arrives (world frame): where the operator's head
+    # is (as hmd.head_p_m), looking along yaw (0 = +x) and down by pitch (rad).
+    fixed_p_m: tuple[float, float, float] = (-0.45, 0.0, 0.65)
+    fixed_yaw_rad: float = 0.0
+    fixed_pitch_rad: float = 0.5
+    # Scheduling niceness of the renderer process: below the control loops. (Not
+    # SCHED_IDLE: starved, its Zenoh threads would stop draining the plant's JOINT_STATE,
+    # whose BLOCK publisher would then stall the plant.)
+    nice: int = 10
+    # Recorder: JPEG quality of the logged frames (1-100); 0 logs raw RGB.
+    jpeg_quality: int = 80
+
+    def __post_init__(self) -> None:
+        _require(0 < self.rate_hz <= 120, "eyeview.rate_hz in (0, 120]")
+        for name in ("width_px", "height_px"):
+            _require(16 <= getattr(self, name) <= 4096, f"eyeview.{name} in [16, 4096]")
+        _require(0 < self.fov_y_rad < math.pi, "eyeview.fov_y_rad in (0, pi)")
+        _require(self.state_rate_hz >= self.rate_hz, "eyeview.state_rate_hz >= eyeview.rate_hz")
+        _require(
+            abs(self.fixed_pitch_rad) < math.pi / 2, "eyeview.fixed_pitch_rad in (-pi/2, pi/2)"
+        )
+        _require(0 <= self.nice <= 19, "eyeview.nice in [0, 19]")
+        _require(0 <= self.jpeg_quality <= 100, "eyeview.jpeg_quality in [0, 100]")
 
 
 @dataclass(frozen=True)
@@ -321,23 +382,26 @@ class OperatorConfig:
 class CpuConfig:
     """CPU affinity of the services (CPU numbers; empty = let the kernel choose).
 
-    Measured on this 2-core machine, lockstep path following: with plant and
-    controller alone, pinning them to different cores ran at a median 2.8x real time
-    against 2.0x unpinned (warm caches, no migrations); with the whole stack (recorder
-    and runner too) pinning gave no gain within the noise (1.1-1.5x either way) and
-    takes away the kernel's freedom to move a loaded service. So nothing is pinned by
-    default. CPUs the machine does not have are ignored.
+    The default is laid out for the 2-core target: the plant alone on CPU 0 (warm
+    caches, no migrations, nothing waking up on its core), controller, recorder and eye
+    view on CPU 1; haptic, HMD and operator free. Measured on the quiet machine
+    (2026-11-22), realtime path following 60 s with recorder and eye view: realtime
+    factor 0.999 and 0.27 % plant overruns pinned, against 0.975 and 2.6 % unpinned;
+    realtime grasp: realtime factor 0.91 against 0.87. Lockstep speed is the same
+    either way (2.0x against 1.9x). CPUs the machine does not have are ignored (a
+    warning says so); on a machine with more cores give each loop its own.
     """
 
-    plant: tuple[int, ...] = ()
-    controller: tuple[int, ...] = ()
+    plant: tuple[int, ...] = (0,)
+    controller: tuple[int, ...] = (1,)
     haptic: tuple[int, ...] = ()
     hmd: tuple[int, ...] = ()
     operator: tuple[int, ...] = ()
-    recorder: tuple[int, ...] = ()
+    recorder: tuple[int, ...] = (1,)
+    eyeview: tuple[int, ...] = (1,)
 
     def __post_init__(self) -> None:
-        for name in ("plant", "controller", "haptic", "hmd", "operator", "recorder"):
+        for name in ("plant", "controller", "haptic", "hmd", "operator", "recorder", "eyeview"):
             _require(all(c >= 0 for c in getattr(self, name)), f"cpu.{name}: CPU numbers >= 0")
 
 
@@ -351,9 +415,16 @@ class BusConfig:
     endpoint: str = "tcp/127.0.0.1:7447"
     shm: bool = True
     shm_pool_bytes: int = 16 * 1024 * 1024
+    # Zenoh config entries set over the file, last: "path=json5", e.g.
+    # 'transport/unicast/lowlatency=true' (the tuning benchmark tries variants this way).
+    zenoh_overrides: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         _require("/" in self.endpoint, "bus.endpoint like tcp/127.0.0.1:7447")
+        _require(
+            all("=" in entry for entry in self.zenoh_overrides),
+            "bus.zenoh_overrides: entries like path=json5value",
+        )
         _require(self.shm_pool_bytes >= 1 << 16, "bus.shm_pool_bytes >= 65536")
 
     @property
@@ -374,6 +445,17 @@ class RecorderConfig:
     rrd_path: str = ""
     # Also open the native Rerun viewer (never in tests or CI).
     spawn: bool = False
+    # Also stream to this Rerun gRPC server (``rerun+http://127.0.0.1:PORT/proxy``); empty:
+    # none. ``teleop run --web`` starts a web viewer and sets it.
+    grpc_url: str = ""
+    # Draw the scene in 3D from the MuJoCo model (arm, gripper, table, bin, cube, obstacles).
+    scene3d: bool = True
+    # Rate of the 3D arm pose (Hz of sim time): the joint state is 1 kHz, a view needs less.
+    scene_rate_hz: float = 30.0
+    # A ghost pose of the arm (stroboscopic view, paper Fig. 7) every this much sim time (s).
+    ghost_period_s: float = 3.0
+    # Loop rates are counted over windows of this much of the producer's clock (s).
+    rate_window_s: float = 1.0
     # Buffered samples are sent to Rerun in columns this often (s).
     flush_period_s: float = 0.1
     # Scheduling niceness (0 normal .. 19 lowest): a logger must not delay the loops.
@@ -384,6 +466,13 @@ class RecorderConfig:
     def __post_init__(self) -> None:
         _require(0 < self.flush_period_s <= 5, "recorder.flush_period_s in (0, 5]")
         _require(0 <= self.nice <= 19, "recorder.nice in [0, 19]")
+        _require(self.scene_rate_hz > 0, "recorder.scene_rate_hz > 0")
+        _require(self.ghost_period_s > 0, "recorder.ghost_period_s > 0")
+        _require(self.rate_window_s > 0, "recorder.rate_window_s > 0")
+        _require(
+            not self.grpc_url or self.grpc_url.startswith(("rerun://", "rerun+http")),
+            "recorder.grpc_url: empty or a rerun:// / rerun+http(s):// URL",
+        )
 
 
 TIMING_MODES = ("realtime", "lockstep")
@@ -423,6 +512,7 @@ class Config:
     scene: SceneConfig = field(default_factory=SceneConfig)
     haptic: HapticConfig = field(default_factory=HapticConfig)
     hmd: HmdConfig = field(default_factory=HmdConfig)
+    eyeview: EyeViewConfig = field(default_factory=EyeViewConfig)
     teleop: TeleopConfig = field(default_factory=TeleopConfig)
     operator: OperatorConfig = field(default_factory=OperatorConfig)
     cpu: CpuConfig = field(default_factory=CpuConfig)

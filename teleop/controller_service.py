@@ -9,10 +9,14 @@ Two tasks share the service (``run.scenario``):
 - grasp (experiment 2, bilateral teleoperation): the cycle also needs the haptic
   handle, the contact force and the obstacle proximity of the same tick (and the
   HMD view yaw). In lockstep a :class:`TickBarrier` joins them, so the run is
-  deterministic; in realtime the newest of each is used, and a handle sample older
-  than ``haptic.stale_feedback_s`` counts as "no input" (the tool holds still).
-  Each cycle publishes the FORCE_FEEDBACK first (the haptic device waits for it in
-  lockstep), then the JOINT_COMMAND.
+  deterministic; each cycle publishes the FORCE_FEEDBACK first (the haptic device waits
+  for it in lockstep), then the JOINT_COMMAND. In realtime the loop is event driven in
+  the Zenoh callbacks, one half-cycle per arrival (no thread hand-off, no waiting for a
+  tick): each HAPTIC_STATE sample becomes one JOINT_COMMAND at once (control law on the
+  newest state), and each JOINT_STATE one FORCE_FEEDBACK (from the newest contact,
+  proximity and handle), so a handle sample reaches the plant, and the state it caused
+  reaches the handle, without waiting for anybody's period. A handle sample older than
+  ``haptic.stale_feedback_s`` counts as "no input" (the tool holds still).
 
 Every command names the state it answers (``state_seq``). A controller too slow for
 the plant's rate makes its commands stale and the plant's watchdog brakes: the safe
@@ -32,7 +36,12 @@ import numpy as np
 from teleop.bus import Latest, Publisher, subscribe
 from teleop.control import ControlOutput, PathFollowingController
 from teleop.experiments import PathMetrics
-from teleop.feedback import check_stability, device_force, feedback_components
+from teleop.feedback import (
+    FeedbackComponents,
+    check_stability,
+    device_force,
+    feedback_components,
+)
 from teleop.kinematics import build_arm_model
 from teleop.messages import (
     CONTACT,
@@ -51,7 +60,8 @@ from teleop.messages import (
     Stage,
 )
 from teleop.proximity import ProximitySample, body_names
-from teleop.service import STOP_POLL_S, Service
+from teleop.service import Service
+from teleop.stamps import SHED_AGE_NS, StampLog, shed_path
 from teleop.teleop_control import TeleopController, TeleopOutput, teleop_reference
 from teleop.ticks import TickBarrier, TickedInputs, expected_valid_from
 
@@ -135,6 +145,13 @@ class ControllerService(Service):
         """The task's own loop, if it has one; else the work is all in bus callbacks."""
         self.task.run(stop)
 
+    def close(self) -> None:
+        task = getattr(self, "task", None)
+        if self.options.run_dir is not None and isinstance(task, TeleopTask):
+            with task._rt_lock:
+                task.shed_log.save(shed_path(self.options.run_dir, self.name))
+        super().close()
+
     def summary(self) -> dict[str, Any]:
         mean_compute_us = self.compute_ns_total / self.cycles / 1e3 if self.cycles else None
         return {
@@ -176,7 +193,7 @@ class PathTask:
         output = self.controller.update(state["q_rad"][:n], state["qd_rad_s"][:n])
         self.service.compute_ns_total += time.monotonic_ns() - t0
         trace = state["trace_ns"].copy()
-        trace[Stage.CONTROLLER_RX] = rx_ns
+        trace[Stage.CONTROLLER_RX] = rx_ns  # path following: the state is the input
         self.service.publish_command(state, output.qd_ref_rad_s, GRIPPER_OPEN, trace)
         sim_time_ns = int(state["sim_time_ns"])
         self.metrics.add(sim_time_ns * 1e-9, output)
@@ -252,6 +269,20 @@ class TeleopTask:
             )
         )
         service.keep(subscribe(session, topics.head_pose, HEAD_POSE, self._on_head_pose, drops))
+        # Realtime: both half-cycles run in the Zenoh callbacks (the haptic and plant links
+        # are served by different threads), one at a time (``_rt_busy``); an input that
+        # arrives meanwhile waits in ``_pending``, newest wins (see _dispatch).
+        self._rt_lock = threading.Lock()  # guards the fields below, held briefly
+        self._rt_busy = False
+        self._pending: dict[str, Any] = {}
+        self._last_output: TeleopOutput | None = None
+        self._last_haptic_seq = -1
+        self.haptic_lost = 0  # HAPTIC_STATE seq gaps (realtime)
+        self.haptic_reordered = 0  # HAPTIC_STATE not newer than the last one (realtime)
+        self.haptic_before_state = 0  # samples that arrived before any plant state
+        self.haptic_shed = 0  # samples not answered: too old, or superseded while busy
+        self.states_shed = 0  # states not answered with feedback, same reasons
+        self.shed_log = StampLog(1)  # HAPTIC_SAMPLE stamps of the loops shed here
         self._reset_metrics()
 
     def _reset_metrics(self) -> None:
@@ -279,6 +310,7 @@ class TeleopTask:
             self.barrier.put("haptic", int(rec["tick"]), rec)
         else:
             self.haptic(rec, rx_ns)
+            self._dispatch("haptic", (rec, rx_ns))
 
     def _on_contact(self, rec: np.ndarray, rx_ns: int) -> None:
         rec = rec.copy()
@@ -299,45 +331,158 @@ class TeleopTask:
 
     def on_state(self, state: np.ndarray, rx_ns: int) -> None:
         state = state.copy()
-        state["trace_ns"][Stage.CONTROLLER_RX] = rx_ns
         if self.lockstep:
+            state["trace_ns"][Stage.CONTROLLER_RX] = rx_ns
             self.barrier.put("state", int(state["seq"]), state)
         else:
+            state["trace_ns"][Stage.CONTROLLER_STATE_RX] = rx_ns
             self.states(state, rx_ns)
+            self._dispatch("state", state)
 
     def run(self, stop: threading.Event) -> None:
-        """Realtime: always handle the NEWEST state.
+        """Nothing to do here: every cycle runs in the bus callbacks (both modes)."""
+        stop.wait()
 
-        The teleoperation cycle costs a few hundred microseconds with six services on
-        two cores; run in the callbacks, a backlog of states would be worked off in
-        order, every command answering an old state and the plant's watchdog braking
-        (measured: dozens of brake events per run). Here a late controller skips to
-        the newest state instead (counted in ``skipped_states``).
+    # -- realtime half-cycles ------------------------------------------------------------
+    def _dispatch(self, kind: str, item: Any) -> None:
+        """Run a half-cycle now if the controller is free, else leave it pending.
+
+        The callback that finds the controller free runs its own input, then the inputs
+        that arrived meanwhile (newest of each kind; older ones are superseded: shed and
+        logged). A busy controller thus never makes a Zenoh thread wait, no backlog
+        builds up behind a slow cycle, and with a free controller an input costs no
+        hand-off. One pass only: what arrives during it waits for the next callback
+        (each stream comes at 1 kHz), so no thread loops forever under overload.
         """
-        if self.lockstep:
-            stop.wait()  # the tick barrier runs every cycle in the callbacks
-            return
-        last_seq = -1
-        while not stop.is_set():
-            got = self.states.wait_newer(last_seq, STOP_POLL_S)
-            if got is None:
-                current = self.states.get()
-                if current is not None and int(current[0]["seq"]) < last_seq:
-                    last_seq = -1  # the plant restarted: its seq began again
-                continue
-            state, _ = got
-            seq = int(state["seq"])
-            if last_seq >= 0 and seq > last_seq + 1:
-                self.service.skipped_states += seq - last_seq - 1
-            last_seq = seq
-            self._cycle_realtime(state)
+        with self._rt_lock:
+            if kind == "haptic":
+                seq = int(item[0]["seq"])
+                if seq <= self._last_haptic_seq:
+                    self.haptic_reordered += 1
+                    return
+                if self._last_haptic_seq >= 0:
+                    self.haptic_lost += seq - self._last_haptic_seq - 1
+                self._last_haptic_seq = seq
+            older = self._pending.pop(kind, None)
+            if older is not None:
+                self._supersede(kind, older)
+            if self._rt_busy:
+                self._pending[kind] = item
+                return
+            self._rt_busy = True
+        try:
+            self._half_cycle(kind, item)
+            with self._rt_lock:
+                pending, self._pending = self._pending, {}
+            for name in ("haptic", "state"):
+                if name in pending:
+                    self._half_cycle(name, pending[name])
+        finally:
+            with self._rt_lock:
+                self._rt_busy = False
 
-    def _cycle_realtime(self, state: np.ndarray) -> None:
-        latest = {"haptic": self.haptic.get(), "contact": self.contact.get()}
-        latest["proximity"] = self.proximity.get()
-        records = {name: value[0] for name, value in latest.items() if value is not None}
-        records["state"] = state
-        self._on_tick(int(state["seq"]), records)
+    def _half_cycle(self, kind: str, item: Any) -> None:
+        if kind == "haptic":
+            self._command_realtime(*item)
+        else:
+            self._feedback_realtime(item)
+
+    def _supersede(self, kind: str, item: Any) -> None:
+        """A pending input replaced by a newer one of its kind (lock held)."""
+        trace = item[0]["trace_ns"] if kind == "haptic" else item["trace_ns"]
+        if kind == "haptic":
+            self.haptic_shed += 1
+        else:
+            self.states_shed += 1
+        if int(trace[Stage.HAPTIC_SAMPLE]) > 0:
+            self.shed_log.append((int(trace[Stage.HAPTIC_SAMPLE]),))
+
+    def _shed(self, kind: str, item: Any) -> None:
+        with self._rt_lock:
+            self._supersede(kind, item)
+
+    def _command_realtime(self, haptic: np.ndarray, rx_ns: int) -> None:
+        """One HAPTIC_STATE sample -> one JOINT_COMMAND, on the newest plant state."""
+        sample_ns = int(haptic["trace_ns"][Stage.HAPTIC_SAMPLE])
+        if time.monotonic_ns() - sample_ns > SHED_AGE_NS:
+            self._shed("haptic", (haptic, rx_ns))
+            return
+        latest_state = self.states.get()
+        if latest_state is None:
+            self.haptic_before_state += 1
+            return
+        state = latest_state[0]
+        tick = int(state["seq"])
+        service = self.service
+        config = service.config
+        n = service.arm.n_joints
+        t0 = time.monotonic_ns()
+        handle_d_m = np.array(haptic["device_p_m"])
+        buttons = Button(int(haptic["buttons"]))
+        clutch = bool(buttons & Button.CLUTCH)
+        gripper_cmd = GRIPPER_CLOSED if buttons & Button.GRIPPER_CLOSE else GRIPPER_OPEN
+        yaw_rad = self._head_yaw_rad(tick)
+        v_ref = teleop_reference(handle_d_m, yaw_rad, clutch, config.teleop)
+        latest_proximity = self.proximity.get()
+        obstacle = self._proximity_sample(latest_proximity[0] if latest_proximity else None)
+        output = self.controller.update(
+            state["q_rad"][:n], state["qd_rad_s"][:n], v_ref, obstacle, gripper_cmd, clutch
+        )
+        service.compute_ns_total += time.monotonic_ns() - t0
+        trace = np.zeros_like(state["trace_ns"])
+        trace[Stage.HAPTIC_SAMPLE] = haptic["trace_ns"][Stage.HAPTIC_SAMPLE]
+        trace[Stage.CONTROLLER_RX] = rx_ns
+        service.publish_command(state, output.qd_ref_rad_s, gripper_cmd, trace)
+        self._last_output = output
+        if tick % service.status_every_steps == 0:
+            contact = self.contact.get()
+            holding = contact is not None and float(contact[0]["held_mass_kg"]) > 0
+            self._publish_status(tick, state, output, holding)
+
+    def _feedback_realtime(self, state: np.ndarray) -> None:
+        """One JOINT_STATE -> one FORCE_FEEDBACK (its trace continues the command's)."""
+        if time.monotonic_ns() - int(state["trace_ns"][Stage.PLANT_STATE_TX]) > SHED_AGE_NS:
+            self._shed("state", state)
+            return
+        service = self.service
+        tick = int(state["seq"])
+        latest = self.haptic.get()
+        haptic = latest[0] if latest is not None else None
+        if haptic is not None and tick - int(haptic["tick"]) > self.stale_ticks:
+            haptic = None
+        if haptic is None:
+            self.no_input_cycles += 1
+        t0 = time.monotonic_ns()
+        handle_d_m = np.array(haptic["device_p_m"]) if haptic is not None else np.zeros(3)
+        yaw_rad = self._head_yaw_rad(tick)
+        latest_proximity = self.proximity.get()
+        obstacle = self._proximity_sample(latest_proximity[0] if latest_proximity else None)
+        latest_contact = self.contact.get()
+        contact = latest_contact[0] if latest_contact is not None else None
+        components, device_f_n, held_mass = self._feedback_force(
+            contact, obstacle, handle_d_m, yaw_rad
+        )
+        service.compute_ns_total += time.monotonic_ns() - t0
+        self._publish_feedback(tick, state, components, device_f_n, state["trace_ns"])
+        if self._last_output is not None:
+            self._measure(self._last_output, components, device_f_n, held_mass)
+
+    def _feedback_force(
+        self,
+        contact: np.ndarray | None,
+        obstacle: ProximitySample | None,
+        handle_d_m: np.ndarray,
+        yaw_rad: float,
+    ) -> tuple[FeedbackComponents, np.ndarray, float]:
+        """Force feedback components, the device force (N, device frame) and the held mass."""
+        config = self.service.config
+        world_f_gripper_n = np.array(contact["world_f_contact_n"]) if contact else np.zeros(3)
+        held_mass_kg = float(contact["held_mass_kg"]) if contact else 0.0
+        components = feedback_components(
+            world_f_gripper_n, held_mass_kg, obstacle, handle_d_m, config.teleop
+        )
+        device_f_n = device_force(components, yaw_rad, config.teleop, config.haptic)
+        return components, device_f_n, held_mass_kg
 
     def _head_yaw_rad(self, tick: int) -> float:
         """The HMD's predicted view yaw that applies at ``tick`` (config yaw before any)."""
@@ -380,13 +525,9 @@ class TeleopTask:
         output = self.controller.update(
             state["q_rad"][:n], state["qd_rad_s"][:n], v_ref, obstacle, gripper_cmd, clutch
         )
-        contact = records.get("contact")
-        world_f_gripper_n = np.array(contact["world_f_contact_n"]) if contact else np.zeros(3)
-        held_mass = float(contact["held_mass_kg"]) if contact else 0.0
-        components = feedback_components(
-            world_f_gripper_n, held_mass, obstacle, handle_d_m, config.teleop
+        components, device_f_n, held_mass = self._feedback_force(
+            records.get("contact"), obstacle, handle_d_m, yaw_rad
         )
-        device_f_n = device_force(components, yaw_rad, config.teleop, config.haptic)
         service.compute_ns_total += time.monotonic_ns() - t0
 
         trace = state["trace_ns"].copy()
@@ -475,6 +616,11 @@ class TeleopTask:
             "no_input_cycles": self.no_input_cycles,
             "missing_head_poses": self.missing_head_poses,
             "barrier_dropped": self.barrier.dropped,
+            "haptic_lost": self.haptic_lost,
+            "haptic_reordered": self.haptic_reordered,
+            "haptic_before_state": self.haptic_before_state,
+            "haptic_shed": self.haptic_shed,
+            "states_shed": self.states_shed,
             "stability": {
                 "k_max_n_per_m": self.stability.k_max_n_per_m,
                 "k_workspace_n_per_m": self.stability.k_workspace_n_per_m,

@@ -8,7 +8,10 @@ actually rendered, in the device frame.
 
 - realtime: a :class:`LoopTimer` at the plant period steps the device on wall-clock
   deadlines with the newest feedback (faded out by :class:`FeedbackHold` when stale) and
-  the hand input valid at the newest plant tick seen.
+  the hand input valid at the newest plant tick seen. Each feedback force is handed to
+  the motors the moment it arrives (``haptic.render_on_arrival``; else at the next step)
+  and its trace, completed with FEEDBACK_RX and FEEDBACK_RENDERED, is kept for the
+  latency report (written to ``<run dir>/haptic.trace.npy`` at exit).
 - lockstep: deterministic and event driven. Tick k steps once JOINT_STATE k, the
   FORCE_FEEDBACK of tick k-1 (k >= 1) and the HAND_INPUT that applies at k (if any) are
   all in; the callback that completes the set does the step (no thread hand-off, as in the
@@ -39,11 +42,13 @@ from teleop.messages import (
     HAND_INPUT,
     HAPTIC_STATE,
     JOINT_STATE,
+    N_STAGES,
     Button,
     Flag,
     Stage,
 )
 from teleop.service import STOP_POLL_S, Service
+from teleop.stamps import SHED_AGE_NS, StampLog, shed_path
 from teleop.ticks import TickedInputs, expected_valid_from
 
 logger = logging.getLogger(__name__)
@@ -54,6 +59,10 @@ HAND_INPUT_WAIT_S = 1.0
 OVERSIZED_FEEDBACK_FACTOR = 10.0
 # Lockstep feedback records kept by tick (a few ahead of the device is all that can happen).
 FEEDBACK_KEEP = 64
+# Raw latency files this service writes into its run dir at exit (see teleop/latency.py):
+# one trace row (N_STAGES stamps) per rendered feedback, one (seq, sample ns) per sample.
+TRACE_FILE = "haptic.trace.npy"
+SAMPLES_FILE = "haptic.samples.npy"
 
 
 class HapticService(Service):
@@ -93,6 +102,17 @@ class HapticService(Service):
         self.republished_states = 0
         self.max_force_n = 0.0
         self.max_abs_position_m = 0.0
+        # Realtime latency bookkeeping (stamps of the bilateral loop, feedback stream order).
+        self.render_on_arrival = cfg.haptic.render_on_arrival
+        self.trace_log = StampLog(N_STAGES)
+        self.sample_log = StampLog(2)  # (HAPTIC_STATE seq, HAPTIC_SAMPLE ns)
+        self._pending_trace: np.ndarray | None = None  # render at the next step
+        self._last_feedback_seq = -1
+        self.feedback_lost = 0  # feedback seq gaps
+        self.feedback_reordered = 0  # feedback not newer than the last one
+        self.feedback_superseded = 0  # replaced before the next step rendered it
+        self.feedback_shed = 0  # too old on arrival (this service was behind): not rendered
+        self.shed_log = StampLog(1)  # HAPTIC_SAMPLE stamps of the loops shed here
         self._warned_oversized = False
         self._warned_no_operator = False
 
@@ -149,7 +169,7 @@ class HapticService(Service):
             return
         with self._cond:
             if not self.lockstep:
-                self.hold.receive(force, rx_ns)
+                self._feedback_realtime(rec, force, rx_ns)
                 return
             tick = int(rec["tick"])
             if tick < self._last_tick:
@@ -165,6 +185,32 @@ class HapticService(Service):
             self._operator_absent = False
             if self.lockstep:
                 self._try_steps()
+
+    def _feedback_realtime(self, rec: np.ndarray, force: np.ndarray, rx_ns: int) -> None:
+        """Hold the force; render it now or at the next step; keep its trace (lock held)."""
+        seq = int(rec["seq"])
+        if seq <= self._last_feedback_seq:
+            self.feedback_reordered += 1
+            return  # older than what the handle already feels
+        if self._last_feedback_seq >= 0:
+            self.feedback_lost += seq - self._last_feedback_seq - 1
+        self._last_feedback_seq = seq
+        if time.monotonic_ns() - int(rec["trace_ns"][Stage.FEEDBACK_TX]) > SHED_AGE_NS:
+            self.feedback_shed += 1  # a backlog: a newer force is right behind it
+            if int(rec["trace_ns"][Stage.HAPTIC_SAMPLE]) > 0:
+                self.shed_log.append((int(rec["trace_ns"][Stage.HAPTIC_SAMPLE]),))
+            return
+        self.hold.receive(force, rx_ns)
+        trace = np.array(rec["trace_ns"])
+        trace[Stage.FEEDBACK_RX] = rx_ns
+        if self.render_on_arrival:
+            self.device.render(force)
+            trace[Stage.FEEDBACK_RENDERED] = time.monotonic_ns()
+            self.trace_log.append(trace)
+        else:
+            if self._pending_trace is not None:
+                self.feedback_superseded += 1
+            self._pending_trace = trace
 
     # -- run boundaries ----------------------------------------------------------------
     def _new_run(self) -> None:
@@ -251,8 +297,11 @@ class HapticService(Service):
     # -- realtime ----------------------------------------------------------------------
     def _run_realtime(self, stop: threading.Event) -> None:
         self.timer = LoopTimer(self.period_ns, MonotonicClock())
+        self._first_wake_ns = 0
         while not stop.is_set():
             self.timer.wait()
+            if self.timer.count == 1:
+                self._first_wake_ns = self.timer.last_wake_ns
             with self._cond:
                 tick = max(self._state_seq, 0)
                 hand = self.hand_inputs.latest_at(tick) if self._state_seq >= 0 else None
@@ -273,6 +322,10 @@ class HapticService(Service):
         """
         force, stale = self.hold.force_at(t_ns)
         self.device.render(force)
+        if self._pending_trace is not None:
+            self._pending_trace[Stage.FEEDBACK_RENDERED] = time.monotonic_ns()
+            self.trace_log.append(self._pending_trace)
+            self._pending_trace = None
         if hand is None:
             self.device.step(self.period_s, None, Button.NONE)
         else:
@@ -295,12 +348,27 @@ class HapticService(Service):
         rec["device_f_n"] = sample.f_n
         rec["buttons"] = int(sample.buttons)
         self.state_pub.put(rec)
+        if not self.lockstep:
+            self.sample_log.append((self.steps, sample_ns))
 
     def close(self) -> None:
         device = getattr(self, "device", None)  # None if open() failed before building it
         if device is not None:
             device.close()
+        run_dir = self.options.run_dir
+        if run_dir is not None and getattr(self, "trace_log", None) is not None:
+            with self._cond:
+                self.trace_log.save(run_dir / TRACE_FILE)
+                self.sample_log.save(run_dir / SAMPLES_FILE)
+                self.shed_log.save(shed_path(run_dir, self.name))
         super().close()
+
+    def _rate_hz(self) -> float | None:
+        """Device steps per second of wall time over the realtime run (None in lockstep)."""
+        if self.timer is None or self.timer.count < 2:
+            return None
+        elapsed_ns = self.timer.last_wake_ns - self._first_wake_ns
+        return (self.timer.count - 1) * NS_PER_S / elapsed_ns if elapsed_ns > 0 else None
 
     def summary(self) -> dict[str, Any]:
         timer = self.timer.summary() if self.timer is not None else {}
@@ -316,6 +384,13 @@ class HapticService(Service):
             "missing_hand_inputs": self.missing_hand_inputs,
             "oversized_feedback": self.oversized_feedback,
             "republished_states": self.republished_states,
+            "feedback_lost": self.feedback_lost,
+            "feedback_reordered": self.feedback_reordered,
+            "feedback_superseded": self.feedback_superseded,
+            "feedback_shed": self.feedback_shed,
+            "feedback_rendered": len(self.trace_log) + self.trace_log.overflow,
+            "trace_rows_not_kept": self.trace_log.overflow,
+            "rate_hz": self._rate_hz(),
             "max_stable_stiffness_n_per_m": max_stable_stiffness_n_per_m(
                 self.config.haptic, self.period_s
             ),

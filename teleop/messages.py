@@ -7,7 +7,7 @@ controller in another language can replace ours from the tables in ``docs/protoc
 
 Body fields are ordered 8-byte integers, then ``f64`` fields, then small integers.
 Every multi-byte field therefore sits at an offset that is a multiple of its size (the
-header is 88 bytes), and all the ``f64`` values of a record form one contiguous block,
+header is 104 bytes), and all the ``f64`` values of a record form one contiguous block,
 which lets :meth:`Schema.decode` check finiteness and every limit with one vectorised
 comparison.
 
@@ -15,8 +15,10 @@ Records are 0-d structured numpy arrays: ``rec["q_rad"][:n]``, ``int(rec["seq"])
 A decoded record is a read-only view of the received bytes (no copy).
 
 Adding a kind is one :class:`Kind` member plus one :class:`Schema` declaration below.
-A future "header + trailing bytes" kind (the eye-view image) keeps the same header and
-a fixed body; its schema would accept ``len(buf) >= itemsize`` and hand back the tail.
+A "header + trailing bytes" kind (the eye-view image, :class:`FrameSchema`) keeps the
+same header and a fixed body, followed by the pixels; its ``decode`` accepts exactly
+``itemsize + height_px * width_px * channels`` bytes and ``decode_frame`` hands back the
+pixels as a read-only (H, W, C) view.
 """
 
 from __future__ import annotations
@@ -33,10 +35,12 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-PROTOCOL_VERSION = 1  # bumped on any incompatible change of a layout below
+PROTOCOL_VERSION = 2  # bumped on any incompatible change of a layout below (2: 10 trace stages)
 MAX_JOINTS = 8  # joint arrays are padded with zeros to this length; n_joints says how many count
 MAX_OBJECTS = 8  # object pose arrays are padded to this length; n_objects says how many count
-N_STAGES = 8  # length of the header's trace_ns array (one slot per Stage)
+N_STAGES = 10  # length of the header's trace_ns array (one slot per Stage)
+MAX_IMAGE_SIDE_PX = 4096  # width and height of an EYE_VIEW image are at most this
+RGB_CHANNELS = 3  # EYE_VIEW pixels: 8-bit R, G, B
 
 # Declared per-field limits (validated on decode; a record outside them is dropped).
 JOINT_POSITION_LIMIT_RAD = 100.0
@@ -69,23 +73,29 @@ class Kind(enum.IntEnum):
     HEAD_POSE = 11
     OBSTACLE_PROXIMITY = 12
     TELEOP_STATUS = 13
+    EYE_VIEW = 14
 
 
 class Stage(enum.IntEnum):
     """Index into the header's ``trace_ns`` array: where a latency stamp was taken.
 
     Each stamp is ``time.monotonic_ns()`` of the host at that stage; 0 means unset.
-    A record copies the stamps of the record it answers, then adds its own.
+    A record copies the stamps of the record it answers, then adds its own. In
+    teleoperation the indices follow the bilateral loop in order, so the stamps of one
+    loop are non-decreasing from the handle sample to the rendered force:
+    haptic -> controller -> plant -> controller -> haptic (see docs/protocol.md).
     """
 
-    HAPTIC_SAMPLE = 0
-    CONTROLLER_RX = 1
-    CONTROLLER_TX = 2
-    PLANT_RX = 3
-    PLANT_APPLIED = 4
-    PLANT_STATE_TX = 5
-    FEEDBACK_TX = 6
-    FEEDBACK_RENDERED = 7
+    HAPTIC_SAMPLE = 0  # haptic: the handle is sampled (HAPTIC_STATE published)
+    CONTROLLER_RX = 1  # controller: the haptic sample (path following: the state) arrives
+    CONTROLLER_TX = 2  # controller: the JOINT_COMMAND computed from it is published
+    PLANT_RX = 3  # plant: the command arrives
+    PLANT_APPLIED = 4  # plant: the command enters a physics step
+    PLANT_STATE_TX = 5  # plant: the JOINT_STATE after that step is published
+    CONTROLLER_STATE_RX = 6  # controller: that state arrives
+    FEEDBACK_TX = 7  # controller: the FORCE_FEEDBACK computed from it is published
+    FEEDBACK_RX = 8  # haptic: the feedback arrives
+    FEEDBACK_RENDERED = 9  # haptic: the force is set on the handle's motors
 
 
 class Flag(enum.IntFlag):
@@ -289,6 +299,47 @@ def peek_kind(buf: bytes | bytearray | memoryview) -> int | None:
     if len(buf) < _HEADER_PREFIX.size:
         return None
     return _HEADER_PREFIX.unpack_from(buf, 0)[1]
+
+
+class FrameSchema(Schema):
+    """A record followed by the pixels of one image: ``height_px * width_px * channels``
+    bytes of ``u1``, row-major, top row first (the body must declare those three fields).
+
+    The fixed part is validated exactly as for :class:`Schema`; then the tail must have
+    exactly the size the record announces, else the frame is dropped (``Reason.SIZE``).
+    """
+
+    def pixel_bytes(self, rec: np.ndarray) -> int:
+        """Size of the pixel tail ``rec`` announces (bytes)."""
+        return int(rec["height_px"]) * int(rec["width_px"]) * int(rec["channels"])
+
+    def frame_bytes(self, width_px: int, height_px: int, channels: int = RGB_CHANNELS) -> int:
+        """Wire size of one whole frame of that image size: record plus pixels (bytes)."""
+        return self.size + width_px * height_px * channels
+
+    def encode_frame(self, rec: np.ndarray, pixels: np.ndarray) -> bytes:
+        """Record bytes followed by the pixels; ``pixels`` (H, W, C) u1 must match ``rec``."""
+        shape = (int(rec["height_px"]), int(rec["width_px"]), int(rec["channels"]))
+        if pixels.shape != shape or pixels.dtype != np.uint8:
+            raise ValueError(f"{self.kind.name}: pixels {pixels.shape} {pixels.dtype}, not {shape}")
+        return self.encode(rec) + pixels.tobytes()
+
+    def decode(self, buf: bytes | bytearray | memoryview) -> np.ndarray:
+        """The record (a view of the fixed part) of a whole frame; see :meth:`decode_frame`."""
+        return self.decode_frame(buf)[0]
+
+    def decode_frame(self, buf: bytes | bytearray | memoryview) -> tuple[np.ndarray, np.ndarray]:
+        """(record, pixels): the validated record and a read-only (H, W, C) view of the tail."""
+        if len(buf) < self.size:
+            raise DecodeError(self.kind, Reason.SIZE, f"{len(buf)} B, below the {self.size} B head")
+        view = memoryview(buf)
+        rec = super().decode(view[: self.size])
+        expected = self.size + self.pixel_bytes(rec)
+        if len(buf) != expected:
+            raise DecodeError(self.kind, Reason.SIZE, f"{len(buf)} B, expected {expected} B")
+        shape = (int(rec["height_px"]), int(rec["width_px"]), int(rec["channels"]))
+        pixels = np.frombuffer(view, np.uint8, expected - self.size, self.size).reshape(shape)
+        return rec, pixels
 
 
 # --- Field helpers: units and limits declared once ---------------------------------------
@@ -533,6 +584,29 @@ TELEOP_STATUS = Schema(
     ],
 )
 
+_STAMP = {"unit": "ns"}
+
+EYE_VIEW = FrameSchema(
+    Kind.EYE_VIEW,
+    [
+        Field("sim_time_ns", "i8", unit="ns", doc="sim time of the JOINT_STATE the image shows"),
+        Field("state_seq", "u8", doc="seq of the JOINT_STATE rendered"),
+        Field("head_seq", "u8", doc="seq of the HEAD_POSE rendered for (0: fixed viewpoint)"),
+        Field("head_t_source_ns", "i8", **_STAMP, doc="its t_source_ns (HMD sample); 0: fixed"),
+        Field("head_rx_ns", "i8", **_STAMP, doc="when the renderer received it; 0: fixed"),
+        Field("render_start_ns", "i8", **_STAMP, doc="render began (= t_source_ns)"),
+        Field("render_end_ns", "i8", **_STAMP, doc="pixels read back"),
+        Field("publish_ns", "i8", **_STAMP, doc="just before the put (SHM copy after it)"),
+        Field("world_p_eye_m", "f8", (3,), **_POS, doc="eye position, world frame"),
+        Field("yaw_rad", "f8", lo=-4.0, hi=4.0, unit="rad", doc="view yaw about world z"),
+        Field("pitch_rad", "f8", lo=-4.0, hi=4.0, unit="rad", doc="view pitch, + = nose down"),
+        Field("fov_y_rad", "f8", lo=0.0, hi=3.2, unit="rad", doc="vertical field of view"),
+        Field("width_px", "u2", lo=1, hi=MAX_IMAGE_SIDE_PX, unit="px", doc="image width"),
+        Field("height_px", "u2", lo=1, hi=MAX_IMAGE_SIDE_PX, unit="px", doc="image height"),
+        Field("channels", "u1", lo=RGB_CHANNELS, hi=RGB_CHANNELS, doc="3: RGB, 8 bit each"),
+    ],
+)
+
 SCHEMAS: Mapping[Kind, Schema] = {
     s.kind: s
     for s in (
@@ -549,6 +623,7 @@ SCHEMAS: Mapping[Kind, Schema] = {
         HEAD_POSE,
         OBSTACLE_PROXIMITY,
         TELEOP_STATUS,
+        EYE_VIEW,
     )
 }
 
@@ -618,6 +693,13 @@ def layout_table() -> str:
         body = schema.fields[len(HEADER_FIELDS) :]
         out += ["", f"### {schema.kind.name} (kind {int(schema.kind)}, {schema.size} bytes)"]
         out += ["", *head, *_field_rows(schema.dtype, body)]
+        if isinstance(schema, FrameSchema):
+            out += [
+                "",
+                "Followed by `height_px * width_px * channels` bytes of pixels (u1, RGB, "
+                "row-major, top row first); the record is dropped unless the tail has "
+                "exactly that size.",
+            ]
     return "\n".join(out) + "\n"
 
 

@@ -2,10 +2,15 @@
 
 One code path, two timing modes:
 
-- realtime: a :class:`LoopTimer` paces the steps on absolute wall-clock deadlines;
-  each step applies the newest valid command. The watchdog brakes (holds the arm
-  where it is) when the newest command answers a state older than
-  ``plant.watchdog_s``, and resumes as soon as fresh commands arrive.
+- realtime: the plant keeps wall-clock time, one step per period on average, after a
+  stall skipping ticks, never bursting. In teleoperation with
+  ``plant.apply_on_arrival`` (the default) each command enters a step the moment it
+  arrives, in the Zenoh callback: the step grid is phase-locked to the commands (see
+  :class:`ArrivalGrid`), so a command never waits for the plant's tick, and a period
+  without a command is stepped at its end with the last command. Otherwise a
+  :class:`LoopTimer` paces the steps and each applies the newest command. The
+  watchdog brakes (holds the arm where it is) when the command answers a state older
+  than ``plant.watchdog_s``, and resumes as soon as fresh commands arrive.
 - lockstep: the plant publishes a state and steps when the command that answers it
   (``state_seq``) arrives, inside the command callback, so a cycle costs no thread
   hand-off: deterministic, as fast as plant + controller allow.
@@ -18,6 +23,7 @@ watchdog changes: RUN_EVENT.
 
 from __future__ import annotations
 
+import collections
 import logging
 import threading
 import time
@@ -47,11 +53,67 @@ from teleop.messages import (
 from teleop.plant import Plant
 from teleop.proximity import ObstacleProximity
 from teleop.service import Service
+from teleop.stamps import SHED_AGE_NS, StampLog, shed_path
 
 logger = logging.getLogger(__name__)
 
 # Lockstep: re-send the pending state if no command answers it within this time (s).
 LOCKSTEP_RESEND_S = 1.0
+# Apply on arrival: where in its window the first command is placed when the grid
+# phase-locks (fraction of a period after the window opens). Arrival jitter is mostly
+# late (wake-ups), so a command may come up to 3/4 period late and still get its step.
+ARRIVAL_PHASE_FRACTION = 0.25
+# Apply on arrival: a step that starts later than this fraction of a period after its
+# window closed is a stall: the windows that passed meanwhile are skipped (no burst).
+ARRIVAL_LATE_TOLERANCE_FRACTION = 0.5
+# Apply on arrival: commands waiting for a step at most; older ones are dropped and
+# counted (a burst this long means the plant was stalled, their time is gone).
+ARRIVAL_QUEUE_MAX = 4
+
+
+class ArrivalGrid:
+    """Step windows of a plant that applies each command on arrival (times in ns).
+
+    Step ``n`` may run in the window ``[open_n, open_n + period)``: at once when a
+    command arrives in it (or at ``open_n`` if one is already waiting), else at the
+    window's end with the last command. ``open_n = t0 + n * period`` on an absolute
+    grid, so the plant keeps wall-clock time however the steps fall in their windows.
+    :meth:`lock` moves the grid's phase so that a command arriving at ``t_ns`` sits
+    ``ARRIVAL_PHASE_FRACTION`` of a period into its window: the haptic device's clock
+    then paces the steps (as a fieldbus's distributed clock), with room for jitter.
+    Pure arithmetic, no clock of its own, so tests can drive it with any times.
+    """
+
+    def __init__(self, period_ns: int, start_ns: int) -> None:
+        if period_ns <= 0:
+            raise ValueError(f"period_ns must be > 0, got {period_ns}")
+        self.period_ns = period_ns
+        self.next_open_ns = start_ns  # window of the next step to run
+        self.skipped = 0  # windows that passed without any step (stalls)
+        self.locked = False
+
+    @property
+    def close_ns(self) -> int:
+        """End of the next step's window: it runs then at the latest."""
+        return self.next_open_ns + self.period_ns
+
+    def lock(self, t_ns: int) -> None:
+        """Put the next window around a command that arrives at ``t_ns``."""
+        self.next_open_ns = t_ns - round(self.period_ns * ARRIVAL_PHASE_FRACTION)
+        self.locked = True
+
+    def catch_up(self, now_ns: int) -> None:
+        """Skip windows that closed before ``now_ns`` (never run them in a burst)."""
+        if now_ns >= self.close_ns:
+            missed = (now_ns - self.close_ns) // self.period_ns + 1
+            self.skipped += missed
+            self.next_open_ns += missed * self.period_ns
+
+    def stepped(self) -> None:
+        """The next step ran: move to the following window."""
+        self.next_open_ns += self.period_ns
+
+
 # Lockstep cycle breakdown: the newest cycles kept (a ring; 60 s of lockstep fits).
 CYCLE_STATS_CAPACITY = 1 << 16
 
@@ -157,6 +219,34 @@ class PlantService(Service):
         self._lockstep_running = False
         self._lockstep_done = threading.Event()
         self.cycle_stats = LockstepCycleStats()
+        # Realtime apply-on-arrival state, shared by the run thread and the command
+        # callback (which steps the plant itself when the command's window is open).
+        # Only in teleoperation: there the haptic device's clock paces the commands. In
+        # path following each command answers the plant's own state, so the plant's tick
+        # is the loop's only clock and the newest command is the one to apply.
+        self.apply_on_arrival = self.config.plant.apply_on_arrival and teleoperated
+        # A window's step may still run this long after the window closed (wake-up
+        # lateness of the run thread); later than that the windows passed are skipped.
+        self.late_tolerance_ns = round(self.period_ns * ARRIVAL_LATE_TOLERANCE_FRACTION)
+        self._arrival_cond = threading.Condition()
+        self._arrival_queue: collections.deque[tuple[np.ndarray, int]] = collections.deque()
+        self._arrival_running = False
+        self._arrival_steps: int | None = None
+        self._grid: ArrivalGrid | None = None
+        self._held_command: np.ndarray | None = None
+        self._braking = False
+        self._last_applied_seq = -1
+        self._last_command_seq = -1
+        self.steps_on_arrival = 0  # steps a command started the moment it arrived
+        self.steps_waited = 0  # steps whose command came early and waited for its window
+        self.steps_without_command = 0  # windows that ended without a new command
+        self.late_steps = 0  # steps run after their window had closed (stalls)
+        self.commands_lost = 0  # JOINT_COMMAND seq gaps (realtime)
+        self.commands_reordered = 0  # JOINT_COMMAND not newer than the last one
+        self.commands_dropped = 0  # queue overflow after a stall
+        self.commands_stale = 0  # arrived too old to apply (the watchdog brakes instead)
+        self.commands_shed = 0  # older than SHED_AGE_NS on arrival (this service was behind)
+        self.shed_log = StampLog(1)  # HAPTIC_SAMPLE stamps of the commands dropped here
         self.announce()
 
     def _on_event(self, rec: np.ndarray, rx_ns: int) -> None:
@@ -178,6 +268,8 @@ class PlantService(Service):
             return
         if self._lockstep_running:
             self._lockstep_cycle(rec, rx_ns)
+        elif self._arrival_running:
+            self._arrival_command(rec.copy(), rx_ns)
         else:
             self.commands(rec.copy(), rx_ns)
 
@@ -193,7 +285,11 @@ class PlantService(Service):
         self.events_pub.put(rec)
         logger.info("event %s at step %d", event.name, self.plant.step_count)
 
-    def _publish_state(self, command: np.ndarray | None, rx_ns: int, applied_ns: int) -> None:
+    def _publish_state(
+        self, command: np.ndarray | None, rx_ns: int, applied_ns: int, *, traced: bool = True
+    ) -> None:
+        """Publish the state after a step; ``traced``: the command entered it first-hand
+        (its stamps continue in this state), else it was only held from an earlier step."""
         sample = self.plant.sample()
         n = self.plant.n_joints
         rec = self._state
@@ -208,9 +304,12 @@ class PlantService(Service):
         rec["gripper_opening_m"] = sample.gripper_opening_m
         if command is not None:
             rec["cmd_seq_applied"] = command["seq"]
+        if command is not None and traced:
             rec["trace_ns"][:] = command["trace_ns"]
             rec["trace_ns"][Stage.PLANT_RX] = rx_ns
             rec["trace_ns"][Stage.PLANT_APPLIED] = applied_ns
+        else:
+            rec["trace_ns"][:] = 0  # no command entered this step: nothing to trace
         now_ns = time.monotonic_ns()
         rec["t_source_ns"] = now_ns
         rec["trace_ns"][Stage.PLANT_STATE_TX] = now_ns
@@ -288,6 +387,8 @@ class PlantService(Service):
         start_ns = time.monotonic_ns()
         if self.config.run.mode == "lockstep":
             self._run_lockstep(stop, steps)
+        elif self.apply_on_arrival:
+            self._run_on_arrival(stop, steps)
         else:
             self._run_realtime(stop, steps)
         self.wall_s = (time.monotonic_ns() - start_ns) / NS_PER_S
@@ -317,10 +418,11 @@ class PlantService(Service):
                 self.plant.step(
                     command["qd_ref_rad_s"][: self.plant.n_joints], float(command["gripper_cmd"])
                 )
-                if int(command["seq"]) != last_applied_seq:
+                new_command = int(command["seq"]) != last_applied_seq
+                if new_command:
                     self.commands_applied += 1
                     last_applied_seq = int(command["seq"])
-                self._publish_state(command, rx_ns, applied_ns)
+                self._publish_state(command, rx_ns, applied_ns, traced=new_command)
             else:
                 if command is not None:
                     self.stale_steps += 1
@@ -333,6 +435,127 @@ class PlantService(Service):
                         self._publish_event(Event.WATCHDOG_BRAKE, age_s)
                 self.plant.step_braking()
                 self._publish_state(None, 0, 0)
+
+    # -- realtime, apply on arrival -----------------------------------------------------
+    def _run_on_arrival(self, stop: threading.Event, steps: int | None) -> None:
+        """Step on each command's arrival; this thread runs the steps no command started.
+
+        A command that arrives while its window is open is stepped in the callback
+        (:meth:`_arrival_command`); this thread steps a command that came early (a second
+        one within a window) when the next window opens, and ends every window that got
+        no command by stepping with the last one (or braking).
+        """
+        start_ns = time.monotonic_ns()
+        with self._arrival_cond:
+            self._grid = ArrivalGrid(self.period_ns, start_ns)
+            self._held_command = None
+            self._braking = False
+            self._last_applied_seq = -1
+            self._last_command_seq = -1
+            self._arrival_queue.clear()
+            self._arrival_steps = steps
+            self._arrival_running = True
+            try:
+                while not stop.is_set() and self._should_step(steps):
+                    grid = self._grid
+                    now_ns = time.monotonic_ns()
+                    if self._arrival_queue and now_ns >= grid.next_open_ns:
+                        self.steps_waited += 1
+                        self._arrival_step(now_ns)
+                    elif now_ns >= grid.close_ns:
+                        self._arrival_step(now_ns)
+                    else:
+                        due_ns = grid.next_open_ns if self._arrival_queue else grid.close_ns
+                        self._arrival_cond.wait(max(due_ns - now_ns, 0) / NS_PER_S)
+            finally:
+                self._arrival_running = False
+
+    def _arrival_command(self, command: np.ndarray, rx_ns: int) -> None:
+        """A command arrived: step with it now if its window is open, else queue it."""
+        with self._arrival_cond:
+            if not self._arrival_running or self._grid is None:
+                return
+            seq = int(command["seq"])
+            if seq <= self._last_command_seq:
+                self.commands_reordered += 1
+                return
+            if self._last_command_seq >= 0:
+                self.commands_lost += seq - self._last_command_seq - 1
+            self._last_command_seq = seq
+            if time.monotonic_ns() - int(command["trace_ns"][Stage.CONTROLLER_TX]) > SHED_AGE_NS:
+                self.commands_shed += 1  # a backlog: a newer command is right behind it
+                self._log_shed(command)
+                return
+            if not self._grid.locked:
+                self._grid.lock(rx_ns)
+            self._arrival_queue.append((command, rx_ns))
+            while len(self._arrival_queue) > ARRIVAL_QUEUE_MAX:
+                dropped, _ = self._arrival_queue.popleft()
+                self.commands_dropped += 1
+                self._log_shed(dropped)
+            now_ns = time.monotonic_ns()
+            if (
+                now_ns >= self._grid.next_open_ns
+                and len(self._arrival_queue) == 1
+                and self._should_step(self._arrival_steps)
+            ):
+                self.steps_on_arrival += 1
+                self._arrival_step(now_ns)
+            else:
+                self._arrival_cond.notify_all()  # the run thread steps it (early or late)
+
+    def _log_shed(self, command: np.ndarray) -> None:
+        sample_ns = int(command["trace_ns"][Stage.HAPTIC_SAMPLE])
+        if sample_ns > 0:
+            self.shed_log.append((sample_ns,))
+
+    def close(self) -> None:
+        if self.options.run_dir is not None and getattr(self, "shed_log", None) is not None:
+            with self._arrival_cond:
+                self.shed_log.save(shed_path(self.options.run_dir, self.name))
+        super().close()
+
+    def _arrival_step(self, now_ns: int) -> None:
+        """One physics step: the oldest queued command, else the last one held (cond held)."""
+        grid = self._grid
+        assert grid is not None
+        if now_ns >= grid.close_ns + self.late_tolerance_ns:
+            self.late_steps += 1  # a stall: skip the windows that passed, run this one now
+            grid.catch_up(now_ns)
+        rx_ns = 0
+        if self._arrival_queue:
+            command, rx_ns = self._arrival_queue.popleft()
+            self._held_command = command
+        else:
+            self.steps_without_command += 1
+            command = None
+        held = self._held_command
+        fresh = held is not None and self.state_seq - int(held["state_seq"]) <= self.watchdog_steps
+        if fresh:
+            assert held is not None
+            if self._braking:
+                self._braking = False
+                self._publish_event(Event.WATCHDOG_RESUME)
+            applied_ns = time.monotonic_ns()
+            self.plant.step(held["qd_ref_rad_s"][: self.plant.n_joints], float(held["gripper_cmd"]))
+            if int(held["seq"]) != self._last_applied_seq:
+                self.commands_applied += 1
+                self._last_applied_seq = int(held["seq"])
+            self._publish_state(held, rx_ns, applied_ns, traced=command is not None)
+        else:
+            if command is not None:
+                self.commands_stale += 1
+                self._log_shed(command)
+            if held is not None:
+                self.stale_steps += 1
+                if not self._braking:
+                    self._braking = True
+                    self.stale_commands += 1
+                    age_s = (self.state_seq - int(held["state_seq"])) * self.config.plant.timestep_s
+                    self._publish_event(Event.WATCHDOG_BRAKE, age_s)
+            self.plant.step_braking()
+            self._publish_state(None, 0, 0)
+        grid.stepped()
 
     def _run_lockstep(self, stop: threading.Event, steps: int | None) -> None:
         """Let the command callback drive the steps; re-send the state if it goes unanswered."""
@@ -369,6 +592,27 @@ class PlantService(Service):
             self._publish_state(command, rx_ns, applied_ns)
             self.cycle_stats.add(answered_tx_ns, self._state["trace_ns"])
 
+    def _arrival_summary(self) -> dict[str, Any]:
+        """Timing figures of the apply-on-arrival realtime loop (empty otherwise)."""
+        if self._grid is None:
+            return {}
+        steps = max(self.plant.step_count, 1)
+        return {
+            "overrun_fraction": self.late_steps / steps,
+            "skipped_ticks": self._grid.skipped,
+            "arrival": {
+                "steps_on_arrival": self.steps_on_arrival,
+                "steps_waited": self.steps_waited,
+                "steps_without_command": self.steps_without_command,
+                "late_steps": self.late_steps,
+                "commands_lost": self.commands_lost,
+                "commands_reordered": self.commands_reordered,
+                "commands_dropped": self.commands_dropped,
+                "commands_stale": self.commands_stale,
+                "commands_shed": self.commands_shed,
+            },
+        }
+
     def summary(self) -> dict[str, Any]:
         sim_time_s = self.plant.step_count * self.config.plant.timestep_s
         timer = self.timer.summary() if self.timer is not None else {}
@@ -393,6 +637,8 @@ class PlantService(Service):
             "obstacle_min_clearance_m": self.min_obstacle_clearance_m,
             "tool_speed_max_m_s": self.max_tool_speed_m_s,
             "object_in_box": self.plant.object_in_bin(),
+            "rate_hz": self.plant.step_count / self.wall_s if self.wall_s > 0 else None,
+            **self._arrival_summary(),
             "object_poses_m": {
                 name: self.plant.data.xpos[body].tolist()
                 for name, body in zip(

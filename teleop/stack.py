@@ -41,6 +41,9 @@ SCENARIO_SERVICES = {
     "path-following": ("plant", "controller", "recorder"),
     "grasp": ("plant", "controller", "haptic", "hmd", "operator", "recorder"),
 }
+# The operator's eye view renders in a process of its own (see teleop/eyeview.py for why
+# not a thread in the plant); it joins the stack of any scenario when eyeview.enabled.
+EYEVIEW = "eyeview"
 RUNNER = "runner"
 # Start order (supervisord priority: lower first); services still wait on liveliness.
 PRIORITY = {
@@ -49,6 +52,7 @@ PRIORITY = {
     "haptic": 20,
     "hmd": 20,
     "operator": 20,
+    "eyeview": 20,
     "plant": 30,
 }
 # Environment of every service: no telemetry, headless rendering, unbuffered logs.
@@ -66,6 +70,16 @@ ALIVE_TIMEOUT_S = 60.0
 LOCKSTEP_TIMEOUT_FACTOR = 20.0
 REALTIME_TIMEOUT_FACTOR = 2.0
 RUN_TIMEOUT_SLACK_S = 30.0
+
+
+def scenario_services(config: Config) -> tuple[str, ...]:
+    """The processes of ``config.run.scenario``, plus the eye view when it is enabled
+    (in realtime runs; in lockstep ones only with ``eyeview.in_lockstep``)."""
+    services = SCENARIO_SERVICES[config.run.scenario]
+    eye = config.eyeview
+    if eye.enabled and (config.run.mode == "realtime" or eye.in_lockstep):
+        return (*services, EYEVIEW)
+    return services
 
 
 class RunError(RuntimeError):
@@ -129,7 +143,7 @@ def run_on_services(
     progress: ProgressFn | None = None,
 ) -> dict[str, Any]:
     """Run ``config.run.scenario`` on the supervised services; return the merged summary."""
-    services = SCENARIO_SERVICES[config.run.scenario]
+    services = scenario_services(config)
     run_dir = run_dir.absolute()
     run_dir.mkdir(parents=True, exist_ok=True)
     for stale in run_dir.glob("*.summary.json"):
@@ -212,12 +226,32 @@ def run_on_services(
             "skipped_states": controller["skipped_states"],
             "final_state_sha256": plant["final_state_sha256"],
             "stack_wall_s": wall_s,
+            "eye_view": _eye_view_summary(summaries),
             "rrd": summaries["recorder"].get("rrd_path"),
             "run_dir": str(run_dir),
             "services": summaries,
         }
     )
     return summary
+
+
+def _eye_view_summary(summaries: dict[str, dict[str, Any]]) -> dict[str, Any] | None:
+    """Frames rendered and received (over SHM), render time, CPU shares, latency."""
+    eyeview = summaries.get(EYEVIEW)
+    if eyeview is None:
+        return None
+    recorder = summaries["recorder"]
+    received = recorder.get("eye_view", {})
+    return {
+        "frames_published": eyeview["frames_published"],
+        "frames_received": received.get("received"),
+        "frames_received_shm": received.get("received_shm"),
+        "logged_bytes_per_frame": received.get("logged_bytes_per_frame"),
+        "render_ms_p50": eyeview["render_ms_p50"],
+        "renderer_cpu_share": eyeview["cpu_share"],
+        "recorder_cpu_share": recorder.get("cpu_share"),
+        "latency_ms": {k: v for k, v in received.items() if k.endswith("_ms")},
+    }
 
 
 def _grasp_summary(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
@@ -276,7 +310,7 @@ def start_detached(
     run_overrides = list(overrides)
     if not config.recorder.rrd_path:
         run_overrides.append(f'recorder.rrd_path="{run_dir / "recording.rrd"}"')
-    services = SCENARIO_SERVICES[config.run.scenario]
+    services = scenario_services(config)
     programs = service_programs(
         services,
         config_file,

@@ -33,6 +33,7 @@ class Topics:
     head_pose: str = field(init=False)  # hmd -> controller/operator, HEAD_POSE, 90 Hz
     obstacle_proximity: str = field(init=False)  # plant -> controller, 1 kHz
     teleop_status: str = field(init=False)  # controller -> recorder/operator, 100 Hz
+    eye_view: str = field(init=False)  # eyeview -> recorder, EYE_VIEW, eyeview.rate_hz (SHM)
     alive_all: str = field(init=False)  # every service's liveliness token
 
     def __post_init__(self) -> None:
@@ -52,6 +53,7 @@ class Topics:
             "head_pose": "hmd/pose",
             "obstacle_proximity": "state/obstacle_proximity",
             "teleop_status": "control/teleop",
+            "eye_view": "view/eye",
             "alive_all": "alive/*",
         }
         for name, stream in streams.items():
@@ -61,6 +63,13 @@ class Topics:
     def all_streams(self) -> str:
         """Every key of this robot (for a recorder that logs everything)."""
         return _key(self.robot_id, "**")
+
+    def floor(self, leg: str) -> str:
+        """Key of one leg of the transport-floor relay chain (``teleop latency``), e.g.
+        ``teleop/arm0/floor/command``: apart from the real streams, same QoS and config."""
+        if not leg or any(c in leg for c in "/*$?#"):
+            raise ValueError(f"leg name {leg!r}: non-empty, one key chunk")
+        return _key(self.robot_id, f"floor/{leg}")
 
     def alive(self, service: str) -> str:
         """Liveliness token key of one service, e.g. ``teleop/arm0/alive/plant``."""

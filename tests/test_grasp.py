@@ -12,10 +12,16 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from teleop import recorder as r
+from teleop.blueprint import view_specs
 from teleop.config import load_config
 from teleop.feedback import STANDARD_GRAVITY_M_S2
+from teleop.report import write_report
+from teleop.rrd import Recording
+from teleop.scene3d import ENTITY_GHOSTS, SceneModel
 
 # Tolerance on the held weight the operator feels, as a fraction of m g.
 WEIGHT_TOLERANCE = 0.10
@@ -62,9 +68,106 @@ def test_lockstep_grasp_is_deterministic(tmp_path):
     assert_physical(first)
 
 
-def test_obstacle_is_felt_and_avoided(tmp_path):
+@pytest.fixture(scope="module")
+def obstacle_run(tmp_path_factory) -> tuple[dict, Path]:
+    """One lockstep grasp with an obstacle (the summary and its run directory), shared by
+    the obstacle test and the recording and report tests below."""
+    tmp_path = tmp_path_factory.mktemp("grasp_obstacle")
     args = [item for override in OBSTACLE for item in ("--set", override)]
     summary = grasp(tmp_path, "obstacle", "--mode", "lockstep", "--seed", "2", *args)
+    return summary, tmp_path / "obstacle"
+
+
+def test_obstacle_is_felt_and_avoided(obstacle_run):
+    summary, _ = obstacle_run
     assert summary["success"]
     assert summary["obstacle_min_clearance_m"] > 0.0
     assert summary["max_obstacle_force_n"] > 0.0
+
+
+def _times(cols: dict, timeline: str) -> list[int]:
+    return [t for t in cols.get(timeline, []) if t is not None]
+
+
+def test_grasp_recording_holds_every_entity_the_blueprint_shows(obstacle_run):
+    summary, run_dir = obstacle_run
+    logged = json.loads((run_dir / "recorder.summary.json").read_text())["samples_logged"]
+    config = load_config(None, ['run.scenario="grasp"', *OBSTACLE])
+    rec = Recording(summary["rrd"])
+    assert rec.has_blueprint
+    data = rec.lists()
+
+    # Which stream feeds each time-series entity the blueprint shows, for its sample count.
+    feeds = {r.axis_entity(r.ENTITY_FEEDBACK_DEVICE_F, a): "force_feedback" for a in r.AXES}
+    for axis in r.AXES:
+        for base in (r.ENTITY_TELEOP_V_REF, r.ENTITY_TELEOP_V_TOOL, r.ENTITY_TELEOP_V_ERROR):
+            feeds[r.axis_entity(base, axis)] = "teleop_status"
+    feeds.update({r.norm_entity(c): "force_feedback" for c in r.FEEDBACK_COMPONENTS})
+    for spec in view_specs(config):
+        for entity in spec.entities:
+            values = data[entity]["Scalars:scalars"]
+            assert len(values) == logged[feeds[entity]], entity
+            assert len(set(data[entity][r.TIMELINE_SIM])) == len(values), entity  # own times
+        for root in spec.subtrees:
+            if root == r.ENTITY_EYE_VIEW:  # rendered in realtime runs only (test_eyeview.py)
+                continue
+            assert any(e.startswith(root + "/") or e == root for e in data), root
+
+    # Loop rates: one per flush of each periodic stream; hops: per record with both stamps.
+    n_flushes = json.loads((run_dir / "recorder.summary.json").read_text())["flushes"]
+    for stream in r.PERIODIC_STREAMS - {"control_status"}:
+        n = len(data[r.rate_entity(stream)]["Scalars:scalars"])
+        assert 1 <= n <= n_flushes, stream
+    hops = {e.split("/")[1]: data[e] for e in data if e.startswith(r.ENTITY_LATENCY + "/")}
+    assert set(hops) >= {"joint_state", "force_feedback"}
+    for stream, cols in hops.items():
+        assert 0 < len(cols["Scalars:scalars"]) <= logged[stream], stream
+        names = cols["SeriesLines:names"][-1]
+        assert all(name.count("_to_") == 1 for name in names)
+        values = np.array([v + [np.nan] * (len(names) - len(v)) for v in cols["Scalars:scalars"]])
+        assert np.nanmin(values) >= 0.0 and not np.isnan(values).all(axis=0).any(), stream
+
+    # Events: every RUN_EVENT plus the recorder's lines (services joining the bus).
+    assert len(data[r.ENTITY_EVENTS]["TextLog:text"]) == logged["events"]
+    texts = [t[0] for t in data[r.ENTITY_RECORDER_EVENTS]["TextLog:text"]]
+    assert any("GRASP" in t[0] for t in data[r.ENTITY_EVENTS]["TextLog:text"])
+    assert any(t == "service plant joined the bus" for t in texts)
+
+    # The 3D scene: every visual geom of the model once (static), every moving body at
+    # the scene rate, each at the sim and source time of the joint state it came from.
+    scene = SceneModel(config, r.ENTITY_OBJECTS)
+    for geom in scene.geoms:
+        assert geom.entity in data, geom.entity
+    joint_cols = data[r.joint_entity(r.ENTITY_JOINT_Q, config.robot.arm_joints[0])]
+    state_times = dict(zip(joint_cols[r.TIMELINE_SIM], joint_cols[r.TIMELINE_SOURCE], strict=True))
+    sim_end_s = max(state_times) * 1e-9
+    for body in scene.moving_bodies:
+        cols = data[scene.body_entity(body)]
+        sims = cols[r.TIMELINE_SIM]
+        assert abs(len(sims) - sim_end_s * config.recorder.scene_rate_hz) <= 2
+        assert all(state_times[t] == u for t, u in zip(sims, cols[r.TIMELINE_SOURCE], strict=True))
+    ghosts = {e.split("/")[2] for e in data if e.startswith(ENTITY_GHOSTS + "/")}
+    assert len(ghosts) == int(sim_end_s // config.recorder.ghost_period_s) + 1
+    for component in r.FORCE_ARROW_COLORS:
+        assert data[r.force_arrow_entity(component)]["Arrows3D:vectors"], component
+
+
+def test_report_writes_the_paper_figures(obstacle_run, tmp_path):
+    summary, _ = obstacle_run
+    report = write_report(summary["rrd"], tmp_path / "report")
+    names = {p.name for p in report.figures}
+    assert names == {
+        "fig7_stroboscopic.png",
+        "fig12_reference_vs_actual_velocity.png",
+        "fig13_control_error.png",
+        "fig_feedback_forces.png",
+        "fig_timing.png",
+    }
+    for figure in report.figures:
+        assert figure.read_bytes().startswith(b"\x89PNG") and figure.stat().st_size > 10_000
+    text = report.summary.read_text()
+    assert all(name in text for name in names)
+    assert report.metrics["max_weight_force_n"] == pytest.approx(
+        summary["held_weight_n"], rel=WEIGHT_TOLERANCE
+    )
+    assert report.metrics["ghost_poses"] >= 2

@@ -35,11 +35,21 @@ def _filled(schema: m.Schema, rng: np.random.Generator) -> np.ndarray:
             rec[f.name] = f.hi
         else:
             rec[f.name] = 3
+    if isinstance(schema, m.FrameSchema):  # a small image: the pixel tail stays tiny
+        rec["width_px"], rec["height_px"] = 4, 2
     return rec
 
 
+def _wire(schema: m.Schema, rec: np.ndarray) -> bytes:
+    """The bytes a producer sends: the record, plus the pixels for a frame kind."""
+    if isinstance(schema, m.FrameSchema):
+        shape = (int(rec["height_px"]), int(rec["width_px"]), int(rec["channels"]))
+        return schema.encode_frame(rec, np.arange(np.prod(shape), dtype=np.uint8).reshape(shape))
+    return schema.encode(rec)
+
+
 def test_header_layout_is_fixed():
-    assert m.HEADER_SIZE == 88
+    assert m.HEADER_SIZE == 104
     offsets = {name: m.HEADER_DTYPE.fields[name][1] for name in m.HEADER_DTYPE.names}
     assert offsets == {
         "version": 0,
@@ -69,14 +79,31 @@ def test_kinds_are_unique_and_registered():
 @pytest.mark.parametrize("schema", ALL, ids=IDS)
 def test_round_trip(schema: m.Schema):
     rec = _filled(schema, np.random.default_rng(0))
-    buf = schema.encode(rec)
-    assert len(buf) == schema.size
+    buf = _wire(schema, rec)
+    assert len(buf) == schema.size + (
+        schema.pixel_bytes(rec) if schema.kind == m.Kind.EYE_VIEW else 0
+    )
     out = schema.decode(buf)
-    assert out.tobytes() == buf
+    assert out.tobytes() == buf[: schema.size]
     assert int(out["version"]) == m.PROTOCOL_VERSION and int(out["kind"]) == schema.kind
     assert m.peek_kind(buf) == schema.kind
     assert not out.flags.writeable  # a view of the received bytes, not a copy
-    assert schema.decode(memoryview(bytearray(buf))).tobytes() == buf
+    assert schema.decode(memoryview(bytearray(buf))).tobytes() == buf[: schema.size]
+
+
+def test_frame_pixels_round_trip_and_a_wrong_tail_is_dropped():
+    rec = _filled(m.EYE_VIEW, np.random.default_rng(1))
+    buf = _wire(m.EYE_VIEW, rec)
+    out, pixels = m.EYE_VIEW.decode_frame(buf)
+    assert pixels.shape == (2, 4, 3) and not pixels.flags.writeable
+    assert pixels.tobytes() == buf[m.EYE_VIEW.size :]
+    assert out.tobytes() == rec.tobytes()
+    for bad in (buf[:-1], buf + b"\0", buf[: m.EYE_VIEW.size], buf[:10]):
+        _expect(m.EYE_VIEW, bad, m.Reason.SIZE)
+    rec["channels"] = 4  # only RGB
+    _expect(m.EYE_VIEW, m.EYE_VIEW.encode(rec) + bytes(32), m.Reason.COUNT)
+    with pytest.raises(ValueError):
+        m.EYE_VIEW.encode_frame(rec, np.zeros((2, 4, 3), np.uint8))
 
 
 def test_header_values_are_little_endian_on_the_wire():
@@ -85,7 +112,12 @@ def test_header_values_are_little_endian_on_the_wire():
     rec["flags"] = m.Flag.BRAKING
     buf = m.JOINT_STATE.encode(rec)
     version, kind, flags, seq = struct.unpack_from("<HHIQ", buf, 0)
-    assert (version, kind, flags, seq) == (1, m.Kind.JOINT_STATE, 1, 0x0102030405060708)
+    assert (version, kind, flags, seq) == (
+        m.PROTOCOL_VERSION,
+        m.Kind.JOINT_STATE,
+        1,
+        0x0102030405060708,
+    )
 
 
 def test_encode_rejects_a_record_of_another_kind():
@@ -105,8 +137,8 @@ def test_rejects_wrong_size_version_kind():
     _expect(m.JOINT_STATE, good[:-1], m.Reason.SIZE)
     _expect(m.JOINT_STATE, good + b"\0", m.Reason.SIZE)
     _expect(m.JOINT_STATE, b"", m.Reason.SIZE)
-    _expect(m.JOINT_STATE, struct.pack("<H", 2) + good[2:], m.Reason.VERSION)
-    wrong_kind = struct.pack("<HH", 1, m.Kind.TOOL_POSE) + good[4:]
+    _expect(m.JOINT_STATE, struct.pack("<H", m.PROTOCOL_VERSION + 1) + good[2:], m.Reason.VERSION)
+    wrong_kind = struct.pack("<HH", m.PROTOCOL_VERSION, m.Kind.TOOL_POSE) + good[4:]
     _expect(m.JOINT_STATE, wrong_kind, m.Reason.KIND)
 
 

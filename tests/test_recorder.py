@@ -2,7 +2,7 @@
 
 The recorder runs in-process on a thread with its own loopback endpoint; a second
 session publishes known records once the recorder's liveliness token is up. The
-``.rrd`` is then read back with ``rerun.chunk.RrdReader`` and every value and time
+``.rrd`` is then read back with ``teleop.rrd.read_rrd`` and every value and time
 compared with what was sent: samples must sit at their own sim_time / source_time,
 not at their arrival time.
 """
@@ -13,22 +13,20 @@ import json
 import os
 import socket
 import threading
-from collections import defaultdict
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pyarrow as pa
 import pytest
 import zenoh
-from rerun.chunk import RrdReader
 
 from teleop import bus
 from teleop import messages as m
 from teleop import recorder as r
 from teleop.config import Config, ConfigError, load_config
+from teleop.rrd import read_rrd
 from teleop.service import ServiceOptions
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")
@@ -36,6 +34,7 @@ os.environ.setdefault("TELEMETRY_ENABLED", "false")
 
 TIMEOUT_S = 10.0  # bound on any single wait; passing runs take well under 1 s each
 FLUSH_PERIOD_S = 0.05  # short, so a test spans several flushes
+RATE_WINDOW_S = 0.05  # loop-rate window (producer clock): several per test
 ROBOT = "rectest"
 JOINTS = ("j1", "j2", "j3", "j4", "j5", "j6")
 OBJECTS = ("cube", "ball")
@@ -69,6 +68,13 @@ EVENTS = (
     (m.Event.TASK_DONE, 5000, 1.0),
     (m.Event.TASK_DONE, 6000, 0.0),
 )
+# JOINT_STATE's latency stamps: how long before the record's t_source_ns each was taken.
+HOP_STAMPS_NS = {
+    m.Stage.CONTROLLER_RX: 900_000,
+    m.Stage.CONTROLLER_TX: 600_000,
+    m.Stage.PLANT_RX: 450_000,
+    m.Stage.PLANT_STATE_TX: 0,
+}
 HAND_TICK0 = 4_000  # first valid_from_tick of the HAND_INPUT records
 CONTACT_FEEDBACK_N = (3.0, 4.0, 0.0)  # norm 5 N
 WEIGHT_FEEDBACK_N = (0.0, 0.0, -1.962)  # 0.2 kg held
@@ -94,6 +100,7 @@ def make_config(rrd_path: Path | str, endpoint: str) -> Config:
             f"robot.object_bodies={json.dumps(list(OBJECTS))}",
             f'recorder.rrd_path="{rrd_path}"',
             f"recorder.flush_period_s={FLUSH_PERIOD_S}",
+            f"recorder.rate_window_s={RATE_WINDOW_S}",
         ),
     )
 
@@ -120,6 +127,8 @@ def build(stream: str, i: int) -> np.ndarray:
         rec["q_rad"][: len(JOINTS)] = 0.001 * i + np.arange(len(JOINTS))
         rec["qd_rad_s"][: len(JOINTS)] = -0.002 * i
         rec["step"] = i
+        for stage, before_ns in HOP_STAMPS_NS.items():
+            rec["trace_ns"][stage] = source_ns(i) - before_ns
     elif stream == "joint_command":
         rec["n_joints"] = len(JOINTS)
         rec["qd_ref_rad_s"][: len(JOINTS)] = 0.01 * i - np.arange(len(JOINTS))
@@ -184,24 +193,6 @@ def build(stream: str, i: int) -> np.ndarray:
 # --- reading the .rrd back ---------------------------------------------------------------
 
 
-def read_rrd(path: Path) -> dict[str, dict[str, list[Any]]]:
-    """{entity: {column: values}} over every chunk of the file's recording.
-
-    Duration time columns come back as int nanoseconds; one-element lists (a Scalars
-    row) are unwrapped. Rows keep chunk order, so compare sorted or per sim time.
-    """
-    out: dict[str, dict[str, list[Any]]] = defaultdict(lambda: defaultdict(list))
-    for chunk in RrdReader(path).stream():
-        batch = chunk.to_record_batch()
-        entity = chunk.entity_path.lstrip("/")
-        for name in batch.schema.names:
-            column = batch.column(name)
-            if pa.types.is_duration(column.type):
-                column = column.cast(pa.int64())
-            out[entity][name].extend(column.to_pylist())
-    return out
-
-
 def series(data: dict[str, dict[str, list[Any]]], entity: str) -> dict[int, float]:
     """A Scalars entity as {sim_time or source_time ns: value}."""
     cols = data[entity]
@@ -221,9 +212,12 @@ class Rig:
     stop: threading.Event
     thread: threading.Thread
 
-    def publish(self, counts: dict[str, int], first: int = 0) -> None:
+    def publish(
+        self, counts: dict[str, int], first: int = 0, received: dict[str, int] | None = None
+    ) -> None:
         """Send records ``first .. first + counts[stream] - 1`` of each stream, interleaved,
-        then wait until the recorder has received them all."""
+        then wait until the recorder has received them all (``received`` records per
+        stream in total; default ``first + counts[stream]``)."""
         topics = self.service.topics
         pubs = {
             s: bus.Publisher.declare(self.session, getattr(topics, s), r.STREAM_SCHEMAS[s])
@@ -236,7 +230,7 @@ class Rig:
                 for stream, n in counts.items():
                     if i < n:
                         pubs[stream].put(build(stream, first + i))
-            expected = {s: first + n for s, n in counts.items()}
+            expected = received or {s: first + n for s, n in counts.items()}
             assert self.service.wait_received(expected, TIMEOUT_S), "recorder missed records"
         finally:
             for pub in pubs.values():
@@ -537,3 +531,39 @@ def test_head_quaternion_looks_along_yaw_and_pitch(yaw_rad, pitch_rad):
     # The head's +z (up) stays in the plane of forward and world z: no roll.
     up = rotate(q, np.array([0.0, 0.0, 1.0]))
     assert np.cross(forward, [0.0, 0.0, 1.0]) @ up == pytest.approx(0.0, abs=1e-12)
+
+
+def test_rates_hops_and_seq_gaps_are_derived_from_the_records(rig_factory, tmp_path):
+    rig = rig_factory()
+    n = 60
+    rig.publish({"joint_state": n})
+    assert rig.service.wait_flushes(rig.service.flushes + 2, TIMEOUT_S)
+    missing = 7
+    # The seq jumps: 7 records lost.
+    rig.publish({"joint_state": n}, first=n + missing, received={"joint_state": 2 * n})
+    rig.finish()
+    data = read_rrd(rig.service.rrd_path)
+
+    # Each hop between consecutive stamps, in ms, at the record's own sim time: one
+    # series per hop in the stream's latency entity, named by the stages.
+    stages = list(HOP_STAMPS_NS)
+    sent = [sim_ns(i) for i in (*range(n), *range(n + missing, 2 * n + missing))]
+    cols = data[r.latency_entity("joint_state")]
+    assert sorted(cols[r.TIMELINE_SIM]) == sent
+    hops = list(zip(stages, stages[1:], strict=False))
+    assert cols["SeriesLines:names"][-1] == [r.hop_name(a, b) for a, b in hops]
+    expected_ms = [(HOP_STAMPS_NS[a] - HOP_STAMPS_NS[b]) / 1e6 for a, b in hops]
+    for row in cols["Scalars:scalars"]:
+        assert row == pytest.approx(expected_ms)
+
+    # Loop rate: records per second of the producer's clock over each window (one record
+    # per 3 ms here), lower only for a window that spans the gap.
+    rates = [v[0] for v in data[r.rate_entity("joint_state")]["Scalars:scalars"]]
+    full_hz = 1e9 / (source_ns(1) - source_ns(0))
+    assert len(rates) >= 2
+    assert max(rates) == pytest.approx(full_hz, rel=1e-6)
+    assert all(0.5 * full_hz <= v <= full_hz * (1 + 1e-6) for v in rates)
+
+    texts = [t[0] for t in data[r.ENTITY_RECORDER_EVENTS]["TextLog:text"]]
+    assert f"joint_state: {missing} record(s) missing (seq gaps)" in texts
+    assert "service recorder joined the bus" in texts

@@ -1,0 +1,14 @@
+"""Transport-floor relay process (plant's place in the chain; see teleop.relay)."""
+
+import sys
+
+from teleop.relay import PlantRelay
+from teleop.service import service_main
+
+
+def main() -> int:
+    return service_main(PlantRelay)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,163 @@
+"""Opening a recording: the native Rerun viewer, or the web viewer on a loopback port.
+
+Both use the ``rerun`` executable that comes with ``rerun-sdk`` (next to the Python
+interpreter), so the viewer always matches the SDK that wrote the recording.
+
+The web viewer is ``rerun --serve-web``: an HTTP server for the viewer's page and a gRPC
+server that the page reads from. It serves a saved ``.rrd``, or, with no file, whatever
+a recorder streams to its gRPC address (``recorder.grpc_url``; ``teleop run --web``).
+The gRPC server keeps what it received for viewers that connect later.
+"""
+
+from __future__ import annotations
+
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from urllib.parse import quote
+
+LOOPBACK = "127.0.0.1"
+# How long to wait for the web viewer's HTTP port to accept connections (s) ...
+SERVE_TIMEOUT_S = 30.0
+# ... polling it this often (s).
+SERVE_POLL_S = 0.05
+# Memory the gRPC server may keep for late viewers (Rerun's size syntax).
+SERVER_MEMORY_LIMIT = "2GiB"
+# How long a stopped viewer process gets to exit after SIGINT before it is killed (s).
+STOP_TIMEOUT_S = 5.0
+
+
+class ViewerError(RuntimeError):
+    """The viewer could not be started."""
+
+
+def rerun_executable() -> str:
+    """The ``rerun`` executable of this environment (beside the interpreter, else PATH)."""
+    beside = Path(sys.executable).with_name("rerun")
+    if beside.exists():
+        return str(beside)
+    found = shutil.which("rerun")
+    if found is None:
+        raise ViewerError("no `rerun` executable: install rerun-sdk in this environment")
+    return found
+
+
+def free_port() -> int:
+    """A loopback TCP port the OS just reported free."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((LOOPBACK, 0))
+        return int(s.getsockname()[1])
+
+
+def grpc_url(port: int) -> str:
+    """The Rerun gRPC proxy address of a server on ``port`` (what SDK sinks connect to)."""
+    return f"rerun+http://{LOOPBACK}:{port}/proxy"
+
+
+@dataclass
+class WebViewer:
+    """A running ``rerun --serve-web``: its process, page address and gRPC address."""
+
+    process: subprocess.Popen[bytes]
+    web_port: int
+    grpc_port: int
+
+    @property
+    def url(self) -> str:
+        """The page to open in a browser; it connects itself to the gRPC server."""
+        return f"http://{LOOPBACK}:{self.web_port}/?url={quote(self.grpc_url, safe='')}"
+
+    @property
+    def grpc_url(self) -> str:
+        return grpc_url(self.grpc_port)
+
+    def wait(self) -> int:
+        """Block until the server exits (Ctrl-C stops it); its exit code."""
+        return self.process.wait()
+
+    def stop(self) -> None:
+        """Stop the server (SIGINT, then SIGKILL after STOP_TIMEOUT_S). Safe to call twice."""
+        if self.process.poll() is not None:
+            return
+        self.process.send_signal(signal.SIGINT)
+        try:
+            self.process.wait(STOP_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+
+    def __enter__(self) -> WebViewer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def _wait_listening(process: subprocess.Popen[bytes], port: int, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            raise ViewerError(f"the web viewer exited with code {process.returncode}")
+        try:
+            with socket.create_connection((LOOPBACK, port), timeout=SERVE_POLL_S):
+                return
+        except OSError:
+            time.sleep(SERVE_POLL_S)
+    raise ViewerError(f"the web viewer did not listen on port {port} within {timeout_s:g} s")
+
+
+def serve_web(
+    rrd_path: Path | None = None,
+    *,
+    web_port: int | None = None,
+    grpc_port: int | None = None,
+    log_path: Path | None = None,
+) -> WebViewer:
+    """Start the web viewer on loopback ports (free ones unless given) and wait until its
+    page is served. With ``rrd_path`` it shows that file; without, what SDKs stream to
+    its gRPC address. The server's own log goes to ``log_path`` (default: discarded).
+    """
+    if rrd_path is not None and not rrd_path.is_file():
+        raise ViewerError(f"no recording {rrd_path}")
+    web_port = web_port or free_port()
+    grpc_port = grpc_port or free_port()
+    args = [
+        rerun_executable(),
+        "--serve-web",
+        "--bind",
+        LOOPBACK,
+        "--port",
+        str(grpc_port),
+        "--web-viewer-port",
+        str(web_port),
+        "--server-memory-limit",
+        SERVER_MEMORY_LIMIT,
+    ]
+    if rrd_path is not None:
+        args.append(str(rrd_path))
+    log = open(log_path, "ab") if log_path is not None else subprocess.DEVNULL
+    try:
+        process = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=log, stderr=log)
+    finally:
+        if log_path is not None:
+            log.close()
+    viewer = WebViewer(process, web_port, grpc_port)
+    try:
+        _wait_listening(process, web_port, SERVE_TIMEOUT_S)
+        _wait_listening(process, grpc_port, SERVE_TIMEOUT_S)
+    except BaseException:
+        viewer.stop()
+        raise
+    return viewer
+
+
+def open_native(rrd_path: Path) -> int:
+    """Open ``rrd_path`` in the native viewer (needs a display); its exit code."""
+    if not rrd_path.is_file():
+        raise ViewerError(f"no recording {rrd_path}")
+    return subprocess.call([rerun_executable(), str(rrd_path)], stdin=subprocess.DEVNULL)
