@@ -414,20 +414,10 @@ class TeleopTask:
         state = latest_state[0]
         tick = int(state["seq"])
         service = self.service
-        config = service.config
-        n = service.arm.n_joints
         t0 = time.monotonic_ns()
-        handle_d_m = np.array(haptic["device_p_m"])
-        buttons = Button(int(haptic["buttons"]))
-        clutch = bool(buttons & Button.CLUTCH)
-        gripper_cmd = GRIPPER_CLOSED if buttons & Button.GRIPPER_CLOSE else GRIPPER_OPEN
-        yaw_rad = self._head_yaw_rad(tick)
-        v_ref = teleop_reference(handle_d_m, yaw_rad, clutch, config.teleop)
         latest_proximity = self.proximity.get()
         obstacle = self._proximity_sample(latest_proximity[0] if latest_proximity else None)
-        output = self.controller.update(
-            state["q_rad"][:n], state["qd_rad_s"][:n], v_ref, obstacle, gripper_cmd, clutch
-        )
+        output, gripper_cmd, _, _ = self._control(tick, state, haptic, obstacle)
         service.compute_ns_total += time.monotonic_ns() - t0
         trace = np.zeros_like(state["trace_ns"])
         trace[Stage.HAPTIC_SAMPLE] = haptic["trace_ns"][Stage.HAPTIC_SAMPLE]
@@ -467,6 +457,32 @@ class TeleopTask:
         if self._last_output is not None:
             self._measure(self._last_output, components, device_f_n, held_mass)
 
+    def _control(
+        self,
+        tick: int,
+        state: np.ndarray,
+        haptic: np.ndarray | None,
+        obstacle: ProximitySample | None,
+    ) -> tuple[TeleopOutput, float, np.ndarray, float]:
+        """One control law cycle from the handle (None: no input, the tool holds still).
+
+        Returns the output, the gripper command, the handle offset (m, device frame) and
+        the view yaw (rad) it was computed with.
+        """
+        if haptic is None:
+            handle_d_m, buttons = np.zeros(3), Button.NONE
+        else:
+            handle_d_m, buttons = np.array(haptic["device_p_m"]), Button(int(haptic["buttons"]))
+        clutch = bool(buttons & Button.CLUTCH)
+        gripper_cmd = GRIPPER_CLOSED if buttons & Button.GRIPPER_CLOSE else GRIPPER_OPEN
+        yaw_rad = self._head_yaw_rad(tick)
+        v_ref = teleop_reference(handle_d_m, yaw_rad, clutch, self.service.config.teleop)
+        n = self.service.arm.n_joints
+        output = self.controller.update(
+            state["q_rad"][:n], state["qd_rad_s"][:n], v_ref, obstacle, gripper_cmd, clutch
+        )
+        return output, gripper_cmd, handle_d_m, yaw_rad
+
     def _feedback_force(
         self,
         contact: np.ndarray | None,
@@ -503,28 +519,15 @@ class TeleopTask:
     # -- the cycle -----------------------------------------------------------------------
     def _on_tick(self, tick: int, records: dict[str, np.ndarray]) -> None:
         service = self.service
-        config = service.config
         state = records["state"]
         haptic = records.get("haptic")
         if haptic is not None and tick - int(haptic["tick"]) > self.stale_ticks:
             haptic = None  # the handle went silent: no reference, the tool holds still
-        n = service.arm.n_joints
         t0 = time.monotonic_ns()
         if haptic is None:
             self.no_input_cycles += 1
-            handle_d_m = np.zeros(3)
-            buttons = Button.NONE
-        else:
-            handle_d_m = np.array(haptic["device_p_m"])
-            buttons = Button(int(haptic["buttons"]))
-        clutch = bool(buttons & Button.CLUTCH)
-        gripper_cmd = GRIPPER_CLOSED if buttons & Button.GRIPPER_CLOSE else GRIPPER_OPEN
-        yaw_rad = self._head_yaw_rad(tick)
-        v_ref = teleop_reference(handle_d_m, yaw_rad, clutch, config.teleop)
         obstacle = self._proximity_sample(records.get("proximity"))
-        output = self.controller.update(
-            state["q_rad"][:n], state["qd_rad_s"][:n], v_ref, obstacle, gripper_cmd, clutch
-        )
+        output, gripper_cmd, handle_d_m, yaw_rad = self._control(tick, state, haptic, obstacle)
         components, device_f_n, held_mass = self._feedback_force(
             records.get("contact"), obstacle, handle_d_m, yaw_rad
         )
