@@ -34,12 +34,15 @@ lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 
+# The web viewer's screenshot test needs Chromium: install it if we can (root, Debian);
+# without it that test checks the page is served and skips the screenshot.
 test: lint
+	-@test -x $(CHROMIUM) || $(MAKE) --no-print-directory chromium
 	$(BIN)/python -m pytest
 
 # Debian's Chromium, for the headless screenshot of the web viewer served by --web.
-# `make test` runs that test only when Chromium is there (else it checks the page is
-# served and skips the screenshot); `make test-web` installs it and requires it.
+# `make test` installs it when it can and runs the screenshot test when it is there (else
+# the test checks the page is served and skips the screenshot); `make test-web` requires it.
 CHROMIUM ?= /usr/bin/chromium
 $(CHROMIUM):
 	apt-get update
