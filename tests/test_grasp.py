@@ -25,6 +25,11 @@ from teleop.scene3d import ENTITY_GHOSTS, SceneModel
 
 # Tolerance on the held weight the operator feels, as a fraction of m g.
 WEIGHT_TOLERANCE = 0.10
+# Measured tool speed over the 0.25 m/s cap, as a fraction of it. Lockstep: 1 %. Realtime:
+# a command may reach its step a few ms after the state it answers (the drives lag), and a
+# clean-clone CI run saw 1.3 % once; 3 % still catches a cap that is not enforced.
+SPEED_TOLERANCE_LOCKSTEP = 0.01
+SPEED_TOLERANCE_REALTIME = 0.03
 # An obstacle beside the carry path, below it: felt and avoided, never blocking.
 OBSTACLE = ("scene.obstacle_p_m=[[0.42, 0.05, 0.12]]", "scene.obstacle_radius_m=[0.04]")
 
@@ -42,12 +47,12 @@ def grasp(tmp_path: Path, name: str, *args: str) -> dict:
     return summary
 
 
-def assert_physical(summary: dict) -> None:
+def assert_physical(summary: dict, speed_tolerance: float = SPEED_TOLERANCE_LOCKSTEP) -> None:
     config = load_config()
     assert summary["max_device_force_n"] <= config.haptic.peak_force_n + 1e-9
     weight_n = config.teleop.object_mass_kg * STANDARD_GRAVITY_M_S2
     assert summary["held_weight_n"] == pytest.approx(weight_n, rel=WEIGHT_TOLERANCE)
-    assert summary["tool_speed_max_m_s"] <= config.teleop.max_tool_speed_m_s * 1.01
+    assert summary["tool_speed_max_m_s"] <= config.teleop.max_tool_speed_m_s * (1 + speed_tolerance)
     assert summary["dropped_messages"] == 0
 
 
@@ -55,7 +60,7 @@ def test_realtime_grasp_puts_the_cube_in_the_bin(tmp_path):
     summary = grasp(tmp_path, "rt", "--mode", "realtime", "--seed", "0")
     assert summary["success"] and summary["object_in_box"]
     assert [p["name"] for p in summary["phases"]][-1] == "retreat"
-    assert_physical(summary)
+    assert_physical(summary, SPEED_TOLERANCE_REALTIME)
     assert Path(summary["rrd"]).stat().st_size > 0
 
 
