@@ -151,11 +151,9 @@ def manipulability_and_gradient(jacobian: np.ndarray) -> tuple[float, np.ndarray
     vx, vy, vz, zx, zy, zz = jacobian.tolist()
     n = len(vx)
     # J J^T = [[a, b, c], [b, e, f], [c, f, i]] and its adjugate (cofactors).
-    a, b, c = _dot(vx, vx), _dot(vx, vy), _dot(vx, vz)
-    e, f, i = _dot(vy, vy), _dot(vy, vz), _dot(vz, vz)
-    c00, c01, c02 = e * i - f * f, c * f - b * i, b * f - c * e
-    c11, c12, c22 = a * i - c * c, b * c - a * f, a * e - b * b
-    det = a * c00 + b * c01 + c * c02
+    (c00, c01, c02, c11, c12, c22), det = _symmetric_adjugate(
+        _dot(vx, vx), _dot(vx, vy), _dot(vx, vz), _dot(vy, vy), _dot(vy, vz), _dot(vz, vz)
+    )
     if det <= 0.0:
         return 0.0, np.zeros(n)
     w = math.sqrt(det)
@@ -193,16 +191,21 @@ def symmetric_3x3_inverse(m: np.ndarray) -> tuple[np.ndarray, float]:
     matrix gives ``det == 0`` and a NaN inverse: callers check ``det``.
     """
     (a, b, c), (_, e, f), (_, _, i) = m.tolist()
-    c00, c01, c02 = e * i - f * f, c * f - b * i, b * f - c * e
-    det = a * c00 + b * c01 + c * c02
+    (c00, c01, c02, c11, c12, c22), det = _symmetric_adjugate(a, b, c, e, f, i)
     if det == 0.0:
         return np.full((3, 3), np.nan), 0.0
-    adjugate = (
-        (c00, c01, c02),
-        (c01, a * i - c * c, b * c - a * f),
-        (c02, b * c - a * f, a * e - b * b),
-    )
+    adjugate = ((c00, c01, c02), (c01, c11, c12), (c02, c12, c22))
     return np.array(adjugate) / det, det
+
+
+def _symmetric_adjugate(
+    a: float, b: float, c: float, e: float, f: float, i: float
+) -> tuple[tuple[float, float, float, float, float, float], float]:
+    """Upper cofactors (c00, c01, c02, c11, c12, c22) and determinant of the symmetric
+    matrix [[a, b, c], [b, e, f], [c, f, i]] (its adjugate is symmetric too)."""
+    c00, c01, c02 = e * i - f * f, c * f - b * i, b * f - c * e
+    c11, c12, c22 = a * i - c * c, b * c - a * f, a * e - b * b
+    return (c00, c01, c02, c11, c12, c22), a * c00 + b * c01 + c * c02
 
 
 def inverse_dynamics(
