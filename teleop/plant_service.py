@@ -566,12 +566,27 @@ class PlantService(Service):
             while not stop.is_set() and not self._lockstep_done.wait(LOCKSTEP_RESEND_S):
                 with self._lock:
                     if self.plant.step_count == last_step:
-                        self.state_seq -= 1  # same seq: a controller that has it ignores it
-                        self._publish_state(None, 0, 0)
+                        self._republish_pending()
                     last_step = self.plant.step_count
         finally:
             with self._lock:
                 self._lockstep_running = False
+
+    def _republish_pending(self) -> None:
+        """Send the pending tick's records again, byte for byte (same seq and stamps).
+
+        A controller that has them ignores them (or its tick barrier drops them); one
+        that missed them (e.g. not yet subscribed) gets the whole tick; a recorder logs
+        the same samples at the same times.
+        """
+        step = self.plant.step_count
+        self.state_pub.put(self._state)
+        if step % self.interaction_every_steps == 0:
+            self.proximity_pub.put(self._proximity)
+            self.contact_pub.put(self._contact)
+        if step % self.scene_every_steps == 0:
+            self.tool_pub.put(self._tool)
+            self.objects_pub.put(self._objects)
 
     def _lockstep_cycle(self, command: np.ndarray, rx_ns: int) -> None:
         """Apply the command answering the pending state, step, publish the next state."""

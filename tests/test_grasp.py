@@ -144,17 +144,13 @@ def test_grasp_recording_holds_every_entity_the_blueprint_shows(obstacle_run):
     for geom in scene.geoms:
         assert geom.entity in data, geom.entity
     joint_cols = data[r.joint_entity(r.ENTITY_JOINT_Q, config.robot.arm_joints[0])]
-    # sim time -> source times of the joint states at it (lockstep re-sends an unanswered
-    # state after 1 s: same sim time, later source time).
-    state_times: dict[int, set[int]] = {}
-    for sim, source in zip(joint_cols[r.TIMELINE_SIM], joint_cols[r.TIMELINE_SOURCE], strict=True):
-        state_times.setdefault(sim, set()).add(source)
+    state_times = dict(zip(joint_cols[r.TIMELINE_SIM], joint_cols[r.TIMELINE_SOURCE], strict=True))
     sim_end_s = max(state_times) * 1e-9
     for body in scene.moving_bodies:
         cols = data[scene.body_entity(body)]
         sims = cols[r.TIMELINE_SIM]
         assert abs(len(sims) - sim_end_s * config.recorder.scene_rate_hz) <= 2
-        assert all(u in state_times[t] for t, u in zip(sims, cols[r.TIMELINE_SOURCE], strict=True))
+        assert all(state_times[t] == u for t, u in zip(sims, cols[r.TIMELINE_SOURCE], strict=True))
     ghosts = {e.split("/")[2] for e in data if e.startswith(ENTITY_GHOSTS + "/")}
     assert len(ghosts) == int(sim_end_s // config.recorder.ghost_period_s) + 1
     for component in r.FORCE_ARROW_COLORS:
