@@ -100,6 +100,10 @@ class RobotConfig:
         return REPO_ROOT / candidate
 
 
+# More states in flight than this gains nothing (two stages: plant and controller).
+MAX_LOCKSTEP_DELAY_STEPS = 4
+
+
 @dataclass(frozen=True)
 class PlantConfig:
     """The MuJoCo plant: physics period and command watchdog."""
@@ -116,9 +120,20 @@ class PlantConfig:
     # Measured (teleop latency): see README "Latency". false: apply the newest command at
     # each tick of the plant's own clock.
     apply_on_arrival: bool = True
+    # Lockstep and the in-process run: step k applies the command that answers state
+    # k - lockstep_delay_steps (before that: hold still, gripper open). 1: the controller's
+    # one-sample computation delay, as in realtime (a command reaches the plant during
+    # the period after the state it answers); plant and controller then work at the same
+    # time on two states in flight (measured: see README "Lockstep speed"). 0: each step
+    # waits for the answer to its own state, so plant and controller take turns.
+    lockstep_delay_steps: int = 1
 
     def __post_init__(self) -> None:
         _require(0 < self.timestep_s <= 0.01, "plant.timestep_s in (0, 0.01]")
+        _require(
+            0 <= self.lockstep_delay_steps <= MAX_LOCKSTEP_DELAY_STEPS,
+            f"plant.lockstep_delay_steps in [0, {MAX_LOCKSTEP_DELAY_STEPS}]",
+        )
         _require(
             0 < self.scene_rate_hz <= 1 / self.timestep_s, "plant.scene_rate_hz in (0, 1/timestep]"
         )
@@ -399,10 +414,21 @@ class CpuConfig:
     operator: tuple[int, ...] = ()
     recorder: tuple[int, ...] = (1,)
     eyeview: tuple[int, ...] = (1,)
+    # Lockstep: the recorder shares the plant's CPU instead. With the lockstep delay the
+    # controller is the busier of the two (the plant waits for it part of each cycle).
+    recorder_lockstep: tuple[int, ...] = (0,)
 
     def __post_init__(self) -> None:
-        for name in ("plant", "controller", "haptic", "hmd", "operator", "recorder", "eyeview"):
+        names = ("plant", "controller", "haptic", "hmd", "operator", "recorder", "eyeview",
+                 "recorder_lockstep")  # fmt: skip
+        for name in names:
             _require(all(c >= 0 for c in getattr(self, name)), f"cpu.{name}: CPU numbers >= 0")
+
+    def for_service(self, service: str, mode: str) -> tuple[int, ...]:
+        """The CPUs of ``service`` in timing ``mode`` (empty: the kernel's choice)."""
+        if service == "recorder" and mode == "lockstep":
+            return self.recorder_lockstep
+        return tuple(getattr(self, service, ()))
 
 
 @dataclass(frozen=True)

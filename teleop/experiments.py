@@ -7,6 +7,7 @@ the reference against which the service runs are compared (same seed, same
 
 from __future__ import annotations
 
+import collections
 import sys
 import time
 from collections.abc import Callable
@@ -84,15 +85,22 @@ def run_path_following_inprocess(
     steps = round(config.run.duration_s / config.plant.timestep_s)
     report_every = max(1, int(steps * PROGRESS_FRACTION))
     wall_start = time.perf_counter()
+    # Step k applies the command answering state k - delay, as the lockstep plant does.
+    delay = config.plant.lockstep_delay_steps
+    in_flight: collections.deque[np.ndarray] = collections.deque()
     for k in range(steps):
         sample = plant.sample()
         output = controller.update(sample.q_rad, sample.qd_rad_s)
         metrics.add(sample.sim_time_ns * 1e-9, output)
-        plant.step(output.qd_ref_rad_s, gripper_cmd=1.0)
+        in_flight.append(output.qd_ref_rad_s.copy())
+        if k < delay:
+            plant.step_before_commands()
+        else:
+            plant.step(in_flight.popleft(), gripper_cmd=1.0)
         if progress is not None and (k + 1) % report_every == 0:
             progress((k + 1) / steps, plant.sample().sim_time_ns * 1e-9)
     # The final state is measured too, as the controller service does with the last
-    # state the plant publishes (its command is never applied).
+    # state the plant publishes (its command, like those still in flight, is never applied).
     final = plant.sample()
     metrics.add(final.sim_time_ns * 1e-9, controller.update(final.q_rad, final.qd_rad_s))
     wall_s = time.perf_counter() - wall_start

@@ -122,6 +122,14 @@ class Plant:
         mujoco.mj_step(self.model, self.data)
         self.step_count += 1
 
+    def step_before_commands(self) -> None:
+        """A step before the first command applies (lockstep delay): the drives are asked
+        for zero joint velocity, the gripper keeps its opening from :meth:`reset`."""
+        self._hold_q_rad = None
+        self.data.ctrl[self.actuator_index] = 0.0
+        mujoco.mj_step(self.model, self.data)
+        self.step_count += 1
+
     def step_braking(self) -> None:
         """Hold the arm where braking began (watchdog): no drift, gravity held by the drives."""
         q = self.data.qpos[self.qpos_index]

@@ -123,8 +123,11 @@ class LockstepCycleStats:
 
     One cycle: the plant sends state k (``PLANT_STATE_TX``), the controller receives
     it and answers (``CONTROLLER_RX``, ``CONTROLLER_TX``), the plant receives the
-    command (``PLANT_RX``), steps (``PLANT_APPLIED``) and sends state k + 1. All stamps
-    are this host's monotonic clock, so the segments are exact and add up to the cycle.
+    command (``PLANT_RX``), steps (``PLANT_APPLIED``) and sends state k + 1 + d (d:
+    ``plant.lockstep_delay_steps``). All stamps are this host's monotonic clock, so the
+    segments are exact and add up to the cycle. With d states in flight besides the
+    pending one, the plant's ``period`` (between two states sent) is about the cycle
+    divided by d + 1 when neither plant nor controller is the bottleneck.
     """
 
     SEGMENTS = ("to_controller", "controller", "to_plant", "plant_rx", "plant_step")
@@ -153,6 +156,9 @@ class LockstepCycleStats:
         medians = np.median(segments_us, axis=0)
         result = {name: round(float(m), 1) for name, m in zip(self.SEGMENTS, medians, strict=True)}
         result["cycle"] = round(float(np.median(rows[:, -1] - rows[:, 0]) / 1e3), 1)
+        if len(rows) > 1:
+            sent_ns = np.sort(rows[:, -1])
+            result["period"] = round(float(np.median(np.diff(sent_ns))) / 1e3, 1)
         return result
 
 
@@ -219,6 +225,13 @@ class PlantService(Service):
         self._lockstep_running = False
         self._lockstep_done = threading.Event()
         self.cycle_stats = LockstepCycleStats()
+        # Step k applies the command answering state k - delay_steps (PlantConfig).
+        self.delay_steps = self.config.plant.lockstep_delay_steps
+        # Lockstep: what the plant sent for each state in flight (publisher, bytes), for
+        # _republish_pending; None in realtime.
+        self._sent_ticks: collections.deque[list[tuple[Publisher, bytes]]] | None = None
+        if self.config.run.mode == "lockstep":
+            self._sent_ticks = collections.deque(maxlen=self.delay_steps + 1)
         # Realtime apply-on-arrival state, shared by the run thread and the command
         # callback (which steps the plant itself when the command's window is open).
         # Only in teleoperation: there the haptic device's clock paces the commands. In
@@ -293,6 +306,8 @@ class PlantService(Service):
         sample = self.plant.sample()
         n = self.plant.n_joints
         rec = self._state
+        if self._sent_ticks is not None:
+            self._sent_ticks.append([])
         self.state_seq += 1
         rec["seq"] = self.state_seq
         rec["flags"] = Flag.BRAKING if self.plant.braking else Flag.NONE
@@ -313,7 +328,7 @@ class PlantService(Service):
         now_ns = time.monotonic_ns()
         rec["t_source_ns"] = now_ns
         rec["trace_ns"][Stage.PLANT_STATE_TX] = now_ns
-        self.state_pub.put(rec)
+        self._put(self.state_pub, rec)
         if sample.step % self.interaction_every_steps == 0:
             self._publish_proximity(sample.step, sample.sim_time_ns, now_ns)
             self._publish_contact(sample.sim_time_ns, now_ns)
@@ -335,7 +350,7 @@ class PlantService(Service):
         rec["world_n_away"] = closest.world_n_away
         rec["arm_body"] = closest.arm_body
         rec["obstacle_geom"] = closest.obstacle
-        self.proximity_pub.put(rec)
+        self._put(self.proximity_pub, rec)
 
     def _publish_contact(self, sim_time_ns: int, now_ns: int) -> None:
         """Contact force on the gripper every step: it is rendered at 1 kHz as feedback."""
@@ -354,7 +369,7 @@ class PlantService(Service):
         rec["sim_time_ns"] = sim_time_ns
         rec["world_f_contact_n"] = force_n
         rec["n_contacts"] = count
-        self.contact_pub.put(rec)
+        self._put(self.contact_pub, rec)
 
     def _publish_scene(self, sim_time_ns: int, now_ns: int) -> None:
         position, quat = self.plant.tool_pose()
@@ -364,13 +379,20 @@ class PlantService(Service):
             rec["sim_time_ns"] = sim_time_ns
         self._tool["world_p_tool_m"] = position
         self._tool["world_q_tool_wxyz"] = quat
-        self.tool_pub.put(self._tool)
+        self._put(self.tool_pub, self._tool)
         positions, quats = self.plant.object_poses()
         n = len(positions)
         self._objects["n_objects"] = n
         self._objects["world_p_m"][:n] = positions
         self._objects["world_q_wxyz"][:n] = quats
-        self.objects_pub.put(self._objects)
+        self._put(self.objects_pub, self._objects)
+
+    def _put(self, publisher: Publisher, rec: np.ndarray) -> None:
+        """Publish one record of the current tick (kept for a lockstep re-send)."""
+        data = publisher.schema.encode(rec)
+        publisher.put_bytes(data)
+        if self._sent_ticks is not None:
+            self._sent_ticks[-1].append((publisher, data))
 
     # -- the run -------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
@@ -386,6 +408,7 @@ class PlantService(Service):
         self._publish_state(None, 0, 0)
         start_ns = time.monotonic_ns()
         if self.config.run.mode == "lockstep":
+            self._steps_before_commands(steps)
             self._run_lockstep(stop, steps)
         elif self.apply_on_arrival:
             self._run_on_arrival(stop, steps)
@@ -557,10 +580,20 @@ class PlantService(Service):
             self._publish_state(None, 0, 0)
         grid.stepped()
 
+    def _steps_before_commands(self, steps: int | None) -> None:
+        """Lockstep: the first ``lockstep_delay_steps`` steps, which no command answers."""
+        for _ in range(self.delay_steps):
+            if not self._should_step(steps):
+                return
+            self.plant.step_before_commands()
+            self._publish_state(None, 0, 0)
+
     def _run_lockstep(self, stop: threading.Event, steps: int | None) -> None:
         """Let the command callback drive the steps; re-send the state if it goes unanswered."""
         self._lockstep_steps = steps
         self._lockstep_running = True
+        if not self._should_step(steps):
+            self._lockstep_done.set()  # the steps before commands were the whole run
         try:
             last_step = -1
             while not stop.is_set() and not self._lockstep_done.wait(LOCKSTEP_RESEND_S):
@@ -573,27 +606,24 @@ class PlantService(Service):
                 self._lockstep_running = False
 
     def _republish_pending(self) -> None:
-        """Send the pending tick's records again, byte for byte (same seq and stamps).
+        """Send the records of the states in flight again, byte for byte (same seq and
+        stamps): the pending tick's and, with a lockstep delay, those whose answers the
+        plant still needs.
 
         A controller that has them ignores them (or its tick barrier drops them); one
         that missed them (e.g. not yet subscribed) gets the whole tick; a recorder logs
         the same samples at the same times.
         """
-        step = self.plant.step_count
-        self.state_pub.put(self._state)
-        if step % self.interaction_every_steps == 0:
-            self.proximity_pub.put(self._proximity)
-            self.contact_pub.put(self._contact)
-        if step % self.scene_every_steps == 0:
-            self.tool_pub.put(self._tool)
-            self.objects_pub.put(self._objects)
+        for records in self._sent_ticks:
+            for publisher, data in records:
+                publisher.put_bytes(data)
 
     def _lockstep_cycle(self, command: np.ndarray, rx_ns: int) -> None:
         """Apply the command answering the pending state, step, publish the next state."""
         with self._lock:
             if not self._lockstep_running or self._lockstep_done.is_set():
                 return
-            if int(command["state_seq"]) != self.state_seq:
+            if int(command["state_seq"]) != self.state_seq - self.delay_steps:
                 self.unanswered_commands += 1
                 return
             applied_ns = time.monotonic_ns()
@@ -603,7 +633,7 @@ class PlantService(Service):
             self.commands_applied += 1
             if not self._should_step(self._lockstep_steps):
                 self._lockstep_done.set()
-            answered_tx_ns = int(self._state["trace_ns"][Stage.PLANT_STATE_TX])
+            answered_tx_ns = int(command["trace_ns"][Stage.PLANT_STATE_TX])  # its state's
             self._publish_state(command, rx_ns, applied_ns)
             self.cycle_stats.add(answered_tx_ns, self._state["trace_ns"])
 

@@ -192,7 +192,7 @@ def service_main(service_class: type[Service], argv: list[str] | None = None) ->
         await_services=tuple(s for s in args.await_services.split(",") if s),
         continuous=args.continuous,
     )
-    pin_to_cpus(tuple(getattr(config.cpu, service_class.name, ())))
+    pin_to_cpus(config.cpu.for_service(service_class.name, config.run.mode))
     stop = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:

@@ -40,6 +40,8 @@ def test_overrides_parse_toml_literals():
         ("path.center_m=[1, 2]", "path.center_m: expected 3 items"),
         ("robot.arm_actuators=['a']", "one actuator per arm joint"),
         ("missing-equals", "dotted.key=value"),
+        ("plant.lockstep_delay_steps=-1", "plant.lockstep_delay_steps in"),
+        ("plant.lockstep_delay_steps=9", "plant.lockstep_delay_steps in"),
     ],
 )
 def test_bad_values_are_refused_with_the_key_named(override, message):

@@ -70,6 +70,23 @@ def test_lockstep_is_deterministic_and_equals_the_inprocess_run(tmp_path):
     assert Path(first["rrd"]).stat().st_size > 0
 
 
+@pytest.mark.parametrize("delay_steps", [0, 2])
+def test_lockstep_delay_is_the_same_in_services_and_in_process(tmp_path, delay_steps):
+    """Step k applies the answer to state k - delay on the services as in process; the
+    delay changes the trajectory (so the setting is really applied) but not its accuracy."""
+    overrides = ["run.duration_s=1", "run.seed=3", "run.settle_s=0.5"]
+    settings = ["--duration", "1", "--seed", "3", "--set", "run.settle_s=0.5"]
+    delayed = f"plant.lockstep_delay_steps={delay_steps}"
+    services = run_services(tmp_path, "s", "--mode", "lockstep", *settings, "--set", delayed)
+    reference = run_path_following_inprocess(load_config(None, [*overrides, delayed]), None)
+    default = run_path_following_inprocess(load_config(None, overrides), progress=None)
+    assert services["final_state_sha256"] == reference["final_state_sha256"]
+    assert reference["final_state_sha256"] != default["final_state_sha256"]
+    assert services["services"]["plant"]["unanswered_commands"] == 0
+    assert services["services"]["plant"]["commands_applied"] == 1000 - delay_steps
+    assert reference["path_error_max_m"] < 1e-3
+
+
 def test_realtime_run_keeps_time_and_accuracy(tmp_path):
     summary = run_services(
         tmp_path, "rt", "--mode", "realtime", "--duration", "4", "--set", "run.settle_s=2"

@@ -5,7 +5,10 @@ and the process hand-offs. Runs alternate so that machine noise hits both alike;
 the report gives medians and their ratio, and writes them to a JSON file.
 
     .venv/bin/python tests/benchmarks/lockstep_speed.py --duration 10 --repeat 3 \
-        --json runs/bench/lockstep_speed.json
+        --delays 0,1 --json runs/bench/lockstep_speed.json
+
+Each round runs every ``plant.lockstep_delay_steps`` value asked for (0: plant and
+controller take turns; 1: one state in flight while the plant steps).
 """
 
 from __future__ import annotations
@@ -40,46 +43,62 @@ def main() -> int:
     parser.add_argument("--repeat", type=int, default=3, help="runs of each kind")
     parser.add_argument("--json", type=Path, default=Path("runs/bench/lockstep_speed.json"))
     parser.add_argument(
+        "--delays", default="0,1",
+        help="plant.lockstep_delay_steps values to compare, each in every round (default 0,1: "
+             "plant and controller taking turns vs one state in flight)",
+    )  # fmt: skip
+    parser.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE",
-        help="config override for the services runs, e.g. cpu.plant=[] (repeatable)",
+        help="config override for every run, e.g. cpu.plant=[] (repeatable)",
     )  # fmt: skip
     args = parser.parse_args()
-    config = load_config(None, [f"run.duration_s={args.duration}"])
-    inprocess, lockstep, compute_us, cycles_us = [], [], [], []
+    delays = [int(d) for d in args.delays.split(",")]
+    runs: dict[int, dict[str, list]] = {
+        d: {"inprocess": [], "lockstep": [], "compute_us": [], "cycle_us": []} for d in delays
+    }
     with tempfile.TemporaryDirectory(prefix="bench-") as tmp:
         for i in range(args.repeat):
-            reference = run_path_following_inprocess(config, progress=None)
-            inprocess.append(reference["realtime_factor"])
-            summary = lockstep_run(args.duration, Path(tmp) / f"run{i}", args.set)
-            if summary["final_state_sha256"] != reference["final_state_sha256"]:
-                print("lockstep and in-process runs differ: not comparable", file=sys.stderr)
-                return 1
-            lockstep.append(summary["realtime_factor"])
-            compute_us.append(summary["services"]["controller"]["compute_mean_us"])
-            cycles_us.append(summary["services"]["plant"]["lockstep_cycle_us"])
-            print(
-                f"run {i}: in-process {inprocess[-1]:.2f}x, lockstep {lockstep[-1]:.2f}x, "
-                f"cycle (median us) {cycles_us[-1]}"
-            )
-    report = {
-        "duration_s": args.duration,
-        "repeat": args.repeat,
-        "inprocess_realtime_factor": inprocess,
-        "lockstep_realtime_factor": lockstep,
-        "overrides": args.set,
-        "controller_compute_mean_us": compute_us,
-        "lockstep_cycle_us": cycles_us,
-        "inprocess_median": statistics.median(inprocess),
-        "lockstep_median": statistics.median(lockstep),
-        "lockstep_over_inprocess": statistics.median(lockstep) / statistics.median(inprocess),
-    }
+            for delay in delays:
+                overrides = [*args.set, f"plant.lockstep_delay_steps={delay}"]
+                config = load_config(None, [f"run.duration_s={args.duration}", *overrides])
+                reference = run_path_following_inprocess(config, progress=None)
+                summary = lockstep_run(args.duration, Path(tmp) / f"run{i}-{delay}", overrides)
+                if summary["final_state_sha256"] != reference["final_state_sha256"]:
+                    print("lockstep and in-process runs differ: not comparable", file=sys.stderr)
+                    return 1
+                kept = runs[delay]
+                kept["inprocess"].append(reference["realtime_factor"])
+                kept["lockstep"].append(summary["realtime_factor"])
+                kept["compute_us"].append(summary["services"]["controller"]["compute_mean_us"])
+                kept["cycle_us"].append(summary["services"]["plant"]["lockstep_cycle_us"])
+                print(
+                    f"round {i}, delay {delay}: in-process {kept['inprocess'][-1]:.2f}x, "
+                    f"lockstep {kept['lockstep'][-1]:.2f}x, "
+                    f"cycle (median us) {kept['cycle_us'][-1]}"
+                )
+    report: dict = {"duration_s": args.duration, "repeat": args.repeat, "overrides": args.set}
+    for delay, kept in runs.items():
+        report[f"delay_{delay}"] = {
+            **kept,
+            "inprocess_median": statistics.median(kept["inprocess"]),
+            "lockstep_median": statistics.median(kept["lockstep"]),
+            "lockstep_over_inprocess": statistics.median(kept["lockstep"])
+            / statistics.median(kept["inprocess"]),
+        }
+    if len(delays) > 1:
+        base = report[f"delay_{delays[0]}"]["lockstep_median"]
+        report["lockstep_speedup_over_first_delay"] = {
+            str(d): report[f"delay_{d}"]["lockstep_median"] / base for d in delays
+        }
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(report, indent=2) + "\n")
-    print(
-        f"median: lockstep {report['lockstep_median']:.2f}x real time, in-process "
-        f"{report['inprocess_median']:.2f}x, ratio {report['lockstep_over_inprocess']:.2f} "
-        f"-> {args.json}"
-    )
+    for delay in delays:
+        entry = report[f"delay_{delay}"]
+        print(
+            f"delay {delay}: median lockstep {entry['lockstep_median']:.2f}x real time, "
+            f"in-process {entry['inprocess_median']:.2f}x"
+        )
+    print(f"-> {args.json}")
     return 0
 
 
