@@ -23,7 +23,7 @@ from teleop import latency
 from teleop.clock import NS_PER_S, NS_PER_US
 from teleop.haptic_service import SAMPLES_FILE, TRACE_FILE
 from teleop.messages import N_STAGES, Stage
-from teleop.plant_service import ARRIVAL_PHASE_FRACTION, ArrivalGrid
+from teleop.plant_service import ARRIVAL_LEAD_PERIODS, ARRIVAL_PHASE_FRACTION, ArrivalGrid
 from teleop.stamps import StampLog
 
 # HDR histograms keep 3 significant digits: a percentile is within this fraction of the
@@ -141,6 +141,8 @@ def test_arrival_grid_locks_to_commands_and_skips_after_a_stall():
     assert arrival_ns - grid.next_open_ns == round(PERIOD_NS * ARRIVAL_PHASE_FRACTION)
     grid.stepped()
     assert grid.next_open_ns <= arrival_ns + PERIOD_NS < grid.close_ns
+    # A command that comes early (its window taken by a late one) may still step at once.
+    assert grid.earliest_ns == grid.next_open_ns - ARRIVAL_LEAD_PERIODS * PERIOD_NS
     open_before = grid.next_open_ns
     grid.catch_up(grid.close_ns + 2 * PERIOD_NS + 1)  # stalled three windows
     assert grid.skipped == 3 and grid.next_open_ns == open_before + 3 * PERIOD_NS
