@@ -107,7 +107,9 @@ class PlantConfig:
     timestep_s: float = 0.001
     # A command older than this makes the plant brake to zero joint velocity.
     watchdog_s: float = 0.020
-    # Rate of the scene streams (tool pose, contact force, object poses); joint state is 1/step.
+    # Rate of the scene streams (tool pose, object poses) and, outside teleoperation, of the
+    # contact and proximity fields of the joint state (one per step; teleoperation: fresh
+    # every step).
     scene_rate_hz: float = 100.0
     # Realtime teleoperation: a command enters a physics step the moment it arrives (one
     # step per command, the steps phase-locked to the commands' arrival, which the haptic

@@ -118,6 +118,17 @@ def test_grasp_recording_holds_every_entity_the_blueprint_shows(obstacle_run):
                 continue
             assert any(e.startswith(root + "/") or e == root for e in data), root
 
+    # Contact and obstacle proximity ride in every plant state (computed every step in
+    # teleoperation), each at its state's own sim time.
+    state_sims = data[r.joint_entity(r.ENTITY_JOINT_Q, config.robot.arm_joints[0])][r.TIMELINE_SIM]
+    for entity in (
+        *(r.axis_entity(r.ENTITY_CONTACT_FORCE, a) for a in r.AXES),
+        r.ENTITY_CONTACT_COUNT,
+        r.ENTITY_OBSTACLE_DISTANCE,
+    ):
+        assert len(data[entity]["Scalars:scalars"]) == logged["joint_state"], entity
+        assert sorted(data[entity][r.TIMELINE_SIM]) == sorted(state_sims), entity
+
     # Loop rates: one per flush of each periodic stream; hops: per record with both stamps.
     n_flushes = json.loads((run_dir / "recorder.summary.json").read_text())["flushes"]
     for stream in r.PERIODIC_STREAMS - {"control_status"}:

@@ -74,6 +74,7 @@ def test_every_field_is_naturally_aligned_and_little_endian():
 def test_kinds_are_unique_and_registered():
     assert set(m.SCHEMAS) == set(m.Kind)
     assert all(m.SCHEMAS[k].kind is k for k in m.Kind)
+    assert not set(m.RETIRED_KINDS) & {int(k) for k in m.Kind}  # retired values stay unused
 
 
 @pytest.mark.parametrize("schema", ALL, ids=IDS)
@@ -165,7 +166,9 @@ def test_rejects_non_finite_in_every_float_field(schema: m.Schema, value: float)
         (m.JOINT_COMMAND, "gripper_cmd", -0.01),
         (m.TOOL_POSE, "world_p_tool_m", 1e3),
         (m.TOOL_POSE, "world_q_tool_wxyz", 1.5),
-        (m.CONTACT, "world_f_contact_n", 2e6),
+        (m.JOINT_STATE, "world_f_contact_n", 2e6),
+        (m.JOINT_STATE, "held_mass_kg", -0.1),
+        (m.JOINT_STATE, "world_n_away", 1.5),
         (m.OBJECT_POSES, "world_p_m", -200.0),
         (m.CONTROL_STATUS, "path_error_m", -1.0),
         (m.CONTROL_STATUS, "manipulability", -1e-3),
@@ -215,11 +218,11 @@ def test_drop_counter_counts_per_kind_and_reason_and_logs_once_per_kind(caplog):
             m.JOINT_STATE.decode(rec.tobytes())
         except m.DecodeError as err:
             drops.record(err)
-        drops.record(m.DecodeError(m.Kind.CONTACT, m.Reason.VERSION))
+        drops.record(m.DecodeError(m.Kind.TOOL_POSE, m.Reason.VERSION))
     assert drops.counts() == {
         (int(m.Kind.JOINT_STATE), "size"): 5,
         (int(m.Kind.JOINT_STATE), "non_finite"): 1,
-        (int(m.Kind.CONTACT), "version"): 1,
+        (int(m.Kind.TOOL_POSE), "version"): 1,
     }
     assert drops.total == 7
     assert len(caplog.records) == 2  # one per kind, not per drop
@@ -229,7 +232,6 @@ def test_topics_registry():
     t = Topics("arm1")
     assert t.joint_state == "teleop/arm1/state/joints"
     assert t.tool_pose == "teleop/arm1/state/tool_pose"
-    assert t.contact == "teleop/arm1/state/contact"
     assert t.objects == "teleop/arm1/state/objects"
     assert t.joint_command == "teleop/arm1/cmd/joint_velocity"
     assert t.control_status == "teleop/arm1/control/status"
