@@ -2,19 +2,19 @@
 
 Two tasks share the service (``run.scenario``):
 
-- path-following (paper experiment 1): each JOINT_STATE is handled in the Zenoh
+- path-following (paper experiment 1): each PLANT_STATE is handled in the Zenoh
   callback that delivers it (a hand-off to a service thread cost about 60 us per
   cycle on this 2-core machine) with the same :class:`PathFollowingController` as
   the in-process run.
 - grasp (experiment 2, bilateral teleoperation): the cycle also needs the haptic
   handle of the same tick (and the HMD view yaw); the contact force and the obstacle
-  proximity come in the JOINT_STATE itself (the plant computes them every step in
+  proximity come in the PLANT_STATE itself (the plant computes them every step in
   teleoperation). In lockstep a :class:`TickBarrier` joins state and handle, so the run
   is deterministic; each cycle publishes the FORCE_FEEDBACK first (the haptic device
   waits for it in lockstep), then the JOINT_COMMAND. In realtime the loop is event
   driven in the Zenoh callbacks, one half-cycle per arrival (no thread hand-off, no
   waiting for a tick): each HAPTIC_STATE sample becomes one JOINT_COMMAND at once
-  (control law on the newest state), and each JOINT_STATE one FORCE_FEEDBACK (from its
+  (control law on the newest state), and each PLANT_STATE one FORCE_FEEDBACK (from its
   own contact and proximity and the newest handle), so a handle sample reaches the
   plant, and the state it caused reaches the handle, without waiting for anybody's
   period. A handle sample older than
@@ -51,7 +51,7 @@ from teleop.messages import (
     HAPTIC_STATE,
     HEAD_POSE,
     JOINT_COMMAND,
-    JOINT_STATE,
+    PLANT_STATE,
     TELEOP_STATUS,
     Button,
     DecodeError,
@@ -101,7 +101,7 @@ class ControllerService(Service):
             self.task = PathTask(self)
         self.keep(
             subscribe(
-                self.session, self.topics.joint_state, JOINT_STATE, self._on_state, self.drops
+                self.session, self.topics.plant_state, PLANT_STATE, self._on_state, self.drops
             )
         )
         self.announce()
@@ -109,7 +109,7 @@ class ControllerService(Service):
     def _on_state(self, rec: np.ndarray, rx_ns: int) -> None:
         if int(rec["n_joints"]) != self.arm.n_joints:
             detail = f"n_joints={int(rec['n_joints'])}, arm has {self.arm.n_joints}"
-            self.drops.record(DecodeError(Kind.JOINT_STATE, Reason.COUNT, detail))
+            self.drops.record(DecodeError(Kind.PLANT_STATE, Reason.COUNT, detail))
             return
         with self._lock:
             seq = int(rec["seq"])
@@ -402,7 +402,7 @@ class TeleopTask:
             self._publish_status(tick, state, output, float(state["held_mass_kg"]) > 0)
 
     def _feedback_realtime(self, state: np.ndarray) -> None:
-        """One JOINT_STATE -> one FORCE_FEEDBACK (its trace continues the command's)."""
+        """One PLANT_STATE -> one FORCE_FEEDBACK (its trace continues the command's)."""
         if time.monotonic_ns() - int(state["trace_ns"][Stage.PLANT_STATE_TX]) > SHED_AGE_NS:
             self._shed("state", state)
             return
@@ -460,7 +460,7 @@ class TeleopTask:
         yaw_rad: float,
     ) -> tuple[FeedbackComponents, np.ndarray, float]:
         """Force feedback components, the device force (N, device frame) and the held mass,
-        from the contact in ``state`` (JOINT_STATE)."""
+        from the contact in ``state`` (PLANT_STATE)."""
         config = self.service.config
         world_f_gripper_n = np.array(state["world_f_contact_n"])
         held_mass_kg = float(state["held_mass_kg"])
@@ -514,7 +514,7 @@ class TeleopTask:
 
     @staticmethod
     def _proximity_sample(state: np.ndarray) -> ProximitySample | None:
-        """The closest obstacle in ``state`` (JOINT_STATE); None when none is in reach."""
+        """The closest obstacle in ``state`` (PLANT_STATE); None when none is in reach."""
         if int(state["obstacle_geom"]) < 0:
             return None
         return ProximitySample(

@@ -36,7 +36,8 @@ import numpy as np
 logger = logging.getLogger(__name__)
 
 # Bumped on any incompatible change of a layout below (2: 10 trace stages; 3: CONTACT and
-# OBSTACLE_PROXIMITY folded into JOINT_STATE, one plant record per step).
+# OBSTACLE_PROXIMITY folded into the plant's state record, JOINT_STATE renamed PLANT_STATE
+# with the same kind value and on key state/plant: one plant record per step).
 PROTOCOL_VERSION = 3
 MAX_JOINTS = 8  # joint arrays are padded with zeros to this length; n_joints says how many count
 MAX_OBJECTS = 8  # object pose arrays are padded to this length; n_objects says how many count
@@ -63,7 +64,7 @@ class Kind(enum.IntEnum):
     """Record kind carried in the header; wire values are stable, never reuse one
     (:data:`RETIRED_KINDS` lists the values of kinds that no longer exist)."""
 
-    JOINT_STATE = 1
+    PLANT_STATE = 1
     JOINT_COMMAND = 2
     TOOL_POSE = 3
     OBJECT_POSES = 5
@@ -79,7 +80,7 @@ class Kind(enum.IntEnum):
 
 # Wire values of removed kinds: no new kind takes them, so an old producer's records can
 # never be mistaken for a new kind (its version is rejected first anyway). Protocol 3
-# folded both into JOINT_STATE: the plant sends one record per step instead of three.
+# folded both into PLANT_STATE: the plant sends one record per step instead of three.
 RETIRED_KINDS: Mapping[int, str] = {4: "CONTACT", 12: "OBSTACLE_PROXIMITY"}
 
 
@@ -98,7 +99,7 @@ class Stage(enum.IntEnum):
     CONTROLLER_TX = 2  # controller: the JOINT_COMMAND computed from it is published
     PLANT_RX = 3  # plant: the command arrives
     PLANT_APPLIED = 4  # plant: the command enters a physics step
-    PLANT_STATE_TX = 5  # plant: the JOINT_STATE after that step is published
+    PLANT_STATE_TX = 5  # plant: the PLANT_STATE after that step is published
     CONTROLLER_STATE_RX = 6  # controller: that state arrives
     FEEDBACK_TX = 7  # controller: the FORCE_FEEDBACK computed from it is published
     FEEDBACK_RX = 8  # haptic: the feedback arrives
@@ -109,7 +110,7 @@ class Flag(enum.IntFlag):
     """Bits of the header's ``flags`` field."""
 
     NONE = 0
-    BRAKING = 1 << 0  # JOINT_STATE: the plant's command watchdog is braking the arm
+    BRAKING = 1 << 0  # PLANT_STATE: the plant's command watchdog is braking the arm
     STALE = 1 << 1  # HAPTIC_STATE: the device is fading out a stale feedback force
 
 
@@ -367,8 +368,8 @@ def _n_joints() -> Field:
 
 # --- The record kinds ----------------------------------------------------------------------
 
-JOINT_STATE = Schema(
-    Kind.JOINT_STATE,
+PLANT_STATE = Schema(
+    Kind.PLANT_STATE,
     [
         _sim_time(),
         Field("step", "u8", doc="plant physics step counter"),
@@ -429,7 +430,7 @@ JOINT_STATE = Schema(
 JOINT_COMMAND = Schema(
     Kind.JOINT_COMMAND,
     [
-        Field("state_seq", "u8", doc="seq of the JOINT_STATE this answers (lockstep)"),
+        Field("state_seq", "u8", doc="seq of the PLANT_STATE this answers (lockstep)"),
         Field("qd_ref_rad_s", "f8", (MAX_JOINTS,), **_QVEL, doc="joint velocity references"),
         Field("gripper_cmd", "f8", lo=0.0, hi=1.0, unit="1", doc="0 closed .. 1 open"),
         _n_joints(),
@@ -587,8 +588,8 @@ _STAMP = {"unit": "ns"}
 EYE_VIEW = FrameSchema(
     Kind.EYE_VIEW,
     [
-        Field("sim_time_ns", "i8", unit="ns", doc="sim time of the JOINT_STATE the image shows"),
-        Field("state_seq", "u8", doc="seq of the JOINT_STATE rendered"),
+        Field("sim_time_ns", "i8", unit="ns", doc="sim time of the PLANT_STATE the image shows"),
+        Field("state_seq", "u8", doc="seq of the PLANT_STATE rendered"),
         Field("head_seq", "u8", doc="seq of the HEAD_POSE rendered for (0: fixed viewpoint)"),
         Field("head_t_source_ns", "i8", **_STAMP, doc="its t_source_ns (HMD sample); 0: fixed"),
         Field("head_rx_ns", "i8", **_STAMP, doc="when the renderer received it; 0: fixed"),
@@ -608,7 +609,7 @@ EYE_VIEW = FrameSchema(
 SCHEMAS: Mapping[Kind, Schema] = {
     s.kind: s
     for s in (
-        JOINT_STATE,
+        PLANT_STATE,
         JOINT_COMMAND,
         TOOL_POSE,
         OBJECT_POSES,

@@ -15,7 +15,7 @@ One code path, two timing modes:
   (``state_seq``) arrives, inside the command callback, so a cycle costs no thread
   hand-off: deterministic, as fast as plant + controller allow.
 
-Published every step: JOINT_STATE, one record that also carries the contact on the
+Published every step: PLANT_STATE, one record that also carries the contact on the
 gripper and the closest obstacle. In teleoperation those are computed every step (they
 feed the 1 kHz force feedback); otherwise only every ``1 / scene_rate_hz`` (their cost),
 and ``interaction_step`` says when. Every ``1 / scene_rate_hz``: TOOL_POSE,
@@ -38,8 +38,8 @@ from teleop.experiments import initial_configuration
 from teleop.feedback import finger_bodies, held_mass_kg, held_object
 from teleop.messages import (
     JOINT_COMMAND,
-    JOINT_STATE,
     OBJECT_POSES,
+    PLANT_STATE,
     RUN_EVENT,
     TOOL_POSE,
     DecodeError,
@@ -174,7 +174,7 @@ class PlantService(Service):
         self.watchdog_steps = int(self.config.plant.watchdog_s / self.config.plant.timestep_s)
         declare = self.session
         topics = self.topics
-        self.state_pub = self.keep(Publisher.declare(declare, topics.joint_state, JOINT_STATE))
+        self.state_pub = self.keep(Publisher.declare(declare, topics.plant_state, PLANT_STATE))
         self.tool_pub = self.keep(Publisher.declare(declare, topics.tool_pose, TOOL_POSE))
         self.objects_pub = self.keep(Publisher.declare(declare, topics.objects, OBJECT_POSES))
         self.events_pub = self.keep(Publisher.declare(declare, topics.events, RUN_EVENT))
@@ -188,7 +188,7 @@ class PlantService(Service):
                 self.session, topics.joint_command, JOINT_COMMAND, self._on_command, self.drops
             )
         )
-        self._state = JOINT_STATE.new()
+        self._state = PLANT_STATE.new()
         self._state["held_body"] = -1  # nothing held, no obstacle in reach (until computed)
         self._state["obstacle_geom"] = -1
         self._state["arm_body"] = -1

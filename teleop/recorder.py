@@ -19,8 +19,8 @@ value anyway, and re-logging them at 1 kHz would cost a Rerun row per sample).
 
 The 3D scene comes from the MuJoCo model itself (teleop.scene3d): every visual geom is
 logged once as static, and the arm's bodies move by transforms computed with
-``mj_kinematics`` from JOINT_STATE, at ``recorder.scene_rate_hz`` of sim time (each at
-the sim time of the joint state it was computed from). Every ``recorder.ghost_period_s``
+``mj_kinematics`` from PLANT_STATE, at ``recorder.scene_rate_hz`` of sim time (each at
+the sim time of the plant state it was computed from). Every ``recorder.ghost_period_s``
 a ghost of the arm is left behind (the paper's stroboscopic Fig. 7).
 
 Derived series, per flush and per stream: the loop rate (records per second of the
@@ -64,10 +64,10 @@ from teleop.messages import (
     HAPTIC_STATE,
     HEAD_POSE,
     JOINT_COMMAND,
-    JOINT_STATE,
     MAX_JOINTS,
     MAX_OBJECTS,
     OBJECT_POSES,
+    PLANT_STATE,
     RUN_EVENT,
     TELEOP_STATUS,
     TOOL_POSE,
@@ -93,7 +93,7 @@ TIMELINE_SOURCE = "source_time"  # duration timeline from the header's t_source_
 ENTITY_JOINT_Q = "robot/joints/q_rad"  # + /<joint name>, Scalars
 ENTITY_JOINT_QD = "robot/joints/qd_rad_s"  # + /<joint name>, Scalars
 ENTITY_GRIPPER_OPENING = "robot/gripper_opening_m"  # Scalars
-# Contact and obstacle proximity (JOINT_STATE): only the rows whose interaction fields
+# Contact and obstacle proximity (PLANT_STATE): only the rows whose interaction fields
 # were computed at that step (every step in teleoperation, else at the plant's scene rate).
 ENTITY_CONTACT_FORCE = "robot/contact_force_n"  # + /x, /y, /z, Scalars (world frame)
 ENTITY_CONTACT_COUNT = "robot/n_contacts"  # Scalars
@@ -161,12 +161,12 @@ def axis_entity(base: str, axis: str) -> str:
 
 
 def rate_entity(stream: str) -> str:
-    """Entity of one stream's loop rate, e.g. ``rates/joint_state``."""
+    """Entity of one stream's loop rate, e.g. ``rates/plant_state``."""
     return f"{ENTITY_RATES}/{stream}"
 
 
 def latency_entity(stream: str) -> str:
-    """Entity of one stream's hop latencies (one series per hop), e.g. ``latency/joint_state``."""
+    """Entity of one stream's hop latencies (one series per hop), e.g. ``latency/plant_state``."""
     return f"{ENTITY_LATENCY}/{stream}"
 
 
@@ -202,7 +202,7 @@ def force_arrow_entity(component: str) -> str:
 
 
 # --- Tuning -------------------------------------------------------------------------------
-# Per-stream buffer bound (records): 20 s of a 1 kHz stream, about 6 MB of JOINT_STATE.
+# Per-stream buffer bound (records): 20 s of a 1 kHz stream, about 6 MB of PLANT_STATE.
 # A flush that falls further behind drops the oldest records and counts them.
 BUFFER_CAPACITY_RECORDS = 20_000
 # The tool trace keeps one point per this much sim time (ns) ...
@@ -260,7 +260,7 @@ TASK_OUTCOMES: Mapping[bool, str] = {True: "success", False: "gave up"}
 # Every stream of the Topics registry with its schema; the name is the Topics attribute
 # and the key of the per-stream counters in the summary.
 STREAM_SCHEMAS: Mapping[str, Schema] = {
-    "joint_state": JOINT_STATE,
+    "plant_state": PLANT_STATE,
     "tool_pose": TOOL_POSE,
     "objects": OBJECT_POSES,
     "joint_command": JOINT_COMMAND,
@@ -475,7 +475,7 @@ class RecorderService(Service):
         }
         self._eye_view = EyeViewFrames(config.eyeview.jpeg_quality, self._cond)
         self._writers: Mapping[str, Callable[[np.ndarray], None]] = {
-            "joint_state": self._write_joint_state,
+            "plant_state": self._write_plant_state,
             "tool_pose": self._write_tool_pose,
             "objects": self._write_objects,
             "joint_command": self._write_joint_command,
@@ -770,7 +770,7 @@ class RecorderService(Service):
         for axis, column in zip(AXES, xyz.T, strict=True):
             self._send_scalars(axis_entity(base, axis), indexes, column)
 
-    def _write_joint_state(self, records: np.ndarray) -> None:
+    def _write_plant_state(self, records: np.ndarray) -> None:
         self._send_per_joint(records, "q_rad", ENTITY_JOINT_Q)
         self._send_per_joint(records, "qd_rad_s", ENTITY_JOINT_QD)
         self._send_scalars(

@@ -20,7 +20,7 @@ class Topics:
     """Key expressions of one robot (``robot_id`` from ``RobotConfig``)."""
 
     robot_id: str
-    joint_state: str = field(init=False)  # plant -> all, JOINT_STATE (with contact), 1 kHz
+    plant_state: str = field(init=False)  # plant -> all, PLANT_STATE (with contact), 1 kHz
     tool_pose: str = field(init=False)  # plant -> all, TOOL_POSE, plant.scene_rate_hz
     objects: str = field(init=False)  # plant -> recorder/operator, OBJECT_POSES
     joint_command: str = field(init=False)  # controller -> plant, JOINT_COMMAND
@@ -38,7 +38,7 @@ class Topics:
         if not self.robot_id or any(c in self.robot_id for c in "/*$?#"):
             raise ValueError(f"robot_id {self.robot_id!r}: non-empty, no '/', '*', '$', '?', '#'")
         streams = {
-            "joint_state": "state/joints",
+            "plant_state": "state/plant",
             "tool_pose": "state/tool_pose",
             "objects": "state/objects",
             "joint_command": "cmd/joint_velocity",

@@ -126,7 +126,7 @@ def test_grasp_recording_holds_every_entity_the_blueprint_shows(obstacle_run):
         r.ENTITY_CONTACT_COUNT,
         r.ENTITY_OBSTACLE_DISTANCE,
     ):
-        assert len(data[entity]["Scalars:scalars"]) == logged["joint_state"], entity
+        assert len(data[entity]["Scalars:scalars"]) == logged["plant_state"], entity
         assert sorted(data[entity][r.TIMELINE_SIM]) == sorted(state_sims), entity
 
     # Loop rates: one per flush of each periodic stream; hops: per record with both stamps.
@@ -135,7 +135,7 @@ def test_grasp_recording_holds_every_entity_the_blueprint_shows(obstacle_run):
         n = len(data[r.rate_entity(stream)]["Scalars:scalars"])
         assert 1 <= n <= n_flushes, stream
     hops = {e.split("/")[1]: data[e] for e in data if e.startswith(r.ENTITY_LATENCY + "/")}
-    assert set(hops) >= {"joint_state", "force_feedback"}
+    assert set(hops) >= {"plant_state", "force_feedback"}
     for stream, cols in hops.items():
         assert 0 < len(cols["Scalars:scalars"]) <= logged[stream], stream
         names = cols["SeriesLines:names"][-1]
@@ -150,7 +150,7 @@ def test_grasp_recording_holds_every_entity_the_blueprint_shows(obstacle_run):
     assert any(t == "service plant joined the bus" for t in texts)
 
     # The 3D scene: every visual geom of the model once (static), every moving body at
-    # the scene rate, each at the sim and source time of the joint state it came from.
+    # the scene rate, each at the sim and source time of the plant state it came from.
     scene = SceneModel(config, r.ENTITY_OBJECTS)
     for geom in scene.geoms:
         assert geom.entity in data, geom.entity

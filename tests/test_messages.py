@@ -108,14 +108,14 @@ def test_frame_pixels_round_trip_and_a_wrong_tail_is_dropped():
 
 
 def test_header_values_are_little_endian_on_the_wire():
-    rec = m.JOINT_STATE.new()
+    rec = m.PLANT_STATE.new()
     rec["seq"] = 0x0102030405060708
     rec["flags"] = m.Flag.BRAKING
-    buf = m.JOINT_STATE.encode(rec)
+    buf = m.PLANT_STATE.encode(rec)
     version, kind, flags, seq = struct.unpack_from("<HHIQ", buf, 0)
     assert (version, kind, flags, seq) == (
         m.PROTOCOL_VERSION,
-        m.Kind.JOINT_STATE,
+        m.Kind.PLANT_STATE,
         1,
         0x0102030405060708,
     )
@@ -123,7 +123,7 @@ def test_header_values_are_little_endian_on_the_wire():
 
 def test_encode_rejects_a_record_of_another_kind():
     with pytest.raises(TypeError):
-        m.JOINT_STATE.encode(m.JOINT_COMMAND.new())
+        m.PLANT_STATE.encode(m.JOINT_COMMAND.new())
 
 
 def _expect(schema: m.Schema, buf: bytes, reason: m.Reason) -> m.DecodeError:
@@ -134,13 +134,13 @@ def _expect(schema: m.Schema, buf: bytes, reason: m.Reason) -> m.DecodeError:
 
 
 def test_rejects_wrong_size_version_kind():
-    good = m.JOINT_STATE.encode(m.JOINT_STATE.new())
-    _expect(m.JOINT_STATE, good[:-1], m.Reason.SIZE)
-    _expect(m.JOINT_STATE, good + b"\0", m.Reason.SIZE)
-    _expect(m.JOINT_STATE, b"", m.Reason.SIZE)
-    _expect(m.JOINT_STATE, struct.pack("<H", m.PROTOCOL_VERSION + 1) + good[2:], m.Reason.VERSION)
+    good = m.PLANT_STATE.encode(m.PLANT_STATE.new())
+    _expect(m.PLANT_STATE, good[:-1], m.Reason.SIZE)
+    _expect(m.PLANT_STATE, good + b"\0", m.Reason.SIZE)
+    _expect(m.PLANT_STATE, b"", m.Reason.SIZE)
+    _expect(m.PLANT_STATE, struct.pack("<H", m.PROTOCOL_VERSION + 1) + good[2:], m.Reason.VERSION)
     wrong_kind = struct.pack("<HH", m.PROTOCOL_VERSION, m.Kind.TOOL_POSE) + good[4:]
-    _expect(m.JOINT_STATE, wrong_kind, m.Reason.KIND)
+    _expect(m.PLANT_STATE, wrong_kind, m.Reason.KIND)
 
 
 @pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
@@ -159,16 +159,16 @@ def test_rejects_non_finite_in_every_float_field(schema: m.Schema, value: float)
 @pytest.mark.parametrize(
     ("schema", "name", "value"),
     [
-        (m.JOINT_STATE, "q_rad", 100.5),
-        (m.JOINT_STATE, "qd_rad_s", -101.0),
+        (m.PLANT_STATE, "q_rad", 100.5),
+        (m.PLANT_STATE, "qd_rad_s", -101.0),
         (m.JOINT_COMMAND, "qd_ref_rad_s", 1e3),
         (m.JOINT_COMMAND, "gripper_cmd", 1.01),
         (m.JOINT_COMMAND, "gripper_cmd", -0.01),
         (m.TOOL_POSE, "world_p_tool_m", 1e3),
         (m.TOOL_POSE, "world_q_tool_wxyz", 1.5),
-        (m.JOINT_STATE, "world_f_contact_n", 2e6),
-        (m.JOINT_STATE, "held_mass_kg", -0.1),
-        (m.JOINT_STATE, "world_n_away", 1.5),
+        (m.PLANT_STATE, "world_f_contact_n", 2e6),
+        (m.PLANT_STATE, "held_mass_kg", -0.1),
+        (m.PLANT_STATE, "world_n_away", 1.5),
         (m.OBJECT_POSES, "world_p_m", -200.0),
         (m.CONTROL_STATUS, "path_error_m", -1.0),
         (m.CONTROL_STATUS, "manipulability", -1e-3),
@@ -192,7 +192,7 @@ def test_limits_are_inclusive():
 @pytest.mark.parametrize(
     ("schema", "count", "maximum"),
     [
-        (m.JOINT_STATE, "n_joints", m.MAX_JOINTS),
+        (m.PLANT_STATE, "n_joints", m.MAX_JOINTS),
         (m.JOINT_COMMAND, "n_joints", m.MAX_JOINTS),
         (m.OBJECT_POSES, "n_objects", m.MAX_OBJECTS),
     ],
@@ -209,19 +209,19 @@ def test_drop_counter_counts_per_kind_and_reason_and_logs_once_per_kind(caplog):
     with caplog.at_level(logging.WARNING, logger="teleop.messages"):
         for _ in range(5):
             try:
-                m.JOINT_STATE.decode(bad_size)
+                m.PLANT_STATE.decode(bad_size)
             except m.DecodeError as err:
                 drops.record(err)
-        rec = m.JOINT_STATE.new()
+        rec = m.PLANT_STATE.new()
         rec["q_rad"][0] = np.nan
         try:
-            m.JOINT_STATE.decode(rec.tobytes())
+            m.PLANT_STATE.decode(rec.tobytes())
         except m.DecodeError as err:
             drops.record(err)
         drops.record(m.DecodeError(m.Kind.TOOL_POSE, m.Reason.VERSION))
     assert drops.counts() == {
-        (int(m.Kind.JOINT_STATE), "size"): 5,
-        (int(m.Kind.JOINT_STATE), "non_finite"): 1,
+        (int(m.Kind.PLANT_STATE), "size"): 5,
+        (int(m.Kind.PLANT_STATE), "non_finite"): 1,
         (int(m.Kind.TOOL_POSE), "version"): 1,
     }
     assert drops.total == 7
@@ -230,7 +230,7 @@ def test_drop_counter_counts_per_kind_and_reason_and_logs_once_per_kind(caplog):
 
 def test_topics_registry():
     t = Topics("arm1")
-    assert t.joint_state == "teleop/arm1/state/joints"
+    assert t.plant_state == "teleop/arm1/state/plant"
     assert t.tool_pose == "teleop/arm1/state/tool_pose"
     assert t.objects == "teleop/arm1/state/objects"
     assert t.joint_command == "teleop/arm1/cmd/joint_velocity"

@@ -26,7 +26,7 @@ from teleop.bus import (
 )
 from teleop.config import load_config
 from teleop.experiments import run_path_following_inprocess
-from teleop.messages import JOINT_COMMAND, JOINT_STATE, RUN_EVENT, DropCounter, Event
+from teleop.messages import JOINT_COMMAND, PLANT_STATE, RUN_EVENT, DropCounter, Event
 from teleop.rrd import Recording
 from teleop.stack import free_loopback_port, service_programs
 from teleop.supervise import Stack
@@ -96,7 +96,7 @@ def test_realtime_run_keeps_time_and_accuracy(tmp_path):
 
 
 class Observer:
-    """A test's own session: the run's listener, watching events and joint states."""
+    """A test's own session: the run's listener, watching events and plant states."""
 
     def __init__(self, config, topics: Topics) -> None:
         self.session = open_session(config.bus, listen=True)
@@ -106,7 +106,7 @@ class Observer:
         self.drops = DropCounter()
         self.entities = [
             subscribe(self.session, topics.events, RUN_EVENT, self._on_event, self.drops),
-            subscribe(self.session, topics.joint_state, JOINT_STATE, self._on_state, self.drops),
+            subscribe(self.session, topics.plant_state, PLANT_STATE, self._on_state, self.drops),
             declare_alive(self.session, topics, OBSERVER),
         ]
 
