@@ -111,7 +111,9 @@ class PlantConfig:
     timestep_s: float = 0.001
     # A command older than this makes the plant brake to zero joint velocity.
     watchdog_s: float = 0.020
-    # Rate of the scene streams (tool pose, contact force, object poses); joint state is 1/step.
+    # Rate of the scene streams (tool pose, object poses) and, outside teleoperation, of the
+    # contact and proximity fields of the plant state (one per step; teleoperation: fresh
+    # every step).
     scene_rate_hz: float = 100.0
     # Realtime teleoperation: a command enters a physics step the moment it arrives (one
     # step per command, the steps phase-locked to the commands' arrival, which the haptic
@@ -299,7 +301,7 @@ class EyeViewConfig:
     # Shadow mapping costs about 10x the rest of a software-rendered frame (measured
     # here: 60-67 ms against 6.5 ms at 320x240), so it is off by default.
     shadows: bool = False
-    # JOINT_STATE is taken at most this often (Zenoh ingress downsampling): the renderer
+    # PLANT_STATE is taken at most this often (Zenoh ingress downsampling): the renderer
     # needs one state per frame, not the plant's 1 kHz.
     state_rate_hz: float = 100.0
     # Fixed viewpoint when no HEAD_POSE arrives (world frame): where the operator's head
@@ -308,7 +310,7 @@ class EyeViewConfig:
     fixed_yaw_rad: float = 0.0
     fixed_pitch_rad: float = 0.5
     # Scheduling niceness of the renderer process: below the control loops. (Not
-    # SCHED_IDLE: starved, its Zenoh threads would stop draining the plant's JOINT_STATE,
+    # SCHED_IDLE: starved, its Zenoh threads would stop draining the plant's PLANT_STATE,
     # whose BLOCK publisher would then stall the plant.)
     nice: int = 10
     # Recorder: JPEG quality of the logged frames (1-100); 0 logs raw RGB.
@@ -476,7 +478,7 @@ class RecorderConfig:
     grpc_url: str = ""
     # Draw the scene in 3D from the MuJoCo model (arm, gripper, table, bin, cube, obstacles).
     scene3d: bool = True
-    # Rate of the 3D arm pose (Hz of sim time): the joint state is 1 kHz, a view needs less.
+    # Rate of the 3D arm pose (Hz of sim time): the plant state is 1 kHz, a view needs less.
     scene_rate_hz: float = 30.0
     # A ghost pose of the arm (stroboscopic view, paper Fig. 7) every this much sim time (s).
     ghost_period_s: float = 3.0

@@ -2,20 +2,22 @@
 
 Two tasks share the service (``run.scenario``):
 
-- path-following (paper experiment 1): each JOINT_STATE is handled in the Zenoh
+- path-following (paper experiment 1): each PLANT_STATE is handled in the Zenoh
   callback that delivers it (a hand-off to a service thread cost about 60 us per
   cycle on this 2-core machine) with the same :class:`PathFollowingController` as
   the in-process run.
 - grasp (experiment 2, bilateral teleoperation): the cycle also needs the haptic
-  handle, the contact force and the obstacle proximity of the same tick (and the
-  HMD view yaw). In lockstep a :class:`TickBarrier` joins them, so the run is
-  deterministic; each cycle publishes the FORCE_FEEDBACK first (the haptic device waits
-  for it in lockstep), then the JOINT_COMMAND. In realtime the loop is event driven in
-  the Zenoh callbacks, one half-cycle per arrival (no thread hand-off, no waiting for a
-  tick): each HAPTIC_STATE sample becomes one JOINT_COMMAND at once (control law on the
-  newest state), and each JOINT_STATE one FORCE_FEEDBACK (from the newest contact,
-  proximity and handle), so a handle sample reaches the plant, and the state it caused
-  reaches the handle, without waiting for anybody's period. A handle sample older than
+  handle of the same tick (and the HMD view yaw); the contact force and the obstacle
+  proximity come in the PLANT_STATE itself (the plant computes them every step in
+  teleoperation). In lockstep a :class:`TickBarrier` joins state and handle, so the run
+  is deterministic; each cycle publishes the FORCE_FEEDBACK first (the haptic device
+  waits for it in lockstep), then the JOINT_COMMAND. In realtime the loop is event
+  driven in the Zenoh callbacks, one half-cycle per arrival (no thread hand-off, no
+  waiting for a tick): each HAPTIC_STATE sample becomes one JOINT_COMMAND at once
+  (control law on the newest state), and each PLANT_STATE one FORCE_FEEDBACK (from its
+  own contact and proximity and the newest handle), so a handle sample reaches the
+  plant, and the state it caused reaches the handle, without waiting for anybody's
+  period. A handle sample older than
   ``haptic.stale_feedback_s`` counts as "no input" (the tool holds still).
 
 Every command names the state it answers (``state_seq``). A controller too slow for
@@ -44,14 +46,12 @@ from teleop.feedback import (
 )
 from teleop.kinematics import build_arm_model
 from teleop.messages import (
-    CONTACT,
     CONTROL_STATUS,
     FORCE_FEEDBACK,
     HAPTIC_STATE,
     HEAD_POSE,
     JOINT_COMMAND,
-    JOINT_STATE,
-    OBSTACLE_PROXIMITY,
+    PLANT_STATE,
     TELEOP_STATUS,
     Button,
     DecodeError,
@@ -101,7 +101,7 @@ class ControllerService(Service):
             self.task = PathTask(self)
         self.keep(
             subscribe(
-                self.session, self.topics.joint_state, JOINT_STATE, self._on_state, self.drops
+                self.session, self.topics.plant_state, PLANT_STATE, self._on_state, self.drops
             )
         )
         self.announce()
@@ -109,7 +109,7 @@ class ControllerService(Service):
     def _on_state(self, rec: np.ndarray, rx_ns: int) -> None:
         if int(rec["n_joints"]) != self.arm.n_joints:
             detail = f"n_joints={int(rec['n_joints'])}, arm has {self.arm.n_joints}"
-            self.drops.record(DecodeError(Kind.JOINT_STATE, Reason.COUNT, detail))
+            self.drops.record(DecodeError(Kind.PLANT_STATE, Reason.COUNT, detail))
             return
         with self._lock:
             seq = int(rec["seq"])
@@ -226,7 +226,7 @@ class PathTask:
 class TeleopTask:
     """Paper experiment 2: bilateral teleoperation through the haptic device."""
 
-    INPUTS = ("state", "haptic", "contact", "proximity")
+    INPUTS = ("state", "haptic")  # joined per tick in lockstep; the state has contact too
 
     def __init__(self, service: ControllerService) -> None:
         self.service = service
@@ -256,18 +256,10 @@ class TeleopTask:
         self._status = TELEOP_STATUS.new()
         self.head_poses = TickedInputs()
         self.haptic = Latest()
-        self.contact = Latest()
-        self.proximity = Latest()
         self.barrier = TickBarrier(self.INPUTS, self._on_tick)
         self.states = Latest()  # realtime: the newest state, handled by run()
         drops = service.drops
         service.keep(subscribe(session, topics.haptic_state, HAPTIC_STATE, self._on_haptic, drops))
-        service.keep(subscribe(session, topics.contact, CONTACT, self._on_contact, drops))
-        service.keep(
-            subscribe(
-                session, topics.obstacle_proximity, OBSTACLE_PROXIMITY, self._on_proximity, drops
-            )
-        )
         service.keep(subscribe(session, topics.head_pose, HEAD_POSE, self._on_head_pose, drops))
         # Realtime: both half-cycles run in the Zenoh callbacks (the haptic and plant links
         # are served by different threads), one at a time (``_rt_busy``); an input that
@@ -301,9 +293,6 @@ class TeleopTask:
         self._reset_metrics()
 
     # -- inputs --------------------------------------------------------------------------
-    def _tick_of(self, rec: np.ndarray) -> int:
-        return round(int(rec["sim_time_ns"]) * 1e-9 / self.service.timestep_s)
-
     def _on_haptic(self, rec: np.ndarray, rx_ns: int) -> None:
         rec = rec.copy()
         if self.lockstep:
@@ -311,20 +300,6 @@ class TeleopTask:
         else:
             self.haptic(rec, rx_ns)
             self._dispatch("haptic", (rec, rx_ns))
-
-    def _on_contact(self, rec: np.ndarray, rx_ns: int) -> None:
-        rec = rec.copy()
-        if self.lockstep:
-            self.barrier.put("contact", self._tick_of(rec), rec)
-        else:
-            self.contact(rec, rx_ns)
-
-    def _on_proximity(self, rec: np.ndarray, rx_ns: int) -> None:
-        rec = rec.copy()
-        if self.lockstep:
-            self.barrier.put("proximity", int(rec["tick"]), rec)
-        else:
-            self.proximity(rec, rx_ns)
 
     def _on_head_pose(self, rec: np.ndarray, rx_ns: int) -> None:
         self.head_poses.put(int(rec["valid_from_tick"]), rec.copy())
@@ -415,8 +390,7 @@ class TeleopTask:
         tick = int(state["seq"])
         service = self.service
         t0 = time.monotonic_ns()
-        latest_proximity = self.proximity.get()
-        obstacle = self._proximity_sample(latest_proximity[0] if latest_proximity else None)
+        obstacle = self._proximity_sample(state)
         output, gripper_cmd, _, _ = self._control(tick, state, haptic, obstacle)
         service.compute_ns_total += time.monotonic_ns() - t0
         trace = np.zeros_like(state["trace_ns"])
@@ -425,12 +399,10 @@ class TeleopTask:
         service.publish_command(state, output.qd_ref_rad_s, gripper_cmd, trace)
         self._last_output = output
         if tick % service.status_every_steps == 0:
-            contact = self.contact.get()
-            holding = contact is not None and float(contact[0]["held_mass_kg"]) > 0
-            self._publish_status(tick, state, output, holding)
+            self._publish_status(tick, state, output, float(state["held_mass_kg"]) > 0)
 
     def _feedback_realtime(self, state: np.ndarray) -> None:
-        """One JOINT_STATE -> one FORCE_FEEDBACK (its trace continues the command's)."""
+        """One PLANT_STATE -> one FORCE_FEEDBACK (its trace continues the command's)."""
         if time.monotonic_ns() - int(state["trace_ns"][Stage.PLANT_STATE_TX]) > SHED_AGE_NS:
             self._shed("state", state)
             return
@@ -445,12 +417,9 @@ class TeleopTask:
         t0 = time.monotonic_ns()
         handle_d_m = np.array(haptic["device_p_m"]) if haptic is not None else np.zeros(3)
         yaw_rad = self._head_yaw_rad(tick)
-        latest_proximity = self.proximity.get()
-        obstacle = self._proximity_sample(latest_proximity[0] if latest_proximity else None)
-        latest_contact = self.contact.get()
-        contact = latest_contact[0] if latest_contact is not None else None
+        obstacle = self._proximity_sample(state)
         components, device_f_n, held_mass = self._feedback_force(
-            contact, obstacle, handle_d_m, yaw_rad
+            state, obstacle, handle_d_m, yaw_rad
         )
         service.compute_ns_total += time.monotonic_ns() - t0
         self._publish_feedback(tick, state, components, device_f_n, state["trace_ns"])
@@ -485,15 +454,16 @@ class TeleopTask:
 
     def _feedback_force(
         self,
-        contact: np.ndarray | None,
+        state: np.ndarray,
         obstacle: ProximitySample | None,
         handle_d_m: np.ndarray,
         yaw_rad: float,
     ) -> tuple[FeedbackComponents, np.ndarray, float]:
-        """Force feedback components, the device force (N, device frame) and the held mass."""
+        """Force feedback components, the device force (N, device frame) and the held mass,
+        from the contact in ``state`` (PLANT_STATE)."""
         config = self.service.config
-        world_f_gripper_n = np.array(contact["world_f_contact_n"]) if contact else np.zeros(3)
-        held_mass_kg = float(contact["held_mass_kg"]) if contact else 0.0
+        world_f_gripper_n = np.array(state["world_f_contact_n"])
+        held_mass_kg = float(state["held_mass_kg"])
         components = feedback_components(
             world_f_gripper_n, held_mass_kg, obstacle, handle_d_m, config.teleop
         )
@@ -526,10 +496,10 @@ class TeleopTask:
         t0 = time.monotonic_ns()
         if haptic is None:
             self.no_input_cycles += 1
-        obstacle = self._proximity_sample(records.get("proximity"))
+        obstacle = self._proximity_sample(state)
         output, gripper_cmd, handle_d_m, yaw_rad = self._control(tick, state, haptic, obstacle)
         components, device_f_n, held_mass = self._feedback_force(
-            records.get("contact"), obstacle, handle_d_m, yaw_rad
+            state, obstacle, handle_d_m, yaw_rad
         )
         service.compute_ns_total += time.monotonic_ns() - t0
 
@@ -543,16 +513,17 @@ class TeleopTask:
             self._publish_status(tick, state, output, held_mass > 0)
 
     @staticmethod
-    def _proximity_sample(rec: np.ndarray | None) -> ProximitySample | None:
-        if rec is None or int(rec["obstacle_geom"]) < 0:
+    def _proximity_sample(state: np.ndarray) -> ProximitySample | None:
+        """The closest obstacle in ``state`` (PLANT_STATE); None when none is in reach."""
+        if int(state["obstacle_geom"]) < 0:
             return None
         return ProximitySample(
-            distance_m=float(rec["distance_m"]),
-            world_p_arm_m=np.array(rec["world_p_arm_m"]),
-            world_p_obstacle_m=np.array(rec["world_p_obstacle_m"]),
-            world_n_away=np.array(rec["world_n_away"]),
-            arm_body=int(rec["arm_body"]),
-            obstacle=int(rec["obstacle_geom"]),
+            distance_m=float(state["distance_m"]),
+            world_p_arm_m=np.array(state["world_p_arm_m"]),
+            world_p_obstacle_m=np.array(state["world_p_obstacle_m"]),
+            world_n_away=np.array(state["world_n_away"]),
+            arm_body=int(state["arm_body"]),
+            obstacle=int(state["obstacle_geom"]),
         )
 
     def _publish_feedback(

@@ -13,7 +13,7 @@ threads that would share the plant's scheduling priority, and any Python work ar
 it (state copy, encoding, the Zenoh put) holds the GIL that the plant's 1 kHz loop
 needs. A separate process runs at ``eyeview.nice`` (below the control loops), cannot
 stall or crash the plant, and leaves the plant's realtime path untouched. It mirrors
-the plant from JOINT_STATE (taken at ``eyeview.state_rate_hz`` through Zenoh ingress
+the plant from PLANT_STATE (taken at ``eyeview.state_rate_hz`` through Zenoh ingress
 downsampling, so the 1 kHz stream costs no Python wake-ups) and OBJECT_POSES.
 
 The view follows the newest HEAD_POSE (predicted position, yaw and pitch: the pose the
@@ -44,8 +44,8 @@ from teleop.config import Config, ConfigError
 from teleop.messages import (
     EYE_VIEW,
     HEAD_POSE,
-    JOINT_STATE,
     OBJECT_POSES,
+    PLANT_STATE,
     RGB_CHANNELS,
     DecodeError,
     Kind,
@@ -194,18 +194,18 @@ class EyeViewService(Service):
         lower_priority(eye.nice, idle=False)
         # Built before the session: if the model or the GL context fails, nothing is open.
         self.renderer = EyeRenderer(self.config)
-        # JOINT_STATE is a 1 kHz stream: take in only what the frames need.
+        # PLANT_STATE is a 1 kHz stream: take in only what the frames need.
         self.session = open_session(
             self.config.bus,
             listen=self.options.listen,
-            ingress_rate_hz={self.topics.joint_state: eye.state_rate_hz},
+            ingress_rate_hz={self.topics.plant_state: eye.state_rate_hz},
         )
         self.states = Latest()
         self.objects = Latest()
         self.heads = Latest()
         self.keep(
             subscribe(
-                self.session, self.topics.joint_state, JOINT_STATE, self._on_state, self.drops
+                self.session, self.topics.plant_state, PLANT_STATE, self._on_state, self.drops
             )
         )
         self.keep(
@@ -230,7 +230,7 @@ class EyeViewService(Service):
         self._frame["channels"] = RGB_CHANNELS
         self._frame["fov_y_rad"] = eye.fov_y_rad
         self.frames_published = 0
-        self.frames_without_state = 0  # ticks before the first JOINT_STATE
+        self.frames_without_state = 0  # ticks before the first PLANT_STATE
         self.frames_from_hmd = 0
         self._render_ns = np.zeros(RENDER_TIME_SAMPLES, dtype=np.int64)
         self.timer: LoopTimer | None = None
@@ -243,7 +243,7 @@ class EyeViewService(Service):
         n = int(rec["n_joints"])
         if n != self.renderer.n_joints:
             detail = f"n_joints={n}, arm has {self.renderer.n_joints}"
-            self.drops.record(DecodeError(Kind.JOINT_STATE, Reason.COUNT, detail))
+            self.drops.record(DecodeError(Kind.PLANT_STATE, Reason.COUNT, detail))
             return
         self.states(rec, rx_ns)
 

@@ -4,7 +4,7 @@ Robot-side components are forces ON the gripper/arm in the world frame (N): what
 operator should feel as if holding the tool.
 
 - contact: the plant's measured contact force on the gripper (``Plant.gripper_contact_force``,
-  CONTACT message), minus the held object's weight (rendered separately, not twice).
+  in PLANT_STATE), minus the held object's weight (rendered separately, not twice).
 - weight: m g downwards while an object is held. Grasp detection is contact-based
   (:func:`held_object`): the object is held when BOTH fingers press on it from
   opposite sides. That is the

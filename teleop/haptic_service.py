@@ -2,7 +2,7 @@
 
 Inputs: FORCE_FEEDBACK (the force to render, from the controller), HAND_INPUT (where the
 operator's hand pulls the handle, keyed by the plant tick it applies from) and
-JOINT_STATE, used only as the simulation clock (its ``seq`` is the plant tick). Output:
+PLANT_STATE, used only as the simulation clock (its ``seq`` is the plant tick). Output:
 HAPTIC_STATE per step, with the encoder position, the Kalman velocity and the force
 actually rendered, in the device frame.
 
@@ -12,13 +12,13 @@ actually rendered, in the device frame.
   the motors the moment it arrives (``haptic.render_on_arrival``; else at the next step)
   and its trace, completed with FEEDBACK_RX and FEEDBACK_RENDERED, is kept for the
   latency report (written to ``<run dir>/haptic.trace.npy`` at exit).
-- lockstep: deterministic and event driven. Tick k steps once JOINT_STATE k, the
+- lockstep: deterministic and event driven. Tick k steps once PLANT_STATE k, the
   FORCE_FEEDBACK of tick k-1 (k >= 1) and the HAND_INPUT that applies at k (if any) are
   all in; the callback that completes the set does the step (no thread hand-off, as in the
   plant). A hand input still missing after ``HAND_INPUT_WAIT_S`` means there is no
   operator: log once and go on without waiting for hand inputs until one arrives.
 
-JOINT_STATE seq 0 after a later seq (or as the first state) starts a new run: the handle
+PLANT_STATE seq 0 after a later seq (or as the first state) starts a new run: the handle
 goes back to the centre at rest and every stored input is forgotten. A state with a seq
 already seen is a plant re-send (nobody answered it): it never steps the device again;
 if it names the tick last stepped, that tick's HAPTIC_STATE is sent again unchanged (same
@@ -41,8 +41,8 @@ from teleop.messages import (
     FORCE_FEEDBACK,
     HAND_INPUT,
     HAPTIC_STATE,
-    JOINT_STATE,
     N_STAGES,
+    PLANT_STATE,
     Button,
     Flag,
     Stage,
@@ -84,7 +84,7 @@ class HapticService(Service):
         self.timer: LoopTimer | None = None
         # Everything below is shared by the Zenoh callbacks and the run thread.
         self._cond = threading.Condition()
-        self._state_seq = -1  # newest JOINT_STATE seq of this run; -1: none yet
+        self._state_seq = -1  # newest PLANT_STATE seq of this run; -1: none yet
         self._state_sim_ns = 0  # its sim_time_ns
         self._first_tick = 0  # first tick of the run this service saw (joined mid-run: > 0)
         self._last_tick = -1  # lockstep: last tick stepped
@@ -124,7 +124,7 @@ class HapticService(Service):
             subscribe(self.session, topics.force_feedback, FORCE_FEEDBACK, self._on_feedback, drops)
         )
         self.keep(subscribe(self.session, topics.hand_input, HAND_INPUT, self._on_hand, drops))
-        self.keep(subscribe(self.session, topics.joint_state, JOINT_STATE, self._on_state, drops))
+        self.keep(subscribe(self.session, topics.plant_state, PLANT_STATE, self._on_state, drops))
         logger.info(
             "%s mode; stiffness a feedback law may render: K_max = 2 b / T = %.0f N/m",
             self.config.run.mode,

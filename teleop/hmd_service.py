@@ -6,7 +6,7 @@ and nothing else. When the pose of tick ``m`` arrives, the callback runs
 (:func:`teleop.ticks.is_sample_tick`: scripted pose at ``t = k * timestep``, tracker
 noise, one Kalman update, one prediction) and publishes a HEAD_POSE record valid from
 tick ``k + lead_ticks``. The records are identical to sampling on every plant tick, at
-a tenth of the wake-ups of the 1 kHz JOINT_STATE stream (measured: 13 % of a core for
+a tenth of the wake-ups of the 1 kHz PLANT_STATE stream (measured: 13 % of a core for
 that clock alone on this 2-core machine). It requires ``lead_ticks`` >= the scene period,
 so that every record is out before the tick it applies to (else lockstep would wait).
 

@@ -41,7 +41,7 @@ from teleop.bus import close_session, open_session, wait_alive
 from teleop.clock import NS_PER_S, NS_PER_US
 from teleop.config import Config, EyeViewConfig, load_config
 from teleop.haptic_service import SAMPLES_FILE, TRACE_FILE
-from teleop.messages import EYE_VIEW, JOINT_STATE, Stage
+from teleop.messages import EYE_VIEW, PLANT_STATE, Stage
 from teleop.relay import RELAYS, FloorOrigin
 from teleop.stack import (
     ALIVE_TIMEOUT_S,
@@ -428,7 +428,7 @@ def run_floor(
             Program(name=relay.name, command=command, environment=dict(SERVICE_ENVIRONMENT))
         )
     period_ns = round(config.plant.timestep_s * NS_PER_S)
-    payload_bytes = JOINT_STATE.size  # the loop's largest record
+    payload_bytes = PLANT_STATE.size  # the loop's largest record
     session = open_session(bus, listen=True)
     origin: FloorOrigin | None = None
     try:

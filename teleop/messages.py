@@ -35,7 +35,10 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-PROTOCOL_VERSION = 2  # bumped on any incompatible change of a layout below (2: 10 trace stages)
+# Bumped on any incompatible change of a layout below (2: 10 trace stages; 3: CONTACT and
+# OBSTACLE_PROXIMITY folded into the plant's state record, JOINT_STATE renamed PLANT_STATE
+# with the same kind value and on key state/plant: one plant record per step).
+PROTOCOL_VERSION = 3
 MAX_JOINTS = 8  # joint arrays are padded with zeros to this length; n_joints says how many count
 MAX_OBJECTS = 8  # object pose arrays are padded to this length; n_objects says how many count
 N_STAGES = 10  # length of the header's trace_ns array (one slot per Stage)
@@ -58,12 +61,12 @@ _ENDIAN = "<"
 
 
 class Kind(enum.IntEnum):
-    """Record kind carried in the header; wire values are stable, never reuse one."""
+    """Record kind carried in the header; wire values are stable, never reuse one
+    (:data:`RETIRED_KINDS` lists the values of kinds that no longer exist)."""
 
-    JOINT_STATE = 1
+    PLANT_STATE = 1
     JOINT_COMMAND = 2
     TOOL_POSE = 3
-    CONTACT = 4
     OBJECT_POSES = 5
     CONTROL_STATUS = 6
     RUN_EVENT = 7
@@ -71,9 +74,14 @@ class Kind(enum.IntEnum):
     HAND_INPUT = 9
     FORCE_FEEDBACK = 10
     HEAD_POSE = 11
-    OBSTACLE_PROXIMITY = 12
     TELEOP_STATUS = 13
     EYE_VIEW = 14
+
+
+# Wire values of removed kinds: no new kind takes them, so an old producer's records can
+# never be mistaken for a new kind (its version is rejected first anyway). Protocol 3
+# folded both into PLANT_STATE: the plant sends one record per step instead of three.
+RETIRED_KINDS: Mapping[int, str] = {4: "CONTACT", 12: "OBSTACLE_PROXIMITY"}
 
 
 class Stage(enum.IntEnum):
@@ -91,7 +99,7 @@ class Stage(enum.IntEnum):
     CONTROLLER_TX = 2  # controller: the JOINT_COMMAND computed from it is published
     PLANT_RX = 3  # plant: the command arrives
     PLANT_APPLIED = 4  # plant: the command enters a physics step
-    PLANT_STATE_TX = 5  # plant: the JOINT_STATE after that step is published
+    PLANT_STATE_TX = 5  # plant: the PLANT_STATE after that step is published
     CONTROLLER_STATE_RX = 6  # controller: that state arrives
     FEEDBACK_TX = 7  # controller: the FORCE_FEEDBACK computed from it is published
     FEEDBACK_RX = 8  # haptic: the feedback arrives
@@ -102,7 +110,7 @@ class Flag(enum.IntFlag):
     """Bits of the header's ``flags`` field."""
 
     NONE = 0
-    BRAKING = 1 << 0  # JOINT_STATE: the plant's command watchdog is braking the arm
+    BRAKING = 1 << 0  # PLANT_STATE: the plant's command watchdog is braking the arm
     STALE = 1 << 1  # HAPTIC_STATE: the device is fading out a stale feedback force
 
 
@@ -360,12 +368,21 @@ def _n_joints() -> Field:
 
 # --- The record kinds ----------------------------------------------------------------------
 
-JOINT_STATE = Schema(
-    Kind.JOINT_STATE,
+PLANT_STATE = Schema(
+    Kind.PLANT_STATE,
     [
         _sim_time(),
         Field("step", "u8", doc="plant physics step counter"),
         Field("cmd_seq_applied", "u8", doc="seq of the JOINT_COMMAND applied in this step"),
+        Field(
+            "interaction_step",
+            "u8",
+            doc="step at which the contact and proximity fields were computed (= step: "
+            "fresh; teleoperation: every step, else every 1 / plant.scene_rate_hz)",
+        ),
+        Field("held_body", "i8", doc="MuJoCo body id of the object both fingers pinch; -1: none"),
+        Field("obstacle_geom", "i8", doc="MuJoCo geom id of the obstacle; -1: none in reach"),
+        Field("arm_body", "i8", doc="MuJoCo body id holding world_p_arm_m; -1: none"),
         Field("q_rad", "f8", (MAX_JOINTS,), **_QPOS, doc="joint positions"),
         Field("qd_rad_s", "f8", (MAX_JOINTS,), **_QVEL, doc="joint velocities"),
         Field(
@@ -376,6 +393,36 @@ JOINT_STATE = Schema(
             unit="m",
             doc="distance between the fingers",
         ),
+        Field(
+            "world_f_contact_n",
+            "f8",
+            (3,),
+            lo=-FORCE_LIMIT_N,
+            hi=FORCE_LIMIT_N,
+            unit="N",
+            doc="total contact force on the gripper, world frame",
+        ),
+        Field("held_mass_kg", "f8", lo=0.0, hi=1.0e3, unit="kg", doc="mass of the held object"),
+        Field(
+            "distance_m",
+            "f8",
+            lo=-POSITION_LIMIT_M,
+            hi=POSITION_LIMIT_M * 10,
+            unit="m",
+            doc="signed distance arm-obstacle (closest pair); 1000 when none in reach",
+        ),
+        Field("world_p_arm_m", "f8", (3,), **_POS, doc="closest point on the arm"),
+        Field("world_p_obstacle_m", "f8", (3,), **_POS, doc="closest point on the obstacle"),
+        Field(
+            "world_n_away",
+            "f8",
+            (3,),
+            lo=-1.0,
+            hi=1.0,
+            unit="1",
+            doc="unit direction from the obstacle to the arm point",
+        ),
+        Field("n_contacts", "u2", doc="number of active gripper contacts"),
         _n_joints(),
     ],
 )
@@ -383,7 +430,7 @@ JOINT_STATE = Schema(
 JOINT_COMMAND = Schema(
     Kind.JOINT_COMMAND,
     [
-        Field("state_seq", "u8", doc="seq of the JOINT_STATE this answers (lockstep)"),
+        Field("state_seq", "u8", doc="seq of the PLANT_STATE this answers (lockstep)"),
         Field("qd_ref_rad_s", "f8", (MAX_JOINTS,), **_QVEL, doc="joint velocity references"),
         Field("gripper_cmd", "f8", lo=0.0, hi=1.0, unit="1", doc="0 closed .. 1 open"),
         _n_joints(),
@@ -396,25 +443,6 @@ TOOL_POSE = Schema(
         _sim_time(),
         Field("world_p_tool_m", "f8", (3,), **_POS, doc="tool site position, world frame"),
         Field("world_q_tool_wxyz", "f8", (4,), **_QUAT, doc="tool orientation, world frame"),
-    ],
-)
-
-CONTACT = Schema(
-    Kind.CONTACT,
-    [
-        _sim_time(),
-        Field("held_body", "i8", doc="MuJoCo body id of the object pinched by both fingers; -1"),
-        Field(
-            "world_f_contact_n",
-            "f8",
-            (3,),
-            lo=-FORCE_LIMIT_N,
-            hi=FORCE_LIMIT_N,
-            unit="N",
-            doc="total contact force on the gripper, world frame",
-        ),
-        Field("held_mass_kg", "f8", lo=0.0, hi=1.0e3, unit="kg", doc="mass of the held object"),
-        Field("n_contacts", "u2", doc="number of active gripper contacts"),
     ],
 )
 
@@ -541,35 +569,6 @@ HEAD_POSE = Schema(
     ],
 )
 
-OBSTACLE_PROXIMITY = Schema(
-    Kind.OBSTACLE_PROXIMITY,
-    [
-        _sim_time(),
-        _tick(),
-        Field("obstacle_geom", "i8", doc="MuJoCo geom id of the obstacle; -1: none in reach"),
-        Field("arm_body", "i8", doc="MuJoCo body id holding world_p_arm_m; -1: none"),
-        Field(
-            "distance_m",
-            "f8",
-            lo=-POSITION_LIMIT_M,
-            hi=POSITION_LIMIT_M * 10,
-            unit="m",
-            doc="signed distance arm-obstacle (closest pair); 1000 when none in reach",
-        ),
-        Field("world_p_arm_m", "f8", (3,), **_POS, doc="closest point on the arm"),
-        Field("world_p_obstacle_m", "f8", (3,), **_POS, doc="closest point on the obstacle"),
-        Field(
-            "world_n_away",
-            "f8",
-            (3,),
-            lo=-1.0,
-            hi=1.0,
-            unit="1",
-            doc="unit direction from the obstacle to the arm point",
-        ),
-    ],
-)
-
 TELEOP_STATUS = Schema(
     Kind.TELEOP_STATUS,
     [
@@ -589,8 +588,8 @@ _STAMP = {"unit": "ns"}
 EYE_VIEW = FrameSchema(
     Kind.EYE_VIEW,
     [
-        Field("sim_time_ns", "i8", unit="ns", doc="sim time of the JOINT_STATE the image shows"),
-        Field("state_seq", "u8", doc="seq of the JOINT_STATE rendered"),
+        Field("sim_time_ns", "i8", unit="ns", doc="sim time of the PLANT_STATE the image shows"),
+        Field("state_seq", "u8", doc="seq of the PLANT_STATE rendered"),
         Field("head_seq", "u8", doc="seq of the HEAD_POSE rendered for (0: fixed viewpoint)"),
         Field("head_t_source_ns", "i8", **_STAMP, doc="its t_source_ns (HMD sample); 0: fixed"),
         Field("head_rx_ns", "i8", **_STAMP, doc="when the renderer received it; 0: fixed"),
@@ -610,10 +609,9 @@ EYE_VIEW = FrameSchema(
 SCHEMAS: Mapping[Kind, Schema] = {
     s.kind: s
     for s in (
-        JOINT_STATE,
+        PLANT_STATE,
         JOINT_COMMAND,
         TOOL_POSE,
-        CONTACT,
         OBJECT_POSES,
         CONTROL_STATUS,
         RUN_EVENT,
@@ -621,7 +619,6 @@ SCHEMAS: Mapping[Kind, Schema] = {
         HAND_INPUT,
         FORCE_FEEDBACK,
         HEAD_POSE,
-        OBSTACLE_PROXIMITY,
         TELEOP_STATUS,
         EYE_VIEW,
     )

@@ -15,10 +15,11 @@ One code path, two timing modes:
   (``state_seq``) arrives, inside the command callback, so a cycle costs no thread
   hand-off: deterministic, as fast as plant + controller allow.
 
-Published every step: JOINT_STATE, and in teleoperation CONTACT and
-OBSTACLE_PROXIMITY (they feed the 1 kHz force feedback; otherwise they go at the scene
-rate). Every ``1 / scene_rate_hz``: TOOL_POSE, OBJECT_POSES. On start, finish and
-watchdog changes: RUN_EVENT.
+Published every step: PLANT_STATE, one record that also carries the contact on the
+gripper and the closest obstacle. In teleoperation those are computed every step (they
+feed the 1 kHz force feedback); otherwise only every ``1 / scene_rate_hz`` (their cost),
+and ``interaction_step`` says when. Every ``1 / scene_rate_hz``: TOOL_POSE,
+OBJECT_POSES. On start, finish, grasp, release and watchdog changes: RUN_EVENT.
 """
 
 from __future__ import annotations
@@ -36,11 +37,9 @@ from teleop.clock import NS_PER_S, LoopTimer, MonotonicClock
 from teleop.experiments import initial_configuration
 from teleop.feedback import finger_bodies, held_mass_kg, held_object
 from teleop.messages import (
-    CONTACT,
     JOINT_COMMAND,
-    JOINT_STATE,
     OBJECT_POSES,
-    OBSTACLE_PROXIMITY,
+    PLANT_STATE,
     RUN_EVENT,
     TOOL_POSE,
     DecodeError,
@@ -51,7 +50,7 @@ from teleop.messages import (
     Stage,
 )
 from teleop.plant import Plant
-from teleop.proximity import ObstacleProximity
+from teleop.proximity import FAR_DISTANCE_M, ObstacleProximity
 from teleop.service import Service
 from teleop.stamps import SHED_AGE_NS, StampLog, shed_path
 
@@ -186,21 +185,17 @@ class PlantService(Service):
             1, round(1.0 / (self.config.plant.scene_rate_hz * self.config.plant.timestep_s))
         )
         # Contact and obstacle proximity feed the 1 kHz force feedback of teleoperation;
-        # otherwise only the recorder reads them, at the scene rate (measured: two fewer
-        # messages per tick speed lockstep path following up, see README).
+        # otherwise only the recorder reads them, at the scene rate (computing them costs
+        # the plant a contact scan and a narrow-phase distance query per step).
         teleoperated = self.config.run.scenario == "grasp"
         self.interaction_every_steps = 1 if teleoperated else self.scene_every_steps
         self.watchdog_steps = int(self.config.plant.watchdog_s / self.config.plant.timestep_s)
         declare = self.session
         topics = self.topics
-        self.state_pub = self.keep(Publisher.declare(declare, topics.joint_state, JOINT_STATE))
+        self.state_pub = self.keep(Publisher.declare(declare, topics.plant_state, PLANT_STATE))
         self.tool_pub = self.keep(Publisher.declare(declare, topics.tool_pose, TOOL_POSE))
-        self.contact_pub = self.keep(Publisher.declare(declare, topics.contact, CONTACT))
         self.objects_pub = self.keep(Publisher.declare(declare, topics.objects, OBJECT_POSES))
         self.events_pub = self.keep(Publisher.declare(declare, topics.events, RUN_EVENT))
-        self.proximity_pub = self.keep(
-            Publisher.declare(declare, topics.obstacle_proximity, OBSTACLE_PROXIMITY)
-        )
         self.proximity = ObstacleProximity(self.plant.model, self.plant.data, self.config.robot)
         self._fingers = finger_bodies(self.plant.model, self.config.robot)
         self._held_body = -1
@@ -211,12 +206,14 @@ class PlantService(Service):
                 self.session, topics.joint_command, JOINT_COMMAND, self._on_command, self.drops
             )
         )
-        self._state = JOINT_STATE.new()
+        self._state = PLANT_STATE.new()
+        self._state["held_body"] = -1  # nothing held, no obstacle in reach (until computed)
+        self._state["obstacle_geom"] = -1
+        self._state["arm_body"] = -1
+        self._state["distance_m"] = FAR_DISTANCE_M
         self._tool = TOOL_POSE.new()
-        self._contact = CONTACT.new()
         self._objects = OBJECT_POSES.new()
         self._event = RUN_EVENT.new()
-        self._proximity = OBSTACLE_PROXIMITY.new()
         # Figures of merit over the run (world frame, SI).
         self.max_contact_force_n = 0.0
         self.min_obstacle_clearance_m = float("inf")
@@ -329,6 +326,9 @@ class PlantService(Service):
         rec["q_rad"][:n] = sample.q_rad
         rec["qd_rad_s"][:n] = sample.qd_rad_s
         rec["gripper_opening_m"] = sample.gripper_opening_m
+        grasp_event = None
+        if sample.step % self.interaction_every_steps == 0:
+            grasp_event = self._sample_interaction(sample.step)
         if command is not None:
             rec["cmd_seq_applied"] = command["seq"]
         if command is not None and traced:
@@ -341,47 +341,41 @@ class PlantService(Service):
         rec["t_source_ns"] = now_ns
         rec["trace_ns"][Stage.PLANT_STATE_TX] = now_ns
         self._put(self.state_pub, rec)
-        if sample.step % self.interaction_every_steps == 0:
-            self._publish_proximity(sample.step, sample.sim_time_ns, now_ns)
-            self._publish_contact(sample.sim_time_ns, now_ns)
+        if grasp_event is not None:
+            self._publish_event(grasp_event, float(max(int(rec["held_body"]), 0)))
         if sample.step % self.scene_every_steps == 0:
             self._publish_scene(sample.sim_time_ns, now_ns)
         self.max_tool_speed_m_s = max(self.max_tool_speed_m_s, self.plant.tool_speed_m_s())
 
-    def _publish_proximity(self, tick: int, sim_time_ns: int, now_ns: int) -> None:
+    def _sample_interaction(self, step: int) -> Event | None:
+        """Fill the state record's contact and proximity fields from the plant as it is.
+
+        Returns GRASP or RELEASE when the held object changed (the caller announces it
+        after the state, so the event follows the state that shows it), else None.
+        """
+        rec = self._state
+        rec["interaction_step"] = step
         closest = self.proximity.closest()
         self.min_obstacle_clearance_m = min(self.min_obstacle_clearance_m, closest.distance_m)
-        rec = self._proximity
-        rec["seq"] += 1
-        rec["t_source_ns"] = now_ns
-        rec["sim_time_ns"] = sim_time_ns
-        rec["tick"] = tick
         rec["distance_m"] = closest.distance_m
         rec["world_p_arm_m"] = closest.world_p_arm_m
         rec["world_p_obstacle_m"] = closest.world_p_obstacle_m
         rec["world_n_away"] = closest.world_n_away
         rec["arm_body"] = closest.arm_body
         rec["obstacle_geom"] = closest.obstacle
-        self._put(self.proximity_pub, rec)
-
-    def _publish_contact(self, sim_time_ns: int, now_ns: int) -> None:
-        """Contact force on the gripper every step: it is rendered at 1 kHz as feedback."""
         force_n, count = self.plant.gripper_contact_force()
         self.max_contact_force_n = max(self.max_contact_force_n, float(np.linalg.norm(force_n)))
         model, data = self.plant.model, self.plant.data
         held = held_object(model, data, self._fingers, self.plant.object_bodies) if count else -1
+        event = None
         if (held >= 0) != (self._held_body >= 0):
-            self._publish_event(Event.GRASP if held >= 0 else Event.RELEASE, float(max(held, 0)))
+            event = Event.GRASP if held >= 0 else Event.RELEASE
         self._held_body = held
-        rec = self._contact
         rec["held_body"] = held
         rec["held_mass_kg"] = held_mass_kg(model, held, 0.0)
-        rec["seq"] += 1
-        rec["t_source_ns"] = now_ns
-        rec["sim_time_ns"] = sim_time_ns
         rec["world_f_contact_n"] = force_n
         rec["n_contacts"] = count
-        self._put(self.contact_pub, rec)
+        return event
 
     def _publish_scene(self, sim_time_ns: int, now_ns: int) -> None:
         position, quat = self.plant.tool_pose()
@@ -619,14 +613,14 @@ class PlantService(Service):
 
     def _republish_pending(self) -> None:
         """Send the records of the states in flight again, byte for byte (same seq and
-        stamps): the pending tick's and, with a lockstep delay, those whose answers the
-        plant still needs.
+        stamps; a state carries its tick's contact and proximity): the pending tick's
+        and, with a lockstep delay, those whose answers the plant still needs.
 
         A controller that has them ignores them (or its tick barrier drops them); one
         that missed them (e.g. not yet subscribed) gets the whole tick; a recorder logs
         the same samples at the same times.
         """
-        for records in self._sent_ticks:
+        for records in self._sent_ticks or ():
             for publisher, data in records:
                 publisher.put_bytes(data)
 

@@ -19,8 +19,8 @@ value anyway, and re-logging them at 1 kHz would cost a Rerun row per sample).
 
 The 3D scene comes from the MuJoCo model itself (teleop.scene3d): every visual geom is
 logged once as static, and the arm's bodies move by transforms computed with
-``mj_kinematics`` from JOINT_STATE, at ``recorder.scene_rate_hz`` of sim time (each at
-the sim time of the joint state it was computed from). Every ``recorder.ghost_period_s``
+``mj_kinematics`` from PLANT_STATE, at ``recorder.scene_rate_hz`` of sim time (each at
+the sim time of the plant state it was computed from). Every ``recorder.ghost_period_s``
 a ghost of the arm is left behind (the paper's stroboscopic Fig. 7).
 
 Derived series, per flush and per stream: the loop rate (records per second of the
@@ -57,7 +57,6 @@ from teleop.config import Config, ConfigError
 from teleop.control import DesiredPath
 from teleop.kinematics import ModelError
 from teleop.messages import (
-    CONTACT,
     CONTROL_STATUS,
     EYE_VIEW,
     FORCE_FEEDBACK,
@@ -65,11 +64,10 @@ from teleop.messages import (
     HAPTIC_STATE,
     HEAD_POSE,
     JOINT_COMMAND,
-    JOINT_STATE,
     MAX_JOINTS,
     MAX_OBJECTS,
     OBJECT_POSES,
-    OBSTACLE_PROXIMITY,
+    PLANT_STATE,
     RUN_EVENT,
     TELEOP_STATUS,
     TOOL_POSE,
@@ -95,6 +93,8 @@ TIMELINE_SOURCE = "source_time"  # duration timeline from the header's t_source_
 ENTITY_JOINT_Q = "robot/joints/q_rad"  # + /<joint name>, Scalars
 ENTITY_JOINT_QD = "robot/joints/qd_rad_s"  # + /<joint name>, Scalars
 ENTITY_GRIPPER_OPENING = "robot/gripper_opening_m"  # Scalars
+# Contact and obstacle proximity (PLANT_STATE): only the rows whose interaction fields
+# were computed at that step (every step in teleoperation, else at the plant's scene rate).
 ENTITY_CONTACT_FORCE = "robot/contact_force_n"  # + /x, /y, /z, Scalars (world frame)
 ENTITY_CONTACT_COUNT = "robot/n_contacts"  # Scalars
 ENTITY_QD_REF = "control/qd_ref_rad_s"  # + /<joint name>, Scalars (JOINT_COMMAND)
@@ -138,8 +138,8 @@ ENTITY_HMD_PREDICTED_YAW = "hmd/predicted_yaw_rad"  # Scalars
 ENTITY_HMD_FILTERED_P = "hmd/filtered_p_m"  # + /x, /y, /z, Scalars
 ENTITY_HMD_MEASURED_P = "hmd/measured_p_m"  # + /x, /y, /z, Scalars
 ENTITY_HMD = "world/hmd"  # Transform3D: world_T_head (predicted) + static Pinhole
-# Obstacle proximity (OBSTACLE_PROXIMITY) and teleoperation status (TELEOP_STATUS).
-ENTITY_OBSTACLE_DISTANCE = "obstacles/distance_m"  # Scalars, signed
+ENTITY_OBSTACLE_DISTANCE = "obstacles/distance_m"  # Scalars, signed (same rows as contact)
+# Teleoperation status (TELEOP_STATUS).
 ENTITY_TELEOP_V_REF = "teleop/v_ref_m_s"  # + /x, /y, /z, Scalars (world frame)
 ENTITY_TELEOP_V_TOOL = "teleop/v_tool_m_s"  # + /x, /y, /z, Scalars (world frame)
 ENTITY_TELEOP_SPEED_SCALE = "teleop/speed_scale"  # Scalars, 0 .. 1
@@ -161,12 +161,12 @@ def axis_entity(base: str, axis: str) -> str:
 
 
 def rate_entity(stream: str) -> str:
-    """Entity of one stream's loop rate, e.g. ``rates/joint_state``."""
+    """Entity of one stream's loop rate, e.g. ``rates/plant_state``."""
     return f"{ENTITY_RATES}/{stream}"
 
 
 def latency_entity(stream: str) -> str:
-    """Entity of one stream's hop latencies (one series per hop), e.g. ``latency/joint_state``."""
+    """Entity of one stream's hop latencies (one series per hop), e.g. ``latency/plant_state``."""
     return f"{ENTITY_LATENCY}/{stream}"
 
 
@@ -202,7 +202,7 @@ def force_arrow_entity(component: str) -> str:
 
 
 # --- Tuning -------------------------------------------------------------------------------
-# Per-stream buffer bound (records): 20 s of a 1 kHz stream, about 6 MB of JOINT_STATE.
+# Per-stream buffer bound (records): 20 s of a 1 kHz stream, about 6 MB of PLANT_STATE.
 # A flush that falls further behind drops the oldest records and counts them.
 BUFFER_CAPACITY_RECORDS = 20_000
 # The tool trace keeps one point per this much sim time (ns) ...
@@ -260,9 +260,8 @@ TASK_OUTCOMES: Mapping[bool, str] = {True: "success", False: "gave up"}
 # Every stream of the Topics registry with its schema; the name is the Topics attribute
 # and the key of the per-stream counters in the summary.
 STREAM_SCHEMAS: Mapping[str, Schema] = {
-    "joint_state": JOINT_STATE,
+    "plant_state": PLANT_STATE,
     "tool_pose": TOOL_POSE,
-    "contact": CONTACT,
     "objects": OBJECT_POSES,
     "joint_command": JOINT_COMMAND,
     "control_status": CONTROL_STATUS,
@@ -271,7 +270,6 @@ STREAM_SCHEMAS: Mapping[str, Schema] = {
     "hand_input": HAND_INPUT,
     "force_feedback": FORCE_FEEDBACK,
     "head_pose": HEAD_POSE,
-    "obstacle_proximity": OBSTACLE_PROXIMITY,
     "teleop_status": TELEOP_STATUS,
 }
 # Periodic streams: their loop rate is logged and their seq checked for gaps and restarts.
@@ -477,9 +475,8 @@ class RecorderService(Service):
         }
         self._eye_view = EyeViewFrames(config.eyeview.jpeg_quality, self._cond)
         self._writers: Mapping[str, Callable[[np.ndarray], None]] = {
-            "joint_state": self._write_joint_state,
+            "plant_state": self._write_plant_state,
             "tool_pose": self._write_tool_pose,
-            "contact": self._write_contact,
             "objects": self._write_objects,
             "joint_command": self._write_joint_command,
             "control_status": self._write_control_status,
@@ -488,7 +485,6 @@ class RecorderService(Service):
             "hand_input": self._write_hand_input,
             "force_feedback": self._write_force_feedback,
             "head_pose": self._write_head_pose,
-            "obstacle_proximity": self._write_obstacle_proximity,
             "teleop_status": self._write_teleop_status,
         }
         self._joint_names: Sequence[str] = config.robot.arm_joints[:MAX_JOINTS]
@@ -774,15 +770,28 @@ class RecorderService(Service):
         for axis, column in zip(AXES, xyz.T, strict=True):
             self._send_scalars(axis_entity(base, axis), indexes, column)
 
-    def _write_joint_state(self, records: np.ndarray) -> None:
+    def _write_plant_state(self, records: np.ndarray) -> None:
         self._send_per_joint(records, "q_rad", ENTITY_JOINT_Q)
         self._send_per_joint(records, "qd_rad_s", ENTITY_JOINT_QD)
         self._send_scalars(
             ENTITY_GRIPPER_OPENING, self._indexes(records), records["gripper_opening_m"]
         )
         self._sim_time_ns = int(records["sim_time_ns"][-1])
+        self._write_interaction(records)
         if self._scene is not None:
             self._write_scene(records)
+
+    def _write_interaction(self, records: np.ndarray) -> None:
+        """Contact and obstacle proximity of the states that computed them (their own
+        step): a state between two scene periods only repeats the last values."""
+        fresh = records["interaction_step"] == records["step"]
+        if not fresh.any():
+            return
+        rows = records if fresh.all() else records[fresh]
+        indexes = self._indexes(rows)
+        self._send_xyz(indexes, ENTITY_CONTACT_FORCE, rows["world_f_contact_n"])
+        self._send_scalars(ENTITY_CONTACT_COUNT, indexes, rows["n_contacts"].astype(float))
+        self._send_scalars(ENTITY_OBSTACLE_DISTANCE, indexes, rows["distance_m"])
 
     @staticmethod
     def _first_of_buckets(
@@ -889,11 +898,6 @@ class RecorderService(Service):
         )
         self._trace.extend(world_p_m[rows])
 
-    def _write_contact(self, records: np.ndarray) -> None:
-        indexes = self._indexes(records)
-        self._send_xyz(indexes, ENTITY_CONTACT_FORCE, records["world_f_contact_n"])
-        self._send_scalars(ENTITY_CONTACT_COUNT, indexes, records["n_contacts"].astype(float))
-
     def _write_objects(self, records: np.ndarray) -> None:
         n_objects = records["n_objects"]
         for i, body in enumerate(self._object_names):
@@ -986,9 +990,6 @@ class RecorderService(Service):
                 ),
             ),
         )
-
-    def _write_obstacle_proximity(self, records: np.ndarray) -> None:
-        self._send_scalars(ENTITY_OBSTACLE_DISTANCE, self._indexes(records), records["distance_m"])
 
     def _write_teleop_status(self, records: np.ndarray) -> None:
         indexes = self._indexes(records)

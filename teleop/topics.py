@@ -20,9 +20,8 @@ class Topics:
     """Key expressions of one robot (``robot_id`` from ``RobotConfig``)."""
 
     robot_id: str
-    joint_state: str = field(init=False)  # plant -> controller, JOINT_STATE, 1 kHz
+    plant_state: str = field(init=False)  # plant -> all, PLANT_STATE (with contact), 1 kHz
     tool_pose: str = field(init=False)  # plant -> all, TOOL_POSE, plant.scene_rate_hz
-    contact: str = field(init=False)  # plant -> controller, CONTACT, 1 kHz in teleoperation
     objects: str = field(init=False)  # plant -> recorder/operator, OBJECT_POSES
     joint_command: str = field(init=False)  # controller -> plant, JOINT_COMMAND
     control_status: str = field(init=False)  # controller -> recorder, CONTROL_STATUS
@@ -31,7 +30,6 @@ class Topics:
     hand_input: str = field(init=False)  # operator -> haptic, HAND_INPUT, 100 Hz
     force_feedback: str = field(init=False)  # controller -> haptic, FORCE_FEEDBACK, 1 kHz
     head_pose: str = field(init=False)  # hmd -> controller/operator, HEAD_POSE, 90 Hz
-    obstacle_proximity: str = field(init=False)  # plant -> controller, 1 kHz
     teleop_status: str = field(init=False)  # controller -> recorder/operator, 100 Hz
     eye_view: str = field(init=False)  # eyeview -> recorder, EYE_VIEW, eyeview.rate_hz (SHM)
     alive_all: str = field(init=False)  # every service's liveliness token
@@ -40,9 +38,8 @@ class Topics:
         if not self.robot_id or any(c in self.robot_id for c in "/*$?#"):
             raise ValueError(f"robot_id {self.robot_id!r}: non-empty, no '/', '*', '$', '?', '#'")
         streams = {
-            "joint_state": "state/joints",
+            "plant_state": "state/plant",
             "tool_pose": "state/tool_pose",
-            "contact": "state/contact",
             "objects": "state/objects",
             "joint_command": "cmd/joint_velocity",
             "control_status": "control/status",
@@ -51,7 +48,6 @@ class Topics:
             "hand_input": "operator/hand",
             "force_feedback": "haptic/feedback",
             "head_pose": "hmd/pose",
-            "obstacle_proximity": "state/obstacle_proximity",
             "teleop_status": "control/teleop",
             "eye_view": "view/eye",
             "alive_all": "alive/*",

@@ -80,18 +80,18 @@ def _join(*procs: mp.process.BaseProcess) -> None:
 
 
 def state_producer(endpoint: str, stop: mp.Event, report: mp.Queue) -> None:
-    """Connect, wait for the consumer, send one bad record and one good JOINT_STATE."""
+    """Connect, wait for the consumer, send one bad record and one good PLANT_STATE."""
     topics = Topics(ROBOT)
     session = bus.open_session(_bus(endpoint), listen=False)
-    pub = bus.Publisher.declare(session, topics.joint_state, m.JOINT_STATE)
+    pub = bus.Publisher.declare(session, topics.plant_state, m.PLANT_STATE)
     token = bus.declare_alive(session, topics, "producer")
     try:
         bus.wait_alive(session, topics, ["consumer"], TIMEOUT_S)
         assert pub.wait_matched(TIMEOUT_S)
-        bad = m.JOINT_STATE.new()
+        bad = m.PLANT_STATE.new()
         bad["q_rad"][0] = np.nan
         pub.put_bytes(bad.tobytes())
-        rec = m.JOINT_STATE.new()
+        rec = m.PLANT_STATE.new()
         rec["seq"] = 42
         rec["n_joints"] = 6
         rec["q_rad"][:6] = np.arange(6) * 0.1
@@ -177,7 +177,7 @@ def test_record_crosses_processes_and_bad_record_is_dropped():
     session = bus.open_session(_bus(endpoint), listen=True)
     latest = bus.Latest()
     drops = m.DropCounter()
-    sub = bus.subscribe(session, topics.joint_state, m.JOINT_STATE, latest, drops)
+    sub = bus.subscribe(session, topics.plant_state, m.PLANT_STATE, latest, drops)
     token = bus.declare_alive(session, topics, "consumer")
     stop, report = SPAWN.Event(), SPAWN.Queue()
     proc = _start(state_producer, endpoint, stop, report)
@@ -189,7 +189,7 @@ def test_record_crosses_processes_and_bad_record_is_dropped():
         np.testing.assert_allclose(rec["q_rad"][:6], np.arange(6) * 0.1)
         _, t_source_ns = _get(report, "sent")
         assert rx_ns >= t_source_ns  # one host, one monotonic clock
-        assert drops.counts() == {(int(m.Kind.JOINT_STATE), m.Reason.NON_FINITE.value): 1}
+        assert drops.counts() == {(int(m.Kind.PLANT_STATE), m.Reason.NON_FINITE.value): 1}
         assert latest.wait_newer(42, 0.0) is None
     finally:
         stop.set()
@@ -262,7 +262,7 @@ def test_payload_path_shm_above_threshold_inline_below(shm: bool):
     proc = _start(raw_sink, endpoint, shm, 2, report)
     # The publisher always offers SHM buffers for big payloads; the session config decides.
     provider = get_provider(config.shm_pool_bytes)
-    pub = bus.Publisher.declare(session, RAW_KEY, m.JOINT_STATE, shm=provider)
+    pub = bus.Publisher.declare(session, RAW_KEY, m.PLANT_STATE, shm=provider)
     try:
         bus.wait_alive(session, topics, ["sink"], TIMEOUT_S)
         assert pub.wait_matched(TIMEOUT_S)

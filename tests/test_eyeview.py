@@ -28,7 +28,7 @@ from teleop.bus import (
 )
 from teleop.config import load_config
 from teleop.eyeview import EyeRenderer, EyeViewService, camera_forward
-from teleop.messages import EYE_VIEW, HEAD_POSE, JOINT_STATE, DropCounter
+from teleop.messages import EYE_VIEW, HEAD_POSE, PLANT_STATE, DropCounter
 from teleop.service import ServiceOptions
 from teleop.stack import EYEVIEW, free_loopback_port, scenario_services
 from teleop.topics import Topics
@@ -188,7 +188,7 @@ def test_the_service_renders_the_newest_state_and_head_pose_and_survives_bad_inp
     sub = subscribe_frames(
         session, topics.eye_view, EYE_VIEW, lambda rec, px, rx, shm: frames(rec.copy(), rx), drops
     )
-    state_pub = Publisher.declare(session, topics.joint_state, JOINT_STATE)
+    state_pub = Publisher.declare(session, topics.plant_state, PLANT_STATE)
     head_pub = Publisher.declare(session, topics.head_pose, HEAD_POSE)
     try:
         assert opened.wait(TIMEOUT_S)
@@ -196,10 +196,10 @@ def test_the_service_renders_the_newest_state_and_head_pose_and_survives_bad_inp
         assert state_pub.wait_matched(TIMEOUT_S)
         service = holder[0]
         state_pub.put_bytes(b"garbage")
-        wrong = JOINT_STATE.new()
+        wrong = PLANT_STATE.new()
         wrong["n_joints"] = 3
         state_pub.put(wrong)
-        state = JOINT_STATE.new()
+        state = PLANT_STATE.new()
         state["seq"], state["sim_time_ns"], state["n_joints"] = 7, 5_000_000, 6
         state["q_rad"][:6] = config.robot.home_q_rad
         state_pub.put(state)

@@ -118,13 +118,24 @@ def test_grasp_recording_holds_every_entity_the_blueprint_shows(obstacle_run):
                 continue
             assert any(e.startswith(root + "/") or e == root for e in data), root
 
+    # Contact and obstacle proximity ride in every plant state (computed every step in
+    # teleoperation), each at its state's own sim time.
+    state_sims = data[r.joint_entity(r.ENTITY_JOINT_Q, config.robot.arm_joints[0])][r.TIMELINE_SIM]
+    for entity in (
+        *(r.axis_entity(r.ENTITY_CONTACT_FORCE, a) for a in r.AXES),
+        r.ENTITY_CONTACT_COUNT,
+        r.ENTITY_OBSTACLE_DISTANCE,
+    ):
+        assert len(data[entity]["Scalars:scalars"]) == logged["plant_state"], entity
+        assert sorted(data[entity][r.TIMELINE_SIM]) == sorted(state_sims), entity
+
     # Loop rates: one per flush of each periodic stream; hops: per record with both stamps.
     n_flushes = json.loads((run_dir / "recorder.summary.json").read_text())["flushes"]
     for stream in r.PERIODIC_STREAMS - {"control_status"}:
         n = len(data[r.rate_entity(stream)]["Scalars:scalars"])
         assert 1 <= n <= n_flushes, stream
     hops = {e.split("/")[1]: data[e] for e in data if e.startswith(r.ENTITY_LATENCY + "/")}
-    assert set(hops) >= {"joint_state", "force_feedback"}
+    assert set(hops) >= {"plant_state", "force_feedback"}
     for stream, cols in hops.items():
         assert 0 < len(cols["Scalars:scalars"]) <= logged[stream], stream
         names = cols["SeriesLines:names"][-1]
@@ -139,7 +150,7 @@ def test_grasp_recording_holds_every_entity_the_blueprint_shows(obstacle_run):
     assert any(t == "service plant joined the bus" for t in texts)
 
     # The 3D scene: every visual geom of the model once (static), every moving body at
-    # the scene rate, each at the sim and source time of the joint state it came from.
+    # the scene rate, each at the sim and source time of the plant state it came from.
     scene = SceneModel(config, r.ENTITY_OBJECTS)
     for geom in scene.geoms:
         assert geom.entity in data, geom.entity

@@ -24,7 +24,7 @@ from teleop.messages import (
     FORCE_FEEDBACK,
     HAND_INPUT,
     HAPTIC_STATE,
-    JOINT_STATE,
+    PLANT_STATE,
     Button,
     DropCounter,
     Flag,
@@ -219,7 +219,7 @@ def test_service_steps_once_per_tick_in_lockstep(tmp_path):
     replies = Replies()
     drops = DropCounter()
     entities = [subscribe(session, topics.haptic_state, HAPTIC_STATE, replies, drops)]
-    state_pub = Publisher.declare(session, topics.joint_state, JOINT_STATE)
+    state_pub = Publisher.declare(session, topics.plant_state, PLANT_STATE)
     feedback_pub = Publisher.declare(session, topics.force_feedback, FORCE_FEEDBACK)
     hand_pub = Publisher.declare(session, topics.hand_input, HAND_INPUT)
     entities += [state_pub, feedback_pub, hand_pub]
@@ -233,7 +233,7 @@ def test_service_steps_once_per_tick_in_lockstep(tmp_path):
         for pub in (state_pub, feedback_pub, hand_pub):
             assert pub.wait_matched(REPLY_TIMEOUT_S)
 
-        state, feedback, hand = JOINT_STATE.new(), FORCE_FEEDBACK.new(), HAND_INPUT.new()
+        state, feedback, hand = PLANT_STATE.new(), FORCE_FEEDBACK.new(), HAND_INPUT.new()
         state["n_joints"] = 6
         hand_target_m = np.array([0.02, 0.0, 0.0])
         push_n = np.array([0.0, 2.0, 0.0])

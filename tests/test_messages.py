@@ -74,6 +74,7 @@ def test_every_field_is_naturally_aligned_and_little_endian():
 def test_kinds_are_unique_and_registered():
     assert set(m.SCHEMAS) == set(m.Kind)
     assert all(m.SCHEMAS[k].kind is k for k in m.Kind)
+    assert not set(m.RETIRED_KINDS) & {int(k) for k in m.Kind}  # retired values stay unused
 
 
 @pytest.mark.parametrize("schema", ALL, ids=IDS)
@@ -107,14 +108,14 @@ def test_frame_pixels_round_trip_and_a_wrong_tail_is_dropped():
 
 
 def test_header_values_are_little_endian_on_the_wire():
-    rec = m.JOINT_STATE.new()
+    rec = m.PLANT_STATE.new()
     rec["seq"] = 0x0102030405060708
     rec["flags"] = m.Flag.BRAKING
-    buf = m.JOINT_STATE.encode(rec)
+    buf = m.PLANT_STATE.encode(rec)
     version, kind, flags, seq = struct.unpack_from("<HHIQ", buf, 0)
     assert (version, kind, flags, seq) == (
         m.PROTOCOL_VERSION,
-        m.Kind.JOINT_STATE,
+        m.Kind.PLANT_STATE,
         1,
         0x0102030405060708,
     )
@@ -122,7 +123,7 @@ def test_header_values_are_little_endian_on_the_wire():
 
 def test_encode_rejects_a_record_of_another_kind():
     with pytest.raises(TypeError):
-        m.JOINT_STATE.encode(m.JOINT_COMMAND.new())
+        m.PLANT_STATE.encode(m.JOINT_COMMAND.new())
 
 
 def _expect(schema: m.Schema, buf: bytes, reason: m.Reason) -> m.DecodeError:
@@ -133,13 +134,13 @@ def _expect(schema: m.Schema, buf: bytes, reason: m.Reason) -> m.DecodeError:
 
 
 def test_rejects_wrong_size_version_kind():
-    good = m.JOINT_STATE.encode(m.JOINT_STATE.new())
-    _expect(m.JOINT_STATE, good[:-1], m.Reason.SIZE)
-    _expect(m.JOINT_STATE, good + b"\0", m.Reason.SIZE)
-    _expect(m.JOINT_STATE, b"", m.Reason.SIZE)
-    _expect(m.JOINT_STATE, struct.pack("<H", m.PROTOCOL_VERSION + 1) + good[2:], m.Reason.VERSION)
+    good = m.PLANT_STATE.encode(m.PLANT_STATE.new())
+    _expect(m.PLANT_STATE, good[:-1], m.Reason.SIZE)
+    _expect(m.PLANT_STATE, good + b"\0", m.Reason.SIZE)
+    _expect(m.PLANT_STATE, b"", m.Reason.SIZE)
+    _expect(m.PLANT_STATE, struct.pack("<H", m.PROTOCOL_VERSION + 1) + good[2:], m.Reason.VERSION)
     wrong_kind = struct.pack("<HH", m.PROTOCOL_VERSION, m.Kind.TOOL_POSE) + good[4:]
-    _expect(m.JOINT_STATE, wrong_kind, m.Reason.KIND)
+    _expect(m.PLANT_STATE, wrong_kind, m.Reason.KIND)
 
 
 @pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
@@ -158,14 +159,16 @@ def test_rejects_non_finite_in_every_float_field(schema: m.Schema, value: float)
 @pytest.mark.parametrize(
     ("schema", "name", "value"),
     [
-        (m.JOINT_STATE, "q_rad", 100.5),
-        (m.JOINT_STATE, "qd_rad_s", -101.0),
+        (m.PLANT_STATE, "q_rad", 100.5),
+        (m.PLANT_STATE, "qd_rad_s", -101.0),
         (m.JOINT_COMMAND, "qd_ref_rad_s", 1e3),
         (m.JOINT_COMMAND, "gripper_cmd", 1.01),
         (m.JOINT_COMMAND, "gripper_cmd", -0.01),
         (m.TOOL_POSE, "world_p_tool_m", 1e3),
         (m.TOOL_POSE, "world_q_tool_wxyz", 1.5),
-        (m.CONTACT, "world_f_contact_n", 2e6),
+        (m.PLANT_STATE, "world_f_contact_n", 2e6),
+        (m.PLANT_STATE, "held_mass_kg", -0.1),
+        (m.PLANT_STATE, "world_n_away", 1.5),
         (m.OBJECT_POSES, "world_p_m", -200.0),
         (m.CONTROL_STATUS, "path_error_m", -1.0),
         (m.CONTROL_STATUS, "manipulability", -1e-3),
@@ -189,7 +192,7 @@ def test_limits_are_inclusive():
 @pytest.mark.parametrize(
     ("schema", "count", "maximum"),
     [
-        (m.JOINT_STATE, "n_joints", m.MAX_JOINTS),
+        (m.PLANT_STATE, "n_joints", m.MAX_JOINTS),
         (m.JOINT_COMMAND, "n_joints", m.MAX_JOINTS),
         (m.OBJECT_POSES, "n_objects", m.MAX_OBJECTS),
     ],
@@ -206,20 +209,20 @@ def test_drop_counter_counts_per_kind_and_reason_and_logs_once_per_kind(caplog):
     with caplog.at_level(logging.WARNING, logger="teleop.messages"):
         for _ in range(5):
             try:
-                m.JOINT_STATE.decode(bad_size)
+                m.PLANT_STATE.decode(bad_size)
             except m.DecodeError as err:
                 drops.record(err)
-        rec = m.JOINT_STATE.new()
+        rec = m.PLANT_STATE.new()
         rec["q_rad"][0] = np.nan
         try:
-            m.JOINT_STATE.decode(rec.tobytes())
+            m.PLANT_STATE.decode(rec.tobytes())
         except m.DecodeError as err:
             drops.record(err)
-        drops.record(m.DecodeError(m.Kind.CONTACT, m.Reason.VERSION))
+        drops.record(m.DecodeError(m.Kind.TOOL_POSE, m.Reason.VERSION))
     assert drops.counts() == {
-        (int(m.Kind.JOINT_STATE), "size"): 5,
-        (int(m.Kind.JOINT_STATE), "non_finite"): 1,
-        (int(m.Kind.CONTACT), "version"): 1,
+        (int(m.Kind.PLANT_STATE), "size"): 5,
+        (int(m.Kind.PLANT_STATE), "non_finite"): 1,
+        (int(m.Kind.TOOL_POSE), "version"): 1,
     }
     assert drops.total == 7
     assert len(caplog.records) == 2  # one per kind, not per drop
@@ -227,9 +230,8 @@ def test_drop_counter_counts_per_kind_and_reason_and_logs_once_per_kind(caplog):
 
 def test_topics_registry():
     t = Topics("arm1")
-    assert t.joint_state == "teleop/arm1/state/joints"
+    assert t.plant_state == "teleop/arm1/state/plant"
     assert t.tool_pose == "teleop/arm1/state/tool_pose"
-    assert t.contact == "teleop/arm1/state/contact"
     assert t.objects == "teleop/arm1/state/objects"
     assert t.joint_command == "teleop/arm1/cmd/joint_velocity"
     assert t.control_status == "teleop/arm1/control/status"

@@ -43,9 +43,8 @@ SIM_STEP_NS = 1_000_000  # 1 kHz
 F32_TOLERANCE = 1e-6  # positions go through float32 in Rerun
 SOURCE_T0_NS = 123_000_000_000  # producer clock values, also far from arrival times
 N = {  # records sent per stream
-    "joint_state": 400,
+    "plant_state": 400,
     "tool_pose": 400,
-    "contact": 60,
     "objects": 50,
     "joint_command": 400,
     "control_status": 120,
@@ -56,7 +55,6 @@ N_BILATERAL = {  # records sent per stream of the bilateral teleoperation test
     "hand_input": 30,
     "force_feedback": 300,
     "head_pose": 27,
-    "obstacle_proximity": 300,
     "teleop_status": 30,
 }
 EVENTS = (
@@ -68,7 +66,7 @@ EVENTS = (
     (m.Event.TASK_DONE, 5000, 1.0),
     (m.Event.TASK_DONE, 6000, 0.0),
 )
-# JOINT_STATE's latency stamps: how long before the record's t_source_ns each was taken.
+# PLANT_STATE's latency stamps: how long before the record's t_source_ns each was taken.
 HOP_STAMPS_NS = {
     m.Stage.CONTROLLER_RX: 900_000,
     m.Stage.CONTROLLER_TX: 600_000,
@@ -76,6 +74,9 @@ HOP_STAMPS_NS = {
     m.Stage.PLANT_STATE_TX: 0,
 }
 HAND_TICK0 = 4_000  # first valid_from_tick of the HAND_INPUT records
+# PLANT_STATE: contact and proximity computed every this many records (as outside
+# teleoperation, at the scene rate); the records in between repeat them.
+INTERACTION_EVERY = 10
 CONTACT_FEEDBACK_N = (3.0, 4.0, 0.0)  # norm 5 N
 WEIGHT_FEEDBACK_N = (0.0, 0.0, -1.962)  # 0.2 kg held
 
@@ -122,22 +123,24 @@ def build(stream: str, i: int) -> np.ndarray:
     rec["t_source_ns"] = source_ns(i)
     if "sim_time_ns" in rec.dtype.names:
         rec["sim_time_ns"] = sim_ns(i)
-    if stream == "joint_state":
+    if stream == "plant_state":
         rec["n_joints"] = len(JOINTS)
         rec["q_rad"][: len(JOINTS)] = 0.001 * i + np.arange(len(JOINTS))
         rec["qd_rad_s"][: len(JOINTS)] = -0.002 * i
         rec["step"] = i
         for stage, before_ns in HOP_STAMPS_NS.items():
             rec["trace_ns"][stage] = source_ns(i) - before_ns
+        computed = i - i % INTERACTION_EVERY
+        rec["interaction_step"] = computed
+        rec["world_f_contact_n"] = (0.0, 0.0, float(computed))
+        rec["n_contacts"] = computed // INTERACTION_EVERY % 3
+        rec["distance_m"] = 0.5 - 0.001 * computed
     elif stream == "joint_command":
         rec["n_joints"] = len(JOINTS)
         rec["qd_ref_rad_s"][: len(JOINTS)] = 0.01 * i - np.arange(len(JOINTS))
     elif stream == "tool_pose":
         rec["world_p_tool_m"] = (0.3, 0.0, 0.001 * i)
         rec["world_q_tool_wxyz"] = (1.0, 0.0, 0.0, 0.0)
-    elif stream == "contact":
-        rec["world_f_contact_n"] = (0.0, 0.0, float(i))
-        rec["n_contacts"] = i % 3
     elif stream == "objects":
         rec["n_objects"] = 1 if i % 2 else 2  # the ball is only in the even records
         rec["world_p_m"][:2] = ((0.1, 0.2, 0.001 * i), (0.5, 0.5, 0.5))
@@ -176,9 +179,6 @@ def build(stream: str, i: int) -> np.ndarray:
         rec["predicted_yaw_rad"] = 0.02 * i
         rec["predicted_pitch_rad"] = 0.05
         rec["horizon_s"] = 0.02
-    elif stream == "obstacle_proximity":
-        rec["tick"] = i
-        rec["distance_m"] = 0.5 - 0.001 * i
     elif stream == "teleop_status":
         rec["tick"] = i
         rec["world_v_ref_m_s"] = (0.01 * i, 0.0, 0.0)
@@ -284,13 +284,13 @@ def test_every_stream_is_logged_at_its_own_time(rig_factory, tmp_path):
     assert summary["rrd_path"] == str(rig.service.rrd_path)
 
     data = read_rrd(rig.service.rrd_path)
-    sims = [sim_ns(i) for i in range(N["joint_state"])]
+    sims = [sim_ns(i) for i in range(N["plant_state"])]
     for j, joint in enumerate(JOINTS):
         q = series(data, r.joint_entity(r.ENTITY_JOINT_Q, joint))
         assert sorted(q) == sims  # sim_time = the records' own sim_time_ns
-        assert all(q[sim_ns(i)] == pytest.approx(0.001 * i + j) for i in range(N["joint_state"]))
+        assert all(q[sim_ns(i)] == pytest.approx(0.001 * i + j) for i in range(N["plant_state"]))
         qd = series(data, r.joint_entity(r.ENTITY_JOINT_QD, joint))
-        assert len(qd) == N["joint_state"]
+        assert len(qd) == N["plant_state"]
         # JOINT_COMMAND has no sim time: only the producer's source_time timeline.
         cmd_cols = data[r.joint_entity(r.ENTITY_QD_REF, joint)]
         assert r.TIMELINE_SIM not in cmd_cols
@@ -299,7 +299,7 @@ def test_every_stream_is_logged_at_its_own_time(rig_factory, tmp_path):
         assert cmd[source_ns(5)] == pytest.approx(0.05 - j)
     q_cols = data[r.joint_entity(r.ENTITY_JOINT_Q, JOINTS[0])]
     by_sim = dict(zip(q_cols[r.TIMELINE_SIM], q_cols[r.TIMELINE_SOURCE], strict=True))
-    assert by_sim == {sim_ns(i): source_ns(i) for i in range(N["joint_state"])}
+    assert by_sim == {sim_ns(i): source_ns(i) for i in range(N["plant_state"])}
 
     tool = data[r.ENTITY_TOOL]
     assert sorted(tool[r.TIMELINE_SIM]) == sims
@@ -310,8 +310,15 @@ def test_every_stream_is_logged_at_its_own_time(rig_factory, tmp_path):
     trace = data[r.ENTITY_TOOL_TRACE]["LineStrips3D:strips"]
     assert trace and len(trace[-1][0]) > 1  # re-logged per flush, never per sample
 
+    # Contact and proximity: only the states that computed them, at their own times.
+    computed = range(0, N["plant_state"], INTERACTION_EVERY)
     force_z = series(data, r.axis_entity(r.ENTITY_CONTACT_FORCE, "z"))
-    assert force_z == {sim_ns(i): float(i) for i in range(N["contact"])}
+    assert force_z == {sim_ns(i): float(i) for i in computed}
+    count = series(data, r.ENTITY_CONTACT_COUNT)
+    assert count == {sim_ns(i): float(i // INTERACTION_EVERY % 3) for i in computed}
+    distance = series(data, r.ENTITY_OBSTACLE_DISTANCE)
+    assert sorted(distance) == [sim_ns(i) for i in computed]
+    assert distance[sim_ns(100)] == pytest.approx(0.4)
     cube = data[r.object_entity("cube")][r.TIMELINE_SIM]
     ball = data[r.object_entity("ball")][r.TIMELINE_SIM]
     assert sorted(cube) == [sim_ns(i) for i in range(N["objects"])]
@@ -427,10 +434,7 @@ def test_bilateral_streams_are_logged_at_their_own_time(rig_factory, tmp_path):
     assert hmd["Pinhole:image_from_camera"]  # static: the viewer draws a frustum
     assert hmd["Pinhole:camera_xyz"]
 
-    # Obstacle proximity and teleoperation status.
-    distance = series(data, r.ENTITY_OBSTACLE_DISTANCE)
-    assert sorted(distance) == sims("obstacle_proximity")
-    assert distance[sim_ns(100)] == pytest.approx(0.4)
+    # Teleoperation status.
     for base in (r.ENTITY_TELEOP_V_REF, r.ENTITY_TELEOP_V_TOOL):
         for axis in r.AXES:
             assert sorted(series(data, r.axis_entity(base, axis))) == sims("teleop_status")
@@ -442,19 +446,17 @@ def test_bilateral_streams_are_logged_at_their_own_time(rig_factory, tmp_path):
 
 
 class FaultyRecorder(r.RecorderService):
-    """Sends a malformed contact batch (more values than times): a real Rerun error."""
+    """Sends a malformed control-status batch (more values than times): a real Rerun error."""
 
-    def _write_contact(self, records: np.ndarray) -> None:
+    def _write_control_status(self, records: np.ndarray) -> None:
         values = np.zeros(records.size + 1)
-        self._send_scalars(
-            r.axis_entity(r.ENTITY_CONTACT_FORCE, "x"), self._indexes(records), values
-        )
+        self._send_scalars(r.ENTITY_PATH_ERROR, self._indexes(records), values)
 
 
 def test_rerun_error_is_counted_and_recording_goes_on(rig_factory, tmp_path):
     rig = rig_factory(FaultyRecorder)
     n = 50
-    counts = {"contact": n, "joint_state": n}
+    counts = {"control_status": n, "plant_state": n}
     rig.publish(counts)
     # The first batch is flushed (and rejected) before the second one arrives.
     # (+2: the flush under way when the wait starts may have missed the last records.)
@@ -462,20 +464,20 @@ def test_rerun_error_is_counted_and_recording_goes_on(rig_factory, tmp_path):
     rig.publish(counts, first=n)
     rig.finish()
     summary = json.loads((tmp_path / "recorder.summary.json").read_text())
-    assert summary["rerun_errors"] >= 2  # one per flush that held contact records
-    assert summary["samples_logged"]["contact"] == 0
-    assert summary["samples_logged"]["joint_state"] == 2 * n
+    assert summary["rerun_errors"] >= 2  # one per flush that held control-status records
+    assert summary["samples_logged"]["control_status"] == 0
+    assert summary["samples_logged"]["plant_state"] == 2 * n
     data = read_rrd(rig.service.rrd_path)
     q = series(data, r.joint_entity(r.ENTITY_JOINT_Q, JOINTS[0]))
     assert sorted(q) == [sim_ns(i) for i in range(2 * n)]
-    assert r.axis_entity(r.ENTITY_CONTACT_FORCE, "x") not in data
+    assert r.ENTITY_PATH_ERROR not in data
 
 
 def test_buffer_is_bounded_and_keeps_the_newest():
     capacity, sent = 10, 25
-    buffer = r.StreamBuffer(m.JOINT_STATE, capacity, threading.Condition())
+    buffer = r.StreamBuffer(m.PLANT_STATE, capacity, threading.Condition())
     for i in range(sent):
-        buffer(build("joint_state", i), 0)
+        buffer(build("plant_state", i), 0)
     assert (buffer.received, buffer.overflow) == (sent, sent - capacity)
     records = buffer.take()
     assert list(records["seq"]) == list(range(sent - capacity, sent))
@@ -536,11 +538,11 @@ def test_head_quaternion_looks_along_yaw_and_pitch(yaw_rad, pitch_rad):
 def test_rates_hops_and_seq_gaps_are_derived_from_the_records(rig_factory, tmp_path):
     rig = rig_factory()
     n = 60
-    rig.publish({"joint_state": n})
+    rig.publish({"plant_state": n})
     assert rig.service.wait_flushes(rig.service.flushes + 2, TIMEOUT_S)
     missing = 7
     # The seq jumps: 7 records lost.
-    rig.publish({"joint_state": n}, first=n + missing, received={"joint_state": 2 * n})
+    rig.publish({"plant_state": n}, first=n + missing, received={"plant_state": 2 * n})
     rig.finish()
     data = read_rrd(rig.service.rrd_path)
 
@@ -548,7 +550,7 @@ def test_rates_hops_and_seq_gaps_are_derived_from_the_records(rig_factory, tmp_p
     # series per hop in the stream's latency entity, named by the stages.
     stages = list(HOP_STAMPS_NS)
     sent = [sim_ns(i) for i in (*range(n), *range(n + missing, 2 * n + missing))]
-    cols = data[r.latency_entity("joint_state")]
+    cols = data[r.latency_entity("plant_state")]
     assert sorted(cols[r.TIMELINE_SIM]) == sent
     hops = list(zip(stages, stages[1:], strict=False))
     assert cols["SeriesLines:names"][-1] == [r.hop_name(a, b) for a, b in hops]
@@ -558,12 +560,12 @@ def test_rates_hops_and_seq_gaps_are_derived_from_the_records(rig_factory, tmp_p
 
     # Loop rate: records per second of the producer's clock over each window (one record
     # per 3 ms here), lower only for a window that spans the gap.
-    rates = [v[0] for v in data[r.rate_entity("joint_state")]["Scalars:scalars"]]
+    rates = [v[0] for v in data[r.rate_entity("plant_state")]["Scalars:scalars"]]
     full_hz = 1e9 / (source_ns(1) - source_ns(0))
     assert len(rates) >= 2
     assert max(rates) == pytest.approx(full_hz, rel=1e-6)
     assert all(0.5 * full_hz <= v <= full_hz * (1 + 1e-6) for v in rates)
 
     texts = [t[0] for t in data[r.ENTITY_RECORDER_EVENTS]["TextLog:text"]]
-    assert f"joint_state: {missing} record(s) missing (seq gaps)" in texts
+    assert f"plant_state: {missing} record(s) missing (seq gaps)" in texts
     assert "service recorder joined the bus" in texts

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from teleop import recorder as r
 from teleop.bus import (
     Latest,
     Publisher,
@@ -25,7 +26,8 @@ from teleop.bus import (
 )
 from teleop.config import load_config
 from teleop.experiments import run_path_following_inprocess
-from teleop.messages import JOINT_COMMAND, JOINT_STATE, RUN_EVENT, DropCounter, Event
+from teleop.messages import JOINT_COMMAND, PLANT_STATE, RUN_EVENT, DropCounter, Event
+from teleop.rrd import Recording
 from teleop.stack import free_loopback_port, service_programs
 from teleop.supervise import Stack
 from teleop.topics import Topics
@@ -68,6 +70,17 @@ def test_lockstep_is_deterministic_and_equals_the_inprocess_run(tmp_path):
     assert first["steps"] == 3000 and first["mode"] == "lockstep"
     assert first["dropped_messages"] == 0 and first["stale_commands"] == 0
     assert Path(first["rrd"]).stat().st_size > 0
+    # Outside teleoperation the plant computes contact and proximity at the scene rate
+    # only: the recording has them for those states alone, at their own sim times.
+    config = load_config()
+    every = round(1 / (config.plant.scene_rate_hz * config.plant.timestep_s))
+    timestep_ns = round(config.plant.timestep_s * 1e9)
+    q_entity = r.joint_entity(r.ENTITY_JOINT_Q, config.robot.arm_joints[0])
+    data = Recording(first["rrd"]).lists((r.ENTITY_OBSTACLE_DISTANCE, q_entity))
+    state_sims = set(data[q_entity][r.TIMELINE_SIM])
+    sims = data[r.ENTITY_OBSTACLE_DISTANCE][r.TIMELINE_SIM]
+    assert set(sims) == {t for t in state_sims if t // timestep_ns % every == 0}
+    assert len(set(sims)) >= first["steps"] // every
 
 
 @pytest.mark.parametrize("delay_steps", [0, 2])
@@ -100,7 +113,7 @@ def test_realtime_run_keeps_time_and_accuracy(tmp_path):
 
 
 class Observer:
-    """A test's own session: the run's listener, watching events and joint states."""
+    """A test's own session: the run's listener, watching events and plant states."""
 
     def __init__(self, config, topics: Topics) -> None:
         self.session = open_session(config.bus, listen=True)
@@ -110,7 +123,7 @@ class Observer:
         self.drops = DropCounter()
         self.entities = [
             subscribe(self.session, topics.events, RUN_EVENT, self._on_event, self.drops),
-            subscribe(self.session, topics.joint_state, JOINT_STATE, self._on_state, self.drops),
+            subscribe(self.session, topics.plant_state, PLANT_STATE, self._on_state, self.drops),
             declare_alive(self.session, topics, OBSERVER),
         ]
 
