@@ -386,6 +386,17 @@ PLANT_STATE = Schema(
         Field("q_rad", "f8", (MAX_JOINTS,), **_QPOS, doc="joint positions"),
         Field("qd_rad_s", "f8", (MAX_JOINTS,), **_QVEL, doc="joint velocities"),
         Field(
+            "qd_ref_applied_rad_s",
+            "f8",
+            (MAX_JOINTS,),
+            **_QVEL,
+            doc="velocity references the drives got in this step: the applied command "
+            "(zero before the first), the brake's hold references while braking",
+        ),
+        Field(
+            "gripper_cmd_applied", "f8", lo=0.0, hi=1.0, unit="1", doc="gripper command in effect"
+        ),
+        Field(
             "gripper_opening_m",
             "f8",
             lo=-GRIPPER_OPENING_LIMIT_M,

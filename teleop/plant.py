@@ -84,7 +84,10 @@ class Plant:
         self.gripper_bodies = {
             b for b in range(self.model.nbody) if self._in_subtree(b, gripper_root)
         }
+        self.ctrl_low = self.model.actuator_ctrlrange[self.actuator_index, 0].copy()
+        self.ctrl_high = self.model.actuator_ctrlrange[self.actuator_index, 1].copy()
         self.step_count = 0
+        self.gripper_cmd = 1.0  # the gripper command in effect (0 closed .. 1 open)
         self._hold_q_rad: np.ndarray | None = None
 
     def _in_subtree(self, body: int, root: int) -> bool:
@@ -106,6 +109,7 @@ class Plant:
         self.data.qpos[self.finger_qpos_index] = opening
         self.data.ctrl[self.gripper_actuator] = opening
         mujoco.mj_forward(self.model, self.data)
+        self.gripper_cmd = min(max(gripper_open, 0.0), 1.0)
         self.step_count = 0
         self._hold_q_rad = None
 
@@ -119,6 +123,7 @@ class Plant:
         self._hold_q_rad = None
         self.data.ctrl[self.actuator_index] = qd_ref_rad_s
         self.data.ctrl[self.gripper_actuator] = self._gripper_ctrl(gripper_cmd)
+        self.gripper_cmd = min(max(gripper_cmd, 0.0), 1.0)
         mujoco.mj_step(self.model, self.data)
         self.step_count += 1
 
@@ -140,6 +145,14 @@ class Plant:
         self.data.ctrl[self.actuator_index] = qd_ref
         mujoco.mj_step(self.model, self.data)
         self.step_count += 1
+
+    def applied_qd_ref_rad_s(self) -> np.ndarray:
+        """Joint velocity references the drives got in the last step (n,), rad/s: the
+        command, or the brake's hold references, clipped to the actuators' range as
+        MuJoCo applies them."""
+        return np.minimum(
+            np.maximum(self.data.ctrl[self.actuator_index], self.ctrl_low), self.ctrl_high
+        )
 
     @property
     def braking(self) -> bool:

@@ -325,6 +325,8 @@ class PlantService(Service):
         rec["n_joints"] = n
         rec["q_rad"][:n] = sample.q_rad
         rec["qd_rad_s"][:n] = sample.qd_rad_s
+        rec["qd_ref_applied_rad_s"][:n] = self.plant.applied_qd_ref_rad_s()
+        rec["gripper_cmd_applied"] = self.plant.gripper_cmd
         rec["gripper_opening_m"] = sample.gripper_opening_m
         grasp_event = None
         if sample.step % self.interaction_every_steps == 0:

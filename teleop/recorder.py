@@ -8,7 +8,7 @@ sample), so a 1 kHz stream costs a few Rerun calls per flush, not a thousand.
 Every sample is logged at its own time, never at its arrival time:
 
 - ``sim_time`` (duration): the record's ``sim_time_ns`` (plant simulation time), for
-  every kind that carries it (all but JOINT_COMMAND and HAND_INPUT); HAND_INPUT is
+  every kind that carries it (all but HAND_INPUT); HAND_INPUT is
   logged at the start of the tick it applies to, ``valid_from_tick * plant.timestep_s``;
 - ``source_time`` (duration): the header's ``t_source_ns``, the producer's monotonic
   clock, for every record.
@@ -63,7 +63,6 @@ from teleop.messages import (
     HAND_INPUT,
     HAPTIC_STATE,
     HEAD_POSE,
-    JOINT_COMMAND,
     MAX_JOINTS,
     MAX_OBJECTS,
     OBJECT_POSES,
@@ -97,7 +96,9 @@ ENTITY_GRIPPER_OPENING = "robot/gripper_opening_m"  # Scalars
 # were computed at that step (every step in teleoperation, else at the plant's scene rate).
 ENTITY_CONTACT_FORCE = "robot/contact_force_n"  # + /x, /y, /z, Scalars (world frame)
 ENTITY_CONTACT_COUNT = "robot/n_contacts"  # Scalars
-ENTITY_QD_REF = "control/qd_ref_rad_s"  # + /<joint name>, Scalars (JOINT_COMMAND)
+# + /<joint name>, Scalars: the references the drives got (PLANT_STATE, not JOINT_COMMAND:
+# one fewer 1 kHz stream to receive, and it is what was applied, at the step's sim time).
+ENTITY_QD_REF = "control/qd_ref_rad_s"
 ENTITY_GRIPPER_CMD = "control/gripper_cmd"  # Scalars, 0 closed .. 1 open
 ENTITY_PATH_ERROR = "control/path_error_m"  # Scalars
 ENTITY_MANIPULABILITY = "control/manipulability"  # Scalars
@@ -263,7 +264,6 @@ STREAM_SCHEMAS: Mapping[str, Schema] = {
     "plant_state": PLANT_STATE,
     "tool_pose": TOOL_POSE,
     "objects": OBJECT_POSES,
-    "joint_command": JOINT_COMMAND,
     "control_status": CONTROL_STATUS,
     "events": RUN_EVENT,
     "haptic_state": HAPTIC_STATE,
@@ -478,7 +478,6 @@ class RecorderService(Service):
             "plant_state": self._write_plant_state,
             "tool_pose": self._write_tool_pose,
             "objects": self._write_objects,
-            "joint_command": self._write_joint_command,
             "control_status": self._write_control_status,
             "events": self._write_events,
             "haptic_state": self._write_haptic_state,
@@ -773,9 +772,10 @@ class RecorderService(Service):
     def _write_plant_state(self, records: np.ndarray) -> None:
         self._send_per_joint(records, "q_rad", ENTITY_JOINT_Q)
         self._send_per_joint(records, "qd_rad_s", ENTITY_JOINT_QD)
-        self._send_scalars(
-            ENTITY_GRIPPER_OPENING, self._indexes(records), records["gripper_opening_m"]
-        )
+        self._send_per_joint(records, "qd_ref_applied_rad_s", ENTITY_QD_REF)
+        indexes = self._indexes(records)
+        self._send_scalars(ENTITY_GRIPPER_OPENING, indexes, records["gripper_opening_m"])
+        self._send_scalars(ENTITY_GRIPPER_CMD, indexes, records["gripper_cmd_applied"])
         self._sim_time_ns = int(records["sim_time_ns"][-1])
         self._write_interaction(records)
         if self._scene is not None:
@@ -859,10 +859,6 @@ class RecorderService(Service):
                 for batch in archetype.as_component_batches()
             ]
             self._send(entity, indexes, columns)
-
-    def _write_joint_command(self, records: np.ndarray) -> None:
-        self._send_per_joint(records, "qd_ref_rad_s", ENTITY_QD_REF)
-        self._send_scalars(ENTITY_GRIPPER_CMD, self._indexes(records), records["gripper_cmd"])
 
     def _write_tool_pose(self, records: np.ndarray) -> None:
         indexes = self._indexes(records)

@@ -46,7 +46,6 @@ N = {  # records sent per stream
     "plant_state": 400,
     "tool_pose": 400,
     "objects": 50,
-    "joint_command": 400,
     "control_status": 120,
     "events": 7,
 }
@@ -127,6 +126,7 @@ def build(stream: str, i: int) -> np.ndarray:
         rec["n_joints"] = len(JOINTS)
         rec["q_rad"][: len(JOINTS)] = 0.001 * i + np.arange(len(JOINTS))
         rec["qd_rad_s"][: len(JOINTS)] = -0.002 * i
+        rec["qd_ref_applied_rad_s"][: len(JOINTS)] = 0.01 * i - np.arange(len(JOINTS))
         rec["step"] = i
         for stage, before_ns in HOP_STAMPS_NS.items():
             rec["trace_ns"][stage] = source_ns(i) - before_ns
@@ -135,9 +135,6 @@ def build(stream: str, i: int) -> np.ndarray:
         rec["world_f_contact_n"] = (0.0, 0.0, float(computed))
         rec["n_contacts"] = computed // INTERACTION_EVERY % 3
         rec["distance_m"] = 0.5 - 0.001 * computed
-    elif stream == "joint_command":
-        rec["n_joints"] = len(JOINTS)
-        rec["qd_ref_rad_s"][: len(JOINTS)] = 0.01 * i - np.arange(len(JOINTS))
     elif stream == "tool_pose":
         rec["world_p_tool_m"] = (0.3, 0.0, 0.001 * i)
         rec["world_q_tool_wxyz"] = (1.0, 0.0, 0.0, 0.0)
@@ -291,12 +288,10 @@ def test_every_stream_is_logged_at_its_own_time(rig_factory, tmp_path):
         assert all(q[sim_ns(i)] == pytest.approx(0.001 * i + j) for i in range(N["plant_state"]))
         qd = series(data, r.joint_entity(r.ENTITY_JOINT_QD, joint))
         assert len(qd) == N["plant_state"]
-        # JOINT_COMMAND has no sim time: only the producer's source_time timeline.
-        cmd_cols = data[r.joint_entity(r.ENTITY_QD_REF, joint)]
-        assert r.TIMELINE_SIM not in cmd_cols
+        # The references the drives got come with the state, at its sim time.
         cmd = series(data, r.joint_entity(r.ENTITY_QD_REF, joint))
-        assert sorted(cmd) == [source_ns(i) for i in range(N["joint_command"])]
-        assert cmd[source_ns(5)] == pytest.approx(0.05 - j)
+        assert sorted(cmd) == sims
+        assert cmd[sim_ns(5)] == pytest.approx(0.05 - j)
     q_cols = data[r.joint_entity(r.ENTITY_JOINT_Q, JOINTS[0])]
     by_sim = dict(zip(q_cols[r.TIMELINE_SIM], q_cols[r.TIMELINE_SOURCE], strict=True))
     assert by_sim == {sim_ns(i): source_ns(i) for i in range(N["plant_state"])}
