@@ -16,20 +16,28 @@ from drifting when the operator commands nothing. Virtual obstacles push the clo
 arm point away. Then, like MoveIt Servo, the motion is slowed down near singularities
 and joint limits and capped in tool speed, and dynamic compensation (shared with path
 following) turns the kinematic command into references for the velocity loops.
+
+Cost: the law runs once per haptic sample (1 kHz) on the bilateral loop's critical path.
+At these sizes (3- and 6-vectors, 3x3 and 6x6 matrices) a numpy call costs ~0.5-3 us
+whatever it computes, more than the arithmetic, so the cycle works on Python floats
+between the Pinocchio calls and calls LAPACK directly for the two factorisations.
 """
 
 from __future__ import annotations
 
+import functools
 import math
+import operator
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import pinocchio as pin
+from scipy.linalg import lapack
 
 from teleop.config import ControlConfig, TeleopConfig
-from teleop.control import limit_speed, velocity_reference
-from teleop.kinematics import ArmModel, tool_position_and_jacobian
+from teleop.control import velocity_reference
+from teleop.kinematics import ArmModel, tool_jacobian, tool_pose_and_jacobian
 from teleop.proximity import ProximitySample
 
 # Position hold: servo gain (1/s) towards the integrated desired position, and the
@@ -47,6 +55,7 @@ ORIENTATION_GAIN_PER_S = 10.0
 # to SINGULAR_DAMPING, so a wrist or elbow singularity gives bounded joint rates.
 SINGULAR_VALUE_THRESHOLD = 0.05
 SINGULAR_DAMPING = 0.05
+_SINGULAR_VALUE_THRESHOLD_SQUARED = SINGULAR_VALUE_THRESHOLD**2
 # Damping of the one-row avoidance pseudo-inverse (m/rad): a point the joints barely move
 # (near the base) gets a bounded push instead of huge joint rates.
 AVOID_DAMPING_M_PER_RAD = 0.01
@@ -57,6 +66,8 @@ SINGULARITY_LOOKAHEAD_S = 0.01
 # reference would otherwise saturate the wrist drives, whose lag makes the tool overshoot
 # the speed cap. Safety scaling acts after it, so stops stay immediate.
 MAX_JOINT_ACCEL_RAD_S2 = 10.0
+# Rows of the task: tool linear and angular velocity.
+TASK_DIMENSION = 6
 # Joint limits at or beyond this magnitude (rad) mean "no limit": a joint that can turn a
 # full turn each way (the shoulder pan, UR-style wrists) is treated as continuous.
 CONTINUOUS_LIMIT_RAD = 2.0 * math.pi - 1e-3
@@ -74,14 +85,18 @@ def rate_command(d_m: np.ndarray, yaw_rad: float, cfg: TeleopConfig) -> np.ndarr
     Radial deadband, continuous at its edge: v = gain (|d| - deadband) d/|d| beyond it,
     zero inside (the hand's tremor and the handle's rest offset command nothing). The
     device/view-frame velocity is rotated to the world by Rz(yaw) and capped in norm at
-    ``max_tool_speed_m_s``.
+    ``max_tool_speed_m_s``. In floats: it runs once per haptic sample (1 kHz), and the
+    numpy form (norm, rotation matrix, product) costs several times more.
     """
-    d = np.asarray(d_m, dtype=float)
-    norm = float(np.linalg.norm(d))
+    dx, dy, dz = np.asarray(d_m, dtype=float).tolist()
+    norm = math.hypot(dx, dy, dz)
     if norm <= cfg.deadband_m:
         return np.zeros(3)
     speed = min(cfg.rate_gain_per_s * (norm - cfg.deadband_m), cfg.max_tool_speed_m_s)
-    return view_to_world(yaw_rad) @ (d * (speed / norm))
+    gain = speed / norm
+    vx, vy, vz = dx * gain, dy * gain, dz * gain
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return np.array((c * vx - s * vy, s * vx + c * vy, vz))  # Rz(yaw) v
 
 
 def teleop_reference(
@@ -92,8 +107,26 @@ def teleop_reference(
 
 
 def _norm(v: np.ndarray) -> float:
-    """Euclidean norm of a short vector (np.linalg.norm costs ~3 us at this size)."""
-    return math.sqrt(float(v @ v))
+    """Euclidean norm of a 3-vector (np.linalg.norm costs ~3 us at this size)."""
+    return math.hypot(*v.tolist())
+
+
+def _within_limits(values: list[float], limits: list[float]) -> tuple[list[float], float]:
+    """:func:`teleop.control.limit_speed` on floats: the whole vector divided by
+    ``ratio`` >= 1 (direction kept) so that every |values[i]| <= limits[i]."""
+    ratio = max(map(operator.truediv, map(abs, values), limits))
+    if ratio > 1.0:
+        return [value / ratio for value in values], ratio
+    return values, 1.0
+
+
+@functools.lru_cache(maxsize=16)
+def _identity(size: int, scale: float = 1.0) -> np.ndarray:
+    """Read-only ``scale`` I (size, size), for constant scales: np.eye and the product
+    cost ~1.5 us per call at this size."""
+    identity = scale * np.eye(size)
+    identity.flags.writeable = False
+    return identity
 
 
 def position_condition_number(jacobian_position: np.ndarray) -> float:
@@ -102,10 +135,20 @@ def position_condition_number(jacobian_position: np.ndarray) -> float:
     From the eigenvalues of the 3x3 J J^T (the squared singular values), cheaper than
     an SVD of J.
     """
-    eigenvalues = np.linalg.eigvalsh(jacobian_position @ jacobian_position.T)
-    if eigenvalues[0] <= 0.0:
+    return _condition_number_of_gram(jacobian_position @ jacobian_position.T)
+
+
+def _condition_number_of_gram(gram: np.ndarray) -> float:
+    """sqrt(l_max / l_min) of a Gram matrix J J^T (inf if singular): the condition number
+    of J. LAPACK's dsyevd directly, as np.linalg.eigvalsh does, without its ~3 us of
+    argument checks and error-state handling."""
+    eigenvalues, _, info = lapack.dsyevd(gram, compute_v=0, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"dsyevd failed (info {info})")
+    smallest, *_, largest = eigenvalues.tolist()
+    if smallest <= 0.0:
         return math.inf
-    return math.sqrt(float(eigenvalues[-1] / eigenvalues[0]))
+    return math.sqrt(largest / smallest)
 
 
 def singularity_scale(cond: float, cfg: TeleopConfig) -> float:
@@ -133,9 +176,30 @@ def joint_limit_scale(
     Only the components moving TOWARD a limit within ``margin_rad`` of it are slowed, so a
     joint that reached its limit can always leave it. Infinite limits never scale.
     """
-    to_upper = np.minimum(np.maximum((upper_rad - q_rad) / margin_rad, 0.0), 1.0)
-    to_lower = np.minimum(np.maximum((q_rad - lower_rad) / margin_rad, 0.0), 1.0)
-    return np.where(qd_rad_s > 0, to_upper, np.where(qd_rad_s < 0, to_lower, 1.0))
+    return np.array(
+        [
+            _joint_limit_factor(q, qd, lower, upper, margin_rad)
+            for q, qd, lower, upper in zip(
+                np.asarray(q_rad).tolist(),
+                np.asarray(qd_rad_s).tolist(),
+                np.asarray(lower_rad).tolist(),
+                np.asarray(upper_rad).tolist(),
+                strict=True,
+            )
+        ]
+    )
+
+
+def _joint_limit_factor(
+    q_rad: float, qd_rad_s: float, lower_rad: float, upper_rad: float, margin_rad: float
+) -> float:
+    """One joint's factor of :func:`joint_limit_scale`, in floats (the numpy form costs
+    ~15 us in where/minimum/maximum on 6-vectors)."""
+    if qd_rad_s > 0.0:
+        return min(max((upper_rad - q_rad) / margin_rad, 0.0), 1.0)
+    if qd_rad_s < 0.0:
+        return min(max((q_rad - lower_rad) / margin_rad, 0.0), 1.0)
+    return 1.0
 
 
 def damped_least_squares(jacobian: np.ndarray, task: np.ndarray, damping: float) -> np.ndarray:
@@ -144,13 +208,43 @@ def damped_least_squares(jacobian: np.ndarray, task: np.ndarray, damping: float)
     The damping is ``damping`` away from singularities and rises smoothly to
     SINGULAR_DAMPING as the smallest singular value falls below SINGULAR_VALUE_THRESHOLD
     (Nakamura's variable damping), which bounds the joint rates at a singularity.
+
+    Solved by Cholesky through the Gram matrix J J^T, or J^T J for a tall J (the smaller
+    one; the nonzero eigenvalues of both are the squared singular values), not by an SVD,
+    which costs several times more at 6x6 (see :func:`_damped_gram_solve`). Agrees with
+    the SVD form to rounding (~1e-14 relative).
     """
-    u, sigma, vt = np.linalg.svd(jacobian, full_matrices=False)
-    sigma_min = float(sigma[-1])
-    lam2 = damping * damping
-    if sigma_min < SINGULAR_VALUE_THRESHOLD:
-        lam2 += (1.0 - (sigma_min / SINGULAR_VALUE_THRESHOLD) ** 2) * SINGULAR_DAMPING**2
-    return vt.T @ ((sigma / (sigma * sigma + lam2)) * (u.T @ task))
+    rows, cols = jacobian.shape
+    if rows > cols:  # (J^T J + lambda^2 I)^-1 J^T task, the same matrix identity
+        return _damped_gram_solve(jacobian.T @ jacobian, jacobian.T @ task, damping)
+    return jacobian.T @ _damped_gram_solve(jacobian @ jacobian.T, task, damping)
+
+
+def _damped_gram_solve(gram: np.ndarray, rhs: np.ndarray, damping: float) -> np.ndarray:
+    """(G + lambda^2 I)^-1 rhs for the Gram matrix G of a Jacobian, with the adaptive
+    lambda of :func:`damped_least_squares`.
+
+    The smallest singular value is needed only below the threshold: the Cholesky
+    factorisation of G - threshold^2 I succeeds exactly when it is above, so G's
+    eigenvalues are computed only near a singularity. There, sigma_min^2 + lambda^2 >=
+    min(SINGULAR_VALUE_THRESHOLD, SINGULAR_DAMPING)^2 keeps G + lambda^2 I well conditioned.
+    """
+    size = gram.shape[0]
+    _, below_threshold = lapack.dpotrf(gram - _identity(size, _SINGULAR_VALUE_THRESHOLD_SQUARED))
+    if below_threshold:
+        eigenvalues, _, info = lapack.dsyevd(gram, compute_v=0, lower=1)
+        if info != 0:
+            raise np.linalg.LinAlgError(f"dsyevd failed (info {info})")
+        sigma_min_squared = max(float(eigenvalues[0]), 0.0)
+        shortfall = max(1.0 - sigma_min_squared / _SINGULAR_VALUE_THRESHOLD_SQUARED, 0.0)
+        lam2 = damping * damping + shortfall * SINGULAR_DAMPING**2
+        damped_gram = gram + lam2 * _identity(size)
+    else:  # the configured damping, a constant: its identity is cached
+        damped_gram = gram + _identity(size, damping * damping)
+    _, solution, info = lapack.dposv(damped_gram, rhs)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"dposv failed (info {info})")
+    return solution
 
 
 def point_jacobian_along(
@@ -161,17 +255,19 @@ def point_jacobian_along(
     The point ``world_p_m`` is rigidly attached to the Pinocchio frame ``frame_id``; its
     velocity is the frame's v_o + w x r with r = p - o, so along the unit ``world_n``
     it is n^T Jv - (n x r)^T Jw. Reads the joint Jacobians that
-    :func:`tool_position_and_jacobian` left in ``arm.data``: call it first, at the same q.
+    :func:`teleop.kinematics.tool_pose_and_jacobian` (or ``tool_position_and_jacobian``)
+    left in ``arm.data``: call it first, at the same q. Updates the frame's placement.
     """
     frame_jacobian = pin.getFrameJacobian(
         arm.model, arm.data, frame_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
     )
-    r = np.asarray(world_p_m, dtype=float) - arm.data.oMf[frame_id].translation
-    n = np.asarray(world_n, dtype=float)
-    n_cross_r = np.array(
-        (n[1] * r[2] - n[2] * r[1], n[2] * r[0] - n[0] * r[2], n[0] * r[1] - n[1] * r[0])
-    )
-    return n @ frame_jacobian[:3] - n_cross_r @ frame_jacobian[3:]
+    px, py, pz = np.asarray(world_p_m, dtype=float).tolist()
+    ox, oy, oz = pin.updateFramePlacement(arm.model, arm.data, frame_id).translation.tolist()
+    rx, ry, rz = px - ox, py - oy, pz - oz
+    nx, ny, nz = np.asarray(world_n, dtype=float).tolist()
+    # One (6,) row times the (6, n) Jacobian: [n, -(n x r)] . [Jv; Jw].
+    row = (nx, ny, nz, nz * ry - ny * rz, nx * rz - nz * rx, ny * rx - nx * ry)
+    return np.array(row) @ frame_jacobian
 
 
 def approach_down_orientation(world_r_tool: np.ndarray) -> np.ndarray:
@@ -239,15 +335,27 @@ class TeleopController:
         continuous = (lower <= -CONTINUOUS_LIMIT_RAD) & (upper >= CONTINUOUS_LIMIT_RAD)
         self.lower_rad = np.where(continuous, -np.inf, lower)
         self.upper_rad = np.where(continuous, np.inf, upper)
+        # The per-cycle limits in floats (the cycle works on floats, see the module). Only
+        # joints with a finite limit are scaled: an infinite one gives a factor of 1.
+        self._max_speed_rad_s = self.max_speed_rad_s.tolist()
+        self._wide_jacobian = arm.n_joints >= TASK_DIMENSION
+        self._max_change_rad_s = MAX_JOINT_ACCEL_RAD_S2 * period_s
+        self._limited_joints = [
+            (joint, lower, upper)
+            for joint, (lower, upper) in enumerate(
+                zip(self.lower_rad.tolist(), self.upper_rad.tolist(), strict=True)
+            )
+            if math.isfinite(lower) or math.isfinite(upper)
+        ]
         self._body_frames: dict[int, int] = {}
         for body, name in enumerate(mj_body_names):
             if name and arm.model.existFrame(name, pin.FrameType.BODY):
                 self._body_frames[body] = arm.model.getFrameId(name, pin.FrameType.BODY)
         self.unmapped_obstacle_samples = 0
-        self._p_des: np.ndarray | None = None
+        self._p_des: tuple[float, float, float] | None = None
         self._r_des: np.ndarray | None = None
         self._previous_qd_c: np.ndarray | None = None
-        self._previous_nominal: np.ndarray | None = None
+        self._previous_nominal: list[float] | None = None
         self._previous_tool_speed = 0.0
 
     def reset(self) -> None:
@@ -268,74 +376,90 @@ class TeleopController:
         gripper_cmd: float,
         clutch: bool = False,
     ) -> TeleopOutput:
-        """One control cycle from the measured joint state and the operator's reference."""
+        """One control cycle from the measured joint state and the operator's reference.
+
+        3-vectors are unpacked into floats and joint vectors kept as float lists between
+        the Pinocchio and LAPACK calls (see the module docstring for why).
+        """
         tcfg, dt = self.teleop, self.period_s
-        tool_p, jacobian = tool_position_and_jacobian(self.arm, q_rad)
-        tool_r = self.arm.data.oMf[self.arm.tool_frame_id].rotation
+        tool_p, tool_r, jacobian = tool_pose_and_jacobian(self.arm, q_rad)
         v_ref = np.zeros(3) if clutch else np.asarray(world_v_ref_m_s, dtype=float)
         if self._r_des is None:
             self._r_des = approach_down_orientation(tool_r) if tcfg.approach_down else tool_r.copy()
+        px, py, pz = tool_p.tolist()
+        vx, vy, vz = v_ref.tolist()
         if self._p_des is None or clutch:
-            self._p_des = tool_p.copy()
+            self._p_des = (px, py, pz)
         # Integrate the operator's reference, but never let the goal run away from a tool
         # that the safety scaling holds back (the hold would wind up).
-        error = self._p_des + v_ref * dt - tool_p
-        error_norm = _norm(error)
+        gx, gy, gz = self._p_des
+        ex, ey, ez = gx + vx * dt - px, gy + vy * dt - py, gz + vz * dt - pz
+        error_norm = math.hypot(ex, ey, ez)
         if error_norm > POSITION_HOLD_MAX_ERROR_M:
-            error *= POSITION_HOLD_MAX_ERROR_M / error_norm
-        self._p_des = tool_p + error
+            shrink = POSITION_HOLD_MAX_ERROR_M / error_norm
+            ex, ey, ez = ex * shrink, ey * shrink, ez * shrink
+        self._p_des = (px + ex, py + ey, pz + ez)
         rotation_error = pin.log3(self._r_des @ tool_r.T)  # world-frame rotation vector
-        task = np.concatenate(
-            (v_ref + POSITION_HOLD_GAIN_PER_S * error, ORIENTATION_GAIN_PER_S * rotation_error)
-        )
-        qd_c = damped_least_squares(jacobian, task, self.control.damping_m)
+        rx, ry, rz = rotation_error.tolist()
+        kp, kr = POSITION_HOLD_GAIN_PER_S, ORIENTATION_GAIN_PER_S
+        task = np.array((vx + kp * ex, vy + kp * ey, vz + kp * ez, kr * rx, kr * ry, kr * rz))
+        # J J^T (6, 6): the least squares' Gram matrix; its top-left block is Jv Jv^T.
+        jjt = jacobian @ jacobian.T
+        if self._wide_jacobian:
+            qd_c = jacobian.T @ _damped_gram_solve(jjt, task, self.control.damping_m)
+        else:
+            qd_c = damped_least_squares(jacobian, task, self.control.damping_m)
+        qd_c = qd_c.tolist()
         qd_c = self._limit_acceleration(qd_c, qd_rad_s)
         obstacle_active = False
         if obstacle is not None and obstacle.distance_m < tcfg.obstacle_influence_m:
             qd_c, obstacle_active = self._avoid(qd_c, obstacle)
 
         jv = jacobian[:3]
-        cond = position_condition_number(jv)
+        cond = _condition_number_of_gram(jjt[:3, :3])
         scale = 1.0
         if cond > tcfg.singularity_slowdown_cond and self._toward_singularity(q_rad, qd_c, cond):
             scale = singularity_scale(cond, tcfg)
-        qd_c = qd_c * scale
-        limit_factors = joint_limit_scale(
-            q_rad, qd_c, self.lower_rad, self.upper_rad, tcfg.joint_limit_margin_rad
-        )
-        qd_c = qd_c * limit_factors
+            qd_c = [qd * scale for qd in qd_c]
+        limit_factors = self._joint_limit_factors(q_rad, qd_c)
+        joint_limit_factor = min(limit_factors)
+        if joint_limit_factor < 1.0:
+            qd_c = list(map(operator.mul, qd_c, limit_factors))
         # The drives track with a small lag; when the tool moved faster than it was told
         # last cycle, command that much less so the MEASURED speed respects the cap.
         v_tool = jv @ qd_rad_s
         overshoot = _norm(v_tool) - self._previous_tool_speed
         max_speed = tcfg.max_tool_speed_m_s - max(0.0, overshoot)
-        tool_speed = _norm(jv @ qd_c)
+        tool_speed = _norm(jv @ np.array(qd_c))
         if tool_speed > max_speed:
             cap = max(0.0, max_speed) / tool_speed
-            qd_c = qd_c * cap
+            qd_c = [qd * cap for qd in qd_c]
             scale *= cap
-        qd_c = limit_speed(qd_c, self.max_speed_rad_s)
-        self._previous_tool_speed = _norm(jv @ qd_c)
+            tool_speed *= cap
+        qd_c, ratio = _within_limits(qd_c, self._max_speed_rad_s)
+        # Both limits scale the whole vector, so the tool speed scales with it.
+        self._previous_tool_speed = tool_speed / ratio
+        qd_c_rad_s = np.array(qd_c)
 
         qd_ref = velocity_reference(
-            self.arm, self.control, q_rad, qd_rad_s, qd_c, self._previous_qd_c, dt
+            self.arm, self.control, q_rad, qd_rad_s, qd_c_rad_s, self._previous_qd_c, dt
         )
-        self._previous_qd_c = qd_c
+        self._previous_qd_c = qd_c_rad_s
         return TeleopOutput(
-            qd_ref_rad_s=limit_speed(qd_ref, self.max_speed_rad_s),
-            qd_c_rad_s=qd_c,
+            qd_ref_rad_s=np.array(_within_limits(qd_ref.tolist(), self._max_speed_rad_s)[0]),
+            qd_c_rad_s=qd_c_rad_s,
             world_v_ref_m_s=v_ref,
             world_v_tool_m_s=v_tool,
             world_p_tool_m=tool_p,
             speed_scale=scale,
-            joint_limit_scale=float(np.min(limit_factors)),
+            joint_limit_scale=joint_limit_factor,
             cond=cond,
-            orientation_error_rad=_norm(rotation_error),
+            orientation_error_rad=math.hypot(rx, ry, rz),
             obstacle_active=obstacle_active,
-            gripper_cmd=float(np.clip(gripper_cmd, 0.0, 1.0)),
+            gripper_cmd=min(max(float(gripper_cmd), 0.0), 1.0),
         )
 
-    def _avoid(self, qd_c: np.ndarray, obstacle: ProximitySample) -> tuple[np.ndarray, bool]:
+    def _avoid(self, qd_c: list[float], obstacle: ProximitySample) -> tuple[list[float], bool]:
         """Add the joint motion that pushes the closest arm point away from the obstacle.
 
         The arm point's speed along the away direction n gains
@@ -355,20 +479,39 @@ class TeleopController:
         away_m_s = tcfg.obstacle_avoid_gain_per_s * (
             tcfg.obstacle_influence_m - obstacle.distance_m
         )
-        gain = away_m_s / (float(j_n @ j_n) + AVOID_DAMPING_M_PER_RAD**2)
-        return qd_c + gain * j_n, True
+        j_n = j_n.tolist()
+        gain = away_m_s / (sum([j * j for j in j_n]) + AVOID_DAMPING_M_PER_RAD**2)
+        return [qd + gain * j for qd, j in zip(qd_c, j_n, strict=True)], True
 
-    def _limit_acceleration(self, qd_c: np.ndarray, qd_rad_s: np.ndarray) -> np.ndarray:
+    def _limit_acceleration(self, qd_c: list[float], qd_rad_s: np.ndarray) -> list[float]:
         """Bound the change of the nominal command per cycle (direction of change kept).
 
         The first cycle after a reset starts from the measured joint velocities.
         """
-        previous = self._previous_nominal if self._previous_nominal is not None else qd_rad_s
-        qd_c = previous + limit_speed(qd_c - previous, MAX_JOINT_ACCEL_RAD_S2 * self.period_s)
-        self._previous_nominal = qd_c
-        return qd_c
+        previous = self._previous_nominal
+        if previous is None:
+            previous = qd_rad_s.tolist()
+        change = list(map(operator.sub, qd_c, previous))
+        ratio = max(map(abs, change)) / self._max_change_rad_s
+        if ratio > 1.0:
+            change = [dqd / ratio for dqd in change]
+        self._previous_nominal = list(map(operator.add, previous, change))
+        return self._previous_nominal
 
-    def _toward_singularity(self, q_rad: np.ndarray, qd_c: np.ndarray, cond: float) -> bool:
+    def _joint_limit_factors(self, q_rad: np.ndarray, qd_rad_s: list[float]) -> list[float]:
+        """:func:`joint_limit_scale` of the controller's joints (only the limited ones are
+        computed, the others are 1)."""
+        factors = [1.0] * len(qd_rad_s)
+        if self._limited_joints:
+            q = q_rad.tolist()
+            margin = self.teleop.joint_limit_margin_rad
+            for joint, lower, upper in self._limited_joints:
+                factors[joint] = _joint_limit_factor(
+                    q[joint], qd_rad_s[joint], lower, upper, margin
+                )
+        return factors
+
+    def _toward_singularity(self, q_rad: np.ndarray, qd_c: list[float], cond: float) -> bool:
         """Whether following qd_c for SINGULARITY_LOOKAHEAD_S raises the condition number."""
-        _, ahead = tool_position_and_jacobian(self.arm, q_rad + qd_c * SINGULARITY_LOOKAHEAD_S)
-        return position_condition_number(ahead[:3]) > cond
+        q_ahead = q_rad + np.array(qd_c) * SINGULARITY_LOOKAHEAD_S
+        return position_condition_number(tool_jacobian(self.arm, q_ahead)[:3]) > cond

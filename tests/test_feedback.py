@@ -165,6 +165,24 @@ def test_device_force_saturates_at_the_peak_force():
     np.testing.assert_allclose(f / np.linalg.norm(f), world / np.linalg.norm(world))
 
 
+def test_device_force_matches_the_rotation_matrix_formula():
+    """The float form against force_scale Rz(yaw)^T f + spring, saturated in norm."""
+    tcfg, hcfg = TeleopConfig(), HapticConfig()
+    rng = np.random.default_rng(10)
+    for _ in range(200):
+        world_f = rng.normal(size=3) * rng.uniform(0.0, 40.0)
+        spring = rng.normal(size=3) * rng.uniform(0.0, 3.0)
+        yaw = rng.uniform(-math.pi, math.pi)
+        c, s = math.cos(yaw), math.sin(yaw)
+        rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        expected = tcfg.force_scale * rz.T @ world_f + spring
+        norm = np.linalg.norm(expected)
+        if norm > hcfg.peak_force_n:
+            expected *= hcfg.peak_force_n / norm
+        f = device_force(components(world_f, spring), yaw, tcfg, hcfg)
+        np.testing.assert_allclose(f, expected, rtol=0, atol=1e-13)
+
+
 def test_stability_defaults_pass_and_stiff_springs_are_rejected():
     cfg = load_config()
     margin = check_stability(cfg.teleop, cfg.haptic, cfg.plant.timestep_s)

@@ -13,6 +13,8 @@ from teleop.kinematics import (
     joint_space_dynamics,
     manipulability,
     manipulability_and_gradient,
+    tool_jacobian,
+    tool_pose_and_jacobian,
     tool_position_and_jacobian,
 )
 from teleop.plant import Plant
@@ -38,6 +40,21 @@ def test_tool_position_and_jacobian_match_mujoco(any_arm_config):
         position, jacobian = tool_position_and_jacobian(arm, q)
         np.testing.assert_allclose(position, plant.tool_pose()[0], atol=TOLERANCE, rtol=0)
         np.testing.assert_allclose(jacobian[:3], plant.tool_jacobian(), atol=TOLERANCE, rtol=0)
+
+
+def test_tool_pose_and_jacobian_variants_agree(any_arm_config):
+    """The teleoperation cycle's cheaper queries give the same pose and Jacobian."""
+    plant = Plant(any_arm_config)
+    arm = build_arm_model(any_arm_config.robot)
+    for q in random_configurations(plant, 10, seed=3):
+        position, jacobian = tool_position_and_jacobian(arm, q)
+        rotation = arm.data.oMf[arm.tool_frame_id].rotation.copy()
+        jacobian = jacobian.copy()
+        fast_position, fast_rotation, fast_jacobian = tool_pose_and_jacobian(arm, q)
+        np.testing.assert_array_equal(fast_position, position)
+        np.testing.assert_array_equal(fast_rotation, rotation)
+        np.testing.assert_array_equal(fast_jacobian, jacobian)
+        np.testing.assert_array_equal(tool_jacobian(arm, q), jacobian)
 
 
 def test_dynamics_match_mujoco(any_arm_config):

@@ -26,14 +26,20 @@ from teleop.proximity import (
     obstacle_geoms,
 )
 from teleop.teleop_control import (
+    SINGULAR_DAMPING,
+    SINGULAR_VALUE_THRESHOLD,
     TeleopController,
+    damped_least_squares,
     joint_limit_scale,
     point_jacobian_along,
     position_condition_number,
     rate_command,
     singularity_scale,
     teleop_reference,
+    view_to_world,
 )
+
+from .conftest import ARM7_OVERRIDES
 
 # Tool speed cap: the measured speed may exceed it by the drives' tracking error only.
 SPEED_TOLERANCE = 1.005
@@ -200,6 +206,135 @@ def test_condition_number_matches_numpy(cfg, arm):
     for q in (cfg.robot.home_q_rad, STRETCHED_Q_RAD):
         jv = tool_position_and_jacobian(arm, np.array(q))[1][:3]
         assert position_condition_number(jv) == pytest.approx(np.linalg.cond(jv), rel=1e-6)
+
+
+# --- the fast helpers against the straightforward numpy formulas ---------------------------
+
+# Agreement of the LAPACK/float forms with the numpy formulas: rounding only.
+FORMULA_RTOL = 1e-10
+
+
+def jacobians_to_check(arm_cfg: Config, count: int, seed: int) -> list[np.ndarray]:
+    """Tool Jacobians (6, n) at random configurations and, for the 6-DOF arm, near its wrist
+    (wrist_2 = 0) and elbow (elbow = 0) singularities, exactly on them and just off."""
+    arm = build_arm_model(arm_cfg.robot)
+    rng = np.random.default_rng(seed)
+    n = arm.n_joints
+    configurations = list(rng.uniform(-math.pi, math.pi, size=(count, n)))
+    if n == 6:
+        for offset in (0.0, 1e-6, 1e-3, 0.03, 0.2):
+            wrist = rng.uniform(-math.pi, math.pi, size=n)
+            wrist[4] = offset
+            elbow = rng.uniform(-math.pi, math.pi, size=n)
+            elbow[2] = offset
+            configurations += [wrist, elbow, np.array(STRETCHED_Q_RAD) + [0, 0, 0, 0, offset, 0]]
+    return [tool_position_and_jacobian(arm, q)[1].copy() for q in configurations]
+
+
+def matrices_with_singular_values(shape: tuple[int, int], seed: int) -> list[np.ndarray]:
+    """U diag(s) V^T with the smallest singular value around the damping threshold."""
+    rng = np.random.default_rng(seed)
+    rows, cols = shape
+    k = min(shape)
+    matrices = []
+    for smallest in (0.0, 1e-9, 1e-3, 0.9 * SINGULAR_VALUE_THRESHOLD,
+                     SINGULAR_VALUE_THRESHOLD * (1 - 1e-9), SINGULAR_VALUE_THRESHOLD,
+                     SINGULAR_VALUE_THRESHOLD * (1 + 1e-9), 0.3):  # fmt: skip
+        u, _ = np.linalg.qr(rng.normal(size=(rows, rows)))
+        v, _ = np.linalg.qr(rng.normal(size=(cols, cols)))
+        sigma = np.sort(rng.uniform(0.3, 2.5, size=k))[::-1]
+        sigma[-1] = smallest
+        matrices.append(u[:, :k] @ np.diag(sigma) @ v[:, :k].T)
+    return matrices
+
+
+def reference_damping(jacobian: np.ndarray, damping: float) -> float:
+    """lambda^2 of the damped least squares from the SVD's smallest singular value."""
+    sigma_min = np.linalg.svd(jacobian, compute_uv=False)[-1]
+    lam2 = damping**2
+    if sigma_min < SINGULAR_VALUE_THRESHOLD:
+        lam2 += (1.0 - (sigma_min / SINGULAR_VALUE_THRESHOLD) ** 2) * SINGULAR_DAMPING**2
+    return lam2
+
+
+@pytest.mark.parametrize("arm_name", ["arm6", "arm7"])
+def test_damped_least_squares_matches_the_formula_on_arm_jacobians(cfg, arm_name):
+    arm_cfg = cfg if arm_name == "arm6" else load_config(None, ARM7_OVERRIDES)
+    rng = np.random.default_rng(3)
+    for jacobian in jacobians_to_check(arm_cfg, 40, seed=4):
+        task = rng.normal(size=6)
+        for damping in (cfg.control.damping_m, 0.0, 0.02):
+            lam2 = reference_damping(jacobian, damping)
+            # J^T (J J^T + lambda^2 I)^-1 task, and the SVD form V S (S^2 + lambda^2)^-1 U^T.
+            formula = jacobian.T @ np.linalg.solve(jacobian @ jacobian.T + lam2 * np.eye(6), task)
+            u, sigma, vt = np.linalg.svd(jacobian, full_matrices=False)
+            svd_form = vt.T @ ((sigma / (sigma**2 + lam2)) * (u.T @ task))
+            fast = damped_least_squares(jacobian, task, damping)
+            scale = np.linalg.norm(svd_form)
+            np.testing.assert_allclose(fast, formula, rtol=0, atol=FORMULA_RTOL * scale)
+            np.testing.assert_allclose(fast, svd_form, rtol=0, atol=FORMULA_RTOL * scale)
+
+
+@pytest.mark.parametrize("shape", [(6, 6), (6, 7), (6, 5)])
+def test_damped_least_squares_matches_the_svd_form_around_the_threshold(shape):
+    """Square, wide and tall Jacobians whose smallest singular value is zero, tiny, just
+    below, at and just above the threshold, or well above it."""
+    rng = np.random.default_rng(5)
+    for jacobian in matrices_with_singular_values(shape, seed=6):
+        task = rng.normal(size=6)
+        for damping in (1e-4, 0.0, 0.02):
+            lam2 = reference_damping(jacobian, damping)
+            u, sigma, vt = np.linalg.svd(jacobian, full_matrices=False)
+            svd_form = vt.T @ ((sigma / (sigma**2 + lam2)) * (u.T @ task))
+            fast = damped_least_squares(jacobian, task, damping)
+            scale = np.linalg.norm(svd_form)
+            np.testing.assert_allclose(fast, svd_form, rtol=0, atol=FORMULA_RTOL * scale)
+
+
+@pytest.mark.parametrize("arm_name", ["arm6", "arm7"])
+def test_condition_number_matches_the_eigenvalue_and_svd_formulas(cfg, arm_name):
+    arm_cfg = cfg if arm_name == "arm6" else load_config(None, ARM7_OVERRIDES)
+    for jacobian in jacobians_to_check(arm_cfg, 40, seed=7):
+        jv = jacobian[:3]
+        cond = position_condition_number(jv)
+        eigenvalues = np.linalg.eigvalsh(jv @ jv.T)
+        if eigenvalues[0] <= 0.0:
+            assert cond == math.inf
+            continue
+        expected = math.sqrt(eigenvalues[-1] / eigenvalues[0])
+        assert cond == pytest.approx(expected, rel=1e-12)
+        # Against the SVD of J itself, the squared Gram matrix loses ~eps cond^2.
+        svd_cond = np.linalg.cond(jv)
+        assert cond == pytest.approx(svd_cond, rel=1e-12 + 1e-15 * svd_cond**2)
+
+
+def test_joint_limit_scale_matches_the_numpy_formula():
+    rng = np.random.default_rng(8)
+    margin = 0.15
+    lower = np.array([-1.0, -np.inf, -2.0, -np.inf, -1.0, -0.5])
+    upper = np.array([1.0, np.inf, np.inf, 0.5, 1.0, 0.5])
+    for _ in range(200):
+        q = rng.uniform(-1.2, 1.2, size=6)
+        qd = rng.normal(size=6) * (rng.uniform(size=6) > 0.2)  # some exact zeros
+        to_upper = np.minimum(np.maximum((upper - q) / margin, 0.0), 1.0)
+        to_lower = np.minimum(np.maximum((q - lower) / margin, 0.0), 1.0)
+        expected = np.where(qd > 0, to_upper, np.where(qd < 0, to_lower, 1.0))
+        np.testing.assert_array_equal(joint_limit_scale(q, qd, lower, upper, margin), expected)
+
+
+def test_rate_command_matches_the_rotation_matrix_formula():
+    cfg = TeleopConfig()
+    rng = np.random.default_rng(9)
+    for _ in range(200):
+        d = rng.normal(size=3) * rng.uniform(0.0, 0.05)
+        yaw = rng.uniform(-math.pi, math.pi)
+        norm = np.linalg.norm(d)
+        if norm <= cfg.deadband_m:
+            expected = np.zeros(3)
+        else:
+            speed = min(cfg.rate_gain_per_s * (norm - cfg.deadband_m), cfg.max_tool_speed_m_s)
+            expected = view_to_world(yaw) @ (d * (speed / norm))
+        np.testing.assert_allclose(rate_command(d, yaw, cfg), expected, rtol=0, atol=1e-15)
 
 
 # --- joint limits ------------------------------------------------------------------------
