@@ -337,9 +337,8 @@ class TeleopController:
         self.upper_rad = np.where(continuous, np.inf, upper)
         # The per-cycle limits in floats (the cycle works on floats, see the module). Only
         # joints with a finite limit are scaled: an infinite one gives a factor of 1.
-        self._max_speed_rad_s = self.max_speed_rad_s.tolist()
-        self._wide_jacobian = arm.n_joints >= TASK_DIMENSION
-        self._max_change_rad_s = MAX_JOINT_ACCEL_RAD_S2 * period_s
+        self._speed_limits_rad_s = self.max_speed_rad_s.tolist()
+        self._max_change_per_cycle_rad_s = MAX_JOINT_ACCEL_RAD_S2 * period_s
         self._limited_joints = [
             (joint, lower, upper)
             for joint, (lower, upper) in enumerate(
@@ -347,6 +346,9 @@ class TeleopController:
             )
             if math.isfinite(lower) or math.isfinite(upper)
         ]
+        # J J^T (task x task) is the least squares' Gram matrix unless the arm has fewer
+        # joints than task rows (then J^T J is, see damped_least_squares).
+        self._wide_jacobian = arm.n_joints >= TASK_DIMENSION
         self._body_frames: dict[int, int] = {}
         for body, name in enumerate(mj_body_names):
             if name and arm.model.existFrame(name, pin.FrameType.BODY):
@@ -436,7 +438,7 @@ class TeleopController:
             qd_c = [qd * cap for qd in qd_c]
             scale *= cap
             tool_speed *= cap
-        qd_c, ratio = _within_limits(qd_c, self._max_speed_rad_s)
+        qd_c, ratio = _within_limits(qd_c, self._speed_limits_rad_s)
         # Both limits scale the whole vector, so the tool speed scales with it.
         self._previous_tool_speed = tool_speed / ratio
         qd_c_rad_s = np.array(qd_c)
@@ -446,7 +448,7 @@ class TeleopController:
         )
         self._previous_qd_c = qd_c_rad_s
         return TeleopOutput(
-            qd_ref_rad_s=np.array(_within_limits(qd_ref.tolist(), self._max_speed_rad_s)[0]),
+            qd_ref_rad_s=np.array(_within_limits(qd_ref.tolist(), self._speed_limits_rad_s)[0]),
             qd_c_rad_s=qd_c_rad_s,
             world_v_ref_m_s=v_ref,
             world_v_tool_m_s=v_tool,
@@ -492,7 +494,7 @@ class TeleopController:
         if previous is None:
             previous = qd_rad_s.tolist()
         change = list(map(operator.sub, qd_c, previous))
-        ratio = max(map(abs, change)) / self._max_change_rad_s
+        ratio = max(map(abs, change)) / self._max_change_per_cycle_rad_s
         if ratio > 1.0:
             change = [dqd / ratio for dqd in change]
         self._previous_nominal = list(map(operator.add, previous, change))

@@ -46,8 +46,8 @@ from teleop.kinematics import ArmModel, build_arm_model, tool_position_and_jacob
 from teleop.plant import Plant
 from teleop.proximity import ObstacleProximity, ProximitySample, apply_scene_overrides, body_names
 
-# The last commit with the numpy/SVD control cycle.
-BASELINE_REV = "6789edebbb61784b256c5f3cf392c5e373b01e91"
+# The last commit with the numpy/SVD control cycle (main before this change).
+BASELINE_REV = "c3b27db80a4ab51a194820217ab9f407d213752d"
 # Outputs must agree to this, relative to the largest magnitude of the field over the run.
 RELATIVE_TOLERANCE = 1e-10
 # View yaw (rad) of the free segment: the rate command and the feedback rotate.
@@ -267,7 +267,7 @@ def replay_alternating(
 
 def deviations(baseline: list[dict], fast: list[dict]) -> dict[str, dict[str, float]]:
     """Per output field: largest |fast - baseline| and that over the field's largest
-    magnitude in the run (booleans: number of differing steps)."""
+    magnitude in the run (booleans as 0/1; a differing non-finite value counts as inf)."""
     result = {}
     for name in baseline[0]:
         old = np.array([np.asarray(o[name], dtype=float) for o in baseline])
@@ -305,7 +305,8 @@ def main() -> int:
     agree = True
     for segment, (segment_cfg, steps) in trajectories.items():
         outputs = {}
-        replay_alternating((baseline, fast), segment_cfg, arm, names, steps[:WARMUP_STEPS], 50)
+        warmup = steps[:WARMUP_STEPS]
+        replay_alternating((baseline, fast), segment_cfg, arm, names, warmup, args.chunk)
         for r in range(args.rounds):
             order = (baseline, fast) if r % 2 == 0 else (fast, baseline)
             replays = replay_alternating(order, segment_cfg, arm, names, steps, args.chunk)
