@@ -38,7 +38,7 @@ import numpy as np
 import zenoh
 
 from shm.provider import get_provider
-from teleop.bus import Latest, Publisher, open_session, subscribe
+from teleop.bus import Latest, Publisher, open_session, subscribe, subscribe_batches
 from teleop.clock import NS_PER_S, LoopTimer, MonotonicClock
 from teleop.config import Config, ConfigError
 from teleop.messages import (
@@ -194,18 +194,19 @@ class EyeViewService(Service):
         lower_priority(eye.nice, idle=False)
         # Built before the session: if the model or the GL context fails, nothing is open.
         self.renderer = EyeRenderer(self.config)
-        # PLANT_STATE is a 1 kHz stream: take in only what the frames need.
+        # PLANT_STATE is a 1 kHz stream: its observers' copy comes several states per
+        # message, and of those only what the frames need gets in.
         self.session = open_session(
             self.config.bus,
             listen=self.options.listen,
-            ingress_rate_hz={self.topics.plant_state: eye.state_rate_hz},
+            ingress_rate_hz={self.topics.plant_state_batch: eye.state_rate_hz},
         )
         self.states = Latest()
         self.objects = Latest()
         self.heads = Latest()
         self.keep(
-            subscribe(
-                self.session, self.topics.plant_state, PLANT_STATE, self._on_state, self.drops
+            subscribe_batches(
+                self.session, self.topics.plant_state_batch, PLANT_STATE, self._on_state, self.drops
             )
         )
         self.keep(

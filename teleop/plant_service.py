@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from teleop.bus import Latest, Publisher, subscribe
+from teleop.bus import BatchPublisher, Latest, Publisher, subscribe
 from teleop.clock import NS_PER_S, LoopTimer, MonotonicClock
 from teleop.experiments import initial_configuration
 from teleop.feedback import finger_bodies, held_mass_kg, held_object
@@ -193,6 +193,14 @@ class PlantService(Service):
         declare = self.session
         topics = self.topics
         self.state_pub = self.keep(Publisher.declare(declare, topics.plant_state, PLANT_STATE))
+        self.state_batch = self.keep(
+            BatchPublisher.declare(
+                declare,
+                topics.plant_state_batch,
+                PLANT_STATE,
+                self.config.bus.observer_batch_records,
+            )
+        )
         self.tool_pub = self.keep(Publisher.declare(declare, topics.tool_pose, TOOL_POSE))
         self.objects_pub = self.keep(Publisher.declare(declare, topics.objects, OBJECT_POSES))
         self.events_pub = self.keep(Publisher.declare(declare, topics.events, RUN_EVENT))
@@ -342,7 +350,7 @@ class PlantService(Service):
         now_ns = time.monotonic_ns()
         rec["t_source_ns"] = now_ns
         rec["trace_ns"][Stage.PLANT_STATE_TX] = now_ns
-        self._put(self.state_pub, rec)
+        self.state_batch.add(self._put(self.state_pub, rec))
         if grasp_event is not None:
             self._publish_event(grasp_event, float(max(int(rec["held_body"]), 0)))
         if sample.step % self.scene_every_steps == 0:
@@ -395,12 +403,13 @@ class PlantService(Service):
         self._objects["world_q_wxyz"][:n] = quats
         self._put(self.objects_pub, self._objects)
 
-    def _put(self, publisher: Publisher, rec: np.ndarray) -> None:
-        """Publish one record of the current tick (kept for a lockstep re-send)."""
+    def _put(self, publisher: Publisher, rec: np.ndarray) -> bytes:
+        """Publish one record of the current tick (kept for a lockstep re-send); its bytes."""
         data = publisher.schema.encode(rec)
         publisher.put_bytes(data)
         if self._sent_ticks is not None:
             self._sent_ticks[-1].append((publisher, data))
+        return data
 
     # -- the run -------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
@@ -423,6 +432,7 @@ class PlantService(Service):
         else:
             self._run_realtime(stop, steps)
         self.wall_s = (time.monotonic_ns() - start_ns) / NS_PER_S
+        self.state_batch.flush()  # the observers get the run's last states now
         if not stop.is_set():
             self.finished = True
             self._publish_event(Event.FINISHED)

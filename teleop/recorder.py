@@ -52,7 +52,7 @@ import PIL.Image
 import rerun as rr
 import zenoh
 
-from teleop.bus import subscribe, subscribe_frames
+from teleop.bus import subscribe, subscribe_batches, subscribe_frames
 from teleop.config import Config, ConfigError
 from teleop.control import DesiredPath
 from teleop.kinematics import ModelError
@@ -272,6 +272,9 @@ STREAM_SCHEMAS: Mapping[str, Schema] = {
     "head_pose": HEAD_POSE,
     "teleop_status": TELEOP_STATUS,
 }
+# Streams the recorder takes from their observers' copy (several records per message):
+# stream name -> Topics attribute of the copy.
+BATCHED_STREAMS: Mapping[str, str] = {"plant_state": "plant_state_batch"}
 # Periodic streams: their loop rate is logged and their seq checked for gaps and restarts.
 # RUN_EVENT is sporadic and has several producers, each with its own counter.
 PERIODIC_STREAMS = frozenset(STREAM_SCHEMAS) - {"events"}
@@ -555,8 +558,14 @@ class RecorderService(Service):
             assert self.session is not None
             self._rec = self._open_recording()
             for name, schema in STREAM_SCHEMAS.items():
-                key = getattr(self.topics, name)
-                sub = subscribe(self.session, key, schema, self._buffers[name], self.drops)
+                if name in BATCHED_STREAMS:
+                    key = getattr(self.topics, BATCHED_STREAMS[name])
+                    sub = subscribe_batches(
+                        self.session, key, schema, self._buffers[name], self.drops
+                    )
+                else:
+                    key = getattr(self.topics, name)
+                    sub = subscribe(self.session, key, schema, self._buffers[name], self.drops)
                 self._subscribers.append(self.keep(sub))
             sub = subscribe_frames(
                 self.session, self.topics.eye_view, EYE_VIEW, self._eye_view, self.drops

@@ -21,6 +21,8 @@ class Topics:
 
     robot_id: str
     plant_state: str = field(init=False)  # plant -> all, PLANT_STATE (with contact), 1 kHz
+    # plant -> observers (recorder, eye view): the same records, several per message
+    plant_state_batch: str = field(init=False)
     tool_pose: str = field(init=False)  # plant -> all, TOOL_POSE, plant.scene_rate_hz
     objects: str = field(init=False)  # plant -> recorder/operator, OBJECT_POSES
     joint_command: str = field(init=False)  # controller -> plant, JOINT_COMMAND
@@ -39,6 +41,7 @@ class Topics:
             raise ValueError(f"robot_id {self.robot_id!r}: non-empty, no '/', '*', '$', '?', '#'")
         streams = {
             "plant_state": "state/plant",
+            "plant_state_batch": "state/plant/batch",
             "tool_pose": "state/tool_pose",
             "objects": "state/objects",
             "joint_command": "cmd/joint_velocity",

@@ -283,3 +283,40 @@ def test_close_session_is_idempotent_and_tolerates_none():
     bus.close_session(None)
     assert session.is_closed()
     assert isinstance(session, zenoh.Session)
+
+
+def test_batch_publisher_delivers_every_record_in_order_and_drops_bad_batches():
+    """Observers' copy: records go out N per message (and the rest at flush), arrive one
+    callback per record, in order; a message that is not whole records is dropped."""
+    endpoint = free_endpoint()
+    topics = Topics(ROBOT)
+    listener = bus.open_session(_bus(endpoint), listen=True)
+    session = bus.open_session(_bus(endpoint), listen=False)
+    got: list[int] = []
+    done = threading.Event()
+    drops = m.DropCounter()
+
+    def on_record(rec: np.ndarray, rx_ns: int) -> None:
+        got.append(int(rec["seq"]))
+        if len(got) == 7:
+            done.set()
+
+    sub = bus.subscribe_batches(listener, topics.plant_state_batch, m.PLANT_STATE, on_record, drops)
+    batch = bus.BatchPublisher.declare(session, topics.plant_state_batch, m.PLANT_STATE, 3)
+    raw = bus.Publisher.declare(session, topics.plant_state_batch, m.PLANT_STATE)
+    try:
+        assert raw.wait_matched(TIMEOUT_S)
+        raw.put_bytes(b"\x00" * (m.PLANT_STATE.size + 5))  # not whole records: dropped
+        for seq in range(7):
+            rec = m.PLANT_STATE.new()
+            rec["seq"] = seq
+            batch.add(m.PLANT_STATE.encode(rec))
+        assert batch.records_per_message == 3
+        batch.flush()  # the seventh record goes out alone
+        assert done.wait(TIMEOUT_S)
+        assert got == list(range(7))
+        assert drops.total == 1
+    finally:
+        batch.undeclare()
+        bus.close_session(session, raw)
+        bus.close_session(listener, sub)

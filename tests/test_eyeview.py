@@ -188,7 +188,7 @@ def test_the_service_renders_the_newest_state_and_head_pose_and_survives_bad_inp
     sub = subscribe_frames(
         session, topics.eye_view, EYE_VIEW, lambda rec, px, rx, shm: frames(rec.copy(), rx), drops
     )
-    state_pub = Publisher.declare(session, topics.plant_state, PLANT_STATE)
+    state_pub = Publisher.declare(session, topics.plant_state_batch, PLANT_STATE)  # a batch of 1
     head_pub = Publisher.declare(session, topics.head_pose, HEAD_POSE)
     try:
         assert opened.wait(TIMEOUT_S)

@@ -216,8 +216,10 @@ class Rig:
         then wait until the recorder has received them all (``received`` records per
         stream in total; default ``first + counts[stream]``)."""
         topics = self.service.topics
-        pubs = {
-            s: bus.Publisher.declare(self.session, getattr(topics, s), r.STREAM_SCHEMAS[s])
+        pubs = {  # plant states go on their observers' copy, here one record per message
+            s: bus.Publisher.declare(
+                self.session, getattr(topics, r.BATCHED_STREAMS.get(s, s)), r.STREAM_SCHEMAS[s]
+            )
             for s in counts
         }
         try:
