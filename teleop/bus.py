@@ -151,9 +151,11 @@ class Publisher:
     def key(self) -> str:
         return str(self._pub.key_expr)
 
-    def put(self, rec: np.ndarray) -> None:
-        """Encode and send one record; SHM path at or above the threshold."""
-        self.put_bytes(self.schema.encode(rec))
+    def put(self, rec: np.ndarray) -> bytes:
+        """Encode and send one record (SHM path at or above the threshold); its bytes."""
+        data = self.schema.encode(rec)
+        self.put_bytes(data)
+        return data
 
     def put_bytes(self, data: bytes) -> None:
         """Send raw bytes (already encoded) on the path their size calls for."""
@@ -250,7 +252,8 @@ class BatchPublisher:
     but none of them at once (the recorder, the eye view) listens here instead of to the
     1 kHz stream. ``add`` keeps an encoded record; the message goes out when it holds
     ``records_per_message`` records, or at :meth:`flush` (the producer calls it when its
-    run ends, and :meth:`undeclare` does). ``express=False``: Zenoh may batch it too.
+    run ends, and :meth:`undeclare` does, so a producer stopped before its observer
+    loses nothing: supervisord stops the recorder last).
     """
 
     def __init__(self, publisher: Publisher, records_per_message: int) -> None:
@@ -270,9 +273,7 @@ class BatchPublisher:
         *,
         shm: ShmProvider | None = None,
     ) -> BatchPublisher:
-        publisher = Publisher.declare(
-            session, key, schema, shm=shm, express=False, priority=zenoh.Priority.DATA
-        )
+        publisher = Publisher.declare(session, key, schema, shm=shm, priority=zenoh.Priority.DATA)
         return cls(publisher, records_per_message)
 
     def add(self, data: bytes) -> None:

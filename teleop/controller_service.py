@@ -35,7 +35,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from teleop.bus import Latest, Publisher, subscribe
+from teleop.bus import BatchPublisher, Latest, Publisher, subscribe
 from teleop.control import ControlOutput, PathFollowingController
 from teleop.experiments import PathMetrics
 from teleop.feedback import (
@@ -248,6 +248,14 @@ class TeleopTask:
         self.stale_ticks = round(config.haptic.stale_feedback_s / service.timestep_s)
         self.feedback_pub = service.keep(
             Publisher.declare(session, topics.force_feedback, FORCE_FEEDBACK)
+        )
+        self.feedback_batch = service.keep(  # the recorder's copy, several per message
+            BatchPublisher.declare(
+                session,
+                topics.force_feedback_batch,
+                FORCE_FEEDBACK,
+                config.bus.observer_batch_records,
+            )
         )
         self.status_pub = service.keep(
             Publisher.declare(session, topics.teleop_status, TELEOP_STATUS)
@@ -547,7 +555,7 @@ class TeleopTask:
         now_ns = time.monotonic_ns()
         rec["trace_ns"][Stage.FEEDBACK_TX] = now_ns
         rec["t_source_ns"] = now_ns
-        self.feedback_pub.put(rec)
+        self.feedback_batch.add(self.feedback_pub.put(rec))
 
     def _measure(
         self, output: TeleopOutput, components: Any, device_f_n: np.ndarray, held_mass: float

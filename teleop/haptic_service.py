@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from teleop.bus import Publisher, subscribe
+from teleop.bus import BatchPublisher, Publisher, subscribe
 from teleop.clock import NS_PER_S, LoopTimer, MonotonicClock
 from teleop.haptics import EmulatedDevice, FeedbackHold, max_stable_stiffness_n_per_m
 from teleop.messages import (
@@ -118,6 +118,14 @@ class HapticService(Service):
 
         self.state_pub = self.keep(
             Publisher.declare(self.session, self.topics.haptic_state, HAPTIC_STATE)
+        )
+        self.state_batch = self.keep(  # the recorder's copy, several samples per message
+            BatchPublisher.declare(
+                self.session,
+                self.topics.haptic_state_batch,
+                HAPTIC_STATE,
+                cfg.bus.observer_batch_records,
+            )
         )
         topics, drops = self.topics, self.drops
         self.keep(
@@ -347,7 +355,7 @@ class HapticService(Service):
         rec["device_v_m_s"] = sample.v_m_s
         rec["device_f_n"] = sample.f_n
         rec["buttons"] = int(sample.buttons)
-        self.state_pub.put(rec)
+        self.state_batch.add(self.state_pub.put(rec))
         if not self.lockstep:
             self.sample_log.append((self.steps, sample_ns))
 

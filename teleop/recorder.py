@@ -274,7 +274,11 @@ STREAM_SCHEMAS: Mapping[str, Schema] = {
 }
 # Streams the recorder takes from their observers' copy (several records per message):
 # stream name -> Topics attribute of the copy.
-BATCHED_STREAMS: Mapping[str, str] = {"plant_state": "plant_state_batch"}
+BATCHED_STREAMS: Mapping[str, str] = {
+    "plant_state": "plant_state_batch",
+    "haptic_state": "haptic_state_batch",
+    "force_feedback": "force_feedback_batch",
+}
 # Periodic streams: their loop rate is logged and their seq checked for gaps and restarts.
 # RUN_EVENT is sporadic and has several producers, each with its own counter.
 PERIODIC_STREAMS = frozenset(STREAM_SCHEMAS) - {"events"}

@@ -23,6 +23,8 @@ class Topics:
     plant_state: str = field(init=False)  # plant -> all, PLANT_STATE (with contact), 1 kHz
     # plant -> observers (recorder, eye view): the same records, several per message
     plant_state_batch: str = field(init=False)
+    haptic_state_batch: str = field(init=False)  # haptic -> recorder, HAPTIC_STATE batches
+    force_feedback_batch: str = field(init=False)  # controller -> recorder, FORCE_FEEDBACK batches
     tool_pose: str = field(init=False)  # plant -> all, TOOL_POSE, plant.scene_rate_hz
     objects: str = field(init=False)  # plant -> recorder/operator, OBJECT_POSES
     joint_command: str = field(init=False)  # controller -> plant, JOINT_COMMAND
@@ -42,6 +44,8 @@ class Topics:
         streams = {
             "plant_state": "state/plant",
             "plant_state_batch": "state/plant/batch",
+            "haptic_state_batch": "haptic/state/batch",
+            "force_feedback_batch": "haptic/feedback/batch",
             "tool_pose": "state/tool_pose",
             "objects": "state/objects",
             "joint_command": "cmd/joint_velocity",
