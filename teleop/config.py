@@ -126,7 +126,7 @@ class PlantConfig:
     # k - lockstep_delay_steps (before that: hold still, gripper open). 1: the controller's
     # one-sample computation delay, as in realtime (a command reaches the plant during
     # the period after the state it answers); plant and controller then work at the same
-    # time on two states in flight (measured: see README "Lockstep speed"). 0: each step
+    # time on two states in flight (measured: see README "Benchmarks"). 0: each step
     # waits for the answer to its own state, so plant and controller take turns.
     lockstep_delay_steps: int = 1
 
