@@ -190,52 +190,28 @@ def subscribe(
     schema: Schema,
     callback: RecordCallback,
     drops: DropCounter,
+    *,
+    batched: bool = False,
 ) -> zenoh.Subscriber:
     """Subscribe to records of ``schema``; ``callback(record, rx_ns)`` gets valid ones.
 
     ``rx_ns`` is ``time.monotonic_ns()`` on arrival, before decoding. Bad records are
     counted in ``drops`` and never reach the callback. The callback runs on a Zenoh
     thread: keep it short (store into a :class:`Latest`, or a queue).
+
+    ``batched``: the key is a :class:`BatchPublisher`'s, whose messages hold several
+    records back to back: the callback runs once per valid record, in order. A message
+    that is not a whole number of records is dropped (counted once).
     """
-
-    def on_sample(sample: zenoh.Sample) -> None:
-        rx_ns = time.monotonic_ns()
-        try:
-            rec = schema.decode(sample.payload.to_bytes())
-        except DecodeError as err:
-            drops.record(err)
-            return
-        callback(rec, rx_ns)
-
-    return session.declare_subscriber(key, on_sample)
-
-
-def subscribe_batches(
-    session: zenoh.Session,
-    key: str,
-    schema: Schema,
-    callback: RecordCallback,
-    drops: DropCounter,
-) -> zenoh.Subscriber:
-    """Subscribe to a :class:`BatchPublisher`'s stream: ``callback(record, rx_ns)`` once
-    per valid record of each message, in order. A message whose size is not a whole
-    number of records is dropped (counted once, as one bad record of the kind); each
-    record is validated as :func:`subscribe` does.
-    """
+    size = schema.size
 
     def on_sample(sample: zenoh.Sample) -> None:
         rx_ns = time.monotonic_ns()
         data = sample.payload.to_bytes()
-        size = schema.size
-        if not data or len(data) % size:
+        count = len(data) // size if batched and data and len(data) % size == 0 else 1
+        for offset in range(0, count * size, size):
             try:
-                schema.decode(data)  # raises the size error the drop counter expects
-            except DecodeError as err:
-                drops.record(err)
-            return
-        for offset in range(0, len(data), size):
-            try:
-                rec = schema.decode(data[offset : offset + size])
+                rec = schema.decode(data if count == 1 else data[offset : offset + size])
             except DecodeError as err:
                 drops.record(err)
                 continue

@@ -91,6 +91,9 @@ class ControllerService(Service):
         self._command = JOINT_COMMAND.new()
         self._lock = threading.Lock()
         self._last_seq = -1
+        # t_source_ns of this run's state 0: a state 0 with the same stamp is the plant
+        # re-sending it (byte for byte), not a new run.
+        self._run_start_ns = -1
         self.cycles = 0
         self.skipped_states = 0
         self.runs = 0
@@ -113,8 +116,9 @@ class ControllerService(Service):
             return
         with self._lock:
             seq = int(rec["seq"])
-            if seq == 0:  # a new run began (or the plant restarted): forget the task state
-                self.task.reset()
+            if seq == 0 and int(rec["t_source_ns"]) != self._run_start_ns:
+                self._run_start_ns = int(rec["t_source_ns"])  # a new run (or plant restart):
+                self.task.reset()  # forget the task state
                 self.runs += 1
             elif seq <= self._last_seq:
                 return  # a re-sent state this controller has already answered

@@ -38,7 +38,7 @@ import numpy as np
 import zenoh
 
 from shm.provider import get_provider
-from teleop.bus import Latest, Publisher, open_session, subscribe, subscribe_batches
+from teleop.bus import Latest, Publisher, open_session, subscribe
 from teleop.clock import NS_PER_S, LoopTimer, MonotonicClock
 from teleop.config import Config, ConfigError
 from teleop.messages import (
@@ -205,8 +205,13 @@ class EyeViewService(Service):
         self.objects = Latest()
         self.heads = Latest()
         self.keep(
-            subscribe_batches(
-                self.session, self.topics.plant_state_batch, PLANT_STATE, self._on_state, self.drops
+            subscribe(
+                self.session,
+                self.topics.plant_state_batch,
+                PLANT_STATE,
+                self._on_state,
+                self.drops,
+                batched=True,
             )
         )
         self.keep(

@@ -18,9 +18,11 @@ actually rendered, in the device frame.
   plant). A hand input still missing after ``HAND_INPUT_WAIT_S`` means there is no
   operator: log once and go on without waiting for hand inputs until one arrives.
 
-PLANT_STATE seq 0 after a later seq (or as the first state) starts a new run: the handle
-goes back to the centre at rest and every stored input is forgotten. A state with a seq
-already seen is a plant re-send (nobody answered it): it never steps the device again;
+A PLANT_STATE seq 0 with a new ``t_source_ns`` (or as the first state) starts a new run:
+the handle goes back to the centre at rest and every stored input is forgotten. A state
+with a seq already seen is a plant re-send (nobody answered it; the plant re-sends every
+state in flight byte for byte, so a re-sent state 0 keeps its stamp): it never steps the
+device again;
 if it names the tick last stepped, that tick's HAPTIC_STATE is sent again unchanged (same
 seq), in case the first copy was lost to a late subscriber.
 """
@@ -85,6 +87,7 @@ class HapticService(Service):
         # Everything below is shared by the Zenoh callbacks and the run thread.
         self._cond = threading.Condition()
         self._state_seq = -1  # newest PLANT_STATE seq of this run; -1: none yet
+        self._run_start_ns = -1  # t_source_ns of this run's state 0 (a re-send repeats it)
         self._state_sim_ns = 0  # its sim_time_ns
         self._first_tick = 0  # first tick of the run this service saw (joined mid-run: > 0)
         self._last_tick = -1  # lockstep: last tick stepped
@@ -144,7 +147,8 @@ class HapticService(Service):
     def _on_state(self, rec: np.ndarray, rx_ns: int) -> None:
         seq = int(rec["seq"])
         with self._cond:
-            if seq == 0 and self._state_seq != 0:
+            if seq == 0 and int(rec["t_source_ns"]) != self._run_start_ns:
+                self._run_start_ns = int(rec["t_source_ns"])
                 self._new_run()
             elif seq <= self._state_seq:
                 if self.lockstep and seq == self._last_tick:

@@ -52,7 +52,7 @@ import PIL.Image
 import rerun as rr
 import zenoh
 
-from teleop.bus import subscribe, subscribe_batches, subscribe_frames
+from teleop.bus import subscribe, subscribe_frames
 from teleop.config import Config, ConfigError
 from teleop.control import DesiredPath
 from teleop.kinematics import ModelError
@@ -562,14 +562,10 @@ class RecorderService(Service):
             assert self.session is not None
             self._rec = self._open_recording()
             for name, schema in STREAM_SCHEMAS.items():
-                if name in BATCHED_STREAMS:
-                    key = getattr(self.topics, BATCHED_STREAMS[name])
-                    sub = subscribe_batches(
-                        self.session, key, schema, self._buffers[name], self.drops
-                    )
-                else:
-                    key = getattr(self.topics, name)
-                    sub = subscribe(self.session, key, schema, self._buffers[name], self.drops)
+                batched = name in BATCHED_STREAMS
+                key = getattr(self.topics, BATCHED_STREAMS[name] if batched else name)
+                buffer = self._buffers[name]
+                sub = subscribe(self.session, key, schema, buffer, self.drops, batched=batched)
                 self._subscribers.append(self.keep(sub))
             sub = subscribe_frames(
                 self.session, self.topics.eye_view, EYE_VIEW, self._eye_view, self.drops

@@ -301,7 +301,9 @@ def test_batch_publisher_delivers_every_record_in_order_and_drops_bad_batches():
         if len(got) == 7:
             done.set()
 
-    sub = bus.subscribe_batches(listener, topics.plant_state_batch, m.PLANT_STATE, on_record, drops)
+    sub = bus.subscribe(
+        listener, topics.plant_state_batch, m.PLANT_STATE, on_record, drops, batched=True
+    )
     batch = bus.BatchPublisher.declare(session, topics.plant_state_batch, m.PLANT_STATE, 3)
     raw = bus.Publisher.declare(session, topics.plant_state_batch, m.PLANT_STATE)
     try:

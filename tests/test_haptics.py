@@ -282,6 +282,17 @@ def test_service_steps_once_per_tick_in_lockstep(tmp_path):
         again = replies.wait_count(ticks + 1)
         assert int(again["seq"]) == ticks and int(again["tick"]) == ticks - 1
         assert np.array_equal(again["device_p_m"], last["device_p_m"])
+        # The plant re-sends every state in flight: state 0 again, byte for byte (same
+        # t_source_ns), is no new run (the handle is not re-centred, no reply), then the
+        # last state again (same key, so it arrives after: the service has seen both).
+        last_state = state.copy()
+        state["seq"] = state["step"] = state["sim_time_ns"] = 0
+        state_pub.put(state)
+        state_pub.put(last_state)
+        again = replies.wait_count(ticks + 2)
+        assert int(again["seq"]) == ticks and np.array_equal(
+            again["device_p_m"], last["device_p_m"]
+        )
     finally:
         proc.send_signal(signal.SIGTERM)
         try:
@@ -296,7 +307,7 @@ def test_service_steps_once_per_tick_in_lockstep(tmp_path):
     assert summary["steps"] == ticks and summary["runs"] == 1
     assert 0 < summary["lockstep_waits"] <= ticks - 1
     assert summary["dropped_messages"] == 1 and summary["oversized_feedback"] == 1
-    assert summary["republished_states"] == 1 and summary["missing_hand_inputs"] == 0
+    assert summary["republished_states"] == 2 and summary["missing_hand_inputs"] == 0
     assert summary["max_rendered_force_n"] == pytest.approx(2.0)
     assert summary["stale_feedback_events"] == 0
-    assert len(replies.records) == ticks + 1 and drops.total == 0
+    assert len(replies.records) == ticks + 2 and drops.total == 0
