@@ -422,15 +422,16 @@ class PlantService(Service):
         if not self.options.continuous:
             steps = round(self.config.run.duration_s / self.config.plant.timestep_s)
         self._publish_event(Event.STARTED)
-        self._publish_state(None, 0, 0)
         start_ns = time.monotonic_ns()
         if self.config.run.mode == "lockstep":
-            self._steps_before_commands(steps)
-            self._run_lockstep(stop, steps)
-        elif self.apply_on_arrival:
-            self._run_on_arrival(stop, steps)
+            self._start_lockstep(steps)
+            self._run_lockstep(stop)
         else:
-            self._run_realtime(stop, steps)
+            self._publish_state(None, 0, 0)
+            if self.apply_on_arrival:
+                self._run_on_arrival(stop, steps)
+            else:
+                self._run_realtime(stop, steps)
         self.wall_s = (time.monotonic_ns() - start_ns) / NS_PER_S
         self.state_batch.flush()  # the observers get the run's last states now
         if not stop.is_set():
@@ -598,20 +599,28 @@ class PlantService(Service):
             self._publish_state(None, 0, 0)
         grid.stepped()
 
-    def _steps_before_commands(self, steps: int | None) -> None:
-        """Lockstep: the first ``lockstep_delay_steps`` steps, which no command answers."""
-        for _ in range(self.delay_steps):
-            if not self._should_step(steps):
-                return
-            self.plant.step_before_commands()
-            self._publish_state(None, 0, 0)
+    def _start_lockstep(self, steps: int | None) -> None:
+        """Publish state 0, then take the first ``lockstep_delay_steps`` steps, which no
+        command answers; the command callback may step from then on.
 
-    def _run_lockstep(self, stop: threading.Event, steps: int | None) -> None:
+        All under the lock, with the callback already enabled: an answer that comes back
+        while these steps run waits for the lock instead of finding lockstep not started
+        (it would be lost, and the run would wait for it forever).
+        """
+        with self._lock:
+            self._lockstep_steps = steps
+            self._lockstep_running = True
+            self._publish_state(None, 0, 0)
+            for _ in range(self.delay_steps):
+                if not self._should_step(steps):
+                    break
+                self.plant.step_before_commands()
+                self._publish_state(None, 0, 0)
+            if not self._should_step(steps):
+                self._lockstep_done.set()  # the steps before commands were the whole run
+
+    def _run_lockstep(self, stop: threading.Event) -> None:
         """Let the command callback drive the steps; re-send the state if it goes unanswered."""
-        self._lockstep_steps = steps
-        self._lockstep_running = True
-        if not self._should_step(steps):
-            self._lockstep_done.set()  # the steps before commands were the whole run
         try:
             last_step = -1
             while not stop.is_set() and not self._lockstep_done.wait(LOCKSTEP_RESEND_S):

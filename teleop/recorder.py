@@ -530,7 +530,9 @@ class RecorderService(Service):
         self._yaw_rad = 0.0  # newest predicted HMD yaw: device frame -> world (feedback)
         self._sim_time_ns = 0  # newest sim time seen, for events that carry none
         self._rate_window_ns = round(rc.rate_window_s * 1e9)
-        self._rate_windows: dict[str, list[int]] = {}  # per stream: [window start ns, count]
+        # Per stream: [window start ns, records counted]; and the newest record counted.
+        self._rate_windows: dict[str, list[int]] = {}
+        self._rate_last: dict[str, np.ndarray] = {}
         self._last_seq: dict[str, int] = {}  # per stream: newest seq
         self._hops: dict[str, list[tuple[Stage, Stage]]] = {}  # per stream, column order
         self._chain_stages: dict[str, set[Stage]] = {}  # per stream: stages seen so far
@@ -693,6 +695,8 @@ class RecorderService(Service):
         if self._rec is None:
             return
         self.flush()
+        for name in list(self._rate_windows):  # a run shorter than a window still gets one
+            self._guarded(name, self._close_rate_window, name)
         self._rec.log(
             ENTITY_STATS,
             rr.TextDocument(json.dumps(self._stats(), indent=2), media_type="text/markdown"),
@@ -1039,11 +1043,20 @@ class RecorderService(Service):
         window[1] += int(source.size)
         if source.size == 0:
             return
-        span_ns = int(source[-1]) - window[0]
-        if span_ns >= self._rate_window_ns:
-            rate_hz = window[1] / (span_ns * 1e-9)
-            self._send_scalars(rate_entity(name), self._indexes(records[-1:]), np.array([rate_hz]))
-            window[0], window[1] = int(source[-1]), 0
+        self._rate_last[name] = records[-1:].copy()
+        if int(source[-1]) - window[0] >= self._rate_window_ns:
+            self._close_rate_window(name)
+
+    def _close_rate_window(self, name: str) -> None:
+        """Log the rate of the stream's open window (if it counted any record), restart it."""
+        window, last = self._rate_windows[name], self._rate_last.get(name)
+        if last is None or window[1] == 0:
+            return
+        end_ns = int(last["t_source_ns"][0])
+        if end_ns > window[0]:
+            rate_hz = window[1] / ((end_ns - window[0]) * 1e-9)
+            self._send_scalars(rate_entity(name), self._indexes(last), np.array([rate_hz]))
+        window[0], window[1] = end_ns, 0
 
     def _hop_chain(self, name: str, trace: np.ndarray) -> list[tuple[Stage, Stage]]:
         """The hops of a stream: pairs of stages its records stamp, consecutive in time.
