@@ -301,8 +301,8 @@ class EyeViewConfig:
     # Shadow mapping costs about 10x the rest of a software-rendered frame (measured
     # here: 60-67 ms against 6.5 ms at 320x240), so it is off by default.
     shadows: bool = False
-    # PLANT_STATE is taken at most this often (Zenoh ingress downsampling): the renderer
-    # needs one state per frame, not the plant's 1 kHz.
+    # PLANT_STATE batches are taken at most this often (Zenoh ingress downsampling): the
+    # renderer needs one state per frame, not the plant's 1 kHz. 0: take every one.
     state_rate_hz: float = 100.0
     # Fixed viewpoint when no HEAD_POSE arrives (world frame): where the operator's head
     # is (as hmd.head_p_m), looking along yaw (0 = +x) and down by pitch (rad).
@@ -321,7 +321,10 @@ class EyeViewConfig:
         for name in ("width_px", "height_px"):
             _require(16 <= getattr(self, name) <= 4096, f"eyeview.{name} in [16, 4096]")
         _require(0 < self.fov_y_rad < math.pi, "eyeview.fov_y_rad in (0, pi)")
-        _require(self.state_rate_hz >= self.rate_hz, "eyeview.state_rate_hz >= eyeview.rate_hz")
+        _require(
+            self.state_rate_hz == 0 or self.state_rate_hz >= self.rate_hz,
+            "eyeview.state_rate_hz >= eyeview.rate_hz, or 0 (no limit)",
+        )
         _require(
             abs(self.fixed_pitch_rad) < math.pi / 2, "eyeview.fixed_pitch_rad in (-pi/2, pi/2)"
         )

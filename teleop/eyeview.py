@@ -199,7 +199,9 @@ class EyeViewService(Service):
         self.session = open_session(
             self.config.bus,
             listen=self.options.listen,
-            ingress_rate_hz={self.topics.plant_state_batch: eye.state_rate_hz},
+            ingress_rate_hz=(
+                {self.topics.plant_state_batch: eye.state_rate_hz} if eye.state_rate_hz else None
+            ),
         )
         self.states = Latest()
         self.objects = Latest()

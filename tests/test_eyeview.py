@@ -164,11 +164,11 @@ def test_the_service_renders_the_newest_state_and_head_pose_and_survives_bad_inp
     built): bad states are counted and dropped, frames follow the newest state, and the
     view moves to the HMD's predicted pose once HEAD_POSE arrives.
 
-    Ingress downsampling is set out of the way (``state_rate_hz``): at 100 Hz it would
-    keep only the first of three states sent back to back."""
+    Ingress downsampling is off (``state_rate_hz = 0``): it would keep only the first of
+    three states sent back to back (at any rate: one TCP read may hold all three)."""
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     config = load_config(
-        None, [f'bus.endpoint="{endpoint}"', "eyeview.rate_hz=50", "eyeview.state_rate_hz=1e6"]
+        None, [f'bus.endpoint="{endpoint}"', "eyeview.rate_hz=50", "eyeview.state_rate_hz=0"]
     )
     topics = Topics(config.robot.robot_id)
     holder: list[EyeViewService] = []
