@@ -246,10 +246,8 @@ class BatchPublisher:
         key: str,
         schema: Schema,
         records_per_message: int,
-        *,
-        shm: ShmProvider | None = None,
     ) -> BatchPublisher:
-        publisher = Publisher.declare(session, key, schema, shm=shm, priority=zenoh.Priority.DATA)
+        publisher = Publisher.declare(session, key, schema, priority=zenoh.Priority.DATA)
         return cls(publisher, records_per_message)
 
     def add(self, data: bytes) -> None:

@@ -61,7 +61,7 @@ from teleop.messages import (
 )
 from teleop.proximity import ProximitySample, body_names
 from teleop.service import Service
-from teleop.stamps import SHED_AGE_NS, StampLog, shed_path
+from teleop.stamps import SHED_AGE_NS, SeqCheck, StampLog, shed_path
 from teleop.teleop_control import TeleopController, TeleopOutput, teleop_reference
 from teleop.ticks import TickBarrier, TickedInputs, expected_valid_from
 
@@ -280,9 +280,7 @@ class TeleopTask:
         self._rt_busy = False
         self._pending: dict[str, Any] = {}
         self._last_output: TeleopOutput | None = None
-        self._last_haptic_seq = -1
-        self.haptic_lost = 0  # HAPTIC_STATE seq gaps (realtime)
-        self.haptic_reordered = 0  # HAPTIC_STATE not newer than the last one (realtime)
+        self.haptic_seq = SeqCheck()  # HAPTIC_STATE gaps and reordering (realtime)
         self.haptic_before_state = 0  # samples that arrived before any plant state
         self.haptic_shed = 0  # samples not answered: too old, or superseded while busy
         self.states_shed = 0  # states not answered with feedback, same reasons
@@ -343,13 +341,8 @@ class TeleopTask:
         """
         with self._rt_lock:
             if kind == "haptic":
-                seq = int(item[0]["seq"])
-                if seq <= self._last_haptic_seq:
-                    self.haptic_reordered += 1
+                if not self.haptic_seq.accept(int(item[0]["seq"])):
                     return
-                if self._last_haptic_seq >= 0:
-                    self.haptic_lost += seq - self._last_haptic_seq - 1
-                self._last_haptic_seq = seq
             older = self._pending.pop(kind, None)
             if older is not None:
                 self._supersede(kind, older)
@@ -602,8 +595,8 @@ class TeleopTask:
             "no_input_cycles": self.no_input_cycles,
             "missing_head_poses": self.missing_head_poses,
             "barrier_dropped": self.barrier.dropped,
-            "haptic_lost": self.haptic_lost,
-            "haptic_reordered": self.haptic_reordered,
+            "haptic_lost": self.haptic_seq.lost,
+            "haptic_reordered": self.haptic_seq.reordered,
             "haptic_before_state": self.haptic_before_state,
             "haptic_shed": self.haptic_shed,
             "states_shed": self.states_shed,

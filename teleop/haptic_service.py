@@ -50,7 +50,7 @@ from teleop.messages import (
     Stage,
 )
 from teleop.service import STOP_POLL_S, Service
-from teleop.stamps import SHED_AGE_NS, StampLog, shed_path
+from teleop.stamps import SHED_AGE_NS, SeqCheck, StampLog, shed_path
 from teleop.ticks import TickedInputs, expected_valid_from
 
 logger = logging.getLogger(__name__)
@@ -110,9 +110,7 @@ class HapticService(Service):
         self.trace_log = StampLog(N_STAGES)
         self.sample_log = StampLog(2)  # (HAPTIC_STATE seq, HAPTIC_SAMPLE ns)
         self._pending_trace: np.ndarray | None = None  # render at the next step
-        self._last_feedback_seq = -1
-        self.feedback_lost = 0  # feedback seq gaps
-        self.feedback_reordered = 0  # feedback not newer than the last one
+        self.feedback_seq = SeqCheck()  # FORCE_FEEDBACK gaps and reordering (realtime)
         self.feedback_superseded = 0  # replaced before the next step rendered it
         self.feedback_shed = 0  # too old on arrival (this service was behind): not rendered
         self.shed_log = StampLog(1)  # HAPTIC_SAMPLE stamps of the loops shed here
@@ -200,13 +198,8 @@ class HapticService(Service):
 
     def _feedback_realtime(self, rec: np.ndarray, force: np.ndarray, rx_ns: int) -> None:
         """Hold the force; render it now or at the next step; keep its trace (lock held)."""
-        seq = int(rec["seq"])
-        if seq <= self._last_feedback_seq:
-            self.feedback_reordered += 1
+        if not self.feedback_seq.accept(int(rec["seq"])):
             return  # older than what the handle already feels
-        if self._last_feedback_seq >= 0:
-            self.feedback_lost += seq - self._last_feedback_seq - 1
-        self._last_feedback_seq = seq
         if time.monotonic_ns() - int(rec["trace_ns"][Stage.FEEDBACK_TX]) > SHED_AGE_NS:
             self.feedback_shed += 1  # a backlog: a newer force is right behind it
             if int(rec["trace_ns"][Stage.HAPTIC_SAMPLE]) > 0:
@@ -396,8 +389,8 @@ class HapticService(Service):
             "missing_hand_inputs": self.missing_hand_inputs,
             "oversized_feedback": self.oversized_feedback,
             "republished_states": self.republished_states,
-            "feedback_lost": self.feedback_lost,
-            "feedback_reordered": self.feedback_reordered,
+            "feedback_lost": self.feedback_seq.lost,
+            "feedback_reordered": self.feedback_seq.reordered,
             "feedback_superseded": self.feedback_superseded,
             "feedback_shed": self.feedback_shed,
             "feedback_rendered": len(self.trace_log) + self.trace_log.overflow,

@@ -52,7 +52,7 @@ from teleop.messages import (
 from teleop.plant import Plant
 from teleop.proximity import FAR_DISTANCE_M, ObstacleProximity
 from teleop.service import Service
-from teleop.stamps import SHED_AGE_NS, StampLog, shed_path
+from teleop.stamps import SHED_AGE_NS, SeqCheck, StampLog, shed_path
 
 logger = logging.getLogger(__name__)
 
@@ -266,13 +266,11 @@ class PlantService(Service):
         self._held_command: np.ndarray | None = None
         self._braking = False
         self._last_applied_seq = -1
-        self._last_command_seq = -1
+        self.command_seq = SeqCheck()  # JOINT_COMMAND gaps and reordering (realtime)
         self.steps_on_arrival = 0  # steps a command started the moment it arrived
         self.steps_waited = 0  # steps whose command came early and waited for its window
         self.steps_without_command = 0  # windows that ended without a new command
         self.late_steps = 0  # steps run after their window had closed (stalls)
-        self.commands_lost = 0  # JOINT_COMMAND seq gaps (realtime)
-        self.commands_reordered = 0  # JOINT_COMMAND not newer than the last one
         self.commands_dropped = 0  # queue overflow after a stall
         self.commands_stale = 0  # arrived too old to apply (the watchdog brakes instead)
         self.commands_shed = 0  # older than SHED_AGE_NS on arrival (this service was behind)
@@ -493,7 +491,7 @@ class PlantService(Service):
             self._held_command = None
             self._braking = False
             self._last_applied_seq = -1
-            self._last_command_seq = -1
+            self.command_seq.restart()
             self._arrival_queue.clear()
             self._arrival_steps = steps
             self._arrival_running = True
@@ -517,13 +515,8 @@ class PlantService(Service):
         with self._arrival_cond:
             if not self._arrival_running or self._grid is None:
                 return
-            seq = int(command["seq"])
-            if seq <= self._last_command_seq:
-                self.commands_reordered += 1
+            if not self.command_seq.accept(int(command["seq"])):
                 return
-            if self._last_command_seq >= 0:
-                self.commands_lost += seq - self._last_command_seq - 1
-            self._last_command_seq = seq
             if time.monotonic_ns() - int(command["trace_ns"][Stage.CONTROLLER_TX]) > SHED_AGE_NS:
                 self.commands_shed += 1  # a backlog: a newer command is right behind it
                 self._log_shed(command)
@@ -677,8 +670,8 @@ class PlantService(Service):
                 "steps_waited": self.steps_waited,
                 "steps_without_command": self.steps_without_command,
                 "late_steps": self.late_steps,
-                "commands_lost": self.commands_lost,
-                "commands_reordered": self.commands_reordered,
+                "commands_lost": self.command_seq.lost,
+                "commands_reordered": self.command_seq.reordered,
                 "commands_dropped": self.commands_dropped,
                 "commands_stale": self.commands_stale,
                 "commands_shed": self.commands_shed,

@@ -78,6 +78,34 @@ class StampLog:
         os.replace(tmp, path)
 
 
+class SeqCheck:
+    """Losses and reordering of one stream, from the ``seq`` of the records received.
+
+    :meth:`accept` says whether a record is newer than every one before it; gaps in
+    ``seq`` count as ``lost``, a record not newer as ``reordered``. Not thread-safe: the
+    owning service calls it under its own lock.
+    """
+
+    def __init__(self) -> None:
+        self.last_seq = -1  # newest seq accepted; -1: none since the (re)start
+        self.lost = 0
+        self.reordered = 0
+
+    def accept(self, seq: int) -> bool:
+        """Count ``seq``; False if it is not newer than the last one accepted."""
+        if seq <= self.last_seq:
+            self.reordered += 1
+            return False
+        if self.last_seq >= 0:
+            self.lost += seq - self.last_seq - 1
+        self.last_seq = seq
+        return True
+
+    def restart(self) -> None:
+        """The producer starts over (a new run): the next seq is not a gap."""
+        self.last_seq = -1
+
+
 # File (in a service's run dir) of the HAPTIC_SAMPLE stamps of the handle samples that
 # service shed on purpose (behind schedule): one column, ``<service>.shed.npy``.
 SHED_FILE_SUFFIX = ".shed.npy"
