@@ -116,9 +116,9 @@ class PlantConfig:
     # every step).
     scene_rate_hz: float = 100.0
     # Realtime teleoperation: a command enters a physics step the moment it arrives (one
-    # step per command, the steps phase-locked to the commands' arrival, which the haptic
-    # device's clock paces) instead of waiting for the plant's next 1 kHz tick; without
-    # commands the plant still steps once per period. Path following always uses the tick.
+    # step per haptic device period, on the device's clock: see DeviceClockGrid) instead
+    # of waiting for the plant's next 1 kHz tick; without commands the plant still steps
+    # once per period. Path following always uses the tick.
     # Measured (teleop latency): see README "Latency". false: apply the newest command at
     # each tick of the plant's own clock.
     apply_on_arrival: bool = True
@@ -422,18 +422,42 @@ class CpuConfig:
     # Lockstep: the recorder shares the plant's CPU instead. With the lockstep delay the
     # controller is the busier of the two (the plant waits for it part of each cycle).
     recorder_lockstep: tuple[int, ...] = (0,)
+    # Realtime runs: SCHED_FIFO priority (1-99) of the bilateral loop's processes; 0 =
+    # normal scheduling. A FIFO thread that wakes runs at once, ahead of every normal
+    # process (recorder, eye view, HMD, operator, anything else on the host), so a
+    # message waits for a core only while another loop service is working. Measured on
+    # the 2-core machine (2026-11-22, teleop latency, 20 s): round trip p99 10.0 ->
+    # 3.5 ms, samples shed while behind 3213 -> 115, the loop services' hops near the
+    # floor. The loops are event driven (no busy wait), and the kernel's RT throttling
+    # (sched_rt_runtime_us) keeps 5 % of each CPU for normal tasks in any case. Not in
+    # lockstep: there plant and controller run flat out and would starve the recorder.
+    # Needs CAP_SYS_NICE (root has it); without it a warning says so and the service
+    # runs normally scheduled.
+    fifo_priority: int = 40
+    # Which processes get it: the loop services, and the relays of the latency floor
+    # that stand in for them (the floor is measured under the same scheduling).
+    fifo_services: tuple[str, ...] = (
+        "plant", "controller", "haptic", "relay_controller", "relay_plant",
+    )  # fmt: skip
 
     def __post_init__(self) -> None:
         names = ("plant", "controller", "haptic", "hmd", "operator", "recorder", "eyeview",
                  "recorder_lockstep")  # fmt: skip
         for name in names:
             _require(all(c >= 0 for c in getattr(self, name)), f"cpu.{name}: CPU numbers >= 0")
+        _require(0 <= self.fifo_priority <= 99, "cpu.fifo_priority in [0, 99]")
 
     def for_service(self, service: str, mode: str) -> tuple[int, ...]:
         """The CPUs of ``service`` in timing ``mode`` (empty: the kernel's choice)."""
         if service == "recorder" and mode == "lockstep":
             return self.recorder_lockstep
         return tuple(getattr(self, service, ()))
+
+    def fifo_priority_for(self, service: str, mode: str) -> int:
+        """SCHED_FIFO priority of ``service`` in timing ``mode``; 0: normal scheduling."""
+        if mode != "realtime" or service not in self.fifo_services:
+            return 0
+        return self.fifo_priority
 
 
 @dataclass(frozen=True)

@@ -128,14 +128,21 @@ class ControllerService(Service):
         self.task.on_state(rec, rx_ns)
 
     def publish_command(
-        self, state: np.ndarray, qd_ref_rad_s: np.ndarray, gripper_cmd: float, trace: np.ndarray
+        self,
+        state: np.ndarray,
+        qd_ref_rad_s: np.ndarray,
+        gripper_cmd: float,
+        trace: np.ndarray,
+        device_deadline_ns: int = 0,
     ) -> None:
-        """Send the joint velocity references that answer ``state``."""
+        """Send the joint velocity references that answer ``state`` (and, in realtime
+        teleoperation, the handle sample of the device period ``device_deadline_ns``)."""
         n = self.arm.n_joints
         self.cycles += 1
         cmd = self._command
         cmd["seq"] = self.cycles
         cmd["state_seq"] = state["seq"]
+        cmd["device_deadline_ns"] = device_deadline_ns
         cmd["n_joints"] = n
         cmd["qd_ref_rad_s"][:n] = qd_ref_rad_s
         cmd["gripper_cmd"] = gripper_cmd
@@ -401,7 +408,8 @@ class TeleopTask:
         trace = np.zeros_like(state["trace_ns"])
         trace[Stage.HAPTIC_SAMPLE] = haptic["trace_ns"][Stage.HAPTIC_SAMPLE]
         trace[Stage.CONTROLLER_RX] = rx_ns
-        service.publish_command(state, output.qd_ref_rad_s, gripper_cmd, trace)
+        deadline_ns = int(haptic["device_deadline_ns"])
+        service.publish_command(state, output.qd_ref_rad_s, gripper_cmd, trace, deadline_ns)
         self._last_output = output
         if tick % service.status_every_steps == 0:
             self._publish_status(tick, state, output, float(state["held_mass_kg"]) > 0)

@@ -304,13 +304,13 @@ class HapticService(Service):
         self.timer = LoopTimer(self.period_ns, MonotonicClock())
         self._first_wake_ns = 0
         while not stop.is_set():
-            self.timer.wait()
+            deadline_ns = self.timer.deadline_ns(self.timer.wait())
             if self.timer.count == 1:
                 self._first_wake_ns = self.timer.last_wake_ns
             with self._cond:
                 tick = max(self._state_seq, 0)
                 hand = self.hand_inputs.latest_at(tick) if self._state_seq >= 0 else None
-                self._step(tick, self._state_sim_ns, hand, time.monotonic_ns())
+                self._step(tick, self._state_sim_ns, hand, time.monotonic_ns(), deadline_ns)
 
     # -- shared ------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
@@ -320,10 +320,19 @@ class HapticService(Service):
             self._run_realtime(stop)
         logger.info("stopped: %s", self.summary())
 
-    def _step(self, tick: int, sim_time_ns: int, hand: np.ndarray | None, t_ns: int) -> None:
+    def _step(
+        self,
+        tick: int,
+        sim_time_ns: int,
+        hand: np.ndarray | None,
+        t_ns: int,
+        deadline_ns: int = 0,
+    ) -> None:
         """Render, integrate one period, sample, publish (caller holds the lock).
 
-        ``t_ns`` is the feedback clock (monotonic in realtime, sim time in lockstep).
+        ``t_ns`` is the feedback clock (monotonic in realtime, sim time in lockstep);
+        ``deadline_ns`` the device period's start in realtime (the plant steps on it),
+        0 in lockstep.
         """
         force, stale = self.hold.force_at(t_ns)
         self.device.render(force)
@@ -348,6 +357,7 @@ class HapticService(Service):
         rec["trace_ns"][Stage.HAPTIC_SAMPLE] = sample_ns
         rec["sim_time_ns"] = sim_time_ns
         rec["tick"] = tick
+        rec["device_deadline_ns"] = deadline_ns
         rec["device_p_m"] = sample.p_m
         rec["device_v_m_s"] = sample.v_m_s
         rec["device_f_n"] = sample.f_n

@@ -43,6 +43,7 @@ from teleop.config import Config, EyeViewConfig, load_config
 from teleop.haptic_service import SAMPLES_FILE, TRACE_FILE
 from teleop.messages import EYE_VIEW, PLANT_STATE, Stage
 from teleop.relay import RELAYS, FloorOrigin
+from teleop.service import fifo_scheduling
 from teleop.stack import (
     ALIVE_TIMEOUT_S,
     SERVICE_ENVIRONMENT,
@@ -288,7 +289,8 @@ def run_stack(
 def shed_counters(services: dict[str, dict[str, Any]]) -> dict[str, int]:
     """Inputs dropped on purpose because a service was behind (a CPU stall): the
     controller's too-old haptic samples and states, the haptic device's too-old
-    feedback, the plant's queue overflow and commands too old to apply. Each is a
+    feedback, the plant's too-old commands, those that came after their device period
+    was stepped (merged into the next step) and those too stale to apply. Each is a
     handle sample that never comes back (a state or feedback without one is counted
     too)."""
     arrival = services.get("plant", {}).get("arrival", {})
@@ -297,9 +299,9 @@ def shed_counters(services: dict[str, dict[str, Any]]) -> dict[str, int]:
         "haptic": int(controller.get("haptic_shed", 0)),
         "state": int(controller.get("states_shed", 0)),
         "feedback": int(services.get("haptic", {}).get("feedback_shed", 0)),
-        "command_overflow": int(arrival.get("commands_dropped", 0)),
+        "command": int(arrival.get("commands_shed", 0)),
+        "command_late": int(arrival.get("commands_late", 0)),
         "command_stale": int(arrival.get("commands_stale", 0)),
-        "command_late": int(arrival.get("commands_shed", 0)),
     }
 
 
@@ -351,7 +353,7 @@ def cpu_share(summary: dict[str, Any]) -> dict[str, float | None]:
 
 
 def deadline_misses(summary: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """Each periodic loop's misses: the plant's windows without a command and late steps,
+    """Each periodic loop's misses: the plant's device periods without a command and stalls,
     the haptic device loop's overruns and skipped ticks."""
     services = summary["services"]
     plant, haptic = services["plant"], services["haptic"]
@@ -360,8 +362,8 @@ def deadline_misses(summary: dict[str, Any]) -> dict[str, dict[str, Any]]:
     return {
         "plant": {
             "steps": plant.get("steps"),
-            "windows_without_command": arrival.get("steps_without_command"),
-            "late_steps": arrival.get("late_steps"),
+            "periods_without_command": arrival.get("steps_without_command"),
+            "stalls": arrival.get("stalls"),
             "overrun_fraction": plant.get("overrun_fraction"),
             "skipped_ticks": plant.get("skipped_ticks"),
         },
@@ -429,39 +431,44 @@ def run_floor(
         )
     period_ns = round(config.plant.timestep_s * NS_PER_S)
     payload_bytes = PLANT_STATE.size  # the loop's largest record
-    session = open_session(bus, listen=True)
-    origin: FloorOrigin | None = None
-    try:
-        origin = FloorOrigin(session, topics, bus.shm_pool_bytes if bus.shm else None)
-        with Stack(run_dir, programs):
-            wait_alive(session, topics, [r.name for r in RELAYS], ALIVE_TIMEOUT_S)
-            seq = origin.back_to_back(
-                FLOOR_WARMUP_COUNT, payload_bytes, 1, RETURN_TIMEOUT_S, SWEEP_BUDGET_S
-            )
-            origin.reset()
-            seq = origin.paced(period_ns, paced_s, payload_bytes, seq)
-            origin.wait_returned(seq - 1, RETURN_TIMEOUT_S)
-            paced_traces = origin.trace_log.rows.copy()
-            sent, received = origin.sent, origin.received
-            origin.reset()
-            seq = origin.back_to_back(
-                back_to_back_count, payload_bytes, seq, RETURN_TIMEOUT_S, SWEEP_BUDGET_S
-            )
-            b2b_traces = origin.trace_log.rows.copy()
-            sweep: dict[int, dict[str, Any]] = {}
-            for size in sweep_sizes:
-                origin.reset()
+    # The origin plays the haptic service: same scheduling (its Zenoh threads too).
+    fifo_priority = config.cpu.fifo_priority_for("haptic", config.run.mode)
+    with fifo_scheduling(fifo_priority):
+        session = open_session(bus, listen=True)
+        origin: FloorOrigin | None = None
+        try:
+            origin = FloorOrigin(session, topics, bus.shm_pool_bytes if bus.shm else None)
+            with Stack(run_dir, programs):
+                wait_alive(session, topics, [r.name for r in RELAYS], ALIVE_TIMEOUT_S)
                 seq = origin.back_to_back(
-                    FLOOR_WARMUP_COUNT // 5, size, seq, RETURN_TIMEOUT_S, SWEEP_BUDGET_S
+                    FLOOR_WARMUP_COUNT, payload_bytes, 1, RETURN_TIMEOUT_S, SWEEP_BUDGET_S
                 )
                 origin.reset()
-                seq = origin.back_to_back(sweep_count, size, seq, RETURN_TIMEOUT_S, SWEEP_BUDGET_S)
-                loops = complete_loops(origin.trace_log.rows)
-                sweep[size] = stats_us(hop_ns(loops, ROUND_TRIP))
-    finally:
-        if origin is not None:
-            origin.close()
-        close_session(session)
+                seq = origin.paced(period_ns, paced_s, payload_bytes, seq)
+                origin.wait_returned(seq - 1, RETURN_TIMEOUT_S)
+                paced_traces = origin.trace_log.rows.copy()
+                sent, received = origin.sent, origin.received
+                origin.reset()
+                seq = origin.back_to_back(
+                    back_to_back_count, payload_bytes, seq, RETURN_TIMEOUT_S, SWEEP_BUDGET_S
+                )
+                b2b_traces = origin.trace_log.rows.copy()
+                sweep: dict[int, dict[str, Any]] = {}
+                for size in sweep_sizes:
+                    origin.reset()
+                    seq = origin.back_to_back(
+                        FLOOR_WARMUP_COUNT // 5, size, seq, RETURN_TIMEOUT_S, SWEEP_BUDGET_S
+                    )
+                    origin.reset()
+                    seq = origin.back_to_back(
+                        sweep_count, size, seq, RETURN_TIMEOUT_S, SWEEP_BUDGET_S
+                    )
+                    loops = complete_loops(origin.trace_log.rows)
+                    sweep[size] = stats_us(hop_ns(loops, ROUND_TRIP))
+        finally:
+            if origin is not None:
+                origin.close()
+            close_session(session)
     paced = analyse(paced_traces)
     paced["sent"] = sent
     paced["received"] = received

@@ -37,8 +37,10 @@ logger = logging.getLogger(__name__)
 
 # Bumped on any incompatible change of a layout below (2: 10 trace stages; 3: CONTACT and
 # OBSTACLE_PROXIMITY folded into the plant's state record, JOINT_STATE renamed PLANT_STATE
-# with the same kind value and on key state/plant: one plant record per step).
-PROTOCOL_VERSION = 3
+# with the same kind value and on key state/plant: one plant record per step; 4:
+# device_deadline_ns in HAPTIC_STATE and JOINT_COMMAND, the plant's steps on the haptic
+# device's clock).
+PROTOCOL_VERSION = 4
 MAX_JOINTS = 8  # joint arrays are padded with zeros to this length; n_joints says how many count
 MAX_OBJECTS = 8  # object pose arrays are padded to this length; n_objects says how many count
 N_STAGES = 10  # length of the header's trace_ns array (one slot per Stage)
@@ -362,6 +364,10 @@ def _sim_time() -> Field:
     return Field("sim_time_ns", "i8", unit="ns", doc="plant simulation time of the sample")
 
 
+def _device_deadline(doc: str) -> Field:
+    return Field("device_deadline_ns", "i8", lo=0, unit="ns", doc=doc)
+
+
 def _n_joints() -> Field:
     return Field("n_joints", "u1", lo=0, hi=MAX_JOINTS, doc="joints used in the arrays")
 
@@ -442,6 +448,10 @@ JOINT_COMMAND = Schema(
     Kind.JOINT_COMMAND,
     [
         Field("state_seq", "u8", doc="seq of the PLANT_STATE this answers (lockstep)"),
+        _device_deadline(
+            "device period of the handle sample this answers (its HAPTIC_STATE's); the "
+            "realtime plant steps once per device period; 0: not paced by a device"
+        ),
         Field("qd_ref_rad_s", "f8", (MAX_JOINTS,), **_QVEL, doc="joint velocity references"),
         Field("gripper_cmd", "f8", lo=0.0, hi=1.0, unit="1", doc="0 closed .. 1 open"),
         _n_joints(),
@@ -532,6 +542,10 @@ HAPTIC_STATE = Schema(
     [
         _sim_time(),
         _tick(),
+        _device_deadline(
+            "start of the device loop period this sample was taken in (the deadline its "
+            "step woke for, host monotonic clock); 0 in lockstep"
+        ),
         Field("device_p_m", "f8", (3,), **_POS, doc="handle position, device frame, centred"),
         Field("device_v_m_s", "f8", (3,), **_SPEED, doc="handle velocity (Kalman estimate)"),
         Field("device_f_n", "f8", (3,), **_FORCE, doc="force rendered on the handle"),
@@ -677,6 +691,10 @@ def _field_rows(dtype: np.dtype, fields: Sequence[Field]) -> list[str]:
         shape = "x".join(str(n) for n in f.shape) if f.shape else "1"
         if f.lo is None and f.hi is None:
             limits = "finite" if f.is_float else ""
+        elif f.hi is None:
+            limits = f">= {f.lo:.10g}"
+        elif f.lo is None:
+            limits = f"<= {f.hi:.10g}"
         else:
             limits = f"[{f.lo:.10g}, {f.hi:.10g}]"
         rows.append(

@@ -5,9 +5,9 @@ One code path, two timing modes:
 - realtime: the plant keeps wall-clock time, one step per period on average, after a
   stall skipping ticks, never bursting. In teleoperation with
   ``plant.apply_on_arrival`` (the default) each command enters a step the moment it
-  arrives, in the Zenoh callback: the step grid is phase-locked to the commands (see
-  :class:`ArrivalGrid`), so a command never waits for the plant's tick, and a period
-  without a command is stepped at its end with the last command. Otherwise a
+  arrives, in the Zenoh callback: the steps follow the haptic device's clock, one per
+  device period (see :class:`DeviceClockGrid`), so a command never waits for the
+  plant's tick, and a period without a command is stepped with the last command. Otherwise a
   :class:`LoopTimer` paces the steps and each applies the newest command. The
   watchdog brakes (holds the arm where it is) when the command answers a state older
   than ``plant.watchdog_s``, and resumes as soon as fresh commands arrive.
@@ -58,71 +58,76 @@ logger = logging.getLogger(__name__)
 
 # Lockstep: re-send the pending state if no command answers it within this time (s).
 LOCKSTEP_RESEND_S = 1.0
-# Apply on arrival: where in its window the first command is placed when the grid
-# phase-locks (fraction of a period after the window opens). Arrival jitter is mostly
-# late (wake-ups), so a command may come up to 3/4 period late and still get its step.
-ARRIVAL_PHASE_FRACTION = 0.25
-# Apply on arrival: a step that starts later than this fraction of a period after its
-# window closed is a stall: the windows that passed meanwhile are skipped (no burst).
-ARRIVAL_LATE_TOLERANCE_FRACTION = 0.5
-# Apply on arrival: how many periods the steps may run ahead of their windows. A command
-# that arrives while its window is already used (the one before came late, into it) steps
-# at once instead of waiting for the next window: without this lead half the commands
-# waited ~0.5 ms under load (measured 2026-11-22: 7974 waited, 8111 on arrival in 20 s).
-# Sim time then leads wall-clock time by at most this many periods, never more.
-ARRIVAL_LEAD_PERIODS = 2
-# Apply on arrival: commands waiting for a step at most; older ones are dropped and
-# counted (a burst this long means the plant was stalled, their time is gone).
-ARRIVAL_QUEUE_MAX = 4
+# Apply on arrival: a device period whose command has not come this many periods after
+# the period began is stepped without it (with the last command, or braking). A command
+# normally reaches the plant 0.3-1.5 ms after its handle sample (teleop latency, p50-p99,
+# 2026-11-22); one that comes after its period was stepped is merged into the next step
+# instead of taking one of its own.
+OWN_STEP_AFTER_PERIODS = 2
+# Apply on arrival: periods stepped back to back at most to catch up (periods before a
+# command that got none, or the run thread after a stall); older ones are skipped, never
+# run in a burst.
+CATCH_UP_MAX_PERIODS = 2
+# Apply on arrival: a command this many periods away from the plant's next one (either
+# way) means the device's clock started over (a restarted haptic service): re-lock to it.
+RELOCK_PERIODS = 1000
 
 
-class ArrivalGrid:
-    """Step windows of a plant that applies each command on arrival (times in ns).
+class DeviceClockGrid:
+    """The realtime plant's steps on the haptic device's clock (times in ns, monotonic).
 
-    Step ``n`` may run in the window ``[open_n - lead, open_n + period)``: at once when
-    a command arrives in it (or at ``open_n - lead`` if one is already waiting), else at
-    the window's end with the last command (``lead``: ARRIVAL_LEAD_PERIODS periods).
-    ``open_n = t0 + n * period`` on an absolute grid, so the plant keeps wall-clock time
-    however the steps fall in their windows.
-    :meth:`lock` moves the grid's phase so that a command arriving at ``t_ns`` sits
-    ``ARRIVAL_PHASE_FRACTION`` of a period into its window: the haptic device's clock
-    then paces the steps (as a fieldbus's distributed clock), with room for jitter.
-    Pure arithmetic, no clock of its own, so tests can drive it with any times.
+    The device samples the handle on absolute deadlines ``t0 + k * period`` of the host's
+    monotonic clock, and each teleoperation command carries the deadline of the period
+    whose sample it answers (``device_deadline_ns``). The plant takes exactly one step
+    per device period, as a fieldbus slave follows the master's distributed clock:
+    ``next_ns`` is the period of the next step. A command for that period steps at once;
+    one for a later period first steps the periods in between, which got no command
+    (shed upstream or skipped by the device), with the last command; one for a period
+    already stepped is late and only becomes the command held for the next step. A
+    period without a command is stepped by the plant's own thread
+    ``OWN_STEP_AFTER_PERIODS`` periods after it began. So commands never wait for a
+    window, sim time stays on the device's clock (no drift either way), and the plant
+    still keeps wall-clock time when no command comes at all.
+
+    Before the first command the grid runs from ``start_ns``; :meth:`lock` puts the
+    next step on the first command's period. Pure arithmetic, no clock of its own.
     """
 
     def __init__(self, period_ns: int, start_ns: int) -> None:
         if period_ns <= 0:
             raise ValueError(f"period_ns must be > 0, got {period_ns}")
         self.period_ns = period_ns
-        self.next_open_ns = start_ns  # window of the next step to run
-        self.skipped = 0  # windows that passed without any step (stalls)
-        self.locked = False
+        self.next_ns = start_ns  # start of the device period the next step covers
+        self.skipped = 0  # periods never stepped (stalls longer than the catch-up)
+        self.locks = 0  # times the grid (re-)locked to a command's period
 
     @property
-    def earliest_ns(self) -> int:
-        """When the next step may run at the earliest (its window opens, minus the lead)."""
-        return self.next_open_ns - ARRIVAL_LEAD_PERIODS * self.period_ns
+    def locked(self) -> bool:
+        return self.locks > 0
+
+    def lock(self, deadline_ns: int) -> None:
+        """The next step covers the device period that starts at ``deadline_ns``."""
+        self.next_ns = deadline_ns
+        self.locks += 1
+
+    def periods_ahead(self, deadline_ns: int) -> int:
+        """Periods from the next step's to the one starting at ``deadline_ns`` (negative:
+        already stepped)."""
+        return round((deadline_ns - self.next_ns) / self.period_ns)
 
     @property
-    def close_ns(self) -> int:
-        """End of the next step's window: it runs then at the latest."""
-        return self.next_open_ns + self.period_ns
-
-    def lock(self, t_ns: int) -> None:
-        """Put the next window around a command that arrives at ``t_ns``."""
-        self.next_open_ns = t_ns - round(self.period_ns * ARRIVAL_PHASE_FRACTION)
-        self.locked = True
-
-    def catch_up(self, now_ns: int) -> None:
-        """Skip windows that closed before ``now_ns`` (never run them in a burst)."""
-        if now_ns >= self.close_ns:
-            missed = (now_ns - self.close_ns) // self.period_ns + 1
-            self.skipped += missed
-            self.next_open_ns += missed * self.period_ns
+    def own_step_ns(self) -> int:
+        """When the plant steps the next period itself if no command came for it."""
+        return self.next_ns + OWN_STEP_AFTER_PERIODS * self.period_ns
 
     def stepped(self) -> None:
-        """The next step ran: move to the following window."""
-        self.next_open_ns += self.period_ns
+        """The next period was stepped."""
+        self.next_ns += self.period_ns
+
+    def skip(self, periods: int) -> None:
+        """Give up ``periods`` periods without stepping them (a stall)."""
+        self.skipped += periods
+        self.next_ns += periods * self.period_ns
 
 
 # Lockstep cycle breakdown: the newest cycles kept (a ring; 60 s of lockstep fits).
@@ -250,28 +255,23 @@ class PlantService(Service):
         if self.config.run.mode == "lockstep":
             self._sent_ticks = collections.deque(maxlen=self.delay_steps + 1)
         # Realtime apply-on-arrival state, shared by the run thread and the command
-        # callback (which steps the plant itself when the command's window is open).
-        # Only in teleoperation: there the haptic device's clock paces the commands. In
-        # path following each command answers the plant's own state, so the plant's tick
-        # is the loop's only clock and the newest command is the one to apply.
+        # callback (which steps the plant itself, see DeviceClockGrid). Only in
+        # teleoperation: there the haptic device's clock paces the commands. In path
+        # following each command answers the plant's own state, so the plant's tick is
+        # the loop's only clock and the newest command is the one to apply.
         self.apply_on_arrival = self.config.plant.apply_on_arrival and teleoperated
-        # A window's step may still run this long after the window closed (wake-up
-        # lateness of the run thread); later than that the windows passed are skipped.
-        self.late_tolerance_ns = round(self.period_ns * ARRIVAL_LATE_TOLERANCE_FRACTION)
         self._arrival_cond = threading.Condition()
-        self._arrival_queue: collections.deque[tuple[np.ndarray, int]] = collections.deque()
         self._arrival_running = False
         self._arrival_steps: int | None = None
-        self._grid: ArrivalGrid | None = None
+        self._grid: DeviceClockGrid | None = None
         self._held_command: np.ndarray | None = None
         self._braking = False
         self._last_applied_seq = -1
         self.command_seq = SeqCheck()  # JOINT_COMMAND gaps and reordering (realtime)
         self.steps_on_arrival = 0  # steps a command started the moment it arrived
-        self.steps_waited = 0  # steps whose command came early and waited for its window
-        self.steps_without_command = 0  # windows that ended without a new command
-        self.late_steps = 0  # steps run after their window had closed (stalls)
-        self.commands_dropped = 0  # queue overflow after a stall
+        self.steps_without_command = 0  # device periods stepped without a new command
+        self.stalls = 0  # times the plant fell behind by more than the catch-up (skipped)
+        self.commands_late = 0  # came after their period was stepped: merged into the next
         self.commands_stale = 0  # arrived too old to apply (the watchdog brakes instead)
         self.commands_shed = 0  # older than SHED_AGE_NS on arrival (this service was behind)
         self.shed_log = StampLog(1)  # HAPTIC_SAMPLE stamps of the commands dropped here
@@ -478,42 +478,37 @@ class PlantService(Service):
 
     # -- realtime, apply on arrival -----------------------------------------------------
     def _run_on_arrival(self, stop: threading.Event, steps: int | None) -> None:
-        """Step on each command's arrival; this thread runs the steps no command started.
-
-        A command that arrives while its window is open is stepped in the callback
-        (:meth:`_arrival_command`); this thread steps a command that came early (a second
-        one within a window) when the next window opens, and ends every window that got
-        no command by stepping with the last one (or braking).
-        """
-        start_ns = time.monotonic_ns()
+        """Step each command on arrival (in its callback); this thread steps the device
+        periods no command came for (see :class:`DeviceClockGrid`)."""
         with self._arrival_cond:
-            self._grid = ArrivalGrid(self.period_ns, start_ns)
+            self._grid = DeviceClockGrid(self.period_ns, time.monotonic_ns())
             self._held_command = None
             self._braking = False
             self._last_applied_seq = -1
             self.command_seq.restart()
-            self._arrival_queue.clear()
             self._arrival_steps = steps
             self._arrival_running = True
             try:
                 while not stop.is_set() and self._should_step(steps):
                     grid = self._grid
                     now_ns = time.monotonic_ns()
-                    if self._arrival_queue and now_ns >= grid.earliest_ns:
-                        self.steps_waited += 1
-                        self._arrival_step(now_ns)
-                    elif now_ns >= grid.close_ns:
-                        self._arrival_step(now_ns)
-                    else:
-                        due_ns = grid.earliest_ns if self._arrival_queue else grid.close_ns
-                        self._arrival_cond.wait(max(due_ns - now_ns, 0) / NS_PER_S)
+                    if now_ns < grid.own_step_ns:
+                        self._arrival_cond.wait((grid.own_step_ns - now_ns) / NS_PER_S)
+                        continue
+                    behind = (now_ns - grid.own_step_ns) // self.period_ns
+                    if behind > CATCH_UP_MAX_PERIODS:  # a stall: skip, never burst
+                        self.stalls += 1
+                        grid.skip(int(behind) - CATCH_UP_MAX_PERIODS)
+                    self._arrival_step(None, 0)
             finally:
                 self._arrival_running = False
 
     def _arrival_command(self, command: np.ndarray, rx_ns: int) -> None:
-        """A command arrived: step with it now if its window is open, else queue it."""
+        """A command arrived: step its device period now (after any before it that got
+        no command), or hold it for the next step if its period is past."""
         with self._arrival_cond:
-            if not self._arrival_running or self._grid is None:
+            grid = self._grid
+            if not self._arrival_running or grid is None:
                 return
             if not self.command_seq.accept(int(command["seq"])):
                 return
@@ -521,23 +516,28 @@ class PlantService(Service):
                 self.commands_shed += 1  # a backlog: a newer command is right behind it
                 self._log_shed(command)
                 return
-            if not self._grid.locked:
-                self._grid.lock(rx_ns)
-            self._arrival_queue.append((command, rx_ns))
-            while len(self._arrival_queue) > ARRIVAL_QUEUE_MAX:
-                dropped, _ = self._arrival_queue.popleft()
-                self.commands_dropped += 1
-                self._log_shed(dropped)
-            now_ns = time.monotonic_ns()
-            if (
-                now_ns >= self._grid.earliest_ns
-                and len(self._arrival_queue) == 1
-                and self._should_step(self._arrival_steps)
-            ):
+            deadline_ns = int(command["device_deadline_ns"])
+            ahead = 0  # a command not paced by a device steps the next period
+            if deadline_ns > 0:
+                if not grid.locked or abs(grid.periods_ahead(deadline_ns)) > RELOCK_PERIODS:
+                    grid.lock(deadline_ns)
+                ahead = grid.periods_ahead(deadline_ns)
+            if ahead < 0:  # its period was stepped without it: the next step applies it
+                self.commands_late += 1
+                self._log_shed(command)
+                self._held_command = command
+                return
+            if ahead > CATCH_UP_MAX_PERIODS:  # the periods before it are too far behind
+                self.stalls += 1
+                grid.skip(ahead - CATCH_UP_MAX_PERIODS)
+                ahead = CATCH_UP_MAX_PERIODS
+            for _ in range(ahead):
+                if self._should_step(self._arrival_steps):
+                    self._arrival_step(None, 0)
+            if self._should_step(self._arrival_steps):
                 self.steps_on_arrival += 1
-                self._arrival_step(now_ns)
-            else:
-                self._arrival_cond.notify_all()  # the run thread steps it (early or late)
+                self._arrival_step(command, rx_ns)
+            self._arrival_cond.notify_all()  # the run thread's next own step moved
 
     def _log_shed(self, command: np.ndarray) -> None:
         sample_ns = int(command["trace_ns"][Stage.HAPTIC_SAMPLE])
@@ -550,20 +550,15 @@ class PlantService(Service):
                 self.shed_log.save(shed_path(self.options.run_dir, self.name))
         super().close()
 
-    def _arrival_step(self, now_ns: int) -> None:
-        """One physics step: the oldest queued command, else the last one held (cond held)."""
+    def _arrival_step(self, command: np.ndarray | None, rx_ns: int) -> None:
+        """Step the grid's next device period with ``command`` (None: with the one held,
+        or braking if that is stale); the caller holds the condition."""
         grid = self._grid
         assert grid is not None
-        if now_ns >= grid.close_ns + self.late_tolerance_ns:
-            self.late_steps += 1  # a stall: skip the windows that passed, run this one now
-            grid.catch_up(now_ns)
-        rx_ns = 0
-        if self._arrival_queue:
-            command, rx_ns = self._arrival_queue.popleft()
+        if command is not None:
             self._held_command = command
         else:
             self.steps_without_command += 1
-            command = None
         held = self._held_command
         fresh = held is not None and self.state_seq - int(held["state_seq"]) <= self.watchdog_steps
         if fresh:
@@ -663,16 +658,16 @@ class PlantService(Service):
             return {}
         steps = max(self.plant.step_count, 1)
         return {
-            "overrun_fraction": self.late_steps / steps,
+            "overrun_fraction": self.stalls / steps,
             "skipped_ticks": self._grid.skipped,
             "arrival": {
                 "steps_on_arrival": self.steps_on_arrival,
-                "steps_waited": self.steps_waited,
                 "steps_without_command": self.steps_without_command,
-                "late_steps": self.late_steps,
+                "stalls": self.stalls,
+                "grid_locks": self._grid.locks,
                 "commands_lost": self.command_seq.lost,
                 "commands_reordered": self.command_seq.reordered,
-                "commands_dropped": self.commands_dropped,
+                "commands_late": self.commands_late,
                 "commands_stale": self.commands_stale,
                 "commands_shed": self.commands_shed,
             },

@@ -10,6 +10,7 @@ turns SIGINT/SIGTERM into a stop event, and runs ``open -> run(stop) -> close``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -17,6 +18,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType, TracebackType
@@ -153,6 +155,32 @@ def pin_to_cpus(cpus: tuple[int, ...]) -> None:
         logger.info("pinned to CPU(s) %s", sorted(wanted))
 
 
+@contextlib.contextmanager
+def fifo_scheduling(priority: int) -> Iterator[bool]:
+    """Within the block, run the calling thread, and every thread it starts (Zenoh's
+    included, so open the session inside), under SCHED_FIFO at ``priority``; yields
+    whether it took effect. The calling thread's old policy is back after the block.
+
+    No-op for 0. Without CAP_SYS_NICE the kernel refuses: a warning says so and the
+    thread stays normally scheduled.
+    """
+    if priority <= 0:
+        yield False
+        return
+    old_policy, old_param = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except OSError as exc:
+        logger.warning("SCHED_FIFO priority %d refused (%s): normal scheduling", priority, exc)
+        yield False
+        return
+    logger.info("SCHED_FIFO priority %d", priority)
+    try:
+        yield True
+    finally:
+        os.sched_setscheduler(0, old_policy, old_param)
+
+
 def build_service_parser(name: str) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog=f"teleop-{name}",
@@ -193,6 +221,7 @@ def service_main(service_class: type[Service], argv: list[str] | None = None) ->
         continuous=args.continuous,
     )
     pin_to_cpus(config.cpu.for_service(service_class.name, config.run.mode))
+    fifo_priority = config.cpu.fifo_priority_for(service_class.name, config.run.mode)
     stop = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
@@ -202,7 +231,7 @@ def service_main(service_class: type[Service], argv: list[str] | None = None) ->
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     try:
-        with service_class(config, options) as service:
+        with fifo_scheduling(fifo_priority), service_class(config, options) as service:
             logger.info("running (robot %s)", config.robot.robot_id)
             service.run(stop)
     except (ConfigError, ModelError) as exc:
