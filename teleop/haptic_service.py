@@ -1,14 +1,19 @@
 """The haptic service: one device step per plant tick, in realtime or lockstep.
 
 Inputs: FORCE_FEEDBACK (the force to render, from the controller), HAND_INPUT (where the
-operator's hand pulls the handle, keyed by the plant tick it applies from) and
-PLANT_STATE, used only as the simulation clock (its ``seq`` is the plant tick). Output:
-HAPTIC_STATE per step, with the encoder position, the Kalman velocity and the force
-actually rendered, in the device frame.
+operator's hand pulls the handle, keyed by the plant tick it applies from) and, in
+lockstep, PLANT_STATE, used only as the simulation clock (its ``seq`` is the plant
+tick). Output: HAPTIC_STATE per step, with the encoder position, the Kalman velocity and
+the force actually rendered, in the device frame, and the deadline of the device period
+it was sampled in (the realtime plant steps on that clock).
 
 - realtime: a :class:`LoopTimer` at the plant period steps the device on wall-clock
   deadlines with the newest feedback (faded out by :class:`FeedbackHold` when stale) and
-  the hand input valid at the newest plant tick seen. Each feedback force is handed to
+  the hand input valid at the newest plant tick seen. The tick and sim time are those
+  of the newest feedback (the state it answers, at most a period or two old): a 1 kHz
+  PLANT_STATE subscription only for that cost this service and the plant a message
+  each per period. A feedback tick below the last one means the plant started over (a
+  new run). Each feedback force is handed to
   the motors the moment it arrives (``haptic.render_on_arrival``; else at the next step)
   and its trace, completed with FEEDBACK_RX and FEEDBACK_RENDERED, is kept for the
   latency report (written to ``<run dir>/haptic.trace.npy`` at exit).
@@ -18,13 +23,13 @@ actually rendered, in the device frame.
   plant). A hand input still missing after ``HAND_INPUT_WAIT_S`` means there is no
   operator: log once and go on without waiting for hand inputs until one arrives.
 
-A PLANT_STATE seq 0 with a new ``t_source_ns`` (or as the first state) starts a new run:
-the handle goes back to the centre at rest and every stored input is forgotten. A state
-with a seq already seen is a plant re-send (nobody answered it; the plant re-sends every
-state in flight byte for byte, so a re-sent state 0 keeps its stamp): it never steps the
-device again;
-if it names the tick last stepped, that tick's HAPTIC_STATE is sent again unchanged (same
-seq), in case the first copy was lost to a late subscriber.
+Lockstep: a PLANT_STATE seq 0 with a new ``t_source_ns`` (or as the first state) starts
+a new run: the handle goes back to the centre at rest and every stored input is
+forgotten. A state with a seq already seen is a plant re-send (nobody answered it; the
+plant re-sends every state in flight byte for byte, so a re-sent state 0 keeps its
+stamp): it never steps the device again; if it names the tick last stepped, that tick's
+HAPTIC_STATE is sent again unchanged (same seq), in case the first copy was lost to a
+late subscriber.
 """
 
 from __future__ import annotations
@@ -133,7 +138,10 @@ class HapticService(Service):
             subscribe(self.session, topics.force_feedback, FORCE_FEEDBACK, self._on_feedback, drops)
         )
         self.keep(subscribe(self.session, topics.hand_input, HAND_INPUT, self._on_hand, drops))
-        self.keep(subscribe(self.session, topics.plant_state, PLANT_STATE, self._on_state, drops))
+        if self.lockstep:  # realtime: the feedback's tick is the clock (see the docstring)
+            self.keep(
+                subscribe(self.session, topics.plant_state, PLANT_STATE, self._on_state, drops)
+            )
         logger.info(
             "%s mode; stiffness a feedback law may render: K_max = 2 b / T = %.0f N/m",
             self.config.run.mode,
@@ -205,6 +213,13 @@ class HapticService(Service):
             if int(rec["trace_ns"][Stage.HAPTIC_SAMPLE]) > 0:
                 self.shed_log.append((int(rec["trace_ns"][Stage.HAPTIC_SAMPLE]),))
             return
+        tick = int(rec["tick"])
+        if tick < self._state_seq:  # the plant started over: a new run
+            self._new_run()
+        elif self._state_seq < 0:  # this service's first feedback: the run is under way
+            self.runs += 1
+        self._state_seq = tick
+        self._state_sim_ns = int(rec["sim_time_ns"])
         self.hold.receive(force, rx_ns)
         trace = np.array(rec["trace_ns"])
         trace[Stage.FEEDBACK_RX] = rx_ns
@@ -269,6 +284,7 @@ class HapticService(Service):
                 del self._feedback[tick - 1]
             sim_ns = self._state_sim_ns - (self._state_seq - tick) * self.period_ns
             self._step(tick, sim_ns, hand, t_ns)
+            self._publish_sample()
             self._last_tick = tick
 
     def _run_lockstep(self, stop: threading.Event) -> None:
@@ -311,6 +327,8 @@ class HapticService(Service):
                 tick = max(self._state_seq, 0)
                 hand = self.hand_inputs.latest_at(tick) if self._state_seq >= 0 else None
                 self._step(tick, self._state_sim_ns, hand, time.monotonic_ns(), deadline_ns)
+            # Outside the lock: a feedback that arrives meanwhile is rendered at once.
+            self._publish_sample()
 
     # -- shared ------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
@@ -328,7 +346,8 @@ class HapticService(Service):
         t_ns: int,
         deadline_ns: int = 0,
     ) -> None:
-        """Render, integrate one period, sample, publish (caller holds the lock).
+        """Render, integrate one period, sample into the HAPTIC_STATE record (caller holds
+        the lock; :meth:`_publish_sample` sends it).
 
         ``t_ns`` is the feedback clock (monotonic in realtime, sim time in lockstep);
         ``deadline_ns`` the device period's start in realtime (the plant steps on it),
@@ -362,9 +381,13 @@ class HapticService(Service):
         rec["device_v_m_s"] = sample.v_m_s
         rec["device_f_n"] = sample.f_n
         rec["buttons"] = int(sample.buttons)
-        self.state_batch.add(self.state_pub.put(rec))
         if not self.lockstep:
             self.sample_log.append((self.steps, sample_ns))
+
+    def _publish_sample(self) -> None:
+        """Send the HAPTIC_STATE the last :meth:`_step` filled in (one thread at a time:
+        lockstep steps under the lock, realtime only in the run thread)."""
+        self.state_batch.add(self.state_pub.put(self._record))
 
     def close(self) -> None:
         device = getattr(self, "device", None)  # None if open() failed before building it

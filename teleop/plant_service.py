@@ -50,7 +50,7 @@ from teleop.messages import (
     Stage,
 )
 from teleop.plant import Plant
-from teleop.proximity import FAR_DISTANCE_M, ObstacleProximity
+from teleop.proximity import FAR_DISTANCE_M, ObstacleProximity, ProximitySample
 from teleop.service import Service
 from teleop.stamps import SHED_AGE_NS, SeqCheck, StampLog, shed_path
 
@@ -210,6 +210,8 @@ class PlantService(Service):
         self.objects_pub = self.keep(Publisher.declare(declare, topics.objects, OBJECT_POSES))
         self.events_pub = self.keep(Publisher.declare(declare, topics.events, RUN_EVENT))
         self.proximity = ObstacleProximity(self.plant.model, self.plant.data, self.config.robot)
+        # (step, closest obstacle) computed ahead for that step's state; step -1: none.
+        self._closest: tuple[int, ProximitySample | None] = (-1, None)
         self._fingers = finger_bodies(self.plant.model, self.config.robot)
         self._held_body = -1
         self.keep(subscribe(self.session, topics.events, RUN_EVENT, self._on_event, self.drops))
@@ -354,6 +356,16 @@ class PlantService(Service):
         if sample.step % self.scene_every_steps == 0:
             self._publish_scene(sample.sim_time_ns, now_ns)
         self.max_tool_speed_m_s = max(self.max_tool_speed_m_s, self.plant.tool_speed_m_s())
+        self._prepare_next_step(sample.step + 1)
+
+    def _prepare_next_step(self, step: int) -> None:
+        """While the command is on its way: the control-free half of the next physics step
+        (:meth:`Plant.prepare_step`) and, when that step's state carries them, the closest
+        obstacle, which depends on the positions only (the same numbers as after the step:
+        a step's collision geometry is that of the state it starts from)."""
+        self.plant.prepare_step()
+        if step % self.interaction_every_steps == 0:
+            self._closest = (step, self.proximity.closest())
 
     def _sample_interaction(self, step: int) -> Event | None:
         """Fill the state record's contact and proximity fields from the plant as it is.
@@ -363,7 +375,9 @@ class PlantService(Service):
         """
         rec = self._state
         rec["interaction_step"] = step
-        closest = self.proximity.closest()
+        prepared_step, closest = self._closest
+        if prepared_step != step:
+            closest = self.proximity.closest()
         self.min_obstacle_clearance_m = min(self.min_obstacle_clearance_m, closest.distance_m)
         rec["distance_m"] = closest.distance_m
         rec["world_p_arm_m"] = closest.world_p_arm_m
@@ -414,6 +428,7 @@ class PlantService(Service):
         if not self.wait_for_peers(stop):
             return
         self.plant.reset(initial_configuration(self.config))
+        self._closest = (-1, None)
         self.finish_tick = None
         self._held_body = -1
         steps = None

@@ -10,6 +10,7 @@ which makes the whole run deterministic; in realtime it takes the newest one.
 
 from __future__ import annotations
 
+import bisect
 import math
 import threading
 from collections.abc import Callable
@@ -55,14 +56,18 @@ class TickedInputs:
     def __init__(self, keep: int = 64) -> None:
         self._cond = threading.Condition()
         self._records: dict[int, np.ndarray] = {}
+        self._ticks: list[int] = []  # the keys of _records, sorted (latest_at bisects it)
         self._keep = keep
 
     def put(self, valid_from_tick: int, rec: np.ndarray) -> None:
         with self._cond:
+            if valid_from_tick not in self._records:
+                bisect.insort(self._ticks, valid_from_tick)
             self._records[valid_from_tick] = rec
-            if len(self._records) > self._keep:
-                for old in sorted(self._records)[: len(self._records) - self._keep]:
+            if len(self._ticks) > self._keep:
+                for old in self._ticks[: len(self._ticks) - self._keep]:
                     del self._records[old]
+                del self._ticks[: len(self._ticks) - self._keep]
             self._cond.notify_all()
 
     def wait_for(self, valid_from_tick: int, timeout_s: float) -> np.ndarray | None:
@@ -74,12 +79,13 @@ class TickedInputs:
     def latest_at(self, tick: int) -> np.ndarray | None:
         """The record with the largest valid_from_tick <= ``tick`` (realtime use)."""
         with self._cond:
-            eligible = [t for t in self._records if t <= tick]
-            return self._records[max(eligible)] if eligible else None
+            index = bisect.bisect_right(self._ticks, tick)
+            return self._records[self._ticks[index - 1]] if index else None
 
     def clear(self) -> None:
         with self._cond:
             self._records.clear()
+            self._ticks.clear()
 
 
 class TickBarrier:

@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -35,6 +36,7 @@ from teleop.topics import Topics
 
 PERIOD_S = 0.001  # the plant period the device steps at
 NS_PER_MS = 1_000_000
+NS_PER_S = 1_000_000_000
 # The velocity-filter tuning these tests recommend (m/s^2); see KalmanVelocityEstimator.
 KF_ACCEL_NOISE_M_S2 = 3.0
 
@@ -311,3 +313,72 @@ def test_service_steps_once_per_tick_in_lockstep(tmp_path):
     assert summary["max_rendered_force_n"] == pytest.approx(2.0)
     assert summary["stale_feedback_events"] == 0
     assert len(replies.records) == ticks + 2 and drops.total == 0
+
+
+def test_service_in_realtime_takes_its_clock_from_the_feedback(tmp_path):
+    """Realtime: no PLANT_STATE needed; the samples carry the newest feedback's tick and sim
+    time and the device period's deadline; a feedback tick that goes back is a new run."""
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    overrides = [f'bus.endpoint="{endpoint}"', 'run.mode="realtime"']
+    config = load_config(None, overrides)
+    topics = Topics(config.robot.robot_id)
+    period_ns = round(config.plant.timestep_s * NS_PER_S)
+    session = open_session(config.bus, listen=True)
+    replies = Replies()
+    drops = DropCounter()
+    entities = [subscribe(session, topics.haptic_state, HAPTIC_STATE, replies, drops)]
+    feedback_pub = Publisher.declare(session, topics.force_feedback, FORCE_FEEDBACK)
+    entities.append(feedback_pub)
+    command = [sys.executable, "-m", "services.haptic", "--run-dir", str(tmp_path)]
+    for override in overrides:
+        command += ["--set", override]
+    log = open(tmp_path / "haptic.log", "w")  # noqa: SIM115 (closed in finally)
+    proc = subprocess.Popen(command, cwd=REPO_ROOT, stdin=subprocess.DEVNULL, stderr=log)
+    feedback = FORCE_FEEDBACK.new()
+
+    def send(seq: int, tick: int) -> None:
+        feedback["seq"] = seq
+        feedback["tick"] = tick
+        feedback["sim_time_ns"] = tick * NS_PER_MS
+        feedback["device_f_n"] = [0.0, 0.5, 0.0]
+        now_ns = time.monotonic_ns()
+        feedback["trace_ns"][Stage.FEEDBACK_TX] = now_ns
+        feedback_pub.put(feedback)
+
+    def reply_with_tick(tick: int) -> np.ndarray:
+        deadline = time.monotonic() + REPLY_TIMEOUT_S
+        while time.monotonic() < deadline:
+            with replies.cond:
+                found = [r for r in replies.records if int(r["tick"]) == tick]
+                if found:
+                    return found[-1]
+                replies.cond.wait(0.05)
+        raise AssertionError(f"no HAPTIC_STATE with tick {tick}")
+
+    try:
+        wait_alive(session, topics, ["haptic"], ALIVE_TIMEOUT_S)
+        assert feedback_pub.wait_matched(REPLY_TIMEOUT_S)
+        send(1, 500)
+        first = reply_with_tick(500)
+        assert int(first["sim_time_ns"]) == 500 * NS_PER_MS
+        send(2, 501)
+        reply_with_tick(501)
+        with replies.cond:
+            deadlines = np.array([int(r["device_deadline_ns"]) for r in replies.records])
+        steps = np.diff(deadlines)
+        assert (deadlines > 0).all() and (steps > 0).all() and (steps % period_ns == 0).all()
+        send(3, 7)  # the plant started over
+        reply_with_tick(7)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(REPLY_TIMEOUT_S)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            log.close()
+            close_session(session, *reversed(entities))
+    assert proc.returncode == 0, (tmp_path / "haptic.log").read_text()[-3000:]
+    summary = json.loads((tmp_path / "haptic.summary.json").read_text())
+    assert summary["runs"] == 2 and summary["feedback_lost"] == 0
+    assert summary["feedback_rendered"] == 3 and drops.total == 0

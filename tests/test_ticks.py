@@ -49,3 +49,21 @@ def test_barrier_fires_once_per_complete_tick_in_any_arrival_order():
     barrier.put("state", 0, np.array(0))
     barrier.put("haptic", 0, np.array(0))
     assert [tick for tick, _ in fired] == [0, 1, 0]
+
+
+def test_ticked_inputs_latest_at_matches_a_scan_whatever_the_arrival_order():
+    rng = np.random.default_rng(3)
+    inputs = TickedInputs(keep=16)
+    kept: dict[int, int] = {}
+    for tick in rng.permutation(200)[:80]:
+        rec = np.array(int(tick))
+        inputs.put(int(tick), rec)
+        kept[int(tick)] = int(tick)
+        for old in sorted(kept)[: max(0, len(kept) - 16)]:
+            del kept[old]
+        for query in (int(tick) - 1, int(tick), int(tick) + 7, 250):
+            eligible = [t for t in kept if t <= query]
+            found = inputs.latest_at(query)
+            assert (None if found is None else int(found)) == (max(eligible) if eligible else None)
+    inputs.clear()
+    assert inputs.latest_at(1000) is None
