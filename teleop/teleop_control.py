@@ -313,7 +313,11 @@ def approach_down_orientation(world_r_tool: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class TeleopOutput:
-    """One teleoperation cycle (world frame, SI units)."""
+    """One teleoperation cycle (world frame, SI units).
+
+    ``world_v_tool_m_s`` and ``world_p_tool_m`` are the cycle's :class:`JointStateTerms`
+    arrays, read-only (copy them to change them).
+    """
 
     qd_ref_rad_s: np.ndarray  # (n,) to the plant's velocity loops
     qd_c_rad_s: np.ndarray  # (n,) kinematic command before dynamic compensation
