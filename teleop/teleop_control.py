@@ -21,10 +21,15 @@ Cost: the law runs once per haptic sample (1 kHz) on the bilateral loop's critic
 At these sizes (3- and 6-vectors, 3x3 and 6x6 matrices) a numpy call costs ~0.5-3 us
 whatever it computes, more than the arithmetic, so the cycle works on Python floats
 between the Pinocchio calls and calls LAPACK directly for the two factorisations.
+The part that depends only on the joint state (tool pose and Jacobian, the least
+squares' Cholesky factor, condition number, measured tool velocity) is
+:meth:`TeleopController.prepare`: the plant state arrives before the handle sample, so a
+caller can run it ahead and pass its :class:`JointStateTerms` to ``update``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import operator
@@ -222,7 +227,17 @@ def damped_least_squares(jacobian: np.ndarray, task: np.ndarray, damping: float)
 
 def _damped_gram_solve(gram: np.ndarray, rhs: np.ndarray, damping: float) -> np.ndarray:
     """(G + lambda^2 I)^-1 rhs for the Gram matrix G of a Jacobian, with the adaptive
-    lambda of :func:`damped_least_squares`.
+    lambda of :func:`damped_least_squares`: :func:`_damped_gram_factor` then
+    :func:`_damped_gram_factor_solve` (what LAPACK's dposv does, bit for bit)."""
+    return _damped_gram_factor_solve(_damped_gram_factor(gram, damping), rhs)
+
+
+def _damped_gram_factor(gram: np.ndarray, damping: float) -> np.ndarray:
+    """Upper Cholesky factor (LAPACK dpotrf) of G + lambda^2 I, lambda adaptive as in
+    :func:`damped_least_squares`.
+
+    Separate from the solve because it depends on the joint state only: the teleoperation
+    cycle factors ahead of the handle sample (:meth:`TeleopController.prepare`).
 
     The smallest singular value is needed only below the threshold: the Cholesky
     factorisation of G - threshold^2 I succeeds exactly when it is above, so G's
@@ -241,9 +256,18 @@ def _damped_gram_solve(gram: np.ndarray, rhs: np.ndarray, damping: float) -> np.
         damped_gram = gram + lam2 * _identity(size)
     else:  # the configured damping, a constant: its identity is cached
         damped_gram = gram + _identity(size, damping * damping)
-    _, solution, info = lapack.dposv(damped_gram, rhs)
+    factor, info = lapack.dpotrf(damped_gram)
     if info != 0:
-        raise np.linalg.LinAlgError(f"dposv failed (info {info})")
+        raise np.linalg.LinAlgError(f"dpotrf failed (info {info})")
+    return factor
+
+
+def _damped_gram_factor_solve(factor: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """(G + lambda^2 I)^-1 rhs from the upper factor of :func:`_damped_gram_factor`
+    (LAPACK dpotrs: the two triangular solves dposv runs after its dpotrf)."""
+    solution, info = lapack.dpotrs(factor, rhs)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"dpotrs failed (info {info})")
     return solution
 
 
@@ -289,7 +313,11 @@ def approach_down_orientation(world_r_tool: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class TeleopOutput:
-    """One teleoperation cycle (world frame, SI units)."""
+    """One teleoperation cycle (world frame, SI units).
+
+    ``world_v_tool_m_s`` and ``world_p_tool_m`` are the cycle's :class:`JointStateTerms`
+    arrays, read-only (copy them to change them).
+    """
 
     qd_ref_rad_s: np.ndarray  # (n,) to the plant's velocity loops
     qd_c_rad_s: np.ndarray  # (n,) kinematic command before dynamic compensation
@@ -302,6 +330,34 @@ class TeleopOutput:
     orientation_error_rad: float  # angle between held and actual tool orientation
     obstacle_active: bool  # the avoidance term acted this cycle
     gripper_cmd: float  # opening fraction in [0, 1], passed through
+
+
+@dataclass(frozen=True)
+class JointStateTerms:
+    """The part of a teleoperation cycle that depends only on the joint state (q, q').
+
+    The plant state arrives ~0.5 ms before the handle sample it is answered with, so
+    :meth:`TeleopController.prepare` computes these ahead and
+    :meth:`TeleopController.update` only adds what depends on the operator, the obstacle
+    and the controller's own state. Exactly the values (and the operations) ``update``
+    used to compute itself, so its outputs are bit for bit the same. The arrays are
+    read-only: the terms may be kept and used later, and two of them end up in the
+    :class:`TeleopOutput`.
+    """
+
+    world_p_tool_m: np.ndarray  # (3,) tool point
+    world_p_tool_xyz_m: tuple[float, float, float]  # the same as floats
+    world_r_tool: np.ndarray  # (3, 3) tool orientation
+    jacobian: np.ndarray  # (6, n) tool Jacobian, LOCAL_WORLD_ALIGNED (m/rad, rad/rad)
+    jacobian_position: np.ndarray  # (3, n) its linear rows (a view)
+    gram: np.ndarray  # (6, 6) J J^T; its top-left block is Jv Jv^T
+    # Upper Cholesky factor of the least squares' damped Gram matrix: J J^T + lambda^2 I,
+    # or J^T J + lambda^2 I for an arm with fewer joints than task rows.
+    gram_factor: np.ndarray
+    cond: float  # condition number of the (3, n) position Jacobian
+    world_v_tool_m_s: np.ndarray  # (3,) Jv q' from the measured q'
+    measured_tool_speed_m_s: float  # |world_v_tool_m_s|
+    q_rad: tuple[float, ...]  # the joint positions the terms were computed at, as floats
 
 
 class TeleopController:
@@ -349,6 +405,9 @@ class TeleopController:
         # J J^T (task x task) is the least squares' Gram matrix unless the arm has fewer
         # joints than task rows (then J^T J is, see damped_least_squares).
         self._wide_jacobian = arm.n_joints >= TASK_DIMENSION
+        # prepare()'s own Pinocchio scratch: it never writes arm.data, which update() uses
+        # (look-ahead, dynamics), so terms computed ahead stay valid whatever runs between.
+        self._prepare_arm = dataclasses.replace(arm, data=arm.model.createData())
         self._body_frames: dict[int, int] = {}
         for body, name in enumerate(mj_body_names):
             if name and arm.model.existFrame(name, pin.FrameType.BODY):
@@ -369,6 +428,47 @@ class TeleopController:
         self._previous_nominal = None
         self._previous_tool_speed = 0.0
 
+    def prepare(self, q_rad: np.ndarray, qd_rad_s: np.ndarray) -> JointStateTerms:
+        """The terms of :meth:`update` that depend only on the joint state and the model.
+
+        The plant state is known before the handle sample that completes the cycle: this
+        half (tool pose and Jacobian, Gram matrix and its damped Cholesky factor,
+        condition number, measured tool velocity) can run off the critical path, and
+        ``update(..., terms=...)`` does the rest. Pure with respect to the controller's
+        state (held pose, previous commands, counters): call it any number of times, for
+        any state, and use the result later. It writes only its own Pinocchio scratch
+        data, so it must not run in two threads at once (nor beside an
+        ``update(terms=None)``, which calls it).
+
+        Left out, because only the first cycle after a :meth:`reset` needs them: the
+        straightened orientation to hold and the measured q' as the previous command.
+        """
+        tool_p, tool_r, jacobian = tool_pose_and_jacobian(self._prepare_arm, q_rad)
+        # J J^T (6, 6): the least squares' Gram matrix; its top-left block is Jv Jv^T.
+        jjt = jacobian @ jacobian.T
+        if self._wide_jacobian:
+            factor = _damped_gram_factor(jjt, self.control.damping_m)
+        else:  # the smaller Gram matrix J^T J, as damped_least_squares does
+            factor = _damped_gram_factor(jacobian.T @ jacobian, self.control.damping_m)
+        jv = jacobian[:3]
+        cond = _condition_number_of_gram(jjt[:3, :3])
+        v_tool = jv @ qd_rad_s
+        for array in (tool_p, tool_r, jacobian, jv, jjt, factor, v_tool):
+            array.flags.writeable = False
+        return JointStateTerms(
+            world_p_tool_m=tool_p,
+            world_p_tool_xyz_m=tuple(tool_p.tolist()),
+            world_r_tool=tool_r,
+            jacobian=jacobian,
+            jacobian_position=jv,
+            gram=jjt,
+            gram_factor=factor,
+            cond=cond,
+            world_v_tool_m_s=v_tool,
+            measured_tool_speed_m_s=_norm(v_tool),
+            q_rad=tuple(q_rad.tolist()),
+        )
+
     def update(
         self,
         q_rad: np.ndarray,
@@ -377,18 +477,29 @@ class TeleopController:
         obstacle: ProximitySample | None,
         gripper_cmd: float,
         clutch: bool = False,
+        terms: JointStateTerms | None = None,
     ) -> TeleopOutput:
         """One control cycle from the measured joint state and the operator's reference.
+
+        ``terms``: :meth:`prepare` of this same (q_rad, qd_rad_s), computed ahead (the
+        caller guarantees they match; nothing checks it); None computes them here. The
+        outputs are the same bit for bit either way.
 
         3-vectors are unpacked into floats and joint vectors kept as float lists between
         the Pinocchio and LAPACK calls (see the module docstring for why).
         """
+        # Without terms prepare()'s scratch data holds this q's joint Jacobians (the
+        # obstacle term reads them); terms from earlier may have been followed by others.
+        arm_at_q = None
+        if terms is None:
+            terms = self.prepare(q_rad, qd_rad_s)
+            arm_at_q = self._prepare_arm
         tcfg, dt = self.teleop, self.period_s
-        tool_p, tool_r, jacobian = tool_pose_and_jacobian(self.arm, q_rad)
+        tool_r = terms.world_r_tool
         v_ref = np.zeros(3) if clutch else np.asarray(world_v_ref_m_s, dtype=float)
         if self._r_des is None:
             self._r_des = approach_down_orientation(tool_r) if tcfg.approach_down else tool_r.copy()
-        px, py, pz = tool_p.tolist()
+        px, py, pz = terms.world_p_tool_xyz_m
         vx, vy, vz = v_ref.tolist()
         if self._p_des is None or clutch:
             self._p_des = (px, py, pz)
@@ -405,34 +516,31 @@ class TeleopController:
         rx, ry, rz = rotation_error.tolist()
         kp, kr = POSITION_HOLD_GAIN_PER_S, ORIENTATION_GAIN_PER_S
         task = np.array((vx + kp * ex, vy + kp * ey, vz + kp * ez, kr * rx, kr * ry, kr * rz))
-        # J J^T (6, 6): the least squares' Gram matrix; its top-left block is Jv Jv^T.
-        jjt = jacobian @ jacobian.T
-        if self._wide_jacobian:
-            qd_c = jacobian.T @ _damped_gram_solve(jjt, task, self.control.damping_m)
-        else:
-            qd_c = damped_least_squares(jacobian, task, self.control.damping_m)
+        jacobian = terms.jacobian
+        if self._wide_jacobian:  # J^T (J J^T + lambda^2 I)^-1 task
+            qd_c = jacobian.T @ _damped_gram_factor_solve(terms.gram_factor, task)
+        else:  # (J^T J + lambda^2 I)^-1 J^T task, see damped_least_squares
+            qd_c = _damped_gram_factor_solve(terms.gram_factor, jacobian.T @ task)
         qd_c = qd_c.tolist()
         qd_c = self._limit_acceleration(qd_c, qd_rad_s)
         obstacle_active = False
         if obstacle is not None and obstacle.distance_m < tcfg.obstacle_influence_m:
-            qd_c, obstacle_active = self._avoid(qd_c, obstacle)
+            qd_c, obstacle_active = self._avoid(qd_c, obstacle, q_rad, arm_at_q)
 
-        jv = jacobian[:3]
-        cond = _condition_number_of_gram(jjt[:3, :3])
+        cond = terms.cond
         scale = 1.0
         if cond > tcfg.singularity_slowdown_cond and self._toward_singularity(q_rad, qd_c, cond):
             scale = singularity_scale(cond, tcfg)
             qd_c = [qd * scale for qd in qd_c]
-        limit_factors = self._joint_limit_factors(q_rad, qd_c)
+        limit_factors = self._joint_limit_factors(terms.q_rad, qd_c)
         joint_limit_factor = min(limit_factors)
         if joint_limit_factor < 1.0:
             qd_c = list(map(operator.mul, qd_c, limit_factors))
         # The drives track with a small lag; when the tool moved faster than it was told
         # last cycle, command that much less so the MEASURED speed respects the cap.
-        v_tool = jv @ qd_rad_s
-        overshoot = _norm(v_tool) - self._previous_tool_speed
+        overshoot = terms.measured_tool_speed_m_s - self._previous_tool_speed
         max_speed = tcfg.max_tool_speed_m_s - max(0.0, overshoot)
-        tool_speed = _norm(jv @ np.array(qd_c))
+        tool_speed = _norm(terms.jacobian_position @ np.array(qd_c))
         if tool_speed > max_speed:
             cap = max(0.0, max_speed) / tool_speed
             qd_c = [qd * cap for qd in qd_c]
@@ -451,8 +559,8 @@ class TeleopController:
             qd_ref_rad_s=np.array(_within_limits(qd_ref.tolist(), self._speed_limits_rad_s)[0]),
             qd_c_rad_s=qd_c_rad_s,
             world_v_ref_m_s=v_ref,
-            world_v_tool_m_s=v_tool,
-            world_p_tool_m=tool_p,
+            world_v_tool_m_s=terms.world_v_tool_m_s,
+            world_p_tool_m=terms.world_p_tool_m,
             speed_scale=scale,
             joint_limit_scale=joint_limit_factor,
             cond=cond,
@@ -461,7 +569,13 @@ class TeleopController:
             gripper_cmd=min(max(float(gripper_cmd), 0.0), 1.0),
         )
 
-    def _avoid(self, qd_c: list[float], obstacle: ProximitySample) -> tuple[list[float], bool]:
+    def _avoid(
+        self,
+        qd_c: list[float],
+        obstacle: ProximitySample,
+        q_rad: np.ndarray,
+        arm_at_q: ArmModel | None,
+    ) -> tuple[list[float], bool]:
         """Add the joint motion that pushes the closest arm point away from the obstacle.
 
         The arm point's speed along the away direction n gains
@@ -471,12 +585,19 @@ class TeleopController:
         obstacle at speed v, the point settles where gain (d0 - d) = v, i.e.
         d = d0 - v / gain (0.0175 m at 0.25 m/s with the defaults), and the felt
         repulsion k (d0 - d) grows with how hard the operator pushes.
+
+        ``arm_at_q``: an arm whose scratch data holds the joint Jacobians at ``q_rad``, or
+        None to compute them again in ``arm.data`` (the same call on the same q gives the
+        same values; only cycles with an obstacle in range pay it).
         """
         frame = self._body_frames.get(obstacle.arm_body)
         if frame is None:
             self.unmapped_obstacle_samples += 1
             return qd_c, False
-        j_n = point_jacobian_along(self.arm, frame, obstacle.world_p_arm_m, obstacle.world_n_away)
+        if arm_at_q is None:
+            pin.computeJointJacobians(self.arm.model, self.arm.data, q_rad)
+            arm_at_q = self.arm
+        j_n = point_jacobian_along(arm_at_q, frame, obstacle.world_p_arm_m, obstacle.world_n_away)
         tcfg = self.teleop
         away_m_s = tcfg.obstacle_avoid_gain_per_s * (
             tcfg.obstacle_influence_m - obstacle.distance_m
@@ -500,16 +621,15 @@ class TeleopController:
         self._previous_nominal = list(map(operator.add, previous, change))
         return self._previous_nominal
 
-    def _joint_limit_factors(self, q_rad: np.ndarray, qd_rad_s: list[float]) -> list[float]:
+    def _joint_limit_factors(self, q_rad: Sequence[float], qd_rad_s: list[float]) -> list[float]:
         """:func:`joint_limit_scale` of the controller's joints (only the limited ones are
         computed, the others are 1)."""
         factors = [1.0] * len(qd_rad_s)
         if self._limited_joints:
-            q = q_rad.tolist()
             margin = self.teleop.joint_limit_margin_rad
             for joint, lower, upper in self._limited_joints:
                 factors[joint] = _joint_limit_factor(
-                    q[joint], qd_rad_s[joint], lower, upper, margin
+                    q_rad[joint], qd_rad_s[joint], lower, upper, margin
                 )
         return factors
 

@@ -14,6 +14,7 @@ import mujoco
 import numpy as np
 import pinocchio as pin
 import pytest
+from scipy.linalg import lapack
 
 from teleop.config import Config, SceneConfig, TeleopConfig, load_config
 from teleop.kinematics import ArmModel, build_arm_model, tool_position_and_jacobian
@@ -29,6 +30,9 @@ from teleop.teleop_control import (
     SINGULAR_DAMPING,
     SINGULAR_VALUE_THRESHOLD,
     TeleopController,
+    TeleopOutput,
+    _damped_gram_factor,
+    _damped_gram_factor_solve,
     damped_least_squares,
     joint_limit_scale,
     point_jacobian_along,
@@ -206,6 +210,145 @@ def test_condition_number_matches_numpy(cfg, arm):
     for q in (cfg.robot.home_q_rad, STRETCHED_Q_RAD):
         jv = tool_position_and_jacobian(arm, np.array(q))[1][:3]
         assert position_condition_number(jv) == pytest.approx(np.linalg.cond(jv), rel=1e-6)
+
+
+# --- prepare(): the joint-state half of the cycle, computed ahead ---------------------------
+
+
+def controller_state(ctl: TeleopController) -> dict:
+    """Copies of everything a cycle may change in the controller."""
+    names = ("_p_des", "_r_des", "_previous_qd_c", "_previous_nominal",
+             "_previous_tool_speed", "unmapped_obstacle_samples")  # fmt: skip
+    return {name: np.array(getattr(ctl, name), dtype=float, copy=True) for name in names}
+
+
+def assert_same_state(before: dict, after: dict) -> None:
+    for name, value in before.items():
+        assert np.array_equal(value, after[name], equal_nan=True), name
+
+
+def assert_outputs_identical(expected: TeleopOutput, actual: TeleopOutput) -> None:
+    """Every field bit for bit (arrays and floats alike)."""
+    for field in dataclasses.fields(TeleopOutput):
+        a, b = getattr(expected, field.name), getattr(actual, field.name)
+        assert type(a) is type(b), field.name
+        if isinstance(a, np.ndarray):
+            assert a.dtype == b.dtype and np.array_equal(a, b), field.name
+            assert a.tobytes() == b.tobytes(), field.name  # -0.0 vs 0.0 too
+        else:
+            assert a == b, field.name
+
+
+@pytest.mark.parametrize("segment", ["free_and_clutch", "obstacle", "wrist_singularity"])
+def test_prepared_terms_give_the_same_outputs_bit_for_bit(cfg, arm, segment):
+    """Two fresh controllers see the same closed-loop sequence of states: one runs
+    update() alone, the other prepare() (of that state, then of another one, to check
+    that prepare() changes nothing) and update(terms=...). Every output must be equal
+    bit for bit (lockstep runs are compared by hash)."""
+    scene = None
+    q0 = None
+    if segment == "obstacle":  # a sphere just in front of the tool, in range from the start
+        p_tool = make_plant(cfg).tool_pose()[0]
+        scene = SceneConfig(obstacle_p_m=(tuple(p_tool + [0.13, 0.0, 0.0]),),
+                            obstacle_radius_m=(0.05,))  # fmt: skip
+    elif segment == "wrist_singularity":  # wrist_2 = 0: the 6D Jacobian is singular
+        cfg = dataclasses.replace(cfg, teleop=dataclasses.replace(cfg.teleop, approach_down=False))
+        q0 = STRETCHED_Q_RAD
+    plant = make_plant(cfg, q_rad=q0, scene=scene)
+    proximity = ObstacleProximity(plant.model, plant.data, cfg.robot)
+    names = body_names(plant.model)
+    # The same ArmModel (and Pinocchio scratch data) for both: update(terms=...) must not
+    # rely on what the other controller, or prepare(), left in it.
+    alone, split = (TeleopController(arm, cfg.teleop, cfg.control, cfg.plant.timestep_s, names)
+                    for _ in range(2))  # fmt: skip
+    v_refs = {"free_and_clutch": [0.2, -0.1, 0.05], "obstacle": [0.25, 0.0, 0.0],
+              "wrist_singularity": [-0.25, 0.0, 0.0]}  # fmt: skip
+    other = plant.sample()
+    outputs = []
+    for k in range(400):
+        sample = plant.sample()
+        clutch = segment == "free_and_clutch" and 150 <= k < 250
+        gripper_cmd = (1.3, 0.4, -0.2)[k % 3]
+        obstacle = proximity.closest()
+        v_ref = np.array(v_refs[segment]) * (1.0 if k < 300 else 0.0)
+        args = (sample.q_rad, sample.qd_rad_s, v_ref, obstacle, gripper_cmd, clutch)
+        expected = alone.update(*args)
+        before = controller_state(split)
+        terms = split.prepare(sample.q_rad, sample.qd_rad_s)
+        split.prepare(other.q_rad, other.qd_rad_s)
+        tool_position_and_jacobian(arm, other.q_rad)  # arm.data now at another state
+        assert_same_state(before, controller_state(split))
+        actual = split.update(*args[:-1], clutch=clutch, terms=terms)
+        assert_outputs_identical(expected, actual)
+        assert_same_state(controller_state(alone), controller_state(split))
+        outputs.append(expected)
+        plant.step(expected.qd_ref_rad_s, expected.gripper_cmd)
+        other = sample
+    # The segment exercised what it is named after.
+    if segment == "obstacle":
+        assert sum(out.obstacle_active for out in outputs) > 100
+    elif segment == "wrist_singularity":
+        jacobian = tool_position_and_jacobian(arm, np.array(STRETCHED_Q_RAD))[1]
+        assert np.linalg.svd(jacobian, compute_uv=False)[-1] < SINGULAR_VALUE_THRESHOLD
+        assert any(out.speed_scale < 1.0 for out in outputs)
+    else:
+        assert any(np.all(out.world_v_ref_m_s == 0) for out in outputs)
+        assert max(np.linalg.norm(out.world_v_tool_m_s) for out in outputs) > 0.1
+
+
+@pytest.mark.parametrize("arm_name", ["arm6", "arm7"])
+def test_prepare_leaves_the_controller_alone_and_its_terms_are_read_only(cfg, arm_name):
+    arm_cfg = load_config(None, ARM7_OVERRIDES) if arm_name == "arm7" else cfg
+    arm = build_arm_model(arm_cfg.robot)
+    ctl = TeleopController(arm, arm_cfg.teleop, arm_cfg.control, arm_cfg.plant.timestep_s)
+    q = np.array(arm_cfg.robot.home_q_rad)
+    qd = np.linspace(-0.2, 0.3, arm.n_joints)
+    first = ctl.prepare(q, qd)
+    ctl.update(q, qd, np.array([0.1, 0.0, 0.0]), None, 1.0, terms=first)
+    before = controller_state(ctl)
+    again = ctl.prepare(q, qd)
+    ctl.prepare(q + 0.1, -qd)
+    assert_same_state(before, controller_state(ctl))
+    for field in dataclasses.fields(again):
+        a, b = getattr(first, field.name), getattr(again, field.name)
+        if isinstance(a, np.ndarray):
+            assert np.array_equal(a, b) and not a.flags.writeable, field.name
+        else:
+            assert a == b, field.name
+    # Same cycle from the same state: update() alone and with the terms agree exactly.
+    twin = TeleopController(arm, arm_cfg.teleop, arm_cfg.control, arm_cfg.plant.timestep_s)
+    twin.update(q, qd, np.array([0.1, 0.0, 0.0]), None, 1.0)
+    args = (q, qd, np.array([0.0, 0.05, -0.02]), None, 0.5)
+    assert_outputs_identical(twin.update(*args), ctl.update(*args, terms=first))
+
+
+def damped_gram_solve_by_dposv(gram: np.ndarray, rhs: np.ndarray, damping: float) -> np.ndarray:
+    """The damped Gram solve as it was before the factor/solve split: one dposv."""
+    size = gram.shape[0]
+    _, below_threshold = lapack.dpotrf(gram - SINGULAR_VALUE_THRESHOLD**2 * np.eye(size))
+    if below_threshold:
+        sigma_min_squared = max(float(lapack.dsyevd(gram, compute_v=0, lower=1)[0][0]), 0.0)
+        shortfall = max(1.0 - sigma_min_squared / SINGULAR_VALUE_THRESHOLD**2, 0.0)
+        damped_gram = gram + (damping * damping + shortfall * SINGULAR_DAMPING**2) * np.eye(size)
+    else:
+        damped_gram = gram + damping * damping * np.eye(size)
+    _, solution, info = lapack.dposv(damped_gram, rhs)
+    assert info == 0
+    return solution
+
+
+@pytest.mark.parametrize("shape", [(6, 6), (6, 7), (6, 5)])
+def test_gram_factor_and_solve_equal_one_dposv_bit_for_bit(shape):
+    """dposv is dpotrf then dpotrs: factoring ahead and solving later gives the same
+    solution to the last bit, on both sides of the singular-value threshold."""
+    rng = np.random.default_rng(7)
+    damping = 0.01
+    for jacobian in matrices_with_singular_values(shape, seed=3):
+        rows, cols = jacobian.shape
+        gram = jacobian.T @ jacobian if rows > cols else jacobian @ jacobian.T
+        rhs = rng.normal(size=gram.shape[0])
+        split = _damped_gram_factor_solve(_damped_gram_factor(gram, damping), rhs)
+        assert np.array_equal(split, damped_gram_solve_by_dposv(gram, rhs, damping))
 
 
 # --- the fast helpers against the straightforward numpy formulas ---------------------------

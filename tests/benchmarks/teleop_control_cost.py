@@ -5,7 +5,11 @@ The controller service runs, per haptic sample (1 kHz), the operator's rate comm
 feedback (``feedback_components`` + ``device_force``). This script times them in the
 current tree ("fast") and in the baseline commit (the numpy/SVD implementation, loaded
 from git into private modules), in the same run and alternating, on the same recorded
-states, and checks that both give the same outputs.
+states, and checks that both give the same outputs. A third replay ("prepared") runs the
+current tree split as the service can run it: ``TeleopController.prepare`` on the joint
+state first (off the critical path: the plant state arrives before the handle sample),
+then the rate command, ``update(..., terms=...)`` and the force feedback; its outputs must
+equal the fast replay's bit for bit.
 
 The states are recorded once, closed loop: the baseline controller drives the MuJoCo
 plant through three segments (a free 3D motion with a clutch phase, a push into a
@@ -17,7 +21,10 @@ agree to rounding unless the mathematics differ.
         --json runs/bench/teleop_control_cost.json
 
 Reports, per segment and part, the median over rounds of the per-call median (us), the
-ratio baseline / fast, the largest output deviations, and the load average.
+ratio baseline / fast, the largest output deviations, and the load average; for the
+split: prepare alone, update with prepared terms alone and the critical-path cycle
+(reference + update(terms) + feedback), with the ratios full update / update(terms) and
+fast cycle / prepared cycle.
 """
 
 from __future__ import annotations
@@ -57,6 +64,9 @@ STRETCHED_Q_RAD = (0.0, -1.5708, 0.8, -0.8, 0.0, 0.0)
 # Steps replayed untimed before each segment (first calls, caches, allocator).
 WARMUP_STEPS = 300
 PARTS = ("reference", "update", "feedback", "cycle")
+# Timed only in the prepared replay, before the others (its "update" is update(terms=...)
+# alone and its "cycle" leaves prepare out: what remains on the critical path).
+PREPARE = "prepare"
 
 
 @dataclass(frozen=True)
@@ -78,6 +88,11 @@ class Implementation:
     name: str
     teleop_control: types.ModuleType
     feedback: types.ModuleType
+    prepared: bool = False  # prepare() then update(terms=...), timed apart
+
+
+def parts_of(impl: Implementation) -> tuple[str, ...]:
+    return (PREPARE, *PARTS) if impl.prepared else PARTS
 
 
 def _module_from_git(rev: str, path: str, name: str) -> types.ModuleType:
@@ -214,17 +229,25 @@ class Replay:
         self.controller = impl.teleop_control.TeleopController(
             arm, cfg.teleop, cfg.control, cfg.plant.timestep_s, names
         )
-        self.times: dict[str, list[int]] = {part: [] for part in PARTS}
+        self.times: dict[str, list[int]] = {part: [] for part in parts_of(impl)}
         self.outputs: list[dict] = []
 
     def run(self, steps: list[Step]) -> None:
         tc, fb, cfg, ctl = self.impl.teleop_control, self.impl.feedback, self.cfg, self.controller
         clock = time.perf_counter_ns
+        prepared = self.impl.prepared
         for s in steps:
+            if prepared:
+                t_prepare = clock()
+                terms = ctl.prepare(s.q_rad, s.qd_rad_s)
+                self.times[PREPARE].append(clock() - t_prepare)
             t0 = clock()
             v_ref = tc.teleop_reference(s.handle_d_m, s.yaw_rad, s.clutch, cfg.teleop)
             t1 = clock()
-            out = ctl.update(s.q_rad, s.qd_rad_s, v_ref, s.obstacle, 1.0, s.clutch)
+            if prepared:
+                out = ctl.update(s.q_rad, s.qd_rad_s, v_ref, s.obstacle, 1.0, s.clutch, terms)
+            else:
+                out = ctl.update(s.q_rad, s.qd_rad_s, v_ref, s.obstacle, 1.0, s.clutch)
             t2 = clock()
             components = fb.feedback_components(
                 s.world_f_gripper_n, s.held_mass_kg, s.obstacle, s.handle_d_m, cfg.teleop
@@ -282,6 +305,15 @@ def deviations(baseline: list[dict], fast: list[dict]) -> dict[str, dict[str, fl
     return result
 
 
+def identical(expected: list[dict], actual: list[dict]) -> bool:
+    """Every output field of every step equal bit for bit (the lockstep hash's view)."""
+    return all(
+        np.asarray(e[name]).tobytes() == np.asarray(a[name]).tobytes()
+        for e, a in zip(expected, actual, strict=True)
+        for name in e
+    )
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--rounds", type=int, default=7, help="replays of each implementation")
@@ -294,11 +326,13 @@ def main() -> int:
     arm = build_arm_model(cfg.robot)
     baseline = load_baseline(args.baseline_rev)
     fast = Implementation("fast", teleop_control, feedback)
+    prepared = Implementation("prepared", teleop_control, feedback, prepared=True)
+    impls = (baseline, fast, prepared)
     trajectories = record_trajectories(cfg, arm, baseline)
     names = body_names(Plant(cfg).model)
 
     medians: dict[str, dict[str, dict[str, list[float]]]] = {
-        segment: {impl.name: {part: [] for part in PARTS} for impl in (baseline, fast)}
+        segment: {impl.name: {part: [] for part in parts_of(impl)} for impl in impls}
         for segment in trajectories
     }
     report_segments = {}
@@ -306,17 +340,18 @@ def main() -> int:
     for segment, (segment_cfg, steps) in trajectories.items():
         outputs = {}
         warmup = steps[:WARMUP_STEPS]
-        replay_alternating((baseline, fast), segment_cfg, arm, names, warmup, args.chunk)
+        replay_alternating(impls, segment_cfg, arm, names, warmup, args.chunk)
         for r in range(args.rounds):
-            order = (baseline, fast) if r % 2 == 0 else (fast, baseline)
+            order = impls if r % 2 == 0 else impls[::-1]
             replays = replay_alternating(order, segment_cfg, arm, names, steps, args.chunk)
             for name, replay in replays.items():
                 outputs[name] = replay.outputs
-                for part in PARTS:
-                    medians[segment][name][part].append(statistics.median(replay.times[part]) / 1e3)
+                for part, times in replay.times.items():
+                    medians[segment][name][part].append(statistics.median(times) / 1e3)
         deviation = deviations(outputs["baseline"], outputs["fast"])
         worst = max(d["max_relative"] for d in deviation.values())
-        agree = agree and worst <= RELATIVE_TOLERANCE
+        prepared_identical = identical(outputs["fast"], outputs["prepared"])
+        agree = agree and worst <= RELATIVE_TOLERANCE and prepared_identical
         summary = {
             impl: {part: statistics.median(values) for part, values in parts.items()}
             for impl, parts in medians[segment].items()
@@ -335,6 +370,12 @@ def main() -> int:
             "ratio_baseline_over_fast": {
                 part: summary["baseline"][part] / summary["fast"][part] for part in PARTS
             },
+            # Full update() over update(terms=...) alone, and the fast cycle over the
+            # prepared one (prepare left out: it runs before the handle sample).
+            "ratio_fast_over_prepared": {
+                part: summary["fast"][part] / summary["prepared"][part] for part in PARTS
+            },
+            "prepared_outputs_identical": prepared_identical,
             "per_round_median_us": medians[segment],
             "max_relative_deviation": worst,
             "deviation": deviation,
@@ -343,6 +384,13 @@ def main() -> int:
             f"{part} {summary['baseline'][part]:.1f} -> {summary['fast'][part]:.1f} us "
             f"(x{summary['baseline'][part] / summary['fast'][part]:.2f})" for part in PARTS
         ) + f"; max relative deviation {worst:.1e}")  # fmt: skip
+        split = summary["prepared"]
+        print(f"  prepared: prepare {split[PREPARE]:.1f} us, update(terms) "
+              f"{split['update']:.1f} us vs update() {summary['fast']['update']:.1f} us "
+              f"(x{summary['fast']['update'] / split['update']:.2f}), cycle "
+              f"{split['cycle']:.1f} vs {summary['fast']['cycle']:.1f} us "
+              f"(x{summary['fast']['cycle'] / split['cycle']:.2f}); "
+              f"outputs identical: {prepared_identical}")  # fmt: skip
     report = {
         "baseline_rev": args.baseline_rev,
         "rounds": args.rounds,
