@@ -62,7 +62,12 @@ from teleop.messages import (
 from teleop.proximity import ProximitySample, body_names
 from teleop.service import Service
 from teleop.stamps import SHED_AGE_NS, SeqCheck, StampLog, shed_path
-from teleop.teleop_control import TeleopController, TeleopOutput, teleop_reference
+from teleop.teleop_control import (
+    JointStateTerms,
+    TeleopController,
+    TeleopOutput,
+    teleop_reference,
+)
 from teleop.ticks import TickBarrier, TickedInputs, expected_valid_from
 
 logger = logging.getLogger(__name__)
@@ -287,6 +292,10 @@ class TeleopTask:
         self._rt_busy = False
         self._pending: dict[str, Any] = {}
         self._last_output: TeleopOutput | None = None
+        # Realtime: (state seq, its joint-state terms of the control law), prepared after
+        # that state's feedback went out, so a handle sample answered on that state runs
+        # only the handle-dependent rest of the law (TeleopController.prepare).
+        self._terms: tuple[int, JointStateTerms | None] = (-1, None)
         self.haptic_seq = SeqCheck()  # HAPTIC_STATE gaps and reordering (realtime)
         self.haptic_before_state = 0  # samples that arrived before any plant state
         self.haptic_shed = 0  # samples not answered: too old, or superseded while busy
@@ -307,6 +316,7 @@ class TeleopTask:
     def reset(self) -> None:
         self.controller.reset()
         self.barrier.reset()
+        self._terms = (-1, None)
         self._reset_metrics()
 
     # -- inputs --------------------------------------------------------------------------
@@ -403,7 +413,10 @@ class TeleopTask:
         service = self.service
         t0 = time.monotonic_ns()
         obstacle = self._proximity_sample(state)
-        output, gripper_cmd, _, _ = self._control(tick, state, haptic, obstacle)
+        terms_seq, terms = self._terms
+        output, gripper_cmd, _, _ = self._control(
+            tick, state, haptic, obstacle, terms if terms_seq == tick else None
+        )
         service.compute_ns_total += time.monotonic_ns() - t0
         trace = np.zeros_like(state["trace_ns"])
         trace[Stage.HAPTIC_SAMPLE] = haptic["trace_ns"][Stage.HAPTIC_SAMPLE]
@@ -438,6 +451,12 @@ class TeleopTask:
         self._publish_feedback(tick, state, components, device_f_n, state["trace_ns"])
         if self._last_output is not None:
             self._measure(self._last_output, components, device_f_n, held_mass)
+        # Off the loop's critical path: the next handle sample will be answered on this
+        # state; its joint-state half of the control law can run now.
+        n = service.arm.n_joints
+        t0 = time.monotonic_ns()
+        self._terms = (tick, self.controller.prepare(state["q_rad"][:n], state["qd_rad_s"][:n]))
+        service.compute_ns_total += time.monotonic_ns() - t0
 
     def _control(
         self,
@@ -445,8 +464,11 @@ class TeleopTask:
         state: np.ndarray,
         haptic: np.ndarray | None,
         obstacle: ProximitySample | None,
+        terms: JointStateTerms | None = None,
     ) -> tuple[TeleopOutput, float, np.ndarray, float]:
-        """One control law cycle from the handle (None: no input, the tool holds still).
+        """One control law cycle from the handle (None: no input, the tool holds still);
+        ``terms``: the joint-state half of the law, prepared from ``state`` (None:
+        computed here).
 
         Returns the output, the gripper command, the handle offset (m, device frame) and
         the view yaw (rad) it was computed with.
@@ -461,7 +483,13 @@ class TeleopTask:
         v_ref = teleop_reference(handle_d_m, yaw_rad, clutch, self.service.config.teleop)
         n = self.service.arm.n_joints
         output = self.controller.update(
-            state["q_rad"][:n], state["qd_rad_s"][:n], v_ref, obstacle, gripper_cmd, clutch
+            state["q_rad"][:n],
+            state["qd_rad_s"][:n],
+            v_ref,
+            obstacle,
+            gripper_cmd,
+            clutch,
+            terms=terms,
         )
         return output, gripper_cmd, handle_d_m, yaw_rad
 
