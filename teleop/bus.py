@@ -78,6 +78,9 @@ def open_session(
         )
     shm_key = "transport/shared_memory"
     conf.insert_json5(f"{shm_key}/enabled", _json(bus.shm))
+    lowlatency = bus.shm and bus.lowlatency  # see BusConfig.lowlatency
+    conf.insert_json5("transport/unicast/lowlatency", _json(lowlatency))
+    conf.insert_json5("transport/unicast/qos/enabled", _json(not lowlatency))
     if bus.shm:
         conf.insert_json5(f"{shm_key}/mode", _json("init"))
         conf.insert_json5(f"{shm_key}/transport_optimization/messages", _json(["put"]))
@@ -119,6 +122,9 @@ class Publisher:
     loopback — lockstep waits for every command, and a dropped one would stall the run.
     A 250-byte record at 1 kHz is far from filling a loopback link, so BLOCK only bites
     if a receiver stops reading; use ``DROP`` for bulky streams only a viewer needs.
+    Priority and express apply where the transport has QoS: not on the low-latency
+    transport (``BusConfig.lowlatency``, the default with SHM), which sends every put at
+    once anyway.
     """
 
     def __init__(self, pub: zenoh.Publisher, schema: Schema, shm: ShmProvider | None) -> None:
@@ -342,9 +348,12 @@ class Latest:
             return self._rec, self._rx_ns
 
 
-def declare_alive(session: zenoh.Session, topics: Topics, service: str) -> zenoh.LivelinessToken:
-    """Announce ``service`` as up; the token disappears when undeclared or the session dies."""
-    return session.liveliness().declare_token(topics.alive(service))
+def declare_alive(
+    session: zenoh.Session, topics: Topics, service: str, *, ready: bool = False
+) -> zenoh.LivelinessToken:
+    """Announce ``service`` as up (``ready``: as ready, see :meth:`Topics.alive`); the
+    token disappears when undeclared or the session dies."""
+    return session.liveliness().declare_token(topics.alive(service, ready=ready))
 
 
 def wait_alive(
@@ -352,11 +361,18 @@ def wait_alive(
     topics: Topics,
     services: Iterable[str],
     timeout_s: float,
+    *,
+    ready: bool = False,
 ) -> None:
-    """Block until every named service's liveliness token is present.
+    """Block until every named service's liveliness token (``ready``: its ready token)
+    is present.
 
     Event driven: a liveliness subscriber with history reports the tokens already
     present and every later change. Raises TimeoutError naming the missing services.
+
+    Peers do not forward for each other, so a token seen here came over this session's
+    own link to that service, after the declarations made before it (its subscribers):
+    from then on what this session publishes reaches that service.
     """
     wanted = set(services)
     present: set[str] = set()
@@ -371,11 +387,13 @@ def wait_alive(
                 present.discard(name)
             cond.notify_all()
 
-    sub = session.liveliness().declare_subscriber(topics.alive_all, on_token, history=True)
+    key = topics.ready_all if ready else topics.alive_all
+    sub = session.liveliness().declare_subscriber(key, on_token, history=True)
     try:
         with cond:
             if not cond.wait_for(lambda: wanted <= present, timeout_s):
                 missing = ", ".join(sorted(wanted - present))
-                raise TimeoutError(f"services not alive after {timeout_s:g} s: {missing}")
+                state = "ready" if ready else "alive"
+                raise TimeoutError(f"services not {state} after {timeout_s:g} s: {missing}")
     finally:
         _undeclare(sub)

@@ -470,6 +470,17 @@ class BusConfig:
     endpoint: str = "tcp/127.0.0.1:7447"
     shm: bool = True
     shm_pool_bytes: int = 16 * 1024 * 1024
+    # With shm: Zenoh's low-latency unicast transport (a put writes to the link itself,
+    # no TX pipeline thread to hand it to; it has no QoS, so no priorities, and cannot
+    # fragment: every payload over the SHM threshold then goes through shared memory,
+    # which never falls back to the socket; without shm the default transport is kept,
+    # as TCP must fragment an eye-view frame). Measured on the whole stack (2026-11-22,
+    # tests/benchmarks/latency_stack_variants.py, 7 rounds of 15 s): round trip p50
+    # x0.66-0.73 and p99 x0.70-0.82 of the default transport, lower in 6 of 7 rounds.
+    # Off by default: with it, two peers of a stack sometimes never linked to each
+    # other (1 stack in 5: eye view and HMD), and what one sent the other was lost;
+    # never seen with the default transport. Service.become_ready reports such a pair.
+    lowlatency: bool = False
     # Zenoh config entries set over the file, last: "path=json5", e.g.
     # 'transport/unicast/lowlatency=true' (the tuning benchmark tries variants this way).
     zenoh_overrides: tuple[str, ...] = ()

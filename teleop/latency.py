@@ -523,13 +523,21 @@ def conclusions(report: dict[str, Any]) -> list[str]:
             f"{rt['p50'] / old['p50']:.2f}x the old timing's"
         )
     for row in report.get("payload_sweep", []):
-        if row["bytes"] >= 1 << 20 and row["tcp_over_shm_p50"] is not None:
+        if row["bytes"] < 1 << 20 and row["bytes"] != EYE_VIEW_FRAME_BYTES:
+            continue  # the sizes the issue asks about: 1 MiB and one eye-view frame
+        what = f"{row['bytes']} B" + (
+            " (eye-view frame)" if row["bytes"] == EYE_VIEW_FRAME_BYTES else ""
+        )
+        shm_p50, tcp_p50 = row["shm_us"].get("p50"), row["tcp_us"].get("p50")
+        if row["tcp_over_shm_p50"] is not None:
             verdict = "faster" if row["shm_faster"] else "NOT faster"
             out.append(
-                f"{row['bytes']} B: SHM is {verdict} than TCP loopback "
-                f"(p50 {row['shm_us']['p50']:.0f} vs {row['tcp_us']['p50']:.0f} us, "
-                f"{row['tcp_over_shm_p50']:.2f}x)"
+                f"{what}: SHM is {verdict} than TCP loopback (p50 {shm_p50:.0f} vs "
+                f"{tcp_p50:.0f} us, {row['tcp_over_shm_p50']:.2f}x)"
             )
+        else:  # a side where no payload of this size came back at all
+            missing = [side for side, p50 in (("SHM", shm_p50), ("TCP", tcp_p50)) if p50 is None]
+            out.append(f"{what}: no payload came back over {' or '.join(missing)}")
     lost = report["lost"]
     out.append(
         f"lost: haptic {lost['haptic']}, command {lost['command']}, feedback "

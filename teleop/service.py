@@ -36,6 +36,12 @@ logger = logging.getLogger(__name__)
 
 # While waiting for peers, wake this often to notice a stop request (s).
 STOP_POLL_S = 0.25
+# After waiting this long for peers, say which ones are missing (once; s).
+PEER_WAIT_LOG_S = 5.0
+# A service declares itself ready after this long even if some peer of its stack is
+# still not seen (a pair of peers that never linked: an error in the log and the
+# summary, rather than a run that never starts; s).
+PEER_LINK_WAIT_S = 15.0
 # Exit code of a service whose config or model is unusable (supervisord will not retry
 # it forever: startretries bounds it, and the log says why).
 EXIT_CONFIG = 2
@@ -48,8 +54,11 @@ class ServiceOptions:
     run_dir: Path | None = None
     # Hold the run's bus endpoint (the listener) instead of connecting to it.
     listen: bool = False
-    # Services whose liveliness tokens must be present before the work starts.
+    # Services that must be ready (their ready tokens present) before the work starts.
     await_services: tuple[str, ...] = ()
+    # The other services of this stack: this one declares itself ready once it sees
+    # them all alive, i.e. once its own links to them are up (become_ready).
+    peers: tuple[str, ...] = ()
     # Run until stopped instead of for run.duration_s (``teleop up``).
     continuous: bool = False
 
@@ -67,6 +76,7 @@ class Service:
         self.session: zenoh.Session | None = None
         self._entities: list[Any] = []
         self._closed = False
+        self.unlinked_peers: list[str] = []  # peers never seen (become_ready gave up)
 
     # -- lifecycle ---------------------------------------------------------------------
     def open(self) -> None:
@@ -96,6 +106,7 @@ class Service:
             "service": self.name,
             "dropped_messages": self.drops.total,
             "cpu_s": time.process_time(),
+            "unlinked_peers": self.unlinked_peers,
         }
 
     def close(self) -> None:
@@ -121,17 +132,67 @@ class Service:
         self.close()
 
     # -- helpers -----------------------------------------------------------------------
-    def wait_for_peers(self, stop: threading.Event) -> bool:
-        """Wait (event driven) for ``options.await_services``; False if stopped first."""
+    def become_ready(self, stop: threading.Event) -> bool:
+        """Wait until every peer of the stack is alive as seen from here, then declare
+        this service ready; False if stopped first.
+
+        Why: peers link to each other directly, each pair on its own schedule after they
+        find each other, and a put sent before a pair's link is up is lost. The plant
+        starts the run only once every service is ready (``await_services``), so
+        nothing the run sends is lost on a link still being made: in a lockstep run,
+        which can end within a second, all of a controller's statuses once were.
+        """
         assert self.session is not None
-        if not self.options.await_services:
+        if not self._wait_tokens(stop, self.options.peers, ready=False, limit_s=PEER_LINK_WAIT_S):
+            if stop.is_set():
+                return False
+            self.unlinked_peers = self._missing_peers()
+            logger.error(
+                "no link to %s after %g s: going on without (what this service sends "
+                "them is lost; see the summary's unlinked_peers)",
+                ", ".join(self.unlinked_peers),
+                PEER_LINK_WAIT_S,
+            )
+        self.keep(declare_alive(self.session, self.topics, self.name, ready=True))
+        return True
+
+    def _missing_peers(self) -> list[str]:
+        """Peers whose liveliness token this session does not see (right now)."""
+        assert self.session is not None
+        seen = {
+            self.topics.service_of(str(reply.ok.key_expr))
+            for reply in self.session.liveliness().get(self.topics.alive_all, timeout=1.0)
+            if reply.ok is not None
+        }
+        return sorted(set(self.options.peers) - seen)
+
+    def wait_for_peers(self, stop: threading.Event) -> bool:
+        """Wait (event driven) until ``options.await_services`` are ready; False if
+        stopped first."""
+        return self._wait_tokens(stop, self.options.await_services, ready=True)
+
+    def _wait_tokens(
+        self,
+        stop: threading.Event,
+        services: tuple[str, ...],
+        *,
+        ready: bool,
+        limit_s: float | None = None,
+    ) -> bool:
+        """True once ``services``' tokens are all present; False if stopped, or after
+        ``limit_s`` (None: no limit)."""
+        assert self.session is not None
+        if not services:
             return True
-        while not stop.is_set():
+        waited_s = 0.0
+        while not stop.is_set() and (limit_s is None or waited_s < limit_s):
             try:
-                wait_alive(self.session, self.topics, self.options.await_services, STOP_POLL_S)
+                wait_alive(self.session, self.topics, services, STOP_POLL_S, ready=ready)
                 return True
-            except TimeoutError:
-                continue
+            except TimeoutError as exc:
+                waited_s += STOP_POLL_S
+                if waited_s == PEER_WAIT_LOG_S:  # once: what is this service waiting for
+                    logger.warning("still waiting: %s", exc)
         return False
 
     def write_summary(self) -> None:
@@ -195,7 +256,13 @@ def build_service_parser(name: str) -> argparse.ArgumentParser:
         "--await",
         dest="await_services",
         default="",
-        help="comma-separated services to wait for before starting",
+        help="comma-separated services that must be ready before the work starts",
+    )
+    parser.add_argument(
+        "--peers",
+        default="",
+        help="comma-separated other services of the stack: declare this one ready once "
+        "it sees them all alive",
     )
     parser.add_argument("--continuous", action="store_true", help="run until stopped")
     return parser
@@ -218,6 +285,7 @@ def service_main(service_class: type[Service], argv: list[str] | None = None) ->
         run_dir=args.run_dir,
         listen=args.listen,
         await_services=tuple(s for s in args.await_services.split(",") if s),
+        peers=tuple(s for s in args.peers.split(",") if s),
         continuous=args.continuous,
     )
     pin_to_cpus(config.cpu.for_service(service_class.name, config.run.mode))
@@ -232,8 +300,9 @@ def service_main(service_class: type[Service], argv: list[str] | None = None) ->
     signal.signal(signal.SIGTERM, on_signal)
     try:
         with fifo_scheduling(fifo_priority), service_class(config, options) as service:
-            logger.info("running (robot %s)", config.robot.robot_id)
-            service.run(stop)
+            if service.become_ready(stop):
+                logger.info("running (robot %s)", config.robot.robot_id)
+                service.run(stop)
     except (ConfigError, ModelError) as exc:
         logger.error("%s", exc)
         return EXIT_CONFIG

@@ -115,6 +115,9 @@ def service_programs(
             command.append("--listen")
         if await_services.get(name):
             command += ["--await", ",".join(await_services[name])]
+        peers = [other for other in services if other != name]
+        if peers:
+            command += ["--peers", ",".join(peers)]
         if continuous:
             command.append("--continuous")
         programs.append(
@@ -173,6 +176,7 @@ def run_on_services(
         entities.append(subscribe(session, topics.events, RUN_EVENT, on_event, drops))
         entities.append(subscribe(session, topics.tool_pose, TOOL_POSE, tool, drops))
         entities.append(declare_alive(session, topics, RUNNER))
+        entities.append(declare_alive(session, topics, RUNNER, ready=True))
         programs = service_programs(
             services,
             config_file,
@@ -195,6 +199,8 @@ def run_on_services(
         close_session(session, *reversed(entities))
 
     summaries = {name: _read_summary(run_dir, name) for name in services}
+    # A pair of peers that never linked: what one sent the other is lost (Service.become_ready).
+    unlinked = {n: s["unlinked_peers"] for n, s in summaries.items() if s.get("unlinked_peers")}
     plant, controller = summaries["plant"], summaries["controller"]
     dropped = sum(s.get("dropped_messages", 0) for s in summaries.values()) + drops.total
     summary: dict[str, Any] = {
@@ -223,6 +229,7 @@ def run_on_services(
             "overrun_fraction": plant["overrun_fraction"],
             "stale_commands": plant["stale_commands"],
             "dropped_messages": dropped,
+            "unlinked_peers": unlinked,
             "skipped_states": controller["skipped_states"],
             "final_state_sha256": plant["final_state_sha256"],
             "stack_wall_s": wall_s,

@@ -37,6 +37,7 @@ class Topics:
     teleop_status: str = field(init=False)  # controller -> recorder/operator, 100 Hz
     eye_view: str = field(init=False)  # eyeview -> recorder, EYE_VIEW, eyeview.rate_hz (SHM)
     alive_all: str = field(init=False)  # every service's liveliness token
+    ready_all: str = field(init=False)  # every service's "ready" token (Service.become_ready)
 
     def __post_init__(self) -> None:
         if not self.robot_id or any(c in self.robot_id for c in "/*$?#"):
@@ -58,6 +59,7 @@ class Topics:
             "teleop_status": "control/teleop",
             "eye_view": "view/eye",
             "alive_all": "alive/*",
+            "ready_all": "ready/*",
         }
         for name, stream in streams.items():
             object.__setattr__(self, name, _key(self.robot_id, stream))
@@ -74,11 +76,13 @@ class Topics:
             raise ValueError(f"leg name {leg!r}: non-empty, one key chunk")
         return _key(self.robot_id, f"floor/{leg}")
 
-    def alive(self, service: str) -> str:
-        """Liveliness token key of one service, e.g. ``teleop/arm0/alive/plant``."""
+    def alive(self, service: str, *, ready: bool = False) -> str:
+        """Liveliness token key of one service, e.g. ``teleop/arm0/alive/plant``;
+        ``ready``: its second token, ``teleop/arm0/ready/plant``, declared once it sees
+        every peer of its stack (:meth:`teleop.service.Service.become_ready`)."""
         if not service or any(c in service for c in "/*$?#"):
             raise ValueError(f"service name {service!r}: non-empty, one key chunk")
-        return _key(self.robot_id, f"alive/{service}")
+        return _key(self.robot_id, f"{'ready' if ready else 'alive'}/{service}")
 
     def service_of(self, alive_key: str) -> str:
         """The service name of a liveliness key (inverse of :meth:`alive`)."""

@@ -54,6 +54,7 @@ def assert_physical(summary: dict, speed_tolerance: float = SPEED_TOLERANCE_LOCK
     assert summary["held_weight_n"] == pytest.approx(weight_n, rel=WEIGHT_TOLERANCE)
     assert summary["tool_speed_max_m_s"] <= config.teleop.max_tool_speed_m_s * (1 + speed_tolerance)
     assert summary["dropped_messages"] == 0
+    assert summary["unlinked_peers"] == {}  # every pair of services linked before the run
 
 
 def test_realtime_grasp_puts_the_cube_in_the_bin(tmp_path):

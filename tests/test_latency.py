@@ -322,3 +322,30 @@ def test_cli_refuses_a_run_shorter_than_the_warmup():
         timeout=60,
     )
     assert result.returncode == 2 and "warm-up" in result.stderr
+
+
+def test_conclusions_name_the_frame_and_1mib_sizes_and_a_side_that_got_nothing():
+    stats = {"p50": 500.0, "p99": 900.0}
+    empty = {"count": 0, "p50": None, "p99": None}
+    report = {
+        "round_trip_us": stats,
+        "floor_us": {"p50": 250.0, "p99": 600.0},
+        "floor_back_to_back_us": {"p99": 300.0},
+        "overhead": {"round_trip": {"p99_ratio": 1.5}},
+        "lost": {"haptic": 0, "command": 0, "feedback": 0},
+        "reordered": {"haptic": 0},
+        "chain": {"missing": 0, "samples": 10},
+        "shed": {"haptic": 0},
+        "payload_sweep": [
+            {"bytes": 64, "shm_us": stats, "tcp_us": stats, "tcp_over_shm_p50": 1.0,
+             "shm_faster": False},
+            {"bytes": latency.EYE_VIEW_FRAME_BYTES, "shm_us": {"p50": 400.0},
+             "tcp_us": {"p50": 800.0}, "tcp_over_shm_p50": 2.0, "shm_faster": True},
+            {"bytes": 1 << 20, "shm_us": {"p50": 1000.0}, "tcp_us": empty,
+             "tcp_over_shm_p50": None, "shm_faster": False},
+        ],
+    }  # fmt: skip
+    lines = latency.conclusions(report)
+    assert not any(line.startswith("64 B") for line in lines)
+    assert f"{latency.EYE_VIEW_FRAME_BYTES} B (eye-view frame): SHM is faster" in "\n".join(lines)
+    assert "1048576 B: no payload came back over TCP" in lines

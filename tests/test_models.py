@@ -114,3 +114,24 @@ def test_unknown_names_fail_clearly(config):
         build_arm_model(replace(config.robot, arm_joints=names, arm_actuators=names))
     with pytest.raises(ModelError, match="tool"):
         build_arm_model(replace(config.robot, tool_site="nope"))
+
+
+def test_prepared_steps_equal_mujoco_steps_bit_for_bit(config):
+    """Plant.prepare_step (mj_step1 ahead of the command) changes no bit of the motion."""
+    prepared, plain = Plant(config), Plant(config)
+    q0 = random_configurations(prepared, 1, seed=5)[0]
+    prepared.reset(q0)
+    plain.reset(q0)
+    rng = np.random.default_rng(6)
+    for k in range(600):
+        qd_ref = rng.normal(0.0, 0.5, prepared.n_joints)
+        gripper = float(k // 200 % 2)
+        prepared.prepare_step()
+        prepared.prepare_step()  # twice: still one mj_step1
+        prepared.step(qd_ref, gripper)
+        plain.data.ctrl[plain.actuator_index] = qd_ref
+        plain.data.ctrl[plain.gripper_actuator] = plain._gripper_ctrl(gripper)
+        mujoco.mj_step(plain.model, plain.data)
+        assert np.array_equal(prepared.data.qpos, plain.data.qpos), k
+        assert np.array_equal(prepared.data.qvel, plain.data.qvel), k
+    assert prepared.step_count == 600

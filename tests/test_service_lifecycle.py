@@ -5,7 +5,9 @@ from __future__ import annotations
 import logging
 import os
 
-from teleop.service import pin_to_cpus
+from teleop.clock import FINE_SLEEP_MARGIN_NS, MonotonicClock
+from teleop.config import load_config
+from teleop.service import fifo_scheduling, pin_to_cpus
 
 
 def test_pin_to_cpus_uses_existing_cpus_and_ignores_others(caplog):
@@ -23,3 +25,32 @@ def test_pin_to_cpus_uses_existing_cpus_and_ignores_others(caplog):
         assert os.sched_getaffinity(0) == original
     finally:
         os.sched_setaffinity(0, original)
+
+
+def test_fifo_scheduling_applies_inside_the_block_and_restores_after(caplog):
+    before = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+    with fifo_scheduling(0) as applied:  # 0: normal scheduling, nothing to do
+        assert not applied and os.sched_getscheduler(0) == before[0]
+    with caplog.at_level(logging.INFO), fifo_scheduling(7) as applied:
+        if applied:  # CAP_SYS_NICE (root): the kernel accepted it
+            assert os.sched_getscheduler(0) == os.SCHED_FIFO
+            assert os.sched_getparam(0).sched_priority == 7
+            # A clock built now sleeps in one go: no timer slack under a realtime policy.
+            assert MonotonicClock().fine_margin_ns == 0
+        else:  # refused: said once, the thread keeps its policy
+            assert "refused" in caplog.text and os.sched_getscheduler(0) == before[0]
+    assert (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority) == before
+    assert MonotonicClock().fine_margin_ns == FINE_SLEEP_MARGIN_NS
+
+
+def test_fifo_priority_goes_to_the_loop_services_in_realtime_only():
+    cpu = load_config(None, []).cpu
+    assert cpu.fifo_priority > 0
+    for name in ("plant", "controller", "haptic", "relay_plant", "relay_controller"):
+        assert cpu.fifo_priority_for(name, "realtime") == cpu.fifo_priority
+        assert cpu.fifo_priority_for(name, "lockstep") == 0
+    for name in ("recorder", "eyeview", "hmd", "operator"):
+        assert cpu.fifo_priority_for(name, "realtime") == 0
+    assert (
+        load_config(None, ["cpu.fifo_priority=0"]).cpu.fifo_priority_for("plant", "realtime") == 0
+    )

@@ -69,6 +69,7 @@ def test_lockstep_is_deterministic_and_equals_the_inprocess_run(tmp_path):
     assert first["path_error_rms_m"] == pytest.approx(reference["path_error_rms_m"], rel=1e-12)
     assert first["steps"] == 3000 and first["mode"] == "lockstep"
     assert first["dropped_messages"] == 0 and first["stale_commands"] == 0
+    assert first["unlinked_peers"] == {}
     assert Path(first["rrd"]).stat().st_size > 0
     # Outside teleoperation the plant computes contact and proximity at the scene rate
     # only: the recording has them for those states alone, at their own sim times.
@@ -125,6 +126,7 @@ class Observer:
             subscribe(self.session, topics.events, RUN_EVENT, self._on_event, self.drops),
             subscribe(self.session, topics.plant_state, PLANT_STATE, self._on_state, self.drops),
             declare_alive(self.session, topics, OBSERVER),
+            declare_alive(self.session, topics, OBSERVER, ready=True),  # the plant awaits it
         ]
 
     def _on_state(self, rec: np.ndarray, rx_ns: int) -> None:

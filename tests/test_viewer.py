@@ -188,7 +188,9 @@ class DevTools:
 def screenshot_until_scene(url: str, shot_path: Path) -> float:
     """Open ``url`` in headless Chromium and screenshot it until the scene shows (or the
     timeout); the last screenshot is written to ``shot_path``. The table-pixel share."""
-    with tempfile.TemporaryDirectory() as profile:
+    # Chromium's helper processes may still write into the profile for a moment after
+    # the browser exits: a leftover file must not fail the test.
+    with tempfile.TemporaryDirectory(ignore_cleanup_errors=True) as profile:
         browser = subprocess.Popen(
             [CHROMIUM, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "about:blank"],
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
