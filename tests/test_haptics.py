@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import json
 import math
 import signal
@@ -9,12 +11,15 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
+import zenoh
 
 from teleop.bus import Publisher, close_session, open_session, subscribe, wait_alive
-from teleop.config import REPO_ROOT, HapticConfig, load_config
+from teleop.config import REPO_ROOT, Config, HapticConfig, load_config
 from teleop.haptics import (
     EmulatedDevice,
     FeedbackHold,
@@ -29,6 +34,7 @@ from teleop.messages import (
     Button,
     DropCounter,
     Flag,
+    Schema,
     Stage,
 )
 from teleop.stack import free_loopback_port
@@ -211,20 +217,38 @@ class Replies:
             return self.records[count - 1]
 
 
-def test_service_steps_once_per_tick_in_lockstep(tmp_path):
+@dataclasses.dataclass
+class HapticRig:
+    """A haptic service process on a test session: its config, the HAPTIC_STATE replies,
+    publishers the test declares, and the service's summary once it has stopped."""
+
+    config: Config
+    topics: Topics
+    session: zenoh.Session
+    replies: Replies
+    drops: DropCounter
+    entities: list
+    summary: dict | None = None
+
+    def publisher(self, key: str, schema: Schema) -> Publisher:
+        pub = Publisher.declare(self.session, key, schema)
+        self.entities.append(pub)
+        assert pub.wait_matched(REPLY_TIMEOUT_S)
+        return pub
+
+
+@contextlib.contextmanager
+def haptic_service(tmp_path: Path, mode: str) -> Iterator[HapticRig]:
+    """Run ``services.haptic`` in ``mode`` until the block ends; it must exit cleanly,
+    and ``rig.summary`` then holds its summary."""
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
-    overrides = [f'bus.endpoint="{endpoint}"', 'run.mode="lockstep"']
+    overrides = [f'bus.endpoint="{endpoint}"', f'run.mode="{mode}"']
     config = load_config(None, overrides)
     topics = Topics(config.robot.robot_id)
-    lead_ticks = round(1.0 / (config.operator.decision_rate_hz * config.plant.timestep_s))
     session = open_session(config.bus, listen=True)
-    replies = Replies()
-    drops = DropCounter()
+    replies, drops = Replies(), DropCounter()
     entities = [subscribe(session, topics.haptic_state, HAPTIC_STATE, replies, drops)]
-    state_pub = Publisher.declare(session, topics.plant_state, PLANT_STATE)
-    feedback_pub = Publisher.declare(session, topics.force_feedback, FORCE_FEEDBACK)
-    hand_pub = Publisher.declare(session, topics.hand_input, HAND_INPUT)
-    entities += [state_pub, feedback_pub, hand_pub]
+    rig = HapticRig(config, topics, session, replies, drops, entities)
     command = [sys.executable, "-m", "services.haptic", "--run-dir", str(tmp_path)]
     for override in overrides:
         command += ["--set", override]
@@ -232,8 +256,27 @@ def test_service_steps_once_per_tick_in_lockstep(tmp_path):
     proc = subprocess.Popen(command, cwd=REPO_ROOT, stdin=subprocess.DEVNULL, stderr=log)
     try:
         wait_alive(session, topics, ["haptic"], ALIVE_TIMEOUT_S)
-        for pub in (state_pub, feedback_pub, hand_pub):
-            assert pub.wait_matched(REPLY_TIMEOUT_S)
+        yield rig
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(REPLY_TIMEOUT_S)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            log.close()
+            close_session(session, *reversed(rig.entities))
+    assert proc.returncode == 0, (tmp_path / "haptic.log").read_text()[-3000:]
+    rig.summary = json.loads((tmp_path / "haptic.summary.json").read_text())
+
+
+def test_service_steps_once_per_tick_in_lockstep(tmp_path):
+    with haptic_service(tmp_path, "lockstep") as rig:
+        config, topics, replies = rig.config, rig.topics, rig.replies
+        lead_ticks = round(1.0 / (config.operator.decision_rate_hz * config.plant.timestep_s))
+        state_pub = rig.publisher(topics.plant_state, PLANT_STATE)
+        feedback_pub = rig.publisher(topics.force_feedback, FORCE_FEEDBACK)
+        hand_pub = rig.publisher(topics.hand_input, HAND_INPUT)
 
         state, feedback, hand = PLANT_STATE.new(), FORCE_FEEDBACK.new(), HAND_INPUT.new()
         state["n_joints"] = 6
@@ -295,69 +338,44 @@ def test_service_steps_once_per_tick_in_lockstep(tmp_path):
         assert int(again["seq"]) == ticks and np.array_equal(
             again["device_p_m"], last["device_p_m"]
         )
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(REPLY_TIMEOUT_S)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-            log.close()
-            close_session(session, *reversed(entities))
-    assert proc.returncode == 0, (tmp_path / "haptic.log").read_text()[-3000:]
-    summary = json.loads((tmp_path / "haptic.summary.json").read_text())
+    summary = rig.summary
+    assert summary is not None
     assert summary["steps"] == ticks and summary["runs"] == 1
     assert 0 < summary["lockstep_waits"] <= ticks - 1
     assert summary["dropped_messages"] == 1 and summary["oversized_feedback"] == 1
     assert summary["republished_states"] == 2 and summary["missing_hand_inputs"] == 0
     assert summary["max_rendered_force_n"] == pytest.approx(2.0)
     assert summary["stale_feedback_events"] == 0
-    assert len(replies.records) == ticks + 2 and drops.total == 0
+    assert len(replies.records) == ticks + 2 and rig.drops.total == 0
 
 
 def test_service_in_realtime_takes_its_clock_from_the_feedback(tmp_path):
     """Realtime: no PLANT_STATE needed; the samples carry the newest feedback's tick and sim
     time and the device period's deadline; a feedback tick that goes back is a new run."""
-    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
-    overrides = [f'bus.endpoint="{endpoint}"', 'run.mode="realtime"']
-    config = load_config(None, overrides)
-    topics = Topics(config.robot.robot_id)
-    period_ns = round(config.plant.timestep_s * NS_PER_S)
-    session = open_session(config.bus, listen=True)
-    replies = Replies()
-    drops = DropCounter()
-    entities = [subscribe(session, topics.haptic_state, HAPTIC_STATE, replies, drops)]
-    feedback_pub = Publisher.declare(session, topics.force_feedback, FORCE_FEEDBACK)
-    entities.append(feedback_pub)
-    command = [sys.executable, "-m", "services.haptic", "--run-dir", str(tmp_path)]
-    for override in overrides:
-        command += ["--set", override]
-    log = open(tmp_path / "haptic.log", "w")  # noqa: SIM115 (closed in finally)
-    proc = subprocess.Popen(command, cwd=REPO_ROOT, stdin=subprocess.DEVNULL, stderr=log)
     feedback = FORCE_FEEDBACK.new()
+    with haptic_service(tmp_path, "realtime") as rig:
+        period_ns = round(rig.config.plant.timestep_s * NS_PER_S)
+        feedback_pub = rig.publisher(rig.topics.force_feedback, FORCE_FEEDBACK)
+        replies = rig.replies
 
-    def send(seq: int, tick: int) -> None:
-        feedback["seq"] = seq
-        feedback["tick"] = tick
-        feedback["sim_time_ns"] = tick * NS_PER_MS
-        feedback["device_f_n"] = [0.0, 0.5, 0.0]
-        now_ns = time.monotonic_ns()
-        feedback["trace_ns"][Stage.FEEDBACK_TX] = now_ns
-        feedback_pub.put(feedback)
+        def send(seq: int, tick: int) -> None:
+            feedback["seq"] = seq
+            feedback["tick"] = tick
+            feedback["sim_time_ns"] = tick * NS_PER_MS
+            feedback["device_f_n"] = [0.0, 0.5, 0.0]
+            feedback["trace_ns"][Stage.FEEDBACK_TX] = time.monotonic_ns()
+            feedback_pub.put(feedback)
 
-    def reply_with_tick(tick: int) -> np.ndarray:
-        deadline = time.monotonic() + REPLY_TIMEOUT_S
-        while time.monotonic() < deadline:
-            with replies.cond:
-                found = [r for r in replies.records if int(r["tick"]) == tick]
-                if found:
-                    return found[-1]
-                replies.cond.wait(0.05)
-        raise AssertionError(f"no HAPTIC_STATE with tick {tick}")
+        def reply_with_tick(tick: int) -> np.ndarray:
+            deadline = time.monotonic() + REPLY_TIMEOUT_S
+            while time.monotonic() < deadline:
+                with replies.cond:
+                    found = [r for r in replies.records if int(r["tick"]) == tick]
+                    if found:
+                        return found[-1]
+                    replies.cond.wait(0.05)
+            raise AssertionError(f"no HAPTIC_STATE with tick {tick}")
 
-    try:
-        wait_alive(session, topics, ["haptic"], ALIVE_TIMEOUT_S)
-        assert feedback_pub.wait_matched(REPLY_TIMEOUT_S)
         send(1, 500)
         first = reply_with_tick(500)
         assert int(first["sim_time_ns"]) == 500 * NS_PER_MS
@@ -369,16 +387,7 @@ def test_service_in_realtime_takes_its_clock_from_the_feedback(tmp_path):
         assert (deadlines > 0).all() and (steps > 0).all() and (steps % period_ns == 0).all()
         send(3, 7)  # the plant started over
         reply_with_tick(7)
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(REPLY_TIMEOUT_S)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-            log.close()
-            close_session(session, *reversed(entities))
-    assert proc.returncode == 0, (tmp_path / "haptic.log").read_text()[-3000:]
-    summary = json.loads((tmp_path / "haptic.summary.json").read_text())
+    summary = rig.summary
+    assert summary is not None
     assert summary["runs"] == 2 and summary["feedback_lost"] == 0
-    assert summary["feedback_rendered"] == 3 and drops.total == 0
+    assert summary["feedback_rendered"] == 3 and rig.drops.total == 0

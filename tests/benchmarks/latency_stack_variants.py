@@ -14,20 +14,21 @@ in the same rounds, the stack's CPU use and the samples shed, and writes them to
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-# One worker per Zenoh runtime pool (RON syntax of the ZENOH_RUNTIME variable).
-ONE_THREAD_RUNTIME = (
-    "(app: (worker_threads: 1), acc: (worker_threads: 1), tx: (worker_threads: 1), "
-    "rx: (worker_threads: 1), net: (worker_threads: 1))"
+from variants import (
+    ONE_THREAD_RUNTIME,
+    alternate,
+    chosen_variants,
+    run_in_child,
+    variant_parser,
 )
+
 VARIANTS: dict[str, dict] = {
     "default": {},
     "fifo_off": {"overrides": ["cpu.fifo_priority=0"]},
@@ -56,48 +57,28 @@ def one_variant(name: str, duration_s: float, run_dir: Path, out: Path) -> None:
     out.write_text(json.dumps(figures))
 
 
-def run_variant(name: str, duration_s: float, run_dir: Path) -> dict:
-    out = run_dir / "figures.json"
-    run_dir.mkdir(parents=True, exist_ok=True)
-    env = {**os.environ, **VARIANTS[name].get("env", {})}
-    subprocess.run(
-        [sys.executable, __file__, "--one", name, "--duration", str(duration_s),
-         "--out", str(out), "--run-dir", str(run_dir)],
-        check=True, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-    )  # fmt: skip
-    return json.loads(out.read_text())
-
-
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = variant_parser(__doc__, VARIANTS, Path("runs/bench/latency_stack_variants.json"))
     parser.add_argument("--duration", type=float, default=15.0, help="stack seconds per run")
-    parser.add_argument("--repeat", type=int, default=3, help="rounds over all variants")
-    parser.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated")
-    parser.add_argument("--json", type=Path, default=Path("runs/bench/latency_stack_variants.json"))
-    parser.add_argument("--one", help=argparse.SUPPRESS)
-    parser.add_argument("--out", type=Path, help=argparse.SUPPRESS)
-    parser.add_argument("--run-dir", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
         one_variant(args.one, args.duration, args.run_dir, args.out)
         return 0
-    names = args.variants.split(",")
-    unknown = sorted(set(names) - set(VARIANTS))
-    if unknown:
-        parser.error(f"unknown variants {unknown}; known: {', '.join(VARIANTS)}")
-    results: dict[str, list[dict]] = {name: [] for name in names}
+    names = chosen_variants(parser, args, VARIANTS)
+
+    def run(name: str, run_dir: Path) -> dict:
+        env = VARIANTS[name].get("env", {})
+        return run_in_child(__file__, name, ["--duration", str(args.duration)], env, run_dir)
+
+    def describe(figures: dict) -> str:
+        rt = figures["round_trip"]
+        return (
+            f"round trip p50 {rt['p50']:6.0f} us p99 {rt['p99']:6.0f} us | "
+            f"CPU {figures['cpu_cores']:.2f} cores | shed {figures['shed']}"
+        )
+
     with tempfile.TemporaryDirectory(prefix="stack-variants-") as tmp:
-        for round_index in range(args.repeat):
-            for name in names:
-                figures = run_variant(name, args.duration, Path(tmp) / f"{name}-{round_index}")
-                results[name].append(figures)
-                rt = figures["round_trip"]
-                print(
-                    f"round {round_index} {name:18s} round trip p50 {rt['p50']:6.0f} us "
-                    f"p99 {rt['p99']:6.0f} us | CPU {figures['cpu_cores']:.2f} cores | "
-                    f"shed {figures['shed']}",
-                    flush=True,
-                )
+        results = alternate(names, args.repeat, Path(tmp), run, describe)
 
     summary: dict[str, dict[str, float]] = {}
     for name in names:

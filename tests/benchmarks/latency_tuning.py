@@ -20,20 +20,21 @@ CPU 1), ``shm_off`` (TCP only).
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-# One worker per Zenoh runtime pool (RON syntax of the ZENOH_RUNTIME variable).
-ONE_THREAD_RUNTIME = (
-    "(app: (worker_threads: 1), acc: (worker_threads: 1), tx: (worker_threads: 1), "
-    "rx: (worker_threads: 1), net: (worker_threads: 1))"
+from variants import (
+    ONE_THREAD_RUNTIME,
+    alternate,
+    chosen_variants,
+    run_in_child,
+    variant_parser,
 )
+
 VARIANTS: dict[str, dict] = {
     "default": {},
     "lowlatency_off": {"overrides": ["bus.lowlatency=false"]},
@@ -73,43 +74,29 @@ def one_variant(name: str, paced_s: float, run_dir: Path, out: Path) -> None:
     out.write_text(json.dumps(figures))
 
 
-def run_variant(name: str, paced_s: float, run_dir: Path) -> dict:
-    out = run_dir / "figures.json"
-    env = {**os.environ, **VARIANTS[name].get("env", {})}
-    subprocess.run(
-        [sys.executable, __file__, "--one", name, "--paced", str(paced_s), "--out", str(out),
-         "--run-dir", str(run_dir)],
-        check=True, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-    )  # fmt: skip
-    return json.loads(out.read_text())
-
-
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = variant_parser(__doc__, VARIANTS, Path("runs/bench/latency_tuning.json"))
     parser.add_argument("--paced", type=float, default=10.0, help="paced seconds per run")
-    parser.add_argument("--repeat", type=int, default=3, help="rounds over all variants")
-    parser.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated")
-    parser.add_argument("--json", type=Path, default=Path("runs/bench/latency_tuning.json"))
-    parser.add_argument("--one", help=argparse.SUPPRESS)
-    parser.add_argument("--out", type=Path, help=argparse.SUPPRESS)
-    parser.add_argument("--run-dir", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
         one_variant(args.one, args.paced, args.run_dir, args.out)
         return 0
-    names = args.variants.split(",")
-    results: dict[str, list[dict]] = {name: [] for name in names}
+    names = chosen_variants(parser, args, VARIANTS)
+
+    def run(name: str, run_dir: Path) -> dict:
+        env = VARIANTS[name].get("env", {})
+        return run_in_child(__file__, name, ["--paced", str(args.paced)], env, run_dir)
+
+    def describe(figures: dict) -> str:
+        paced, b2b = figures["paced"], figures["back_to_back"]
+        return (
+            f"paced p50 {paced['p50']:7.0f} us p99 {paced['p99']:7.0f} us | back to back "
+            f"p99 {b2b['p99']:6.0f} us | frame p50 {figures['frame']['p50']:6.0f} us | "
+            f"lost {figures['lost']}"
+        )
+
     with tempfile.TemporaryDirectory(prefix="tune-") as tmp:
-        for round_index in range(args.repeat):
-            for name in names:
-                figures = run_variant(name, args.paced, Path(tmp) / f"{name}-{round_index}")
-                results[name].append(figures)
-                paced, b2b = figures["paced"], figures["back_to_back"]
-                print(
-                    f"round {round_index} {name:17s} paced p50 {paced['p50']:7.0f} us "
-                    f"p99 {paced['p99']:7.0f} us | back to back p99 {b2b['p99']:6.0f} us | "
-                    f"frame p50 {figures['frame']['p50']:6.0f} us | lost {figures['lost']}"
-                )
+        results = alternate(names, args.repeat, Path(tmp), run, describe)
 
     def median(name: str, series: str, key: str) -> float:
         return statistics.median(r[series][key] for r in results[name])
