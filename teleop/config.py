@@ -477,12 +477,13 @@ class BusConfig:
     # as TCP must fragment an eye-view frame). Measured on the whole stack (2026-11-22,
     # tests/benchmarks/latency_stack_variants.py, 7 rounds of 15 s): round trip p50
     # x0.66-0.73 and p99 x0.70-0.82 of the default transport, lower in 6 of 7 rounds.
-    # Off by default: with it, two peers of a stack sometimes never linked to each
-    # other (1 stack in 5: eye view and HMD), and what one sent the other was lost;
-    # never seen with the default transport. Service.become_ready reports such a pair.
-    lowlatency: bool = False
+    # With it, two peers of a stack sometimes never linked to each other (3 stacks in
+    # 14: both connected at once); local.json5 now lets only one of a pair connect
+    # (gossip autoconnect_strategy "greater-zid"): 0 in 20 since. Service.become_ready
+    # reports a pair that never links (unlinked_peers).
+    lowlatency: bool = True
     # Zenoh config entries set over the file, last: "path=json5", e.g.
-    # 'transport/unicast/lowlatency=true' (the tuning benchmark tries variants this way).
+    # 'transport/shared_memory/mode="lazy"' (the tuning benchmark tries variants this way).
     zenoh_overrides: tuple[str, ...] = ()
     # Plant states per message on the observers' copy of the state stream (recorder, eye
     # view; topics.plant_state_batch): one message instead of 10 saves the recorder ~9

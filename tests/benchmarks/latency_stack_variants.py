@@ -35,7 +35,7 @@ VARIANTS: dict[str, dict] = {
     "old_timing": {"overrides": ["plant.apply_on_arrival=false", "haptic.render_on_arrival=false"]},
     "shm_off": {"overrides": ["bus.shm=false", 'bus.zenoh_config="local-noshm.json5"']},
     "runtime_1_thread": {"env": {"ZENOH_RUNTIME": ONE_THREAD_RUNTIME}},
-    "lowlatency": {"overrides": ["bus.lowlatency=true"]},
+    "lowlatency_off": {"overrides": ["bus.lowlatency=false"]},
     "observers_on_cpu0": {"overrides": ["cpu.recorder=[0]", "cpu.eyeview=[0]"]},
     "unpinned": {
         "overrides": ["cpu.plant=[]", "cpu.controller=[]", "cpu.recorder=[]", "cpu.eyeview=[]"]

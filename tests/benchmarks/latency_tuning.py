@@ -10,11 +10,11 @@ in the same rounds, and writes them to a JSON file.
     .venv/bin/python tests/benchmarks/latency_tuning.py --paced 10 --repeat 3 \
         --json runs/bench/latency_tuning.json
 
-Variants: ``default`` (deploy/zenoh/local.json5 as shipped), ``lowlatency`` (Zenoh's
-low-latency transport with SHM: ``bus.lowlatency``), ``shm_lazy`` (SHM segments mapped
-on first use instead of at start), ``runtime_1_thread`` (one worker thread in each Zenoh
-runtime pool, ``ZENOH_RUNTIME``), ``pinned`` (origin and plant relay on CPU 0, controller
-relay on CPU 1), ``shm_off`` (TCP only).
+Variants: ``default`` (deploy/zenoh/local.json5 as shipped, the low-latency transport
+with SHM), ``lowlatency_off`` (Zenoh's default transport: ``bus.lowlatency``),
+``shm_lazy`` (SHM segments mapped on first use instead of at start),
+``runtime_1_thread`` (one worker thread in each Zenoh runtime pool, ``ZENOH_RUNTIME``),
+``pinned`` (origin and plant relay on CPU 0, controller relay on CPU 1), ``shm_off`` (TCP only).
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from variants import (
 
 VARIANTS: dict[str, dict] = {
     "default": {},
-    "lowlatency": {"overrides": ["bus.lowlatency=true"]},
+    "lowlatency_off": {"overrides": ["bus.lowlatency=false"]},
     "shm_lazy": {"overrides": ['bus.zenoh_overrides=["transport/shared_memory/mode=\\"lazy\\""]']},
     "runtime_1_thread": {"env": {"ZENOH_RUNTIME": ONE_THREAD_RUNTIME}},
     "pinned": {"origin_cpus": [0], "relay_cpus": {"relay_controller": [1], "relay_plant": [0]}},
