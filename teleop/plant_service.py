@@ -254,6 +254,10 @@ class PlantService(Service):
         # Lockstep: what the plant sent for each state in flight (publisher, bytes), for
         # _republish_pending; None in realtime.
         self._sent_ticks: collections.deque[list[tuple[Publisher, bytes]]] | None = None
+        # Realtime only: the control-free half of the next step while the command is on
+        # its way. In lockstep it made runs slower (lockstep / in-process 0.31-0.36
+        # against 0.43 without, 2026-11-22): there the state's send waits behind it.
+        self.prepare_ahead = self.config.run.mode == "realtime"
         if self.config.run.mode == "lockstep":
             self._sent_ticks = collections.deque(maxlen=self.delay_steps + 1)
         # Realtime apply-on-arrival state, shared by the run thread and the command
@@ -356,7 +360,8 @@ class PlantService(Service):
         if sample.step % self.scene_every_steps == 0:
             self._publish_scene(sample.sim_time_ns, now_ns)
         self.max_tool_speed_m_s = max(self.max_tool_speed_m_s, self.plant.tool_speed_m_s())
-        self._prepare_next_step(sample.step + 1)
+        if self.prepare_ahead:
+            self._prepare_next_step(sample.step + 1)
 
     def _prepare_next_step(self, step: int) -> None:
         """While the command is on its way: the control-free half of the next physics step
