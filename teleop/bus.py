@@ -356,6 +356,14 @@ def declare_alive(
     return session.liveliness().declare_token(topics.alive(service, ready=ready))
 
 
+class ServicesMissing(TimeoutError):
+    """:func:`wait_alive` timed out; ``missing``: the services whose tokens were not seen."""
+
+    def __init__(self, message: str, missing: tuple[str, ...]) -> None:
+        super().__init__(message)
+        self.missing = missing
+
+
 def wait_alive(
     session: zenoh.Session,
     topics: Topics,
@@ -368,7 +376,8 @@ def wait_alive(
     is present.
 
     Event driven: a liveliness subscriber with history reports the tokens already
-    present and every later change. Raises TimeoutError naming the missing services.
+    present and every later change. Raises :class:`ServicesMissing` (a TimeoutError)
+    naming the missing services.
 
     Peers do not forward for each other, so a token seen here came over this session's
     own link to that service, after the declarations made before it (its subscribers):
@@ -392,8 +401,10 @@ def wait_alive(
     try:
         with cond:
             if not cond.wait_for(lambda: wanted <= present, timeout_s):
-                missing = ", ".join(sorted(wanted - present))
+                missing = tuple(sorted(wanted - present))
                 state = "ready" if ready else "alive"
-                raise TimeoutError(f"services not {state} after {timeout_s:g} s: {missing}")
+                raise ServicesMissing(
+                    f"services not {state} after {timeout_s:g} s: {', '.join(missing)}", missing
+                )
     finally:
         _undeclare(sub)

@@ -26,7 +26,13 @@ from typing import Any, ClassVar
 
 import zenoh
 
-from teleop.bus import close_session, declare_alive, open_session, wait_alive
+from teleop.bus import (
+    ServicesMissing,
+    close_session,
+    declare_alive,
+    open_session,
+    wait_alive,
+)
 from teleop.config import Config, ConfigError, load_config
 from teleop.kinematics import ModelError
 from teleop.messages import DropCounter
@@ -143,33 +149,24 @@ class Service:
         which can end within a second, all of a controller's statuses once were.
         """
         assert self.session is not None
-        if not self._wait_tokens(stop, self.options.peers, ready=False, limit_s=PEER_LINK_WAIT_S):
-            if stop.is_set():
-                return False
-            self.unlinked_peers = self._missing_peers()
+        missing = self._wait_tokens(stop, self.options.peers, ready=False, limit_s=PEER_LINK_WAIT_S)
+        if missing and stop.is_set():
+            return False
+        if missing:
+            self.unlinked_peers = list(missing)
             logger.error(
                 "no link to %s after %g s: going on without (what this service sends "
                 "them is lost; see the summary's unlinked_peers)",
-                ", ".join(self.unlinked_peers),
+                ", ".join(missing),
                 PEER_LINK_WAIT_S,
             )
         self.keep(declare_alive(self.session, self.topics, self.name, ready=True))
         return True
 
-    def _missing_peers(self) -> list[str]:
-        """Peers whose liveliness token this session does not see (right now)."""
-        assert self.session is not None
-        seen = {
-            self.topics.service_of(str(reply.ok.key_expr))
-            for reply in self.session.liveliness().get(self.topics.alive_all, timeout=1.0)
-            if reply.ok is not None
-        }
-        return sorted(set(self.options.peers) - seen)
-
     def wait_for_peers(self, stop: threading.Event) -> bool:
         """Wait (event driven) until ``options.await_services`` are ready; False if
         stopped first."""
-        return self._wait_tokens(stop, self.options.await_services, ready=True)
+        return not self._wait_tokens(stop, self.options.await_services, ready=True)
 
     def _wait_tokens(
         self,
@@ -178,22 +175,24 @@ class Service:
         *,
         ready: bool,
         limit_s: float | None = None,
-    ) -> bool:
-        """True once ``services``' tokens are all present; False if stopped, or after
-        ``limit_s`` (None: no limit)."""
+    ) -> tuple[str, ...]:
+        """Wait until ``services``' tokens are all present, until stopped, or for
+        ``limit_s`` (None: no limit); the services still missing then (empty: none)."""
         assert self.session is not None
-        if not services:
-            return True
+        missing = tuple(services)
         waited_s = 0.0
-        while not stop.is_set() and (limit_s is None or waited_s < limit_s):
+        warned = False
+        while missing and not stop.is_set() and (limit_s is None or waited_s < limit_s):
             try:
                 wait_alive(self.session, self.topics, services, STOP_POLL_S, ready=ready)
-                return True
-            except TimeoutError as exc:
+                missing = ()
+            except ServicesMissing as exc:
+                missing = exc.missing
                 waited_s += STOP_POLL_S
-                if waited_s == PEER_WAIT_LOG_S:  # once: what is this service waiting for
+                if waited_s >= PEER_WAIT_LOG_S and not warned:  # what is this one waiting for
+                    warned = True
                     logger.warning("still waiting: %s", exc)
-        return False
+        return missing
 
     def write_summary(self) -> None:
         if self.options.run_dir is None:
