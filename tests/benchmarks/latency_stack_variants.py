@@ -18,14 +18,12 @@ import json
 import os
 import statistics
 import sys
-import tempfile
 from pathlib import Path
 
 from variants import (
     ONE_THREAD_RUNTIME,
     alternate,
     chosen_variants,
-    run_in_child,
     variant_parser,
 )
 
@@ -66,10 +64,6 @@ def main() -> int:
         return 0
     names = chosen_variants(parser, args, VARIANTS)
 
-    def run(name: str, run_dir: Path) -> dict:
-        env = VARIANTS[name].get("env", {})
-        return run_in_child(__file__, name, ["--duration", str(args.duration)], env, run_dir)
-
     def describe(figures: dict) -> str:
         rt = figures["round_trip"]
         return (
@@ -77,8 +71,8 @@ def main() -> int:
             f"CPU {figures['cpu_cores']:.2f} cores | shed {figures['shed']}"
         )
 
-    with tempfile.TemporaryDirectory(prefix="stack-variants-") as tmp:
-        results = alternate(names, args.repeat, Path(tmp), run, describe)
+    child_args = ["--duration", str(args.duration)]
+    results = alternate(__file__, VARIANTS, names, args.repeat, child_args, describe)
 
     summary: dict[str, dict[str, float]] = {}
     for name in names:

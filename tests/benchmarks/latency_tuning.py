@@ -23,14 +23,12 @@ import json
 import os
 import statistics
 import sys
-import tempfile
 from pathlib import Path
 
 from variants import (
     ONE_THREAD_RUNTIME,
     alternate,
     chosen_variants,
-    run_in_child,
     variant_parser,
 )
 
@@ -82,10 +80,6 @@ def main() -> int:
         return 0
     names = chosen_variants(parser, args, VARIANTS)
 
-    def run(name: str, run_dir: Path) -> dict:
-        env = VARIANTS[name].get("env", {})
-        return run_in_child(__file__, name, ["--paced", str(args.paced)], env, run_dir)
-
     def describe(figures: dict) -> str:
         paced, b2b = figures["paced"], figures["back_to_back"]
         return (
@@ -94,8 +88,8 @@ def main() -> int:
             f"lost {figures['lost']}"
         )
 
-    with tempfile.TemporaryDirectory(prefix="tune-") as tmp:
-        results = alternate(names, args.repeat, Path(tmp), run, describe)
+    child_args = ["--paced", str(args.paced)]
+    results = alternate(__file__, VARIANTS, names, args.repeat, child_args, describe)
 
     def median(name: str, series: str, key: str) -> float:
         return statistics.median(r[series][key] for r in results[name])

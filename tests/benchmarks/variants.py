@@ -14,6 +14,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -25,7 +26,7 @@ ONE_THREAD_RUNTIME = (
 )
 
 
-def run_in_child(
+def _run_in_child(
     script: str, name: str, args: Sequence[str], env: Mapping[str, str], run_dir: Path
 ) -> dict[str, Any]:
     """Run ``script --one name *args`` with ``env`` added; the figures it wrote (JSON)."""
@@ -41,20 +42,25 @@ def run_in_child(
 
 
 def alternate(
+    script: str,
+    variants: Mapping[str, Mapping[str, Any]],
     names: Sequence[str],
     repeat: int,
-    work_dir: Path,
-    run: Callable[[str, Path], dict[str, Any]],
+    child_args: Sequence[str],
     describe: Callable[[dict[str, Any]], str],
 ) -> dict[str, list[dict[str, Any]]]:
-    """``repeat`` rounds, each running every variant once (``run(name, run_dir)``) and
-    printing ``describe(figures)``; the figures of each variant, round by round."""
+    """``repeat`` rounds, each running every variant of ``names`` once, each in a child
+    ``script --one NAME *child_args`` with the variant's ``env`` added, and printing
+    ``describe(figures)``; the figures of each variant, round by round."""
     results: dict[str, list[dict[str, Any]]] = {name: [] for name in names}
-    for round_index in range(repeat):
-        for name in names:
-            figures = run(name, work_dir / f"{name}-{round_index}")
-            results[name].append(figures)
-            print(f"round {round_index} {name:18s} {describe(figures)}", flush=True)
+    with tempfile.TemporaryDirectory(prefix=f"{Path(script).stem}-") as tmp:
+        for round_index in range(repeat):
+            for name in names:
+                run_dir = Path(tmp) / f"{name}-{round_index}"
+                env = variants[name].get("env", {})
+                figures = _run_in_child(script, name, child_args, env, run_dir)
+                results[name].append(figures)
+                print(f"round {round_index} {name:18s} {describe(figures)}", flush=True)
     return results
 
 
