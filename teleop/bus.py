@@ -202,28 +202,44 @@ def subscribe(
     """Subscribe to records of ``schema``; ``callback(record, rx_ns)`` gets valid ones.
 
     ``rx_ns`` is ``time.monotonic_ns()`` on arrival, before decoding. Bad records are
-    counted in ``drops`` and never reach the callback. The callback runs on a Zenoh
-    thread: keep it short (store into a :class:`Latest`, or a queue).
+    counted in ``drops`` and never reach the callback. Each record is the callback's
+    own, writable, in a buffer nothing else holds: keep it or stamp it without a copy
+    (copying a record costs 3-9 us). The callback runs on a Zenoh thread: keep it short
+    (store into a :class:`Latest`, or a queue).
 
     ``batched``: the key is a :class:`BatchPublisher`'s, whose messages hold several
     records back to back: the callback runs once per valid record, in order. A message
     that is not a whole number of records is dropped (counted once).
     """
-    size = schema.size
 
     def on_sample(sample: zenoh.Sample) -> None:
         rx_ns = time.monotonic_ns()
-        data = sample.payload.to_bytes()
-        count = len(data) // size if batched and data and len(data) % size == 0 else 1
-        for offset in range(0, count * size, size):
-            try:
-                rec = schema.decode(data if count == 1 else data[offset : offset + size])
-            except DecodeError as err:
-                drops.record(err)
-                continue
-            callback(rec, rx_ns)
+        deliver(sample.payload.to_bytes(), rx_ns, schema, callback, drops, batched=batched)
 
     return session.declare_subscriber(key, on_sample)
+
+
+def deliver(
+    payload: bytes,
+    rx_ns: int,
+    schema: Schema,
+    callback: RecordCallback,
+    drops: DropCounter,
+    *,
+    batched: bool = False,
+) -> None:
+    """What :func:`subscribe` does with a payload received at ``rx_ns``: decode it into
+    records the callback owns (writable), count bad ones in ``drops``, call back."""
+    data = bytearray(payload)
+    size = schema.size
+    count = len(data) // size if batched and data and len(data) % size == 0 else 1
+    for offset in range(0, count * size, size):
+        try:
+            rec = schema.decode(data if count == 1 else data[offset : offset + size])
+        except DecodeError as err:
+            drops.record(err)
+            continue
+        callback(rec, rx_ns)
 
 
 class BatchPublisher:

@@ -35,6 +35,7 @@ late subscriber.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from typing import Any
@@ -43,7 +44,12 @@ import numpy as np
 
 from teleop.bus import BatchPublisher, Publisher, subscribe
 from teleop.clock import NS_PER_S, LoopTimer, MonotonicClock
-from teleop.haptics import EmulatedDevice, FeedbackHold, max_stable_stiffness_n_per_m
+from teleop.haptics import (
+    DeviceSample,
+    EmulatedDevice,
+    FeedbackHold,
+    max_stable_stiffness_n_per_m,
+)
 from teleop.messages import (
     FORCE_FEEDBACK,
     HAND_INPUT,
@@ -173,7 +179,8 @@ class HapticService(Service):
 
     def _on_feedback(self, rec: np.ndarray, rx_ns: int) -> None:
         force = np.array(rec["device_f_n"], dtype=np.float64)
-        if float(np.linalg.norm(force)) > self.max_feedback_n:
+        force_norm_n = math.hypot(*force.tolist())
+        if force_norm_n > self.max_feedback_n:
             with self._cond:
                 self.oversized_feedback += 1
                 first = not self._warned_oversized
@@ -181,7 +188,7 @@ class HapticService(Service):
             if first:
                 logger.warning(
                     "dropping feedback of %.3g N (> %g x peak); further ones are only counted",
-                    float(np.linalg.norm(force)),
+                    force_norm_n,
                     OVERSIZED_FEEDBACK_FACTOR,
                 )
             return
@@ -198,7 +205,7 @@ class HapticService(Service):
             self._try_steps()
 
     def _on_hand(self, rec: np.ndarray, rx_ns: int) -> None:
-        self.hand_inputs.put(int(rec["valid_from_tick"]), rec.copy())
+        self.hand_inputs.put(int(rec["valid_from_tick"]), rec)
         with self._cond:
             self._operator_absent = False
             if self.lockstep:
@@ -283,8 +290,9 @@ class HapticService(Service):
                 self.hold.receive(force, t_ns - self.period_ns)
                 del self._feedback[tick - 1]
             sim_ns = self._state_sim_ns - (self._state_seq - tick) * self.period_ns
-            self._step(tick, sim_ns, hand, t_ns)
+            sample = self._step(tick, sim_ns, hand, t_ns)
             self._publish_sample()
+            self._account_sample(sample)
             self._last_tick = tick
 
     def _run_lockstep(self, stop: threading.Event) -> None:
@@ -326,9 +334,12 @@ class HapticService(Service):
             with self._cond:
                 tick = max(self._state_seq, 0)
                 hand = self.hand_inputs.latest_at(tick) if self._state_seq >= 0 else None
-                self._step(tick, self._state_sim_ns, hand, time.monotonic_ns(), deadline_ns)
+                sample = self._step(
+                    tick, self._state_sim_ns, hand, time.monotonic_ns(), deadline_ns
+                )
             # Outside the lock: a feedback that arrives meanwhile is rendered at once.
             self._publish_sample()
+            self._account_sample(sample)
 
     # -- shared ------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
@@ -345,9 +356,10 @@ class HapticService(Service):
         hand: np.ndarray | None,
         t_ns: int,
         deadline_ns: int = 0,
-    ) -> None:
+    ) -> DeviceSample:
         """Render, integrate one period, sample into the HAPTIC_STATE record (caller holds
-        the lock; :meth:`_publish_sample` sends it).
+        the lock; :meth:`_publish_sample` sends it, then :meth:`_account_sample` counts the
+        returned sample: the statistics wait until the sample is on its way).
 
         ``t_ns`` is the feedback clock (monotonic in realtime, sim time in lockstep);
         ``deadline_ns`` the device period's start in realtime (the plant steps on it),
@@ -366,8 +378,6 @@ class HapticService(Service):
         sample = self.device.read()
         sample_ns = time.monotonic_ns()
         self.steps += 1
-        self.max_force_n = max(self.max_force_n, float(np.linalg.norm(sample.f_n)))
-        self.max_abs_position_m = max(self.max_abs_position_m, float(np.abs(sample.p_m).max()))
         rec = self._record
         rec["seq"] = self.steps
         rec["flags"] = Flag.STALE if stale else Flag.NONE
@@ -381,8 +391,15 @@ class HapticService(Service):
         rec["device_v_m_s"] = sample.v_m_s
         rec["device_f_n"] = sample.f_n
         rec["buttons"] = int(sample.buttons)
+        return sample
+
+    def _account_sample(self, sample: DeviceSample) -> None:
+        """Statistics of the sample just published (and its stamp, in realtime)."""
+        self.max_force_n = max(self.max_force_n, math.hypot(*sample.f_n.tolist()))
+        self.max_abs_position_m = max(self.max_abs_position_m, *map(abs, sample.p_m.tolist()))
         if not self.lockstep:
-            self.sample_log.append((self.steps, sample_ns))
+            rec = self._record
+            self.sample_log.append((int(rec["seq"]), int(rec["trace_ns"][Stage.HAPTIC_SAMPLE])))
 
     def _publish_sample(self) -> None:
         """Send the HAPTIC_STATE the last :meth:`_step` filled in (one thread at a time:

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import enum
 import logging
+import operator
 import struct
 import sys
 import threading
@@ -233,8 +234,12 @@ class Schema:
             n = int(np.prod(f.shape, dtype=np.int64))
             lo += [-F64_MAX if f.lo is None else f.lo] * n
             hi += [F64_MAX if f.hi is None else f.hi] * n
-        self._lo = np.array(lo, dtype=np.float64)
-        self._hi = np.array(hi, dtype=np.float64)
+        # The check runs on every received record: as struct-unpacked floats compared in
+        # C-level map() loops it costs a third of numpy's (whose ufunc machinery is cold
+        # on each wake-up of a busy service: 25-40 us per record measured in the loop).
+        self._floats = struct.Struct(f"{_ENDIAN}{self._float_count}d")
+        self._lo = tuple(lo)
+        self._hi = tuple(hi)
         # Bounded integer fields (counts): (name, byte offset, struct format, lo, hi).
         self._int_checks = tuple(
             (
@@ -282,11 +287,11 @@ class Schema:
             if (lo is not None and value < lo) or (hi is not None and value > hi):
                 raise DecodeError(self.kind, Reason.COUNT, f"{name}={value} not in [{lo}, {hi}]")
         if self._float_count:
-            x = np.frombuffer(buf, np.float64, self._float_count, self._float_offset)
-            # One pass: NaN fails both comparisons and +-inf lies beyond F64_MAX.
-            if not ((x >= self._lo) & (x <= self._hi)).all():
-                self._raise_float_error(x)
-        return np.frombuffer(buf, self.dtype, 1).reshape(())
+            x = self._floats.unpack_from(buf, self._float_offset)
+            # NaN fails every comparison and +-inf lies beyond F64_MAX.
+            if not (all(map(operator.le, self._lo, x)) and all(map(operator.le, x, self._hi))):
+                self._raise_float_error(np.array(x))
+        return np.ndarray((), self.dtype, buf)
 
     def _raise_float_error(self, x: np.ndarray) -> None:
         """Name the first offending field (slow path, only for rejected records)."""

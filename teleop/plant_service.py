@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import threading
 import time
 from typing import Any
@@ -303,9 +304,9 @@ class PlantService(Service):
         if self._lockstep_running:
             self._lockstep_cycle(rec, rx_ns)
         elif self._arrival_running:
-            self._arrival_command(rec.copy(), rx_ns)
+            self._arrival_command(rec, rx_ns)
         else:
-            self.commands(rec.copy(), rx_ns)
+            self.commands(rec, rx_ns)
 
     # -- publishing ----------------------------------------------------------------------
     def _publish_event(self, event: Event, value: float = 0.0) -> None:
@@ -391,7 +392,7 @@ class PlantService(Service):
         rec["arm_body"] = closest.arm_body
         rec["obstacle_geom"] = closest.obstacle
         force_n, count = self.plant.gripper_contact_force()
-        self.max_contact_force_n = max(self.max_contact_force_n, float(np.linalg.norm(force_n)))
+        self.max_contact_force_n = max(self.max_contact_force_n, math.hypot(*force_n.tolist()))
         model, data = self.plant.model, self.plant.data
         held = held_object(model, data, self._fingers, self.plant.object_bodies) if count else -1
         event = None
@@ -432,10 +433,7 @@ class PlantService(Service):
     def run(self, stop: threading.Event) -> None:
         if not self.wait_for_peers(stop):
             return
-        self.plant.reset(initial_configuration(self.config))
-        self._closest = (-1, None)
-        self.finish_tick = None
-        self._held_body = -1
+        self.begin_run()
         steps = None
         if not self.options.continuous:
             steps = round(self.config.run.duration_s / self.config.plant.timestep_s)
@@ -457,6 +455,13 @@ class PlantService(Service):
             self._publish_event(Event.FINISHED)
             logger.info("run finished: %s", self.summary())
             stop.wait()  # hold (no stepping) until stopped: supervisord must not restart us
+
+    def begin_run(self) -> None:
+        """The plant back in the run's initial configuration, nothing held or pending."""
+        self.plant.reset(initial_configuration(self.config))
+        self._closest = (-1, None)
+        self.finish_tick = None
+        self._held_body = -1
 
     def _run_realtime(self, stop: threading.Event, steps: int | None) -> None:
         self.timer = LoopTimer(self.period_ns, MonotonicClock())
@@ -501,13 +506,7 @@ class PlantService(Service):
         """Step each command on arrival (in its callback); this thread steps the device
         periods no command came for (see :class:`DeviceClockGrid`)."""
         with self._arrival_cond:
-            self._grid = DeviceClockGrid(self.period_ns, time.monotonic_ns())
-            self._held_command = None
-            self._braking = False
-            self._last_applied_seq = -1
-            self.command_seq.restart()
-            self._arrival_steps = steps
-            self._arrival_running = True
+            self.begin_on_arrival(steps)
             try:
                 while not stop.is_set() and self._should_step(steps):
                     grid = self._grid
@@ -522,6 +521,18 @@ class PlantService(Service):
                     self._arrival_step(None, 0)
             finally:
                 self._arrival_running = False
+
+    def begin_on_arrival(self, steps: int | None) -> None:
+        """From now on, commands step the plant as they arrive (in their callback), on a
+        new device clock grid; ``steps``: the run's length (None: until stopped). The
+        caller holds ``_arrival_cond``, or is a benchmark driving the plant directly."""
+        self._grid = DeviceClockGrid(self.period_ns, time.monotonic_ns())
+        self._held_command = None
+        self._braking = False
+        self._last_applied_seq = -1
+        self.command_seq.restart()
+        self._arrival_steps = steps
+        self._arrival_running = True
 
     def _arrival_command(self, command: np.ndarray, rx_ns: int) -> None:
         """A command arrived: step its device period now (after any before it that got
