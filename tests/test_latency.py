@@ -349,3 +349,17 @@ def test_conclusions_name_the_frame_and_1mib_sizes_and_a_side_that_got_nothing()
     assert not any(line.startswith("64 B") for line in lines)
     assert f"{latency.EYE_VIEW_FRAME_BYTES} B (eye-view frame): SHM is faster" in "\n".join(lines)
     assert "1048576 B: no payload came back over TCP" in lines
+
+
+def test_loop_stage_cost_benchmark_replays_every_stage(tmp_path):
+    """The cold-cache replay of the loop's stages (tests/benchmarks/loop_stage_cost.py)
+    runs the real services' callbacks end to end: every stage gets a time, warm and cold."""
+    out = tmp_path / "loop_stage_cost.json"
+    script = Path(__file__).parent / "benchmarks" / "loop_stage_cost.py"
+    args = [sys.executable, str(script), "--periods", "20", "--rounds", "1", "--json", str(out)]
+    subprocess.run(args, check=True, timeout=120, stdin=subprocess.DEVNULL, capture_output=True)
+    stages = json.loads(out.read_text())["stages_us"]
+    expected = [hop.name for hop in latency.HOPS if hop.kind in ("compute", "wait")]
+    assert sorted(stages) == sorted(expected)
+    for figures in stages.values():
+        assert figures["warm"] > 0 and figures["cold"] > 0

@@ -73,8 +73,14 @@ def one_variant(name: str, paced_s: float, run_dir: Path, out: Path) -> None:
 
 def main() -> int:
     parser = variant_parser(__doc__, VARIANTS, Path("runs/bench/latency_tuning.json"))
-    parser.add_argument("--paced", type=float, default=10.0, help="paced seconds per run")
+    parser.add_argument(
+        "--paced", type=float, default=10.0, help="paced seconds per run (more than the warm-up)"
+    )
     args = parser.parse_args()
+    from teleop.latency import WARMUP_S
+
+    if args.paced <= WARMUP_S:  # a run all warm-up has no percentiles to report
+        parser.error(f"--paced must exceed the {WARMUP_S:g} s warm-up")
     if args.one:
         one_variant(args.one, args.paced, args.run_dir, args.out)
         return 0
