@@ -62,6 +62,8 @@ class Plant:
         self.timestep_ns = round(self.model.opt.timestep * 1e9)
         self._config = config
         self._step1_done = False  # prepare_step ran for the next step
+        # prepare_step's gripper contacts (see gripper_contact_force); None: not known.
+        self._gripper_contacts: list[tuple[int, bool]] | None = None
 
         def lookup(kind: mujoco.mjtObj, name: str) -> int:
             index = mujoco.mj_name2id(self.model, kind, name)
@@ -129,6 +131,7 @@ class Plant:
         self.data.ctrl[self.gripper_actuator] = opening
         mujoco.mj_forward(self.model, self.data)
         self._step1_done = False
+        self._gripper_contacts = None
         self.gripper_cmd = min(max(gripper_open, 0.0), 1.0)
         self.step_count = 0
         self._hold_q_rad = None
@@ -152,6 +155,9 @@ class Plant:
         """
         if not self._step1_done:
             mujoco.mj_step1(self.model, self.data)
+            # The contacts are found here (collision detection): which of them touch the
+            # gripper is control-free too, ready for gripper_contact_force after the step.
+            self._gripper_contacts = self._find_gripper_contacts()
             self._step1_done = True
 
     def _advance(self) -> None:
@@ -198,13 +204,13 @@ class Plant:
         return self._hold_q_rad is not None
 
     def sample(self) -> JointSample:
+        fingers_m = self.data.qpos[self._fingers_at].tolist()  # a numpy sum costs ~7 us cold
         return JointSample(
             step=self.step_count,
             sim_time_ns=self.step_count * self.timestep_ns,
             q_rad=self.data.qpos[self._q_at].copy(),
             qd_rad_s=self.data.qvel[self._qd_at].copy(),
-            gripper_opening_m=float(self.data.qpos[self._fingers_at].sum())
-            / len(self.finger_qpos_index),
+            gripper_opening_m=sum(fingers_m) / len(fingers_m),
         )
 
     def tool_pose(self) -> tuple[np.ndarray, np.ndarray]:
@@ -220,20 +226,30 @@ class Plant:
         MuJoCo's contact frame has its normal pointing from geom1 to geom2 and
         ``mj_contactForce`` gives the force geom1 exerts on geom2 in that frame.
         """
+        contacts = self._gripper_contacts
+        if contacts is None:  # no step since reset: the contacts of mj_forward
+            contacts = self._find_gripper_contacts()
         total = np.zeros(3)
-        count = 0
         wrench = np.zeros(6)
-        # Geom pairs as Python ints: a pass over them costs half of one MjContact per
-        # contact, or of numpy masks (cold caches included, measured 2026-11-22).
-        for i, (geom1, geom2) in enumerate(self.data.contact.geom.tolist()):
-            on_geom2 = geom2 in self._gripper_geoms
-            if (geom1 in self._gripper_geoms) == on_geom2:  # not the gripper's, or itself
-                continue
+        for i, on_geom2 in contacts:
             mujoco.mj_contactForce(self.model, self.data, i, wrench)
             force_world = self.data.contact.frame[i].reshape(3, 3).T @ wrench[:3]
             total += force_world if on_geom2 else -force_world
-            count += 1
-        return total, count
+        return total, len(contacts)
+
+    def _find_gripper_contacts(self) -> list[tuple[int, bool]]:
+        """(index, whether the gripper is geom2) of the contacts between the gripper and
+        anything else, in ``data.contact`` order.
+
+        Geom pairs as Python ints: a pass over them costs half of one MjContact per
+        contact, or of numpy masks (cold caches included, measured 2026-11-22).
+        """
+        found = []
+        for i, (geom1, geom2) in enumerate(self.data.contact.geom.tolist()):
+            on_geom2 = geom2 in self._gripper_geoms
+            if (geom1 in self._gripper_geoms) != on_geom2:  # not itself against itself
+                found.append((i, on_geom2))
+        return found
 
     def object_poses(self) -> tuple[np.ndarray, np.ndarray]:
         """Positions (k, 3) in m and wxyz quaternions (k, 4) of RobotConfig.object_bodies."""
@@ -254,6 +270,7 @@ class Plant:
         mujoco.mj_kinematics(self.model, self.data)
         mujoco.mj_comPos(self.model, self.data)
         self._step1_done = False
+        self._gripper_contacts = None
 
     def tool_speed_m_s(self) -> float:
         """Linear speed of the tool point (m/s), from MuJoCo's own site velocity."""

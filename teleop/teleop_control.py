@@ -358,6 +358,10 @@ class JointStateTerms:
     world_v_tool_m_s: np.ndarray  # (3,) Jv q' from the measured q'
     measured_tool_speed_m_s: float  # |world_v_tool_m_s|
     q_rad: tuple[float, ...]  # the joint positions the terms were computed at, as floats
+    # The orientation hold's error, log3(R_des R^T) (3,), world frame, and the held
+    # orientation R_des it was computed with (None, None: none was held yet).
+    world_rotation_error: np.ndarray | None = None
+    held_r: np.ndarray | None = None
 
 
 class TeleopController:
@@ -434,10 +438,12 @@ class TeleopController:
         The plant state is known before the handle sample that completes the cycle: this
         half (tool pose and Jacobian, Gram matrix and its damped Cholesky factor,
         condition number, measured tool velocity) can run off the critical path, and
-        ``update(..., terms=...)`` does the rest. Pure with respect to the controller's
+        ``update(..., terms=...)`` does the rest. It changes nothing of the controller's
         state (held pose, previous commands, counters): call it any number of times, for
-        any state, and use the result later. It writes only its own Pinocchio scratch
-        data, so it must not run in two threads at once (nor beside an
+        any state, and use the result later. It reads the held orientation, once there is
+        one, for the hold's error; ``update`` uses that error only while the same
+        orientation is held (after a reset it computes its own). It writes only its own
+        Pinocchio scratch data, so it must not run in two threads at once (nor beside an
         ``update(terms=None)``, which calls it).
 
         Left out, because only the first cycle after a :meth:`reset` needs them: the
@@ -453,8 +459,11 @@ class TeleopController:
         jv = jacobian[:3]
         cond = _condition_number_of_gram(jjt[:3, :3])
         v_tool = jv @ qd_rad_s
-        for array in (tool_p, tool_r, jacobian, jv, jjt, factor, v_tool):
-            array.flags.writeable = False
+        held_r = self._r_des  # held from the first update on: its error is ready too
+        rotation_error = None if held_r is None else pin.log3(held_r @ tool_r.T)
+        for array in (tool_p, tool_r, jacobian, jv, jjt, factor, v_tool, rotation_error):
+            if array is not None:
+                array.flags.writeable = False
         return JointStateTerms(
             world_p_tool_m=tool_p,
             world_p_tool_xyz_m=tuple(tool_p.tolist()),
@@ -467,6 +476,8 @@ class TeleopController:
             world_v_tool_m_s=v_tool,
             measured_tool_speed_m_s=_norm(v_tool),
             q_rad=tuple(q_rad.tolist()),
+            world_rotation_error=rotation_error,
+            held_r=held_r,
         )
 
     def update(
@@ -499,6 +510,7 @@ class TeleopController:
         v_ref = np.zeros(3) if clutch else np.asarray(world_v_ref_m_s, dtype=float)
         if self._r_des is None:
             self._r_des = approach_down_orientation(tool_r) if tcfg.approach_down else tool_r.copy()
+            self._r_des.flags.writeable = False  # prepared terms keep it (held_r)
         px, py, pz = terms.world_p_tool_xyz_m
         vx, vy, vz = v_ref.tolist()
         if self._p_des is None or clutch:
@@ -512,7 +524,10 @@ class TeleopController:
             shrink = POSITION_HOLD_MAX_ERROR_M / error_norm
             ex, ey, ez = ex * shrink, ey * shrink, ez * shrink
         self._p_des = (px + ex, py + ey, pz + ez)
-        rotation_error = pin.log3(self._r_des @ tool_r.T)  # world-frame rotation vector
+        if terms.held_r is self._r_des and terms.world_rotation_error is not None:
+            rotation_error = terms.world_rotation_error  # prepared with this held pose
+        else:
+            rotation_error = pin.log3(self._r_des @ tool_r.T)  # world-frame rotation vector
         rx, ry, rz = rotation_error.tolist()
         kp, kr = POSITION_HOLD_GAIN_PER_S, ORIENTATION_GAIN_PER_S
         task = np.array((vx + kp * ex, vy + kp * ey, vz + kp * ez, kr * rx, kr * ry, kr * rz))

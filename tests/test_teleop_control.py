@@ -309,17 +309,23 @@ def test_prepare_leaves_the_controller_alone_and_its_terms_are_read_only(cfg, ar
     again = ctl.prepare(q, qd)
     ctl.prepare(q + 0.1, -qd)
     assert_same_state(before, controller_state(ctl))
+    # The orientation hold's error needs a held orientation: none before the first update.
+    assert first.world_rotation_error is None and first.held_r is None
+    assert not again.world_rotation_error.flags.writeable and not again.held_r.flags.writeable
     for field in dataclasses.fields(again):
+        if field.name in ("world_rotation_error", "held_r"):
+            continue
         a, b = getattr(first, field.name), getattr(again, field.name)
         if isinstance(a, np.ndarray):
             assert np.array_equal(a, b) and not a.flags.writeable, field.name
         else:
             assert a == b, field.name
-    # Same cycle from the same state: update() alone and with the terms agree exactly.
+    # Same cycle from the same state: update() alone and with the terms agree exactly, the
+    # hold's error prepared too (``again`` was prepared with the orientation held).
     twin = TeleopController(arm, arm_cfg.teleop, arm_cfg.control, arm_cfg.plant.timestep_s)
     twin.update(q, qd, np.array([0.1, 0.0, 0.0]), None, 1.0)
     args = (q, qd, np.array([0.0, 0.05, -0.02]), None, 0.5)
-    assert_outputs_identical(twin.update(*args), ctl.update(*args, terms=first))
+    assert_outputs_identical(twin.update(*args), ctl.update(*args, terms=again))
 
 
 def damped_gram_solve_by_dposv(gram: np.ndarray, rhs: np.ndarray, damping: float) -> np.ndarray:
