@@ -79,7 +79,11 @@ class Plant:
         )
         self.kv = self.model.actuator_gainprm[self.actuator_index, 0].copy()
         self.gripper_actuator = lookup(mujoco.mjtObj.mjOBJ_ACTUATOR, robot.gripper_actuator)
-        self.gripper_range_m = self.model.actuator_ctrlrange[self.gripper_actuator].copy()
+        # (low, high) as Python floats: _gripper_ctrl runs every step, and arithmetic on
+        # numpy scalars costs ~1 us per operation.
+        self.gripper_range_m = tuple(
+            float(x) for x in self.model.actuator_ctrlrange[self.gripper_actuator]
+        )
         self.finger_qpos_index = np.array(
             [
                 self.model.jnt_qposadr[lookup(mujoco.mjtObj.mjOBJ_JOINT, n)]
@@ -104,7 +108,6 @@ class Plant:
         self._qd_at = _as_slice(self.dof_index)
         self._ctrl_at = _as_slice(self.actuator_index)
         self._fingers_at = _as_slice(self.finger_qpos_index)
-        self._gripper_range_floats_m = tuple(float(x) for x in self.gripper_range_m)
         self.ctrl_low = self.model.actuator_ctrlrange[self.actuator_index, 0].copy()
         self.ctrl_high = self.model.actuator_ctrlrange[self.actuator_index, 1].copy()
         self.step_count = 0
@@ -137,7 +140,7 @@ class Plant:
         self._hold_q_rad = None
 
     def _gripper_ctrl(self, gripper_cmd: float) -> float:
-        low, high = self._gripper_range_floats_m  # numpy scalars cost ~1 us per operation
+        low, high = self.gripper_range_m
         fraction = min(max(gripper_cmd, 0.0), 1.0)  # scalar clip: np.clip costs 10x here
         return low + fraction * (high - low)
 

@@ -160,13 +160,12 @@ def test_device_clock_grid_steps_each_device_period_once():
         DeviceClockGrid(0, 0)
 
 
-def _plant_with_grid(start_ns: int = 0) -> PlantService:
-    """A realtime teleoperation plant, open but not run, its grid started at ``start_ns``."""
+def _plant_with_grid() -> PlantService:
+    """A realtime teleoperation plant, open but not run, stepping commands on arrival."""
     config = load_config(None, ['run.scenario="grasp"', 'bus.endpoint="tcp/127.0.0.1:0"'])
     plant = PlantService(config, ServiceOptions(listen=True))
     plant.open()
-    plant._grid = DeviceClockGrid(plant.period_ns, start_ns)
-    plant._arrival_running = True
+    plant.begin_on_arrival(None)
     return plant
 
 

@@ -27,11 +27,13 @@ from variants import (
     variant_parser,
 )
 
+from teleop import latency
+
 VARIANTS: dict[str, dict] = {
     "default": {},
     "fifo_off": {"overrides": ["cpu.fifo_priority=0"]},
-    "old_timing": {"overrides": ["plant.apply_on_arrival=false", "haptic.render_on_arrival=false"]},
-    "shm_off": {"overrides": ["bus.shm=false", 'bus.zenoh_config="local-noshm.json5"']},
+    "old_timing": {"overrides": list(latency.OLD_TIMING)},
+    "shm_off": {"overrides": list(latency.SHM_OFF)},
     "runtime_1_thread": {"env": {"ZENOH_RUNTIME": ONE_THREAD_RUNTIME}},
     "lowlatency_off": {"overrides": ["bus.lowlatency=false"]},
     "observers_on_cpu0": {"overrides": ["cpu.recorder=[0]", "cpu.eyeview=[0]"]},
@@ -43,8 +45,6 @@ VARIANTS: dict[str, dict] = {
 
 def one_variant(name: str, duration_s: float, run_dir: Path, out: Path) -> None:
     """Child process: run the stack with one variant, write its figures to ``out``."""
-    from teleop import latency
-
     run = latency.run_stack(name, None, VARIANTS[name].get("overrides", []), duration_s, run_dir)
     cpu = latency.cpu_share(run.summary)
     figures = {

@@ -32,13 +32,15 @@ from variants import (
     variant_parser,
 )
 
+from teleop import latency
+
 VARIANTS: dict[str, dict] = {
     "default": {},
     "lowlatency_off": {"overrides": ["bus.lowlatency=false"]},
     "shm_lazy": {"overrides": ['bus.zenoh_overrides=["transport/shared_memory/mode=\\"lazy\\""]']},
     "runtime_1_thread": {"env": {"ZENOH_RUNTIME": ONE_THREAD_RUNTIME}},
     "pinned": {"origin_cpus": [0], "relay_cpus": {"relay_controller": [1], "relay_plant": [0]}},
-    "shm_off": {"overrides": ["bus.shm=false", 'bus.zenoh_config="local-noshm.json5"']},
+    "shm_off": {"overrides": list(latency.SHM_OFF)},
 }
 # Payload of the sweep point each variant also measures (one eye-view frame, bytes).
 FRAME_BYTES = 640 * 480 * 3
@@ -46,8 +48,6 @@ FRAME_BYTES = 640 * 480 * 3
 
 def one_variant(name: str, paced_s: float, run_dir: Path, out: Path) -> None:
     """Child process: measure one variant, write its figures to ``out``."""
-    from teleop import latency
-
     variant = VARIANTS[name]
     if variant.get("origin_cpus"):
         os.sched_setaffinity(0, set(variant["origin_cpus"]))
@@ -77,10 +77,8 @@ def main() -> int:
         "--paced", type=float, default=10.0, help="paced seconds per run (more than the warm-up)"
     )
     args = parser.parse_args()
-    from teleop.latency import WARMUP_S
-
-    if args.paced <= WARMUP_S:  # a run all warm-up has no percentiles to report
-        parser.error(f"--paced must exceed the {WARMUP_S:g} s warm-up")
+    if args.paced <= latency.WARMUP_S:  # a run all warm-up has no percentiles to report
+        parser.error(f"--paced must exceed the {latency.WARMUP_S:g} s warm-up")
     if args.one:
         one_variant(args.one, args.paced, args.run_dir, args.out)
         return 0
