@@ -439,6 +439,13 @@ class CpuConfig:
     fifo_services: tuple[str, ...] = (
         "plant", "controller", "haptic", "relay_controller", "relay_plant",
     )  # fmt: skip
+    # Realtime runs: one SCHED_IDLE spinner per CPU (teleop/idle_poll.py) so the idle
+    # CPUs poll instead of halting. On this KVM guest a halted vCPU leaves its host core
+    # (cold caches, a hypervisor exit on every wake-up): with polling the round trip fell
+    # to 0.73x p50 and 0.89x p99, and the services' own CPU time to 0.76x (2026-11-22,
+    # 3 rounds). Any service that wakes preempts a spinner at once; the cost is CPUs that
+    # read 100 % busy while the stack runs. The floor's relay chain polls alike.
+    idle_poll: bool = True
 
     def __post_init__(self) -> None:
         names = ("plant", "controller", "haptic", "hmd", "operator", "recorder", "eyeview",
@@ -452,6 +459,10 @@ class CpuConfig:
         if service == "recorder" and mode == "lockstep":
             return self.recorder_lockstep
         return tuple(getattr(self, service, ()))
+
+    def polls_idle(self, mode: str) -> bool:
+        """Whether a stack in timing ``mode`` keeps its idle CPUs polling."""
+        return self.idle_poll and mode == "realtime"
 
     def fifo_priority_for(self, service: str, mode: str) -> int:
         """SCHED_FIFO priority of ``service`` in timing ``mode``; 0: normal scheduling."""

@@ -48,6 +48,7 @@ from teleop.stack import (
     ALIVE_TIMEOUT_S,
     SERVICE_ENVIRONMENT,
     free_loopback_port,
+    idle_poll_programs,
     run_on_services,
 )
 from teleop.stamps import SHED_FILE_SUFFIX
@@ -429,6 +430,7 @@ def run_floor(
         programs.append(
             Program(name=relay.name, command=command, environment=dict(SERVICE_ENVIRONMENT))
         )
+    programs += idle_poll_programs(config)  # the floor idles as the stack does
     period_ns = round(config.plant.timestep_s * NS_PER_S)
     payload_bytes = PLANT_STATE.size  # the loop's largest record
     # The origin plays the haptic service: same scheduling (its Zenoh threads too).
@@ -538,6 +540,13 @@ def conclusions(report: dict[str, Any]) -> list[str]:
         else:  # a side where no payload of this size came back at all
             missing = [side for side, p50 in (("SHM", shm_p50), ("TCP", tcp_p50)) if p50 is None]
             out.append(f"{what}: no payload came back over {' or '.join(missing)}")
+    polled = report["machine"].get("idle_poll_cpus")
+    out.append(
+        f"idle CPUs polled (cpu.idle_poll): {', '.join(map(str, polled))}; the services' "
+        "CPU shares leave the pollers out"
+        if polled
+        else "idle CPUs halt (cpu.idle_poll off)"
+    )
     lost = report["lost"]
     out.append(
         f"lost: haptic {lost['haptic']}, command {lost['command']}, feedback "
@@ -636,7 +645,11 @@ def build_report(
         "deadline_misses": deadline_misses(stack.summary),
         "payload_sweep": sweep_table(floor, floor_tcp),
         "dropped_messages": stack.summary.get("dropped_messages"),
-        "machine": {"cpus": os.cpu_count(), "loadavg_after": _loadavg()},
+        "machine": {
+            "cpus": os.cpu_count(),
+            "loadavg_after": _loadavg(),
+            "idle_poll_cpus": stack.summary.get("idle_poll_cpus"),
+        },
     }
     if old is not None:
         report["old_timing_round_trip_us"] = old.analysis["round_trip_us"]

@@ -18,6 +18,7 @@ end (``--continuous``); ``teleop down`` stops them.
 from __future__ import annotations
 
 import json
+import os
 import socket
 import sys
 import threading
@@ -44,6 +45,9 @@ SCENARIO_SERVICES = {
 # The operator's eye view renders in a process of its own (see teleop/eyeview.py for why
 # not a thread in the plant); it joins the stack of any scenario when eyeview.enabled.
 EYEVIEW = "eyeview"
+# Keeps the idle CPUs polling in realtime runs (teleop/idle_poll.py): not a bus service.
+IDLE_POLL = "idle_poll"
+IDLE_POLL_PRIORITY = 1  # before every service, and stopped after them
 RUNNER = "runner"
 # Start order (supervisord priority: lower first); services still wait on liveliness.
 PRIORITY = {
@@ -131,6 +135,26 @@ def service_programs(
     return programs
 
 
+def idle_poll_cpus(config: Config) -> list[int]:
+    """The CPUs a stack run with ``config`` keeps polling: every CPU this process may use
+    in realtime runs with ``cpu.idle_poll``, else none."""
+    return sorted(os.sched_getaffinity(0)) if config.cpu.polls_idle(config.run.mode) else []
+
+
+def idle_poll_programs(config: Config) -> list[Program]:
+    """One idle poller (``services.idle_poll``) per CPU of :func:`idle_poll_cpus`. They
+    start first and stop last (supervisord priority), so they span the whole run."""
+    return [
+        Program(
+            name=f"{IDLE_POLL}_cpu{cpu}",
+            command=[sys.executable, "-m", f"services.{IDLE_POLL}", "--cpu", str(cpu)],
+            priority=IDLE_POLL_PRIORITY,
+            environment=dict(SERVICE_ENVIRONMENT),
+        )
+        for cpu in idle_poll_cpus(config)
+    ]
+
+
 def _read_summary(run_dir: Path, service: str) -> dict[str, Any]:
     path = run_dir / f"{service}.summary.json"
     if not path.exists():
@@ -185,7 +209,7 @@ def run_on_services(
             listener=None,
             await_services={"plant": [*services[1:], RUNNER]},
             continuous=False,
-        )
+        ) + idle_poll_programs(config)
         factor = (
             LOCKSTEP_TIMEOUT_FACTOR if config.run.mode == "lockstep" else REALTIME_TIMEOUT_FACTOR
         )
@@ -233,6 +257,7 @@ def run_on_services(
             "skipped_states": controller["skipped_states"],
             "final_state_sha256": plant["final_state_sha256"],
             "stack_wall_s": wall_s,
+            "idle_poll_cpus": idle_poll_cpus(config),
             "eye_view": _eye_view_summary(summaries),
             "rrd": summaries["recorder"].get("rrd_path"),
             "run_dir": str(run_dir),
@@ -326,7 +351,7 @@ def start_detached(
         listener="plant",
         await_services={"plant": list(services[1:])},
         continuous=True,
-    )
+    ) + idle_poll_programs(config)
     stack = Stack(run_dir, programs)
     stack.start(detach=True)
     return stack.status()

@@ -12,6 +12,7 @@ generous sanity bound; wall-clock targets are the benchmark's
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import time
@@ -299,6 +300,8 @@ def test_report_files(stack_run, floor_run, tmp_path):
     assert set(report["lost"]) >= {"haptic", "command"} and "reordered" in report
     assert set(report["rate_hz"]) == {"plant", "haptic", "controller", "hmd"}
     assert [row["bytes"] for row in report["payload_sweep"]] == [64, 65536]
+    # The stack and the floor ran with their idle CPUs polling (the default).
+    assert report["machine"]["idle_poll_cpus"] == sorted(os.sched_getaffinity(0))
     latency.write_json(report, tmp_path / "out.json")
     latency.write_png(report, raw, tmp_path / "out.png")
     latency.log_to_rerun(report, raw, tmp_path / "out.rrd")
@@ -335,6 +338,7 @@ def test_conclusions_name_the_frame_and_1mib_sizes_and_a_side_that_got_nothing()
         "reordered": {"haptic": 0},
         "chain": {"missing": 0, "samples": 10},
         "shed": {"haptic": 0},
+        "machine": {"idle_poll_cpus": [0, 1]},
         "payload_sweep": [
             {"bytes": 64, "shm_us": stats, "tcp_us": stats, "tcp_over_shm_p50": 1.0,
              "shm_faster": False},
@@ -348,6 +352,9 @@ def test_conclusions_name_the_frame_and_1mib_sizes_and_a_side_that_got_nothing()
     assert not any(line.startswith("64 B") for line in lines)
     assert f"{latency.EYE_VIEW_FRAME_BYTES} B (eye-view frame): SHM is faster" in "\n".join(lines)
     assert "1048576 B: no payload came back over TCP" in lines
+    assert lines[-2].startswith("idle CPUs polled (cpu.idle_poll): 0, 1;")
+    report["machine"]["idle_poll_cpus"] = []
+    assert "idle CPUs halt (cpu.idle_poll off)" in latency.conclusions(report)
 
 
 def test_loop_stage_cost_benchmark_replays_every_stage(tmp_path):

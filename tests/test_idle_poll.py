@@ -1,0 +1,105 @@
+"""The idle poller (teleop/idle_poll.py) as a real process: pinned, SCHED_IDLE, stops on
+supervisord's signal, exits with its parent, refuses a CPU it may not use; and which
+stacks get one per CPU."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import replace
+
+import pytest
+
+from teleop.config import load_config
+from teleop.stack import IDLE_POLL_PRIORITY, PRIORITY, idle_poll_programs
+
+# Waits poll with a deadline; the deadline only bounds a failure.
+WAIT_TIMEOUT_S = 10.0
+POLL_S = 0.02
+POLLER = [sys.executable, "-m", "services.idle_poll"]
+
+
+def _wait_for(predicate, what: str) -> None:
+    deadline = time.monotonic() + WAIT_TIMEOUT_S
+    while not predicate():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out waiting for {what}")
+        time.sleep(POLL_S)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def _is_polling(pid: int) -> bool:
+    return os.sched_getscheduler(pid) == os.SCHED_IDLE
+
+
+def test_poller_spins_pinned_at_sched_idle_and_stops_on_sigint():
+    cpu = max(os.sched_getaffinity(0))
+    proc = subprocess.Popen([*POLLER, "--cpu", str(cpu)], stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_for(lambda: _is_polling(proc.pid), "the poller to drop to SCHED_IDLE")
+        assert os.sched_getaffinity(proc.pid) == {cpu}
+        time.sleep(0.3)
+        with open(f"/proc/{proc.pid}/stat") as f:
+            utime_ticks = int(f.read().rsplit(")", 1)[1].split()[11])
+        assert utime_ticks > 0, "the poller should be spinning in user space"
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(WAIT_TIMEOUT_S) == 0
+        assert f"CPU {cpu} polling" in proc.stderr.read()
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def test_poller_exits_when_its_parent_dies():
+    # The parent starts a poller, prints its pid and sleeps; SIGKILL on the parent must not
+    # leave an orphan spinning (PR_SET_PDEATHSIG).
+    script = (
+        "import subprocess, sys, time; "
+        f"p = subprocess.Popen({POLLER!r} + ['--cpu', '{min(os.sched_getaffinity(0))}']); "
+        "print(p.pid, flush=True); time.sleep(60)"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    poller_pid = int(parent.stdout.readline())
+    try:
+        _wait_for(lambda: _is_polling(poller_pid), "the poller to start")
+        parent.kill()
+        parent.wait()
+        _wait_for(lambda: not _alive(poller_pid), "the orphaned poller to exit")
+    finally:
+        if _alive(poller_pid):
+            os.kill(poller_pid, signal.SIGKILL)
+
+
+def test_poller_refuses_a_cpu_it_may_not_use():
+    missing = max(os.sched_getaffinity(0)) + 64
+    proc = subprocess.run(
+        [*POLLER, "--cpu", str(missing)], capture_output=True, text=True, timeout=30
+    )
+    assert proc.returncode == 2
+    assert f"CPU {missing} is not available" in proc.stderr
+
+
+def test_realtime_stacks_get_one_poller_per_cpu_started_first():
+    config = load_config(None, ['run.mode="realtime"'])
+    programs = idle_poll_programs(config)
+    cpus = sorted(os.sched_getaffinity(0))
+    assert [p.name for p in programs] == [f"idle_poll_cpu{c}" for c in cpus]
+    for program, cpu in zip(programs, cpus, strict=True):
+        assert program.command[-2:] == ["--cpu", str(cpu)]
+        assert program.priority == IDLE_POLL_PRIORITY < min(PRIORITY.values())
+
+
+def test_lockstep_and_disabled_stacks_get_no_poller():
+    config = load_config(None, ['run.mode="lockstep"'])
+    assert idle_poll_programs(config) == []
+    realtime = load_config(None, ['run.mode="realtime"'])
+    assert idle_poll_programs(replace(realtime, cpu=replace(realtime.cpu, idle_poll=False))) == []
+    assert idle_poll_programs(load_config(None, ["cpu.idle_poll=false"])) == []
