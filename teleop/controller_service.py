@@ -297,10 +297,12 @@ class TeleopTask:
         self._rt_busy = False
         self._pending: dict[str, Any] = {}
         self._last_output: TeleopOutput | None = None
-        # Realtime: (state seq, its joint-state terms of the control law), prepared after
-        # that state's feedback went out, so a handle sample answered on that state runs
-        # only the handle-dependent rest of the law (TeleopController.prepare).
-        self._terms: tuple[int, JointStateTerms | None] = (-1, None)
+        # Realtime: (state seq, its joint-state terms of the control law, its closest
+        # obstacle), prepared after that state's feedback went out, so a handle sample
+        # answered on that state runs only the handle-dependent rest of the law
+        # (TeleopController.prepare).
+        self._prepared: tuple[int, JointStateTerms | None, ProximitySample | None]
+        self._prepared = (-1, None, None)
         self.haptic_seq = SeqCheck()  # HAPTIC_STATE gaps and reordering (realtime)
         self.haptic_before_state = 0  # samples that arrived before any plant state
         self.haptic_shed = 0  # samples not answered: too old, or superseded while busy
@@ -321,7 +323,7 @@ class TeleopTask:
     def reset(self) -> None:
         self.controller.reset()
         self.barrier.reset()
-        self._terms = (-1, None)
+        self._prepared = (-1, None, None)
         self._reset_metrics()
 
     # -- inputs --------------------------------------------------------------------------
@@ -415,11 +417,10 @@ class TeleopTask:
         tick = int(state["seq"])
         service = self.service
         t0 = time.monotonic_ns()
-        obstacle = self._proximity_sample(state)
-        terms_seq, terms = self._terms
-        output, gripper_cmd, _, _ = self._control(
-            tick, state, haptic, obstacle, terms if terms_seq == tick else None
-        )
+        prepared_seq, terms, obstacle = self._prepared
+        if prepared_seq != tick:  # not prepared for this state: all of it here
+            terms, obstacle = None, self._proximity_sample(state)
+        output, gripper_cmd, _, _ = self._control(tick, state, haptic, obstacle, terms)
         service.compute_ns_total += time.monotonic_ns() - t0
         trace = np.zeros(N_STAGES, dtype=np.int64)  # np.zeros_like costs ~10 us here
         trace[Stage.HAPTIC_SAMPLE] = haptic["trace_ns"][Stage.HAPTIC_SAMPLE]
@@ -458,7 +459,8 @@ class TeleopTask:
         # state; its joint-state half of the control law can run now.
         n = service.arm.n_joints
         t0 = time.monotonic_ns()
-        self._terms = (tick, self.controller.prepare(state["q_rad"][:n], state["qd_rad_s"][:n]))
+        terms = self.controller.prepare(state["q_rad"][:n], state["qd_rad_s"][:n])
+        self._prepared = (tick, terms, obstacle)
         service.compute_ns_total += time.monotonic_ns() - t0
 
     def _control(

@@ -8,11 +8,18 @@ runs, on cold caches. The kernel's cure is to poll when idle (``idle=poll``, or 
 ``cpuidle-haltpoll`` driver and ``/dev/cpu_dma_latency``), but both need the boot command
 line, and this guest runs with no cpuidle driver at all.
 
-What. One process per CPU, pinned to it, under ``SCHED_IDLE``, spinning. ``SCHED_IDLE``
-runs only when nothing else wants that CPU: a SCHED_FIFO loop service or a normally
-scheduled service that wakes preempts it at once, and against busy normal tasks it gets
-a weight of 3 against nice 0's 1024. So it never delays or starves a service; it only
-fills the time the CPU would have halted, and the vCPU stays on its core.
+What. One process per CPU, pinned to it, spinning at the lowest CPU priority Linux
+has. That takes two settings, and the second is the one that matters:
+
+- the process runs under ``SCHED_IDLE`` (weight 3 against nice 0's 1024; any task that
+  wakes preempts it at once);
+- it first moves itself into a CPU cgroup marked idle (``cpu.idle = 1``, Linux 5.15+),
+  so the same holds between groups. A SCHED_IDLE task is idle only within its group:
+  left in its session's autogroup it competed at the root as a whole nice-0 group, and
+  on this machine it starved the CPU's kernel threads (ksoftirqd, the per-CPU
+  workqueues) for minutes, until TCP loopback stopped delivering and ``mprotect`` /
+  ``madvise`` callers hung in D state. A poller that cannot join an idle group does not
+  spin: it logs why and sleeps until stopped (the stack runs, just without polling).
 
 Measured (2026-11-22, this machine, ``teleop latency`` stack, 3 alternating rounds of
 15 s): round trip p50 761 -> 558 us (0.73x), p99 1233 -> 1103 us (0.89x), every hop
@@ -30,13 +37,62 @@ import ctypes
 import os
 import signal
 import sys
+from pathlib import Path
 
 # prctl(2) option: the signal this process gets when its parent (supervisord) dies.
 PR_SET_PDEATHSIG = 1
+# The CPU cgroup the pollers share (created on first use, left for the next run).
+IDLE_CGROUP_NAME = "teleop-idle-poll"
+MOUNTINFO = Path("/proc/self/mountinfo")
+
+
+class IdlePollUnavailable(RuntimeError):
+    """This machine cannot run a poller safely (no idle CPU cgroup); the message says why."""
+
+
+def cpu_cgroup_root(mountinfo: str) -> tuple[Path, int] | None:
+    """Where the CPU controller's hierarchy is mounted, and its cgroup version (1 or 2),
+    from the text of ``/proc/self/mountinfo``; None when there is none."""
+    v2 = None
+    for line in mountinfo.splitlines():
+        fields, _, tail = line.partition(" - ")
+        parts, super_parts = fields.split(), tail.split()
+        if len(parts) < 5 or len(super_parts) < 3:
+            continue
+        mount_point, fs_type, super_options = Path(parts[4]), super_parts[0], super_parts[2]
+        if fs_type == "cgroup" and "cpu" in super_options.split(","):
+            return mount_point, 1
+        if fs_type == "cgroup2" and v2 is None:
+            controllers = mount_point / "cgroup.controllers"
+            if controllers.exists() and "cpu" in controllers.read_text().split():
+                v2 = mount_point
+    return (v2, 2) if v2 is not None else None
+
+
+def join_idle_cgroup() -> Path:
+    """Move this process into the pollers' CPU cgroup, created with ``cpu.idle = 1``;
+    return its directory. Raises :class:`IdlePollUnavailable` when it cannot."""
+    found = cpu_cgroup_root(MOUNTINFO.read_text())
+    if found is None:
+        raise IdlePollUnavailable("no cgroup hierarchy with the cpu controller is mounted")
+    root, version = found
+    group = root / IDLE_CGROUP_NAME
+    try:
+        if version == 2 and "cpu" not in (root / "cgroup.subtree_control").read_text().split():
+            (root / "cgroup.subtree_control").write_text("+cpu")
+        group.mkdir(exist_ok=True)
+        (group / "cpu.idle").write_text("1")
+        (group / "cgroup.procs").write_text(str(os.getpid()))
+    except OSError as exc:
+        raise IdlePollUnavailable(f"cannot set up the idle cgroup {group}: {exc}") from exc
+    if (group / "cpu.idle").read_text().strip() != "1":
+        raise IdlePollUnavailable(f"{group}/cpu.idle did not take the value 1")
+    return group
 
 
 def poll_forever(cpu: int) -> None:
     """Pin this process to ``cpu``, drop to SCHED_IDLE and spin until a signal stops it.
+    Call :func:`join_idle_cgroup` first (see the module docstring).
 
     Raises OSError when ``cpu`` is not one this process may run on.
     """
@@ -58,8 +114,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="teleop-idle-poll",
         description="Keep one CPU polling instead of halting while a realtime stack runs "
-        "(SCHED_IDLE: any service that wakes preempts it). Started by the stack under "
-        "supervisord when cpu.idle_poll is true; see teleop/idle_poll.py for why.",
+        "(SCHED_IDLE, in a CPU cgroup marked idle: anything else that wants the CPU gets "
+        "it at once). Started by the stack under supervisord when cpu.idle_poll is true; "
+        "see teleop/idle_poll.py for why.",
     )
     parser.add_argument("--cpu", type=int, required=True, help="the CPU to keep polling")
     args = parser.parse_args(argv)
@@ -71,9 +128,20 @@ def main(argv: list[str] | None = None) -> int:
     if args.cpu not in allowed:
         print(f"idle_poll: CPU {args.cpu} is not available here (have {allowed})", file=sys.stderr)
         return 2
-    signal.signal(signal.SIGTERM, signal.default_int_handler)
-    print(f"idle_poll: CPU {args.cpu} polling (SCHED_IDLE)", file=sys.stderr, flush=True)
+    for stop_signal in (signal.SIGINT, signal.SIGTERM):  # SIGINT may come in ignored
+        signal.signal(stop_signal, signal.default_int_handler)
     try:
+        try:
+            group = join_idle_cgroup()
+        except IdlePollUnavailable as exc:
+            print(f"idle_poll: CPU {args.cpu} not polled: {exc}", file=sys.stderr, flush=True)
+            signal.pause()  # stay up (supervisord would restart an exit) until stopped
+            return 0
+        print(
+            f"idle_poll: CPU {args.cpu} polling (SCHED_IDLE, cgroup {group})",
+            file=sys.stderr,
+            flush=True,
+        )
         poll_forever(args.cpu)
     except KeyboardInterrupt:  # supervisord's stop signal (SIGINT), or SIGTERM
         pass

@@ -1,6 +1,6 @@
-"""The idle poller (teleop/idle_poll.py) as a real process: pinned, SCHED_IDLE, stops on
-supervisord's signal, exits with its parent, refuses a CPU it may not use; and which
-stacks get one per CPU."""
+"""The idle poller (teleop/idle_poll.py) as a real process: pinned, SCHED_IDLE in the
+idle cgroup, leaves its CPU to any other process, stops on supervisord's signal, exits
+with its parent, refuses a CPU it may not use; and which stacks get one per CPU."""
 
 import os
 import signal
@@ -8,10 +8,12 @@ import subprocess
 import sys
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import pytest
 
 from teleop.config import load_config
+from teleop.idle_poll import IDLE_CGROUP_NAME, cpu_cgroup_root
 from teleop.stack import IDLE_POLL_PRIORITY, PRIORITY, idle_poll_programs
 
 # Waits poll with a deadline; the deadline only bounds a failure.
@@ -46,16 +48,49 @@ def test_poller_spins_pinned_at_sched_idle_and_stops_on_sigint():
     try:
         _wait_for(lambda: _is_polling(proc.pid), "the poller to drop to SCHED_IDLE")
         assert os.sched_getaffinity(proc.pid) == {cpu}
+        with open(f"/proc/{proc.pid}/cgroup") as f:
+            assert f"/{IDLE_CGROUP_NAME}\n" in f.read()
         time.sleep(0.3)
         with open(f"/proc/{proc.pid}/stat") as f:
             utime_ticks = int(f.read().rsplit(")", 1)[1].split()[11])
         assert utime_ticks > 0, "the poller should be spinning in user space"
         proc.send_signal(signal.SIGINT)
         assert proc.wait(WAIT_TIMEOUT_S) == 0
-        assert f"CPU {cpu} polling" in proc.stderr.read()
+        assert f"CPU {cpu} polling (SCHED_IDLE, cgroup" in proc.stderr.read()
     finally:
         proc.kill()
         proc.wait()
+
+
+# Spins for 1 s on the CPU given, then prints the share of that second it got.
+HOG = (
+    "import os, sys, time; os.sched_setaffinity(0, {int(sys.argv[1])}); "
+    "t0, c0 = time.monotonic(), time.process_time()\n"
+    "while time.monotonic() - t0 < 1.0: pass\n"
+    "print((time.process_time() - c0) / (time.monotonic() - t0))"
+)
+
+
+def test_poller_leaves_its_cpu_to_a_process_of_another_session():
+    # In its own session (its own autogroup), a CPU-bound process must get nearly all of
+    # the CPU the poller spins on. A SCHED_IDLE spinner outside the idle cgroup gave it
+    # half (its autogroup competed as a nice-0 group) and starved kernel threads.
+    cpu = max(os.sched_getaffinity(0))
+    poller = subprocess.Popen([*POLLER, "--cpu", str(cpu)], stderr=subprocess.DEVNULL)
+    try:
+        _wait_for(lambda: _is_polling(poller.pid), "the poller to start")
+        hog = subprocess.run(
+            [sys.executable, "-c", HOG, str(cpu)],
+            capture_output=True,
+            text=True,
+            timeout=30,
+            start_new_session=True,
+        )
+        assert hog.returncode == 0, hog.stderr
+        assert float(hog.stdout) > 0.9
+    finally:
+        poller.send_signal(signal.SIGINT)
+        poller.wait(WAIT_TIMEOUT_S)
 
 
 def test_poller_exits_when_its_parent_dies():
@@ -103,3 +138,20 @@ def test_lockstep_and_disabled_stacks_get_no_poller():
     realtime = load_config(None, ['run.mode="realtime"'])
     assert idle_poll_programs(replace(realtime, cpu=replace(realtime.cpu, idle_poll=False))) == []
     assert idle_poll_programs(load_config(None, ["cpu.idle_poll=false"])) == []
+
+
+def test_cpu_cgroup_root_finds_the_cpu_hierarchy_v1_first(tmp_path):
+    v1 = (
+        "31 23 0:28 / /sys/fs/cgroup rw,relatime - tmpfs tmpfs rw,mode=755\n"
+        "33 31 0:30 / /sys/fs/cgroup/cpuacct rw,relatime - cgroup cgroup rw,cpuacct\n"
+        "32 31 0:29 / /sys/fs/cgroup/cpu rw,relatime - cgroup cgroup rw,cpu\n"
+    )
+    assert cpu_cgroup_root(v1) == (Path("/sys/fs/cgroup/cpu"), 1)
+    unified = tmp_path / "unified"
+    unified.mkdir()
+    (unified / "cgroup.controllers").write_text("cpuset cpu io memory pids\n")
+    v2 = f"40 23 0:31 / {unified} rw,nosuid - cgroup2 cgroup2 rw\n"
+    assert cpu_cgroup_root(v2) == (unified, 2)
+    (unified / "cgroup.controllers").write_text("memory pids\n")
+    assert cpu_cgroup_root(v2) is None
+    assert cpu_cgroup_root("") is None

@@ -32,6 +32,7 @@ from teleop import latency
 VARIANTS: dict[str, dict] = {
     "default": {},
     "fifo_off": {"overrides": ["cpu.fifo_priority=0"]},
+    "idle_poll_off": {"overrides": ["cpu.idle_poll=false"]},
     "old_timing": {"overrides": list(latency.OLD_TIMING)},
     "shm_off": {"overrides": list(latency.SHM_OFF)},
     "runtime_1_thread": {"env": {"ZENOH_RUNTIME": ONE_THREAD_RUNTIME}},
