@@ -446,10 +446,13 @@ class CpuConfig:
     # 3 rounds). Any service that wakes preempts a spinner at once; the cost is CPUs that
     # read 100 % busy while the stack runs. The floor's relay chain polls alike.
     idle_poll: bool = True
+    # Which CPUs poll (empty: every CPU the launching process may use). On a machine
+    # with more cores than the stack needs, list the loop services' CPUs only.
+    idle_poll_cpus: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         names = ("plant", "controller", "haptic", "hmd", "operator", "recorder", "eyeview",
-                 "recorder_lockstep")  # fmt: skip
+                 "recorder_lockstep", "idle_poll_cpus")  # fmt: skip
         for name in names:
             _require(all(c >= 0 for c in getattr(self, name)), f"cpu.{name}: CPU numbers >= 0")
         _require(0 <= self.fifo_priority <= 99, "cpu.fifo_priority in [0, 99]")

@@ -136,9 +136,14 @@ def service_programs(
 
 
 def idle_poll_cpus(config: Config) -> list[int]:
-    """The CPUs a stack run with ``config`` keeps polling: every CPU this process may use
-    in realtime runs with ``cpu.idle_poll``, else none."""
-    return sorted(os.sched_getaffinity(0)) if config.cpu.polls_idle(config.run.mode) else []
+    """The CPUs a stack run with ``config`` keeps polling: in realtime runs with
+    ``cpu.idle_poll``, those of ``cpu.idle_poll_cpus`` (all when empty) that this process
+    may use; else none."""
+    if not config.cpu.polls_idle(config.run.mode):
+        return []
+    available = os.sched_getaffinity(0)
+    wanted = set(config.cpu.idle_poll_cpus) or available
+    return sorted(wanted & available)
 
 
 def idle_poll_programs(config: Config) -> list[Program]:

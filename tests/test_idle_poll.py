@@ -87,7 +87,8 @@ def test_poller_leaves_its_cpu_to_a_process_of_another_session():
             start_new_session=True,
         )
         assert hog.returncode == 0, hog.stderr
-        assert float(hog.stdout) > 0.9
+        # Nearly all of it; a margin for the host's steal time (the bug gave 0.5).
+        assert float(hog.stdout) > 0.75
     finally:
         poller.send_signal(signal.SIGINT)
         poller.wait(WAIT_TIMEOUT_S)
@@ -155,3 +156,9 @@ def test_cpu_cgroup_root_finds_the_cpu_hierarchy_v1_first(tmp_path):
     (unified / "cgroup.controllers").write_text("memory pids\n")
     assert cpu_cgroup_root(v2) is None
     assert cpu_cgroup_root("") is None
+
+
+def test_idle_poll_cpus_narrow_the_polled_cpus_to_those_available():
+    cpus = sorted(os.sched_getaffinity(0))
+    config = load_config(None, ['run.mode="realtime"', f"cpu.idle_poll_cpus=[{cpus[-1]}, 999]"])
+    assert [p.name for p in idle_poll_programs(config)] == [f"idle_poll_cpu{cpus[-1]}"]
