@@ -439,12 +439,13 @@ class CpuConfig:
     fifo_services: tuple[str, ...] = (
         "plant", "controller", "haptic", "relay_controller", "relay_plant",
     )  # fmt: skip
-    # Realtime runs: one SCHED_IDLE spinner per CPU (teleop/idle_poll.py) so the idle
-    # CPUs poll instead of halting. On this KVM guest a halted vCPU leaves its host core
-    # (cold caches, a hypervisor exit on every wake-up): with polling the round trip fell
-    # to 0.73x p50 and 0.89x p99, and the services' own CPU time to 0.76x (2026-11-22,
-    # 3 rounds). Any service that wakes preempts a spinner at once; the cost is CPUs that
-    # read 100 % busy while the stack runs. The floor's relay chain polls alike.
+    # Realtime runs: one spinner per CPU (teleop/idle_poll.py: SCHED_IDLE in a CPU cgroup
+    # marked idle) so the idle CPUs poll instead of halting. On this KVM guest a halted
+    # vCPU leaves its host core (cold caches, a hypervisor exit on every wake-up): with
+    # polling the round trip fell to 0.83x p50 and 0.78x p99, and the services' own CPU
+    # time to 0.88x (2026-11-22, 3 rounds). Anything else that wants a CPU preempts its
+    # spinner at once; the cost is CPUs that read 100 % busy while the stack runs. The
+    # floor's relay chain polls alike.
     idle_poll: bool = True
     # Which CPUs poll (empty: every CPU the launching process may use). On a machine
     # with more cores than the stack needs, list the loop services' CPUs only.

@@ -21,13 +21,13 @@ has. That takes two settings, and the second is the one that matters:
   ``madvise`` callers hung in D state. A poller that cannot join an idle group does not
   spin: it logs why and sleeps until stopped (the stack runs, just without polling).
 
-Measured (2026-11-22, this machine, ``teleop latency`` stack, 3 alternating rounds of
-15 s): round trip p50 761 -> 558 us (0.73x), p99 1233 -> 1103 us (0.89x), every hop
-lower, and the services' own CPU time 1.5 -> 1.1 cores (their work runs on warm caches).
-The bare relay chain (the floor), paced at 1 kHz: p50 0.30 -> 0.20 ms, p99 0.62 -> 0.36
-ms. Back to back (no idle time to fill) it does not change. The cost: the CPUs read 100 %
-busy while a realtime stack runs. ``cpu.idle_poll = false`` turns it off (laptops on
-battery, hosts shared with other work); lockstep runs never poll.
+Measured (2026-11-22, this machine, ``tests/benchmarks/latency_stack_variants.py
+--duration 15 --repeat 3 --variants default,idle_poll_off``): round trip p50 658 -> 548
+us (0.83x), p99 1150 -> 900 us (0.78x), and the services' own CPU time 1.37 -> 1.20
+cores (their work runs on warm caches). The bare relay chain (the floor) did not move.
+The cost: the CPUs read 100 % busy while a realtime stack runs. ``cpu.idle_poll =
+false`` turns it off (laptops on battery, hosts shared with other work); lockstep runs
+never poll.
 """
 
 from __future__ import annotations

@@ -48,6 +48,7 @@ from teleop.stack import (
     ALIVE_TIMEOUT_S,
     SERVICE_ENVIRONMENT,
     free_loopback_port,
+    idle_poll_cpus,
     idle_poll_programs,
     run_on_services,
 )
@@ -430,7 +431,7 @@ def run_floor(
         programs.append(
             Program(name=relay.name, command=command, environment=dict(SERVICE_ENVIRONMENT))
         )
-    programs += idle_poll_programs(config)  # the floor idles as the stack does
+    programs += idle_poll_programs(idle_poll_cpus(config))  # the floor idles as the stack does
     period_ns = round(config.plant.timestep_s * NS_PER_S)
     payload_bytes = PLANT_STATE.size  # the loop's largest record
     # The origin plays the haptic service: same scheduling (its Zenoh threads too).

@@ -146,9 +146,9 @@ def idle_poll_cpus(config: Config) -> list[int]:
     return sorted(wanted & available)
 
 
-def idle_poll_programs(config: Config) -> list[Program]:
-    """One idle poller (``services.idle_poll``) per CPU of :func:`idle_poll_cpus`. They
-    start first and stop last (supervisord priority), so they span the whole run."""
+def idle_poll_programs(cpus: Sequence[int]) -> list[Program]:
+    """One idle poller (``services.idle_poll``) per CPU of ``cpus`` (:func:`idle_poll_cpus`).
+    They start first and stop last (supervisord priority), so they span the whole run."""
     return [
         Program(
             name=f"{IDLE_POLL}_cpu{cpu}",
@@ -156,7 +156,7 @@ def idle_poll_programs(config: Config) -> list[Program]:
             priority=IDLE_POLL_PRIORITY,
             environment=dict(SERVICE_ENVIRONMENT),
         )
-        for cpu in idle_poll_cpus(config)
+        for cpu in cpus
     ]
 
 
@@ -199,6 +199,7 @@ def run_on_services(
         if int(rec["event"]) == Event.FINISHED:
             finished.set()
 
+    polled_cpus = idle_poll_cpus(config)
     session = open_session(bus, listen=True)
     entities: list[Any] = []
     try:
@@ -214,7 +215,7 @@ def run_on_services(
             listener=None,
             await_services={"plant": [*services[1:], RUNNER]},
             continuous=False,
-        ) + idle_poll_programs(config)
+        ) + idle_poll_programs(polled_cpus)
         factor = (
             LOCKSTEP_TIMEOUT_FACTOR if config.run.mode == "lockstep" else REALTIME_TIMEOUT_FACTOR
         )
@@ -262,7 +263,7 @@ def run_on_services(
             "skipped_states": controller["skipped_states"],
             "final_state_sha256": plant["final_state_sha256"],
             "stack_wall_s": wall_s,
-            "idle_poll_cpus": idle_poll_cpus(config),
+            "idle_poll_cpus": polled_cpus,
             "eye_view": _eye_view_summary(summaries),
             "rrd": summaries["recorder"].get("rrd_path"),
             "run_dir": str(run_dir),
@@ -356,7 +357,7 @@ def start_detached(
         listener="plant",
         await_services={"plant": list(services[1:])},
         continuous=True,
-    ) + idle_poll_programs(config)
+    ) + idle_poll_programs(idle_poll_cpus(config))
     stack = Stack(run_dir, programs)
     stack.start(detach=True)
     return stack.status()

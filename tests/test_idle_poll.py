@@ -14,7 +14,7 @@ import pytest
 
 from teleop.config import load_config
 from teleop.idle_poll import IDLE_CGROUP_NAME, cpu_cgroup_root
-from teleop.stack import IDLE_POLL_PRIORITY, PRIORITY, idle_poll_programs
+from teleop.stack import IDLE_POLL_PRIORITY, PRIORITY, idle_poll_cpus, idle_poll_programs
 
 # Waits poll with a deadline; the deadline only bounds a failure.
 WAIT_TIMEOUT_S = 10.0
@@ -123,9 +123,14 @@ def test_poller_refuses_a_cpu_it_may_not_use():
     assert f"CPU {missing} is not available" in proc.stderr
 
 
+def _programs(config):
+    """The pollers a stack run with ``config`` gets (as the stack builds them)."""
+    return idle_poll_programs(idle_poll_cpus(config))
+
+
 def test_realtime_stacks_get_one_poller_per_cpu_started_first():
     config = load_config(None, ['run.mode="realtime"'])
-    programs = idle_poll_programs(config)
+    programs = _programs(config)
     cpus = sorted(os.sched_getaffinity(0))
     assert [p.name for p in programs] == [f"idle_poll_cpu{c}" for c in cpus]
     for program, cpu in zip(programs, cpus, strict=True):
@@ -135,10 +140,10 @@ def test_realtime_stacks_get_one_poller_per_cpu_started_first():
 
 def test_lockstep_and_disabled_stacks_get_no_poller():
     config = load_config(None, ['run.mode="lockstep"'])
-    assert idle_poll_programs(config) == []
+    assert _programs(config) == []
     realtime = load_config(None, ['run.mode="realtime"'])
-    assert idle_poll_programs(replace(realtime, cpu=replace(realtime.cpu, idle_poll=False))) == []
-    assert idle_poll_programs(load_config(None, ["cpu.idle_poll=false"])) == []
+    assert _programs(replace(realtime, cpu=replace(realtime.cpu, idle_poll=False))) == []
+    assert _programs(load_config(None, ["cpu.idle_poll=false"])) == []
 
 
 def test_cpu_cgroup_root_finds_the_cpu_hierarchy_v1_first(tmp_path):
@@ -161,4 +166,4 @@ def test_cpu_cgroup_root_finds_the_cpu_hierarchy_v1_first(tmp_path):
 def test_idle_poll_cpus_narrow_the_polled_cpus_to_those_available():
     cpus = sorted(os.sched_getaffinity(0))
     config = load_config(None, ['run.mode="realtime"', f"cpu.idle_poll_cpus=[{cpus[-1]}, 999]"])
-    assert [p.name for p in idle_poll_programs(config)] == [f"idle_poll_cpu{cpus[-1]}"]
+    assert [p.name for p in _programs(config)] == [f"idle_poll_cpu{cpus[-1]}"]
