@@ -274,10 +274,13 @@ class EyeViewService(Service):
             self.frames_without_state += 1
             return False
         state, _ = latest
+        # Inputs are taken before the render's start stamp, so a head pose arriving while
+        # this frame renders belongs to the next frame: head_rx_ns <= render_start_ns.
+        objects = self.objects.get()
+        head = self.heads.get()
         n = self.renderer.n_joints
         start_ns = time.monotonic_ns()
         rec = self._frame
-        objects = self.objects.get()
         if objects is not None:
             k = int(objects[0]["n_objects"])
             self.renderer.set_state(
@@ -288,7 +291,6 @@ class EyeViewService(Service):
             )
         else:
             self.renderer.set_state(state["q_rad"][:n], float(state["gripper_opening_m"]))
-        head = self.heads.get()
         eye = self.config.eyeview
         if head is not None:
             pose, head_rx_ns = head
