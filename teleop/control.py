@@ -16,6 +16,8 @@ from the MJCF actuators (see ``kinematics.ServoParameters``):
 from __future__ import annotations
 
 import math
+import operator
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,8 +25,8 @@ import numpy as np
 from teleop.config import ControlConfig, PathConfig
 from teleop.kinematics import (
     ArmModel,
-    inverse_dynamics,
     manipulability_and_gradient,
+    mass_matrix_and_bias,
     symmetric_3x3_inverse,
     tool_position_and_jacobian,
 )
@@ -120,42 +122,67 @@ def limit_speed(qd_rad_s: np.ndarray, max_rad_s: np.ndarray | float) -> np.ndarr
     return qd_rad_s / ratio if ratio > 1.0 else qd_rad_s
 
 
-def dynamic_compensation(
-    arm: ArmModel,
-    q_rad: np.ndarray,
-    qd_rad_s: np.ndarray,
-    qd_c_rad_s: np.ndarray,
-    qdd_c_rad_s2: np.ndarray,
-    velocity_gain_per_s: float,
-) -> np.ndarray:
-    """q'_ref such that the velocity loops make q' follow q'_c despite the arm's dynamics."""
+@dataclass(frozen=True)
+class CompensationTerms:
+    """The dynamic compensation's terms at one joint state (q, q'), in floats:
+    q'_ref = base + (H^-1 M0(q)) q''_ref with q''_ref = q''_c + Kd (q'_c - q').
+
+    Everything but q'_c depends on the joint state only, so the teleoperation cycle
+    prepares these with the rest of its joint-state terms, ahead of the handle sample,
+    and keeps a 6x6 product of floats for the cycle itself. The same numbers as one
+    Newton-Euler pass (pin.rnea) at q''_ref, to rounding.
+    """
+
+    # Lists, never written once built.
+    qd_rad_s: list[float]  # the measured q' they were computed at
+    mass_over_kv_s: list[list[float]]  # rows of H^-1 M0(q) (kg m^2 / N m s)
+    base_rad_s: list[float]  # q' + H^-1 (c0 + g0 + D q')
+
+
+def compensation_terms(
+    arm: ArmModel, q_rad: np.ndarray, qd_rad_s: np.ndarray
+) -> CompensationTerms:
+    """:class:`CompensationTerms` at (q, q'); writes ``arm.data`` (Pinocchio scratch)."""
     servo = arm.servo
-    qdd_ref = qdd_c_rad_s2 + velocity_gain_per_s * (qd_c_rad_s - qd_rad_s)
-    torque = inverse_dynamics(arm, q_rad, qd_rad_s, qdd_ref) + servo.damping_nms_per_rad * qd_rad_s
-    return qd_rad_s + torque / servo.kv_nms_per_rad
+    mass, bias = mass_matrix_and_bias(arm, q_rad, qd_rad_s)
+    qd = qd_rad_s.tolist()
+    kv = servo.kv_nms_per_rad.tolist()
+    damping = servo.damping_nms_per_rad.tolist()
+    # List comprehensions: tuple(generator) costs twice as much, 6 times per state.
+    return CompensationTerms(
+        qd_rad_s=qd,
+        mass_over_kv_s=[[m / kv_i for m in row] for row, kv_i in zip(mass, kv, strict=True)],
+        base_rad_s=[
+            v + (b + d * v) / kv_i for v, b, d, kv_i in zip(qd, bias, damping, kv, strict=True)
+        ],
+    )
 
 
 def velocity_reference(
-    arm: ArmModel,
     control: ControlConfig,
-    q_rad: np.ndarray,
-    qd_rad_s: np.ndarray,
-    qd_c_rad_s: np.ndarray,
-    previous_qd_c_rad_s: np.ndarray | None,
+    terms: CompensationTerms | None,
+    qd_c_rad_s: Sequence[float],
+    previous_qd_c_rad_s: Sequence[float] | None,
     period_s: float,
-) -> np.ndarray:
-    """q'_ref for the velocity loops from the kinematic command q'_c.
+) -> list[float]:
+    """q'_ref for the velocity loops from the kinematic command q'_c, in floats.
 
-    With ``control.compensation``: the dynamic compensation, q''_c taken as the change of
-    q'_c since the previous cycle (from the measured q' on the first one). Without: q'_c.
+    ``terms``: the compensation's at the measured joint state (:func:`compensation_terms`,
+    computed only with ``control.compensation``), q''_c taken as the change of q'_c since
+    the previous cycle (from the measured q' on the first one); None: q'_c unchanged.
     """
-    if not control.compensation:
-        return qd_c_rad_s
-    previous = previous_qd_c_rad_s if previous_qd_c_rad_s is not None else qd_rad_s
-    qdd_c = (qd_c_rad_s - previous) / period_s
-    return dynamic_compensation(
-        arm, q_rad, qd_rad_s, qd_c_rad_s, qdd_c, control.velocity_gain_per_s
-    )
+    if terms is None:
+        return list(qd_c_rad_s)
+    previous = terms.qd_rad_s if previous_qd_c_rad_s is None else previous_qd_c_rad_s
+    gain = control.velocity_gain_per_s
+    qdd_ref = [
+        (qd_c - qd_prev) / period_s + gain * (qd_c - qd)
+        for qd_c, qd_prev, qd in zip(qd_c_rad_s, previous, terms.qd_rad_s, strict=True)
+    ]
+    return [
+        base + sum(map(operator.mul, row, qdd_ref))
+        for base, row in zip(terms.base_rad_s, terms.mass_over_kv_s, strict=True)
+    ]
 
 
 class PathFollowingController:
@@ -175,7 +202,7 @@ class PathFollowingController:
         self.max_speed_rad_s = np.minimum(control.max_joint_speed_rad_s, arm.servo.max_speed_rad_s)
         self._damping_matrix = control.damping_m**2 * np.eye(3)
         self._s: float | None = None
-        self._previous_qd_c: np.ndarray | None = None
+        self._previous_qd_c: list[float] | None = None
 
     def reset(self) -> None:
         self._s = None
@@ -210,10 +237,11 @@ class PathFollowingController:
             qd_c = np.linalg.pinv(jv) @ (v_task - jv @ g) + g
         qd_c = limit_speed(qd_c, self.max_speed_rad_s)
 
-        qd_ref = velocity_reference(
-            self.arm, ctl, q_rad, qd_rad_s, qd_c, self._previous_qd_c, self.period_s
+        compensation = compensation_terms(self.arm, q_rad, qd_rad_s) if ctl.compensation else None
+        qd_ref = np.array(
+            velocity_reference(ctl, compensation, qd_c.tolist(), self._previous_qd_c, self.period_s)
         )
-        self._previous_qd_c = qd_c
+        self._previous_qd_c = qd_c.tolist()
         return ControlOutput(
             qd_ref_rad_s=limit_speed(qd_ref, self.max_speed_rad_s),
             qd_c_rad_s=qd_c,

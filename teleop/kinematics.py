@@ -237,11 +237,17 @@ def _symmetric_adjugate(
     return (c00, c01, c02, c11, c12, c22), a * c00 + b * c01 + c * c02
 
 
-def inverse_dynamics(
-    arm: ArmModel, q_rad: np.ndarray, qd_rad_s: np.ndarray, qdd_rad_s2: np.ndarray
-) -> np.ndarray:
-    """tau = M0(q) q'' + c0(q, q') + g0(q) (N m), one recursive Newton-Euler pass."""
-    return pin.rnea(arm.model, arm.data, q_rad, qd_rad_s, qdd_rad_s2)
+def mass_matrix_and_bias(
+    arm: ArmModel, q_rad: np.ndarray, qd_rad_s: np.ndarray
+) -> tuple[list[list[float]], list[float]]:
+    """``(M0(q) rows (n x n) in kg m^2, c0(q, q') + g0(q) (n) in N m)`` as floats: the
+    inverse dynamics M0 q'' + c0 + g0 split into its joint-state terms, for a q'' known
+    later. M0 includes the rotor armature read from the MJCF."""
+    mass = pin.crba(arm.model, arm.data, q_rad).tolist()
+    for i, row in enumerate(mass):  # crba fills the upper triangle only (in floats:
+        for j in range(i):  # np.triu and a transpose cost ~10 us, this ~3)
+            row[j] = mass[j][i]
+    return mass, pin.nonLinearEffects(arm.model, arm.data, q_rad, qd_rad_s).tolist()
 
 
 def joint_space_dynamics(
@@ -252,8 +258,6 @@ def joint_space_dynamics(
     Returns ``(M0 (n, n) in kg m^2, c0 = C0(q, q') q' (n,) in N m, g0 (n,) in N m)``.
     M0 includes the rotor armature read from the MJCF.
     """
-    mass = pin.crba(arm.model, arm.data, q_rad)
-    mass = np.triu(mass) + np.triu(mass, 1).T  # crba fills the upper triangle only
+    mass, bias = mass_matrix_and_bias(arm, q_rad, qd_rad_s)
     gravity = pin.computeGeneralizedGravity(arm.model, arm.data, q_rad).copy()
-    coriolis = pin.nonLinearEffects(arm.model, arm.data, q_rad, qd_rad_s) - gravity
-    return mass, coriolis, gravity
+    return np.array(mass), np.array(bias) - gravity, gravity

@@ -229,14 +229,14 @@ def assert_same_state(before: dict, after: dict) -> None:
 
 def assert_outputs_identical(expected: TeleopOutput, actual: TeleopOutput) -> None:
     """Every field bit for bit (arrays and floats alike)."""
-    for field in dataclasses.fields(TeleopOutput):
-        a, b = getattr(expected, field.name), getattr(actual, field.name)
-        assert type(a) is type(b), field.name
+    for name in TeleopOutput._fields:
+        a, b = getattr(expected, name), getattr(actual, name)
+        assert type(a) is type(b), name
         if isinstance(a, np.ndarray):
-            assert a.dtype == b.dtype and np.array_equal(a, b), field.name
-            assert a.tobytes() == b.tobytes(), field.name  # -0.0 vs 0.0 too
+            assert a.dtype == b.dtype and np.array_equal(a, b), name
+            assert a.tobytes() == b.tobytes(), name  # -0.0 vs 0.0 too
         else:
-            assert a == b, field.name
+            assert a == b, name
 
 
 @pytest.mark.parametrize("segment", ["free_and_clutch", "obstacle", "wrist_singularity"])
