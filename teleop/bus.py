@@ -54,6 +54,9 @@ def open_session(
     the port is taken). ``listen=False``: connect to ``bus.endpoint``; if nobody listens
     yet, ``open`` still returns and Zenoh keeps retrying in the background (config
     ``connect/retry``), so start order does not matter — wait on liveliness instead.
+    Either way it also connects to ``bus.peer_connect_endpoints`` and, when not the
+    listener, listens on ``bus.peer_listen_endpoint`` (a launcher's explicit mesh, with
+    ``bus.gossip`` off: see BusConfig.gossip).
 
     ``ingress_rate_hz`` maps key expressions to the most puts per second this session
     takes in (Zenoh's ingress downsampling: the rest are dropped before any Python
@@ -62,13 +65,15 @@ def open_session(
     conf = zenoh.Config.from_file(str(bus.zenoh_config_path))
     conf.insert_json5("mode", _json("peer"))
     conf.insert_json5("scouting/multicast/enabled", _json(False))
-    conf.insert_json5("scouting/gossip/enabled", _json(True))
+    conf.insert_json5("scouting/gossip/enabled", _json(bus.gossip))  # see BusConfig.gossip
     if listen:
-        conf.insert_json5("listen/endpoints", _json([bus.endpoint]))
-        conf.insert_json5("connect/endpoints", _json([]))
+        listen_on, connect_to = [bus.endpoint], list(bus.peer_connect_endpoints)
     else:
-        conf.insert_json5("listen/endpoints", _json([PEER_LISTEN_ENDPOINT]))
-        conf.insert_json5("connect/endpoints", _json([bus.endpoint]))
+        listen_on = [bus.peer_listen_endpoint or PEER_LISTEN_ENDPOINT]
+        connect_to = [bus.endpoint, *bus.peer_connect_endpoints]
+    conf.insert_json5("listen/endpoints", _json(listen_on))
+    conf.insert_json5("connect/endpoints", _json(connect_to))
+    if connect_to:
         conf.insert_json5("connect/timeout_ms", _json(CONNECT_RETRY_FOREVER))
         conf.insert_json5("connect/exit_on_failure", _json(False))
     if ingress_rate_hz:

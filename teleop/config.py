@@ -494,9 +494,26 @@ class BusConfig:
     # x0.66-0.73 and p99 x0.70-0.82 of the default transport, lower in 6 of 7 rounds.
     # With it, two peers of a stack sometimes never linked to each other (3 stacks in
     # 14: both connected at once); local.json5 now lets only one of a pair connect
-    # (gossip autoconnect_strategy "greater-zid"): 0 in 20 since. Service.become_ready
-    # reports a pair that never links (unlinked_peers).
+    # (gossip autoconnect_strategy "greater-zid"): 0 in 20 since, and the launchers no
+    # longer use gossip (see gossip below). Service.become_ready reports a pair that
+    # never links (unlinked_peers).
     lowlatency: bool = True
+    # How the peers of a run find each other. With gossip (the default), every process
+    # connects to the run's listener (``endpoint``) and learns the others from it, then
+    # links to them itself. A launcher instead gives every service the whole mesh
+    # (teleop.stack.peer_mesh): its own listening endpoint and those of the peers it
+    # connects to, with gossip off. Why: with the low-latency transport, a Zenoh 1.10.2
+    # receive thread that handles gossip's link states holds the routing lock while it
+    # blocks on a send, and a session declaring a subscriber meanwhile waits for that
+    # lock for ever (a known class of upstream deadlocks under peer churn, zenoh issue
+    # 2581). Seen here at start-up: a service stuck in declare_subscriber, never alive,
+    # deaf to SIGINT (2 stacks of 25, 2026-11-22; 0 of 30 with the mesh).
+    gossip: bool = True
+    # This process's own listening endpoint when it is not the run's listener; empty:
+    # an ephemeral loopback port (the peers learn it through gossip).
+    peer_listen_endpoint: str = ""
+    # Peers this process connects to besides ``endpoint`` (the launcher's mesh).
+    peer_connect_endpoints: tuple[str, ...] = ()
     # Zenoh config entries set over the file, last: "path=json5", e.g.
     # 'transport/shared_memory/mode="lazy"' (the tuning benchmark tries variants this way).
     zenoh_overrides: tuple[str, ...] = ()
@@ -507,6 +524,10 @@ class BusConfig:
 
     def __post_init__(self) -> None:
         _require("/" in self.endpoint, "bus.endpoint like tcp/127.0.0.1:7447")
+        _require(
+            all("/" in e for e in (*self.peer_connect_endpoints, self.peer_listen_endpoint or "/")),
+            "bus.peer_listen_endpoint and bus.peer_connect_endpoints like tcp/127.0.0.1:7448",
+        )
         _require(self.observer_batch_records >= 1, "bus.observer_batch_records >= 1")
         _require(
             all("=" in entry for entry in self.zenoh_overrides),

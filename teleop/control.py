@@ -139,9 +139,7 @@ class CompensationTerms:
     base_rad_s: list[float]  # q' + H^-1 (c0 + g0 + D q')
 
 
-def compensation_terms(
-    arm: ArmModel, q_rad: np.ndarray, qd_rad_s: np.ndarray
-) -> CompensationTerms:
+def compensation_terms(arm: ArmModel, q_rad: np.ndarray, qd_rad_s: np.ndarray) -> CompensationTerms:
     """:class:`CompensationTerms` at (q, q'); writes ``arm.data`` (Pinocchio scratch)."""
     servo = arm.servo
     mass, bias = mass_matrix_and_bias(arm, q_rad, qd_rad_s)

@@ -50,6 +50,7 @@ from teleop.stack import (
     free_loopback_port,
     idle_poll_cpus,
     idle_poll_programs,
+    peer_mesh,
     run_on_services,
 )
 from teleop.stamps import SHED_FILE_SUFFIX
@@ -416,8 +417,9 @@ def run_floor(
     config = load_config(config_file, overrides)
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     relay_overrides = [*overrides, f'bus.endpoint="{endpoint}"']
-    bus = replace(config.bus, endpoint=endpoint)
+    bus = replace(config.bus, endpoint=endpoint, gossip=False)  # the mesh's listener
     topics = Topics(config.robot.robot_id)
+    mesh = peer_mesh([relay.name for relay in RELAYS], listener=None)  # as the stack links
     programs = []
     for relay in RELAYS:
         command = [sys.executable, "-m", f"services.{relay.name}", "--run-dir", str(run_dir)]
@@ -426,7 +428,7 @@ def run_floor(
             command = ["taskset", "-c", ",".join(str(c) for c in cpus), *command]
         if config_file is not None:
             command += ["--config", str(Path(config_file).absolute())]
-        for override in relay_overrides:
+        for override in [*relay_overrides, *mesh[relay.name]]:
             command += ["--set", override]
         programs.append(
             Program(name=relay.name, command=command, environment=dict(SERVICE_ENVIRONMENT))

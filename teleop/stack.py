@@ -97,6 +97,29 @@ def free_loopback_port() -> int:
         return int(s.getsockname()[1])
 
 
+def peer_mesh(names: Sequence[str], listener: str | None) -> dict[str, list[str]]:
+    """Each process's ``--set`` overrides for an explicit mesh, gossip off (why: see
+    BusConfig.gossip). Every process but ``listener`` listens on a loopback port of its
+    own and connects to the run's listener (``bus.endpoint``) and to the processes
+    before it in ``names``: each pair links once, by one connect, and no process needs
+    gossip to find another. The launcher's own session, if it is the listener, is
+    reached by everyone through ``bus.endpoint``.
+    """
+    listening: list[str] = []
+    mesh: dict[str, list[str]] = {}
+    for name in names:
+        overrides = ["bus.gossip=false"]
+        if name != listener:
+            own = f"tcp/127.0.0.1:{free_loopback_port()}"
+            overrides += [
+                f'bus.peer_listen_endpoint="{own}"',
+                f"bus.peer_connect_endpoints={json.dumps(listening, separators=(',', ':'))}",
+            ]
+            listening.append(own)
+        mesh[name] = overrides
+    return mesh
+
+
 def service_programs(
     services: Sequence[str],
     config_file: Path | None,
@@ -107,13 +130,15 @@ def service_programs(
     await_services: dict[str, Sequence[str]],
     continuous: bool,
 ) -> list[Program]:
-    """The supervisord programs of the stack, each given the same config and overrides."""
+    """The supervisord programs of the stack, each given the same config and overrides,
+    then its place in the run's :func:`peer_mesh`."""
     programs = []
+    mesh = peer_mesh(services, listener)
     for name in services:
         command = [sys.executable, "-m", f"services.{name}", "--run-dir", str(run_dir)]
         if config_file is not None:
             command += ["--config", str(Path(config_file).absolute())]
-        for override in overrides:
+        for override in [*overrides, *mesh[name]]:
             command += ["--set", override]
         if name == listener:
             command.append("--listen")
@@ -189,7 +214,7 @@ def run_on_services(
     ]
     if not config.recorder.rrd_path:
         run_overrides.append(f'recorder.rrd_path="{run_dir / "recording.rrd"}"')
-    bus = replace(config.bus, endpoint=endpoint)
+    bus = replace(config.bus, endpoint=endpoint, gossip=False)  # the mesh's listener
     topics = Topics(config.robot.robot_id)
     drops = DropCounter()
     finished = threading.Event()

@@ -8,6 +8,7 @@ Nothing waits on a fixed sleep: liveliness tokens, matching status and first sam
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing as mp
 import queue
 import socket
@@ -22,7 +23,8 @@ import zenoh
 from shm.provider import SHM_THRESHOLD_BYTES, get_provider, took_shm_path
 from teleop import bus
 from teleop import messages as m
-from teleop.config import BusConfig
+from teleop.config import BusConfig, load_config
+from teleop.stack import peer_mesh
 from teleop.topics import Topics
 
 TIMEOUT_S = 10.0  # generous bound on any single wait; passing runs take well under 1 s
@@ -103,10 +105,11 @@ def state_producer(endpoint: str, stop: mp.Event, report: mp.Queue) -> None:
         bus.close_session(session, pub, token)
 
 
-def gossip_peer(endpoint: str, role: str, stop: mp.Event, report: mp.Queue) -> None:
-    """Peer B publishes to peer C; both only know the listener A's endpoint."""
+def peer_b_or_c(config: BusConfig, role: str, stop: mp.Event, report: mp.Queue) -> None:
+    """Peer B publishes to peer C (each connects to the listener A, and to whatever
+    else ``config`` says)."""
     topics = Topics(ROBOT)
-    session = bus.open_session(_bus(endpoint), listen=False)
+    session = bus.open_session(config, listen=False)
     entities: list = []
     try:
         if role == "C":
@@ -199,13 +202,11 @@ def test_record_crosses_processes_and_bad_record_is_dropped():
     assert session.is_closed()
 
 
-def test_peers_connecting_to_one_listener_reach_each_other_directly():
-    """A listens; B and C only connect to A. B's command must reach C over a B-C link."""
-    endpoint = free_endpoint()
-    a = bus.open_session(_bus(endpoint), listen=True)
+def _b_reaches_c_directly(a: zenoh.Session, config_b: BusConfig, config_c: BusConfig) -> None:
+    """B (a child process) sends C (another) a command: C must get it over a B-C link."""
     stop, report = SPAWN.Event(), SPAWN.Queue()
-    c = _start(gossip_peer, endpoint, "C", stop, report)
-    b = _start(gossip_peer, endpoint, "B", stop, report)
+    c = _start(peer_b_or_c, config_c, "C", stop, report)
+    b = _start(peer_b_or_c, config_b, "B", stop, report)
     try:
         results = {}
         for _ in range(2):
@@ -220,7 +221,51 @@ def test_peers_connecting_to_one_listener_reach_each_other_directly():
     finally:
         stop.set()
         _join(b, c)
+
+
+def test_peers_connecting_to_one_listener_reach_each_other_directly():
+    """Gossip: A listens; B and C only connect to A, and link to each other."""
+    endpoint = free_endpoint()
+    a = bus.open_session(_bus(endpoint), listen=True)
+    try:
+        _b_reaches_c_directly(a, _bus(endpoint), _bus(endpoint))
+    finally:
         bus.close_session(a)
+
+
+def test_the_launchers_mesh_links_peers_with_gossip_off():
+    """The launcher's explicit mesh (stack.peer_mesh, through the same --set overrides the
+    services get): gossip off, B listens on a port of its own and C connects to it. With
+    gossip off and peers not routing for each other, only the mesh can link B and C."""
+    endpoint = free_endpoint()
+    mesh = peer_mesh(["B", "C"], listener=None)
+    configs = {
+        name: load_config(None, [f'bus.endpoint="{endpoint}"', *overrides]).bus
+        for name, overrides in mesh.items()
+    }
+    assert not configs["B"].gossip and not configs["C"].gossip
+    assert configs["B"].peer_connect_endpoints == ()
+    assert configs["C"].peer_connect_endpoints == (configs["B"].peer_listen_endpoint,)
+    a = bus.open_session(dataclasses.replace(configs["B"], peer_connect_endpoints=()), listen=True)
+    try:
+        _b_reaches_c_directly(a, configs["B"], configs["C"])
+    finally:
+        bus.close_session(a)
+
+
+def test_peer_mesh_links_every_pair_once_and_the_listener_by_its_endpoint():
+    mesh = peer_mesh(["plant", "controller", "haptic", "recorder"], listener="plant")
+    configs = {name: load_config(None, overrides).bus for name, overrides in mesh.items()}
+    assert configs["plant"].peer_listen_endpoint == ""  # it listens on bus.endpoint
+    own = {name: c.peer_listen_endpoint for name, c in configs.items() if name != "plant"}
+    assert len(set(own.values())) == 3
+    links = [
+        frozenset((name, peer))
+        for name, c in configs.items()
+        for peer, endpoint in own.items()
+        if endpoint in c.peer_connect_endpoints
+    ]
+    assert len(links) == len(set(links)) == 3  # the non-listeners' pairs, once each
 
 
 def test_connecting_peer_started_before_listener_keeps_retrying():
