@@ -243,10 +243,9 @@ def mass_matrix_and_bias(
     """``(M0(q) rows (n x n) in kg m^2, c0(q, q') + g0(q) (n) in N m)`` as floats: the
     inverse dynamics M0 q'' + c0 + g0 split into its joint-state terms, for a q'' known
     later. M0 includes the rotor armature read from the MJCF."""
+    # Pinocchio 4.1's crba fills both triangles (older ones the upper one only; the test
+    # against MuJoCo's full mass matrix would catch a half-filled one).
     mass = pin.crba(arm.model, arm.data, q_rad).tolist()
-    for i, row in enumerate(mass):  # crba fills the upper triangle only (in floats:
-        for j in range(i):  # np.triu and a transpose cost ~10 us, this ~3)
-            row[j] = mass[j][i]
     return mass, pin.nonLinearEffects(arm.model, arm.data, q_rad, qd_rad_s).tolist()
 
 

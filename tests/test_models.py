@@ -7,6 +7,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from teleop.control import compensation_terms, velocity_reference
 from teleop.kinematics import (
     ModelError,
     build_arm_model,
@@ -79,6 +80,31 @@ def test_dynamics_match_mujoco(any_arm_config):
         np.testing.assert_allclose(  # against one recursive Newton-Euler pass
             pin.rnea(arm.model, arm.data, q, qd, qdd), mass @ qdd + coriolis + gravity, atol=1e-9
         )
+
+
+def test_prepared_compensation_equals_one_newton_euler_pass(any_arm_config):
+    """velocity_reference on the prepared terms (M0 and the bias, ahead of q'_c) gives
+    the paper's q'_ref = q' + H^-1 (tau(q, q', q''_ref) + D q'), tau from pin.rnea, with
+    q''_ref = (q'_c - previous q'_c) / T + Kd (q'_c - q')."""
+    config = any_arm_config
+    plant = Plant(config)
+    arm = build_arm_model(config.robot)
+    servo, control, period_s = arm.servo, config.control, config.plant.timestep_s
+    rng = np.random.default_rng(5)
+    for q in random_configurations(plant, 10, seed=4):
+        qd, qd_c, previous = rng.uniform(-1.0, 1.0, size=(3, len(q)))
+        terms = compensation_terms(arm, q, qd)
+        got = velocity_reference(control, terms, qd_c.tolist(), previous.tolist(), period_s)
+        qdd_ref = (qd_c - previous) / period_s + control.velocity_gain_per_s * (qd_c - qd)
+        tau = pin.rnea(arm.model, arm.data, q, qd, qdd_ref)
+        expected = qd + (tau + servo.damping_nms_per_rad * qd) / servo.kv_nms_per_rad
+        np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-9)
+        first = velocity_reference(control, terms, qd_c.tolist(), None, period_s)  # from q'
+        qdd_first = (qd_c - qd) / period_s + control.velocity_gain_per_s * (qd_c - qd)
+        tau = pin.rnea(arm.model, arm.data, q, qd, qdd_first)
+        expected = qd + (tau + servo.damping_nms_per_rad * qd) / servo.kv_nms_per_rad
+        np.testing.assert_allclose(first, expected, rtol=1e-9, atol=1e-9)
+    assert velocity_reference(control, None, [0.5, -0.5], None, period_s) == [0.5, -0.5]
 
 
 def test_manipulability_gradient_matches_finite_differences(any_arm_config):

@@ -38,6 +38,8 @@ VARIANTS: dict[str, dict] = {
     "runtime_1_thread": {"env": {"ZENOH_RUNTIME": ONE_THREAD_RUNTIME}},
     "lowlatency_off": {"overrides": ["bus.lowlatency=false"]},
     "observers_on_cpu0": {"overrides": ["cpu.recorder=[0]", "cpu.eyeview=[0]"]},
+    "haptic_on_cpu0": {"overrides": ["cpu.haptic=[0]"]},  # with the plant
+    "haptic_on_cpu1": {"overrides": ["cpu.haptic=[1]"]},  # with the controller
     "unpinned": {
         "overrides": ["cpu.plant=[]", "cpu.controller=[]", "cpu.recorder=[]", "cpu.eyeview=[]"]
     },
