@@ -44,6 +44,9 @@ PR_SET_PDEATHSIG = 1
 # The CPU cgroup the pollers share (created on first use, left for the next run).
 IDLE_CGROUP_NAME = "teleop-idle-poll"
 MOUNTINFO = Path("/proc/self/mountinfo")
+# A poller's status (--status-file): spinning, or not (followed by ": <why>").
+POLLING = "polling"
+NOT_POLLED = "not polled"
 
 
 class IdlePollUnavailable(RuntimeError):
@@ -102,6 +105,19 @@ def poll_forever(cpu: int) -> None:
         pass
 
 
+def _write_status(path: Path | None, status: str) -> None:
+    if path is not None:
+        path.write_text(status + "\n")
+
+
+def read_status(path: Path) -> str:
+    """A poller's status file: POLLING, "not polled: <why>", or why there is none."""
+    try:
+        return path.read_text().strip() or f"{NOT_POLLED}: empty status file {path}"
+    except OSError as exc:
+        return f"{NOT_POLLED}: no status ({exc.strerror}: {path})"
+
+
 def _exit_with_parent() -> None:
     """Ask the kernel for SIGTERM when the parent dies: an orphaned spinner would keep a
     CPU busy for ever (supervisord itself gets the same from the process that runs it)."""
@@ -119,6 +135,12 @@ def main(argv: list[str] | None = None) -> int:
         "see teleop/idle_poll.py for why.",
     )
     parser.add_argument("--cpu", type=int, required=True, help="the CPU to keep polling")
+    parser.add_argument(
+        "--status-file",
+        type=Path,
+        help="write here whether the CPU is polled: 'polling' or 'not polled: <why>' "
+        "(the run's summary reads it)",
+    )
     args = parser.parse_args(argv)
     parent_pid = os.getppid()
     _exit_with_parent()
@@ -135,6 +157,7 @@ def main(argv: list[str] | None = None) -> int:
             group = join_idle_cgroup()
         except IdlePollUnavailable as exc:
             print(f"idle_poll: CPU {args.cpu} not polled: {exc}", file=sys.stderr, flush=True)
+            _write_status(args.status_file, f"{NOT_POLLED}: {exc}")
             signal.pause()  # stay up (supervisord would restart an exit) until stopped
             return 0
         print(
@@ -142,6 +165,7 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
             flush=True,
         )
+        _write_status(args.status_file, POLLING)
         poll_forever(args.cpu)
     except KeyboardInterrupt:  # supervisord's stop signal (SIGINT), or SIGTERM
         pass

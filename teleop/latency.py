@@ -433,7 +433,7 @@ def run_floor(
         programs.append(
             Program(name=relay.name, command=command, environment=dict(SERVICE_ENVIRONMENT))
         )
-    programs += idle_poll_programs(idle_poll_cpus(config))  # the floor idles as the stack does
+    programs += idle_poll_programs(idle_poll_cpus(config), run_dir)  # idles as the stack does
     period_ns = round(config.plant.timestep_s * NS_PER_S)
     payload_bytes = PLANT_STATE.size  # the loop's largest record
     # The origin plays the haptic service: same scheduling (its Zenoh threads too).
@@ -544,12 +544,15 @@ def conclusions(report: dict[str, Any]) -> list[str]:
             missing = [side for side, p50 in (("SHM", shm_p50), ("TCP", tcp_p50)) if p50 is None]
             out.append(f"{what}: no payload came back over {' or '.join(missing)}")
     polled = report["machine"].get("idle_poll_cpus")
-    out.append(
-        f"idle CPUs polled (cpu.idle_poll): {', '.join(map(str, polled))}; the services' "
-        "CPU shares leave the pollers out"
-        if polled
-        else "idle CPUs halt (cpu.idle_poll off)"
-    )
+    failed = report["machine"].get("idle_poll_failed") or {}
+    if polled:
+        out.append(
+            f"idle CPUs polled (cpu.idle_poll): {', '.join(map(str, polled))}; the services' "
+            "CPU shares leave the pollers out"
+        )
+    elif not failed:
+        out.append("idle CPUs halt (cpu.idle_poll off)")
+    out += [f"idle CPU {cpu} halts, its poller says: {why}" for cpu, why in failed.items()]
     lost = report["lost"]
     out.append(
         f"lost: haptic {lost['haptic']}, command {lost['command']}, feedback "
@@ -652,6 +655,7 @@ def build_report(
             "cpus": os.cpu_count(),
             "loadavg_after": _loadavg(),
             "idle_poll_cpus": stack.summary.get("idle_poll_cpus"),
+            "idle_poll_failed": stack.summary.get("idle_poll_failed"),
         },
     }
     if old is not None:

@@ -33,6 +33,7 @@ import numpy as np
 from teleop.bus import Latest, close_session, declare_alive, open_session, subscribe, wait_alive
 from teleop.config import Config
 from teleop.experiments import PROGRESS_FRACTION, ProgressFn
+from teleop.idle_poll import POLLING, read_status
 from teleop.messages import RUN_EVENT, TOOL_POSE, DropCounter, Event
 from teleop.supervise import Program, Stack
 from teleop.topics import Topics
@@ -171,18 +172,38 @@ def idle_poll_cpus(config: Config) -> list[int]:
     return sorted(wanted & available)
 
 
-def idle_poll_programs(cpus: Sequence[int]) -> list[Program]:
+def idle_poll_status_path(run_dir: Path, cpu: int) -> Path:
+    """Where the poller of ``cpu`` says whether it polls (teleop.idle_poll.read_status)."""
+    return run_dir / f"{IDLE_POLL}_cpu{cpu}.status"
+
+
+def idle_poll_programs(cpus: Sequence[int], run_dir: Path) -> list[Program]:
     """One idle poller (``services.idle_poll``) per CPU of ``cpus`` (:func:`idle_poll_cpus`).
-    They start first and stop last (supervisord priority), so they span the whole run."""
-    return [
-        Program(
-            name=f"{IDLE_POLL}_cpu{cpu}",
-            command=[sys.executable, "-m", f"services.{IDLE_POLL}", "--cpu", str(cpu)],
-            priority=IDLE_POLL_PRIORITY,
-            environment=dict(SERVICE_ENVIRONMENT),
+    They start first and stop last (supervisord priority), so they span the whole run;
+    each writes its status to :func:`idle_poll_status_path` (stale ones are removed)."""
+    programs = []
+    for cpu in cpus:
+        status = idle_poll_status_path(run_dir, cpu)
+        status.unlink(missing_ok=True)
+        command = [sys.executable, "-m", f"services.{IDLE_POLL}", "--cpu", str(cpu)]
+        programs.append(
+            Program(
+                name=f"{IDLE_POLL}_cpu{cpu}",
+                command=[*command, "--status-file", str(status)],
+                priority=IDLE_POLL_PRIORITY,
+                environment=dict(SERVICE_ENVIRONMENT),
+            )
         )
-        for cpu in cpus
-    ]
+    return programs
+
+
+def idle_poll_report(cpus: Sequence[int], run_dir: Path) -> dict[str, Any]:
+    """After a run: the CPUs whose poller polled, and why the others did not."""
+    statuses = {cpu: read_status(idle_poll_status_path(run_dir, cpu)) for cpu in cpus}
+    return {
+        "idle_poll_cpus": [cpu for cpu, status in statuses.items() if status == POLLING],
+        "idle_poll_failed": {cpu: s for cpu, s in statuses.items() if s != POLLING},
+    }
 
 
 def _read_summary(run_dir: Path, service: str) -> dict[str, Any]:
@@ -240,7 +261,7 @@ def run_on_services(
             listener=None,
             await_services={"plant": [*services[1:], RUNNER]},
             continuous=False,
-        ) + idle_poll_programs(polled_cpus)
+        ) + idle_poll_programs(polled_cpus, run_dir)
         factor = (
             LOCKSTEP_TIMEOUT_FACTOR if config.run.mode == "lockstep" else REALTIME_TIMEOUT_FACTOR
         )
@@ -288,7 +309,7 @@ def run_on_services(
             "skipped_states": controller["skipped_states"],
             "final_state_sha256": plant["final_state_sha256"],
             "stack_wall_s": wall_s,
-            "idle_poll_cpus": polled_cpus,
+            **idle_poll_report(polled_cpus, run_dir),
             "eye_view": _eye_view_summary(summaries),
             "rrd": summaries["recorder"].get("rrd_path"),
             "run_dir": str(run_dir),
@@ -382,7 +403,7 @@ def start_detached(
         listener="plant",
         await_services={"plant": list(services[1:])},
         continuous=True,
-    ) + idle_poll_programs(idle_poll_cpus(config))
+    ) + idle_poll_programs(idle_poll_cpus(config), run_dir)
     stack = Stack(run_dir, programs)
     stack.start(detach=True)
     return stack.status()

@@ -13,8 +13,15 @@ from pathlib import Path
 import pytest
 
 from teleop.config import load_config
-from teleop.idle_poll import IDLE_CGROUP_NAME, cpu_cgroup_root
-from teleop.stack import IDLE_POLL_PRIORITY, PRIORITY, idle_poll_cpus, idle_poll_programs
+from teleop.idle_poll import IDLE_CGROUP_NAME, POLLING, cpu_cgroup_root, read_status
+from teleop.stack import (
+    IDLE_POLL_PRIORITY,
+    PRIORITY,
+    idle_poll_cpus,
+    idle_poll_programs,
+    idle_poll_report,
+    idle_poll_status_path,
+)
 
 # Waits poll with a deadline; the deadline only bounds a failure.
 WAIT_TIMEOUT_S = 10.0
@@ -42,9 +49,14 @@ def _is_polling(pid: int) -> bool:
     return os.sched_getscheduler(pid) == os.SCHED_IDLE
 
 
-def test_poller_spins_pinned_at_sched_idle_and_stops_on_sigint():
+def test_poller_spins_pinned_at_sched_idle_and_stops_on_sigint(tmp_path):
     cpu = max(os.sched_getaffinity(0))
-    proc = subprocess.Popen([*POLLER, "--cpu", str(cpu)], stderr=subprocess.PIPE, text=True)
+    status = idle_poll_status_path(tmp_path, cpu)
+    proc = subprocess.Popen(
+        [*POLLER, "--cpu", str(cpu), "--status-file", str(status)],
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         _wait_for(lambda: _is_polling(proc.pid), "the poller to drop to SCHED_IDLE")
         assert os.sched_getaffinity(proc.pid) == {cpu}
@@ -54,6 +66,9 @@ def test_poller_spins_pinned_at_sched_idle_and_stops_on_sigint():
         with open(f"/proc/{proc.pid}/stat") as f:
             utime_ticks = int(f.read().rsplit(")", 1)[1].split()[11])
         assert utime_ticks > 0, "the poller should be spinning in user space"
+        assert read_status(status) == POLLING
+        report = idle_poll_report([cpu], tmp_path)
+        assert report == {"idle_poll_cpus": [cpu], "idle_poll_failed": {}}
         proc.send_signal(signal.SIGINT)
         assert proc.wait(WAIT_TIMEOUT_S) == 0
         assert f"CPU {cpu} polling (SCHED_IDLE, cgroup" in proc.stderr.read()
@@ -123,19 +138,34 @@ def test_poller_refuses_a_cpu_it_may_not_use():
     assert f"CPU {missing} is not available" in proc.stderr
 
 
-def _programs(config):
+def _programs(config, run_dir=Path("/nonexistent")):
     """The pollers a stack run with ``config`` gets (as the stack builds them)."""
-    return idle_poll_programs(idle_poll_cpus(config))
+    return idle_poll_programs(idle_poll_cpus(config), run_dir)
 
 
-def test_realtime_stacks_get_one_poller_per_cpu_started_first():
+def test_realtime_stacks_get_one_poller_per_cpu_started_first(tmp_path):
     config = load_config(None, ['run.mode="realtime"'])
-    programs = _programs(config)
     cpus = sorted(os.sched_getaffinity(0))
+    stale = idle_poll_status_path(tmp_path, cpus[0])
+    stale.write_text(POLLING)  # a previous run's
+    programs = _programs(config, tmp_path)
+    assert not stale.exists()
     assert [p.name for p in programs] == [f"idle_poll_cpu{c}" for c in cpus]
     for program, cpu in zip(programs, cpus, strict=True):
-        assert program.command[-2:] == ["--cpu", str(cpu)]
+        status = str(idle_poll_status_path(tmp_path, cpu))
+        assert program.command[-4:] == ["--cpu", str(cpu), "--status-file", status]
         assert program.priority == IDLE_POLL_PRIORITY < min(PRIORITY.values())
+
+
+def test_the_report_names_only_cpus_whose_poller_polled(tmp_path):
+    """A poller that could not join the idle cgroup says so in its status file, and one
+    that never wrote its status did not poll either."""
+    idle_poll_status_path(tmp_path, 0).write_text(POLLING + "\n")
+    idle_poll_status_path(tmp_path, 1).write_text("not polled: no CPU cgroup hierarchy\n")
+    report = idle_poll_report([0, 1, 2], tmp_path)
+    assert report["idle_poll_cpus"] == [0]
+    assert report["idle_poll_failed"][1] == "not polled: no CPU cgroup hierarchy"
+    assert report["idle_poll_failed"][2].startswith("not polled: no status")
 
 
 def test_lockstep_and_disabled_stacks_get_no_poller():

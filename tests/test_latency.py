@@ -355,6 +355,10 @@ def test_conclusions_name_the_frame_and_1mib_sizes_and_a_side_that_got_nothing()
     assert lines[-2].startswith("idle CPUs polled (cpu.idle_poll): 0, 1;")
     report["machine"]["idle_poll_cpus"] = []
     assert "idle CPUs halt (cpu.idle_poll off)" in latency.conclusions(report)
+    report["machine"]["idle_poll_failed"] = {1: "not polled: no CPU cgroup hierarchy"}
+    lines = latency.conclusions(report)
+    assert "idle CPUs halt (cpu.idle_poll off)" not in lines
+    assert "idle CPU 1 halts, its poller says: not polled: no CPU cgroup hierarchy" in lines
 
 
 def test_loop_stage_cost_benchmark_replays_every_stage(tmp_path):
