@@ -5,6 +5,10 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
+from pathlib import Path
+
+from teleop.stack import free_loopback_port
 
 SUMMARY_KEYS = {
     "scenario",
@@ -18,6 +22,10 @@ SUMMARY_KEYS = {
     "wall_s",
     "final_state_sha256",
 }
+
+
+# teleop up: services' start-up (imports, models, sessions) on a loaded 2-core machine.
+UP_TIMEOUT_S = 90.0
 
 
 def teleop(*args: str) -> subprocess.CompletedProcess:
@@ -48,3 +56,39 @@ def test_bad_override_exits_2_with_the_key_named():
     result = teleop("run", "path-following", "--inprocess", "--set", "control.gain=1")
     assert result.returncode == 2
     assert "control: unknown key(s) gain" in result.stderr
+
+
+def _read_json(path: Path) -> dict:
+    return json.loads(path.read_text())
+
+
+def test_up_status_down_runs_a_linked_stack_until_stopped(tmp_path):
+    """The README's long-running stack: `teleop up` starts the services detached (the
+    plant listens, the others join it by the launcher's mesh), `teleop status` says
+    RUNNING, `teleop down` stops them. The plant applied the controller's commands and
+    every pair linked (unlinked_peers empty), so the mesh worked without gossip."""
+    run_dir = tmp_path / "up"
+    endpoint = f'bus.endpoint="tcp/127.0.0.1:{free_loopback_port()}"'  # not 7447: CI
+    up = teleop("up", "--mode", "realtime", "--run-dir", str(run_dir), "--set", endpoint)
+    try:
+        assert up.returncode == 0, up.stderr
+        services = ("plant", "controller", "recorder", "eyeview")
+        deadline = time.monotonic() + UP_TIMEOUT_S
+        logs = [run_dir / "logs" / f"{name}.log" for name in services]
+        while not all(log.exists() and "running (robot" in log.read_text() for log in logs):
+            assert time.monotonic() < deadline, "services not running after the timeout"
+            time.sleep(0.2)
+        status = teleop("status", "--run-dir", str(run_dir))
+        assert status.returncode == 0, status.stdout + status.stderr
+        for name in services:
+            assert f"{name:12s} RUNNING" in status.stdout
+        time.sleep(1.0)  # a second of path following: ~1000 commands
+    finally:
+        down = teleop("down", "--run-dir", str(run_dir))
+    assert down.returncode == 0, down.stderr
+    assert teleop("status", "--run-dir", str(run_dir)).returncode != 0  # nothing left
+    plant = _read_json(run_dir / "plant.summary.json")
+    assert plant["commands_applied"] > 500 and plant["stale_commands"] == 0
+    for name in services:
+        assert _read_json(run_dir / f"{name}.summary.json")["unlinked_peers"] == [], name
+    assert (run_dir / "recording.rrd").stat().st_size > 0
