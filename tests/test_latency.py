@@ -373,3 +373,17 @@ def test_loop_stage_cost_benchmark_replays_every_stage(tmp_path):
     assert sorted(stages) == sorted(expected)
     for figures in stages.values():
         assert figures["warm"] > 0 and figures["cold"] > 0
+
+
+def test_variant_rounds_rotate_so_every_variant_runs_in_every_position():
+    sys.path.insert(0, str(Path(__file__).parent / "benchmarks"))
+    try:
+        from variants import round_order
+    finally:
+        sys.path.pop(0)
+    names = ["default", "a", "b"]
+    orders = [round_order(names, r) for r in range(3)]
+    assert orders[0] == names
+    for position in range(3):
+        assert sorted(order[position] for order in orders) == sorted(names)
+    assert round_order(names, 3) == names
