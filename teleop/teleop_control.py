@@ -351,10 +351,9 @@ class JointStateTerms:
     world_p_tool_m: np.ndarray  # (3,) tool point
     world_p_tool_xyz_m: tuple[float, float, float]  # the same as floats
     world_r_tool: np.ndarray  # (3, 3) tool orientation
-    jacobian: np.ndarray  # (6, n) tool Jacobian, LOCAL_WORLD_ALIGNED (m/rad, rad/rad)
-    jacobian_position: np.ndarray  # (3, n) its linear rows (a view)
-    # The same rows as floats, for products with the cycle's joint-rate floats (lists
-    # here and below: never written once built).
+    # The linear rows (3, n) of the tool Jacobian (LOCAL_WORLD_ALIGNED, m/rad) as floats,
+    # for products with the cycle's joint-rate floats (lists here and below: never
+    # written once built).
     jacobian_position_rows: list[list[float]]
     # Rows of the damped least squares' matrix (n, 6), task velocity -> joint rates:
     # J^T (J J^T + lambda^2 I)^-1, or (J^T J + lambda^2 I)^-1 J^T for an arm with fewer
@@ -476,15 +475,13 @@ class TeleopController:
         v_tool = jv @ qd_rad_s
         held_r = self._r_des  # held from the first update on: its error is ready too
         rotation_error = None if held_r is None else pin.log3(held_r @ tool_r.T)
-        for array in (tool_p, tool_r, jacobian, jv, v_tool, rotation_error):
+        for array in (tool_p, tool_r, v_tool, rotation_error):
             if array is not None:
                 array.flags.writeable = False
         return JointStateTerms(
             world_p_tool_m=tool_p,
             world_p_tool_xyz_m=tuple(tool_p.tolist()),
             world_r_tool=tool_r,
-            jacobian=jacobian,
-            jacobian_position=jv,
             jacobian_position_rows=jv.tolist(),
             task_to_qd_rows=task_to_qd.tolist(),
             cond=cond,
