@@ -52,6 +52,7 @@ from teleop.stack import (
     idle_poll_programs,
     peer_mesh,
     run_on_services,
+    service_command,
 )
 from teleop.stamps import SHED_FILE_SUFFIX
 from teleop.supervise import Program, Stack
@@ -422,14 +423,12 @@ def run_floor(
     mesh = peer_mesh([relay.name for relay in RELAYS], listener=None)  # as the stack links
     programs = []
     for relay in RELAYS:
-        command = [sys.executable, "-m", f"services.{relay.name}", "--run-dir", str(run_dir)]
+        command = service_command(
+            relay.name, run_dir, config_file, [*relay_overrides, *mesh[relay.name]]
+        )
         cpus = (relay_cpus or {}).get(relay.name)
         if cpus:
             command = ["taskset", "-c", ",".join(str(c) for c in cpus), *command]
-        if config_file is not None:
-            command += ["--config", str(Path(config_file).absolute())]
-        for override in [*relay_overrides, *mesh[relay.name]]:
-            command += ["--set", override]
         programs.append(
             Program(name=relay.name, command=command, environment=dict(SERVICE_ENVIRONMENT))
         )

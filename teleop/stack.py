@@ -127,6 +127,19 @@ def peer_mesh(names: Sequence[str], listener: str | None) -> dict[str, list[str]
     return mesh
 
 
+def service_command(
+    name: str, run_dir: Path, config_file: Path | None, overrides: Sequence[str]
+) -> list[str]:
+    """``python -m services.<name>`` with the run's directory, config file and ``--set``
+    overrides: how a launcher starts a bus service or a relay."""
+    command = [sys.executable, "-m", f"services.{name}", "--run-dir", str(run_dir)]
+    if config_file is not None:
+        command += ["--config", str(Path(config_file).absolute())]
+    for override in overrides:
+        command += ["--set", override]
+    return command
+
+
 def service_programs(
     services: Sequence[str],
     config_file: Path | None,
@@ -142,11 +155,7 @@ def service_programs(
     programs = []
     mesh = peer_mesh(services, listener)
     for name in services:
-        command = [sys.executable, "-m", f"services.{name}", "--run-dir", str(run_dir)]
-        if config_file is not None:
-            command += ["--config", str(Path(config_file).absolute())]
-        for override in [*overrides, *mesh[name]]:
-            command += ["--set", override]
+        command = service_command(name, run_dir, config_file, [*overrides, *mesh[name]])
         if name == listener:
             command.append("--listen")
         if await_services.get(name):
