@@ -173,9 +173,15 @@ def non_monotonic(traces: np.ndarray) -> int:
     return int((np.diff(stamps, axis=1) < 0).any(axis=1).sum())
 
 
-def analyse(traces: np.ndarray) -> dict[str, Any]:
-    """Round trip and every hop of complete loops (after the warm-up), in us."""
-    loops = after_warmup(complete_loops(traces))
+def warm_loops(*traces: np.ndarray) -> np.ndarray:
+    """The complete loops of each run's traces after that run's own warm-up, together."""
+    return np.concatenate([after_warmup(complete_loops(t)) for t in traces])
+
+
+def analyse(*traces: np.ndarray) -> dict[str, Any]:
+    """Round trip and every hop of complete loops (after the warm-up of each run whose
+    traces are given), in us."""
+    loops = warm_loops(*traces)
     return {
         "round_trip_us": stats_us(hop_ns(loops, ROUND_TRIP)),
         "hops": {hop.name: stats_us(hop_ns(loops, hop)) for hop in HOPS},
@@ -385,7 +391,12 @@ def deadline_misses(summary: dict[str, Any]) -> dict[str, dict[str, Any]]:
 
 @dataclass
 class FloorRun:
-    """The relay chain's measurements of one bus setting (SHM on or off)."""
+    """The relay chain's measurements of one bus setting (SHM on or off).
+
+    ``paced_parts``: the raw traces of each paced run (one, or two when the floor brackets
+    the stack: :func:`bracket`); ``paced_traces`` is their concatenation, ``paced`` their
+    analysis (each part after its own warm-up), ``paced_by_part`` each part's round trip.
+    """
 
     label: str
     paced: dict[str, Any]
@@ -394,6 +405,27 @@ class FloorRun:
     paced_traces: np.ndarray
     sent: int
     received: int
+    paced_parts: tuple[np.ndarray, ...] = ()
+    paced_by_part: tuple[dict[str, Any], ...] = ()
+
+
+def bracket(before: FloorRun, after: FloorRun) -> FloorRun:
+    """One paced floor from the runs before and after the stack (the sweep and the
+    back-to-back figures are ``before``'s): on a host whose speed drifts over minutes,
+    the floor then spans the same minutes as the stack it is compared with."""
+    parts = (*before.paced_parts, *after.paced_parts)
+    paced = analyse(*parts)
+    paced["sent"] = before.sent + after.sent
+    paced["received"] = before.received + after.received
+    return replace(
+        before,
+        paced=paced,
+        paced_traces=np.concatenate(parts),
+        sent=paced["sent"],
+        received=paced["received"],
+        paced_parts=parts,
+        paced_by_part=(*before.paced_by_part, *after.paced_by_part),
+    )
 
 
 def run_floor(
@@ -406,12 +438,11 @@ def run_floor(
     back_to_back_count: int,
     sweep_sizes: Sequence[int],
     sweep_count: int,
-    relay_cpus: dict[str, Sequence[int]] | None = None,
 ) -> FloorRun:
     """The bare relay chain under supervisord: paced, back to back, then the sweep.
 
-    ``relay_cpus``: pin relay processes (by name) to CPUs, as ``cpu.<service>`` pins the
-    stack's services (the tuning benchmark's affinity variant).
+    Each relay runs on the CPUs and under the scheduling of the service whose place it
+    takes (:data:`teleop.config.FLOOR_STAND_INS`).
     """
     run_dir = run_dir.absolute()
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -426,9 +457,6 @@ def run_floor(
         command = service_command(
             relay.name, run_dir, config_file, [*relay_overrides, *mesh[relay.name]]
         )
-        cpus = (relay_cpus or {}).get(relay.name)
-        if cpus:
-            command = ["taskset", "-c", ",".join(str(c) for c in cpus), *command]
         programs.append(
             Program(name=relay.name, command=command, environment=dict(SERVICE_ENVIRONMENT))
         )
@@ -477,7 +505,17 @@ def run_floor(
     paced["sent"] = sent
     paced["received"] = received
     back_to_back = stats_us(hop_ns(complete_loops(b2b_traces), ROUND_TRIP))
-    return FloorRun(label, paced, back_to_back, sweep, paced_traces, sent, received)
+    return FloorRun(
+        label,
+        paced,
+        back_to_back,
+        sweep,
+        paced_traces,
+        sent,
+        received,
+        paced_parts=(paced_traces,),
+        paced_by_part=(paced["round_trip_us"],),
+    )
 
 
 # -- the report ---------------------------------------------------------------------------
@@ -518,6 +556,15 @@ def conclusions(report: dict[str, Any]) -> list[str]:
             f"{floor['p50']:.0f} us, p99 {floor['p99']:.0f} us (p99 ratio "
             f"{_fmt(ratio['p99_ratio'])}); back-to-back floor p99 "
             f"{_fmt(report['floor_back_to_back_us']['p99'])} us"
+        )
+    parts = report.get("floor_parts_us") or []
+    if len(parts) > 1:
+        out.append(
+            "paced floor before / after the stack: p50 "
+            + " / ".join(_fmt_us(part.get("p50")) for part in parts)
+            + " us, p99 "
+            + " / ".join(_fmt_us(part.get("p99")) for part in parts)
+            + " us"
         )
     old = report.get("old_timing_round_trip_us")
     if old and old.get("p50") is not None and rt["p50"] is not None:
@@ -566,6 +613,10 @@ def _fmt(value: float | None) -> str:
     return "n/a" if value is None else f"{value:.2f}"
 
 
+def _fmt_us(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.0f}"
+
+
 def measure(
     config_file: Path | None,
     overrides: Sequence[str],
@@ -591,10 +642,24 @@ def measure(
         "sweep_sizes": sweep_sizes,
         "sweep_count": sweep_count,
     }
-    say(f"floor, SHM on: relay chain paced {base_s:g} s, back to back, payload sweep")
-    floor = run_floor("floor_shm", config_file, overrides, run_dir / "floor-shm", **floor_kwargs)
+    # The paced floor brackets the stack, half before and half after it: this host's
+    # wake-up costs drift over minutes, and the p99 ratio compares like with like only
+    # when the floor spans the stack's minutes (a floor run only before the stack gave
+    # 0.9-2.6 ms p99 in consecutive runs on 2026-11-24).
+    half_s = base_s / 2
+    say(f"floor, SHM on: relay chain paced {half_s:g} s, back to back, payload sweep")
+    before = run_floor(
+        "floor_shm", config_file, overrides, run_dir / "floor-shm",
+        **{**floor_kwargs, "paced_s": half_s},
+    )  # fmt: skip
     say(f"stack, SHM on: {duration_s:g} s of realtime teleoperation")
     stack = run_stack("stack", config_file, overrides, duration_s, run_dir / "stack-shm")
+    say(f"floor, SHM on: relay chain paced {half_s:g} s after the stack")
+    after = run_floor(
+        "floor_shm_after", config_file, overrides, run_dir / "floor-shm-after",
+        paced_s=half_s, back_to_back_count=0, sweep_sizes=(), sweep_count=0,
+    )  # fmt: skip
+    floor = bracket(before, after)
     say(f"stack, SHM off: {base_s:g} s")
     stack_tcp = run_stack(
         "stack_shm_off", config_file, [*overrides, *SHM_OFF], base_s, run_dir / "stack-tcp"
@@ -631,6 +696,7 @@ def build_report(
         "round_trip_us": stack.analysis["round_trip_us"],
         "hops": stack.analysis["hops"],
         "floor_us": floor.paced["round_trip_us"],
+        "floor_parts_us": list(floor.paced_by_part),
         "floor_hops": floor.paced["hops"],
         "floor_back_to_back_us": floor.back_to_back,
         "floor_sent": floor.sent,
@@ -663,7 +729,7 @@ def build_report(
     report["conclusions"] = conclusions(report)
     raw = {
         "stack": hop_ns(after_warmup(complete_loops(stack.traces)), ROUND_TRIP),
-        "floor": hop_ns(after_warmup(complete_loops(floor.paced_traces)), ROUND_TRIP),
+        "floor": hop_ns(warm_loops(*floor.paced_parts), ROUND_TRIP),
         "stack_shm_off": hop_ns(after_warmup(complete_loops(stack_tcp.traces)), ROUND_TRIP),
     }
     if old is not None:

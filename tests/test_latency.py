@@ -11,6 +11,7 @@ generous sanity bound; wall-clock targets are the benchmark's
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -23,7 +24,7 @@ import pytest
 
 from teleop import latency
 from teleop.clock import NS_PER_S, NS_PER_US
-from teleop.config import load_config
+from teleop.config import FLOOR_STAND_INS, load_config
 from teleop.haptic_service import SAMPLES_FILE, TRACE_FILE
 from teleop.messages import JOINT_COMMAND, N_STAGES, Stage
 from teleop.plant_service import (
@@ -221,13 +222,17 @@ def stack_run(tmp_path_factory) -> latency.StackRun:
 
 
 @pytest.fixture(scope="module")
-def floor_run(tmp_path_factory) -> latency.FloorRun:
-    run_dir = tmp_path_factory.mktemp("latency") / "floor"
+def floor_dir(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("latency") / "floor"
+
+
+@pytest.fixture(scope="module")
+def floor_run(floor_dir) -> latency.FloorRun:
     return latency.run_floor(
         "floor",
         None,
         [],
-        run_dir,
+        floor_dir,
         paced_s=2.0,
         back_to_back_count=200,
         sweep_sizes=(64, 65536),
@@ -290,6 +295,35 @@ def test_floor_chain_returns_every_payload_with_the_loop_stamps(floor_run):
     assert (latency.hop_ns(loops, latency.HOPS[3]) == 0).all()
     assert floor_run.back_to_back["count"] == 200
     assert [floor_run.sweep[size]["count"] for size in (64, 65536)] == [20, 20]
+
+
+def test_floor_relays_run_on_the_cpus_of_the_services_they_stand_in_for(floor_run, floor_dir):
+    cpu = load_config(None, []).cpu
+    for relay, service in FLOOR_STAND_INS.items():
+        wanted = sorted(set(cpu.for_service(service, "realtime")) & os.sched_getaffinity(0))
+        log = (floor_dir / "logs" / f"{relay}.log").read_text()
+        if wanted:
+            assert f"pinned to CPU(s) {wanted}" in log, relay
+        assert f"SCHED_FIFO priority {cpu.fifo_priority}" in log, relay
+
+
+def test_a_floor_bracketing_the_stack_counts_both_halves(floor_run, stack_run):
+    # The second half, as if run 100 s later (unset stamps stay 0).
+    traces = floor_run.paced_traces
+    later_traces = np.where(traces > 0, traces + 100 * NS_PER_S, 0)
+    later = dataclasses.replace(floor_run, paced_traces=later_traces, paced_parts=(later_traces,))
+    both = latency.bracket(floor_run, later)
+    assert both.paced["round_trip_us"]["count"] == 2 * floor_run.paced["round_trip_us"]["count"]
+    assert both.sent == 2 * floor_run.sent and both.received == 2 * floor_run.received
+    assert both.paced_by_part == (floor_run.paced["round_trip_us"],) * 2
+    # Each half loses its own warm-up: the reference is each part's loops, concatenated.
+    loops = latency.after_warmup(latency.complete_loops(floor_run.paced_traces))
+    reference_ns = np.concatenate([latency.hop_ns(loops, latency.ROUND_TRIP)] * 2)
+    assert_matches_reference(both.paced["round_trip_us"], reference_ns)
+    report, raw = latency.build_report(stack_run, stack_run, both, floor_run, None)
+    assert report["floor_parts_us"] == [floor_run.paced["round_trip_us"]] * 2
+    assert raw["floor"].size == reference_ns.size
+    assert any("before / after the stack" in line for line in report["conclusions"])
 
 
 def test_report_files(stack_run, floor_run, tmp_path):

@@ -54,3 +54,12 @@ def test_fifo_priority_goes_to_the_loop_services_in_realtime_only():
     assert (
         load_config(None, ["cpu.fifo_priority=0"]).cpu.fifo_priority_for("plant", "realtime") == 0
     )
+
+
+def test_the_floor_relays_run_where_the_services_they_stand_in_for_run():
+    cpu = load_config(None, ["cpu.plant=[1]", "cpu.controller=[0]"]).cpu
+    assert cpu.for_service("relay_plant", "realtime") == (1,)
+    assert cpu.for_service("relay_controller", "realtime") == (0,)
+    cpu = load_config(None, ['cpu.fifo_services=["plant"]']).cpu
+    assert cpu.fifo_priority_for("relay_plant", "realtime") == cpu.fifo_priority
+    assert cpu.fifo_priority_for("relay_controller", "realtime") == 0

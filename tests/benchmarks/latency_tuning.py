@@ -14,7 +14,8 @@ Variants: ``default`` (deploy/zenoh/local.json5 as shipped, the low-latency tran
 with SHM), ``lowlatency_off`` (Zenoh's default transport: ``bus.lowlatency``),
 ``shm_lazy`` (SHM segments mapped on first use instead of at start),
 ``runtime_1_thread`` (one worker thread in each Zenoh runtime pool, ``ZENOH_RUNTIME``),
-``pinned`` (origin and plant relay on CPU 0, controller relay on CPU 1), ``shm_off`` (TCP only).
+``unpinned`` (the relays where the kernel puts them; by default each runs on the CPUs of
+the service it stands in for), ``shm_off`` (TCP only).
 """
 
 from __future__ import annotations
@@ -39,7 +40,8 @@ VARIANTS: dict[str, dict] = {
     "lowlatency_off": {"overrides": ["bus.lowlatency=false"]},
     "shm_lazy": {"overrides": ['bus.zenoh_overrides=["transport/shared_memory/mode=\\"lazy\\""]']},
     "runtime_1_thread": {"env": {"ZENOH_RUNTIME": ONE_THREAD_RUNTIME}},
-    "pinned": {"origin_cpus": [0], "relay_cpus": {"relay_controller": [1], "relay_plant": [0]}},
+    # The relays run on their services' CPUs by default (cpu.plant, cpu.controller).
+    "unpinned": {"overrides": ["cpu.plant=[]", "cpu.controller=[]"]},
     "shm_off": {"overrides": list(latency.SHM_OFF)},
 }
 # Payload of the sweep point each variant also measures (one eye-view frame, bytes).
@@ -49,8 +51,6 @@ FRAME_BYTES = 640 * 480 * 3
 def one_variant(name: str, paced_s: float, run_dir: Path, out: Path) -> None:
     """Child process: measure one variant, write its figures to ``out``."""
     variant = VARIANTS[name]
-    if variant.get("origin_cpus"):
-        os.sched_setaffinity(0, set(variant["origin_cpus"]))
     run = latency.run_floor(
         name,
         None,
@@ -60,7 +60,6 @@ def one_variant(name: str, paced_s: float, run_dir: Path, out: Path) -> None:
         back_to_back_count=1000,
         sweep_sizes=(FRAME_BYTES,),
         sweep_count=100,
-        relay_cpus=variant.get("relay_cpus"),
     )
     figures = {
         "paced": run.paced["round_trip_us"],
