@@ -566,6 +566,7 @@ def conclusions(report: dict[str, Any]) -> list[str]:
             + " / ".join(_fmt_us(part.get("p99")) for part in parts)
             + " us"
         )
+    out += where_the_time_goes(report)
     old = report.get("old_timing_round_trip_us")
     if old and old.get("p50") is not None and rt["p50"] is not None:
         out.append(
@@ -607,6 +608,29 @@ def conclusions(report: dict[str, Any]) -> list[str]:
         f"{report['chain']['samples']} (shed while behind: {sum(report['shed'].values())})"
     )
     return out
+
+
+def where_the_time_goes(report: dict[str, Any]) -> list[str]:
+    """The round trip's p50 split into what the transport floor accounts for and what the
+    services add: the transport hops' ratios to the floor's, the compute and wait
+    stages' p50s (none of which the bare relay chain has)."""
+    hops, ratios = report.get("hops") or {}, report["overhead"]
+    if any(hops.get(h.name, {}).get("p50") is None for h in HOPS):
+        return []
+    transport = [h.name for h in HOPS if h.kind == "transport"]
+    work = [h for h in HOPS if h.kind != "transport"]
+    transport_ratios = [ratios[name]["p50_ratio"] for name in transport]
+    spread = [r for r in transport_ratios if r is not None]
+    work_us = sum(hops[h.name]["p50"] for h in work)
+    line = f"where the p50 goes: transport hops {sum(hops[n]['p50'] for n in transport):.0f} us"
+    if spread:
+        line += f" ({min(spread):.2f}-{max(spread):.2f}x the floor's)"
+    line += (
+        f", compute and wait stages {work_us:.0f} us ("
+        + ", ".join(f"{h.name} {hops[h.name]['p50']:.0f}" for h in work)
+        + ")"
+    )
+    return [line]
 
 
 def _fmt(value: float | None) -> str:

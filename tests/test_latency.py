@@ -334,6 +334,14 @@ def test_report_files(stack_run, floor_run, tmp_path):
     assert set(report["lost"]) >= {"haptic", "command"} and "reordered" in report
     assert set(report["rate_hz"]) == {"plant", "haptic", "controller", "hmd"}
     assert [row["bytes"] for row in report["payload_sweep"]] == [64, 65536]
+    # The p50 split: the transport hops' and the other stages' p50s, summed.
+    (split,) = [line for line in report["conclusions"] if line.startswith("where the p50 goes")]
+    hops = report["hops"]
+    transport_us = sum(hops[h.name]["p50"] for h in latency.HOPS if h.kind == "transport")
+    work_us = sum(hops[h.name]["p50"] for h in latency.HOPS if h.kind != "transport")
+    assert f"transport hops {transport_us:.0f} us" in split
+    assert f"compute and wait stages {work_us:.0f} us" in split
+    assert f"controller_command {hops['controller_command']['p50']:.0f}" in split
     # The stack and the floor ran with their idle CPUs polling (the default).
     assert report["machine"]["idle_poll_cpus"] == sorted(os.sched_getaffinity(0))
     latency.write_json(report, tmp_path / "out.json")
