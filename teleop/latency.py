@@ -394,19 +394,27 @@ class FloorRun:
     """The relay chain's measurements of one bus setting (SHM on or off).
 
     ``paced_parts``: the raw traces of each paced run (one, or two when the floor brackets
-    the stack: :func:`bracket`); ``paced_traces`` is their concatenation, ``paced`` their
-    analysis (each part after its own warm-up), ``paced_by_part`` each part's round trip.
+    the stack: :func:`bracket`); ``paced``: their analysis, each part after its own
+    warm-up.
     """
 
     label: str
     paced: dict[str, Any]
     back_to_back: dict[str, Any]
     sweep: dict[int, dict[str, Any]]
-    paced_traces: np.ndarray
+    paced_parts: tuple[np.ndarray, ...]
     sent: int
     received: int
-    paced_parts: tuple[np.ndarray, ...] = ()
-    paced_by_part: tuple[dict[str, Any], ...] = ()
+
+    @property
+    def paced_traces(self) -> np.ndarray:
+        """The raw traces of every paced part, one after the other."""
+        return np.concatenate(self.paced_parts)
+
+    @property
+    def paced_by_part(self) -> tuple[dict[str, Any], ...]:
+        """Each paced part's round trip on its own (us)."""
+        return tuple(analyse(part)["round_trip_us"] for part in self.paced_parts)
 
 
 def bracket(before: FloorRun, after: FloorRun) -> FloorRun:
@@ -418,13 +426,7 @@ def bracket(before: FloorRun, after: FloorRun) -> FloorRun:
     paced["sent"] = before.sent + after.sent
     paced["received"] = before.received + after.received
     return replace(
-        before,
-        paced=paced,
-        paced_traces=np.concatenate(parts),
-        sent=paced["sent"],
-        received=paced["received"],
-        paced_parts=parts,
-        paced_by_part=(*before.paced_by_part, *after.paced_by_part),
+        before, paced=paced, paced_parts=parts, sent=paced["sent"], received=paced["received"]
     )
 
 
@@ -505,17 +507,7 @@ def run_floor(
     paced["sent"] = sent
     paced["received"] = received
     back_to_back = stats_us(hop_ns(complete_loops(b2b_traces), ROUND_TRIP))
-    return FloorRun(
-        label,
-        paced,
-        back_to_back,
-        sweep,
-        paced_traces,
-        sent,
-        received,
-        paced_parts=(paced_traces,),
-        paced_by_part=(paced["round_trip_us"],),
-    )
+    return FloorRun(label, paced, back_to_back, sweep, (paced_traces,), sent, received)
 
 
 # -- the report ---------------------------------------------------------------------------
@@ -668,8 +660,8 @@ def measure(
     }
     # The paced floor brackets the stack, half before and half after it: this host's
     # wake-up costs drift over minutes, and the p99 ratio compares like with like only
-    # when the floor spans the stack's minutes (a floor run only before the stack gave
-    # 0.9-2.6 ms p99 in consecutive runs on 2026-11-24).
+    # when the floor spans the stack's minutes (the paced floor before the stack gave
+    # 0.7-2.6 ms p99 in consecutive runs on 2026-11-24).
     half_s = base_s / 2
     say(f"floor, SHM on: relay chain paced {half_s:g} s, back to back, payload sweep")
     before = run_floor(

@@ -311,7 +311,7 @@ def test_a_floor_bracketing_the_stack_counts_both_halves(floor_run, stack_run):
     # The second half, as if run 100 s later (unset stamps stay 0).
     traces = floor_run.paced_traces
     later_traces = np.where(traces > 0, traces + 100 * NS_PER_S, 0)
-    later = dataclasses.replace(floor_run, paced_traces=later_traces, paced_parts=(later_traces,))
+    later = dataclasses.replace(floor_run, paced_parts=(later_traces,))
     both = latency.bracket(floor_run, later)
     assert both.paced["round_trip_us"]["count"] == 2 * floor_run.paced["round_trip_us"]["count"]
     assert both.sent == 2 * floor_run.sent and both.received == 2 * floor_run.received
