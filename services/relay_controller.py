@@ -1,9 +1,9 @@
-"""Transport-floor relay process (controller's place in the chain; see teleop.relay)."""
+"""Transport-floor relay process (controller's place in the chain; see teleop.bench.relay)."""
 
 import sys
 
-from teleop.relay import ControllerRelay
-from teleop.service import service_main
+from teleop.bench.relay import ControllerRelay
+from teleop.bus.service import service_main
 
 
 def main() -> int:

@@ -1,9 +1,9 @@
-"""Transport-floor relay process (plant's place in the chain; see teleop.relay)."""
+"""Transport-floor relay process (plant's place in the chain; see teleop.bench.relay)."""
 
 import sys
 
-from teleop.relay import PlantRelay
-from teleop.service import service_main
+from teleop.bench.relay import PlantRelay
+from teleop.bus.service import service_main
 
 
 def main() -> int:

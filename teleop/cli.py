@@ -23,11 +23,10 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from teleop.config import SCENARIOS, Config, ConfigError, load_config
-from teleop.kinematics import ModelError
+from teleop.core.config import SCENARIOS, Config, ConfigError, ModelError, load_config
 
 if TYPE_CHECKING:
-    from teleop.viewer import WebViewer
+    from teleop.viz.viewer import WebViewer
 
 DEFAULT_RUN_DIR = Path("runs") / "latest"
 DEFAULT_UP_DIR = Path("runs") / "up"
@@ -253,7 +252,7 @@ def _run(args: argparse.Namespace) -> int:
     config = load_config(args.config, overrides)
     web = None
     if args.web:
-        from teleop.viewer import serve_web
+        from teleop.viz.viewer import serve_web
 
         args.run_dir.mkdir(parents=True, exist_ok=True)
         web = serve_web(
@@ -274,7 +273,7 @@ def _run(args: argparse.Namespace) -> int:
 def _run_and_report(
     args: argparse.Namespace, config: Config, overrides: list[str], web: WebViewer | None
 ) -> int:
-    from teleop import experiments
+    from teleop.run import experiments
 
     progress = None if args.quiet else experiments.print_progress
     where = "in process" if args.inprocess else f"on services, {config.run.mode}"
@@ -285,13 +284,13 @@ def _run_and_report(
     if args.inprocess:
         summary = experiments.run_path_following_inprocess(config, progress=progress)
     else:
-        from teleop.stack import run_on_services
+        from teleop.run.stack import run_on_services
 
         print(f"  logs and summaries in {args.run_dir}", file=sys.stderr)
         summary = run_on_services(config, args.config, overrides, args.run_dir, progress)
     _emit_summary(summary, args.summary_json)
     if args.report and summary.get("rrd"):
-        from teleop.report import write_report
+        from teleop.viz.report import write_report
 
         report = write_report(Path(str(summary["rrd"])), settle_s=config.run.settle_s)
         print(f"report: {report.summary}", file=sys.stderr)
@@ -305,7 +304,7 @@ def _run_and_report(
 
 
 def _latency(args: argparse.Namespace) -> int:
-    from teleop import latency
+    from teleop.bench import latency
 
     if args.duration <= latency.WARMUP_S:
         raise ConfigError(f"--duration must exceed the {latency.WARMUP_S:g} s warm-up")
@@ -338,7 +337,7 @@ def _latency(args: argparse.Namespace) -> int:
 
 
 def _view(args: argparse.Namespace) -> int:
-    from teleop import viewer
+    from teleop.viz import viewer
 
     if not args.rrd.is_file():
         raise FileNotFoundError(f"no recording {args.rrd}")
@@ -350,7 +349,7 @@ def _view(args: argparse.Namespace) -> int:
 
 
 def _report(args: argparse.Namespace) -> int:
-    from teleop.report import write_report
+    from teleop.viz.report import write_report
 
     settle_s = args.settle_s if args.settle_s is not None else load_config().run.settle_s
     report = write_report(args.rrd, args.out, settle_s=settle_s)
@@ -361,7 +360,7 @@ def _report(args: argparse.Namespace) -> int:
 
 
 def _up(args: argparse.Namespace) -> int:
-    from teleop.stack import start_detached
+    from teleop.run.stack import start_detached
 
     overrides = [*args.overrides, f'run.mode="{args.mode}"']
     config = load_config(args.config, overrides)
@@ -373,7 +372,7 @@ def _up(args: argparse.Namespace) -> int:
 
 
 def _status(args: argparse.Namespace) -> int:
-    from teleop.supervise import Stack, StackError
+    from teleop.run.supervise import Stack, StackError
 
     try:
         status = Stack.attach(args.run_dir).status()
@@ -386,7 +385,7 @@ def _status(args: argparse.Namespace) -> int:
 
 
 def _down(args: argparse.Namespace) -> int:
-    from teleop.supervise import Stack, StackError
+    from teleop.run.supervise import Stack, StackError
 
     try:
         Stack.attach(args.run_dir).stop()

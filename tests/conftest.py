@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from teleop.config import Config, load_config
+from teleop.core.config import Config, load_config
 
 # No telemetry from Rerun, no window from MuJoCo, in every test process and its children.
 os.environ.setdefault("RERUN_ANALYTICS", "0")

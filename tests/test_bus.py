@@ -21,11 +21,11 @@ import pytest
 import zenoh
 
 from shm.provider import SHM_THRESHOLD_BYTES, get_provider, took_shm_path
-from teleop import bus
-from teleop import messages as m
-from teleop.config import BusConfig, load_config
-from teleop.stack import peer_mesh
-from teleop.topics import Topics
+from teleop.bus import messages as m
+from teleop.bus import session as bus
+from teleop.bus.topics import Topics
+from teleop.core.config import BusConfig, load_config
+from teleop.run.stack import peer_mesh
 
 TIMEOUT_S = 10.0  # generous bound on any single wait; passing runs take well under 1 s
 ROBOT = "testarm"

@@ -8,7 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-from teleop.stack import free_loopback_port
+from teleop.run.stack import free_loopback_port
 
 SUMMARY_KEYS = {
     "scenario",

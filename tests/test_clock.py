@@ -4,7 +4,7 @@ that checks only properties which hold however noisy the machine is."""
 import numpy as np
 import pytest
 
-from teleop.clock import (
+from teleop.core.clock import (
     MAX_LATE_WAKEUPS,
     Clock,
     FakeClock,

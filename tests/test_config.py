@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from teleop.config import Config, ConfigError, load_config
+from teleop.core.config import Config, ConfigError, load_config
 
 
 def test_deploy_file_matches_dataclass_defaults():

@@ -17,8 +17,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from teleop import recorder as r
-from teleop.bus import (
+from services.eyeview import EyeRenderer, EyeViewService, camera_forward
+from teleop.bus.messages import EYE_VIEW, HEAD_POSE, PLANT_STATE, DropCounter
+from teleop.bus.service import ServiceOptions
+from teleop.bus.session import (
     Latest,
     Publisher,
     close_session,
@@ -26,12 +28,10 @@ from teleop.bus import (
     subscribe_frames,
     wait_alive,
 )
-from teleop.config import load_config
-from teleop.eyeview import EyeRenderer, EyeViewService, camera_forward
-from teleop.messages import EYE_VIEW, HEAD_POSE, PLANT_STATE, DropCounter
-from teleop.service import ServiceOptions
-from teleop.stack import EYEVIEW, free_loopback_port, scenario_services
-from teleop.topics import Topics
+from teleop.bus.topics import Topics
+from teleop.core.config import load_config
+from teleop.run.stack import EYEVIEW, free_loopback_port, scenario_services
+from teleop.viz import entities as ent
 from tests.test_recorder import read_rrd
 
 # Mean absolute pixel difference (0-255) above which two renders show different scenes;
@@ -125,7 +125,7 @@ def test_frames_reach_the_recorder_over_shared_memory_and_land_in_the_rrd(tmp_pa
     assert latency["count"] == eye["frames_received"] and latency["p50"] > 0
 
     data = read_rrd(Path(summary["rrd"]))
-    cols = data[r.ENTITY_EYE_VIEW]
+    cols = data[ent.ENTITY_EYE_VIEW]
     blobs = cols["EncodedImage:blob"]
     assert len(blobs) == eye["frames_received"]
     assert all(m == ["image/jpeg"] for m in cols["EncodedImage:media_type"])
@@ -134,10 +134,10 @@ def test_frames_reach_the_recorder_over_shared_memory_and_land_in_the_rrd(tmp_pa
     assert image.size == (config.eyeview.width_px, config.eyeview.height_px)
     # Logged at the plant's sim time of the state each frame shows (whole plant ticks,
     # within the run), not at arrival time.
-    sim_ns = np.array(cols[r.TIMELINE_SIM])
+    sim_ns = np.array(cols[ent.TIMELINE_SIM])
     step_ns = round(config.plant.timestep_s * 1e9)
     assert np.all(sim_ns % step_ns == 0) and sim_ns.max() <= 2 * 10**9
-    assert len(set(cols[r.TIMELINE_SOURCE])) == len(blobs)
+    assert len(set(cols[ent.TIMELINE_SOURCE])) == len(blobs)
 
 
 def test_without_shared_memory_the_frames_come_over_the_socket(tmp_path):
@@ -148,7 +148,7 @@ def test_without_shared_memory_the_frames_come_over_the_socket(tmp_path):
     eye = summary["eye_view"]
     assert eye["frames_received"] > 0
     assert eye["frames_received_shm"] == 0
-    buffers = read_rrd(Path(summary["rrd"]))[r.ENTITY_EYE_VIEW]["Image:buffer"]
+    buffers = read_rrd(Path(summary["rrd"]))[ent.ENTITY_EYE_VIEW]["Image:buffer"]
     assert len(buffers) == eye["frames_received"]
     cfg = load_config().eyeview
     assert {len(b[0]) for b in buffers} == {cfg.width_px * cfg.height_px * 3}

@@ -11,25 +11,23 @@ import math
 import numpy as np
 import pytest
 
-from teleop.config import Config, HapticConfig, TeleopConfig, load_config
-from teleop.feedback import (
+from teleop.control.feedback import (
     STANDARD_GRAVITY_M_S2,
     FeedbackComponents,
     check_stability,
     contact_force,
     device_force,
     feedback_components,
-    finger_bodies,
-    held_mass_kg,
-    held_object,
     obstacle_force,
     weight_force,
     workspace_force,
 )
-from teleop.kinematics import build_arm_model
-from teleop.plant import Plant
-from teleop.proximity import ProximitySample
-from teleop.teleop_control import TeleopController
+from teleop.control.kinematics import build_arm_model
+from teleop.control.teleop import TeleopController
+from teleop.core.config import Config, HapticConfig, TeleopConfig, load_config
+from teleop.sim.contact import finger_bodies, held_mass_kg, held_object
+from teleop.sim.plant import Plant
+from teleop.sim.proximity import ProximitySample
 
 # The tool site is this far (m) above the fingertips along the approach axis.
 TOOL_TO_FINGERTIP_M = 0.02

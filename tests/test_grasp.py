@@ -15,13 +15,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from teleop import recorder as r
-from teleop.blueprint import view_specs
-from teleop.config import load_config
-from teleop.feedback import STANDARD_GRAVITY_M_S2
-from teleop.report import write_report
-from teleop.rrd import Recording
-from teleop.scene3d import ENTITY_GHOSTS, SceneModel
+from services import recorder as r
+from teleop.control.feedback import STANDARD_GRAVITY_M_S2
+from teleop.core.config import load_config
+from teleop.viz import entities as ent
+from teleop.viz.blueprint import view_specs
+from teleop.viz.report import write_report
+from teleop.viz.rrd import Recording
+from teleop.viz.scene3d import ENTITY_GHOSTS, SceneModel
 
 # Tolerance on the held weight the operator feels, as a fraction of m g.
 WEIGHT_TOLERANCE = 0.10
@@ -104,38 +105,40 @@ def test_grasp_recording_holds_every_entity_the_blueprint_shows(obstacle_run):
     data = rec.lists()
 
     # Which stream feeds each time-series entity the blueprint shows, for its sample count.
-    feeds = {r.axis_entity(r.ENTITY_FEEDBACK_DEVICE_F, a): "force_feedback" for a in r.AXES}
-    for axis in r.AXES:
-        for base in (r.ENTITY_TELEOP_V_REF, r.ENTITY_TELEOP_V_TOOL, r.ENTITY_TELEOP_V_ERROR):
-            feeds[r.axis_entity(base, axis)] = "teleop_status"
-    feeds.update({r.norm_entity(c): "force_feedback" for c in r.FEEDBACK_COMPONENTS})
+    feeds = {ent.axis_entity(ent.ENTITY_FEEDBACK_DEVICE_F, a): "force_feedback" for a in ent.AXES}
+    for axis in ent.AXES:
+        for base in (ent.ENTITY_TELEOP_V_REF, ent.ENTITY_TELEOP_V_TOOL, ent.ENTITY_TELEOP_V_ERROR):
+            feeds[ent.axis_entity(base, axis)] = "teleop_status"
+    feeds.update({ent.norm_entity(c): "force_feedback" for c in ent.FEEDBACK_COMPONENTS})
     for spec in view_specs(config):
         for entity in spec.entities:
             values = data[entity]["Scalars:scalars"]
             assert len(values) == logged[feeds[entity]], entity
-            assert len(set(data[entity][r.TIMELINE_SIM])) == len(values), entity  # own times
+            assert len(set(data[entity][ent.TIMELINE_SIM])) == len(values), entity  # own times
         for root in spec.subtrees:
-            if root == r.ENTITY_EYE_VIEW:  # rendered in realtime runs only (test_eyeview.py)
+            if root == ent.ENTITY_EYE_VIEW:  # rendered in realtime runs only (test_eyeview.py)
                 continue
             assert any(e.startswith(root + "/") or e == root for e in data), root
 
     # Contact and obstacle proximity ride in every plant state (computed every step in
     # teleoperation), each at its state's own sim time.
-    state_sims = data[r.joint_entity(r.ENTITY_JOINT_Q, config.robot.arm_joints[0])][r.TIMELINE_SIM]
+    state_sims = data[ent.joint_entity(ent.ENTITY_JOINT_Q, config.robot.arm_joints[0])][
+        ent.TIMELINE_SIM
+    ]
     for entity in (
-        *(r.axis_entity(r.ENTITY_CONTACT_FORCE, a) for a in r.AXES),
-        r.ENTITY_CONTACT_COUNT,
-        r.ENTITY_OBSTACLE_DISTANCE,
+        *(ent.axis_entity(ent.ENTITY_CONTACT_FORCE, a) for a in ent.AXES),
+        ent.ENTITY_CONTACT_COUNT,
+        ent.ENTITY_OBSTACLE_DISTANCE,
     ):
         assert len(data[entity]["Scalars:scalars"]) == logged["plant_state"], entity
-        assert sorted(data[entity][r.TIMELINE_SIM]) == sorted(state_sims), entity
+        assert sorted(data[entity][ent.TIMELINE_SIM]) == sorted(state_sims), entity
 
     # Loop rates: one per flush of each periodic stream; hops: per record with both stamps.
     n_flushes = json.loads((run_dir / "recorder.summary.json").read_text())["flushes"]
     for stream in r.PERIODIC_STREAMS - {"control_status"}:
-        n = len(data[r.rate_entity(stream)]["Scalars:scalars"])
+        n = len(data[ent.rate_entity(stream)]["Scalars:scalars"])
         assert 1 <= n <= n_flushes, stream
-    hops = {e.split("/")[1]: data[e] for e in data if e.startswith(r.ENTITY_LATENCY + "/")}
+    hops = {e.split("/")[1]: data[e] for e in data if e.startswith(ent.ENTITY_LATENCY + "/")}
     assert set(hops) >= {"plant_state", "force_feedback"}
     for stream, cols in hops.items():
         assert 0 < len(cols["Scalars:scalars"]) <= logged[stream], stream
@@ -145,28 +148,32 @@ def test_grasp_recording_holds_every_entity_the_blueprint_shows(obstacle_run):
         assert np.nanmin(values) >= 0.0 and not np.isnan(values).all(axis=0).any(), stream
 
     # Events: every RUN_EVENT plus the recorder's lines (services joining the bus).
-    assert len(data[r.ENTITY_EVENTS]["TextLog:text"]) == logged["events"]
-    texts = [t[0] for t in data[r.ENTITY_RECORDER_EVENTS]["TextLog:text"]]
-    assert any("GRASP" in t[0] for t in data[r.ENTITY_EVENTS]["TextLog:text"])
+    assert len(data[ent.ENTITY_EVENTS]["TextLog:text"]) == logged["events"]
+    texts = [t[0] for t in data[ent.ENTITY_RECORDER_EVENTS]["TextLog:text"]]
+    assert any("GRASP" in t[0] for t in data[ent.ENTITY_EVENTS]["TextLog:text"])
     assert any(t == "service plant joined the bus" for t in texts)
 
     # The 3D scene: every visual geom of the model once (static), every moving body at
     # the scene rate, each at the sim and source time of the plant state it came from.
-    scene = SceneModel(config, r.ENTITY_OBJECTS)
+    scene = SceneModel(config, ent.ENTITY_OBJECTS)
     for geom in scene.geoms:
         assert geom.entity in data, geom.entity
-    joint_cols = data[r.joint_entity(r.ENTITY_JOINT_Q, config.robot.arm_joints[0])]
-    state_times = dict(zip(joint_cols[r.TIMELINE_SIM], joint_cols[r.TIMELINE_SOURCE], strict=True))
+    joint_cols = data[ent.joint_entity(ent.ENTITY_JOINT_Q, config.robot.arm_joints[0])]
+    state_times = dict(
+        zip(joint_cols[ent.TIMELINE_SIM], joint_cols[ent.TIMELINE_SOURCE], strict=True)
+    )
     sim_end_s = max(state_times) * 1e-9
     for body in scene.moving_bodies:
         cols = data[scene.body_entity(body)]
-        sims = cols[r.TIMELINE_SIM]
+        sims = cols[ent.TIMELINE_SIM]
         assert abs(len(sims) - sim_end_s * config.recorder.scene_rate_hz) <= 2
-        assert all(state_times[t] == u for t, u in zip(sims, cols[r.TIMELINE_SOURCE], strict=True))
+        assert all(
+            state_times[t] == u for t, u in zip(sims, cols[ent.TIMELINE_SOURCE], strict=True)
+        )
     ghosts = {e.split("/")[2] for e in data if e.startswith(ENTITY_GHOSTS + "/")}
     assert len(ghosts) == int(sim_end_s // config.recorder.ghost_period_s) + 1
-    for component in r.FORCE_ARROW_COLORS:
-        assert data[r.force_arrow_entity(component)]["Arrows3D:vectors"], component
+    for component in ent.FORCE_ARROW_COLORS:
+        assert data[ent.force_arrow_entity(component)]["Arrows3D:vectors"], component
 
 
 def test_report_writes_the_paper_figures(obstacle_run, tmp_path):

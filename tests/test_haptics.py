@@ -18,15 +18,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from teleop.bus import Publisher, close_session, open_session, subscribe, wait_alive
-from teleop.config import REPO_ROOT, Config, HapticConfig, load_config
-from teleop.haptics import (
-    EmulatedDevice,
-    FeedbackHold,
-    KalmanVelocityEstimator,
-    max_stable_stiffness_n_per_m,
-)
-from teleop.messages import (
+from teleop.bus.messages import (
     FORCE_FEEDBACK,
     HAND_INPUT,
     HAPTIC_STATE,
@@ -37,8 +29,16 @@ from teleop.messages import (
     Schema,
     Stage,
 )
-from teleop.stack import free_loopback_port
-from teleop.topics import Topics
+from teleop.bus.session import Publisher, close_session, open_session, subscribe, wait_alive
+from teleop.bus.topics import Topics
+from teleop.core.config import REPO_ROOT, Config, HapticConfig, load_config
+from teleop.devices.haptic import (
+    EmulatedDevice,
+    FeedbackHold,
+    KalmanVelocityEstimator,
+    max_stable_stiffness_n_per_m,
+)
+from teleop.run.stack import free_loopback_port
 
 PERIOD_S = 0.001  # the plant period the device steps at
 NS_PER_MS = 1_000_000

@@ -17,9 +17,12 @@ import threading
 import numpy as np
 import pytest
 
-from teleop.bus import Publisher, close_session, open_session, subscribe, wait_alive
-from teleop.config import REPO_ROOT, load_config
-from teleop.hmd import (
+from teleop.bus.messages import HEAD_POSE, TOOL_POSE, DropCounter
+from teleop.bus.session import Publisher, close_session, open_session, subscribe, wait_alive
+from teleop.bus.topics import Topics
+from teleop.core.config import REPO_ROOT, load_config
+from teleop.core.ticks import last_sample_tick
+from teleop.devices.hmd import (
     ErrorStats,
     HeadFilter,
     HeadMotion,
@@ -29,10 +32,7 @@ from teleop.hmd import (
     Tracker,
     wrap_angle,
 )
-from teleop.messages import HEAD_POSE, TOOL_POSE, DropCounter
-from teleop.stack import free_loopback_port
-from teleop.ticks import last_sample_tick
-from teleop.topics import Topics
+from teleop.run.stack import free_loopback_port
 
 SIM_S = 20.0  # simulated seconds of head motion per accuracy test
 # A head moving faster than the default script (peak yaw rate 0.84 rad/s, sway 0.1 m/s).

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from teleop.config import load_config
-from teleop.idle_poll import IDLE_CGROUP_NAME, POLLING, cpu_cgroup_root, read_status
-from teleop.stack import (
+from teleop.core.config import load_config
+from teleop.run.idle_poll import IDLE_CGROUP_NAME, POLLING, cpu_cgroup_root, read_status
+from teleop.run.stack import (
     IDLE_POLL_PRIORITY,
     PRIORITY,
     idle_poll_cpus,

@@ -22,19 +22,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from teleop import latency
-from teleop.clock import NS_PER_S, NS_PER_US
-from teleop.config import FLOOR_STAND_INS, load_config
-from teleop.haptic_service import SAMPLES_FILE, TRACE_FILE
-from teleop.messages import JOINT_COMMAND, N_STAGES, Stage
-from teleop.plant_service import (
+from services.plant import (
     CATCH_UP_MAX_PERIODS,
     OWN_STEP_AFTER_PERIODS,
     DeviceClockGrid,
     PlantService,
 )
-from teleop.service import ServiceOptions
-from teleop.stamps import StampLog
+from teleop.bench import latency
+from teleop.bus.messages import JOINT_COMMAND, N_STAGES, Stage
+from teleop.bus.service import ServiceOptions
+from teleop.bus.stamps import StampLog
+from teleop.core.clock import NS_PER_S, NS_PER_US
+from teleop.core.config import FLOOR_STAND_INS, load_config
+from teleop.core.rundir import HAPTIC_SAMPLES_FILE, HAPTIC_TRACE_FILE
 
 # HDR histograms keep 3 significant digits: a percentile is within this fraction of the
 # exact order statistic (the bucket's highest equivalent value; 2^-10 < 1e-3).
@@ -269,8 +269,8 @@ def test_no_sample_lost_or_counted_twice_at_1khz(stack_run):
 
 def test_report_equals_a_reference_computation_on_the_raw_files(stack_run):
     run_dir = Path(stack_run.summary["run_dir"])
-    traces = np.load(run_dir / TRACE_FILE)
-    assert (np.load(run_dir / SAMPLES_FILE)[:, 1] > 0).all()
+    traces = np.load(run_dir / HAPTIC_TRACE_FILE)
+    assert (np.load(run_dir / HAPTIC_SAMPLES_FILE)[:, 1] > 0).all()
     # Reference: plain numpy on the file, independent of the module's helpers.
     complete = traces[(traces > 0).all(axis=1)]
     first_ns = complete[:, Stage.HAPTIC_SAMPLE].min()

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from teleop import messages as m
-from teleop.topics import Topics
+from teleop.bus import messages as m
+from teleop.bus.topics import Topics
 
 PROTOCOL_DOC = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
 LAYOUT_BEGIN = "<!-- layout_table() begin -->"
@@ -206,7 +206,7 @@ def test_rejects_counts_above_max(schema: m.Schema, count: str, maximum: int):
 def test_drop_counter_counts_per_kind_and_reason_and_logs_once_per_kind(caplog):
     drops = m.DropCounter()
     bad_size = b"\0" * 3
-    with caplog.at_level(logging.WARNING, logger="teleop.messages"):
+    with caplog.at_level(logging.WARNING, logger="teleop.bus.messages"):
         for _ in range(5):
             try:
                 m.PLANT_STATE.decode(bad_size)
@@ -249,5 +249,5 @@ def test_protocol_doc_embeds_the_current_layout_table():
     begin = text.index(LAYOUT_BEGIN) + len(LAYOUT_BEGIN)
     end = text.index(LAYOUT_END)
     assert text[begin:end].strip() == m.layout_table().strip(), (
-        "docs/protocol.md is stale: paste `python -m teleop.messages` between the markers"
+        "docs/protocol.md is stale: paste `python -m teleop.bus.messages` between the markers"
     )

@@ -7,8 +7,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from teleop.control import compensation_terms, velocity_reference
-from teleop.kinematics import (
+from teleop.control.kinematics import (
     ModelError,
     build_arm_model,
     joint_space_dynamics,
@@ -18,7 +17,8 @@ from teleop.kinematics import (
     tool_pose_and_jacobian,
     tool_position_and_jacobian,
 )
-from teleop.plant import Plant
+from teleop.control.path import compensation_terms, velocity_reference
+from teleop.sim.plant import Plant
 
 N_CONFIGURATIONS = 50
 TOLERANCE = 1e-9

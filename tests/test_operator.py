@@ -12,9 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from teleop.bus import Publisher, close_session, open_session, subscribe, wait_alive
-from teleop.config import DEPLOY_DIR, REPO_ROOT, load_config
-from teleop.messages import (
+from teleop.bus.messages import (
     HAND_INPUT,
     OBJECT_POSES,
     RUN_EVENT,
@@ -23,7 +21,10 @@ from teleop.messages import (
     DropCounter,
     Event,
 )
-from teleop.operator import (
+from teleop.bus.session import Publisher, close_session, open_session, subscribe, wait_alive
+from teleop.bus.topics import Topics
+from teleop.core.config import DEPLOY_DIR, REPO_ROOT, load_config
+from teleop.devices.operator import (
     ObservationBuffer,
     Scenario,
     ScenarioError,
@@ -33,8 +34,7 @@ from teleop.operator import (
     hand_offset_for_velocity,
     rot_z,
 )
-from teleop.stack import free_loopback_port
-from teleop.topics import Topics
+from teleop.run.stack import free_loopback_port
 
 TIMESTEP_S = 0.001
 GRASP_FILE = DEPLOY_DIR / "scenarios" / "grasp.toml"

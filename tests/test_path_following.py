@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from teleop.config import load_config
-from teleop.control import DesiredPath
-from teleop.experiments import run_path_following_inprocess
+from teleop.control.path import DesiredPath
+from teleop.core.config import load_config
+from teleop.run.experiments import run_path_following_inprocess
 
 from .conftest import ARM7_OVERRIDES
 

@@ -2,7 +2,7 @@
 
 The recorder runs in-process on a thread with its own loopback endpoint; a second
 session publishes known records once the recorder's liveliness token is up. The
-``.rrd`` is then read back with ``teleop.rrd.read_rrd`` and every value and time
+``.rrd`` is then read back with ``teleop.viz.rrd.read_rrd`` and every value and time
 compared with what was sent: samples must sit at their own sim_time / source_time,
 not at their arrival time.
 """
@@ -22,12 +22,13 @@ import numpy as np
 import pytest
 import zenoh
 
-from teleop import bus
-from teleop import messages as m
-from teleop import recorder as r
-from teleop.config import Config, ConfigError, load_config
-from teleop.rrd import read_rrd
-from teleop.service import ServiceOptions
+from services import recorder as r
+from teleop.bus import messages as m
+from teleop.bus import session as bus
+from teleop.bus.service import ServiceOptions
+from teleop.core.config import Config, ConfigError, load_config
+from teleop.viz import entities as ent
+from teleop.viz.rrd import read_rrd
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")
 os.environ.setdefault("TELEMETRY_ENABLED", "false")
@@ -193,7 +194,7 @@ def build(stream: str, i: int) -> np.ndarray:
 def series(data: dict[str, dict[str, list[Any]]], entity: str) -> dict[int, float]:
     """A Scalars entity as {sim_time or source_time ns: value}."""
     cols = data[entity]
-    times = cols.get(r.TIMELINE_SIM) or cols[r.TIMELINE_SOURCE]
+    times = cols.get(ent.TIMELINE_SIM) or cols[ent.TIMELINE_SOURCE]
     values = [v[0] for v in cols["Scalars:scalars"]]
     assert len(times) == len(values) == len(set(times)), entity
     return dict(zip(times, values, strict=True))
@@ -285,62 +286,62 @@ def test_every_stream_is_logged_at_its_own_time(rig_factory, tmp_path):
     data = read_rrd(rig.service.rrd_path)
     sims = [sim_ns(i) for i in range(N["plant_state"])]
     for j, joint in enumerate(JOINTS):
-        q = series(data, r.joint_entity(r.ENTITY_JOINT_Q, joint))
+        q = series(data, ent.joint_entity(ent.ENTITY_JOINT_Q, joint))
         assert sorted(q) == sims  # sim_time = the records' own sim_time_ns
         assert all(q[sim_ns(i)] == pytest.approx(0.001 * i + j) for i in range(N["plant_state"]))
-        qd = series(data, r.joint_entity(r.ENTITY_JOINT_QD, joint))
+        qd = series(data, ent.joint_entity(ent.ENTITY_JOINT_QD, joint))
         assert len(qd) == N["plant_state"]
         # The references the drives got come with the state, at its sim time.
-        cmd = series(data, r.joint_entity(r.ENTITY_QD_REF, joint))
+        cmd = series(data, ent.joint_entity(ent.ENTITY_QD_REF, joint))
         assert sorted(cmd) == sims
         assert cmd[sim_ns(5)] == pytest.approx(0.05 - j)
-    q_cols = data[r.joint_entity(r.ENTITY_JOINT_Q, JOINTS[0])]
-    by_sim = dict(zip(q_cols[r.TIMELINE_SIM], q_cols[r.TIMELINE_SOURCE], strict=True))
+    q_cols = data[ent.joint_entity(ent.ENTITY_JOINT_Q, JOINTS[0])]
+    by_sim = dict(zip(q_cols[ent.TIMELINE_SIM], q_cols[ent.TIMELINE_SOURCE], strict=True))
     assert by_sim == {sim_ns(i): source_ns(i) for i in range(N["plant_state"])}
 
-    tool = data[r.ENTITY_TOOL]
-    assert sorted(tool[r.TIMELINE_SIM]) == sims
-    rows = dict(zip(tool[r.TIMELINE_SIM], tool["Transform3D:translation"], strict=True))
+    tool = data[ent.ENTITY_TOOL]
+    assert sorted(tool[ent.TIMELINE_SIM]) == sims
+    rows = dict(zip(tool[ent.TIMELINE_SIM], tool["Transform3D:translation"], strict=True))
     # One translation per row; Rerun stores Vec3D as float32.
     assert rows[sim_ns(10)][0] == pytest.approx([0.3, 0.0, 0.01], abs=F32_TOLERANCE)
     assert tool["Transform3D:quaternion"][0][0] == pytest.approx([0.0, 0.0, 0.0, 1.0])  # xyzw
-    trace = data[r.ENTITY_TOOL_TRACE]["LineStrips3D:strips"]
+    trace = data[ent.ENTITY_TOOL_TRACE]["LineStrips3D:strips"]
     assert trace and len(trace[-1][0]) > 1  # re-logged per flush, never per sample
 
     # Contact and proximity: only the states that computed them, at their own times.
     computed = range(0, N["plant_state"], INTERACTION_EVERY)
-    force_z = series(data, r.axis_entity(r.ENTITY_CONTACT_FORCE, "z"))
+    force_z = series(data, ent.axis_entity(ent.ENTITY_CONTACT_FORCE, "z"))
     assert force_z == {sim_ns(i): float(i) for i in computed}
-    count = series(data, r.ENTITY_CONTACT_COUNT)
+    count = series(data, ent.ENTITY_CONTACT_COUNT)
     assert count == {sim_ns(i): float(i // INTERACTION_EVERY % 3) for i in computed}
-    distance = series(data, r.ENTITY_OBSTACLE_DISTANCE)
+    distance = series(data, ent.ENTITY_OBSTACLE_DISTANCE)
     assert sorted(distance) == [sim_ns(i) for i in computed]
     assert distance[sim_ns(100)] == pytest.approx(0.4)
-    cube = data[r.object_entity("cube")][r.TIMELINE_SIM]
-    ball = data[r.object_entity("ball")][r.TIMELINE_SIM]
+    cube = data[ent.object_entity("cube")][ent.TIMELINE_SIM]
+    ball = data[ent.object_entity("ball")][ent.TIMELINE_SIM]
     assert sorted(cube) == [sim_ns(i) for i in range(N["objects"])]
     assert sorted(ball) == [sim_ns(i) for i in range(0, N["objects"], 2)]
 
-    error = series(data, r.ENTITY_PATH_ERROR)
+    error = series(data, ent.ENTITY_PATH_ERROR)
     assert sorted(error) == [sim_ns(i) for i in range(N["control_status"])]
     assert error[sim_ns(7)] == pytest.approx(0.0007)
-    for base in (r.ENTITY_DESIRED_P, r.ENTITY_TOOL_P):
-        for axis in r.AXES:
-            assert len(series(data, r.axis_entity(base, axis))) == N["control_status"]
-    assert len(series(data, r.ENTITY_MANIPULABILITY)) == N["control_status"]
+    for base in (ent.ENTITY_DESIRED_P, ent.ENTITY_TOOL_P):
+        for axis in ent.AXES:
+            assert len(series(data, ent.axis_entity(base, axis))) == N["control_status"]
+    assert len(series(data, ent.ENTITY_MANIPULABILITY)) == N["control_status"]
 
-    events = data[r.ENTITY_EVENTS]
-    texts = dict(zip(events[r.TIMELINE_SIM], events["TextLog:text"], strict=True))
+    events = data[ent.ENTITY_EVENTS]
+    texts = dict(zip(events[ent.TIMELINE_SIM], events["TextLog:text"], strict=True))
     assert texts[sim_ns(1)] == ["WATCHDOG_BRAKE at step 123 (value 0.025)"]
     assert texts[sim_ns(0)] == ["STARTED at step 0"]
     assert texts[sim_ns(3)] == ["GRASP at step 900"]
     assert texts[sim_ns(4)] == ["PHASE 3 at step 1200"]
     assert texts[sim_ns(5)] == ["TASK_DONE (success) at step 5000"]
     assert texts[sim_ns(6)] == ["TASK_DONE (gave up) at step 6000"]
-    levels = dict(zip(events[r.TIMELINE_SIM], events["TextLog:level"], strict=True))
+    levels = dict(zip(events[ent.TIMELINE_SIM], events["TextLog:level"], strict=True))
     assert levels[sim_ns(1)] == [r.LEVEL_WARN]
 
-    stats = json.loads(data[r.ENTITY_STATS]["TextDocument:text"][0][0])
+    stats = json.loads(data[ent.ENTITY_STATS]["TextDocument:text"][0][0])
     assert stats["samples_logged"] == summary["samples_logged"]
 
 
@@ -363,37 +364,37 @@ def test_bilateral_streams_are_logged_at_their_own_time(rig_factory, tmp_path):
         return [sim_ns(i) for i in range(N_BILATERAL[stream])]
 
     # Haptic device: every coordinate at the records' own sim and source times.
-    for base in (r.ENTITY_HAPTIC_P, r.ENTITY_HAPTIC_V, r.ENTITY_HAPTIC_F):
-        for axis in r.AXES:
-            assert sorted(series(data, r.axis_entity(base, axis))) == sims("haptic_state")
-    haptic_px = data[r.axis_entity(r.ENTITY_HAPTIC_P, "x")]
-    by_sim = dict(zip(haptic_px[r.TIMELINE_SIM], haptic_px[r.TIMELINE_SOURCE], strict=True))
+    for base in (ent.ENTITY_HAPTIC_P, ent.ENTITY_HAPTIC_V, ent.ENTITY_HAPTIC_F):
+        for axis in ent.AXES:
+            assert sorted(series(data, ent.axis_entity(base, axis))) == sims("haptic_state")
+    haptic_px = data[ent.axis_entity(ent.ENTITY_HAPTIC_P, "x")]
+    by_sim = dict(zip(haptic_px[ent.TIMELINE_SIM], haptic_px[ent.TIMELINE_SOURCE], strict=True))
     assert by_sim == {sim_ns(i): source_ns(i) for i in range(N_BILATERAL["haptic_state"])}
-    assert series(data, r.axis_entity(r.ENTITY_HAPTIC_F, "z"))[sim_ns(7)] == pytest.approx(0.07)
-    assert series(data, r.ENTITY_HAPTIC_BUTTONS)[sim_ns(3)] == 3.0
+    assert series(data, ent.axis_entity(ent.ENTITY_HAPTIC_F, "z"))[sim_ns(7)] == pytest.approx(0.07)
+    assert series(data, ent.ENTITY_HAPTIC_BUTTONS)[sim_ns(3)] == 3.0
 
     # Hand input: sim_time from valid_from_tick and the plant timestep.
     timestep_ns = round(rig.service.config.plant.timestep_s * 1e9)
-    hand_x = series(data, r.axis_entity(r.ENTITY_HAND_TARGET, "x"))
+    hand_x = series(data, ent.axis_entity(ent.ENTITY_HAND_TARGET, "x"))
     ticks = range(HAND_TICK0, HAND_TICK0 + N_BILATERAL["hand_input"])
     assert sorted(hand_x) == [t * timestep_ns for t in ticks]
     assert hand_x[(HAND_TICK0 + 5) * timestep_ns] == pytest.approx(0.005)
-    hand_cols = data[r.ENTITY_HAND_BUTTONS]
-    assert sorted(hand_cols[r.TIMELINE_SOURCE]) == [
+    hand_cols = data[ent.ENTITY_HAND_BUTTONS]
+    assert sorted(hand_cols[ent.TIMELINE_SOURCE]) == [
         source_ns(i) for i in range(N_BILATERAL["hand_input"])
     ]
-    assert series(data, r.ENTITY_HAND_BUTTONS)[(HAND_TICK0 + 1) * timestep_ns] == 1.0
+    assert series(data, ent.ENTITY_HAND_BUTTONS)[(HAND_TICK0 + 1) * timestep_ns] == 1.0
 
     # Force feedback: each component and its norm per sample.
-    for _, base in r.FEEDBACK_COMPONENTS.values():
-        for axis in r.AXES:
-            assert sorted(series(data, r.axis_entity(base, axis))) == sims("force_feedback")
-    for component in r.FEEDBACK_COMPONENTS:
-        assert sorted(series(data, r.norm_entity(component))) == sims("force_feedback")
-    assert set(series(data, r.norm_entity("contact")).values()) == {5.0}  # |(3, 4, 0)|
-    device_norm = series(data, r.norm_entity("device"))
+    for _, base in ent.FEEDBACK_COMPONENTS.values():
+        for axis in ent.AXES:
+            assert sorted(series(data, ent.axis_entity(base, axis))) == sims("force_feedback")
+    for component in ent.FEEDBACK_COMPONENTS:
+        assert sorted(series(data, ent.norm_entity(component))) == sims("force_feedback")
+    assert set(series(data, ent.norm_entity("contact")).values()) == {5.0}  # |(3, 4, 0)|
+    device_norm = series(data, ent.norm_entity("device"))
     assert device_norm[sim_ns(40)] == pytest.approx(0.4)
-    obstacle_y = series(data, r.axis_entity(r.ENTITY_FEEDBACK_OBSTACLE_F, "y"))
+    obstacle_y = series(data, ent.axis_entity(ent.ENTITY_FEEDBACK_OBSTACLE_F, "y"))
     assert obstacle_y[sim_ns(40)] == pytest.approx(0.04)
 
     # Force arrows: one row per flush (not per sample), the newest at the newest feedback,
@@ -405,8 +406,8 @@ def test_bilateral_streams_are_logged_at_their_own_time(rig_factory, tmp_path):
         ("weight", WEIGHT_FEEDBACK_N),
         ("obstacle", build("force_feedback", last)["world_f_obstacle_n"]),
     ):
-        arrows = data[r.force_arrow_entity(component)]
-        times = arrows[r.TIMELINE_SIM]
+        arrows = data[ent.force_arrow_entity(component)]
+        times = arrows[ent.TIMELINE_SIM]
         assert 1 <= len(times) <= summary["flushes"] < N_BILATERAL["force_feedback"]
         newest = times.index(max(times))
         assert times[newest] == sim_ns(last)
@@ -418,28 +419,28 @@ def test_bilateral_streams_are_logged_at_their_own_time(rig_factory, tmp_path):
         assert arrows["Arrows3D:colors"]  # static, one colour per component
 
     # Head pose: scalars, and the camera transform at the predicted pose plus a frustum.
-    assert sorted(series(data, r.ENTITY_HMD_MEASURED_YAW)) == sims("head_pose")
-    assert series(data, r.ENTITY_HMD_PREDICTED_YAW)[sim_ns(10)] == pytest.approx(0.2)
-    for base in (r.ENTITY_HMD_FILTERED_P, r.ENTITY_HMD_MEASURED_P):
-        for axis in r.AXES:
-            assert sorted(series(data, r.axis_entity(base, axis))) == sims("head_pose")
-    hmd = data[r.ENTITY_HMD]
-    assert sorted(hmd[r.TIMELINE_SIM]) == sims("head_pose")
-    quats = dict(zip(hmd[r.TIMELINE_SIM], hmd["Transform3D:quaternion"], strict=True))
+    assert sorted(series(data, ent.ENTITY_HMD_MEASURED_YAW)) == sims("head_pose")
+    assert series(data, ent.ENTITY_HMD_PREDICTED_YAW)[sim_ns(10)] == pytest.approx(0.2)
+    for base in (ent.ENTITY_HMD_FILTERED_P, ent.ENTITY_HMD_MEASURED_P):
+        for axis in ent.AXES:
+            assert sorted(series(data, ent.axis_entity(base, axis))) == sims("head_pose")
+    hmd = data[ent.ENTITY_HMD]
+    assert sorted(hmd[ent.TIMELINE_SIM]) == sims("head_pose")
+    quats = dict(zip(hmd[ent.TIMELINE_SIM], hmd["Transform3D:quaternion"], strict=True))
     expected_q = r.yaw_pitch_to_xyzw(np.array(0.2), np.array(0.05))
     np.testing.assert_allclose(quats[sim_ns(10)][0], expected_q, atol=F32_TOLERANCE)
     assert hmd["Pinhole:image_from_camera"]  # static: the viewer draws a frustum
     assert hmd["Pinhole:camera_xyz"]
 
     # Teleoperation status.
-    for base in (r.ENTITY_TELEOP_V_REF, r.ENTITY_TELEOP_V_TOOL):
-        for axis in r.AXES:
-            assert sorted(series(data, r.axis_entity(base, axis))) == sims("teleop_status")
-    for entity in (r.ENTITY_TELEOP_SPEED_SCALE, r.ENTITY_TELEOP_GRIPPER_CMD):
+    for base in (ent.ENTITY_TELEOP_V_REF, ent.ENTITY_TELEOP_V_TOOL):
+        for axis in ent.AXES:
+            assert sorted(series(data, ent.axis_entity(base, axis))) == sims("teleop_status")
+    for entity in (ent.ENTITY_TELEOP_SPEED_SCALE, ent.ENTITY_TELEOP_GRIPPER_CMD):
         assert sorted(series(data, entity)) == sims("teleop_status")
-    holding = series(data, r.ENTITY_TELEOP_HOLDING)
+    holding = series(data, ent.ENTITY_TELEOP_HOLDING)
     assert (holding[sim_ns(4)], holding[sim_ns(5)]) == (0.0, 1.0)
-    assert series(data, r.ENTITY_TELEOP_SPEED_SCALE)[sim_ns(10)] == pytest.approx(0.9)
+    assert series(data, ent.ENTITY_TELEOP_SPEED_SCALE)[sim_ns(10)] == pytest.approx(0.9)
 
 
 class FaultyRecorder(r.RecorderService):
@@ -447,7 +448,7 @@ class FaultyRecorder(r.RecorderService):
 
     def _write_control_status(self, records: np.ndarray) -> None:
         values = np.zeros(records.size + 1)
-        self._send_scalars(r.ENTITY_PATH_ERROR, self._indexes(records), values)
+        self._send_scalars(ent.ENTITY_PATH_ERROR, self._indexes(records), values)
 
 
 def test_rerun_error_is_counted_and_recording_goes_on(rig_factory, tmp_path):
@@ -465,9 +466,9 @@ def test_rerun_error_is_counted_and_recording_goes_on(rig_factory, tmp_path):
     assert summary["samples_logged"]["control_status"] == 0
     assert summary["samples_logged"]["plant_state"] == 2 * n
     data = read_rrd(rig.service.rrd_path)
-    q = series(data, r.joint_entity(r.ENTITY_JOINT_Q, JOINTS[0]))
+    q = series(data, ent.joint_entity(ent.ENTITY_JOINT_Q, JOINTS[0]))
     assert sorted(q) == [sim_ns(i) for i in range(2 * n)]
-    assert r.ENTITY_PATH_ERROR not in data
+    assert ent.ENTITY_PATH_ERROR not in data
 
 
 def test_buffer_is_bounded_and_keeps_the_newest():
@@ -498,7 +499,7 @@ def test_no_rrd_path_and_no_run_dir_is_a_config_error():
 
 def test_default_rrd_path_is_in_the_run_dir(tmp_path):
     service = r.RecorderService(make_config("", free_endpoint()), ServiceOptions(run_dir=tmp_path))
-    assert service.rrd_path == tmp_path / r.RRD_FILE_NAME
+    assert service.rrd_path == tmp_path / ent.RRD_FILE_NAME
 
 
 def test_event_text_and_quaternion_order():
@@ -547,22 +548,22 @@ def test_rates_hops_and_seq_gaps_are_derived_from_the_records(rig_factory, tmp_p
     # series per hop in the stream's latency entity, named by the stages.
     stages = list(HOP_STAMPS_NS)
     sent = [sim_ns(i) for i in (*range(n), *range(n + missing, 2 * n + missing))]
-    cols = data[r.latency_entity("plant_state")]
-    assert sorted(cols[r.TIMELINE_SIM]) == sent
+    cols = data[ent.latency_entity("plant_state")]
+    assert sorted(cols[ent.TIMELINE_SIM]) == sent
     hops = list(zip(stages, stages[1:], strict=False))
-    assert cols["SeriesLines:names"][-1] == [r.hop_name(a, b) for a, b in hops]
+    assert cols["SeriesLines:names"][-1] == [ent.hop_name(a, b) for a, b in hops]
     expected_ms = [(HOP_STAMPS_NS[a] - HOP_STAMPS_NS[b]) / 1e6 for a, b in hops]
     for row in cols["Scalars:scalars"]:
         assert row == pytest.approx(expected_ms)
 
     # Loop rate: records per second of the producer's clock over each window (one record
     # per 3 ms here), lower only for a window that spans the gap.
-    rates = [v[0] for v in data[r.rate_entity("plant_state")]["Scalars:scalars"]]
+    rates = [v[0] for v in data[ent.rate_entity("plant_state")]["Scalars:scalars"]]
     full_hz = 1e9 / (source_ns(1) - source_ns(0))
     assert len(rates) >= 2
     assert max(rates) == pytest.approx(full_hz, rel=1e-6)
     assert all(0.5 * full_hz <= v <= full_hz * (1 + 1e-6) for v in rates)
 
-    texts = [t[0] for t in data[r.ENTITY_RECORDER_EVENTS]["TextLog:text"]]
+    texts = [t[0] for t in data[ent.ENTITY_RECORDER_EVENTS]["TextLog:text"]]
     assert f"plant_state: {missing} record(s) missing (seq gaps)" in texts
     assert "service recorder joined the bus" in texts

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import rerun as rr
 
-from teleop import recorder as r
-from teleop import scene3d
-from teleop.plant import Plant
+from teleop.sim.plant import Plant
+from teleop.viz import entities as ent
+from teleop.viz import scene3d
 
 
 def column(archetype: rr.AsComponents, name: str) -> np.ndarray:
@@ -22,7 +22,7 @@ def column(archetype: rr.AsComponents, name: str) -> np.ndarray:
 
 
 def test_every_visual_geom_is_drawn_once(any_arm_config):
-    scene = scene3d.SceneModel(any_arm_config, r.ENTITY_OBJECTS)
+    scene = scene3d.SceneModel(any_arm_config, ent.ENTITY_OBJECTS)
     model = scene.model
     visible = [
         g
@@ -34,7 +34,7 @@ def test_every_visual_geom_is_drawn_once(any_arm_config):
     assert all(g.entity in entities for g in scene.geoms)
     # The arm's geoms move with its bodies; objects with their OBJECT_POSES entity.
     for name in any_arm_config.robot.object_bodies:
-        assert any(e.startswith(r.object_entity(name) + "/") for e in entities)
+        assert any(e.startswith(ent.object_entity(name) + "/") for e in entities)
     assert len(scene.moving_bodies) > len(any_arm_config.robot.arm_joints)
     obstacle = next(g for g in scene.geoms if scene.is_obstacle(g.geom))
     colors = column(entities[obstacle.entity], "Ellipsoids3D:colors")
@@ -42,7 +42,7 @@ def test_every_visual_geom_is_drawn_once(any_arm_config):
 
 
 def test_body_frames_are_mujocos_own(any_arm_config):
-    scene = scene3d.SceneModel(any_arm_config, r.ENTITY_OBJECTS)
+    scene = scene3d.SceneModel(any_arm_config, ent.ENTITY_OBJECTS)
     rng = np.random.default_rng(0)
     home = np.asarray(any_arm_config.robot.home_q_rad)
     q = home + rng.normal(0.0, 0.3, (4, home.size))
@@ -58,7 +58,7 @@ def test_body_frames_are_mujocos_own(any_arm_config):
 
 
 def test_ghost_capsules_span_mujocos_capsules(any_arm_config):
-    scene = scene3d.SceneModel(any_arm_config, r.ENTITY_OBJECTS)
+    scene = scene3d.SceneModel(any_arm_config, ent.ENTITY_OBJECTS)
     q = np.asarray(any_arm_config.robot.home_q_rad) + 0.2
     parts = dict(scene.ghost(q, 0.02, scene3d.ghost_rgba(0.5)))
     model, data = scene.model, scene.data  # posed by ghost()

@@ -5,9 +5,9 @@ from __future__ import annotations
 import logging
 import os
 
-from teleop.clock import FINE_SLEEP_MARGIN_NS, MonotonicClock
-from teleop.config import load_config
-from teleop.service import fifo_scheduling, pin_to_cpus
+from teleop.bus.service import fifo_scheduling, pin_to_cpus
+from teleop.core.clock import FINE_SLEEP_MARGIN_NS, MonotonicClock
+from teleop.core.config import load_config
 
 
 def test_pin_to_cpus_uses_existing_cpus_and_ignores_others(caplog):

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from teleop import recorder as r
-from teleop.bus import (
+from teleop.bus.messages import JOINT_COMMAND, PLANT_STATE, RUN_EVENT, DropCounter, Event
+from teleop.bus.session import (
     Latest,
     Publisher,
     close_session,
@@ -24,13 +24,13 @@ from teleop.bus import (
     subscribe,
     wait_alive,
 )
-from teleop.config import load_config
-from teleop.experiments import run_path_following_inprocess
-from teleop.messages import JOINT_COMMAND, PLANT_STATE, RUN_EVENT, DropCounter, Event
-from teleop.rrd import Recording
-from teleop.stack import free_loopback_port, service_programs
-from teleop.supervise import Stack
-from teleop.topics import Topics
+from teleop.bus.topics import Topics
+from teleop.core.config import load_config
+from teleop.run.experiments import run_path_following_inprocess
+from teleop.run.stack import free_loopback_port, service_programs
+from teleop.run.supervise import Stack
+from teleop.viz import entities as ent
+from teleop.viz.rrd import Recording
 
 OBSERVER = "observer"
 ALIVE_TIMEOUT_S = 60.0
@@ -76,10 +76,10 @@ def test_lockstep_is_deterministic_and_equals_the_inprocess_run(tmp_path):
     config = load_config()
     every = round(1 / (config.plant.scene_rate_hz * config.plant.timestep_s))
     timestep_ns = round(config.plant.timestep_s * 1e9)
-    q_entity = r.joint_entity(r.ENTITY_JOINT_Q, config.robot.arm_joints[0])
-    data = Recording(first["rrd"]).lists((r.ENTITY_OBSTACLE_DISTANCE, q_entity))
-    state_sims = set(data[q_entity][r.TIMELINE_SIM])
-    sims = data[r.ENTITY_OBSTACLE_DISTANCE][r.TIMELINE_SIM]
+    q_entity = ent.joint_entity(ent.ENTITY_JOINT_Q, config.robot.arm_joints[0])
+    data = Recording(first["rrd"]).lists((ent.ENTITY_OBSTACLE_DISTANCE, q_entity))
+    state_sims = set(data[q_entity][ent.TIMELINE_SIM])
+    sims = data[ent.ENTITY_OBSTACLE_DISTANCE][ent.TIMELINE_SIM]
     assert set(sims) == {t for t in state_sims if t // timestep_ns % every == 0}
     assert len(set(sims)) >= first["steps"] // every
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from teleop.supervise import Program, Stack, StackError
+from teleop.run.supervise import Program, Stack, StackError
 
 # Waits in these tests poll with a deadline; the deadline only bounds a failure.
 WAIT_TIMEOUT_S = 15.0
@@ -184,7 +184,7 @@ HOLDER = textwrap.dedent(
     """
     import json, signal, sys
     from pathlib import Path
-    from teleop.supervise import Program, Stack
+    from teleop.run.supervise import Program, Stack
     SLEEPER = {sleeper!r}
     programs = [
         Program(name=n, command=[sys.executable, "-c", SLEEPER], startsecs=0) for n in ("a", "b")

@@ -16,17 +16,8 @@ import pinocchio as pin
 import pytest
 from scipy.linalg import lapack
 
-from teleop.config import Config, SceneConfig, TeleopConfig, load_config
-from teleop.kinematics import ArmModel, build_arm_model, tool_position_and_jacobian
-from teleop.plant import Plant
-from teleop.proximity import (
-    FAR_DISTANCE_M,
-    ObstacleProximity,
-    apply_scene_overrides,
-    body_names,
-    obstacle_geoms,
-)
-from teleop.teleop_control import (
+from teleop.control.kinematics import ArmModel, build_arm_model, tool_position_and_jacobian
+from teleop.control.teleop import (
     SINGULAR_DAMPING,
     SINGULAR_VALUE_THRESHOLD,
     TeleopController,
@@ -41,6 +32,15 @@ from teleop.teleop_control import (
     singularity_scale,
     teleop_reference,
     view_to_world,
+)
+from teleop.core.config import Config, SceneConfig, TeleopConfig, load_config
+from teleop.sim.plant import Plant
+from teleop.sim.proximity import (
+    FAR_DISTANCE_M,
+    ObstacleProximity,
+    apply_scene_overrides,
+    body_names,
+    obstacle_geoms,
 )
 
 from .conftest import ARM7_OVERRIDES

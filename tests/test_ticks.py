@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from teleop.ticks import TickBarrier, TickedInputs, expected_valid_from, is_sample_tick
+from teleop.core.ticks import TickBarrier, TickedInputs, expected_valid_from, is_sample_tick
 
 TIMESTEP_S = 0.001
 

@@ -33,11 +33,12 @@ import numpy as np
 import pytest
 from websockets.sync.client import ClientConnection, connect
 
-from teleop import recorder as r
-from teleop.blueprint import view_specs
-from teleop.config import load_config
-from teleop.report import write_report
-from teleop.rrd import Recording
+from services import recorder as r
+from teleop.core.config import load_config
+from teleop.viz import entities as ent
+from teleop.viz.blueprint import view_specs
+from teleop.viz.report import write_report
+from teleop.viz.rrd import Recording
 
 RUN_TIMEOUT_S = 300.0  # the whole --web run, start-up included (a loaded 2-core machine)
 EXIT_TIMEOUT_S = 30.0
@@ -222,15 +223,15 @@ def test_path_following_recording_holds_what_its_blueprint_shows(web_run):
     rec = Recording(web_run["rrd"])
     assert rec.has_blueprint
     data = rec.lists()
-    n_status = len(data[r.ENTITY_PATH_ERROR]["Scalars:scalars"])
+    n_status = len(data[ent.ENTITY_PATH_ERROR]["Scalars:scalars"])
     assert n_status > 0
     for spec in view_specs(config):
         for entity in spec.entities:
             assert len(data[entity]["Scalars:scalars"]) == n_status, entity
         for root in spec.subtrees:
-            if root != r.ENTITY_EYE_VIEW:  # the eye view is grasp only
+            if root != ent.ENTITY_EYE_VIEW:  # the eye view is grasp only
                 assert any(e == root or e.startswith(root + "/") for e in data), root
-    strips = data[r.ENTITY_DESIRED_PATH]["LineStrips3D:strips"]
+    strips = data[ent.ENTITY_DESIRED_PATH]["LineStrips3D:strips"]
     assert len(strips[0][0]) == r.DESIRED_PATH_POINTS
 
 

@@ -19,7 +19,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from teleop import latency
+from teleop.bench import latency
 
 
 def main() -> int:

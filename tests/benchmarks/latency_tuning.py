@@ -33,7 +33,7 @@ from variants import (
     variant_parser,
 )
 
-from teleop import latency
+from teleop.bench import latency
 
 VARIANTS: dict[str, dict] = {
     "default": {},

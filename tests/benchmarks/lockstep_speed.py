@@ -21,8 +21,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-from teleop.config import load_config
-from teleop.experiments import run_path_following_inprocess
+from teleop.core.config import load_config
+from teleop.run.experiments import run_path_following_inprocess
 
 
 def lockstep_run(duration_s: float, run_dir: Path, overrides: list[str]) -> dict:

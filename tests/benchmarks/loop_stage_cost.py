@@ -7,12 +7,12 @@ wake-ups evict the service's code and data from the caches. This script measures
 directly and without the stack's noise: one process holds a plant, a controller and a
 haptic service (real objects, each with its own Zenoh session and robot id, so nothing
 routes between them) and passes the loop's records from one to the next through the
-same code the Zenoh callbacks run (``teleop.bus.deliver``: decode, then the service's
+same code the Zenoh callbacks run (``teleop.bus.session.deliver``: decode, then the service's
 callback). Each period: the device samples, the controller answers with a command, the
 plant steps it, the controller turns the state into a force, the device renders it.
 
 The stage times come from the records' own stamps, exactly as the latency report's
-hops (``teleop.latency.HOPS``), so they include the decode. "warm": the periods run
+hops (``teleop.bench.latency.HOPS``), so they include the decode. "warm": the periods run
 back to back; "cold": before each stage the process streams through a buffer larger
 than the caches (``--evict-mib``), as the other services of the stack do in between.
 The ratio cold / warm is what running among other processes costs; the cold figures
@@ -36,15 +36,15 @@ from typing import Any
 
 import numpy as np
 
-from teleop.bus import deliver
-from teleop.config import Config, load_config
-from teleop.controller_service import ControllerService
-from teleop.haptic_service import HapticService
-from teleop.latency import HOPS, stack_overrides
-from teleop.messages import FORCE_FEEDBACK, HAPTIC_STATE, JOINT_COMMAND, PLANT_STATE
-from teleop.plant_service import PlantService
-from teleop.service import Service, ServiceOptions
-from teleop.stack import free_loopback_port
+from services.controller import ControllerService
+from services.haptic import HapticService
+from services.plant import PlantService
+from teleop.bench.latency import HOPS, stack_overrides
+from teleop.bus.messages import FORCE_FEEDBACK, HAPTIC_STATE, JOINT_COMMAND, PLANT_STATE
+from teleop.bus.service import Service, ServiceOptions
+from teleop.bus.session import deliver
+from teleop.core.config import Config, load_config
+from teleop.run.stack import free_loopback_port
 
 # The loop's stages this replay covers: the latency report's compute and wait hops.
 STAGES = tuple(hop for hop in HOPS if hop.kind in ("compute", "wait"))

@@ -46,12 +46,16 @@ from pathlib import Path
 
 import numpy as np
 
-from teleop import feedback, teleop_control
-from teleop.config import Config, SceneConfig, load_config
-from teleop.experiments import initial_configuration
-from teleop.kinematics import ArmModel, build_arm_model, tool_position_and_jacobian
-from teleop.plant import Plant
-from teleop.proximity import ObstacleProximity, ProximitySample, apply_scene_overrides, body_names
+from teleop.control import feedback, teleop_control
+from teleop.control.kinematics import ArmModel, build_arm_model, tool_position_and_jacobian
+from teleop.core.config import Config, SceneConfig, load_config
+from teleop.sim.plant import Plant, initial_configuration
+from teleop.sim.proximity import (
+    ObstacleProximity,
+    ProximitySample,
+    apply_scene_overrides,
+    body_names,
+)
 
 # The last commit with the numpy/SVD control cycle (main before this change).
 BASELINE_REV = "c3b27db80a4ab51a194820217ab9f407d213752d"

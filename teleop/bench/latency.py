@@ -1,0 +1,874 @@
+"""End-to-end latency of the bilateral loop, hop by hop, against the transport's floor.
+
+``teleop latency`` (:func:`measure`) runs, in one command so that every figure is taken
+on the same machine in the same minutes:
+
+1. the transport floor (:mod:`teleop.bench.relay`): a bare relay chain of Python processes
+   with the loop's four legs, paced at the device rate, then back to back, then a
+   payload sweep, with shared memory on;
+2. the realtime teleoperation stack under supervisord (every service and the recorder,
+   the scripted operator moving: ``deploy/scenarios/latency.toml``) for ``duration_s``;
+3. the same stack with shared memory off (TCP loopback), then the floor chain and the
+   sweep with shared memory off;
+4. the stack with the loop's old timing (the plant applies the newest command at its own
+   1 kHz tick, the haptic device renders at its next step), to show what the event-driven
+   loop gains.
+
+Every figure comes from raw stamps (``Stage``, monotonic ns): the haptic service keeps
+the trace of every rendered feedback (``haptic.trace.npy``), the floor origin the trace
+of every returned payload. A hop is the difference of two stamps of one trace; the
+round trip is ``FEEDBACK_RENDERED - HAPTIC_SAMPLE``: handle sampled -> controller ->
+plant (command in a physics step) -> plant state -> controller -> force set on the
+handle's motors. Percentiles come from HDR histograms (``hdrhistogram``: 3 significant
+digits, so within 0.1 % of the exact order statistic).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from teleop.bench.relay import RELAYS, FloorOrigin
+from teleop.bus.messages import EYE_VIEW, PLANT_STATE, Stage
+from teleop.bus.service import fifo_scheduling
+from teleop.bus.session import close_session, open_session, wait_alive
+from teleop.bus.topics import Topics
+from teleop.core.clock import NS_PER_S, NS_PER_US
+from teleop.core.config import Config, EyeViewConfig, load_config
+from teleop.core.rundir import HAPTIC_SAMPLES_FILE, HAPTIC_TRACE_FILE, SHED_FILE_SUFFIX
+from teleop.run.stack import (
+    ALIVE_TIMEOUT_S,
+    SERVICE_ENVIRONMENT,
+    free_loopback_port,
+    idle_poll_cpus,
+    idle_poll_programs,
+    peer_mesh,
+    run_on_services,
+    service_command,
+)
+from teleop.run.supervise import Program, Stack
+
+# HDR histogram range and precision: 1 ns .. 60 s, 3 significant digits.
+HDR_LOWEST_NS = 1
+HDR_HIGHEST_NS = 60 * NS_PER_S
+HDR_SIGNIFICANT_DIGITS = 3
+# The percentiles every report gives (JSON key -> percentile).
+PERCENTILES = {"p50": 50.0, "p90": 90.0, "p99": 99.0, "p999": 99.9}
+# Samples of the first second of a run are start-up (imports warming, links opening,
+# the plant's grid locking to the commands): left out of every figure.
+WARMUP_S = 1.0
+# One eye-view frame at the default size (record + RGB pixels, see EyeViewConfig).
+EYE_VIEW_FRAME_BYTES = EYE_VIEW.frame_bytes(EyeViewConfig().width_px, EyeViewConfig().height_px)
+# The payload sweep, bytes: small record, a page, big records, 1 MiB, one eye-view frame.
+SWEEP_SIZES_BYTES = (64, 4096, 65536, 1 << 20, EYE_VIEW_FRAME_BYTES)
+# Round trips per payload size (back to back) and the time allowed for one size (s).
+DEFAULT_SWEEP_COUNT = 200
+SWEEP_BUDGET_S = 10.0
+# Back-to-back floor: round trips, and how long one may take before it counts as lost (s).
+DEFAULT_BACK_TO_BACK_COUNT = 2000
+RETURN_TIMEOUT_S = 1.0
+# Floor payloads thrown away before measuring (links and pools warm up).
+FLOOR_WARMUP_COUNT = 50
+# Baselines (floor, SHM-off stack, old timing) last at most this long by default (s).
+DEFAULT_BASELINE_MAX_S = 20.0
+# The scenario that keeps the operator moving for the whole run.
+LATENCY_SCENARIO_FILE = "latency.toml"
+# A floor figure below this (us) is "no such stage" (a relay does not wait): no ratio.
+MIN_RATIO_BASE_US = 1.0
+# Histogram bins of the figure and the recording (log-spaced, 10 us .. 1 s).
+FIGURE_BINS_US = np.logspace(1, 6, 151)
+
+
+@dataclass(frozen=True)
+class Hop:
+    """One stage-to-stage interval of the loop; ``kind``: transport, compute or wait."""
+
+    name: str
+    start: Stage
+    end: Stage
+    kind: str
+
+
+HOPS: tuple[Hop, ...] = (
+    Hop("haptic_to_controller", Stage.HAPTIC_SAMPLE, Stage.CONTROLLER_RX, "transport"),
+    Hop("controller_command", Stage.CONTROLLER_RX, Stage.CONTROLLER_TX, "compute"),
+    Hop("controller_to_plant", Stage.CONTROLLER_TX, Stage.PLANT_RX, "transport"),
+    Hop("plant_wait", Stage.PLANT_RX, Stage.PLANT_APPLIED, "wait"),
+    Hop("plant_step", Stage.PLANT_APPLIED, Stage.PLANT_STATE_TX, "compute"),
+    Hop("plant_to_controller", Stage.PLANT_STATE_TX, Stage.CONTROLLER_STATE_RX, "transport"),
+    Hop("controller_feedback", Stage.CONTROLLER_STATE_RX, Stage.FEEDBACK_TX, "compute"),
+    Hop("controller_to_haptic", Stage.FEEDBACK_TX, Stage.FEEDBACK_RX, "transport"),
+    Hop("haptic_render", Stage.FEEDBACK_RX, Stage.FEEDBACK_RENDERED, "wait"),
+)
+ROUND_TRIP = Hop("round_trip", Stage.HAPTIC_SAMPLE, Stage.FEEDBACK_RENDERED, "total")
+LOOP_STAGES = tuple(Stage)  # every stamp of one loop, in loop order
+
+ProgressFn = Callable[[str], None]
+
+
+# -- statistics ---------------------------------------------------------------------------
+
+
+def histogram(values_ns: Iterable[int]) -> Any:
+    """An HDR histogram of latencies in ns (values clamped into its range)."""
+    from hdrh.histogram import HdrHistogram
+
+    hist = HdrHistogram(HDR_LOWEST_NS, HDR_HIGHEST_NS, HDR_SIGNIFICANT_DIGITS)
+    for value in np.clip(np.asarray(values_ns, dtype=np.int64), HDR_LOWEST_NS, HDR_HIGHEST_NS):
+        hist.record_value(int(value))
+    return hist
+
+
+def stats_us(values_ns: np.ndarray) -> dict[str, Any]:
+    """count, p50, p90, p99, p999, max and mean of latencies given in ns, reported in us.
+
+    Percentiles are the HDR histogram's (the smallest recorded value with at least that
+    share of samples at or below it, to 3 significant digits); max and mean are exact.
+    """
+    values_ns = np.asarray(values_ns, dtype=np.int64)
+    out: dict[str, Any] = {"count": int(values_ns.size)}
+    if values_ns.size == 0:
+        out.update({key: None for key in PERCENTILES} | {"max": None, "mean": None})
+        return out
+    hist = histogram(values_ns)
+    for key, pct in PERCENTILES.items():
+        out[key] = hist.get_value_at_percentile(pct) / NS_PER_US
+    out["max"] = float(values_ns.max()) / NS_PER_US
+    out["mean"] = float(values_ns.mean()) / NS_PER_US
+    return out
+
+
+def complete_loops(traces: np.ndarray) -> np.ndarray:
+    """Rows of ``traces`` (n, N_STAGES) that hold every stamp of one loop."""
+    traces = np.asarray(traces, dtype=np.int64).reshape(-1, len(Stage))
+    return traces[(traces[:, list(LOOP_STAGES)] > 0).all(axis=1)]
+
+
+def after_warmup(traces: np.ndarray, warmup_s: float = WARMUP_S) -> np.ndarray:
+    """Rows whose handle sample is at least ``warmup_s`` after the first one's."""
+    if traces.shape[0] == 0:
+        return traces
+    start_ns = traces[:, Stage.HAPTIC_SAMPLE]
+    return traces[start_ns >= start_ns.min() + round(warmup_s * NS_PER_S)]
+
+
+def hop_ns(traces: np.ndarray, hop: Hop) -> np.ndarray:
+    """The hop's durations (ns), one per row."""
+    return traces[:, hop.end] - traces[:, hop.start]
+
+
+def non_monotonic(traces: np.ndarray) -> int:
+    """Rows whose stamps decrease somewhere along the loop (must be 0)."""
+    stamps = traces[:, list(LOOP_STAGES)]
+    return int((np.diff(stamps, axis=1) < 0).any(axis=1).sum())
+
+
+def warm_loops(*traces: np.ndarray) -> np.ndarray:
+    """The complete loops of each run's traces after that run's own warm-up, together."""
+    return np.concatenate([after_warmup(complete_loops(t)) for t in traces])
+
+
+def analyse(*traces: np.ndarray) -> dict[str, Any]:
+    """Round trip and every hop of complete loops (after the warm-up of each run whose
+    traces are given), in us."""
+    loops = warm_loops(*traces)
+    return {
+        "round_trip_us": stats_us(hop_ns(loops, ROUND_TRIP)),
+        "hops": {hop.name: stats_us(hop_ns(loops, hop)) for hop in HOPS},
+        "non_monotonic": non_monotonic(loops),
+    }
+
+
+def chain_accounting(
+    samples: np.ndarray, traces: np.ndarray, shed_ns: np.ndarray | None = None
+) -> dict[str, int]:
+    """Did every handle sample come back exactly once, or was it shed on purpose?
+
+    ``samples`` (n, 2): (seq, HAPTIC_SAMPLE ns) of every published HAPTIC_STATE;
+    ``traces``: the rendered feedback traces; ``shed_ns``: HAPTIC_SAMPLE stamps of the
+    samples a service shed while behind schedule (its ``.shed.npy`` files). Between the
+    first and the last sample that came back, a sample that never did is ``missing``,
+    ``shed`` if a service says it dropped it, else ``unaccounted`` (must be 0); one that
+    came back twice or more counts in ``duplicates`` (each extra time).
+    """
+    loops = complete_loops(traces)
+    empty = {"samples": 0, "returned": 0, "missing": 0, "shed": 0, "unaccounted": 0}
+    if loops.shape[0] == 0:
+        return {**empty, "duplicates": 0}
+    returned = loops[:, Stage.HAPTIC_SAMPLE]
+    unique, counts = np.unique(returned, return_counts=True)
+    sample_ns = np.asarray(samples, dtype=np.int64).reshape(-1, 2)[:, 1]
+    window = sample_ns[(sample_ns >= unique.min()) & (sample_ns <= unique.max())]
+    missing = np.setdiff1d(window, unique)
+    shed = np.zeros(0, np.int64) if shed_ns is None else np.asarray(shed_ns).reshape(-1)
+    return {
+        "samples": int(window.size),
+        "returned": int(unique.size),
+        "missing": int(missing.size),
+        "shed": int(np.isin(missing, shed).sum()),
+        "unaccounted": int(np.setdiff1d(missing, shed).size),
+        "duplicates": int((counts - 1).sum()),
+    }
+
+
+def overhead(stack: dict[str, Any], floor: dict[str, Any]) -> dict[str, Any]:
+    """Each hop's and the round trip's p50/p99 over the floor's: ratio and extra us.
+
+    A ratio is None where the floor's figure is below MIN_RATIO_BASE_US (a wait the bare
+    relay does not have).
+    """
+
+    def one(mine: dict[str, Any], base: dict[str, Any]) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for key in ("p50", "p99"):
+            a, b = mine.get(key), base.get(key)
+            if a is None or b is None:
+                out[f"{key}_ratio"] = out[f"{key}_extra_us"] = None
+                continue
+            out[f"{key}_ratio"] = a / b if b >= MIN_RATIO_BASE_US else None
+            out[f"{key}_extra_us"] = a - b
+        return out
+
+    result = {"round_trip": one(stack["round_trip_us"], floor["round_trip_us"])}
+    for name, figures in stack["hops"].items():
+        result[name] = one(figures, floor["hops"][name])
+    return result
+
+
+# -- running the stack --------------------------------------------------------------------
+
+
+@dataclass
+class StackRun:
+    """One run of the realtime stack: its summary and raw stamps."""
+
+    label: str
+    summary: dict[str, Any]
+    traces: np.ndarray
+    samples: np.ndarray
+    shed_ns: np.ndarray  # HAPTIC_SAMPLE stamps of the samples services shed on purpose
+    analysis: dict[str, Any] = field(default_factory=dict)
+
+
+def stack_overrides(duration_s: float, extra: Sequence[str] = ()) -> list[str]:
+    """Overrides of a latency run of the stack: realtime teleoperation, moving operator."""
+    return [
+        *extra,
+        'run.scenario="grasp"',
+        'run.mode="realtime"',
+        f"run.duration_s={duration_s}",
+        f'operator.scenario_file="{LATENCY_SCENARIO_FILE}"',
+    ]
+
+
+SHM_OFF = ("bus.shm=false", 'bus.zenoh_config="local-noshm.json5"')
+OLD_TIMING = ("plant.apply_on_arrival=false", "haptic.render_on_arrival=false")
+
+
+def run_stack(
+    label: str,
+    config_file: Path | None,
+    overrides: Sequence[str],
+    duration_s: float,
+    run_dir: Path,
+) -> StackRun:
+    """Run the realtime stack for ``duration_s`` in ``run_dir``; read its raw stamps."""
+    all_overrides = stack_overrides(duration_s, overrides)
+    config = load_config(config_file, all_overrides)
+    for stale in (
+        run_dir / HAPTIC_TRACE_FILE,
+        run_dir / HAPTIC_SAMPLES_FILE,
+        *run_dir.glob("*.shed.npy"),
+    ):
+        stale.unlink(missing_ok=True)
+    summary = run_on_services(config, config_file, all_overrides, run_dir, progress=None)
+    traces = np.load(run_dir / HAPTIC_TRACE_FILE)
+    samples = np.load(run_dir / HAPTIC_SAMPLES_FILE)
+    shed = [np.load(path).reshape(-1) for path in sorted(run_dir.glob(f"*{SHED_FILE_SUFFIX}"))]
+    run = StackRun(label, summary, traces, samples, np.concatenate([np.zeros(0, np.int64), *shed]))
+    run.analysis = analyse(traces)
+    return run
+
+
+def shed_counters(services: dict[str, dict[str, Any]]) -> dict[str, int]:
+    """Inputs dropped on purpose because a service was behind (a CPU stall): the
+    controller's too-old haptic samples and states, the haptic device's too-old
+    feedback, the plant's too-old commands, those that came after their device period
+    was stepped (merged into the next step) and those too stale to apply. Each is a
+    handle sample that never comes back (a state or feedback without one is counted
+    too)."""
+    arrival = services.get("plant", {}).get("arrival", {})
+    controller = services.get("controller", {})
+    return {
+        "haptic": int(controller.get("haptic_shed", 0)),
+        "state": int(controller.get("states_shed", 0)),
+        "feedback": int(services.get("haptic", {}).get("feedback_shed", 0)),
+        "command": int(arrival.get("commands_shed", 0)),
+        "command_late": int(arrival.get("commands_late", 0)),
+        "command_stale": int(arrival.get("commands_stale", 0)),
+    }
+
+
+def stream_counters(services: dict[str, dict[str, Any]]) -> tuple[dict[str, int], dict[str, int]]:
+    """(lost, reordered) per stream, from the services' own sequence checks: a gap in a
+    stream's ``seq`` is a message the bus never delivered."""
+    plant = services.get("plant", {})
+    arrival = plant.get("arrival", {})
+    controller = services.get("controller", {})
+    haptic = services.get("haptic", {})
+    lost = {
+        "haptic": int(controller.get("haptic_lost", 0)),
+        "command": int(arrival.get("commands_lost", 0)),
+        "state": int(controller.get("skipped_states", 0)),
+        "feedback": int(haptic.get("feedback_lost", 0)),
+    }
+    reordered = {
+        "haptic": int(controller.get("haptic_reordered", 0)),
+        "command": int(arrival.get("commands_reordered", 0)),
+        "feedback": int(haptic.get("feedback_reordered", 0)),
+    }
+    return lost, reordered
+
+
+def service_rates(summary: dict[str, Any]) -> dict[str, float | None]:
+    """Loop or message rate of each service over the run (Hz)."""
+    services = summary["services"]
+    wall_s = summary.get("wall_s") or 0.0
+
+    def per_s(count: Any) -> float | None:
+        return float(count) / wall_s if count is not None and wall_s > 0 else None
+
+    return {
+        "plant": services["plant"].get("rate_hz"),
+        "haptic": services["haptic"].get("rate_hz"),
+        "controller": per_s(services["controller"].get("cycles")),
+        "hmd": per_s(services.get("hmd", {}).get("published")),
+    }
+
+
+def cpu_share(summary: dict[str, Any]) -> dict[str, float | None]:
+    """Each service's CPU time over the run's wall time (1.0 = one core all the time;
+    start-up included, so a short run overstates it)."""
+    wall_s = summary.get("stack_wall_s") or 0.0
+    return {
+        name: (s["cpu_s"] / wall_s if wall_s > 0 and s.get("cpu_s") is not None else None)
+        for name, s in summary["services"].items()
+    }
+
+
+def deadline_misses(summary: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Each periodic loop's misses: the plant's device periods without a command and stalls,
+    the haptic device loop's overruns and skipped ticks."""
+    services = summary["services"]
+    plant, haptic = services["plant"], services["haptic"]
+    arrival = plant.get("arrival", {})
+    haptic_loop = haptic.get("loop", {})
+    return {
+        "plant": {
+            "steps": plant.get("steps"),
+            "periods_without_command": arrival.get("steps_without_command"),
+            "stalls": arrival.get("stalls"),
+            "overrun_fraction": plant.get("overrun_fraction"),
+            "skipped_ticks": plant.get("skipped_ticks"),
+        },
+        "haptic": {
+            "steps": haptic.get("steps"),
+            "overruns": haptic_loop.get("overruns"),
+            "skipped_ticks": haptic_loop.get("skipped"),
+            "lateness_p99_us": haptic_loop.get("lateness_p99_us"),
+        },
+    }
+
+
+# -- running the floor --------------------------------------------------------------------
+
+
+@dataclass
+class FloorRun:
+    """The relay chain's measurements of one bus setting (SHM on or off).
+
+    ``paced_parts``: the raw traces of each paced run (one, or two when the floor brackets
+    the stack: :func:`bracket`); ``paced``: their analysis, each part after its own
+    warm-up.
+    """
+
+    label: str
+    paced: dict[str, Any]
+    back_to_back: dict[str, Any]
+    sweep: dict[int, dict[str, Any]]
+    paced_parts: tuple[np.ndarray, ...]
+    sent: int
+    received: int
+
+    @property
+    def paced_traces(self) -> np.ndarray:
+        """The raw traces of every paced part, one after the other."""
+        return np.concatenate(self.paced_parts)
+
+    @property
+    def paced_by_part(self) -> tuple[dict[str, Any], ...]:
+        """Each paced part's round trip on its own (us)."""
+        return tuple(analyse(part)["round_trip_us"] for part in self.paced_parts)
+
+
+def bracket(before: FloorRun, after: FloorRun) -> FloorRun:
+    """One paced floor from the runs before and after the stack (the sweep and the
+    back-to-back figures are ``before``'s): on a host whose speed drifts over minutes,
+    the floor then spans the same minutes as the stack it is compared with."""
+    parts = (*before.paced_parts, *after.paced_parts)
+    paced = analyse(*parts)
+    paced["sent"] = before.sent + after.sent
+    paced["received"] = before.received + after.received
+    return replace(
+        before, paced=paced, paced_parts=parts, sent=paced["sent"], received=paced["received"]
+    )
+
+
+def run_floor(
+    label: str,
+    config_file: Path | None,
+    overrides: Sequence[str],
+    run_dir: Path,
+    *,
+    paced_s: float,
+    back_to_back_count: int,
+    sweep_sizes: Sequence[int],
+    sweep_count: int,
+) -> FloorRun:
+    """The bare relay chain under supervisord: paced, back to back, then the sweep.
+
+    Each relay runs on the CPUs and under the scheduling of the service whose place it
+    takes (:data:`teleop.core.config.FLOOR_STAND_INS`).
+    """
+    run_dir = run_dir.absolute()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    config = load_config(config_file, overrides)
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    relay_overrides = [*overrides, f'bus.endpoint="{endpoint}"']
+    bus = replace(config.bus, endpoint=endpoint, gossip=False)  # the mesh's listener
+    topics = Topics(config.robot.robot_id)
+    mesh = peer_mesh([relay.name for relay in RELAYS], listener=None)  # as the stack links
+    programs = []
+    for relay in RELAYS:
+        command = service_command(
+            relay.name, run_dir, config_file, [*relay_overrides, *mesh[relay.name]]
+        )
+        programs.append(
+            Program(name=relay.name, command=command, environment=dict(SERVICE_ENVIRONMENT))
+        )
+    programs += idle_poll_programs(idle_poll_cpus(config), run_dir)  # idles as the stack does
+    period_ns = round(config.plant.timestep_s * NS_PER_S)
+    payload_bytes = PLANT_STATE.size  # the loop's largest record
+    # The origin plays the haptic service: same scheduling (its Zenoh threads too).
+    fifo_priority = config.cpu.fifo_priority_for("haptic", config.run.mode)
+    with fifo_scheduling(fifo_priority):
+        session = open_session(bus, listen=True)
+        origin: FloorOrigin | None = None
+        try:
+            origin = FloorOrigin(session, topics, bus.shm_pool_bytes if bus.shm else None)
+            with Stack(run_dir, programs):
+                wait_alive(session, topics, [r.name for r in RELAYS], ALIVE_TIMEOUT_S)
+                seq = origin.back_to_back(
+                    FLOOR_WARMUP_COUNT, payload_bytes, 1, RETURN_TIMEOUT_S, SWEEP_BUDGET_S
+                )
+                origin.reset()
+                seq = origin.paced(period_ns, paced_s, payload_bytes, seq)
+                origin.wait_returned(seq - 1, RETURN_TIMEOUT_S)
+                paced_traces = origin.trace_log.rows.copy()
+                sent, received = origin.sent, origin.received
+                origin.reset()
+                seq = origin.back_to_back(
+                    back_to_back_count, payload_bytes, seq, RETURN_TIMEOUT_S, SWEEP_BUDGET_S
+                )
+                b2b_traces = origin.trace_log.rows.copy()
+                sweep: dict[int, dict[str, Any]] = {}
+                for size in sweep_sizes:
+                    origin.reset()
+                    seq = origin.back_to_back(
+                        FLOOR_WARMUP_COUNT // 5, size, seq, RETURN_TIMEOUT_S, SWEEP_BUDGET_S
+                    )
+                    origin.reset()
+                    seq = origin.back_to_back(
+                        sweep_count, size, seq, RETURN_TIMEOUT_S, SWEEP_BUDGET_S
+                    )
+                    loops = complete_loops(origin.trace_log.rows)
+                    sweep[size] = stats_us(hop_ns(loops, ROUND_TRIP))
+        finally:
+            if origin is not None:
+                origin.close()
+            close_session(session)
+    paced = analyse(paced_traces)
+    paced["sent"] = sent
+    paced["received"] = received
+    back_to_back = stats_us(hop_ns(complete_loops(b2b_traces), ROUND_TRIP))
+    return FloorRun(label, paced, back_to_back, sweep, (paced_traces,), sent, received)
+
+
+# -- the report ---------------------------------------------------------------------------
+
+
+def _loadavg() -> list[float]:
+    return [round(x, 2) for x in os.getloadavg()]
+
+
+def sweep_table(shm: FloorRun, tcp: FloorRun) -> list[dict[str, Any]]:
+    """Per payload size: round trip (4 legs, back to back) with SHM and over TCP."""
+    rows = []
+    for size in shm.sweep:
+        on, off = shm.sweep[size], tcp.sweep.get(size, {})
+        ratio = None
+        if on.get("p50") and off.get("p50"):
+            ratio = off["p50"] / on["p50"]
+        rows.append(
+            {
+                "bytes": size,
+                "shm_us": on,
+                "tcp_us": off,
+                "tcp_over_shm_p50": ratio,
+                "shm_faster": ratio is not None and ratio > 1.0,
+            }
+        )
+    return rows
+
+
+def conclusions(report: dict[str, Any]) -> list[str]:
+    """The report's findings in words (what the numbers say, no judgement beyond them)."""
+    out = []
+    rt, floor = report["round_trip_us"], report["floor_us"]
+    ratio = report["overhead"]["round_trip"]
+    if rt["p50"] is not None and floor["p50"] is not None:
+        out.append(
+            f"round trip p50 {rt['p50']:.0f} us, p99 {rt['p99']:.0f} us; paced floor p50 "
+            f"{floor['p50']:.0f} us, p99 {floor['p99']:.0f} us (p99 ratio "
+            f"{_fmt(ratio['p99_ratio'])}); back-to-back floor p99 "
+            f"{_fmt(report['floor_back_to_back_us']['p99'])} us"
+        )
+    parts = report.get("floor_parts_us") or []
+    if len(parts) > 1:
+        out.append(
+            "paced floor before / after the stack: p50 "
+            + " / ".join(_fmt_us(part.get("p50")) for part in parts)
+            + " us, p99 "
+            + " / ".join(_fmt_us(part.get("p99")) for part in parts)
+            + " us"
+        )
+    out += where_the_time_goes(report)
+    old = report.get("old_timing_round_trip_us")
+    if old and old.get("p50") is not None and rt["p50"] is not None:
+        out.append(
+            f"old timing (plant tick + device step) round trip p50 {old['p50']:.0f} us, "
+            f"p99 {old['p99']:.0f} us: the event-driven loop's p50 is "
+            f"{rt['p50'] / old['p50']:.2f}x the old timing's"
+        )
+    for row in report.get("payload_sweep", []):
+        if row["bytes"] < 1 << 20 and row["bytes"] != EYE_VIEW_FRAME_BYTES:
+            continue  # the sizes the issue asks about: 1 MiB and one eye-view frame
+        what = f"{row['bytes']} B" + (
+            " (eye-view frame)" if row["bytes"] == EYE_VIEW_FRAME_BYTES else ""
+        )
+        shm_p50, tcp_p50 = row["shm_us"].get("p50"), row["tcp_us"].get("p50")
+        if row["tcp_over_shm_p50"] is not None:
+            verdict = "faster" if row["shm_faster"] else "NOT faster"
+            out.append(
+                f"{what}: SHM is {verdict} than TCP loopback (p50 {shm_p50:.0f} vs "
+                f"{tcp_p50:.0f} us, {row['tcp_over_shm_p50']:.2f}x)"
+            )
+        else:  # a side where no payload of this size came back at all
+            missing = [side for side, p50 in (("SHM", shm_p50), ("TCP", tcp_p50)) if p50 is None]
+            out.append(f"{what}: no payload came back over {' or '.join(missing)}")
+    polled = report["machine"].get("idle_poll_cpus")
+    failed = report["machine"].get("idle_poll_failed") or {}
+    if polled:
+        out.append(
+            f"idle CPUs polled (cpu.idle_poll): {', '.join(map(str, polled))}; the services' "
+            "CPU shares leave the pollers out"
+        )
+    elif not failed:
+        out.append("idle CPUs halt (cpu.idle_poll off)")
+    out += [f"idle CPU {cpu} halts, its poller says: {why}" for cpu, why in failed.items()]
+    lost = report["lost"]
+    out.append(
+        f"lost: haptic {lost['haptic']}, command {lost['command']}, feedback "
+        f"{lost['feedback']}; reordered: {sum(report['reordered'].values())}; "
+        f"samples that never came back: {report['chain']['missing']} of "
+        f"{report['chain']['samples']} (shed while behind: {sum(report['shed'].values())})"
+    )
+    return out
+
+
+def where_the_time_goes(report: dict[str, Any]) -> list[str]:
+    """The round trip's p50 split into what the transport floor accounts for and what the
+    services add: the transport hops' ratios to the floor's, the compute and wait
+    stages' p50s (none of which the bare relay chain has)."""
+    hops, ratios = report.get("hops") or {}, report["overhead"]
+    if any(hops.get(h.name, {}).get("p50") is None for h in HOPS):
+        return []
+    transport = [h.name for h in HOPS if h.kind == "transport"]
+    work = [h for h in HOPS if h.kind != "transport"]
+    transport_ratios = [ratios[name]["p50_ratio"] for name in transport]
+    spread = [r for r in transport_ratios if r is not None]
+    work_us = sum(hops[h.name]["p50"] for h in work)
+    line = f"where the p50 goes: transport hops {sum(hops[n]['p50'] for n in transport):.0f} us"
+    if spread:
+        line += f" ({min(spread):.2f}-{max(spread):.2f}x the floor's)"
+    line += (
+        f", compute and wait stages {work_us:.0f} us ("
+        + ", ".join(f"{h.name} {hops[h.name]['p50']:.0f}" for h in work)
+        + ")"
+    )
+    return [line]
+
+
+def _fmt(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.2f}"
+
+
+def _fmt_us(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.0f}"
+
+
+def measure(
+    config_file: Path | None,
+    overrides: Sequence[str],
+    run_dir: Path,
+    duration_s: float,
+    *,
+    baseline_s: float | None = None,
+    sweep_sizes: Sequence[int] = SWEEP_SIZES_BYTES,
+    sweep_count: int = DEFAULT_SWEEP_COUNT,
+    back_to_back_count: int = DEFAULT_BACK_TO_BACK_COUNT,
+    old_timing: bool = True,
+    progress: ProgressFn | None = None,
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Run every measurement; return (report, raw round-trip samples by series, ns)."""
+    run_dir = Path(run_dir).absolute()
+    base_s = baseline_s if baseline_s is not None else min(duration_s, DEFAULT_BASELINE_MAX_S)
+    say = progress or (lambda text: None)
+    load_before = _loadavg()
+    started = time.monotonic()
+    floor_kwargs = {
+        "paced_s": base_s,
+        "back_to_back_count": back_to_back_count,
+        "sweep_sizes": sweep_sizes,
+        "sweep_count": sweep_count,
+    }
+    # The paced floor brackets the stack, half before and half after it: this host's
+    # wake-up costs drift over minutes, and the p99 ratio compares like with like only
+    # when the floor spans the stack's minutes (the paced floor before the stack gave
+    # 0.7-2.6 ms p99 in consecutive runs on 2026-11-24).
+    half_s = base_s / 2
+    say(f"floor, SHM on: relay chain paced {half_s:g} s, back to back, payload sweep")
+    before = run_floor(
+        "floor_shm", config_file, overrides, run_dir / "floor-shm",
+        **{**floor_kwargs, "paced_s": half_s},
+    )  # fmt: skip
+    say(f"stack, SHM on: {duration_s:g} s of realtime teleoperation")
+    stack = run_stack("stack", config_file, overrides, duration_s, run_dir / "stack-shm")
+    say(f"floor, SHM on: relay chain paced {half_s:g} s after the stack")
+    after = run_floor(
+        "floor_shm_after", config_file, overrides, run_dir / "floor-shm-after",
+        paced_s=half_s, back_to_back_count=0, sweep_sizes=(), sweep_count=0,
+    )  # fmt: skip
+    floor = bracket(before, after)
+    say(f"stack, SHM off: {base_s:g} s")
+    stack_tcp = run_stack(
+        "stack_shm_off", config_file, [*overrides, *SHM_OFF], base_s, run_dir / "stack-tcp"
+    )
+    say("floor, SHM off: paced, back to back, payload sweep")
+    floor_tcp = run_floor(
+        "floor_tcp", config_file, [*overrides, *SHM_OFF], run_dir / "floor-tcp", **floor_kwargs
+    )
+    old = None
+    if old_timing:
+        say(f"stack, old timing (plant tick, device step): {base_s:g} s")
+        old = run_stack(
+            "old_timing", config_file, [*overrides, *OLD_TIMING], base_s, run_dir / "stack-old"
+        )
+    report, raw = build_report(stack, stack_tcp, floor, floor_tcp, old)
+    report["duration_s"] = duration_s
+    report["baseline_duration_s"] = base_s
+    report["machine"]["loadavg_before"] = load_before
+    report["wall_s"] = time.monotonic() - started
+    report["run_dir"] = str(run_dir)
+    return report, raw
+
+
+def build_report(
+    stack: StackRun,
+    stack_tcp: StackRun,
+    floor: FloorRun,
+    floor_tcp: FloorRun,
+    old: StackRun | None,
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """The report (JSON-ready) and the raw round trips (ns) by series, from the runs."""
+    lost, reordered = stream_counters(stack.summary["services"])
+    report: dict[str, Any] = {
+        "round_trip_us": stack.analysis["round_trip_us"],
+        "hops": stack.analysis["hops"],
+        "floor_us": floor.paced["round_trip_us"],
+        "floor_parts_us": list(floor.paced_by_part),
+        "floor_hops": floor.paced["hops"],
+        "floor_back_to_back_us": floor.back_to_back,
+        "floor_sent": floor.sent,
+        "floor_received": floor.received,
+        "shm_off_round_trip_us": stack_tcp.analysis["round_trip_us"],
+        "shm_off_hops": stack_tcp.analysis["hops"],
+        "floor_shm_off_us": floor_tcp.paced["round_trip_us"],
+        "floor_shm_off_back_to_back_us": floor_tcp.back_to_back,
+        "overhead": overhead(stack.analysis, floor.paced),
+        "lost": lost,
+        "reordered": reordered,
+        "shed": shed_counters(stack.summary["services"]),
+        "chain": chain_accounting(stack.samples, stack.traces, stack.shed_ns),
+        "non_monotonic": stack.analysis["non_monotonic"],
+        "rate_hz": service_rates(stack.summary),
+        "cpu_share": cpu_share(stack.summary),
+        "deadline_misses": deadline_misses(stack.summary),
+        "payload_sweep": sweep_table(floor, floor_tcp),
+        "dropped_messages": stack.summary.get("dropped_messages"),
+        "machine": {
+            "cpus": os.cpu_count(),
+            "loadavg_after": _loadavg(),
+            "idle_poll_cpus": stack.summary.get("idle_poll_cpus"),
+            "idle_poll_failed": stack.summary.get("idle_poll_failed"),
+        },
+    }
+    if old is not None:
+        report["old_timing_round_trip_us"] = old.analysis["round_trip_us"]
+        report["old_timing_hops"] = old.analysis["hops"]
+    report["conclusions"] = conclusions(report)
+    raw = {
+        "stack": hop_ns(after_warmup(complete_loops(stack.traces)), ROUND_TRIP),
+        "floor": hop_ns(warm_loops(*floor.paced_parts), ROUND_TRIP),
+        "stack_shm_off": hop_ns(after_warmup(complete_loops(stack_tcp.traces)), ROUND_TRIP),
+    }
+    if old is not None:
+        raw["old_timing"] = hop_ns(after_warmup(complete_loops(old.traces)), ROUND_TRIP)
+    return report, raw
+
+
+# -- output -------------------------------------------------------------------------------
+
+
+def write_json(report: dict[str, Any], path: Path) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(report, indent=2) + "\n")
+
+
+def write_png(report: dict[str, Any], raw: dict[str, np.ndarray], path: Path) -> None:
+    """Round-trip histograms (stack and baselines), per-hop p50/p99 against the floor,
+    and the payload sweep, in one figure."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(18, 5.5))
+    ax = axes[0]
+    for name, values_ns in raw.items():
+        if values_ns.size:
+            ax.hist(values_ns / NS_PER_US, bins=FIGURE_BINS_US, histtype="step", label=name)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("round trip, haptic sample -> force rendered (us)")
+    ax.set_ylabel("samples")
+    ax.set_title("Round trip histograms")
+    ax.legend()
+
+    ax = axes[1]
+    names = [hop.name for hop in HOPS]
+    x = np.arange(len(names))
+    width = 0.2
+    for i, (series, key) in enumerate(
+        (
+            (report["hops"], "p50"),
+            (report["floor_hops"], "p50"),
+            (report["hops"], "p99"),
+            (report["floor_hops"], "p99"),
+        )  # fmt: skip
+    ):
+        values = [series[n][key] or 0.0 for n in names]
+        label = ("stack " if series is report["hops"] else "floor ") + key
+        ax.bar(x + (i - 1.5) * width, values, width, label=label)
+    ax.set_yscale("symlog", linthresh=10)
+    ax.set_xticks(x, names, rotation=45, ha="right")
+    ax.set_ylabel("us")
+    ax.set_title("Per hop: stack vs transport floor")
+    ax.legend()
+
+    ax = axes[2]
+    sweep = report.get("payload_sweep", [])
+    if sweep:
+        sizes = [row["bytes"] for row in sweep]
+        order = np.argsort(sizes)
+        for key, label in (("shm_us", "SHM"), ("tcp_us", "TCP loopback")):
+            p50 = [sweep[i][key].get("p50") or math.nan for i in order]
+            p99 = [sweep[i][key].get("p99") or math.nan for i in order]
+            xs = [sizes[i] for i in order]
+            line = ax.plot(xs, p50, marker="o", label=f"{label} p50")[0]
+            ax.plot(xs, p99, marker="x", linestyle="--", color=line.get_color(), label="p99")
+        ax.axvline(EYE_VIEW_FRAME_BYTES, color="grey", linewidth=0.8)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("payload (bytes); grey: eye-view frame")
+        ax.set_ylabel("round trip, 4 legs, back to back (us)")
+        ax.set_title("Payload sweep")
+        ax.legend()
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def log_to_rerun(report: dict[str, Any], raw: dict[str, np.ndarray], path: Path) -> None:
+    """The same figures into a Rerun recording (application ``zenoh-teleop``): one bar
+    chart per round-trip histogram and the percentiles of every hop, stack and floor."""
+    import rerun as rr
+
+    from teleop.viz.entities import APPLICATION_ID
+
+    rec = rr.RecordingStream(APPLICATION_ID)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rec.save(path)
+    for name, values_ns in raw.items():
+        counts, _ = np.histogram(values_ns / NS_PER_US, bins=FIGURE_BINS_US)
+        rec.log(f"latency/histogram/{name}", rr.BarChart(counts), static=True)
+    series = {"stack": report["hops"], "floor": report["floor_hops"]}
+    for origin, hops in series.items():
+        for hop_name, figures in hops.items():
+            for key in PERCENTILES:
+                if figures.get(key) is not None:
+                    rec.log(
+                        f"latency/{origin}/{hop_name}/{key}_us",
+                        rr.Scalars(figures[key]),
+                        static=True,
+                    )
+    rec.log(
+        "latency/report",
+        rr.TextDocument("\n".join(report["conclusions"]), media_type="text/markdown"),
+        static=True,
+    )
+    rec.flush()
+    rec.disconnect()
+
+
+def print_progress(text: str) -> None:
+    """Progress lines on stderr (the report itself goes to stdout)."""
+    print(f"  {text}", file=sys.stderr, flush=True)
+
+
+def config_of(config_file: Path | None, overrides: Sequence[str]) -> Config:
+    """The config a latency run uses (validates the user's overrides up front)."""
+    return load_config(config_file, stack_overrides(1.0, overrides))

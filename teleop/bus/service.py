@@ -1,0 +1,308 @@
+"""The one service lifecycle: open -> run -> close, shared by every process.
+
+A service module in ``services/`` is three lines: it hands its class to
+:func:`service_main`, which parses the common command line, loads the typed config,
+turns SIGINT/SIGTERM into a stop event, and runs ``open -> run(stop) -> close``.
+``close`` is safe to call twice and writes the service's summary to
+``<run_dir>/<name>.summary.json`` (atomically), which ``teleop run`` collects.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from types import FrameType, TracebackType
+from typing import Any, ClassVar
+
+import zenoh
+
+from teleop.bus.messages import DropCounter
+from teleop.bus.session import (
+    ServicesMissing,
+    close_session,
+    declare_alive,
+    open_session,
+    wait_alive,
+)
+from teleop.bus.topics import Topics
+from teleop.core.config import Config, ConfigError, ModelError, load_config
+
+logger = logging.getLogger(__name__)
+
+# While waiting for peers, wake this often to notice a stop request (s).
+STOP_POLL_S = 0.25
+# After waiting this long for peers, say which ones are missing (once; s).
+PEER_WAIT_LOG_S = 5.0
+# A service declares itself ready after this long even if some peer of its stack is
+# still not seen (a pair of peers that never linked: an error in the log and the
+# summary, rather than a run that never starts; s).
+PEER_LINK_WAIT_S = 15.0
+# Exit code of a service whose config or model is unusable (supervisord will not retry
+# it forever: startretries bounds it, and the log says why).
+EXIT_CONFIG = 2
+
+
+@dataclass(frozen=True)
+class ServiceOptions:
+    """Per-process settings that are not part of the shared config."""
+
+    run_dir: Path | None = None
+    # Hold the run's bus endpoint (the listener) instead of connecting to it.
+    listen: bool = False
+    # Services that must be ready (their ready tokens present) before the work starts.
+    await_services: tuple[str, ...] = ()
+    # The other services of this stack: this one declares itself ready once it sees
+    # them all alive, i.e. once its own links to them are up (become_ready).
+    peers: tuple[str, ...] = ()
+    # Run until stopped instead of for run.duration_s (``teleop up``).
+    continuous: bool = False
+
+
+class Service:
+    """Base of every service: a Zenoh session, a liveliness token, drop counters."""
+
+    name: ClassVar[str] = "service"
+
+    def __init__(self, config: Config, options: ServiceOptions | None = None) -> None:
+        self.config = config
+        self.options = options or ServiceOptions()
+        self.topics = Topics(config.robot.robot_id)
+        self.drops = DropCounter()
+        self.session: zenoh.Session | None = None
+        self._entities: list[Any] = []
+        self._closed = False
+        self.unlinked_peers: list[str] = []  # peers never seen (become_ready gave up)
+
+    # -- lifecycle ---------------------------------------------------------------------
+    def open(self) -> None:
+        """Open the session; subclasses declare their publishers and subscribers after."""
+        self.session = open_session(self.config.bus, listen=self.options.listen)
+
+    def announce(self) -> None:
+        """Declare this service alive: call once its subscribers are in place."""
+        assert self.session is not None
+        self.keep(declare_alive(self.session, self.topics, self.name))
+
+    def keep(self, entity: Any) -> Any:
+        """Remember a Zenoh entity so close() undeclares it; returns it."""
+        self._entities.append(entity)
+        return entity
+
+    def run(self, stop: threading.Event) -> None:
+        raise NotImplementedError
+
+    def summary(self) -> dict[str, Any]:
+        """What this service reports at close; subclasses extend it.
+
+        ``cpu_s``: CPU time (user + system, all threads) this process used so far: what
+        the service costs the machine, unlike wall-clock figures not inflated by others.
+        """
+        return {
+            "service": self.name,
+            "dropped_messages": self.drops.total,
+            "cpu_s": time.process_time(),
+            "unlinked_peers": self.unlinked_peers,
+        }
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self.write_summary()
+        finally:
+            close_session(self.session, *reversed(self._entities))
+            self._entities.clear()
+
+    def __enter__(self) -> Service:
+        self.open()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    # -- helpers -----------------------------------------------------------------------
+    def become_ready(self, stop: threading.Event) -> bool:
+        """Wait until every peer of the stack is alive as seen from here, then declare
+        this service ready; False if stopped first.
+
+        Why: peers link to each other directly, each pair on its own schedule after they
+        find each other, and a put sent before a pair's link is up is lost. The plant
+        starts the run only once every service is ready (``await_services``), so
+        nothing the run sends is lost on a link still being made: in a lockstep run,
+        which can end within a second, all of a controller's statuses once were.
+        """
+        assert self.session is not None
+        missing = self._wait_tokens(stop, self.options.peers, ready=False, limit_s=PEER_LINK_WAIT_S)
+        if missing and stop.is_set():
+            return False
+        if missing:
+            self.unlinked_peers = list(missing)
+            logger.error(
+                "no link to %s after %g s: going on without (what this service sends "
+                "them is lost; see the summary's unlinked_peers)",
+                ", ".join(missing),
+                PEER_LINK_WAIT_S,
+            )
+        self.keep(declare_alive(self.session, self.topics, self.name, ready=True))
+        return True
+
+    def wait_for_peers(self, stop: threading.Event) -> bool:
+        """Wait (event driven) until ``options.await_services`` are ready; False if
+        stopped first."""
+        return not self._wait_tokens(stop, self.options.await_services, ready=True)
+
+    def _wait_tokens(
+        self,
+        stop: threading.Event,
+        services: tuple[str, ...],
+        *,
+        ready: bool,
+        limit_s: float | None = None,
+    ) -> tuple[str, ...]:
+        """Wait until ``services``' tokens are all present, until stopped, or for
+        ``limit_s`` (None: no limit); the services still missing then (empty: none)."""
+        assert self.session is not None
+        missing = tuple(services)
+        waited_s = 0.0
+        warned = False
+        while missing and not stop.is_set() and (limit_s is None or waited_s < limit_s):
+            try:
+                wait_alive(self.session, self.topics, services, STOP_POLL_S, ready=ready)
+                missing = ()
+            except ServicesMissing as exc:
+                missing = exc.missing
+                waited_s += STOP_POLL_S
+                if waited_s >= PEER_WAIT_LOG_S and not warned:  # what is this one waiting for
+                    warned = True
+                    logger.warning("still waiting: %s", exc)
+        return missing
+
+    def write_summary(self) -> None:
+        if self.options.run_dir is None:
+            return
+        path = self.options.run_dir / f"{self.name}.summary.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(self.summary(), indent=2) + "\n")
+        os.replace(tmp, path)
+
+
+def pin_to_cpus(cpus: tuple[int, ...]) -> None:
+    """Run this process on the given CPUs (those that exist); no-op when none is given."""
+    available = os.sched_getaffinity(0)
+    wanted = set(cpus) & available
+    if cpus and not wanted:
+        logger.warning("cpu affinity %s: no such CPU here (have %s), not pinned", cpus, available)
+    if wanted:
+        os.sched_setaffinity(0, wanted)
+        logger.info("pinned to CPU(s) %s", sorted(wanted))
+
+
+@contextlib.contextmanager
+def fifo_scheduling(priority: int) -> Iterator[bool]:
+    """Within the block, run the calling thread, and every thread it starts (Zenoh's
+    included, so open the session inside), under SCHED_FIFO at ``priority``; yields
+    whether it took effect. The calling thread's old policy is back after the block.
+
+    No-op for 0. Without CAP_SYS_NICE the kernel refuses: a warning says so and the
+    thread stays normally scheduled.
+    """
+    if priority <= 0:
+        yield False
+        return
+    old_policy, old_param = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except OSError as exc:
+        logger.warning("SCHED_FIFO priority %d refused (%s): normal scheduling", priority, exc)
+        yield False
+        return
+    logger.info("SCHED_FIFO priority %d", priority)
+    try:
+        yield True
+    finally:
+        os.sched_setscheduler(0, old_policy, old_param)
+
+
+def build_service_parser(name: str) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog=f"teleop-{name}",
+        description=f"zenoh-teleop {name} service (normally started by `teleop run` or "
+        "`teleop up` under supervisord).",
+    )
+    parser.add_argument("--config", type=Path, default=None, help="TOML config file")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--run-dir", type=Path, default=None, help="where to write the summary")
+    parser.add_argument("--listen", action="store_true", help="hold the bus endpoint")
+    parser.add_argument(
+        "--await",
+        dest="await_services",
+        default="",
+        help="comma-separated services that must be ready before the work starts",
+    )
+    parser.add_argument(
+        "--peers",
+        default="",
+        help="comma-separated other services of the stack: declare this one ready once "
+        "it sees them all alive",
+    )
+    parser.add_argument("--continuous", action="store_true", help="run until stopped")
+    return parser
+
+
+def service_main(service_class: type[Service], argv: list[str] | None = None) -> int:
+    """Entry point of a service process: parse, build, run until stopped, close."""
+    logging.basicConfig(
+        level=logging.INFO,
+        format=f"%(asctime)s {service_class.name} %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+    args = build_service_parser(service_class.name).parse_args(argv)
+    try:
+        config = load_config(args.config, args.overrides)
+    except ConfigError as exc:
+        logger.error("config: %s", exc)
+        return EXIT_CONFIG
+    options = ServiceOptions(
+        run_dir=args.run_dir,
+        listen=args.listen,
+        await_services=tuple(s for s in args.await_services.split(",") if s),
+        peers=tuple(s for s in args.peers.split(",") if s),
+        continuous=args.continuous,
+    )
+    pin_to_cpus(config.cpu.for_service(service_class.name, config.run.mode))
+    fifo_priority = config.cpu.fifo_priority_for(service_class.name, config.run.mode)
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        logger.info("signal %s: stopping", signal.Signals(signum).name)
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    try:
+        with fifo_scheduling(fifo_priority), service_class(config, options) as service:
+            if service.become_ready(stop):
+                logger.info("running (robot %s)", config.robot.robot_id)
+                service.run(stop)
+    except (ConfigError, ModelError) as exc:
+        logger.error("%s", exc)
+        return EXIT_CONFIG
+    logger.info("stopped")
+    return 0

@@ -1,0 +1,431 @@
+"""Zenoh session factory, typed publishers/subscribers and liveliness helpers.
+
+Topology on one host: every service is a Zenoh *peer*. One service per run listens on
+``BusConfig.endpoint``; the others connect to it and also listen on an ephemeral
+loopback port, which gossip scouting advertises, so every pair of peers ends up with a
+direct link (peers do not forward data for each other). Multicast scouting is off.
+
+Everything on the wire is a :mod:`teleop.bus.messages` record; a subscriber decodes,
+validates and counts bad records before the application sees anything.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
+
+import numpy as np
+import zenoh
+from zenoh.shm import ShmProvider
+
+from shm.provider import SHM_THRESHOLD_BYTES, publish_bytes
+from teleop.bus.messages import DecodeError, DropCounter, FrameSchema, Schema
+from teleop.bus.topics import Topics
+from teleop.core.config import BusConfig
+
+logger = logging.getLogger(__name__)
+
+# A connecting peer also listens here (loopback, ephemeral port) so that peers which
+# learn of it by gossip can open a direct link to it.
+PEER_LISTEN_ENDPOINT = "tcp/127.0.0.1:0"
+
+# connect/timeout_ms: -1 keeps retrying in the background; 0 gives up after one attempt.
+CONNECT_RETRY_FOREVER = -1
+
+RecordCallback = Callable[[np.ndarray, int], None]
+# (record, pixels (H, W, C), rx_ns, arrived over shared memory)
+FrameCallback = Callable[[np.ndarray, np.ndarray, int, bool], None]
+
+
+def _json(value: Any) -> str:
+    return json.dumps(value)
+
+
+def open_session(
+    bus: BusConfig, *, listen: bool, ingress_rate_hz: Mapping[str, float] | None = None
+) -> zenoh.Session:
+    """Open a peer session from ``bus.zenoh_config_path`` plus the run's settings.
+
+    ``listen=True``: this process is the run's listener on ``bus.endpoint`` (fails if
+    the port is taken). ``listen=False``: connect to ``bus.endpoint``; if nobody listens
+    yet, ``open`` still returns and Zenoh keeps retrying in the background (config
+    ``connect/retry``), so start order does not matter — wait on liveliness instead.
+    Either way it also connects to ``bus.peer_connect_endpoints`` and, when not the
+    listener, listens on ``bus.peer_listen_endpoint`` (a launcher's explicit mesh, with
+    ``bus.gossip`` off: see BusConfig.gossip).
+
+    ``ingress_rate_hz`` maps key expressions to the most puts per second this session
+    takes in (Zenoh's ingress downsampling: the rest are dropped before any Python
+    callback runs), for a consumer that needs a fast stream only now and then.
+    """
+    conf = zenoh.Config.from_file(str(bus.zenoh_config_path))
+    conf.insert_json5("mode", _json("peer"))
+    conf.insert_json5("scouting/multicast/enabled", _json(False))
+    conf.insert_json5("scouting/gossip/enabled", _json(bus.gossip))  # see BusConfig.gossip
+    if listen:
+        listen_on, connect_to = [bus.endpoint], list(bus.peer_connect_endpoints)
+    else:
+        listen_on = [bus.peer_listen_endpoint or PEER_LISTEN_ENDPOINT]
+        connect_to = [bus.endpoint, *bus.peer_connect_endpoints]
+    conf.insert_json5("listen/endpoints", _json(listen_on))
+    conf.insert_json5("connect/endpoints", _json(connect_to))
+    if connect_to:
+        conf.insert_json5("connect/timeout_ms", _json(CONNECT_RETRY_FOREVER))
+        conf.insert_json5("connect/exit_on_failure", _json(False))
+    if ingress_rate_hz:
+        rules = [{"key_expr": key, "freq": rate} for key, rate in ingress_rate_hz.items()]
+        conf.insert_json5(
+            "downsampling", _json([{"flows": ["ingress"], "messages": ["put"], "rules": rules}])
+        )
+    shm_key = "transport/shared_memory"
+    conf.insert_json5(f"{shm_key}/enabled", _json(bus.shm))
+    lowlatency = bus.shm and bus.lowlatency  # see BusConfig.lowlatency
+    conf.insert_json5("transport/unicast/lowlatency", _json(lowlatency))
+    conf.insert_json5("transport/unicast/qos/enabled", _json(not lowlatency))
+    if bus.shm:
+        conf.insert_json5(f"{shm_key}/mode", _json("init"))
+        conf.insert_json5(f"{shm_key}/transport_optimization/messages", _json(["put"]))
+        conf.insert_json5(
+            f"{shm_key}/transport_optimization/message_size_threshold",
+            _json(SHM_THRESHOLD_BYTES),
+        )
+    for entry in bus.zenoh_overrides:
+        path, _, value = entry.partition("=")
+        conf.insert_json5(path.strip(), value.strip())
+    return zenoh.open(conf)
+
+
+def _undeclare(entity: Any) -> None:
+    try:
+        entity.undeclare()
+    except zenoh.ZError as exc:  # already undeclared, or its session is gone
+        logger.debug("undeclare %r: %s", entity, exc)
+
+
+def close_session(session: zenoh.Session | None, *entities: Any) -> None:
+    """Undeclare ``entities`` (publishers, subscribers, tokens), then close the session.
+
+    Safe to call twice and from a signal handler. Needed because a process with an
+    open session (callback subscribers) does not exit on its own.
+    """
+    for entity in entities:
+        if entity is not None:
+            _undeclare(entity)
+    if session is not None and not session.is_closed():
+        session.close()
+
+
+class Publisher:
+    """A typed publisher: ``put(rec)`` encodes a record of one schema.
+
+    QoS defaults are for state and commands: ``express`` (no batching delay),
+    ``REAL_TIME`` priority, and ``BLOCK`` congestion control so nothing is lost on
+    loopback — lockstep waits for every command, and a dropped one would stall the run.
+    A 250-byte record at 1 kHz is far from filling a loopback link, so BLOCK only bites
+    if a receiver stops reading; use ``DROP`` for bulky streams only a viewer needs.
+    Priority and express apply where the transport has QoS: not on the low-latency
+    transport (``BusConfig.lowlatency``, the default with SHM), which sends every put at
+    once anyway.
+    """
+
+    def __init__(self, pub: zenoh.Publisher, schema: Schema, shm: ShmProvider | None) -> None:
+        self._pub = pub
+        self.schema = schema
+        self._shm = shm
+
+    @classmethod
+    def declare(
+        cls,
+        session: zenoh.Session,
+        key: str,
+        schema: Schema,
+        *,
+        shm: ShmProvider | None = None,
+        express: bool = True,
+        priority: zenoh.Priority = zenoh.Priority.REAL_TIME,
+        congestion_control: zenoh.CongestionControl = zenoh.CongestionControl.BLOCK,
+    ) -> Publisher:
+        pub = session.declare_publisher(
+            key,
+            congestion_control=congestion_control,
+            priority=priority,
+            express=express,
+            reliability=zenoh.Reliability.RELIABLE,
+        )
+        return cls(pub, schema, shm)
+
+    @property
+    def key(self) -> str:
+        return str(self._pub.key_expr)
+
+    def put(self, rec: np.ndarray) -> bytes:
+        """Encode and send one record (SHM path at or above the threshold); its bytes."""
+        data = self.schema.encode(rec)
+        self.put_bytes(data)
+        return data
+
+    def put_bytes(self, data: bytes) -> None:
+        """Send raw bytes (already encoded) on the path their size calls for."""
+        if self._shm is not None and len(data) >= SHM_THRESHOLD_BYTES:
+            publish_bytes(self._pub, data, self._shm)
+        else:
+            self._pub.put(data)
+
+    def wait_matched(self, timeout_s: float) -> bool:
+        """Wait until at least one subscriber matches this publisher (event driven)."""
+        matched = threading.Event()
+
+        def on_status(status: zenoh.MatchingStatus) -> None:
+            if status.matching:
+                matched.set()
+
+        listener = self._pub.declare_matching_listener(on_status)
+        try:
+            if self._pub.matching_status.matching:
+                return True
+            return matched.wait(timeout_s)
+        finally:
+            _undeclare(listener)
+
+    def undeclare(self) -> None:
+        _undeclare(self._pub)
+
+
+def subscribe(
+    session: zenoh.Session,
+    key: str,
+    schema: Schema,
+    callback: RecordCallback,
+    drops: DropCounter,
+    *,
+    batched: bool = False,
+) -> zenoh.Subscriber:
+    """Subscribe to records of ``schema``; ``callback(record, rx_ns)`` gets valid ones.
+
+    ``rx_ns`` is ``time.monotonic_ns()`` on arrival, before decoding. Bad records are
+    counted in ``drops`` and never reach the callback. Each record is the callback's
+    own, writable, in a buffer nothing else holds: keep it or stamp it without a copy
+    (copying a record costs 3-9 us). The callback runs on a Zenoh thread: keep it short
+    (store into a :class:`Latest`, or a queue).
+
+    ``batched``: the key is a :class:`BatchPublisher`'s, whose messages hold several
+    records back to back: the callback runs once per valid record, in order. A message
+    that is not a whole number of records is dropped (counted once).
+    """
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        rx_ns = time.monotonic_ns()
+        deliver(sample.payload.to_bytes(), rx_ns, schema, callback, drops, batched=batched)
+
+    return session.declare_subscriber(key, on_sample)
+
+
+def deliver(
+    payload: bytes,
+    rx_ns: int,
+    schema: Schema,
+    callback: RecordCallback,
+    drops: DropCounter,
+    *,
+    batched: bool = False,
+) -> None:
+    """What :func:`subscribe` does with a payload received at ``rx_ns``: decode it into
+    records the callback owns (writable), count bad ones in ``drops``, call back."""
+    data = bytearray(payload)
+    size = schema.size
+    count = len(data) // size if batched and data and len(data) % size == 0 else 1
+    for offset in range(0, count * size, size):
+        try:
+            rec = schema.decode(data if count == 1 else data[offset : offset + size])
+        except DecodeError as err:
+            drops.record(err)
+            continue
+        callback(rec, rx_ns)
+
+
+class BatchPublisher:
+    """Observers' copy of a fast stream: records sent ``records_per_message`` at a time.
+
+    Every Zenoh message costs the receiving process a wake-up (about 50 us of CPU on
+    this 2-core machine, whatever the payload), so an observer that needs every record
+    but none of them at once (the recorder, the eye view) listens here instead of to the
+    1 kHz stream. ``add`` keeps an encoded record; the message goes out when it holds
+    ``records_per_message`` records, or at :meth:`flush` (the producer calls it when its
+    run ends, and :meth:`undeclare` does, so a producer stopped before its observer
+    loses nothing: supervisord stops the recorder last).
+    """
+
+    def __init__(self, publisher: Publisher, records_per_message: int) -> None:
+        if records_per_message < 1:
+            raise ValueError(f"records_per_message must be >= 1, got {records_per_message}")
+        self._publisher = publisher
+        self.records_per_message = records_per_message
+        self._pending: list[bytes] = []
+
+    @classmethod
+    def declare(
+        cls,
+        session: zenoh.Session,
+        key: str,
+        schema: Schema,
+        records_per_message: int,
+    ) -> BatchPublisher:
+        publisher = Publisher.declare(session, key, schema, priority=zenoh.Priority.DATA)
+        return cls(publisher, records_per_message)
+
+    def add(self, data: bytes) -> None:
+        """Keep one encoded record; send the message once it is full."""
+        self._pending.append(data)
+        if len(self._pending) >= self.records_per_message:
+            self.flush()
+
+    def flush(self) -> None:
+        """Send the records kept so far (nothing if none)."""
+        if self._pending:
+            data = b"".join(self._pending)
+            self._pending = []
+            self._publisher.put_bytes(data)
+
+    def undeclare(self) -> None:
+        self.flush()
+        self._publisher.undeclare()
+
+
+def subscribe_frames(
+    session: zenoh.Session,
+    key: str,
+    schema: FrameSchema,
+    callback: FrameCallback,
+    drops: DropCounter,
+) -> zenoh.Subscriber:
+    """Subscribe to image frames; ``callback(record, pixels, rx_ns, via_shm)``.
+
+    Like :func:`subscribe`, for a :class:`FrameSchema`: the pixels are a read-only
+    (H, W, C) view of the received bytes, and ``via_shm`` tells whether the sample
+    came through shared memory (``payload.as_shm()`` is not None).
+    """
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        rx_ns = time.monotonic_ns()
+        via_shm = sample.payload.as_shm() is not None
+        try:
+            rec, pixels = schema.decode_frame(sample.payload.to_bytes())
+        except DecodeError as err:
+            drops.record(err)
+            return
+        callback(rec, pixels, rx_ns, via_shm)
+
+    return session.declare_subscriber(key, on_sample)
+
+
+class Latest:
+    """Thread-safe holder of the newest record of a stream, with event-driven waits.
+
+    Use an instance as the ``callback`` of :func:`subscribe`; a control loop then calls
+    :meth:`wait_newer` with the last ``seq`` it handled and sleeps on a condition
+    variable until a newer record arrives (no polling).
+    """
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._rec: np.ndarray | None = None
+        self._rx_ns = 0
+        self._seq = -1  # header seq of the stored record; -1 = nothing yet
+        self._count = 0
+
+    def __call__(self, rec: np.ndarray, rx_ns: int) -> None:
+        with self._cond:
+            self._rec = rec
+            self._rx_ns = rx_ns
+            self._seq = int(rec["seq"])
+            self._count += 1
+            self._cond.notify_all()
+
+    @property
+    def count(self) -> int:
+        """Records stored since creation."""
+        with self._cond:
+            return self._count
+
+    def get(self) -> tuple[np.ndarray, int] | None:
+        """(record, rx_ns) of the newest record, or None before the first one."""
+        with self._cond:
+            return None if self._rec is None else (self._rec, self._rx_ns)
+
+    def wait_newer(self, seq: int, timeout_s: float) -> tuple[np.ndarray, int] | None:
+        """Wait until the stored record's ``seq`` exceeds ``seq``; None on timeout.
+
+        Pass -1 to wait for the first record. A producer that restarts from seq 0 is
+        not "newer": the caller sees a timeout and decides (e.g. resets its ``seq``).
+        """
+        with self._cond:
+            if not self._cond.wait_for(lambda: self._seq > seq, timeout_s):
+                return None
+            assert self._rec is not None
+            return self._rec, self._rx_ns
+
+
+def declare_alive(
+    session: zenoh.Session, topics: Topics, service: str, *, ready: bool = False
+) -> zenoh.LivelinessToken:
+    """Announce ``service`` as up (``ready``: as ready, see :meth:`Topics.alive`); the
+    token disappears when undeclared or the session dies."""
+    return session.liveliness().declare_token(topics.alive(service, ready=ready))
+
+
+class ServicesMissing(TimeoutError):
+    """:func:`wait_alive` timed out; ``missing``: the services whose tokens were not seen."""
+
+    def __init__(self, message: str, missing: tuple[str, ...]) -> None:
+        super().__init__(message)
+        self.missing = missing
+
+
+def wait_alive(
+    session: zenoh.Session,
+    topics: Topics,
+    services: Iterable[str],
+    timeout_s: float,
+    *,
+    ready: bool = False,
+) -> None:
+    """Block until every named service's liveliness token (``ready``: its ready token)
+    is present.
+
+    Event driven: a liveliness subscriber with history reports the tokens already
+    present and every later change. Raises :class:`ServicesMissing` (a TimeoutError)
+    naming the missing services.
+
+    Peers do not forward for each other, so a token seen here came over this session's
+    own link to that service, after the declarations made before it (its subscribers):
+    from then on what this session publishes reaches that service.
+    """
+    wanted = set(services)
+    present: set[str] = set()
+    cond = threading.Condition()
+
+    def on_token(sample: zenoh.Sample) -> None:
+        name = topics.service_of(str(sample.key_expr))
+        with cond:
+            if sample.kind == zenoh.SampleKind.PUT:
+                present.add(name)
+            else:
+                present.discard(name)
+            cond.notify_all()
+
+    key = topics.ready_all if ready else topics.alive_all
+    sub = session.liveliness().declare_subscriber(key, on_token, history=True)
+    try:
+        with cond:
+            if not cond.wait_for(lambda: wanted <= present, timeout_s):
+                missing = tuple(sorted(wanted - present))
+                state = "ready" if ready else "alive"
+                raise ServicesMissing(
+                    f"services not {state} after {timeout_s:g} s: {', '.join(missing)}", missing
+                )
+    finally:
+        _undeclare(sub)

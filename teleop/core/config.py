@@ -1,0 +1,742 @@
+"""Typed configuration, loaded from a TOML file in ``deploy/`` with ``--set`` overrides.
+
+Every service receives one :class:`Config`. Each section is a frozen dataclass that
+validates itself at construction, so a bad value fails at start-up with a message
+that names the key, never later inside a control loop.
+
+Overrides use dotted keys and TOML literals: ``control.compensation=false``,
+``path.center_m=[0.1, 0.0, 0.35]``, ``robot.robot_id="arm1"``. A value that is not
+a TOML literal is taken as a string.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import types
+import typing
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+DEPLOY_DIR = REPO_ROOT / "deploy"
+ASSETS_DIR = Path(__file__).resolve().parents[1] / "assets"
+DEFAULT_CONFIG_FILE = DEPLOY_DIR / "teleop.toml"
+
+
+class ConfigError(ValueError):
+    """A configuration value is missing, mistyped or out of range."""
+
+
+class ModelError(ValueError):
+    """The model file does not contain what the configuration names."""
+
+
+def _require(ok: bool, message: str) -> None:
+    if not ok:
+        raise ConfigError(message)
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    """Which model file to load and which of its names the code relies on.
+
+    Nothing else in the code assumes a particular arm: point ``scene_file`` at another
+    MJCF scene and list its joint, actuator and site names here.
+    """
+
+    robot_id: str = "arm0"
+    # A file name inside teleop/assets/, or a path (absolute, or relative to the repo root).
+    scene_file: str = "scene_arm6.xml"
+    arm_joints: tuple[str, ...] = (
+        "shoulder_pan",
+        "shoulder_lift",
+        "elbow",
+        "wrist_1",
+        "wrist_2",
+        "wrist_3",
+    )
+    # Velocity actuators (the arm's low-level joint velocity loops), same order as arm_joints.
+    arm_actuators: tuple[str, ...] = (
+        "shoulder_pan_vel",
+        "shoulder_lift_vel",
+        "elbow_vel",
+        "wrist_1_vel",
+        "wrist_2_vel",
+        "wrist_3_vel",
+    )
+    tool_site: str = "tool"
+    # Start configuration (rad), arm_joints order: tool 0.4 m above the table, pointing down.
+    home_q_rad: tuple[float, ...] = (0.0, -0.25, 1.75, 0.05, -1.5708, -1.5708)
+    gripper_actuator: str = "gripper"
+    # Joints that are not part of the arm chain (fingers): locked in the Pinocchio model.
+    gripper_joints: tuple[str, ...] = ("finger_left", "finger_right")
+    # Names of scene bodies whose poses the plant publishes (graspable objects).
+    object_bodies: tuple[str, ...] = ("cube", "bin")
+    # Prefix of the non-colliding geoms that are virtual obstacles.
+    obstacle_prefix: str = "obstacle"
+
+    def __post_init__(self) -> None:
+        _require(
+            bool(self.robot_id) and "/" not in self.robot_id, "robot.robot_id: non-empty, no '/'"
+        )
+        _require(len(self.arm_joints) >= 3, "robot.arm_joints: at least 3 joints")
+        _require(
+            len(self.arm_actuators) == len(self.arm_joints),
+            "robot.arm_actuators: one actuator per arm joint",
+        )
+        _require(
+            len(self.home_q_rad) == len(self.arm_joints),
+            "robot.home_q_rad: one angle per arm joint",
+        )
+
+    @property
+    def scene_path(self) -> Path:
+        """The scene MJCF as an absolute path."""
+        candidate = Path(self.scene_file)
+        if candidate.is_absolute():
+            return candidate
+        if (ASSETS_DIR / candidate).exists():
+            return ASSETS_DIR / candidate
+        return REPO_ROOT / candidate
+
+
+# More states in flight than this gains nothing (two stages: plant and controller).
+MAX_LOCKSTEP_DELAY_STEPS = 4
+
+
+@dataclass(frozen=True)
+class PlantConfig:
+    """The MuJoCo plant: physics period and command watchdog."""
+
+    timestep_s: float = 0.001
+    # A command older than this makes the plant brake to zero joint velocity.
+    watchdog_s: float = 0.020
+    # Rate of the scene streams (tool pose, object poses) and, outside teleoperation, of the
+    # contact and proximity fields of the plant state (one per step; teleoperation: fresh
+    # every step).
+    scene_rate_hz: float = 100.0
+    # Realtime teleoperation: a command enters a physics step the moment it arrives (one
+    # step per haptic device period, on the device's clock: see DeviceClockGrid) instead
+    # of waiting for the plant's next 1 kHz tick; without commands the plant still steps
+    # once per period. Path following always uses the tick.
+    # Measured (teleop latency): see README "Latency". false: apply the newest command at
+    # each tick of the plant's own clock.
+    apply_on_arrival: bool = True
+    # Lockstep and the in-process run: step k applies the command that answers state
+    # k - lockstep_delay_steps (before that: hold still, gripper open). 1: the controller's
+    # one-sample computation delay, as in realtime (a command reaches the plant during
+    # the period after the state it answers); plant and controller then work at the same
+    # time on two states in flight (measured: see README "Benchmarks"). 0: each step
+    # waits for the answer to its own state, so plant and controller take turns.
+    lockstep_delay_steps: int = 1
+
+    def __post_init__(self) -> None:
+        _require(0 < self.timestep_s <= 0.01, "plant.timestep_s in (0, 0.01]")
+        _require(
+            0 <= self.lockstep_delay_steps <= MAX_LOCKSTEP_DELAY_STEPS,
+            f"plant.lockstep_delay_steps in [0, {MAX_LOCKSTEP_DELAY_STEPS}]",
+        )
+        _require(
+            0 < self.scene_rate_hz <= 1 / self.timestep_s, "plant.scene_rate_hz in (0, 1/timestep]"
+        )
+        _require(self.watchdog_s >= self.timestep_s, "plant.watchdog_s >= plant.timestep_s")
+
+
+@dataclass(frozen=True)
+class PathConfig:
+    """The paper's experiment-1 path, in the world frame (z up, origin at the arm base).
+
+    P(s) = (r sin(w s) + c_x, r cos(w s) + c_y, c_z + a sin(w_z s)).
+    The default centre puts the whole circle 0.25-0.45 m from the base axis at
+    0.30-0.40 m height, inside the reach of the 6-DOF arm with a good margin.
+    """
+
+    center_m: tuple[float, float, float] = (0.10, 0.0, 0.35)
+    radius_m: float = 0.35
+    omega_rad: float = 0.2  # angular rate of the circle per unit of path parameter s
+    z_amplitude_m: float = 0.05
+    z_omega_rad: float = 0.1  # rate of the slow vertical sinusoid per unit of s
+
+    def __post_init__(self) -> None:
+        _require(self.radius_m > 0, "path.radius_m > 0")
+        _require(self.omega_rad > 0, "path.omega_rad > 0")
+
+
+@dataclass(frozen=True)
+class ControlConfig:
+    """Gains and limits of the kinematic controller and its dynamic compensation."""
+
+    # Path speed v_P and its slow-down with error: |v_hd| = v_P / (1 + k |h~|).
+    path_speed_m_s: float = 0.10
+    speed_error_gain_per_m: float = 50.0
+    # K in J# (v_d + K tanh(h~ / e0)) e0: position error gain and its saturation length.
+    position_gain_per_s: float = 20.0
+    position_saturation_m: float = 0.05
+    # L: manipulability ascent gain in the task null space.
+    null_space_gain: float = 0.5
+    # Dynamic compensation q'_ref = M (q''_c + Kd (q'_c - q')) + C q' + g.
+    compensation: bool = True
+    velocity_gain_per_s: float = 50.0
+    # Joint speed limit applied to every reference sent to the plant.
+    max_joint_speed_rad_s: float = math.pi
+    # Damping of the pseudo-inverse near singularities (m).
+    damping_m: float = 1e-4
+    # Rate of CONTROL_STATUS (plots, recorder); the control cycle itself runs per state.
+    status_rate_hz: float = 100.0
+
+    def __post_init__(self) -> None:
+        for name in (
+            "path_speed_m_s",
+            "position_gain_per_s",
+            "position_saturation_m",
+            "velocity_gain_per_s",
+            "max_joint_speed_rad_s",
+        ):
+            _require(getattr(self, name) > 0, f"control.{name} > 0")
+        _require(self.speed_error_gain_per_m >= 0, "control.speed_error_gain_per_m >= 0")
+        _require(self.null_space_gain >= 0, "control.null_space_gain >= 0")
+        _require(self.damping_m >= 0, "control.damping_m >= 0")
+        _require(self.status_rate_hz > 0, "control.status_rate_hz > 0")
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """Where things are in the scene, applied by the plant over the MJCF's own values.
+
+    Empty tuples keep the model file's values. Positions are world frame (m).
+    """
+
+    cube_p_m: tuple[float, ...] = ()
+    bin_p_m: tuple[float, ...] = ()
+    # One (x, y, z) per obstacle geom, in the order of their names (obstacle_0, ...).
+    obstacle_p_m: tuple[tuple[float, float, float], ...] = ()
+    obstacle_radius_m: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        _require(len(self.cube_p_m) in (0, 3), "scene.cube_p_m: empty or x, y, z")
+        _require(len(self.bin_p_m) in (0, 3), "scene.bin_p_m: empty or x, y, z")
+        _require(all(r > 0 for r in self.obstacle_radius_m), "scene.obstacle_radius_m > 0")
+
+
+@dataclass(frozen=True)
+class HapticConfig:
+    """The emulated Falcon-like 3-DOF device (paper notes: ~0.1 m cube, ~8 N, 1 kHz)."""
+
+    handle_mass_kg: float = 0.15
+    # Physical viscous damping b of the handle; bounds the stiffness it can render stably.
+    damping_n_s_per_m: float = 3.0
+    workspace_half_m: float = 0.05  # the handle moves within +-this per axis (end stops)
+    peak_force_n: float = 8.0
+    encoder_resolution_m: float = 2e-5  # position quantisation of the encoders
+    # Kalman velocity estimate: white-acceleration process noise (m/s^2) of the model.
+    kf_accel_noise_m_s2: float = 3.0  # 30 made it noisier than finite differences (tested)
+    # Feedback older than this is stale: the rendered force fades to zero over fade_s.
+    stale_feedback_s: float = 0.020
+    fade_s: float = 0.020
+    # Realtime: hand a feedback force to the motors the moment it arrives (as a driver
+    # does) instead of at the device loop's next 1 ms step; see README "Latency".
+    render_on_arrival: bool = True
+    # The operator's hand, a spring-damper pulling the handle to the hand's target.
+    hand_stiffness_n_per_m: float = 200.0
+    hand_damping_n_s_per_m: float = 8.0
+
+    def __post_init__(self) -> None:
+        for name in (
+            "handle_mass_kg",
+            "damping_n_s_per_m",
+            "workspace_half_m",
+            "peak_force_n",
+            "encoder_resolution_m",
+            "kf_accel_noise_m_s2",
+            "stale_feedback_s",
+            "fade_s",
+        ):
+            _require(getattr(self, name) > 0, f"haptic.{name} > 0")
+
+
+@dataclass(frozen=True)
+class HmdConfig:
+    """The emulated head-mounted display: scripted head motion, noise, filter, prediction."""
+
+    rate_hz: float = 90.0
+    # Where the operator's head is (world frame) and the yaw it faces (rad, 0 = +x).
+    head_p_m: tuple[float, float, float] = (-0.45, 0.0, 0.65)
+    head_yaw_rad: float = 0.0
+    # Scripted motion: slow yaw sway and a small sideways sway.
+    yaw_amplitude_rad: float = 0.25
+    sway_amplitude_m: float = 0.03
+    motion_period_s: float = 7.0
+    # Sensor noise (standard deviations) of the tracker.
+    position_noise_m: float = 0.002
+    yaw_noise_rad: float = 0.004
+    # Prediction horizon: the measured motion-to-use latency (s); 0 = none.
+    prediction_s: float = 0.020
+
+    def __post_init__(self) -> None:
+        _require(0 < self.rate_hz <= 1000, "hmd.rate_hz in (0, 1000]")
+        _require(self.motion_period_s > 0, "hmd.motion_period_s > 0")
+        _require(0 <= self.prediction_s < 1, "hmd.prediction_s in [0, 1)")
+
+
+@dataclass(frozen=True)
+class EyeViewConfig:
+    """The operator's eye view: the scene rendered from the HMD's predicted pose.
+
+    A service of its own (``teleop/eyeview.py``) renders with MuJoCo's offscreen
+    renderer at ``rate_hz`` and publishes EYE_VIEW frames (over shared memory: a frame
+    is far above the SHM threshold). Without an HMD (path following) it renders from
+    the fixed viewpoint below. Defaults are sized for 2 busy cores (see README).
+    """
+
+    enabled: bool = True
+    # Also in lockstep runs (tests, batch experiments)? Frames are paced on wall-clock
+    # time, so a lockstep run gets few per simulated second, and the renderer's CPU
+    # would slow a run that is meant to go as fast as the machine allows.
+    in_lockstep: bool = False
+    rate_hz: float = 5.0
+    width_px: int = 320
+    height_px: int = 240
+    # Vertical field of view (rad): a headset's, about 90 degrees.
+    fov_y_rad: float = 1.5707963267948966
+    # Shadow mapping costs about 10x the rest of a software-rendered frame (measured
+    # here: 60-67 ms against 6.5 ms at 320x240), so it is off by default.
+    shadows: bool = False
+    # PLANT_STATE batches are taken at most this often (Zenoh ingress downsampling): the
+    # renderer needs one state per frame, not the plant's 1 kHz. 0: take every one.
+    state_rate_hz: float = 100.0
+    # Fixed viewpoint when no HEAD_POSE arrives (world frame): where the operator's head
+    # is (as hmd.head_p_m), looking along yaw (0 = +x) and down by pitch (rad).
+    fixed_p_m: tuple[float, float, float] = (-0.45, 0.0, 0.65)
+    fixed_yaw_rad: float = 0.0
+    fixed_pitch_rad: float = 0.5
+    # Scheduling niceness of the renderer process: below the control loops. (Not
+    # SCHED_IDLE: starved, its Zenoh threads would stop draining the plant's PLANT_STATE,
+    # whose BLOCK publisher would then stall the plant.)
+    nice: int = 10
+    # Recorder: JPEG quality of the logged frames (1-100); 0 logs raw RGB.
+    jpeg_quality: int = 80
+
+    def __post_init__(self) -> None:
+        _require(0 < self.rate_hz <= 120, "eyeview.rate_hz in (0, 120]")
+        for name in ("width_px", "height_px"):
+            _require(16 <= getattr(self, name) <= 4096, f"eyeview.{name} in [16, 4096]")
+        _require(0 < self.fov_y_rad < math.pi, "eyeview.fov_y_rad in (0, pi)")
+        _require(
+            self.state_rate_hz == 0 or self.state_rate_hz >= self.rate_hz,
+            "eyeview.state_rate_hz >= eyeview.rate_hz, or 0 (no limit)",
+        )
+        _require(
+            abs(self.fixed_pitch_rad) < math.pi / 2, "eyeview.fixed_pitch_rad in (-pi/2, pi/2)"
+        )
+        _require(0 <= self.nice <= 19, "eyeview.nice in [0, 19]")
+        _require(0 <= self.jpeg_quality <= 100, "eyeview.jpeg_quality in [0, 100]")
+
+
+@dataclass(frozen=True)
+class TeleopConfig:
+    """Teleoperation in the controller: rate control, limits and force feedback."""
+
+    # Handle offset from the device centre (m) -> tool velocity (m/s): v = gain (x - deadband).
+    rate_gain_per_s: float = 6.0
+    deadband_m: float = 0.004
+    max_tool_speed_m_s: float = 0.25
+    # Slow down near singularities (MoveIt Servo): full speed below the first condition
+    # number of the position Jacobian, stop at the second.
+    singularity_slowdown_cond: float = 17.0
+    singularity_stop_cond: float = 30.0
+    # Slow down within this distance of a joint limit (rad), stop at the limit.
+    joint_limit_margin_rad: float = 0.15
+    # Robot-side force (N) -> device force (N).
+    force_scale: float = 0.5
+    # Virtual obstacles: repulsion within the influence distance, felt and obeyed.
+    obstacle_influence_m: float = 0.08
+    obstacle_stiffness_n_per_m: float = 60.0
+    obstacle_avoid_gain_per_s: float = 4.0
+    # Workspace spring of the handle (device frame): pulls it back beyond this radius.
+    workspace_free_m: float = 0.04
+    workspace_stiffness_n_per_m: float = 300.0
+    # Grasp detection: both fingers touch the object.
+    object_mass_kg: float = 0.2
+    # Hold the tool pointing straight down (top grasps), keeping its start heading;
+    # false: hold whatever orientation the tool has when teleoperation starts.
+    approach_down: bool = True
+
+    def __post_init__(self) -> None:
+        _require(self.rate_gain_per_s > 0, "teleop.rate_gain_per_s > 0")
+        _require(self.deadband_m >= 0, "teleop.deadband_m >= 0")
+        _require(self.max_tool_speed_m_s > 0, "teleop.max_tool_speed_m_s > 0")
+        _require(
+            self.singularity_stop_cond > self.singularity_slowdown_cond > 1,
+            "teleop: singularity_stop_cond > singularity_slowdown_cond > 1",
+        )
+        _require(self.force_scale >= 0, "teleop.force_scale >= 0")
+
+
+@dataclass(frozen=True)
+class OperatorConfig:
+    """The scripted operator: what it does, how fast it reacts, how it moves its hand."""
+
+    # Task file: a name in deploy/scenarios/, or a path.
+    scenario_file: str = "grasp.toml"
+    reaction_delay_s: float = 0.2
+    decision_rate_hz: float = 100.0
+    # The largest offset the hand gives the handle (m); the operator's gain follows from
+    # reaction_delay_s (no overshoot for a delayed P loop, see teleop/operator.py).
+    max_hand_offset_m: float = 0.045
+
+    def __post_init__(self) -> None:
+        _require(self.reaction_delay_s >= 0, "operator.reaction_delay_s >= 0")
+        _require(0 < self.decision_rate_hz <= 1000, "operator.decision_rate_hz in (0, 1000]")
+
+    @property
+    def scenario_path(self) -> Path:
+        candidate = Path(self.scenario_file)
+        if candidate.is_absolute():
+            return candidate
+        if (DEPLOY_DIR / "scenarios" / candidate).exists():
+            return DEPLOY_DIR / "scenarios" / candidate
+        return REPO_ROOT / candidate
+
+
+# The latency floor's relays (teleop/relay.py) and the services whose places they take in
+# the loop: a relay gets its service's CPUs, so the floor runs under the stack's layout.
+FLOOR_STAND_INS: Mapping[str, str] = {"relay_controller": "controller", "relay_plant": "plant"}
+
+
+@dataclass(frozen=True)
+class CpuConfig:
+    """CPU affinity of the services (CPU numbers; empty = let the kernel choose).
+
+    The default is laid out for the 2-core target: the plant alone on CPU 0 (warm
+    caches, no migrations, nothing waking up on its core), controller, recorder and eye
+    view on CPU 1; haptic, HMD and operator free. Measured on the quiet machine
+    (2026-11-22), realtime path following 60 s with recorder and eye view: realtime
+    factor 0.999 and 0.27 % plant overruns pinned, against 0.975 and 2.6 % unpinned;
+    realtime grasp: realtime factor 0.91 against 0.87. Lockstep speed is the same
+    either way (2.0x against 1.9x). CPUs the machine does not have are ignored (a
+    warning says so); on a machine with more cores give each loop its own.
+    """
+
+    plant: tuple[int, ...] = (0,)
+    controller: tuple[int, ...] = (1,)
+    haptic: tuple[int, ...] = ()
+    hmd: tuple[int, ...] = ()
+    operator: tuple[int, ...] = ()
+    recorder: tuple[int, ...] = (1,)
+    eyeview: tuple[int, ...] = (1,)
+    # Lockstep: the recorder shares the plant's CPU instead. With the lockstep delay the
+    # controller is the busier of the two (the plant waits for it part of each cycle).
+    recorder_lockstep: tuple[int, ...] = (0,)
+    # Realtime runs: SCHED_FIFO priority (1-99) of the bilateral loop's processes; 0 =
+    # normal scheduling. A FIFO thread that wakes runs at once, ahead of every normal
+    # process (recorder, eye view, HMD, operator, anything else on the host), so a
+    # message waits for a core only while another loop service is working. Measured on
+    # the 2-core machine (2026-11-22, teleop latency, 20 s): round trip p99 10.0 ->
+    # 3.5 ms, samples shed while behind 3213 -> 115, the loop services' hops near the
+    # floor. The loops are event driven (no busy wait), and the kernel's RT throttling
+    # (sched_rt_runtime_us) keeps 5 % of each CPU for normal tasks in any case. Not in
+    # lockstep: there plant and controller run flat out and would starve the recorder.
+    # Needs CAP_SYS_NICE (root has it); without it a warning says so and the service
+    # runs normally scheduled.
+    fifo_priority: int = 40
+    # Which processes get it: the loop services (and the relays of the latency floor that
+    # stand in for them: the floor is measured under the same scheduling).
+    fifo_services: tuple[str, ...] = ("plant", "controller", "haptic")
+    # Realtime runs: one spinner per CPU (teleop/idle_poll.py: SCHED_IDLE in a CPU cgroup
+    # marked idle) so the idle CPUs poll instead of halting. On this KVM guest a halted
+    # vCPU leaves its host core (cold caches, a hypervisor exit on every wake-up): with
+    # polling the round trip fell to 0.83x p50 and 0.78x p99, and the services' own CPU
+    # time to 0.88x (2026-11-22, 3 rounds). Anything else that wants a CPU preempts its
+    # spinner at once; the cost is CPUs that read 100 % busy while the stack runs. The
+    # floor's relay chain polls alike.
+    idle_poll: bool = True
+    # Which CPUs poll (empty: every CPU the launching process may use). On a machine
+    # with more cores than the stack needs, list the loop services' CPUs only.
+    idle_poll_cpus: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        names = ("plant", "controller", "haptic", "hmd", "operator", "recorder", "eyeview",
+                 "recorder_lockstep", "idle_poll_cpus")  # fmt: skip
+        for name in names:
+            _require(all(c >= 0 for c in getattr(self, name)), f"cpu.{name}: CPU numbers >= 0")
+        _require(0 <= self.fifo_priority <= 99, "cpu.fifo_priority in [0, 99]")
+
+    def for_service(self, service: str, mode: str) -> tuple[int, ...]:
+        """The CPUs of ``service`` in timing ``mode`` (empty: the kernel's choice); a relay
+        of the latency floor runs where the service whose place it takes runs."""
+        service = FLOOR_STAND_INS.get(service, service)
+        if service == "recorder" and mode == "lockstep":
+            return self.recorder_lockstep
+        return tuple(getattr(self, service, ()))
+
+    def polls_idle(self, mode: str) -> bool:
+        """Whether a stack in timing ``mode`` keeps its idle CPUs polling."""
+        return self.idle_poll and mode == "realtime"
+
+    def fifo_priority_for(self, service: str, mode: str) -> int:
+        """SCHED_FIFO priority of ``service`` in timing ``mode``; 0: normal scheduling."""
+        service = FLOOR_STAND_INS.get(service, service)
+        if mode != "realtime" or service not in self.fifo_services:
+            return 0
+        return self.fifo_priority
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """How services reach each other over Zenoh."""
+
+    # Zenoh json5 config: a file name inside deploy/zenoh/, or a path.
+    zenoh_config: str = "local.json5"
+    # Where the run's first service listens and every other connects (loopback only).
+    endpoint: str = "tcp/127.0.0.1:7447"
+    shm: bool = True
+    shm_pool_bytes: int = 16 * 1024 * 1024
+    # With shm: Zenoh's low-latency unicast transport (a put writes to the link itself,
+    # no TX pipeline thread to hand it to; it has no QoS, so no priorities, and cannot
+    # fragment: every payload over the SHM threshold then goes through shared memory,
+    # which never falls back to the socket; without shm the default transport is kept,
+    # as TCP must fragment an eye-view frame). Measured on the whole stack (2026-11-22,
+    # tests/benchmarks/latency_stack_variants.py, 7 rounds of 15 s): round trip p50
+    # x0.66-0.73 and p99 x0.70-0.82 of the default transport, lower in 6 of 7 rounds.
+    # With it, two peers of a stack sometimes never linked to each other (3 stacks in
+    # 14: both connected at once); local.json5 now lets only one of a pair connect
+    # (gossip autoconnect_strategy "greater-zid"): 0 in 20 since, and the launchers no
+    # longer use gossip (see gossip below). Service.become_ready reports a pair that
+    # never links (unlinked_peers).
+    lowlatency: bool = True
+    # How the peers of a run find each other. With gossip (the default), every process
+    # connects to the run's listener (``endpoint``) and learns the others from it, then
+    # links to them itself. A launcher instead gives every service the whole mesh
+    # (teleop.run.stack.peer_mesh): its own listening endpoint and those of the peers it
+    # connects to, with gossip off. Why: with the low-latency transport, a Zenoh 1.10.2
+    # receive thread that handles gossip's link states holds the routing lock while it
+    # blocks on a send, and a session declaring a subscriber meanwhile waits for that
+    # lock for ever (a known class of upstream deadlocks under peer churn, zenoh issue
+    # 2581). Seen here at start-up: a service stuck in declare_subscriber, never alive,
+    # deaf to SIGINT (2 stacks of 25, 2026-11-22; 0 of 30 with the mesh).
+    gossip: bool = True
+    # This process's own listening endpoint when it is not the run's listener; empty:
+    # an ephemeral loopback port (the peers learn it through gossip).
+    peer_listen_endpoint: str = ""
+    # Peers this process connects to besides ``endpoint`` (the launcher's mesh).
+    peer_connect_endpoints: tuple[str, ...] = ()
+    # Zenoh config entries set over the file, last: "path=json5", e.g.
+    # 'transport/shared_memory/mode="lazy"' (the tuning benchmark tries variants this way).
+    zenoh_overrides: tuple[str, ...] = ()
+    # Plant states per message on the observers' copy of the state stream (recorder, eye
+    # view; topics.plant_state_batch): one message instead of 10 saves the recorder ~9
+    # wake-ups per 10 ms at 1 kHz.
+    observer_batch_records: int = 10
+
+    def __post_init__(self) -> None:
+        _require("/" in self.endpoint, "bus.endpoint like tcp/127.0.0.1:7447")
+        _require(
+            all("/" in e for e in (*self.peer_connect_endpoints, self.peer_listen_endpoint or "/")),
+            "bus.peer_listen_endpoint and bus.peer_connect_endpoints like tcp/127.0.0.1:7448",
+        )
+        _require(self.observer_batch_records >= 1, "bus.observer_batch_records >= 1")
+        _require(
+            all("=" in entry for entry in self.zenoh_overrides),
+            "bus.zenoh_overrides: entries like path=json5value",
+        )
+        _require(self.shm_pool_bytes >= 1 << 16, "bus.shm_pool_bytes >= 65536")
+
+    @property
+    def zenoh_config_path(self) -> Path:
+        candidate = Path(self.zenoh_config)
+        if candidate.is_absolute():
+            return candidate
+        if (DEPLOY_DIR / "zenoh" / candidate).exists():
+            return DEPLOY_DIR / "zenoh" / candidate
+        return REPO_ROOT / candidate
+
+
+@dataclass(frozen=True)
+class RecorderConfig:
+    """The Rerun recorder service."""
+
+    # Recording file; empty = <run dir>/recording.rrd.
+    rrd_path: str = ""
+    # Also open the native Rerun viewer (never in tests or CI).
+    spawn: bool = False
+    # Also stream to this Rerun gRPC server (``rerun+http://127.0.0.1:PORT/proxy``); empty:
+    # none. ``teleop run --web`` starts a web viewer and sets it.
+    grpc_url: str = ""
+    # Draw the scene in 3D from the MuJoCo model (arm, gripper, table, bin, cube, obstacles).
+    scene3d: bool = True
+    # Rate of the 3D arm pose (Hz of sim time): the plant state is 1 kHz, a view needs less.
+    scene_rate_hz: float = 30.0
+    # A ghost pose of the arm (stroboscopic view, paper Fig. 7) every this much sim time (s).
+    ghost_period_s: float = 3.0
+    # Loop rates are counted over windows of this much of the producer's clock (s).
+    rate_window_s: float = 1.0
+    # Buffered samples are sent to Rerun in columns this often (s).
+    flush_period_s: float = 0.1
+    # Scheduling niceness (0 normal .. 19 lowest): a logger must not delay the loops.
+    # Measured, realtime grasp on 2 cores: 10 gave realtime factor 0.82-0.87 and 40-45 %
+    # plant overruns against 0.61-0.79 and 55-73 % at 0; lockstep unchanged (1.8x).
+    nice: int = 10
+
+    def __post_init__(self) -> None:
+        _require(0 < self.flush_period_s <= 5, "recorder.flush_period_s in (0, 5]")
+        _require(0 <= self.nice <= 19, "recorder.nice in [0, 19]")
+        _require(self.scene_rate_hz > 0, "recorder.scene_rate_hz > 0")
+        _require(self.ghost_period_s > 0, "recorder.ghost_period_s > 0")
+        _require(self.rate_window_s > 0, "recorder.rate_window_s > 0")
+        _require(
+            not self.grpc_url or self.grpc_url.startswith(("rerun://", "rerun+http")),
+            "recorder.grpc_url: empty or a rerun:// / rerun+http(s):// URL",
+        )
+
+
+TIMING_MODES = ("realtime", "lockstep")
+SCENARIOS = ("path-following", "grasp")
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """A scenario run: how long, which seed, when the accuracy measurement starts."""
+
+    duration_s: float = 60.0
+    seed: int = 0
+    # realtime: the plant keeps wall-clock time; lockstep: one step per controller command.
+    mode: str = "realtime"
+    # path-following: paper experiment 1 (autonomous); grasp: experiment 2 (teleoperation).
+    scenario: str = "path-following"
+    settle_s: float = 10.0
+    # Initial arm configuration (rad), one per arm joint; empty = robot.home_q_rad.
+    initial_q_rad: tuple[float, ...] = ()
+    # Standard deviation of the random perturbation of the initial configuration (rad).
+    initial_q_noise_rad: float = 0.05
+
+    def __post_init__(self) -> None:
+        _require(self.duration_s > 0, "run.duration_s > 0")
+        _require(self.mode in TIMING_MODES, f"run.mode: one of {', '.join(TIMING_MODES)}")
+        _require(self.scenario in SCENARIOS, f"run.scenario: one of {', '.join(SCENARIOS)}")
+        _require(0 <= self.settle_s, "run.settle_s >= 0")
+        _require(self.initial_q_noise_rad >= 0, "run.initial_q_noise_rad >= 0")
+
+
+@dataclass(frozen=True)
+class Config:
+    robot: RobotConfig = field(default_factory=RobotConfig)
+    plant: PlantConfig = field(default_factory=PlantConfig)
+    path: PathConfig = field(default_factory=PathConfig)
+    control: ControlConfig = field(default_factory=ControlConfig)
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    haptic: HapticConfig = field(default_factory=HapticConfig)
+    hmd: HmdConfig = field(default_factory=HmdConfig)
+    eyeview: EyeViewConfig = field(default_factory=EyeViewConfig)
+    teleop: TeleopConfig = field(default_factory=TeleopConfig)
+    operator: OperatorConfig = field(default_factory=OperatorConfig)
+    cpu: CpuConfig = field(default_factory=CpuConfig)
+    bus: BusConfig = field(default_factory=BusConfig)
+    recorder: RecorderConfig = field(default_factory=RecorderConfig)
+    run: RunConfig = field(default_factory=RunConfig)
+
+
+def _coerce(value: Any, annotation: Any, key: str) -> Any:
+    """Convert a TOML value to the field's annotated type, or raise ConfigError."""
+    origin = typing.get_origin(annotation)
+    if dataclasses.is_dataclass(annotation):
+        _require(isinstance(value, Mapping), f"{key}: expected a table")
+        return _build(annotation, value, key)
+    if annotation is bool:
+        _require(isinstance(value, bool), f"{key}: expected true or false, got {value!r}")
+        return value
+    if annotation is int:
+        _require(
+            isinstance(value, int) and not isinstance(value, bool), f"{key}: expected an integer"
+        )
+        return value
+    if annotation is float:
+        _require(
+            isinstance(value, int | float) and not isinstance(value, bool),
+            f"{key}: expected a number, got {value!r}",
+        )
+        _require(math.isfinite(value), f"{key}: must be finite")
+        return float(value)
+    if annotation is str:
+        _require(isinstance(value, str), f"{key}: expected a string, got {value!r}")
+        return value
+    if origin is tuple:
+        _require(isinstance(value, list | tuple), f"{key}: expected a list")
+        args = typing.get_args(annotation)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], f"{key}[{i}]") for i, v in enumerate(value))
+        _require(len(value) == len(args), f"{key}: expected {len(args)} items")
+        return tuple(
+            _coerce(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=True))
+        )
+    if origin in (typing.Union, types.UnionType):
+        raise ConfigError(f"{key}: unsupported union type")
+    return value
+
+
+def _build(cls: type, table: Mapping[str, Any], prefix: str) -> Any:
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(table) - names)
+    _require(not unknown, f"{prefix or 'config'}: unknown key(s) {', '.join(unknown)}")
+    kwargs = {
+        name: _coerce(value, hints[name], f"{prefix}.{name}" if prefix else name)
+        for name, value in table.items()
+    }
+    return cls(**kwargs)
+
+
+def _parse_override(text: str) -> tuple[list[str], Any]:
+    key, sep, raw = text.partition("=")
+    _require(bool(sep) and bool(key.strip()), f"--set {text!r}: expected dotted.key=value")
+    try:
+        value = tomllib.loads(f"v = {raw.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw.strip()
+    return key.strip().split("."), value
+
+
+def _merge_override(table: dict[str, Any], path: list[str], value: Any) -> None:
+    node = table
+    for part in path[:-1]:
+        node = node.setdefault(part, {})
+        _require(isinstance(node, dict), f"--set {'.'.join(path)}: {part} is not a table")
+    node[path[-1]] = value
+
+
+def read_toml(path: Path, error: type[ConfigError] = ConfigError) -> dict[str, Any]:
+    """A TOML file as a table; ``error`` (a ConfigError) names the file on any problem."""
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except FileNotFoundError as exc:
+        raise error(f"{path.name} not found: {path}") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise error(f"{path}: {exc}") from exc
+
+
+def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -> Config:
+    """Read a TOML config (default ``deploy/teleop.toml``), apply ``--set`` overrides.
+
+    Missing keys take the dataclass defaults; unknown keys are an error, so a typo in
+    a key never passes silently.
+    """
+    config_path = Path(path) if path is not None else DEFAULT_CONFIG_FILE
+    table: dict[str, Any] = {}
+    if path is not None or config_path.exists():
+        table = read_toml(config_path)
+    for text in overrides:
+        keys, value = _parse_override(text)
+        _merge_override(table, keys, value)
+    try:
+        return _build(Config, table, "")
+    except TypeError as exc:
+        raise ConfigError(str(exc)) from exc
+
+
+def to_dict(config: Config) -> dict[str, Any]:
+    """The config as plain data (for summaries and for handing to child processes)."""
+    return dataclasses.asdict(config)

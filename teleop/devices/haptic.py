@@ -1,0 +1,367 @@
+"""The haptic device: its driver interface, a Falcon-like emulator, and stale-feedback fading.
+
+Frames and units. Everything here is in the *device frame*: x forward (away from the
+operator), y left, z up, origin at the centre of the workspace; positions in m,
+velocities in m/s, forces in N acting on the handle.
+
+Why an emulator with its own dynamics: the operator's hand and the rendered feedback
+force both act on a handle with mass and damping, so feedback is *felt as motion* (the
+handle gives way), exactly as on a real device, and a controller that renders a force
+from the handle position closes a real mechanical loop whose stability can be checked.
+
+Stability (Colgate and Schenkel, "Passivity of a class of sampled-data systems", 1997):
+a virtual wall of stiffness K rendered with a zero-order hold at sample period T on a
+device with physical viscous damping b is passive iff ``b > K T / 2 + |B|`` (B: virtual
+damping). So the stiffest spring any feedback law may render is ``K_max = 2 b / T``;
+with the defaults (b = 3 N s/m, T = 1 ms) that is 6000 N/m, twice the ~3000 N/m a real
+Falcon renders and 20x the 300 N/m workspace spring of the teleop config. Each extra
+sample of loop delay adds T to the hold, roughly ``K_max = 2 b / ((1 + 2 d) T)``.
+The operator's hand adds damping, but the bound must hold without it (a released handle).
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from filterpy.common import Q_discrete_white_noise
+from filterpy.gh import GHFilter
+from filterpy.kalman import KalmanFilter
+
+from teleop.bus.messages import Button
+from teleop.core.config import HapticConfig
+
+N_AXES = 3  # a Falcon-like device: three translational degrees of freedom
+NS_PER_S = 1_000_000_000
+# Initial velocity standard deviation of the Kalman filter (m/s): a handle at rest or moved
+# by hand, well above any speed the 0.1 m workspace allows for long.
+KF_INITIAL_SPEED_STD_M_S = 0.5
+# Variance of a uniform quantisation error of step q is q^2 / 12.
+UNIFORM_QUANTISATION_VARIANCE_FACTOR = 1.0 / 12.0
+
+
+def max_stable_stiffness_n_per_m(config: HapticConfig, period_s: float) -> float:
+    """Largest stiffness (N/m) a feedback law may render passively: ``K_max = 2 b / T``.
+
+    From Colgate's condition ``b > K T / 2`` with b = ``config.damping_n_s_per_m`` (the
+    device's own viscous damping, N s/m) and T = ``period_s`` (the force update period, s).
+    Defaults: 2 * 3 / 0.001 = 6000 N/m.
+    """
+    if period_s <= 0:
+        raise ValueError(f"period_s must be > 0, got {period_s}")
+    return 2.0 * config.damping_n_s_per_m / period_s
+
+
+def saturate_force(force_n: np.ndarray, peak_n: float) -> np.ndarray:
+    """``force_n`` (3,) scaled down to norm ``peak_n`` if above it (direction kept)."""
+    force = np.asarray(force_n, dtype=np.float64)
+    norm = math.hypot(*force.tolist())  # np.linalg.norm costs ~3 us at this size
+    if norm > peak_n:
+        return force * (peak_n / norm)
+    return force.copy()
+
+
+@dataclass(frozen=True)
+class DeviceSample:
+    """One reading of the device, device frame.
+
+    ``p_m`` (3,): encoder position, m (quantised); ``v_m_s`` (3,): velocity estimate, m/s;
+    ``f_n`` (3,): force the motors rendered during the last period, N (after saturation);
+    ``buttons``: the handle's buttons.
+    """
+
+    p_m: np.ndarray
+    v_m_s: np.ndarray
+    f_n: np.ndarray
+    buttons: Button
+
+
+class HapticDevice(abc.ABC):
+    """What the haptic service needs from a device; a real driver implements the same three.
+
+    ``render`` is called once per servo period with the force to apply during the next
+    period; ``read`` returns the state sampled at the end of the last one.
+    """
+
+    @abc.abstractmethod
+    def read(self) -> DeviceSample:
+        """The latest sample: position (m), velocity (m/s), rendered force (N), buttons."""
+
+    @abc.abstractmethod
+    def render(self, force_n: np.ndarray) -> None:
+        """Apply ``force_n`` (3,), N, device frame; the device saturates it at its peak force."""
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Release the device (a real driver zeroes its motors); safe to call twice."""
+
+
+class KalmanVelocityEstimator:
+    """Velocity from quantised encoder positions: a filterpy constant-velocity Kalman filter.
+
+    State ``[px, py, pz, vx, vy, vz]`` (m, m/s), one independent constant-velocity model
+    per axis, driven by white acceleration of standard deviation ``accel_noise_m_s2``
+    (piecewise-constant over a period). The measurement is the encoder position with
+    quantisation noise of variance q^2 / 12 (q = ``resolution_m``). Finite differences of
+    quantised positions jump by q / T (20 mm/s at 20 um, 1 ms) whenever a count changes;
+    the filter averages those steps over its bandwidth instead.
+
+    The tuning trades lag for noise through ``accel_noise_m_s2`` alone: with q = 20 um and
+    T = 1 ms, 3 m/s^2 gives a velocity noise about 5x below finite differences and settles in
+    about 15 ms; 30 m/s^2 trusts the encoder so much that it is *noisier* than finite
+    differences (std 12.7 vs 9.7 mm/s for a slow constant motion).
+
+    Steady state: the model is time invariant, so after a reset the Kalman gain converges
+    (within about 100 updates) to a constant. From then on the update is exactly
+    filterpy's g-h filter with ``g = K_p`` and ``h = K_v T`` (all three axes at once),
+    which gives the same estimate as the Kalman update with the converged gain (to
+    ``GAIN_CONVERGED_RELATIVE``) for about a tenth of its cost: the Kalman update was
+    the haptic service's largest item at 1 kHz (about 100 us of a 1 ms period). A change
+    of ``dt_s`` or a reset goes back to the full filter until the gain settles again.
+    """
+
+    # Relative change of the gain between two updates below which it counts as converged.
+    GAIN_CONVERGED_RELATIVE = 1e-9
+
+    def __init__(self, resolution_m: float, accel_noise_m_s2: float, dt_s: float) -> None:
+        if resolution_m <= 0 or accel_noise_m_s2 <= 0 or dt_s <= 0:
+            raise ValueError("resolution_m, accel_noise_m_s2 and dt_s must be > 0")
+        self.resolution_m = resolution_m
+        self.accel_noise_m_s2 = accel_noise_m_s2
+        self._kf = KalmanFilter(dim_x=2 * N_AXES, dim_z=N_AXES)
+        self._kf.H = np.hstack([np.eye(N_AXES), np.zeros((N_AXES, N_AXES))])
+        self._kf.R = np.eye(N_AXES) * (resolution_m**2 * UNIFORM_QUANTISATION_VARIANCE_FACTOR)
+        self._steady: GHFilter | None = None  # the converged filter, once the gain settled
+        self._dt_s = 0.0
+        self._set_dt(dt_s)
+        self.reset(np.zeros(N_AXES))
+
+    def _set_dt(self, dt_s: float) -> None:
+        """Rebuild F and Q for a period of ``dt_s`` (only when it changes)."""
+        if dt_s == self._dt_s:
+            return
+        self._leave_steady_state()
+        self._dt_s = dt_s
+        eye = np.eye(N_AXES)
+        self._kf.F = np.block([[eye, dt_s * eye], [np.zeros((N_AXES, N_AXES)), eye]])
+        # order_by_dim=False: positions first, then velocities, matching the state layout.
+        self._kf.Q = Q_discrete_white_noise(
+            dim=2, dt=dt_s, var=self.accel_noise_m_s2**2, block_size=N_AXES, order_by_dim=False
+        )
+
+    def reset(self, p_m: np.ndarray) -> None:
+        """Restart at position ``p_m`` (3,), m, velocity unknown around zero."""
+        self._steady = None
+        self._kf.x = np.concatenate([np.asarray(p_m, dtype=np.float64), np.zeros(N_AXES)])
+        r = self.resolution_m**2 * UNIFORM_QUANTISATION_VARIANCE_FACTOR
+        self._kf.P = np.diag([r] * N_AXES + [KF_INITIAL_SPEED_STD_M_S**2] * N_AXES)
+        self._kf.K = np.zeros_like(self._kf.K)
+
+    @property
+    def steady(self) -> bool:
+        """True once the gain has converged and the g-h form runs."""
+        return self._steady is not None
+
+    def update(self, p_measured_m: np.ndarray, dt_s: float) -> np.ndarray:
+        """Predict over ``dt_s`` (s), correct with the encoder position (3,), m; velocity (3,)."""
+        self._set_dt(dt_s)
+        z = np.asarray(p_measured_m, dtype=np.float64)
+        if self._steady is not None:
+            self._steady.update(z)
+            return self._steady.dx.copy()
+        gain_before = self._kf.K[0, 0], self._kf.K[N_AXES, 0]
+        self._kf.predict()
+        self._kf.update(z)
+        g, k_v = self._kf.K[0, 0], self._kf.K[N_AXES, 0]
+        if abs(g - gain_before[0]) <= self.GAIN_CONVERGED_RELATIVE * abs(g) and abs(
+            k_v - gain_before[1]
+        ) <= self.GAIN_CONVERGED_RELATIVE * abs(k_v):
+            x = self._kf.x
+            self._steady = GHFilter(
+                x=x[:N_AXES].copy(), dx=x[N_AXES:].copy(), dt=dt_s, g=g, h=k_v * dt_s
+            )
+        return self.velocity_m_s
+
+    def _leave_steady_state(self) -> None:
+        """Back to the full filter, from the g-h filter's state (the converged P stays)."""
+        if self._steady is not None:
+            self._kf.x = np.concatenate([self._steady.x, self._steady.dx])
+            self._steady = None
+
+    @property
+    def velocity_m_s(self) -> np.ndarray:
+        """Current velocity estimate (3,), m/s (a copy)."""
+        if self._steady is not None:
+            return np.array(self._steady.dx, dtype=np.float64)
+        return np.array(self._kf.x[N_AXES:], dtype=np.float64)
+
+
+class EmulatedDevice(HapticDevice):
+    """A Falcon-like handle: mass, viscous damping, end stops, encoders, force saturation.
+
+    Forces on the handle (device frame, N): the operator's hand, a spring-damper
+    ``K_h (target - p) - B_h v`` toward the hand's target, and the rendered feedback force
+    (saturated to ``peak_force_n`` in norm); plus the device's own damping ``-b v``. With the
+    defaults (m = 0.15 kg, K_h = 200 N/m, B_h + b = 11 N s/m) the held handle is a
+    critically damped (zeta = 1.0) second-order system with omega_n = 36.5 rad/s, and a
+    steady feedback force F moves it by F / K_h (8 N peak: 40 mm, inside the 50 mm stops).
+
+    Integration, per period dt: the damping is taken implicitly and the springs
+    semi-implicitly (new velocity first, then position with the new velocity)::
+
+        v' = (v + dt / m * (K_h (target - p) + F_fb)) / (1 + dt (b + B_h) / m)
+        p' = p + dt v'
+
+    Semi-implicit (symplectic) Euler keeps a spring's energy bounded where explicit Euler
+    would inject energy every step, which would fake (or hide) exactly the instability the
+    Colgate bound is about; it is stable for omega_n dt < 2 (here 0.037). The implicit
+    damping is dissipative for any dt. End stops at +-``workspace_half_m`` per axis are
+    inelastic: the position is clamped and the velocity component into the stop zeroed.
+    """
+
+    def __init__(self, config: HapticConfig, period_s: float) -> None:
+        if period_s <= 0:
+            raise ValueError(f"period_s must be > 0, got {period_s}")
+        self.config = config
+        self.period_s = period_s
+        self._estimator = KalmanVelocityEstimator(
+            config.encoder_resolution_m, config.kf_accel_noise_m_s2, period_s
+        )
+        self._p_m = np.zeros(N_AXES)
+        self._v_m_s = np.zeros(N_AXES)
+        self._f_command_n = np.zeros(N_AXES)
+        self._f_rendered_n = np.zeros(N_AXES)
+        self._p_encoder_m = np.zeros(N_AXES)
+        self._v_estimate_m_s = np.zeros(N_AXES)
+        self._buttons = Button.NONE
+        self.closed = False
+        self.reset()
+
+    def reset(self) -> None:
+        """Handle at the centre, at rest, no force, no buttons; velocity filter restarted."""
+        self._p_m[:] = 0.0
+        self._v_m_s[:] = 0.0
+        self._f_command_n[:] = 0.0
+        self._f_rendered_n[:] = 0.0
+        self._p_encoder_m[:] = 0.0
+        self._v_estimate_m_s[:] = 0.0
+        self._buttons = Button.NONE
+        self._estimator.reset(self._p_encoder_m)
+
+    # -- HapticDevice ------------------------------------------------------------------
+    def render(self, force_n: np.ndarray) -> None:
+        """Set the force for the next :meth:`step`, saturated to ``peak_force_n`` in norm."""
+        self._f_command_n = saturate_force(force_n, self.config.peak_force_n)
+
+    def read(self) -> DeviceSample:
+        """Encoder position (quantised), Kalman velocity, last rendered force, buttons."""
+        return DeviceSample(
+            p_m=self._p_encoder_m.copy(),
+            v_m_s=self._v_estimate_m_s.copy(),
+            f_n=self._f_rendered_n.copy(),
+            buttons=self._buttons,
+        )
+
+    def close(self) -> None:
+        """Nothing to release in an emulator; zero the force as a driver would."""
+        self._f_command_n[:] = 0.0
+        self.closed = True
+
+    # -- the emulation -----------------------------------------------------------------
+    def step(
+        self,
+        dt_s: float,
+        hand_target_p_m: np.ndarray | None,
+        buttons: Button = Button.NONE,
+    ) -> None:
+        """Integrate one period ``dt_s`` (s) under the hand and the rendered force.
+
+        ``hand_target_p_m`` (3,), m, device frame: where the hand pulls the handle; None
+        means no hand force at all (nobody holds the handle: it only feels the feedback
+        force and its own damping). ``buttons``: what the hand holds pressed.
+        """
+        c = self.config
+        p, v = self._p_m, self._v_m_s
+        force = self._f_command_n.copy()
+        damping = c.damping_n_s_per_m
+        if hand_target_p_m is not None:
+            target = np.asarray(hand_target_p_m, dtype=np.float64)
+            force += c.hand_stiffness_n_per_m * (target - p)
+            damping += c.hand_damping_n_s_per_m
+        m = c.handle_mass_kg
+        v_new = (v + dt_s / m * force) / (1.0 + dt_s * damping / m)
+        p_new = p + dt_s * v_new
+        half = c.workspace_half_m
+        high, low = p_new > half, p_new < -half
+        p_new[high], p_new[low] = half, -half
+        v_new[high & (v_new > 0)] = 0.0
+        v_new[low & (v_new < 0)] = 0.0
+        self._p_m, self._v_m_s = p_new, v_new
+        self._f_rendered_n = self._f_command_n.copy()
+        self._buttons = Button(buttons)
+        q = c.encoder_resolution_m
+        self._p_encoder_m = q * np.round(p_new / q)
+        self._v_estimate_m_s = self._estimator.update(self._p_encoder_m, dt_s)
+
+    @property
+    def true_p_m(self) -> np.ndarray:
+        """Exact handle position (3,), m (emulator only: tests and diagnostics)."""
+        return self._p_m.copy()
+
+    @property
+    def true_v_m_s(self) -> np.ndarray:
+        """Exact handle velocity (3,), m/s (emulator only)."""
+        return self._v_m_s.copy()
+
+
+class FeedbackHold:
+    """The last received feedback force, faded out when it gets old; never held stale.
+
+    A force older than ``stale_after_s`` no longer describes the robot (the controller
+    stalled or the link dropped): holding it would push the operator's hand with a force
+    nothing produces any more, and an abrupt cut to zero would kick the handle. So it
+    fades linearly to zero over ``fade_s``, then stays zero until fresh feedback arrives.
+    Times are integer ns of one clock: monotonic arrival time in realtime, sim time in
+    lockstep. Not thread-safe: the service holds its own lock around it.
+    """
+
+    def __init__(self, stale_after_s: float, fade_s: float) -> None:
+        if stale_after_s <= 0 or fade_s <= 0:
+            raise ValueError("stale_after_s and fade_s must be > 0")
+        self.stale_after_ns = round(stale_after_s * NS_PER_S)
+        self.fade_ns = round(fade_s * NS_PER_S)
+        self._force_n = np.zeros(N_AXES)
+        self._t_ns: int | None = None
+        self._stale = False
+        self.stale_events = 0  # fresh -> stale transitions
+
+    def receive(self, force_n: np.ndarray, t_ns: int) -> None:
+        """Store a fresh force (3,), N, received at ``t_ns``."""
+        self._force_n = np.array(force_n, dtype=np.float64)
+        self._t_ns = t_ns
+        self._stale = False
+
+    def clear(self) -> None:
+        """Forget the held force (a new run); counters are kept."""
+        self._force_n = np.zeros(N_AXES)
+        self._t_ns = None
+        self._stale = False
+
+    def force_at(self, t_ns: int) -> tuple[np.ndarray, bool]:
+        """(force (3,) N, stale) to render at ``t_ns``; zero before the first receive.
+
+        ``stale`` is True once the force is older than ``stale_after_s`` (fading, or faded
+        out to zero); its first occurrence after a receive counts one stale event.
+        """
+        if self._t_ns is None:
+            return np.zeros(N_AXES), False
+        overdue_ns = t_ns - self._t_ns - self.stale_after_ns
+        if overdue_ns <= 0:
+            return self._force_n.copy(), False
+        if not self._stale:
+            self._stale = True
+            self.stale_events += 1
+        scale = max(0.0, 1.0 - overdue_ns / self.fade_ns)
+        return self._force_n * scale, True

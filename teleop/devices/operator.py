@@ -1,0 +1,654 @@
+"""The scripted operator: plays a task on the haptic handle, closing the loop on what it sees.
+
+Pure and process-free (``services.operator`` puts it on the bus), so the whole
+closed loop can be simulated in a test.
+
+What the operator knows is the controller's rate mapping (teleop mode): a handle offset
+``d`` (device frame: x forward, away from the operator; y left; z up; metres from the
+workspace centre) commands the world tool velocity
+
+    v_world = Rz(yaw) * rate_gain * (|d| - deadband) * d / |d|     (0 inside the deadband),
+
+capped at ``max_tool_speed_m_s``, with ``yaw`` the view yaw of the HMD. The operator
+inverts it (:func:`hand_offset_for_velocity`).
+
+The loop, per decision (``operator.decision_rate_hz``, on plant ticks):
+
+1. ``observed`` is what the operator saw ``reaction_delay_s`` ago (tool, objects, view yaw):
+   :class:`ObservationBuffer` returns it.
+2. Desired tool velocity ``v = k (target - tool)``, capped at ``SPEED_CAP_FRACTION`` of the
+   controller's limit (so the controller's own cap never bends the commanded direction).
+3. Drift compensation: ``v -= w``, where ``w`` is a slow (``DRIFT_TIME_CONSTANT_S``)
+   estimate of the tool velocity seen minus the velocity the operator's own past hand
+   commands asked for (:func:`tool_velocity_for_offset`). A constant disturbance, like the
+   held cube's weight rendered on the handle (0.2 kg x 9.81 x force_scale 0.5 on a
+   200 N/m hand: 5 mm of sag, 3 cm/s of tool drift), would otherwise leave a P loop
+   ``drift / k`` = 4 cm short of its target. It acts on the velocity mismatch, not on
+   the position error, so a step of the target still converges without overshoot.
+4. Inverse mapping to a handle offset, limited to ``max_hand_offset_m`` and to the device
+   workspace.
+5. A first-order low-pass with ``HAND_TIME_CONSTANT_S`` = 0.15 s: a hand does not jump.
+   Deliberate arm/hand movement has a bandwidth of about 1 Hz; 0.15 s puts the corner at
+   1 / (2 pi 0.15) = 1.06 Hz. It is also what keeps the hand from twitching by twice the
+   deadband when the error changes sign.
+
+Gain ``k``: the loop is an integrator (the robot under rate control) behind a delay ``tau``
+(the reaction delay plus the lags the operator does not model: the input lead, the
+decision hold and the handle's spring, ``UNMODELLED_LAG_S``) and the hand's first-order
+lag ``T``. Its characteristic equation is ``s (1 + T s) + k exp(-s tau) = 0``. A pure delayed
+integrator is *stable* for ``k tau < pi / 2``, but it rings long before that: it converges
+without overshoot only while a real dominant root exists, ``k tau <= 1/e`` (0.37, four times
+below the stability bound). With the hand lag the same condition is ``k <= k_crit(tau, T)``
+(:func:`critical_gain_per_s`, closed form below). The operator uses
+``k = NO_OVERSHOOT_MARGIN * k_crit``: 0.8 x 0.85 = 0.68 /s with the default 0.2 s reaction
+delay (time constant about 1.5 s, slow and careful like a person placing an object).
+Overshoot matters here: at the end of the descent the fingertips are 5 mm above the table.
+
+Phases come from a scenario file (``deploy/scenarios/*.toml``, :class:`Scenario`). A target
+is an offset from the cube, the bin (positions observed when the phase starts, then held:
+a lift target must not follow the cube it lifts) or the tool's position at phase start. A
+phase is complete once the observed tool stays within its tolerance for its dwell time; a
+phase timeout or the task time limit ends the task with success False, and so does losing
+the held object in a ``carrying`` phase.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+import threading
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from teleop.bus.messages import Button
+from teleop.core.config import (
+    ConfigError,
+    HapticConfig,
+    OperatorConfig,
+    RobotConfig,
+    TeleopConfig,
+    read_toml,
+)
+
+# --- Gains and human limits --------------------------------------------------------------
+
+# Lags the operator does not see in its own model (s): the HAND_INPUT lead (10 ms), half a
+# decision period of hold (5 ms) and the handle's hand spring (about 2 / omega_n = 30 ms).
+UNMODELLED_LAG_S = 0.05
+# Fraction of the no-overshoot gain used, for lags beyond UNMODELLED_LAG_S.
+NO_OVERSHOOT_MARGIN = 0.8
+# Time constant of the hand's low-pass (s): about 1 Hz of voluntary hand bandwidth.
+HAND_TIME_CONSTANT_S = 0.15
+# The operator asks for at most this fraction of the controller's speed cap.
+SPEED_CAP_FRACTION = 0.8
+# Time constant (s) of the operator's estimate of a steady drift (the weight of a held
+# object felt on the handle sags the tool; a person learns to hold against it).
+DRIFT_TIME_CONSTANT_S = 1.0
+# The drift compensation never exceeds this fraction of the operator's speed cap.
+DRIFT_LIMIT_FRACTION = 0.5
+# Below this tool speed (m/s) the hand eases to the centre instead of hovering at the
+# deadband edge, where a sign change of the error would flip it by twice the deadband.
+MIN_SPEED_M_S = 5e-4
+
+# --- Scenario vocabulary -----------------------------------------------------------------
+
+TOOL_ANCHOR = "tool"  # target relative to the tool position at phase start
+GRIPPER_STATES = {"open": False, "closed": True}  # gripper word -> GRIPPER_CLOSE held
+_TASK_KEYS = frozenset({"max_task_s", "held_object", "carry_tolerance_m"})
+_PHASE_KEYS = frozenset(
+    {"name", "target", "gripper", "tolerance_m", "dwell_s", "timeout_s", "carrying"}
+)
+_PHASE_REQUIRED = frozenset({"name", "target", "gripper", "tolerance_m", "timeout_s"})
+_TARGET_KEYS = frozenset({"relative_to", "offset_m"})
+
+
+class ScenarioError(ConfigError):
+    """A scenario file is missing, malformed or has a bad value (names file and phase)."""
+
+
+def rot_z(yaw_rad: float) -> np.ndarray:
+    """(3, 3) rotation about the world z axis: device/view frame -> world frame."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def critical_gain_per_s(delay_s: float, lag_s: float) -> float:
+    """Largest P gain (1/s) at which ``s (1 + lag s) + k exp(-s delay) = 0`` has a real
+    dominant root, i.e. the delayed, lagged integrator loop converges without overshoot.
+
+    On the real axis ``k(s) = -s (1 + lag s) exp(s delay)``; its maximum over
+    ``-1/lag < s < 0`` is where two real roots meet (critical damping). Setting
+    ``dk/ds = 0`` gives ``delay lag s^2 + (2 lag + delay) s + 1 = 0``.
+    """
+    if delay_s < 0 or lag_s < 0 or delay_s + lag_s == 0:
+        raise ValueError("delay_s and lag_s must be >= 0, not both 0")
+    if delay_s == 0:
+        return 1.0 / (4.0 * lag_s)  # s = -1 / (2 lag)
+    if lag_s == 0:
+        return 1.0 / (math.e * delay_s)  # s = -1 / delay
+    b = 2.0 * lag_s + delay_s
+    s = (-b + math.sqrt(b * b - 4.0 * delay_s * lag_s)) / (2.0 * delay_s * lag_s)
+    return -s * (1.0 + lag_s * s) * math.exp(s * delay_s)
+
+
+def hand_offset_for_velocity(
+    world_v_m_s: np.ndarray, yaw_rad: float, teleop: TeleopConfig
+) -> np.ndarray:
+    """Device-frame handle offset (m, (3,)) that makes the controller move the tool at
+    ``world_v_m_s`` (world frame, m/s, below the speed cap): the exact inverse of the
+    rate mapping. Rotate world -> view with Rz(-yaw), divide the speed by the gain, add
+    the deadband back along the same direction. Below ``MIN_SPEED_M_S`` the offset shrinks
+    linearly to zero (the hand relaxes; the controller then sees no motion request).
+    """
+    device_v = rot_z(-yaw_rad) @ np.asarray(world_v_m_s, dtype=np.float64)
+    speed = float(np.linalg.norm(device_v))
+    if speed == 0.0:
+        return np.zeros(3)
+    radius_m = speed / teleop.rate_gain_per_s + teleop.deadband_m
+    if speed < MIN_SPEED_M_S:
+        radius_m = (MIN_SPEED_M_S / teleop.rate_gain_per_s + teleop.deadband_m) * (
+            speed / MIN_SPEED_M_S
+        )
+    return device_v * (radius_m / speed)
+
+
+def tool_velocity_for_offset(
+    offset_m: np.ndarray, yaw_rad: float, teleop: TeleopConfig
+) -> np.ndarray:
+    """The operator's model of the controller's rate mapping: device-frame handle offset
+    (m) -> world tool velocity (m/s), deadband and speed cap included."""
+    offset_m = np.asarray(offset_m, dtype=np.float64)
+    radius_m = float(np.linalg.norm(offset_m))
+    if radius_m <= teleop.deadband_m:
+        return np.zeros(3)
+    speed = min(teleop.rate_gain_per_s * (radius_m - teleop.deadband_m), teleop.max_tool_speed_m_s)
+    return rot_z(yaw_rad) @ (offset_m * (speed / radius_m))
+
+
+def limit_offset(offset_m: np.ndarray, max_offset_m: float, workspace_half_m: float) -> np.ndarray:
+    """Scale a handle offset (device frame, m) back along its own direction so that its
+    norm stays within ``max_offset_m`` and every axis within the device's end stops
+    (``workspace_half_m``). Scaling, not clipping per axis, keeps the direction."""
+    norm = float(np.linalg.norm(offset_m))
+    peak = float(np.abs(offset_m).max(initial=0.0))
+    scale = 1.0
+    if norm > max_offset_m:
+        scale = max_offset_m / norm
+    if peak * scale > workspace_half_m:
+        scale = workspace_half_m / peak
+    return offset_m * scale
+
+
+# --- The scenario --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Target:
+    """A target point: ``offset_m`` (world frame, m) from an anchor.
+
+    ``relative_to`` is an object name (its observed position at phase start) or
+    ``"tool"`` (the observed tool position at phase start).
+    """
+
+    relative_to: str
+    offset_m: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Phase:
+    """One step of the task: where the tool goes, what the gripper does, when it is done."""
+
+    name: str
+    target: Target
+    gripper_closed: bool  # GRIPPER_CLOSE held during the phase
+    tolerance_m: float  # done once |target - tool| <= this ...
+    dwell_s: float  # ... continuously for this long (sim time)
+    timeout_s: float  # give up (task fails) after this long in the phase
+    carrying: bool = False  # the held object must stay with the tool (else: lost, fail)
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """An ordered task, loaded from TOML (see ``deploy/scenarios/grasp.toml``)."""
+
+    phases: tuple[Phase, ...]
+    max_task_s: float
+    held_object: str  # the object a ``carrying`` phase checks
+    carry_tolerance_m: float  # the held object's centre stays this close to the tool
+    source: str = field(default="<memory>", compare=False)
+
+    @classmethod
+    def load(
+        cls, path: str | Path, object_names: Sequence[str] = RobotConfig().object_bodies
+    ) -> Scenario:
+        """Read and validate a scenario file; ScenarioError names the file and the phase."""
+        path = Path(path)
+        table = read_toml(path, ScenarioError)
+        return cls.from_table(table, object_names, source=str(path))
+
+    @classmethod
+    def from_table(
+        cls,
+        table: Mapping[str, Any],
+        object_names: Sequence[str] = RobotConfig().object_bodies,
+        source: str = "<memory>",
+    ) -> Scenario:
+        """Validate a parsed scenario (the TOML document as a dict)."""
+
+        def fail(where: str, message: str) -> ScenarioError:
+            return ScenarioError(f"{source}: {where}: {message}")
+
+        unknown = sorted(set(table) - {"task", "phase"})
+        if unknown:
+            raise fail("top level", f"unknown key(s) {', '.join(unknown)} (expected task, phase)")
+        task = table.get("task")
+        if not isinstance(task, Mapping):
+            raise fail("top level", "missing [task] table")
+        _check_keys(task, _TASK_KEYS, _TASK_KEYS, lambda m: fail("[task]", m))
+        max_task_s = _number(task["max_task_s"], "max_task_s", lambda m: fail("[task]", m), 0.0)
+        carry_tol = _number(
+            task["carry_tolerance_m"], "carry_tolerance_m", lambda m: fail("[task]", m), 0.0
+        )
+        held = task["held_object"]
+        if held not in object_names:
+            raise fail("[task]", f"held_object {held!r} is not one of {list(object_names)}")
+        raw_phases = table.get("phase")
+        if not isinstance(raw_phases, list) or not raw_phases:
+            raise fail("top level", "no [[phase]] tables")
+        anchors = {TOOL_ANCHOR, *object_names}
+        phases = []
+        for i, raw in enumerate(raw_phases):
+            name = raw.get("name", "?") if isinstance(raw, Mapping) else "?"
+            where = f"phase {i} ({name!r})"
+
+            def err(message: str, where: str = where) -> ScenarioError:
+                return fail(where, message)
+
+            if not isinstance(raw, Mapping):
+                raise err("expected a table")
+            _check_keys(raw, _PHASE_KEYS, _PHASE_REQUIRED, err)
+            if not isinstance(raw["name"], str) or not raw["name"]:
+                raise err("name: expected a non-empty string")
+            target = raw["target"]
+            if not isinstance(target, Mapping):
+                raise err("target: expected a table { relative_to = ..., offset_m = [x, y, z] }")
+            _check_keys(target, _TARGET_KEYS, _TARGET_KEYS, lambda m, e=err: e(f"target: {m}"))
+            if target["relative_to"] not in anchors:
+                raise err(f"target.relative_to {target['relative_to']!r}: one of {sorted(anchors)}")
+            offset = target["offset_m"]
+            if not isinstance(offset, list) or len(offset) != 3:
+                raise err("target.offset_m: expected [x, y, z] (m)")
+            x, y, z = (_number(v, f"target.offset_m[{j}]", err) for j, v in enumerate(offset))
+            gripper = raw["gripper"]
+            if gripper not in GRIPPER_STATES:
+                raise err(f"gripper {gripper!r}: one of {', '.join(GRIPPER_STATES)}")
+            dwell_s = _number(raw.get("dwell_s", 0.0), "dwell_s", err, lo=0.0, lo_open=False)
+            timeout_s = _number(raw["timeout_s"], "timeout_s", err, lo=0.0)
+            if dwell_s >= timeout_s:
+                raise err(f"dwell_s ({dwell_s:g}) must be below timeout_s ({timeout_s:g})")
+            carrying = raw.get("carrying", False)
+            if not isinstance(carrying, bool):
+                raise err("carrying: expected true or false")
+            phases.append(
+                Phase(
+                    name=raw["name"],
+                    target=Target(target["relative_to"], (x, y, z)),
+                    gripper_closed=GRIPPER_STATES[gripper],
+                    tolerance_m=_number(raw["tolerance_m"], "tolerance_m", err, lo=0.0),
+                    dwell_s=dwell_s,
+                    timeout_s=timeout_s,
+                    carrying=carrying,
+                )
+            )
+        names = [p.name for p in phases]
+        if len(set(names)) != len(names):
+            raise fail("phases", "phase names must be unique")
+        return cls(tuple(phases), max_task_s, held, carry_tol, source)
+
+    @property
+    def anchors(self) -> frozenset[str]:
+        """Every object name a target refers to (``"tool"`` excluded)."""
+        names = {p.target.relative_to for p in self.phases} | {self.held_object}
+        return frozenset(names - {TOOL_ANCHOR})
+
+
+def _check_keys(
+    table: Mapping[str, Any], allowed: frozenset[str], required: frozenset[str], fail: Any
+) -> None:
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise fail(f"unknown key(s) {', '.join(unknown)} (allowed: {', '.join(sorted(allowed))})")
+    missing = sorted(required - set(table))
+    if missing:
+        raise fail(f"missing key(s) {', '.join(missing)}")
+
+
+def _number(
+    value: Any, key: str, fail: Any, lo: float | None = None, *, lo_open: bool = True
+) -> float:
+    """A finite number, optionally > lo (or >= lo when ``lo_open`` is False)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise fail(f"{key}: expected a number, got {value!r}")
+    if not math.isfinite(value):
+        raise fail(f"{key}: must be finite")
+    if lo is not None and (value <= lo if lo_open else value < lo):
+        raise fail(f"{key}: must be {'>' if lo_open else '>='} {lo:g}, got {value!r}")
+    return float(value)
+
+
+# --- What the operator sees ----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Observation:
+    """One delayed look at the scene (world frame, m; yaw in rad about world z)."""
+
+    tick: int  # plant tick of the tool sample
+    tool_p_m: np.ndarray  # (3,)
+    objects_p_m: Mapping[str, np.ndarray]  # name -> (3,)
+    view_yaw_rad: float
+
+
+class ObservationBuffer:
+    """Time-stamped scene samples; :meth:`observe` answers "what did I see ``delay`` ago".
+
+    Keyed by plant tick (``sim_time_ns / timestep``): TOOL_POSE and OBJECT_POSES by their
+    sample tick, HEAD_POSE by its ``valid_from_tick`` (the tick its predicted yaw is for).
+    Thread-safe: Zenoh callbacks add, the decision thread observes and waits. A stream
+    whose tick goes backwards has restarted (a new run): its history is dropped.
+    """
+
+    _STREAMS = ("tool", "objects", "head")
+
+    def __init__(
+        self,
+        object_names: Sequence[str],
+        delay_ticks: int,
+        default_yaw_rad: float,
+        keep_ticks: int | None = None,
+    ) -> None:
+        self.object_names = tuple(object_names)
+        self.delay_ticks = delay_ticks
+        self.default_yaw_rad = default_yaw_rad
+        # History kept per stream beyond the newest sample (ticks): the delay plus slack.
+        self.keep_ticks = keep_ticks if keep_ticks is not None else 2 * delay_ticks + 1000
+        self._cond = threading.Condition()
+        self._ticks: dict[str, list[int]] = {s: [] for s in self._STREAMS}
+        self._values: dict[str, list[Any]] = {s: [] for s in self._STREAMS}
+
+    def _add(self, stream: str, tick: int, value: Any) -> None:
+        with self._cond:
+            ticks, values = self._ticks[stream], self._values[stream]
+            if ticks and tick < ticks[-1]:
+                ticks.clear()
+                values.clear()
+            if ticks and tick == ticks[-1]:
+                values[-1] = value  # a re-sent sample replaces its first copy
+            else:
+                ticks.append(tick)
+                values.append(value)
+            # Keep the newest sample at or before the horizon, drop everything older.
+            cut = bisect.bisect_right(ticks, tick - self.keep_ticks) - 1
+            if cut > 0:
+                del ticks[:cut]
+                del values[:cut]
+            self._cond.notify_all()
+
+    def add_tool(self, tick: int, world_p_m: np.ndarray) -> None:
+        """TOOL_POSE at ``tick``: the tool site position (world, m)."""
+        self._add("tool", tick, np.array(world_p_m, dtype=np.float64))
+
+    def add_objects(self, tick: int, world_p_m: np.ndarray) -> None:
+        """OBJECT_POSES at ``tick``: rows in ``object_names`` order (world, m)."""
+        rows = np.array(world_p_m[: len(self.object_names)], dtype=np.float64)
+        self._add("objects", tick, dict(zip(self.object_names, rows, strict=True)))
+
+    def add_head(self, valid_from_tick: int, predicted_yaw_rad: float) -> None:
+        """HEAD_POSE: the view yaw (rad) that applies from ``valid_from_tick``."""
+        self._add("head", valid_from_tick, float(predicted_yaw_rad))
+
+    def _newest_at(self, stream: str, tick: int) -> tuple[int, Any] | None:
+        ticks = self._ticks[stream]
+        i = bisect.bisect_right(ticks, tick) - 1
+        return None if i < 0 else (ticks[i], self._values[stream][i])
+
+    def observe(self, tick: int) -> Observation | None:
+        """What the operator saw at ``tick - delay_ticks``: the newest tool, objects and
+        head samples at or before it (yaw: ``default_yaw_rad`` before the first HEAD_POSE
+        applies). None until a tool and an objects sample exist."""
+        seen = tick - self.delay_ticks
+        with self._cond:
+            tool = self._newest_at("tool", seen)
+            objects = self._newest_at("objects", seen)
+            head = self._newest_at("head", seen)
+        if tool is None or objects is None:
+            return None
+        yaw = self.default_yaw_rad if head is None else head[1]
+        return Observation(tool[0], tool[1], objects[1], yaw)
+
+    def ready(self, tick: int, head_valid_from: int | None) -> bool:
+        """True once :meth:`observe` ``(tick)`` can no longer change: the objects sample of
+        the observed tool tick is in, and so is the HEAD_POSE valid from
+        ``head_valid_from`` (None: no head pose expected)."""
+        seen = tick - self.delay_ticks
+        with self._cond:
+            return self._ready(seen, head_valid_from)
+
+    def _ready(self, seen: int, head_valid_from: int | None) -> bool:
+        tool = self._newest_at("tool", seen)
+        objects = self._ticks["objects"]
+        if tool is not None and not (objects and objects[-1] >= tool[0]):
+            return False
+        if head_valid_from is not None:
+            heads = self._ticks["head"]
+            i = bisect.bisect_left(heads, head_valid_from)
+            return i < len(heads) and heads[i] == head_valid_from
+        return True
+
+    def wait_ready(self, tick: int, head_valid_from: int | None, timeout_s: float) -> bool:
+        """Block (event driven) until :meth:`ready`; False on timeout (lockstep)."""
+        seen = tick - self.delay_ticks
+        with self._cond:
+            return self._cond.wait_for(lambda: self._ready(seen, head_valid_from), timeout_s)
+
+
+# --- The operator ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class HandCommand:
+    """One decision: where the hand pulls the handle and which buttons it holds."""
+
+    target_p_m: np.ndarray  # (3,) device frame, m from the workspace centre
+    buttons: Button
+    phase: int  # index into Scenario.phases; -1 before the task starts
+    done: bool
+    success: bool  # meaningful once done
+    world_v_ref_m_s: np.ndarray  # (3,) the tool velocity the operator intends (world)
+
+
+class ScriptedOperator:
+    """The decision logic of a human-like operator, one call per decision tick.
+
+    Deterministic: the output depends only on the ticks and observations passed in.
+    """
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        operator_cfg: OperatorConfig,
+        teleop_cfg: TeleopConfig,
+        haptic_cfg: HapticConfig,
+        timestep_s: float,
+    ) -> None:
+        self.scenario = scenario
+        self.operator_cfg = operator_cfg
+        self.teleop = teleop_cfg
+        self.haptic = haptic_cfg
+        self.timestep_s = timestep_s
+        self.gain_per_s = NO_OVERSHOOT_MARGIN * critical_gain_per_s(
+            operator_cfg.reaction_delay_s + UNMODELLED_LAG_S, HAND_TIME_CONSTANT_S
+        )
+        self.speed_cap_m_s = SPEED_CAP_FRACTION * teleop_cfg.max_tool_speed_m_s
+        self.drift_limit_m_s = DRIFT_LIMIT_FRACTION * self.speed_cap_m_s
+        # A hand command decided at tick s moves the tool from about s + this (ticks).
+        self._apply_lag_ticks = round(UNMODELLED_LAG_S / timestep_s)
+        # Expected-velocity history kept for the drift estimate (ticks).
+        self._history_ticks = round(operator_cfg.reaction_delay_s / timestep_s) + 2 * (
+            self._apply_lag_ticks + 1
+        )
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the task: a new run starts with the hand at rest, before phase 0."""
+        self.phase = -1
+        self.done = False
+        self.success = False
+        self.task_start_tick: int | None = None
+        self.done_tick: int | None = None
+        self.phase_start_ticks: list[int] = []  # index i: tick phase i began
+        self.failure = ""  # why the task was given up ("" while running or on success)
+        self._phase_start = 0
+        self._dwell_start: int | None = None
+        self._target_m = np.zeros(3)
+        self._hand_m = np.zeros(3)  # low-passed handle target, device frame
+        self._last_tick: int | None = None
+        self.drift_m_s = np.zeros(3)  # estimated tool drift, world frame
+        self._prev_seen: tuple[int, np.ndarray] | None = None  # (tick, tool position)
+        self._expected: list[tuple[int, np.ndarray]] = []  # (tick in effect, world v)
+
+    # -- phase logic -----------------------------------------------------------------------
+    def _start_phase(self, index: int, tick: int, seen: Observation) -> None:
+        phase = self.scenario.phases[index]
+        anchor = phase.target.relative_to
+        origin = seen.tool_p_m if anchor == TOOL_ANCHOR else seen.objects_p_m[anchor]
+        self._target_m = np.asarray(origin, dtype=np.float64) + np.array(phase.target.offset_m)
+        self.phase = index
+        self._phase_start = tick
+        self._dwell_start = None
+        self.phase_start_ticks.append(tick)
+
+    def _finish(self, tick: int, success: bool, why: str = "") -> None:
+        self.done = True
+        self.success = success
+        self.done_tick = tick
+        self.failure = why
+
+    def _elapsed_s(self, tick: int, since: int) -> float:
+        return (tick - since) * self.timestep_s
+
+    def _update_phase(self, tick: int, seen: Observation) -> None:
+        """Advance, complete or give up, from this observation."""
+        if self.phase < 0:
+            self.task_start_tick = tick
+            self._start_phase(0, tick, seen)
+        assert self.task_start_tick is not None
+        if self._elapsed_s(tick, self.task_start_tick) > self.scenario.max_task_s:
+            self._finish(tick, False, "task time limit")
+            return
+        phase = self.scenario.phases[self.phase]
+        if phase.carrying:
+            held = seen.objects_p_m[self.scenario.held_object]
+            if np.linalg.norm(held - seen.tool_p_m) > self.scenario.carry_tolerance_m:
+                self._finish(tick, False, f"lost the {self.scenario.held_object} in {phase.name}")
+                return
+        if np.linalg.norm(self._target_m - seen.tool_p_m) <= phase.tolerance_m:
+            if self._dwell_start is None:
+                self._dwell_start = tick
+            if self._elapsed_s(tick, self._dwell_start) >= phase.dwell_s - 1e-12:
+                if self.phase + 1 == len(self.scenario.phases):
+                    self._finish(tick, True)
+                else:
+                    self._start_phase(self.phase + 1, tick, seen)
+                return
+        else:
+            self._dwell_start = None
+        if self._elapsed_s(tick, self._phase_start) > phase.timeout_s:
+            self._finish(tick, False, f"timeout in {phase.name}")
+
+    # -- the hand --------------------------------------------------------------------------
+    def _wanted_velocity(self, seen: Observation) -> np.ndarray:
+        """k (target - tool) - drift, capped at the operator's speed (world, m/s)."""
+        v = self.gain_per_s * (self._target_m - seen.tool_p_m) - self.drift_m_s
+        speed = float(np.linalg.norm(v))
+        if speed > self.speed_cap_m_s:
+            v *= self.speed_cap_m_s / speed
+        return v
+
+    def _expected_velocity_at(self, tick: int) -> np.ndarray:
+        """The tool velocity the hand commands in effect at ``tick`` asked for."""
+        ticks = [t for t, _ in self._expected]
+        i = bisect.bisect_right(ticks, tick) - 1
+        return np.zeros(3) if i < 0 else self._expected[i][1]
+
+    def _update_drift(self, seen: Observation) -> None:
+        """Low-pass (observed - expected) tool velocity between consecutive looks."""
+        prev = self._prev_seen
+        self._prev_seen = (seen.tick, seen.tool_p_m)
+        if prev is None or seen.tick <= prev[0]:
+            return
+        dt_s = (seen.tick - prev[0]) * self.timestep_s
+        observed_v = (seen.tool_p_m - prev[1]) / dt_s
+        mismatch = observed_v - self._expected_velocity_at(seen.tick - 1)
+        alpha = 1.0 - math.exp(-dt_s / DRIFT_TIME_CONSTANT_S)
+        drift = self.drift_m_s + alpha * (mismatch - self.drift_m_s)
+        norm = float(np.linalg.norm(drift))
+        if norm > self.drift_limit_m_s:
+            drift *= self.drift_limit_m_s / norm
+        self.drift_m_s = drift
+
+    def _remember(self, tick: int, hand_m: np.ndarray, yaw_rad: float) -> None:
+        """Store what this hand command asks of the tool, from when it takes effect."""
+        v = tool_velocity_for_offset(hand_m, yaw_rad, self.teleop)
+        self._expected.append((tick + self._apply_lag_ticks, v))
+        horizon = tick - self._history_ticks
+        while len(self._expected) > 1 and self._expected[1][0] <= horizon:
+            self._expected.pop(0)
+
+    def _move_hand(self, tick: int, goal_m: np.ndarray) -> np.ndarray:
+        """Low-pass the hand toward ``goal_m`` over the sim time since the last decision."""
+        if self._last_tick is not None and tick > self._last_tick:
+            dt_s = (tick - self._last_tick) * self.timestep_s
+            alpha = 1.0 - math.exp(-dt_s / HAND_TIME_CONSTANT_S)
+            self._hand_m = self._hand_m + alpha * (goal_m - self._hand_m)
+        self._last_tick = tick
+        return self._hand_m.copy()
+
+    def decide(self, tick: int, observed: Observation | None) -> HandCommand:
+        """The hand command from decision tick ``tick`` on, given what was seen
+        ``reaction_delay_s`` earlier (None: nothing seen yet, the hand stays at rest)."""
+        if observed is not None and not self.done:
+            self._update_drift(observed)
+            self._update_phase(tick, observed)
+        v = np.zeros(3)
+        goal = np.zeros(3)
+        buttons = Button.NONE
+        if observed is not None and not self.done and self.phase >= 0:
+            v = self._wanted_velocity(observed)
+            goal = limit_offset(
+                hand_offset_for_velocity(v, observed.view_yaw_rad, self.teleop),
+                self.operator_cfg.max_hand_offset_m,
+                self.haptic.workspace_half_m,
+            )
+            if self.scenario.phases[self.phase].gripper_closed:
+                buttons = Button.GRIPPER_CLOSE
+        hand_m = self._move_hand(tick, goal)
+        yaw = observed.view_yaw_rad if observed is not None else 0.0
+        self._remember(tick, hand_m, yaw)
+        return HandCommand(
+            target_p_m=hand_m,
+            buttons=buttons,
+            phase=self.phase,
+            done=self.done,
+            success=self.success,
+            world_v_ref_m_s=v,
+        )
+
+    @property
+    def target_m(self) -> np.ndarray:
+        """The current phase's target point (world frame, m)."""
+        return self._target_m.copy()

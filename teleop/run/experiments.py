@@ -1,0 +1,107 @@
+"""Scenario runs and their summaries: what a user launches with ``teleop run``.
+
+The in-process run couples the plant and the controller in one loop with no bus:
+the reference against which the service runs are compared (same seed, same
+``final_state_sha256`` in lockstep).
+"""
+
+from __future__ import annotations
+
+import collections
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from teleop.control.kinematics import build_arm_model
+from teleop.control.path import ControlOutput, PathFollowingController
+from teleop.core.config import Config
+from teleop.sim.plant import Plant, initial_configuration
+
+# Progress lines on long runs: one every this fraction of the run.
+PROGRESS_FRACTION = 0.1
+
+ProgressFn = Callable[[float, float], None]
+
+
+@dataclass
+class PathMetrics:
+    """Accumulates the path-following figures of merit, after the settling time."""
+
+    settle_s: float
+    errors_m: list[float] = field(default_factory=list)
+    min_manipulability: float = float("inf")
+
+    def add(self, sim_time_s: float, output: ControlOutput) -> None:
+        self.min_manipulability = min(self.min_manipulability, output.manipulability)
+        if sim_time_s >= self.settle_s:
+            self.errors_m.append(output.path_error_m)
+
+    def summary(self) -> dict[str, float | None]:
+        if not self.errors_m:
+            return {
+                "path_error_rms_m": None,
+                "path_error_max_m": None,
+                "min_manipulability": self.min_manipulability,
+            }
+        errors = np.asarray(self.errors_m)
+        return {
+            "path_error_rms_m": float(np.sqrt(np.mean(errors**2))),
+            "path_error_max_m": float(errors.max()),
+            "min_manipulability": float(self.min_manipulability),
+        }
+
+
+def print_progress(fraction: float, sim_time_s: float) -> None:
+    """Default progress report on stderr."""
+    print(f"  {fraction:4.0%}  sim t = {sim_time_s:6.1f} s", file=sys.stderr, flush=True)
+
+
+def run_path_following_inprocess(
+    config: Config, progress: ProgressFn | None = print_progress
+) -> dict[str, object]:
+    """Experiment 1 with plant and controller in one process; returns the summary."""
+    plant = Plant(config)
+    plant.reset(initial_configuration(config))
+    arm = build_arm_model(config.robot)
+    controller = PathFollowingController(
+        arm, config.control, config.path, period_s=config.plant.timestep_s
+    )
+    metrics = PathMetrics(settle_s=config.run.settle_s)
+    steps = round(config.run.duration_s / config.plant.timestep_s)
+    report_every = max(1, int(steps * PROGRESS_FRACTION))
+    wall_start = time.perf_counter()
+    # Step k applies the command answering state k - delay, as the lockstep plant does.
+    delay = config.plant.lockstep_delay_steps
+    in_flight: collections.deque[np.ndarray] = collections.deque()
+    for k in range(steps):
+        sample = plant.sample()
+        output = controller.update(sample.q_rad, sample.qd_rad_s)
+        metrics.add(sample.sim_time_ns * 1e-9, output)
+        in_flight.append(output.qd_ref_rad_s.copy())
+        if k < delay:
+            plant.step_before_commands()
+        else:
+            plant.step(in_flight.popleft(), gripper_cmd=1.0)
+        if progress is not None and (k + 1) % report_every == 0:
+            progress((k + 1) / steps, plant.sample().sim_time_ns * 1e-9)
+    # The final state is measured too, as the controller service does with the last
+    # state the plant publishes (its command, like those still in flight, is never applied).
+    final = plant.sample()
+    metrics.add(final.sim_time_ns * 1e-9, controller.update(final.q_rad, final.qd_rad_s))
+    wall_s = time.perf_counter() - wall_start
+    return {
+        "scenario": "path-following",
+        "mode": "inprocess",
+        "duration_s": config.run.duration_s,
+        "seed": config.run.seed,
+        "settle_s": config.run.settle_s,
+        "compensation": config.control.compensation,
+        **metrics.summary(),
+        "steps": steps,
+        "wall_s": wall_s,
+        "realtime_factor": config.run.duration_s / wall_s,
+        "final_state_sha256": plant.state_sha256(),
+    }

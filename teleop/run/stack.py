@@ -1,0 +1,431 @@
+"""The teleop stack under supervisord: which programs, and a scenario run on them.
+
+``teleop run SCENARIO`` (not ``--inprocess``) calls :func:`run_on_services`:
+
+1. the runner opens its own Zenoh session as the run's listener on a free loopback
+   port, subscribes to the run's events and announces itself;
+2. supervisord starts plant, controller and recorder, all connecting to that port;
+   the plant waits for every peer's liveliness token (runner included) before its
+   first step, so nothing is published before everybody listens;
+3. the runner waits for the plant's FINISHED event (printing progress), stops the
+   stack (each service writes ``<run_dir>/<service>.summary.json`` on close, the
+   recorder completes its .rrd) and merges the summaries.
+
+``teleop up`` starts the same programs detached with the plant as listener and no
+end (``--continuous``); ``teleop down`` stops them.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from teleop.bus.messages import RUN_EVENT, TOOL_POSE, DropCounter, Event
+from teleop.bus.session import (
+    Latest,
+    close_session,
+    declare_alive,
+    open_session,
+    subscribe,
+    wait_alive,
+)
+from teleop.bus.topics import Topics
+from teleop.core.config import Config
+from teleop.run.experiments import PROGRESS_FRACTION, ProgressFn
+from teleop.run.idle_poll import POLLING, read_status
+from teleop.run.supervise import Program, Stack
+
+# The processes of each scenario; the plant comes first and waits for all the others.
+SCENARIO_SERVICES = {
+    "path-following": ("plant", "controller", "recorder"),
+    "grasp": ("plant", "controller", "haptic", "hmd", "operator", "recorder"),
+}
+# The operator's eye view renders in a process of its own (see teleop/eyeview.py for why
+# not a thread in the plant); it joins the stack of any scenario when eyeview.enabled.
+EYEVIEW = "eyeview"
+# Keeps the idle CPUs polling in realtime runs (teleop/idle_poll.py): not a bus service.
+IDLE_POLL = "idle_poll"
+IDLE_POLL_PRIORITY = 1  # before every service, and stopped after them
+RUNNER = "runner"
+# Start order (supervisord priority: lower first); services still wait on liveliness.
+PRIORITY = {
+    "recorder": 10,
+    "controller": 20,
+    "haptic": 20,
+    "hmd": 20,
+    "operator": 20,
+    "eyeview": 20,
+    "plant": 30,
+}
+# Environment of every service: no telemetry, headless rendering, unbuffered logs.
+SERVICE_ENVIRONMENT = {
+    "RERUN_ANALYTICS": "0",
+    "MUJOCO_GL": "egl",
+    "PYTHONUNBUFFERED": "1",
+    # Small matrices only: BLAS worker threads would just compete for the 2 cores.
+    "OPENBLAS_NUM_THREADS": "1",
+    "OMP_NUM_THREADS": "1",
+}
+# Waiting for all services to announce themselves (imports, model build, session) (s).
+ALIVE_TIMEOUT_S = 60.0
+# A run that does not finish within this many times its duration (plus slack) failed.
+LOCKSTEP_TIMEOUT_FACTOR = 20.0
+REALTIME_TIMEOUT_FACTOR = 2.0
+RUN_TIMEOUT_SLACK_S = 30.0
+
+
+def scenario_services(config: Config) -> tuple[str, ...]:
+    """The processes of ``config.run.scenario``, plus the eye view when it is enabled
+    (in realtime runs; in lockstep ones only with ``eyeview.in_lockstep``)."""
+    services = SCENARIO_SERVICES[config.run.scenario]
+    eye = config.eyeview
+    if eye.enabled and (config.run.mode == "realtime" or eye.in_lockstep):
+        return (*services, EYEVIEW)
+    return services
+
+
+class RunError(RuntimeError):
+    """A services run did not complete; the message says which service and why."""
+
+
+def free_loopback_port() -> int:
+    """A TCP port on 127.0.0.1 that is free now (the OS picks it).
+
+    The port stays unbound until the service given it listens there, seconds later, while
+    the stack's peers open connections. Those cannot take it: Linux gives bind() to port
+    0 odd ports and connect() even ones first (checked on this machine, kernel 6.18: 50
+    of 50 each way), so only another bind() to port 0 could, with odds of about one in
+    14000 per bind."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def peer_mesh(names: Sequence[str], listener: str | None) -> dict[str, list[str]]:
+    """Each process's ``--set`` overrides for an explicit mesh, gossip off (why: see
+    BusConfig.gossip). Every process but ``listener`` listens on a loopback port of its
+    own and connects to the run's listener (``bus.endpoint``) and to the processes
+    before it in ``names``: each pair links once, by one connect, and no process needs
+    gossip to find another. The launcher's own session, if it is the listener, is
+    reached by everyone through ``bus.endpoint``.
+    """
+    listening: list[str] = []
+    mesh: dict[str, list[str]] = {}
+    for name in names:
+        overrides = ["bus.gossip=false"]
+        if name != listener:
+            own = f"tcp/127.0.0.1:{free_loopback_port()}"
+            overrides += [
+                f'bus.peer_listen_endpoint="{own}"',
+                f"bus.peer_connect_endpoints={json.dumps(listening, separators=(',', ':'))}",
+            ]
+            listening.append(own)
+        mesh[name] = overrides
+    return mesh
+
+
+def service_command(
+    name: str, run_dir: Path, config_file: Path | None, overrides: Sequence[str]
+) -> list[str]:
+    """``python -m services.<name>`` with the run's directory, config file and ``--set``
+    overrides: how a launcher starts a bus service or a relay."""
+    command = [sys.executable, "-m", f"services.{name}", "--run-dir", str(run_dir)]
+    if config_file is not None:
+        command += ["--config", str(Path(config_file).absolute())]
+    for override in overrides:
+        command += ["--set", override]
+    return command
+
+
+def service_programs(
+    services: Sequence[str],
+    config_file: Path | None,
+    overrides: Sequence[str],
+    run_dir: Path,
+    *,
+    listener: str | None,
+    await_services: dict[str, Sequence[str]],
+    continuous: bool,
+) -> list[Program]:
+    """The supervisord programs of the stack, each given the same config and overrides,
+    then its place in the run's :func:`peer_mesh`."""
+    programs = []
+    mesh = peer_mesh(services, listener)
+    for name in services:
+        command = service_command(name, run_dir, config_file, [*overrides, *mesh[name]])
+        if name == listener:
+            command.append("--listen")
+        if await_services.get(name):
+            command += ["--await", ",".join(await_services[name])]
+        peers = [other for other in services if other != name]
+        if peers:
+            command += ["--peers", ",".join(peers)]
+        if continuous:
+            command.append("--continuous")
+        programs.append(
+            Program(
+                name=name,
+                command=command,
+                priority=PRIORITY[name],
+                environment=dict(SERVICE_ENVIRONMENT),
+            )
+        )
+    return programs
+
+
+def idle_poll_cpus(config: Config) -> list[int]:
+    """The CPUs a stack run with ``config`` keeps polling: in realtime runs with
+    ``cpu.idle_poll``, those of ``cpu.idle_poll_cpus`` (all when empty) that this process
+    may use; else none."""
+    if not config.cpu.polls_idle(config.run.mode):
+        return []
+    available = os.sched_getaffinity(0)
+    wanted = set(config.cpu.idle_poll_cpus) or available
+    return sorted(wanted & available)
+
+
+def idle_poll_status_path(run_dir: Path, cpu: int) -> Path:
+    """Where the poller of ``cpu`` says whether it polls (teleop.run.idle_poll.read_status)."""
+    return run_dir / f"{IDLE_POLL}_cpu{cpu}.status"
+
+
+def idle_poll_programs(cpus: Sequence[int], run_dir: Path) -> list[Program]:
+    """One idle poller (``services.idle_poll``) per CPU of ``cpus`` (:func:`idle_poll_cpus`).
+    They start first and stop last (supervisord priority), so they span the whole run;
+    each writes its status to :func:`idle_poll_status_path` (stale ones are removed)."""
+    programs = []
+    for cpu in cpus:
+        status = idle_poll_status_path(run_dir, cpu)
+        status.unlink(missing_ok=True)
+        command = [sys.executable, "-m", f"services.{IDLE_POLL}", "--cpu", str(cpu)]
+        programs.append(
+            Program(
+                name=f"{IDLE_POLL}_cpu{cpu}",
+                command=[*command, "--status-file", str(status)],
+                priority=IDLE_POLL_PRIORITY,
+                environment=dict(SERVICE_ENVIRONMENT),
+            )
+        )
+    return programs
+
+
+def idle_poll_report(cpus: Sequence[int], run_dir: Path) -> dict[str, Any]:
+    """After a run: the CPUs whose poller polled, and why the others did not."""
+    statuses = {cpu: read_status(idle_poll_status_path(run_dir, cpu)) for cpu in cpus}
+    return {
+        "idle_poll_cpus": [cpu for cpu, status in statuses.items() if status == POLLING],
+        "idle_poll_failed": {cpu: s for cpu, s in statuses.items() if s != POLLING},
+    }
+
+
+def _read_summary(run_dir: Path, service: str) -> dict[str, Any]:
+    path = run_dir / f"{service}.summary.json"
+    if not path.exists():
+        raise RunError(f"{service} wrote no summary ({path}); see {run_dir / 'logs'}")
+    return json.loads(path.read_text())
+
+
+def run_on_services(
+    config: Config,
+    config_file: Path | None,
+    overrides: Sequence[str],
+    run_dir: Path,
+    progress: ProgressFn | None = None,
+) -> dict[str, Any]:
+    """Run ``config.run.scenario`` on the supervised services; return the merged summary."""
+    services = scenario_services(config)
+    run_dir = run_dir.absolute()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    for stale in run_dir.glob("*.summary.json"):
+        stale.unlink()
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    run_overrides = [
+        *overrides,
+        f'bus.endpoint="{endpoint}"',
+        f'run.mode="{config.run.mode}"',
+        f'run.scenario="{config.run.scenario}"',
+    ]
+    if not config.recorder.rrd_path:
+        run_overrides.append(f'recorder.rrd_path="{run_dir / "recording.rrd"}"')
+    bus = replace(config.bus, endpoint=endpoint, gossip=False)  # the mesh's listener
+    topics = Topics(config.robot.robot_id)
+    drops = DropCounter()
+    finished = threading.Event()
+    tool = Latest()
+
+    def on_event(rec: np.ndarray, rx_ns: int) -> None:
+        if int(rec["event"]) == Event.FINISHED:
+            finished.set()
+
+    polled_cpus = idle_poll_cpus(config)
+    session = open_session(bus, listen=True)
+    entities: list[Any] = []
+    try:
+        entities.append(subscribe(session, topics.events, RUN_EVENT, on_event, drops))
+        entities.append(subscribe(session, topics.tool_pose, TOOL_POSE, tool, drops))
+        entities.append(declare_alive(session, topics, RUNNER))
+        entities.append(declare_alive(session, topics, RUNNER, ready=True))
+        programs = service_programs(
+            services,
+            config_file,
+            run_overrides,
+            run_dir,
+            listener=None,
+            await_services={"plant": [*services[1:], RUNNER]},
+            continuous=False,
+        ) + idle_poll_programs(polled_cpus, run_dir)
+        factor = (
+            LOCKSTEP_TIMEOUT_FACTOR if config.run.mode == "lockstep" else REALTIME_TIMEOUT_FACTOR
+        )
+        deadline_s = config.run.duration_s * factor + RUN_TIMEOUT_SLACK_S
+        wall_start = time.perf_counter()
+        with Stack(run_dir, programs) as stack:
+            wait_alive(session, topics, services, ALIVE_TIMEOUT_S)
+            _wait_finished(finished, tool, config, deadline_s, stack, progress)
+        wall_s = time.perf_counter() - wall_start
+    finally:
+        close_session(session, *reversed(entities))
+
+    summaries = {name: _read_summary(run_dir, name) for name in services}
+    # A pair of peers that never linked: what one sent the other is lost (Service.become_ready).
+    unlinked = {n: s["unlinked_peers"] for n, s in summaries.items() if s.get("unlinked_peers")}
+    plant, controller = summaries["plant"], summaries["controller"]
+    dropped = sum(s.get("dropped_messages", 0) for s in summaries.values()) + drops.total
+    summary: dict[str, Any] = {
+        "scenario": config.run.scenario,
+        "mode": config.run.mode,
+        "seed": config.run.seed,
+    }
+    if config.run.scenario == "grasp":
+        summary.update(_grasp_summary(summaries))
+    else:
+        summary.update(
+            {
+                "duration_s": config.run.duration_s,
+                "settle_s": controller["settle_s"],
+                "compensation": controller["compensation"],
+                "path_error_rms_m": controller["path_error_rms_m"],
+                "path_error_max_m": controller["path_error_max_m"],
+                "min_manipulability": controller["min_manipulability"],
+            }
+        )
+    summary.update(
+        {
+            "steps": plant["steps"],
+            "wall_s": plant["wall_s"],
+            "realtime_factor": plant["realtime_factor"],
+            "overrun_fraction": plant["overrun_fraction"],
+            "stale_commands": plant["stale_commands"],
+            "dropped_messages": dropped,
+            "unlinked_peers": unlinked,
+            "skipped_states": controller["skipped_states"],
+            "final_state_sha256": plant["final_state_sha256"],
+            "stack_wall_s": wall_s,
+            **idle_poll_report(polled_cpus, run_dir),
+            "eye_view": _eye_view_summary(summaries),
+            "rrd": summaries["recorder"].get("rrd_path"),
+            "run_dir": str(run_dir),
+            "services": summaries,
+        }
+    )
+    return summary
+
+
+def _eye_view_summary(summaries: dict[str, dict[str, Any]]) -> dict[str, Any] | None:
+    """Frames rendered and received (over SHM), render time, CPU shares, latency."""
+    eyeview = summaries.get(EYEVIEW)
+    if eyeview is None:
+        return None
+    recorder = summaries["recorder"]
+    received = recorder.get("eye_view", {})
+    return {
+        "frames_published": eyeview["frames_published"],
+        "frames_received": received.get("received"),
+        "frames_received_shm": received.get("received_shm"),
+        "logged_bytes_per_frame": received.get("logged_bytes_per_frame"),
+        "render_ms_p50": eyeview["render_ms_p50"],
+        "renderer_cpu_share": eyeview["cpu_share"],
+        "recorder_cpu_share": recorder.get("cpu_share"),
+        "latency_ms": {k: v for k, v in received.items() if k.endswith("_ms")},
+    }
+
+
+def _grasp_summary(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """The teleoperation task's figures of merit, from the services that measured them."""
+    plant, controller = summaries["plant"], summaries["controller"]
+    haptic, operator = summaries["haptic"], summaries["operator"]
+    return {
+        "success": bool(operator.get("success")) and bool(plant["object_in_box"]),
+        "object_in_box": plant["object_in_box"],
+        "duration_s": operator.get("task_duration_s"),
+        "max_device_force_n": haptic.get("max_rendered_force_n"),
+        "max_contact_force_n": plant["max_contact_force_n"],
+        "obstacle_min_clearance_m": plant["obstacle_min_clearance_m"],
+        "tool_speed_max_m_s": plant["tool_speed_max_m_s"],
+        "velocity_tracking_rms_m_s": controller.get("velocity_tracking_rms_m_s"),
+        "stale_feedback_events": haptic.get("stale_feedback_events"),
+        "max_obstacle_force_n": controller.get("max_obstacle_force_n"),
+        "held_weight_n": controller.get("held_weight_n"),
+        "phases": operator.get("phases"),
+    }
+
+
+def _wait_finished(
+    finished: threading.Event,
+    tool: Latest,
+    config: Config,
+    deadline_s: float,
+    stack: Stack,
+    progress: ProgressFn | None,
+) -> None:
+    """Wait for the plant's FINISHED event, reporting progress from the scene stream."""
+    start = time.monotonic()
+    next_report = PROGRESS_FRACTION
+    while not finished.wait(timeout=0.5):
+        if time.monotonic() - start > deadline_s:
+            raise RunError(f"run did not finish within {deadline_s:g} s: {stack.status()}")
+        failed = {n: s for n, s in stack.status().items() if s not in ("RUNNING", "STARTING")}
+        if failed:
+            raise RunError(f"service(s) stopped during the run: {failed}")
+        latest = tool.get()
+        if progress is not None and latest is not None:
+            sim_s = int(latest[0]["sim_time_ns"]) * 1e-9
+            fraction = sim_s / config.run.duration_s
+            if fraction >= next_report:
+                progress(fraction, sim_s)
+                next_report = (int(fraction / PROGRESS_FRACTION) + 1) * PROGRESS_FRACTION
+    if progress is not None:
+        progress(1.0, config.run.duration_s)
+
+
+def start_detached(
+    config: Config, config_file: Path | None, overrides: Sequence[str], run_dir: Path
+) -> dict[str, str]:
+    """``teleop up``: the stack with the plant as listener, running until stopped."""
+    run_dir = run_dir.absolute()
+    run_overrides = list(overrides)
+    if not config.recorder.rrd_path:
+        run_overrides.append(f'recorder.rrd_path="{run_dir / "recording.rrd"}"')
+    services = scenario_services(config)
+    programs = service_programs(
+        services,
+        config_file,
+        run_overrides,
+        run_dir,
+        listener="plant",
+        await_services={"plant": list(services[1:])},
+        continuous=True,
+    ) + idle_poll_programs(idle_poll_cpus(config), run_dir)
+    stack = Stack(run_dir, programs)
+    stack.start(detach=True)
+    return stack.status()
