@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from teleop.bus.messages import Stage
+
 # Rows allocated up front: about 65 s at 1 kHz before the first doubling.
 DEFAULT_CAPACITY_ROWS = 65_536
 # Rows kept at most (10 min at 1 kHz, 48 MB for a trace log): a long-running stack
@@ -104,3 +106,54 @@ class SeqCheck:
     def restart(self) -> None:
         """The producer starts over (a new run): the next seq is not a gap."""
         self.last_seq = -1
+
+
+class Inbound:
+    """Receiver-side bookkeeping of one realtime input stream, in one place.
+
+    Three checks every realtime receiver makes, in this order: the record is newer than
+    every one before it (:class:`SeqCheck`: gaps counted as lost, older ones as
+    reordered); it is not older than ``shed_age_ns`` on this host's monotonic clock,
+    measured from the stamp its sender wrote at ``tx_stage`` (else it is shed: the
+    receiver is behind); and what is shed (here or by the caller, e.g. superseded by a
+    newer record) has the HAPTIC_SAMPLE stamp of its loop logged, for the latency
+    report's count of loops that never closed. Not thread-safe: the owner calls it
+    under its own lock.
+    """
+
+    def __init__(self, tx_stage: Stage, shed_age_ns: int = SHED_AGE_NS) -> None:
+        self.tx_stage = tx_stage
+        self.shed_age_ns = shed_age_ns
+        self.seq = SeqCheck()
+        self.shed = 0  # records dropped as too old on arrival (see accept)
+        self.shed_log = StampLog(1)  # HAPTIC_SAMPLE stamps of the loops dropped here
+
+    def accept(self, rec: np.ndarray, now_ns: int, *, check_seq: bool = True) -> bool:
+        """True if ``rec`` is to be used: newer than the last one (``check_seq``) and
+        fresh at ``now_ns``. A stale record is counted in ``shed`` and logged."""
+        if check_seq and not self.seq.accept(int(rec["seq"])):
+            return False
+        if self.too_old(rec, now_ns):
+            self.shed += 1
+            self.log_dropped(rec)
+            return False
+        return True
+
+    def too_old(self, rec: np.ndarray, now_ns: int) -> bool:
+        """Whether ``rec`` left its sender more than ``shed_age_ns`` before ``now_ns``."""
+        return now_ns - int(rec["trace_ns"][self.tx_stage]) > self.shed_age_ns
+
+    def log_dropped(self, rec: np.ndarray) -> None:
+        """Log the HAPTIC_SAMPLE stamp of a record dropped for whatever reason (none
+        logged for a record that is not part of a teleoperation loop: stamp 0)."""
+        sample_ns = int(rec["trace_ns"][Stage.HAPTIC_SAMPLE])
+        if sample_ns > 0:
+            self.shed_log.append((sample_ns,))
+
+    def restart(self) -> None:
+        """The producer starts over (a new run): its next seq is not a gap."""
+        self.seq.restart()
+
+    def save(self, path: Path) -> None:
+        """Write the shed log (see :meth:`StampLog.save`)."""
+        self.shed_log.save(path)

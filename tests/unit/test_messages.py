@@ -12,7 +12,7 @@ import pytest
 from teleop.bus import messages as m
 from teleop.bus.topics import Topics
 
-PROTOCOL_DOC = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
+PROTOCOL_DOC = Path(__file__).resolve().parents[2] / "docs" / "protocol.md"
 LAYOUT_BEGIN = "<!-- layout_table() begin -->"
 LAYOUT_END = "<!-- layout_table() end -->"
 

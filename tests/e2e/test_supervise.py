@@ -32,7 +32,7 @@ REPORTER = (
     "os.replace(sys.argv[1] + '.tmp', sys.argv[1]); "
     "signal.signal(signal.SIGINT, lambda *a: sys.exit(0)); signal.pause()"
 )
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 def sleeper(name: str, **kwargs) -> Program:

@@ -32,7 +32,7 @@ from teleop.bus.topics import Topics
 from teleop.core.config import load_config
 from teleop.run.stack import EYEVIEW, free_loopback_port, scenario_services
 from teleop.viz import entities as ent
-from tests.test_recorder import read_rrd
+from tests.integration.test_recorder import read_rrd
 
 # Mean absolute pixel difference (0-255) above which two renders show different scenes;
 # identical inputs give exactly 0.

@@ -7,8 +7,7 @@ import numpy as np
 from teleop.control.path import DesiredPath
 from teleop.core.config import load_config
 from teleop.run.experiments import run_path_following_inprocess
-
-from .conftest import ARM7_OVERRIDES
+from tests.conftest import ARM7_OVERRIDES
 
 # The bar for a 60 s run after 10 s of settling; 30 s here keeps the suite short.
 RMS_BAR_M = 0.001

@@ -42,8 +42,7 @@ from teleop.sim.proximity import (
     body_names,
     obstacle_geoms,
 )
-
-from .conftest import ARM7_OVERRIDES
+from tests.conftest import ARM7_OVERRIDES
 
 # Tool speed cap: the measured speed may exceed it by the drives' tracking error only.
 SPEED_TOLERANCE = 1.005

@@ -407,7 +407,7 @@ def test_loop_stage_cost_benchmark_replays_every_stage(tmp_path):
     """The cold-cache replay of the loop's stages (tests/benchmarks/loop_stage_cost.py)
     runs the real services' callbacks end to end: every stage gets a time, warm and cold."""
     out = tmp_path / "loop_stage_cost.json"
-    script = Path(__file__).parent / "benchmarks" / "loop_stage_cost.py"
+    script = Path(__file__).parents[1] / "benchmarks" / "loop_stage_cost.py"
     args = [sys.executable, str(script), "--periods", "20", "--rounds", "1", "--json", str(out)]
     subprocess.run(args, check=True, timeout=120, stdin=subprocess.DEVNULL, capture_output=True)
     stages = json.loads(out.read_text())["stages_us"]
@@ -418,7 +418,7 @@ def test_loop_stage_cost_benchmark_replays_every_stage(tmp_path):
 
 
 def test_variant_rounds_rotate_so_every_variant_runs_in_every_position():
-    sys.path.insert(0, str(Path(__file__).parent / "benchmarks"))
+    sys.path.insert(0, str(Path(__file__).parents[1] / "benchmarks"))
     try:
         from variants import round_order
     finally:
