@@ -19,12 +19,14 @@ import typing
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 DEPLOY_DIR = REPO_ROOT / "deploy"
 ASSETS_DIR = Path(__file__).resolve().parents[1] / "assets"
 DEFAULT_CONFIG_FILE = DEPLOY_DIR / "teleop.toml"
+
+_T = TypeVar("_T")
 
 
 class ConfigError(ValueError):
@@ -677,16 +679,44 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
     return value
 
 
-def _build(cls: type, table: Mapping[str, Any], prefix: str) -> Any:
+def _fields(cls: type, table: Mapping[str, Any], prefix: str) -> dict[str, Any]:
+    """The constructor arguments of dataclass ``cls`` from ``table``: no unknown key, no
+    missing key without a default, every value coerced to its field's type."""
     hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(table) - names)
-    _require(not unknown, f"{prefix or 'config'}: unknown key(s) {', '.join(unknown)}")
-    kwargs = {
+    fields = dataclasses.fields(cls)
+    where = prefix or "config"
+    unknown = sorted(set(table) - {f.name for f in fields})
+    _require(not unknown, f"{where}: unknown key(s) {', '.join(unknown)}")
+    missing = [
+        f.name
+        for f in fields
+        if f.name not in table
+        and f.default is dataclasses.MISSING
+        and f.default_factory is dataclasses.MISSING
+    ]
+    _require(not missing, f"{where}: missing key(s) {', '.join(missing)}")
+    return {
         name: _coerce(value, hints[name], f"{prefix}.{name}" if prefix else name)
         for name, value in table.items()
     }
-    return cls(**kwargs)
+
+
+def _build(cls: type, table: Mapping[str, Any], prefix: str) -> Any:
+    return cls(**_fields(cls, table, prefix))
+
+
+def build(cls: type[_T], table: Mapping[str, Any], prefix: str) -> _T:
+    """A ``cls`` dataclass from a parsed TOML table, checked as the config's sections are.
+
+    Unknown keys, missing keys (fields without a default) and mistyped values are errors
+    naming ``prefix.key``; a value the dataclass itself refuses (its ``__post_init__``) is
+    an error prefixed with ``prefix``. Other TOML files (scenarios) load through this.
+    """
+    kwargs = _fields(cls, table, prefix)
+    try:
+        return cls(**kwargs)
+    except ConfigError as exc:
+        raise ConfigError(f"{prefix}: {exc}") from exc
 
 
 def _parse_override(text: str) -> tuple[list[str], Any]:

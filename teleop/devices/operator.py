@@ -71,6 +71,7 @@ from teleop.core.config import (
     OperatorConfig,
     RobotConfig,
     TeleopConfig,
+    build,
     read_toml,
 )
 
@@ -98,12 +99,10 @@ MIN_SPEED_M_S = 5e-4
 
 TOOL_ANCHOR = "tool"  # target relative to the tool position at phase start
 GRIPPER_STATES = {"open": False, "closed": True}  # gripper word -> GRIPPER_CLOSE held
-_TASK_KEYS = frozenset({"max_task_s", "held_object", "carry_tolerance_m"})
-_PHASE_KEYS = frozenset(
-    {"name", "target", "gripper", "tolerance_m", "dwell_s", "timeout_s", "carrying"}
-)
-_PHASE_REQUIRED = frozenset({"name", "target", "gripper", "tolerance_m", "timeout_s"})
-_TARGET_KEYS = frozenset({"relative_to", "offset_m"})
+# Keys of a repeat entry in the [[phase]] list (see Scenario.from_table).
+REPEAT_KEY = "repeat"
+BLOCK_KEY = "block"
+_TOP_LEVEL_KEYS = ("task", "phase")
 
 
 class ScenarioError(ConfigError):
@@ -200,15 +199,74 @@ class Target:
 
 @dataclass(frozen=True)
 class Phase:
-    """One step of the task: where the tool goes, what the gripper does, when it is done."""
+    """One step of the task: where the tool goes, what the gripper does, when it is done.
+
+    Built from a ``[[phase]]`` table by :func:`teleop.core.config.build` (the keys are the
+    field names); the values are checked here, the anchor against the scene's objects by
+    :meth:`Scenario.from_table`.
+    """
 
     name: str
     target: Target
-    gripper_closed: bool  # GRIPPER_CLOSE held during the phase
+    gripper: str  # "open" or "closed": GRIPPER_CLOSE held during the phase when closed
     tolerance_m: float  # done once |target - tool| <= this ...
-    dwell_s: float  # ... continuously for this long (sim time)
     timeout_s: float  # give up (task fails) after this long in the phase
+    dwell_s: float = 0.0  # ... continuously for this long (sim time)
     carrying: bool = False  # the held object must stay with the tool (else: lost, fail)
+
+    def __post_init__(self) -> None:
+        _check(bool(self.name), "name: expected a non-empty string")
+        _check(
+            self.gripper in GRIPPER_STATES,
+            f"gripper {self.gripper!r}: one of {', '.join(GRIPPER_STATES)}",
+        )
+        _check(self.tolerance_m > 0, f"tolerance_m: must be > 0, got {self.tolerance_m!r}")
+        _check(self.timeout_s > 0, f"timeout_s: must be > 0, got {self.timeout_s!r}")
+        _check(self.dwell_s >= 0, f"dwell_s: must be >= 0, got {self.dwell_s!r}")
+        _check(
+            self.dwell_s < self.timeout_s,
+            f"dwell_s ({self.dwell_s:g}) must be below timeout_s ({self.timeout_s:g})",
+        )
+
+    @property
+    def gripper_closed(self) -> bool:
+        """True when the phase holds GRIPPER_CLOSE."""
+        return GRIPPER_STATES[self.gripper]
+
+
+@dataclass(frozen=True)
+class Task:
+    """The ``[task]`` table: limits of the whole task and the object it carries."""
+
+    max_task_s: float
+    held_object: str  # the object a ``carrying`` phase checks
+    carry_tolerance_m: float  # the held object's centre stays this close to the tool
+
+    def __post_init__(self) -> None:
+        _check(self.max_task_s > 0, f"max_task_s: must be > 0, got {self.max_task_s!r}")
+        _check(
+            self.carry_tolerance_m > 0,
+            f"carry_tolerance_m: must be > 0, got {self.carry_tolerance_m!r}",
+        )
+
+
+@dataclass(frozen=True)
+class Repeat:
+    """A repeat entry of the ``[[phase]]`` list: its ``block`` phases in turn, ``repeat``
+    phases in all (a last partial round is allowed); each copy's name gets ``_<k>``,
+    ``k`` counting the phases this entry expands to from 0."""
+
+    repeat: int
+    block: tuple[dict[str, Any], ...]
+
+    def __post_init__(self) -> None:
+        _check(self.repeat >= 1, f"repeat: must be >= 1, got {self.repeat!r}")
+        _check(bool(self.block), "block: expected at least one [[phase.block]] table")
+
+
+def _check(ok: bool, message: str) -> None:
+    if not ok:
+        raise ConfigError(message)
 
 
 @dataclass(frozen=True)
@@ -237,77 +295,52 @@ class Scenario:
         object_names: Sequence[str] = RobotConfig().object_bodies,
         source: str = "<memory>",
     ) -> Scenario:
-        """Validate a parsed scenario (the TOML document as a dict)."""
+        """Validate a parsed scenario (the TOML document as a dict), repeats expanded.
 
-        def fail(where: str, message: str) -> ScenarioError:
-            return ScenarioError(f"{source}: {where}: {message}")
+        The ``[task]`` table and every phase are built by the config's typed loader
+        (:func:`teleop.core.config.build`); an error names ``source``, the phase (index in
+        the file and name) and the key.
+        """
+        try:
+            return cls._from_table(table, object_names, source)
+        except ScenarioError:
+            raise
+        except ConfigError as exc:
+            raise ScenarioError(f"{source}: {exc}") from exc
 
-        unknown = sorted(set(table) - {"task", "phase"})
-        if unknown:
-            raise fail("top level", f"unknown key(s) {', '.join(unknown)} (expected task, phase)")
-        task = table.get("task")
-        if not isinstance(task, Mapping):
-            raise fail("top level", "missing [task] table")
-        _check_keys(task, _TASK_KEYS, _TASK_KEYS, lambda m: fail("[task]", m))
-        max_task_s = _number(task["max_task_s"], "max_task_s", lambda m: fail("[task]", m), 0.0)
-        carry_tol = _number(
-            task["carry_tolerance_m"], "carry_tolerance_m", lambda m: fail("[task]", m), 0.0
+    @classmethod
+    def _from_table(
+        cls, table: Mapping[str, Any], object_names: Sequence[str], source: str
+    ) -> Scenario:
+        unknown = sorted(set(table) - set(_TOP_LEVEL_KEYS))
+        _check(
+            not unknown,
+            f"top level: unknown key(s) {', '.join(unknown)} (expected {', '.join(_TOP_LEVEL_KEYS)})",
         )
-        held = task["held_object"]
-        if held not in object_names:
-            raise fail("[task]", f"held_object {held!r} is not one of {list(object_names)}")
+        raw_task = table.get("task")
+        _check(isinstance(raw_task, Mapping), "top level: missing [task] table")
+        task = build(Task, raw_task, "[task]")
+        _check(
+            task.held_object in object_names,
+            f"[task]: held_object {task.held_object!r} is not one of {list(object_names)}",
+        )
         raw_phases = table.get("phase")
-        if not isinstance(raw_phases, list) or not raw_phases:
-            raise fail("top level", "no [[phase]] tables")
+        _check(isinstance(raw_phases, list) and bool(raw_phases), "top level: no [[phase]] tables")
         anchors = {TOOL_ANCHOR, *object_names}
         phases = []
-        for i, raw in enumerate(raw_phases):
-            name = raw.get("name", "?") if isinstance(raw, Mapping) else "?"
-            where = f"phase {i} ({name!r})"
-
-            def err(message: str, where: str = where) -> ScenarioError:
-                return fail(where, message)
-
-            if not isinstance(raw, Mapping):
-                raise err("expected a table")
-            _check_keys(raw, _PHASE_KEYS, _PHASE_REQUIRED, err)
-            if not isinstance(raw["name"], str) or not raw["name"]:
-                raise err("name: expected a non-empty string")
-            target = raw["target"]
-            if not isinstance(target, Mapping):
-                raise err("target: expected a table { relative_to = ..., offset_m = [x, y, z] }")
-            _check_keys(target, _TARGET_KEYS, _TARGET_KEYS, lambda m, e=err: e(f"target: {m}"))
-            if target["relative_to"] not in anchors:
-                raise err(f"target.relative_to {target['relative_to']!r}: one of {sorted(anchors)}")
-            offset = target["offset_m"]
-            if not isinstance(offset, list) or len(offset) != 3:
-                raise err("target.offset_m: expected [x, y, z] (m)")
-            x, y, z = (_number(v, f"target.offset_m[{j}]", err) for j, v in enumerate(offset))
-            gripper = raw["gripper"]
-            if gripper not in GRIPPER_STATES:
-                raise err(f"gripper {gripper!r}: one of {', '.join(GRIPPER_STATES)}")
-            dwell_s = _number(raw.get("dwell_s", 0.0), "dwell_s", err, lo=0.0, lo_open=False)
-            timeout_s = _number(raw["timeout_s"], "timeout_s", err, lo=0.0)
-            if dwell_s >= timeout_s:
-                raise err(f"dwell_s ({dwell_s:g}) must be below timeout_s ({timeout_s:g})")
-            carrying = raw.get("carrying", False)
-            if not isinstance(carrying, bool):
-                raise err("carrying: expected true or false")
-            phases.append(
-                Phase(
-                    name=raw["name"],
-                    target=Target(target["relative_to"], (x, y, z)),
-                    gripper_closed=GRIPPER_STATES[gripper],
-                    tolerance_m=_number(raw["tolerance_m"], "tolerance_m", err, lo=0.0),
-                    dwell_s=dwell_s,
-                    timeout_s=timeout_s,
-                    carrying=carrying,
-                )
+        for where, raw in expand_phases(raw_phases):
+            phase = build(Phase, raw, where)
+            _check(
+                phase.target.relative_to in anchors,
+                f"{where}: target.relative_to {phase.target.relative_to!r}: "
+                f"one of {sorted(anchors)}",
             )
+            phases.append(phase)
         names = [p.name for p in phases]
-        if len(set(names)) != len(names):
-            raise fail("phases", "phase names must be unique")
-        return cls(tuple(phases), max_task_s, held, carry_tol, source)
+        _check(len(set(names)) == len(names), "phases: phase names must be unique")
+        return cls(
+            tuple(phases), task.max_task_s, task.held_object, task.carry_tolerance_m, source
+        )
 
     @property
     def anchors(self) -> frozenset[str]:
@@ -316,28 +349,37 @@ class Scenario:
         return frozenset(names - {TOOL_ANCHOR})
 
 
-def _check_keys(
-    table: Mapping[str, Any], allowed: frozenset[str], required: frozenset[str], fail: Any
-) -> None:
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        raise fail(f"unknown key(s) {', '.join(unknown)} (allowed: {', '.join(sorted(allowed))})")
-    missing = sorted(required - set(table))
-    if missing:
-        raise fail(f"missing key(s) {', '.join(missing)}")
+def _phase_where(index: int, raw: Any) -> str:
+    """How an error names a phase table: its index in the file and its name."""
+    name = raw.get("name", "?") if isinstance(raw, Mapping) else "?"
+    return f"phase {index} ({name!r})"
 
 
-def _number(
-    value: Any, key: str, fail: Any, lo: float | None = None, *, lo_open: bool = True
-) -> float:
-    """A finite number, optionally > lo (or >= lo when ``lo_open`` is False)."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise fail(f"{key}: expected a number, got {value!r}")
-    if not math.isfinite(value):
-        raise fail(f"{key}: must be finite")
-    if lo is not None and (value <= lo if lo_open else value < lo):
-        raise fail(f"{key}: must be {'>' if lo_open else '>='} {lo:g}, got {value!r}")
-    return float(value)
+def expand_phases(raw_phases: Sequence[Any]) -> list[tuple[str, dict[str, Any]]]:
+    """The ``[[phase]]`` list with every repeat entry expanded: (where, phase table) pairs.
+
+    A table with a ``repeat`` key is a :class:`Repeat` (``repeat = N`` and a ``block`` of
+    phase tables, ``[[phase.block]]``); the others are phases, kept as they are. ``where``
+    names the table in the file for error messages.
+    """
+    out: list[tuple[str, dict[str, Any]]] = []
+    for i, raw in enumerate(raw_phases):
+        _check(isinstance(raw, Mapping), f"phase {i}: expected a table")
+        if REPEAT_KEY not in raw:
+            out.append((_phase_where(i, raw), dict(raw)))
+            continue
+        entry = build(Repeat, raw, f"phase {i} (repeat)")
+        for j, member in enumerate(entry.block):
+            _check(isinstance(member, Mapping), f"phase {i} (repeat) block {j}: expected a table")
+        block = len(entry.block)
+        for k in range(entry.repeat):
+            j = k % block
+            member = dict(entry.block[j])
+            where = f"phase {i} (repeat) block {j} ({member.get('name', '?')!r})"
+            if isinstance(member.get("name"), str):
+                member["name"] = f"{member['name']}_{k}"
+            out.append((where, member))
+    return out
 
 
 # --- What the operator sees ----------------------------------------------------------------
