@@ -78,24 +78,68 @@ class DeviceSample:
     buttons: Button
 
 
-class HapticDevice(abc.ABC):
-    """What the haptic service needs from a device; a real driver implements the same three.
+@dataclass(frozen=True)
+class HandInput:
+    """What the operator's hand does during one servo period, device frame.
 
-    ``render`` is called once per servo period with the force to apply during the next
-    period; ``read`` returns the state sampled at the end of the last one.
+    ``target_p_m`` (3,), m: where the hand pulls the handle; ``buttons``: what it holds
+    pressed. Only a device that simulates the hand uses it (see HapticDevice.next_sample).
     """
+
+    target_p_m: np.ndarray
+    buttons: Button = Button.NONE
+
+
+class HapticDevice(abc.ABC):
+    """The one interface of a haptic device: the emulator and a real driver alike.
+
+    Everything the haptic service calls is here, so any implementation takes the
+    emulator's place unchanged. Lifecycle: :meth:`connect`, then once per servo period
+    ``period_s`` :meth:`next_sample` (the force sent by :meth:`send_force`, at any time,
+    acts from then on), then :meth:`disconnect`; usable as a context manager.
+    :meth:`reset` marks a new run. Not thread-safe: the caller serialises the calls.
+    """
+
+    period_s: float  # the servo period, s
+
+    def __enter__(self) -> HapticDevice:
+        self.connect()
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.disconnect()
+
+    @abc.abstractmethod
+    def connect(self) -> None:
+        """Open the device (a driver: its link, motors enabled at zero force)."""
+
+    @abc.abstractmethod
+    def disconnect(self) -> None:
+        """Zero the force and release the device; safe to call twice."""
 
     @abc.abstractmethod
     def read(self) -> DeviceSample:
         """The latest sample: position (m), velocity (m/s), rendered force (N), buttons."""
 
     @abc.abstractmethod
-    def render(self, force_n: np.ndarray) -> None:
-        """Apply ``force_n`` (3,), N, device frame; the device saturates it at its peak force."""
+    def send_force(self, force_n: np.ndarray) -> None:
+        """Apply ``force_n`` (3,), N, device frame, from now on; the device saturates it
+        at its peak force."""
 
     @abc.abstractmethod
-    def close(self) -> None:
-        """Release the device (a real driver zeroes its motors); safe to call twice."""
+    def next_sample(self, hand: HandInput | None) -> DeviceSample:
+        """Advance one servo period and return the sample taken at its end.
+
+        ``hand`` is what the operator's hand does meanwhile (None: nobody holds the
+        handle). An emulator integrates its handle under that hand and the sent force; a
+        device whose handle a real hand holds ignores it and returns its newest hardware
+        sample (waiting for one if none came this period).
+        """
+
+    @abc.abstractmethod
+    def reset(self) -> None:
+        """A new run starts: forget the force and per-run state (an emulator also puts its
+        handle back at the centre, at rest; a real handle stays where the hand holds it)."""
 
 
 class KalmanVelocityEstimator:
@@ -236,7 +280,7 @@ class EmulatedDevice(HapticDevice):
         self._p_encoder_m = np.zeros(N_AXES)
         self._v_estimate_m_s = np.zeros(N_AXES)
         self._buttons = Button.NONE
-        self.closed = False
+        self.connected = False
         self.reset()
 
     def reset(self) -> None:
@@ -251,7 +295,16 @@ class EmulatedDevice(HapticDevice):
         self._estimator.reset(self._p_encoder_m)
 
     # -- HapticDevice ------------------------------------------------------------------
-    def render(self, force_n: np.ndarray) -> None:
+    def connect(self) -> None:
+        """Nothing to open in an emulator."""
+        self.connected = True
+
+    def disconnect(self) -> None:
+        """Nothing to release in an emulator; zero the force as a driver would."""
+        self._f_command_n[:] = 0.0
+        self.connected = False
+
+    def send_force(self, force_n: np.ndarray) -> None:
         """Set the force for the next :meth:`step`, saturated to ``peak_force_n`` in norm."""
         self._f_command_n = saturate_force(force_n, self.config.peak_force_n)
 
@@ -264,10 +317,13 @@ class EmulatedDevice(HapticDevice):
             buttons=self._buttons,
         )
 
-    def close(self) -> None:
-        """Nothing to release in an emulator; zero the force as a driver would."""
-        self._f_command_n[:] = 0.0
-        self.closed = True
+    def next_sample(self, hand: HandInput | None) -> DeviceSample:
+        """One :meth:`step` of ``period_s`` under ``hand``, then :meth:`read`."""
+        if hand is None:
+            self.step(self.period_s, None, Button.NONE)
+        else:
+            self.step(self.period_s, hand.target_p_m, hand.buttons)
+        return self.read()
 
     # -- the emulation -----------------------------------------------------------------
     def step(

@@ -1,7 +1,8 @@
 """The head-mounted-display emulator: scripted head motion, a noisy tracker, a Kalman filter.
 
-Pure and process-free, so every piece is testable on its own; ``services.hmd`` only
-drives :class:`HmdEmulator` from the plant's ticks and puts its output on the bus.
+Pure and process-free, so every piece is testable on its own: :class:`HmdLoop` is the
+whole HMD minus the bus; ``services/hmd.py`` feeds it the plant's ticks and publishes
+its samples.
 
 Frames and units: world frame, z up, metres. The head pose is a position ``p_m`` (3,) and
 two angles: ``yaw_rad`` about world z (0 = looking along +x, positive turns toward +y),
@@ -23,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from teleop.core.config import Config, HmdConfig
+from teleop.core.config import Config, ConfigError, HmdConfig
 from teleop.core.ticks import expected_valid_from, is_sample_tick
 
 # Head pitch nod of the scripted motion: amplitude (rad, about 3 degrees) and its period
@@ -42,7 +43,7 @@ ANGLE_INDICES = (YAW_INDEX, PITCH_INDEX)
 # smoothing (small) and lag on a turning head (large). Sized for a head like the scripted
 # one, a little faster (peaks of about 0.2 m/s^2 and 2 rad/s^2, e.g. a 0.4 rad yaw sway
 # with a 3 s period); a much faster head lags (raise these), a slower one is smoothed less
-# than it could be. Measured errors: tests/test_hmd.py.
+# than it could be. Measured errors: tests/unit/test_hmd.py.
 HEAD_ACCEL_STD_M_S2 = 0.2  # head translation, m/s^2
 HEAD_ANGULAR_ACCEL_STD_RAD_S2 = 2.0  # yaw and pitch, rad/s^2
 # Initial standard deviation of the velocity states, before the filter has seen motion.
@@ -399,3 +400,69 @@ class HmdEmulator:
             "predicted_error": self.predicted_error.summary(),
             "unpredicted_error": self.unpredicted_error.summary(),
         }
+
+
+class HmdLoop:
+    """The HMD clocked by plant ticks: the whole HMD service minus the bus.
+
+    A clock tick ``m`` (from the plant's scene stream, :meth:`on_clock`) runs the
+    emulator for every plant tick since the previous clock tick and returns the samples
+    taken on the HMD's sample ticks among them: the records are identical to running on
+    every plant tick. Every record must be out before the tick it applies to (else
+    lockstep would wait for it), so ``lead_ticks`` must be at least the clock's period
+    (``plant.scene_rate_hz``): a config error otherwise.
+
+    A clock tick not newer than the last is a re-send (lockstep re-sends an unanswered
+    state with the same tick) and is ignored; tick 0 after a later tick is a new run
+    and resets the filter and statistics (the tracker noise is keyed by (seed, tick), so
+    the same seed gives the same samples again). Not thread-safe: the service holds a
+    lock around it.
+    """
+
+    def __init__(self, config: Config) -> None:
+        plant = config.plant
+        scene_period_ticks = max(1, round(1.0 / (plant.scene_rate_hz * plant.timestep_s)))
+        if lead_ticks(config.hmd, plant.timestep_s) < scene_period_ticks:
+            raise ConfigError(
+                f"hmd.prediction_s ({config.hmd.prediction_s} s) must be at least one "
+                f"scene period (1 / plant.scene_rate_hz = {scene_period_ticks} ticks)"
+            )
+        self.emulator = HmdEmulator(config)
+        self._last_tick = -1
+        self.runs = 0
+        self.resent_states = 0  # clock ticks seen before (re-sends)
+
+    def on_clock(self, tick: int) -> list[HeadSample]:
+        """Plant tick ``tick`` reached: the samples of every HMD sample tick up to it."""
+        if tick == 0 and self._last_tick != 0:
+            if self._last_tick > 0:  # a new run: start from a fresh filter
+                self.emulator.reset()
+            self.runs += 1
+            self._last_tick = -1
+        elif tick <= self._last_tick:
+            self.resent_states += 1
+            return []
+        samples = []
+        for k in range(self._last_tick + 1, tick + 1):
+            sample = self.emulator.on_tick(k)
+            if sample is not None:
+                samples.append(sample)
+        self._last_tick = tick
+        return samples
+
+
+def fill_head_pose(
+    rec: np.ndarray, sample: HeadSample, seq: int, t_source_ns: int, timestep_ns: int
+) -> None:
+    """Write ``sample`` into a HEAD_POSE record (sim time from its tick, ``timestep_ns``)."""
+    rec["seq"] = seq
+    rec["t_source_ns"] = t_source_ns
+    rec["sim_time_ns"] = sample.tick * timestep_ns
+    rec["valid_from_tick"] = sample.valid_from_tick
+    rec["measured_p_m"] = sample.measured.p_m
+    rec["measured_yaw_rad"] = sample.measured.yaw_rad
+    rec["filtered_p_m"] = sample.filtered.p_m
+    rec["predicted_p_m"] = sample.predicted.p_m
+    rec["predicted_yaw_rad"] = sample.predicted.yaw_rad
+    rec["predicted_pitch_rad"] = sample.predicted.pitch_rad
+    rec["horizon_s"] = sample.horizon_s

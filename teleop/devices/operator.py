@@ -1,7 +1,8 @@
 """The scripted operator: plays a task on the haptic handle, closing the loop on what it sees.
 
-Pure and process-free (``services.operator`` puts it on the bus), so the whole
-closed loop can be simulated in a test.
+Pure and process-free: :class:`OperatorLoop` is the whole operator minus the bus
+(``services/operator.py`` feeds it and publishes what it sends), so the closed loop and
+the service's decisions can be simulated in a test.
 
 What the operator knows is the controller's rate mapping (teleop mode): a handle offset
 ``d`` (device frame: x forward, away from the operator; y left; z up; metres from the
@@ -55,17 +56,19 @@ the held object in a ``carrying`` phase.
 from __future__ import annotations
 
 import bisect
+import logging
 import math
 import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
-from teleop.bus.messages import Button
+from teleop.bus.messages import Button, Event
 from teleop.core.config import (
+    Config,
     ConfigError,
     HapticConfig,
     OperatorConfig,
@@ -74,6 +77,9 @@ from teleop.core.config import (
     build,
     read_toml,
 )
+from teleop.core.ticks import expected_valid_from, is_sample_tick, last_sample_tick
+
+logger = logging.getLogger(__name__)
 
 # --- Gains and human limits --------------------------------------------------------------
 
@@ -312,11 +318,9 @@ class Scenario:
     def _from_table(
         cls, table: Mapping[str, Any], object_names: Sequence[str], source: str
     ) -> Scenario:
-        unknown = sorted(set(table) - set(_TOP_LEVEL_KEYS))
-        _check(
-            not unknown,
-            f"top level: unknown key(s) {', '.join(unknown)} (expected {', '.join(_TOP_LEVEL_KEYS)})",
-        )
+        unknown = ", ".join(sorted(set(table) - set(_TOP_LEVEL_KEYS)))
+        expected = ", ".join(_TOP_LEVEL_KEYS)
+        _check(not unknown, f"top level: unknown key(s) {unknown} (expected {expected})")
         raw_task = table.get("task")
         _check(isinstance(raw_task, Mapping), "top level: missing [task] table")
         task = build(Task, raw_task, "[task]")
@@ -338,9 +342,7 @@ class Scenario:
             phases.append(phase)
         names = [p.name for p in phases]
         _check(len(set(names)) == len(names), "phases: phase names must be unique")
-        return cls(
-            tuple(phases), task.max_task_s, task.held_object, task.carry_tolerance_m, source
-        )
+        return cls(tuple(phases), task.max_task_s, task.held_object, task.carry_tolerance_m, source)
 
     @property
     def anchors(self) -> frozenset[str]:
@@ -694,3 +696,170 @@ class ScriptedOperator:
     def target_m(self) -> np.ndarray:
         """The current phase's target point (world frame, m)."""
         return self._target_m.copy()
+
+
+# --- The decision loop, on sim time --------------------------------------------------------
+
+# TASK_DONE names a tick this far ahead of the arrival that ends the task: the plant
+# (in lockstep, waiting at that arrival's tick at most) finishes the run there exactly.
+TASK_DONE_AHEAD_TICKS = 100
+# Lockstep: longest wait for an observation's samples before deciding with what is there (s).
+LOCKSTEP_INPUT_WAIT_S = 1.0
+
+
+class OperatorOutputs(Protocol):
+    """Where :class:`OperatorLoop` sends what it decides (the service: its publishers)."""
+
+    def hand(self, valid_from_tick: int, command: HandCommand) -> None:
+        """A HAND_INPUT that applies from ``valid_from_tick``."""
+
+    def event(self, event: Event, tick: int, step: int, value: float) -> None:
+        """A RUN_EVENT decided at ``tick``; ``step`` is the tick it names (see Event)."""
+
+
+class OperatorLoop:
+    """The scripted operator on plant ticks: which decisions a TOOL_POSE arrival triggers,
+    what they publish, and the run boundaries. No bus and no thread of its own.
+
+    The arrival of the TOOL_POSE of tick ``m`` (:meth:`on_arrival`, in arrival order)
+    triggers one decision for every sample tick ``s`` of the operator's clock
+    (:func:`teleop.core.ticks.is_sample_tick` at ``decision_rate_hz``) in ``(previous
+    arrival, m]``, sent with ``valid_from_tick = s + lead_ticks`` (``lead_ticks = 1 /
+    (rate timestep)``): exactly the records the haptic device waits for. A decision rate
+    above the scene rate would need a record before the TOOL_POSE that triggers it exists,
+    which deadlocks lockstep, so it is a config error.
+
+    Lockstep determinism: a decision uses only tick-stamped samples, the newest at or before
+    ``s - reaction_delay`` (:class:`ObservationBuffer`, filled by the caller). Before
+    deciding it waits (event driven, at most ``LOCKSTEP_INPUT_WAIT_S``) until that
+    observation is complete: the OBJECT_POSES of the observed tool tick and, once an HMD is
+    known to be in the run (:meth:`hmd_seen`), the HEAD_POSE whose ``valid_from_tick``
+    applies at the observed tick. Without an HMD the view yaw is ``hmd.head_yaw_rad``.
+
+    A new run (a TOOL_POSE at tick 0, or :meth:`on_started` for the plant's STARTED
+    event) resets the operator; a tick not newer than the last one is a plant re-send and
+    is ignored.
+    """
+
+    def __init__(
+        self, config: Config, scenario: Scenario, outputs: OperatorOutputs, *, lockstep: bool
+    ) -> None:
+        self.timestep_s = config.plant.timestep_s
+        self.rate_hz = config.operator.decision_rate_hz
+        if self.rate_hz > config.plant.scene_rate_hz:
+            raise ConfigError(
+                f"operator.decision_rate_hz ({self.rate_hz:g}) above plant.scene_rate_hz "
+                f"({config.plant.scene_rate_hz:g}): decisions are driven by TOOL_POSE arrivals"
+            )
+        self.lockstep = lockstep
+        self.lead_ticks = round(1.0 / (self.rate_hz * self.timestep_s))
+        self.delay_ticks = round(config.operator.reaction_delay_s / self.timestep_s)
+        self.hmd_rate_hz = config.hmd.rate_hz
+        self.hmd_lead_ticks = round(config.hmd.prediction_s / self.timestep_s)
+        self.scenario = scenario
+        self.outputs = outputs
+        self.operator = ScriptedOperator(
+            scenario, config.operator, config.teleop, config.haptic, self.timestep_s
+        )
+        self.buffer = ObservationBuffer(
+            config.robot.object_bodies, self.delay_ticks, config.hmd.head_yaw_rad
+        )
+        self._hmd_present = threading.Event()  # set from any thread, read by the loop's
+        self._last_tick: int | None = None  # newest TOOL_POSE tick handled in this run
+        self._phase_reported = -1
+        self._done_reported = False
+        self.runs = 0
+        self.decisions = 0
+        self.late_observations = 0  # lockstep waits that timed out
+        self.duplicate_poses = 0  # TOOL_POSE re-sends (same tick) ignored
+        self.phase_times: list[dict[str, Any]] = []
+
+    def hmd_seen(self) -> None:
+        """An HMD is in the run (its liveliness token or a HEAD_POSE): lockstep decisions
+        wait for its head pose from now on."""
+        self._hmd_present.set()
+
+    def on_started(self) -> None:
+        """The plant's STARTED event: a new run, unless this run's first pose came first."""
+        if self._last_tick not in (None, 0):
+            self._new_run()
+
+    def _new_run(self) -> None:
+        self.operator.reset()
+        self._last_tick = None
+        self._phase_reported = -1
+        self._done_reported = False
+        self.phase_times = []
+        self.runs += 1
+        logger.info("new run: operator reset")
+
+    def on_arrival(self, m: int) -> None:
+        """The TOOL_POSE of tick ``m`` is in the buffer: decide every sample tick up to it."""
+        if m == 0 and self._last_tick != 0:
+            self._new_run()
+        elif self._last_tick is not None and m <= self._last_tick:
+            self.duplicate_poses += 1  # a plant re-send of a state nobody answered yet
+            return
+        if self._last_tick is None:
+            first = last_sample_tick(m, self.rate_hz, self.timestep_s)
+        else:
+            first = self._last_tick + 1
+        self._last_tick = m
+        for s in range(first, m + 1):
+            if is_sample_tick(s, self.rate_hz, self.timestep_s):
+                self._decide(s, m)
+
+    def _decide(self, s: int, m: int) -> None:
+        """One decision at sample tick ``s`` (triggered by the TOOL_POSE of tick ``m``)."""
+        if self.lockstep:
+            seen = s - self.delay_ticks
+            head_from = None
+            if self._hmd_present.is_set() and seen >= 0:
+                head_from = expected_valid_from(
+                    seen, self.hmd_rate_hz, self.timestep_s, self.hmd_lead_ticks
+                )
+            if not self.buffer.wait_ready(s, head_from, LOCKSTEP_INPUT_WAIT_S):
+                self.late_observations += 1
+        command = self.operator.decide(s, self.buffer.observe(s))
+        self.decisions += 1
+        self.outputs.hand(s + self.lead_ticks, command)
+        if command.phase != self._phase_reported and command.phase >= 0:
+            self._phase_reported = command.phase
+            self.phase_times.append(
+                {
+                    "phase": command.phase,
+                    "name": self.scenario.phases[command.phase].name,
+                    "sim_time_s": s * self.timestep_s,
+                }
+            )
+            self.outputs.event(Event.PHASE, s, s, float(command.phase))
+        if command.done and not self._done_reported:
+            self._done_reported = True
+            finish_tick = m + TASK_DONE_AHEAD_TICKS
+            self.outputs.event(Event.TASK_DONE, s, finish_tick, float(command.success))
+            logger.info(
+                "task done at %.2f s: %s %s",
+                s * self.timestep_s,
+                "success" if command.success else "gave up",
+                self.operator.failure,
+            )
+
+    def summary(self) -> dict[str, Any]:
+        """The task's outcome, phase times and decision counters (JSON-ready)."""
+        op = self.operator
+        duration_s = None
+        if op.task_start_tick is not None and op.done_tick is not None:
+            duration_s = (op.done_tick - op.task_start_tick) * self.timestep_s
+        return {
+            "scenario": self.scenario.source,
+            "phases": self.phase_times,
+            "task_done": op.done,
+            "success": op.success if op.done else None,
+            "failure": op.failure,
+            "task_duration_s": duration_s,
+            "gain_per_s": op.gain_per_s,
+            "decisions": self.decisions,
+            "late_observations": self.late_observations,
+            "duplicate_poses": self.duplicate_poses,
+            "runs": self.runs,
+        }

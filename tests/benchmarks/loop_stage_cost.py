@@ -109,9 +109,10 @@ class Loop:
         controller, plant, haptic = self.controller, self.plant, self.haptic
         between()  # the device samples the handle on the plant's grid
         deadline_ns = plant._grid.next_ns if plant._grid is not None else 0
-        with haptic._cond:
-            haptic._step(max(haptic._state_seq, 0), 0, None, time.monotonic_ns(), deadline_ns)
-        sample = haptic._record.tobytes()
+        loop = haptic.loop
+        with loop.cond:
+            loop._step(max(loop._state_seq, 0), 0, None, time.monotonic_ns(), deadline_ns)
+        sample = loop.record.tobytes()
         between()
         cycles = controller.cycles
         deliver(
@@ -127,11 +128,11 @@ class Loop:
         deliver(state, time.monotonic_ns(), PLANT_STATE, controller._on_state, controller.drops)
         feedback = controller.task._feedback.tobytes()
         between()
-        before = len(haptic.trace_log)
+        before = len(loop.trace_log)
         deliver(feedback, time.monotonic_ns(), FORCE_FEEDBACK, haptic._on_feedback, haptic.drops)
-        if len(haptic.trace_log) == before:
+        if len(loop.trace_log) == before:
             raise RuntimeError("the feedback was not rendered: a stage shed its input")
-        return haptic.trace_log.rows[-1]
+        return loop.trace_log.rows[-1]
 
     def close(self) -> None:
         for service in self.services:

@@ -1,0 +1,419 @@
+"""The haptic service's loop as pure code: one device period per plant tick, with feedback.
+
+:class:`HapticLoop` takes the records the service receives (FORCE_FEEDBACK, HAND_INPUT
+and, in lockstep, PLANT_STATE), drives any :class:`teleop.devices.haptic.HapticDevice`
+through its interface alone, and hands each HAPTIC_STATE record it fills to
+:class:`HapticOutputs`. Time comes from an injected :class:`teleop.core.clock.Clock`,
+so a test drives it on a fake clock without Zenoh; ``services/haptic.py`` is the bus
+adapter around it.
+
+- realtime: :meth:`HapticLoop.run_realtime` steps the device on the clock's deadlines
+  (a :class:`LoopTimer` at the plant period) with the newest feedback (faded out by
+  :class:`FeedbackHold` when stale) and the hand input valid at the newest plant tick
+  seen. The tick and sim time are those of the newest feedback (the state it answers, at
+  most a period or two old): a 1 kHz PLANT_STATE subscription only for that would cost
+  this service and the plant a message each per period. A feedback tick below the last
+  one means the plant started over (a new run). The feedback stream's order and age are
+  checked by a :class:`teleop.bus.stamps.Inbound` (older than the newest: dropped; too
+  old on arrival: shed and logged). Each feedback force is sent to the motors the moment
+  it arrives (``haptic.render_on_arrival``; else at the next step) and its trace,
+  completed with FEEDBACK_RX and FEEDBACK_RENDERED, is kept for the latency report.
+- lockstep: deterministic and event driven. Tick k steps once PLANT_STATE k, the
+  FORCE_FEEDBACK of tick k-1 (k >= 1) and the HAND_INPUT that applies at k (if any) are
+  all in; the input that completes the set does the step (no thread hand-off). A hand
+  input still missing after ``HAND_INPUT_WAIT_S`` means there is no operator:
+  :meth:`HapticLoop.run_lockstep` logs once and goes on without waiting for hand inputs
+  until one arrives.
+
+Lockstep: a PLANT_STATE seq 0 with a new ``t_source_ns`` (or as the first state) starts
+a new run: the device is reset and every stored input is forgotten. A state with a seq
+already seen is a plant re-send (the plant re-sends every state in flight byte for byte,
+so a re-sent state 0 keeps its stamp): it never steps the device again; if it names the
+tick last stepped, that tick's HAPTIC_STATE is sent again unchanged (same seq), in case
+the first copy was lost to a late subscriber.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from typing import Any, Protocol
+
+import numpy as np
+
+from teleop.bus.messages import HAPTIC_STATE, N_STAGES, Button, Flag, Stage
+from teleop.bus.service import STOP_POLL_S
+from teleop.bus.stamps import Inbound, StampLog
+from teleop.core.clock import NS_PER_S, Clock, LoopTimer
+from teleop.core.config import Config
+from teleop.core.ticks import TickedInputs, expected_valid_from
+from teleop.devices.haptic import (
+    DeviceSample,
+    FeedbackHold,
+    HandInput,
+    HapticDevice,
+    max_stable_stiffness_n_per_m,
+)
+
+logger = logging.getLogger(__name__)
+
+# Lockstep: how long a tick waits for its hand input before the operator counts as absent (s).
+HAND_INPUT_WAIT_S = 1.0
+# Feedback whose norm exceeds this multiple of the peak force is garbage, not a saturation case.
+OVERSIZED_FEEDBACK_FACTOR = 10.0
+# Lockstep feedback records kept by tick (a few ahead of the device is all that can happen).
+FEEDBACK_KEEP = 64
+
+
+class HapticOutputs(Protocol):
+    """Where :class:`HapticLoop` sends its HAPTIC_STATE records (the service: the bus)."""
+
+    def sample(self, rec: np.ndarray) -> None:
+        """A new sample (every consumer, the recorder's batch included)."""
+
+    def resend(self, rec: np.ndarray) -> None:
+        """The last sample again, for a plant that re-sent its state (the plant only)."""
+
+
+def hand_input(rec: np.ndarray | None) -> HandInput | None:
+    """The device's view of a HAND_INPUT record (None: no hand)."""
+    if rec is None:
+        return None
+    return HandInput(rec["target_p_m"], Button(int(rec["buttons"])))
+
+
+class HapticLoop:
+    """The haptic service minus the bus: see the module docstring for both timing modes.
+
+    Thread-safe: the input methods may be called from any thread (Zenoh callbacks); they
+    and the run methods serialise on :attr:`cond`. The run methods block until ``stop``.
+    """
+
+    def __init__(
+        self,
+        config: Config,
+        device: HapticDevice,
+        outputs: HapticOutputs,
+        clock: Clock,
+        *,
+        lockstep: bool,
+    ) -> None:
+        self.config = config
+        self.device = device
+        self.outputs = outputs
+        self.clock = clock
+        self.lockstep = lockstep
+        self.period_s = config.plant.timestep_s
+        self.period_ns = round(self.period_s * NS_PER_S)
+        self.hand_rate_hz = config.operator.decision_rate_hz
+        self.lead_ticks = round(1.0 / (self.hand_rate_hz * self.period_s))
+        self.max_feedback_n = OVERSIZED_FEEDBACK_FACTOR * config.haptic.peak_force_n
+        self.render_on_arrival = config.haptic.render_on_arrival
+        self.hold = FeedbackHold(config.haptic.stale_feedback_s, config.haptic.fade_s)
+        self.hand_inputs = TickedInputs()
+        self.timer: LoopTimer | None = None
+        self._first_wake_ns = 0
+        # Everything below is shared by the input methods and the run thread.
+        self.cond = threading.Condition()
+        self._state_seq = -1  # newest plant tick of this run; -1: none yet
+        self._run_start_ns = -1  # t_source_ns of this run's state 0 (a re-send repeats it)
+        self._state_sim_ns = 0  # its sim_time_ns
+        self._first_tick = 0  # first tick of the run this loop saw (joined mid-run: > 0)
+        self._last_tick = -1  # lockstep: last tick stepped
+        self._feedback: dict[int, np.ndarray] = {}  # lockstep: device_f_n by tick
+        self._hand_blocked_since_ns: int | None = None  # lockstep: tick waits for its hand
+        self._operator_absent = False
+        self._last_missing_valid_from: int | None = None
+        self.record = HAPTIC_STATE.new()  # the last sample sent
+        # Counters for the summary.
+        self.steps = 0
+        self.runs = 0
+        self.lockstep_waits = 0
+        self.missing_hand_inputs = 0
+        self.oversized_feedback = 0
+        self.republished_states = 0
+        self.max_force_n = 0.0
+        self.max_abs_position_m = 0.0
+        # Realtime latency bookkeeping (stamps of the bilateral loop, feedback stream order).
+        self.trace_log = StampLog(N_STAGES)
+        self.sample_log = StampLog(2)  # (HAPTIC_STATE seq, HAPTIC_SAMPLE ns)
+        self._pending_trace: np.ndarray | None = None  # render at the next step
+        self.feedback_in = Inbound(Stage.FEEDBACK_TX)  # order, age and shed log (realtime)
+        self.feedback_superseded = 0  # replaced before the next step rendered it
+        self._warned_oversized = False
+        self._warned_no_operator = False
+
+    # -- inputs ------------------------------------------------------------------------
+    def on_state(self, rec: np.ndarray) -> None:
+        """PLANT_STATE (lockstep: the clock; its ``seq`` is the plant tick)."""
+        seq = int(rec["seq"])
+        with self.cond:
+            if seq == 0 and int(rec["t_source_ns"]) != self._run_start_ns:
+                self._run_start_ns = int(rec["t_source_ns"])
+                self._new_run()
+            elif seq <= self._state_seq:
+                if self.lockstep and seq == self._last_tick:
+                    self.republished_states += 1
+                    self.outputs.resend(self.record)
+                return
+            elif self._state_seq < 0:  # joined a run already under way
+                self._first_tick = seq
+                self._last_tick = seq - 1
+            self._state_seq = seq
+            self._state_sim_ns = int(rec["sim_time_ns"])
+            if self.lockstep:
+                self._try_steps()
+                if self._last_tick < seq:
+                    self.lockstep_waits += 1
+
+    def on_feedback(self, rec: np.ndarray, rx_ns: int) -> None:
+        """FORCE_FEEDBACK received at ``rx_ns`` (the clock's time)."""
+        force = np.array(rec["device_f_n"], dtype=np.float64)
+        force_norm_n = math.hypot(*force.tolist())
+        if force_norm_n > self.max_feedback_n:
+            with self.cond:
+                self.oversized_feedback += 1
+                first = not self._warned_oversized
+                self._warned_oversized = True
+            if first:
+                logger.warning(
+                    "dropping feedback of %.3g N (> %g x peak); further ones are only counted",
+                    force_norm_n,
+                    OVERSIZED_FEEDBACK_FACTOR,
+                )
+            return
+        with self.cond:
+            if not self.lockstep:
+                self._feedback_realtime(rec, force, rx_ns)
+                return
+            tick = int(rec["tick"])
+            if tick < self._last_tick:
+                return  # late: its step has been taken
+            self._feedback[tick] = force
+            if len(self._feedback) > FEEDBACK_KEEP:
+                del self._feedback[min(self._feedback)]
+            self._try_steps()
+
+    def on_hand(self, rec: np.ndarray) -> None:
+        """HAND_INPUT, keyed by the plant tick it applies from."""
+        self.hand_inputs.put(int(rec["valid_from_tick"]), rec)
+        with self.cond:
+            self._operator_absent = False
+            if self.lockstep:
+                self._try_steps()
+
+    def _feedback_realtime(self, rec: np.ndarray, force: np.ndarray, rx_ns: int) -> None:
+        """Hold the force; render it now or at the next step; keep its trace (lock held)."""
+        if not self.feedback_in.accept(rec, self.clock.now_ns()):
+            return  # older than what the handle already feels, or shed as too old
+        tick = int(rec["tick"])
+        if tick < self._state_seq:  # the plant started over: a new run
+            self._new_run()
+        elif self._state_seq < 0:  # this loop's first feedback: the run is under way
+            self.runs += 1
+        self._state_seq = tick
+        self._state_sim_ns = int(rec["sim_time_ns"])
+        self.hold.receive(force, rx_ns)
+        trace = np.array(rec["trace_ns"])
+        trace[Stage.FEEDBACK_RX] = rx_ns
+        if self.render_on_arrival:
+            self.device.send_force(force)
+            trace[Stage.FEEDBACK_RENDERED] = self.clock.now_ns()
+            self.trace_log.append(trace)
+        else:
+            if self._pending_trace is not None:
+                self.feedback_superseded += 1
+            self._pending_trace = trace
+
+    # -- run boundaries ----------------------------------------------------------------
+    def _new_run(self) -> None:
+        """Device reset, inputs forgotten (caller holds the lock)."""
+        self.device.reset()
+        self.hold.clear()
+        self.hand_inputs.clear()
+        self._feedback.clear()
+        self._first_tick = 0
+        self._last_tick = -1
+        self._hand_blocked_since_ns = None
+        self._operator_absent = False
+        self._last_missing_valid_from = None
+        self.runs += 1
+
+    # -- lockstep ----------------------------------------------------------------------
+    def _hand_for(self, tick: int) -> tuple[np.ndarray | None, bool]:
+        """(hand input that applies at ``tick`` or None, still waiting for it)."""
+        valid_from = expected_valid_from(tick, self.hand_rate_hz, self.period_s, self.lead_ticks)
+        if valid_from is None:
+            return None, False  # before the operator's first input can apply
+        rec = self.hand_inputs.wait_for(valid_from, 0.0)
+        if rec is not None:
+            return rec, False
+        if not self._operator_absent:
+            return None, True
+        if valid_from != self._last_missing_valid_from:
+            self._last_missing_valid_from = valid_from
+            self.missing_hand_inputs += 1
+        return self.hand_inputs.latest_at(tick), False  # keep the last hand pose, if any
+
+    def _try_steps(self) -> None:
+        """Step every tick whose inputs are all in, in order (caller holds the lock)."""
+        while True:
+            tick = self._last_tick + 1
+            if tick > self._state_seq:
+                return
+            force = self._feedback.get(tick - 1)
+            if force is None and tick > self._first_tick:
+                return
+            hand, waiting = self._hand_for(tick)
+            if waiting:
+                if self._hand_blocked_since_ns is None:
+                    self._hand_blocked_since_ns = self.clock.now_ns()
+                    self.cond.notify_all()  # the run thread times the wait
+                return
+            self._hand_blocked_since_ns = None
+            t_ns = tick * self.period_ns
+            if force is not None:
+                self.hold.receive(force, t_ns - self.period_ns)
+                del self._feedback[tick - 1]
+            sim_ns = self._state_sim_ns - (self._state_seq - tick) * self.period_ns
+            sample = self._step(tick, sim_ns, hand, t_ns)
+            self.outputs.sample(self.record)
+            self._account_sample(sample)
+            self._last_tick = tick
+
+    def poll_hand_wait(self) -> float:
+        """Give up on a hand input overdue by ``HAND_INPUT_WAIT_S`` (lock held); the time
+        until the next check is due (s, 0: at once)."""
+        since_ns = self._hand_blocked_since_ns
+        if since_ns is None:
+            return STOP_POLL_S
+        left_ns = since_ns + round(HAND_INPUT_WAIT_S * NS_PER_S) - self.clock.now_ns()
+        if left_ns <= 0:
+            self._give_up_on_hand()
+            return 0.0
+        return min(STOP_POLL_S, left_ns / NS_PER_S)
+
+    def run_lockstep(self, stop: threading.Event) -> None:
+        """Steps happen in the input methods; this thread only times out a missing hand
+        input (the condition is notified when a tick starts waiting for one)."""
+        with self.cond:
+            while not stop.is_set():
+                timeout_s = self.poll_hand_wait()
+                if timeout_s > 0:
+                    self.cond.wait(timeout_s)
+
+    def _give_up_on_hand(self) -> None:
+        """No hand input for HAND_INPUT_WAIT_S: go on without an operator (lock held)."""
+        if not self._warned_no_operator:
+            self._warned_no_operator = True
+            logger.warning(
+                "no HAND_INPUT for tick %d after %g s: no operator, stepping without one",
+                self._last_tick + 1,
+                HAND_INPUT_WAIT_S,
+            )
+        self._operator_absent = True
+        self._hand_blocked_since_ns = None
+        self._try_steps()
+
+    # -- realtime ----------------------------------------------------------------------
+    def run_realtime(self, stop: threading.Event) -> None:
+        """One device period per deadline of the clock until ``stop``."""
+        self.timer = LoopTimer(self.period_ns, self.clock)
+        while not stop.is_set():
+            deadline_ns = self.timer.deadline_ns(self.timer.wait())
+            if self.timer.count == 1:
+                self._first_wake_ns = self.timer.last_wake_ns
+            self.step_realtime(deadline_ns)
+
+    def step_realtime(self, deadline_ns: int) -> None:
+        """One device period that started at ``deadline_ns``, with the newest inputs."""
+        with self.cond:
+            tick = max(self._state_seq, 0)
+            hand = self.hand_inputs.latest_at(tick) if self._state_seq >= 0 else None
+            sample = self._step(tick, self._state_sim_ns, hand, self.clock.now_ns(), deadline_ns)
+        # Outside the lock: a feedback that arrives meanwhile is rendered at once. Only
+        # this thread steps in realtime, so the record stays as filled.
+        self.outputs.sample(self.record)
+        self._account_sample(sample)
+
+    # -- shared ------------------------------------------------------------------------
+    def _step(
+        self,
+        tick: int,
+        sim_time_ns: int,
+        hand: np.ndarray | None,
+        t_ns: int,
+        deadline_ns: int = 0,
+    ) -> DeviceSample:
+        """Send the held force, advance the device one period, fill :attr:`record` (caller
+        holds the lock; the caller sends the record, then :meth:`_account_sample` counts
+        the returned sample: the statistics wait until the sample is on its way).
+
+        ``t_ns`` is the feedback clock (monotonic in realtime, sim time in lockstep);
+        ``deadline_ns`` the device period's start in realtime (the plant steps on it),
+        0 in lockstep.
+        """
+        force, stale = self.hold.force_at(t_ns)
+        self.device.send_force(force)
+        if self._pending_trace is not None:
+            self._pending_trace[Stage.FEEDBACK_RENDERED] = self.clock.now_ns()
+            self.trace_log.append(self._pending_trace)
+            self._pending_trace = None
+        sample = self.device.next_sample(hand_input(hand))
+        sample_ns = self.clock.now_ns()
+        self.steps += 1
+        rec = self.record
+        rec["seq"] = self.steps
+        rec["flags"] = Flag.STALE if stale else Flag.NONE
+        rec["t_source_ns"] = sample_ns
+        rec["trace_ns"][:] = 0
+        rec["trace_ns"][Stage.HAPTIC_SAMPLE] = sample_ns
+        rec["sim_time_ns"] = sim_time_ns
+        rec["tick"] = tick
+        rec["device_deadline_ns"] = deadline_ns
+        rec["device_p_m"] = sample.p_m
+        rec["device_v_m_s"] = sample.v_m_s
+        rec["device_f_n"] = sample.f_n
+        rec["buttons"] = int(sample.buttons)
+        return sample
+
+    def _account_sample(self, sample: DeviceSample) -> None:
+        """Statistics of the sample just sent (and its stamp, in realtime)."""
+        self.max_force_n = max(self.max_force_n, math.hypot(*sample.f_n.tolist()))
+        self.max_abs_position_m = max(self.max_abs_position_m, *map(abs, sample.p_m.tolist()))
+        if not self.lockstep:
+            rec = self.record
+            self.sample_log.append((int(rec["seq"]), int(rec["trace_ns"][Stage.HAPTIC_SAMPLE])))
+
+    def _rate_hz(self) -> float | None:
+        """Device steps per second of the clock over the realtime run (None in lockstep)."""
+        if self.timer is None or self.timer.count < 2:
+            return None
+        elapsed_ns = self.timer.last_wake_ns - self._first_wake_ns
+        return (self.timer.count - 1) * NS_PER_S / elapsed_ns if elapsed_ns > 0 else None
+
+    def summary(self) -> dict[str, Any]:
+        """Counters, feedback bookkeeping and the realtime loop's statistics (JSON-ready)."""
+        return {
+            "steps": self.steps,
+            "runs": self.runs,
+            "stale_feedback_events": self.hold.stale_events,
+            "max_rendered_force_n": self.max_force_n,
+            "max_abs_position_m": self.max_abs_position_m,
+            "lockstep_waits": self.lockstep_waits,
+            "missing_hand_inputs": self.missing_hand_inputs,
+            "oversized_feedback": self.oversized_feedback,
+            "republished_states": self.republished_states,
+            "feedback_lost": self.feedback_in.seq.lost,
+            "feedback_reordered": self.feedback_in.seq.reordered,
+            "feedback_superseded": self.feedback_superseded,
+            "feedback_shed": self.feedback_in.shed,
+            "feedback_rendered": len(self.trace_log) + self.trace_log.overflow,
+            "trace_rows_not_kept": self.trace_log.overflow,
+            "rate_hz": self._rate_hz(),
+            "max_stable_stiffness_n_per_m": max_stable_stiffness_n_per_m(
+                self.config.haptic, self.period_s
+            ),
+            "loop": self.timer.summary() if self.timer is not None else {},
+        }

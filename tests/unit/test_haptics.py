@@ -1,0 +1,409 @@
+"""The haptic device and its loop, pure: handle physics, Kalman velocity, stale feedback,
+the service's loop on a fake clock with the emulator and with a replay device."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from teleop.bus.messages import (
+    FORCE_FEEDBACK,
+    HAND_INPUT,
+    HAPTIC_STATE,
+    PLANT_STATE,
+    Button,
+    Flag,
+    Stage,
+)
+from teleop.bus.service import STOP_POLL_S
+from teleop.core.clock import FakeClock
+from teleop.core.config import HapticConfig, load_config
+from teleop.devices.haptic import (
+    EmulatedDevice,
+    FeedbackHold,
+    HapticDevice,
+    KalmanVelocityEstimator,
+    max_stable_stiffness_n_per_m,
+)
+from teleop.devices.haptic_loop import HAND_INPUT_WAIT_S, HapticLoop
+from teleop.devices.replay import ReplayDevice
+
+PERIOD_S = 0.001  # the plant period the device steps at
+NS_PER_MS = 1_000_000
+NS_PER_S = 1_000_000_000
+# The velocity-filter tuning these tests recommend (m/s^2); see KalmanVelocityEstimator.
+KF_ACCEL_NOISE_M_S2 = 3.0
+
+
+def simulate(device: EmulatedDevice, steps: int, target: np.ndarray | None) -> np.ndarray:
+    """Step ``steps`` periods toward ``target``; the true positions, (steps, 3)."""
+    out = np.empty((steps, 3))
+    for i in range(steps):
+        device.step(PERIOD_S, target, Button.NONE)
+        out[i] = device.true_p_m
+    return out
+
+
+def critically_damped_reference(config: HapticConfig, amplitude_m: float, t_s: np.ndarray):
+    """Exact step response of m x'' + (b + B_h) x' + K_h x = K_h A from rest (A = amplitude)."""
+    m, k = config.handle_mass_kg, config.hand_stiffness_n_per_m
+    c = config.damping_n_s_per_m + config.hand_damping_n_s_per_m
+    disc = complex(c * c - 4 * m * k) ** 0.5
+    s1, s2 = (-c + disc) / (2 * m), (-c - disc) / (2 * m)
+    x = 1 + (s2 * np.exp(s1 * t_s) - s1 * np.exp(s2 * t_s)) / (s1 - s2)
+    return amplitude_m * x.real
+
+
+# --- device physics -------------------------------------------------------------------
+
+
+def test_handle_follows_the_hand_as_a_mass_spring_damper_and_stays_inside():
+    config = HapticConfig()
+    device = EmulatedDevice(config, PERIOD_S)
+    target = np.array([0.02, -0.01, 0.03])
+    p = simulate(device, 1000, target)
+    assert np.allclose(p[-1], target, atol=1e-6)
+    assert np.all(np.abs(p) <= config.workspace_half_m)
+    # Against the continuous solution, per axis: within 1 % of the step (integration error).
+    t_s = PERIOD_S * np.arange(1, 1001)
+    for axis in range(3):
+        reference = critically_damped_reference(config, target[axis], t_s)
+        assert np.max(np.abs(p[:, axis] - reference)) < 0.01 * abs(target[axis])
+    # The encoders report the position to within half a count.
+    q = config.encoder_resolution_m
+    assert np.all(np.abs(device.read().p_m - device.true_p_m) <= q / 2 + 1e-12)
+
+
+def test_feedback_force_is_felt_as_a_displacement_of_f_over_k_hand():
+    config = HapticConfig()
+    device = EmulatedDevice(config, PERIOD_S)
+    force_n = np.array([0.0, 2.0, -1.0])
+    device.send_force(force_n)
+    simulate(device, 1000, np.zeros(3))
+    expected_m = force_n / config.hand_stiffness_n_per_m  # 10 mm left, 5 mm down
+    assert np.allclose(device.true_p_m, expected_m, atol=1e-6)
+    assert np.allclose(device.read().f_n, force_n)
+
+
+def test_rendered_force_saturates_at_peak():
+    config = HapticConfig()
+    device = EmulatedDevice(config, PERIOD_S)
+    device.send_force(np.array([30.0, 40.0, 0.0]))  # 50 N
+    simulate(device, 1000, np.zeros(3))
+    rendered = device.read().f_n
+    assert np.linalg.norm(rendered) == pytest.approx(config.peak_force_n, rel=1e-12)
+    assert np.allclose(rendered / np.linalg.norm(rendered), [0.6, 0.8, 0.0])
+    # Displacement is that of the saturated force: 8 N / 200 N/m = 40 mm, inside the stops.
+    assert np.linalg.norm(device.true_p_m) == pytest.approx(0.04, abs=1e-5)
+
+
+def test_end_stops_hold_against_hand_and_force():
+    config = HapticConfig()
+    half = config.workspace_half_m
+    device = EmulatedDevice(config, PERIOD_S)
+    p = simulate(device, 500, np.array([0.2, -0.2, 0.0]))
+    assert np.all(np.abs(p) <= half)
+    assert np.allclose(device.true_p_m, [half, -half, 0.0])
+    assert np.allclose(device.true_v_m_s, 0.0)
+    # Released handle under a force: it slides to the stop and stays there.
+    device.reset()
+    device.send_force(np.array([0.0, 0.0, 5.0]))
+    p = simulate(device, 500, None)
+    assert p[:, 2].max() == half and np.allclose(device.true_p_m, [0.0, 0.0, half])
+
+
+def test_stability_bound_is_colgates():
+    config = HapticConfig(damping_n_s_per_m=3.0)
+    assert max_stable_stiffness_n_per_m(config, 0.001) == pytest.approx(6000.0)
+
+
+# --- velocity estimate ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("speed_m_s", [0.0123, -0.05])
+def test_kalman_velocity_converges_and_beats_finite_differences(speed_m_s):
+    q = HapticConfig().encoder_resolution_m
+    estimator = KalmanVelocityEstimator(q, KF_ACCEL_NOISE_M_S2, PERIOD_S)
+    n = 2000
+    offset_m = 0.0013  # not on an encoder count
+    p_true = offset_m + speed_m_s * PERIOD_S * np.arange(n)
+    p_quantised = q * np.round(p_true / q)
+    estimator.reset(np.full(3, p_quantised[0]))
+    v_kf = np.array([estimator.update(np.full(3, z), PERIOD_S)[0] for z in p_quantised])
+    v_fd = np.diff(p_quantised) / PERIOD_S
+    settled = slice(n // 2, None)
+    assert np.mean(v_kf[settled]) == pytest.approx(speed_m_s, rel=0.02)
+    assert np.mean(v_kf[50:200]) == pytest.approx(speed_m_s, rel=0.05)  # after 50 ms
+    assert np.std(v_kf[settled]) < 0.35 * np.std(v_fd[settled])
+
+
+def test_device_reports_kalman_velocity_of_quantised_motion():
+    config = HapticConfig(kf_accel_noise_m_s2=KF_ACCEL_NOISE_M_S2)
+    device = EmulatedDevice(config, PERIOD_S)
+    target = np.array([0.03, 0.0, 0.0])
+    velocity_error = []
+    for _ in range(300):
+        device.step(PERIOD_S, target, Button.GRIPPER_CLOSE)
+        velocity_error.append(device.read().v_m_s[0] - device.true_v_m_s[0])
+    sample = device.read()
+    assert sample.buttons == Button.GRIPPER_CLOSE
+    # Peak handle speed is about 0.4 m/s; the estimate tracks it to a few mm/s after 50 ms.
+    assert np.sqrt(np.mean(np.square(velocity_error[50:]))) < 0.02
+
+
+# --- stale feedback -------------------------------------------------------------------
+
+
+def test_feedback_fades_to_zero_when_stale_and_is_never_held():
+    hold = FeedbackHold(stale_after_s=0.020, fade_s=0.020)
+    force_n = np.array([1.0, -2.0, 0.5])
+    assert np.allclose(hold.force_at(0)[0], 0.0)  # nothing received yet
+    hold.receive(force_n, 5 * NS_PER_MS)
+    for t_ms in (5, 15, 25):
+        force, stale = hold.force_at(t_ms * NS_PER_MS)
+        assert np.allclose(force, force_n) and not stale
+    norms = []
+    for t_ms in range(26, 100):
+        force, stale = hold.force_at(t_ms * NS_PER_MS)
+        assert stale
+        assert float(force @ force_n) >= 0.0  # same direction, never reversed
+        norms.append(np.linalg.norm(force))
+    norms = np.array(norms)
+    assert np.all(np.diff(norms) <= 1e-12)  # monotone fade
+    assert norms[35 - 26] == pytest.approx(0.5 * np.linalg.norm(force_n))  # half way
+    assert np.all(norms[45 - 26 :] == 0.0)  # gone after stale + fade
+    assert hold.stale_events == 1
+    hold.receive(-force_n, 100 * NS_PER_MS)  # fresh again: rendered in full
+    force, stale = hold.force_at(101 * NS_PER_MS)
+    assert np.allclose(force, -force_n) and not stale
+    hold.force_at(200 * NS_PER_MS)
+    assert hold.stale_events == 2
+
+
+# --- the service's loop, on a fake clock ---------------------------------------------
+
+
+class Sent:
+    """HapticOutputs that keeps copies of what the loop sends, and can stop a run."""
+
+    def __init__(self, stop_after: int | None = None) -> None:
+        self.samples: list[np.ndarray] = []
+        self.resent: list[np.ndarray] = []
+        self.stop = threading.Event()
+        self.stop_after = stop_after
+
+    def sample(self, rec: np.ndarray) -> None:
+        self.samples.append(rec.copy())
+        if self.stop_after is not None and len(self.samples) >= self.stop_after:
+            self.stop.set()
+
+    def resend(self, rec: np.ndarray) -> None:
+        self.resent.append(rec.copy())
+
+
+def make_loop(
+    device: HapticDevice | None = None, *, lockstep: bool, stop_after: int | None = None
+) -> tuple[HapticLoop, Sent, FakeClock]:
+    mode = "lockstep" if lockstep else "realtime"
+    config = load_config(None, [f'run.mode="{mode}"'])
+    device = device or EmulatedDevice(config.haptic, config.plant.timestep_s)
+    sent, clock = Sent(stop_after), FakeClock(start_ns=10 * NS_PER_S)
+    return HapticLoop(config, device, sent, clock, lockstep=lockstep), sent, clock
+
+
+def plant_state(tick: int, t_source_ns: int = 1) -> np.ndarray:
+    state = PLANT_STATE.new()
+    state["seq"] = state["step"] = tick
+    state["sim_time_ns"] = tick * NS_PER_MS
+    state["t_source_ns"] = t_source_ns
+    return state
+
+
+def feedback(seq: int, tick: int, force_n, tx_ns: int = 0) -> np.ndarray:
+    rec = FORCE_FEEDBACK.new()
+    rec["seq"] = seq
+    rec["tick"] = tick
+    rec["sim_time_ns"] = tick * NS_PER_MS
+    rec["device_f_n"] = force_n
+    rec["trace_ns"][Stage.FEEDBACK_TX] = tx_ns
+    return rec
+
+
+def hand(valid_from_tick: int, target_m, buttons: Button = Button.GRIPPER_CLOSE) -> np.ndarray:
+    rec = HAND_INPUT.new()
+    rec["valid_from_tick"] = valid_from_tick
+    rec["target_p_m"] = target_m
+    rec["buttons"] = buttons
+    return rec
+
+
+def test_loop_steps_once_per_tick_in_lockstep():
+    """The lockstep barrier: tick k steps once state k, the feedback of k-1 and the hand
+    input that applies at k are in; re-sent states step nothing."""
+    loop, sent, _ = make_loop(lockstep=True)
+    lead = loop.lead_ticks
+    target_m, push_n = np.array([0.02, 0.0, 0.0]), np.array([0.0, 2.0, 0.0])
+    ticks, push_from = 600, 300
+    for k in range(ticks):
+        loop.on_state(plant_state(k))
+        if k >= 1:
+            if k == push_from:  # oversized: dropped
+                loop.on_feedback(feedback(k, k - 1, [100.0, 0.0, 0.0]), 0)
+            loop.on_feedback(feedback(k, k - 1, push_n if k >= push_from else 0.0), 0)
+        assert len(sent.samples) == k + 1
+        reply = sent.samples[k]
+        assert int(reply["tick"]) == k and int(reply["seq"]) == k + 1
+        assert int(reply["sim_time_ns"]) == k * NS_PER_MS
+        if k < lead:
+            assert np.all(reply["device_p_m"] == 0.0)
+        if k % lead == 0:
+            loop.on_hand(hand(k + lead, target_m))
+    assert sent.samples[push_from - 1]["device_p_m"][0] == pytest.approx(0.02, abs=5e-4)
+    assert np.allclose(sent.samples[push_from]["device_f_n"], push_n)
+    last = sent.samples[-1]
+    assert last["device_p_m"][1] == pytest.approx(2.0 / 200.0, abs=5e-4)  # F / K_hand
+    assert last["buttons"] == Button.GRIPPER_CLOSE and last["flags"] == Flag.NONE
+    # A re-send of the last state: its sample again, unchanged; of state 0 (same stamp):
+    # no new run, nothing sent.
+    loop.on_state(plant_state(ticks - 1))
+    loop.on_state(plant_state(0))
+    assert len(sent.samples) == ticks and len(sent.resent) == 1
+    assert np.array_equal(sent.resent[0], last)
+    summary = loop.summary()
+    assert summary["steps"] == ticks and summary["runs"] == 1
+    assert summary["lockstep_waits"] == ticks - 1  # every tick after 0 waited for feedback
+    assert summary["oversized_feedback"] == 1 and summary["republished_states"] == 1
+    assert summary["missing_hand_inputs"] == 0 and summary["stale_feedback_events"] == 0
+    assert summary["max_rendered_force_n"] == pytest.approx(2.0)
+    # State 0 with a new stamp: a new run, the handle back at the centre.
+    loop.on_state(plant_state(0, t_source_ns=2))
+    assert loop.runs == 2 and np.all(sent.samples[-1]["device_p_m"] == 0.0)
+
+
+def test_lockstep_goes_on_without_an_operator_after_the_hand_wait():
+    loop, sent, clock = make_loop(lockstep=True)
+    lead = loop.lead_ticks
+    for k in range(lead + 1):
+        loop.on_state(plant_state(k))
+        if k >= 1:
+            loop.on_feedback(feedback(k, k - 1, 0.0), 0)
+    assert len(sent.samples) == lead  # tick `lead` waits for its hand input
+    with loop.cond:
+        assert 0 < loop.poll_hand_wait() <= STOP_POLL_S
+        clock.advance(round(HAND_INPUT_WAIT_S * NS_PER_S))
+        assert loop.poll_hand_wait() == 0.0  # gave up: the tick stepped
+    assert len(sent.samples) == lead + 1 and loop.missing_hand_inputs == 1
+    loop.on_state(plant_state(lead + 1))
+    loop.on_feedback(feedback(lead + 1, lead, 0.0), 0)
+    assert len(sent.samples) == lead + 2  # no more waiting
+
+
+def test_realtime_renders_feedback_on_arrival_and_checks_its_order_and_age():
+    loop, sent, clock = make_loop(lockstep=False)
+    force_n = np.array([0.0, 0.5, 0.0])
+    rec = feedback(1, 500, force_n, tx_ns=clock.now_ns())
+    rec["trace_ns"][Stage.HAPTIC_SAMPLE] = clock.now_ns() - 1
+    clock.advance(100_000)
+    loop.on_feedback(rec, clock.now_ns())
+    trace = loop.trace_log.rows[-1]
+    assert trace[Stage.FEEDBACK_RX] == clock.now_ns() == trace[Stage.FEEDBACK_RENDERED]
+    loop.step_realtime(deadline_ns=clock.now_ns())
+    sample = sent.samples[-1]
+    assert int(sample["tick"]) == 500 and int(sample["sim_time_ns"]) == 500 * NS_PER_MS
+    assert np.allclose(sample["device_f_n"], force_n) and sample["flags"] == Flag.NONE
+    # Stale after haptic.stale_feedback_s: flagged, fading.
+    clock.advance(round(loop.config.haptic.stale_feedback_s * NS_PER_S) + NS_PER_MS)
+    loop.step_realtime(deadline_ns=clock.now_ns())
+    assert sent.samples[-1]["flags"] == Flag.STALE
+    # Older than the newest: dropped; too old on arrival: shed and logged; a lower tick
+    # later on: a new run.
+    loop.on_feedback(feedback(1, 501, force_n, tx_ns=clock.now_ns()), clock.now_ns())
+    old = feedback(2, 501, force_n, tx_ns=clock.now_ns() - loop.feedback_in.shed_age_ns - 1)
+    old["trace_ns"][Stage.HAPTIC_SAMPLE] = 42
+    loop.on_feedback(old, clock.now_ns())
+    loop.on_feedback(feedback(4, 7, force_n, tx_ns=clock.now_ns()), clock.now_ns())
+    summary = loop.summary()
+    assert summary["feedback_reordered"] == 1 and summary["feedback_shed"] == 1
+    assert summary["feedback_lost"] == 1  # seq 3 never came
+    assert loop.feedback_in.shed_log.rows.tolist() == [[42]]
+    assert summary["runs"] == 2 and summary["feedback_rendered"] == 2
+
+
+def test_realtime_loop_paces_on_the_clocks_deadlines():
+    loop, sent, clock = make_loop(lockstep=False, stop_after=50)
+    loop.run_realtime(sent.stop)
+    deadlines = np.array([int(s["device_deadline_ns"]) for s in sent.samples])
+    assert len(deadlines) == 50 and np.all(np.diff(deadlines) == loop.period_ns)
+    assert loop.summary()["rate_hz"] == pytest.approx(1.0 / loop.period_s)
+
+
+# --- a second device behind the same interface ----------------------------------------
+
+
+def recorded_path(n: int) -> np.ndarray:
+    """A handle trajectory (n, 3), m: a slow circle in the horizontal plane."""
+    angle = np.linspace(0.0, 2.0 * np.pi, n)
+    return np.stack([0.02 * np.cos(angle), 0.02 * np.sin(angle), np.zeros(n)], axis=1)
+
+
+@pytest.mark.parametrize("lockstep", [True, False], ids=["lockstep", "realtime"])
+def test_the_loop_drives_a_replay_device_through_the_interface_alone(lockstep):
+    """ReplayDevice in place of the emulator, the loop's code unchanged: its recorded
+    positions come out as samples, and the feedback comes out as rendered force."""
+    n, period_s = 200, PERIOD_S
+    path_m = recorded_path(n)
+    buttons = [Button.GRIPPER_CLOSE if i >= n // 2 else Button.NONE for i in range(n)]
+    device = ReplayDevice(path_m, period_s, HapticConfig().peak_force_n, buttons)
+    loop, sent, clock = make_loop(device, lockstep=lockstep)
+    force_n = np.array([0.0, 0.0, -1.5])
+    with device:
+        for k in range(n - 1):
+            if lockstep:
+                loop.on_state(plant_state(k))
+                if k == 0:  # the run started: the operator's inputs (a replay ignores them)
+                    for valid_from in range(loop.lead_ticks, n, loop.lead_ticks):
+                        loop.on_hand(hand(valid_from, np.full(3, 0.04)))
+                if k >= 1:
+                    loop.on_feedback(feedback(k, k - 1, force_n), 0)
+            else:
+                loop.on_feedback(feedback(k + 1, k, force_n, tx_ns=clock.now_ns()), clock.now_ns())
+                loop.step_realtime(clock.now_ns())
+                clock.advance(loop.period_ns)
+    assert not device.connected and device.samples_left == 0
+    positions = np.array([s["device_p_m"] for s in sent.samples])
+    np.testing.assert_array_equal(positions, path_m[1:])  # one recorded row per period
+    velocities = np.array([s["device_v_m_s"] for s in sent.samples])
+    np.testing.assert_allclose(velocities, np.diff(path_m, axis=0) / period_s)
+    forces = np.array([s["device_f_n"] for s in sent.samples])
+    first_fed = 1 if lockstep else 0  # lockstep: tick 0 has no feedback to render yet
+    np.testing.assert_allclose(forces[first_fed:], np.tile(force_n, (len(forces) - first_fed, 1)))
+    assert [int(s["buttons"]) for s in sent.samples] == [int(b) for b in buttons[1:]]
+    assert loop.summary()["max_rendered_force_n"] == pytest.approx(1.5)
+
+
+def test_replay_device_saturates_holds_its_last_sample_and_restarts():
+    path_m = recorded_path(3)
+    device = ReplayDevice(path_m, PERIOD_S, peak_force_n=8.0)
+    assert isinstance(device, HapticDevice) and device.read().p_m.tolist() == path_m[0].tolist()
+    device.send_force(np.array([30.0, 40.0, 0.0]))
+    assert np.linalg.norm(device.next_sample(None).f_n) == pytest.approx(8.0)
+    device.next_sample(None)
+    last = device.next_sample(None)  # past the end: rests at the last position
+    np.testing.assert_array_equal(last.p_m, path_m[-1])
+    assert not last.v_m_s.any()
+    device.reset()
+    np.testing.assert_array_equal(device.next_sample(None).p_m, path_m[1])
+    with pytest.raises(ValueError, match="p_m"):
+        ReplayDevice(np.zeros((4, 2)), PERIOD_S, 8.0)
+
+
+def test_replay_device_plays_a_recording_of_haptic_states():
+    records = np.zeros(3, dtype=HAPTIC_STATE.dtype)
+    records["device_p_m"] = recorded_path(3)
+    records["buttons"] = [Button.NONE, Button.GRIPPER_CLOSE, Button.GRIPPER_CLOSE]
+    device = ReplayDevice.from_haptic_states(records, PERIOD_S, peak_force_n=8.0)
+    sample = device.next_sample(None)
+    np.testing.assert_array_equal(sample.p_m, records["device_p_m"][1])
+    assert sample.buttons == Button.GRIPPER_CLOSE
