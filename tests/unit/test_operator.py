@@ -1,0 +1,395 @@
+"""The scripted operator, pure: scenario files (typed loading, repeats), the inverse
+mapping, the closed loop, and the service's decision loop without a bus."""
+
+from __future__ import annotations
+
+import math
+import tomllib
+
+import numpy as np
+import pytest
+
+from teleop.bus.messages import Button, Event
+from teleop.core.config import DEPLOY_DIR, ConfigError, load_config
+from teleop.devices.operator import (
+    HandCommand,
+    ObservationBuffer,
+    OperatorLoop,
+    Phase,
+    Scenario,
+    ScenarioError,
+    ScriptedOperator,
+    Target,
+    critical_gain_per_s,
+    hand_offset_for_velocity,
+    rot_z,
+)
+
+TIMESTEP_S = 0.001
+GRASP_FILE = DEPLOY_DIR / "scenarios" / "grasp.toml"
+CUBE_M = np.array([0.45, -0.25, 0.025])
+BIN_M = np.array([0.35, 0.35, 0.0])
+HOME_TOOL_M = np.array([0.40, 0.0, 0.40])
+GRASP_RADIUS_M = 0.01  # the simulated gripper takes the cube when its centre is this close
+LATENCY_FILE = DEPLOY_DIR / "scenarios" / "latency.toml"
+
+
+def reference_tool_velocity(offset_m, yaw_rad, teleop) -> np.ndarray:
+    """The controller's documented rate mapping, written out independently."""
+    radius = float(np.linalg.norm(offset_m))
+    if radius <= teleop.deadband_m:
+        return np.zeros(3)
+    device_v = teleop.rate_gain_per_s * (radius - teleop.deadband_m) * np.asarray(offset_m) / radius
+    speed = np.linalg.norm(device_v)
+    if speed > teleop.max_tool_speed_m_s:
+        device_v = device_v * teleop.max_tool_speed_m_s / speed
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ device_v
+
+
+def grasp_table() -> dict:
+    return tomllib.loads(GRASP_FILE.read_text())
+
+
+# --- scenario files ------------------------------------------------------------------------
+
+
+def test_grasp_scenario_loads_with_the_task_numbers():
+    scenario = Scenario.load(GRASP_FILE)
+    names = [p.name for p in scenario.phases]
+    assert names == [
+        "approach", "open", "descend", "close", "lift", "carry", "release", "retreat",
+    ]  # fmt: skip
+    by_name = {p.name: p for p in scenario.phases}
+    assert by_name["approach"].target.offset_m == (0.0, 0.0, 0.12)
+    assert by_name["descend"].target.relative_to == "cube"
+    assert by_name["close"].gripper_closed and by_name["close"].dwell_s == 0.6
+    assert by_name["carry"].target.relative_to == "bin" and by_name["carry"].carrying
+    assert not by_name["release"].gripper_closed
+    assert by_name["retreat"].target == Target("tool", (0.0, 0.0, 0.1))
+    assert scenario.anchors == {"cube", "bin"}
+    assert load_config().operator.scenario_path == GRASP_FILE
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda t: t["phase"][2].update(speed=1.0), "phase 2 ('descend'): unknown key(s) speed"),
+        (lambda t: t["phase"][1].pop("target"), "phase 1 ('open'): missing key(s) target"),
+        (lambda t: t["phase"][0].update(tolerance_m=-0.01), "tolerance_m: must be > 0"),
+        (lambda t: t["phase"][0].update(timeout_s="soon"), "timeout_s: expected a number"),
+        (lambda t: t["phase"][3].update(dwell_s=9.0), "dwell_s (9) must be below timeout_s"),
+        (lambda t: t["phase"][0]["target"].update(relative_to="table"), "relative_to 'table'"),
+        (
+            lambda t: t["phase"][0]["target"].update(offset_m=[0, 0]),
+            "phase 0 ('approach').target.offset_m: expected 3 items",
+        ),
+        (lambda t: t["phase"][0]["target"].update(offset_m=[0, 0, math.inf]), "must be finite"),
+        (lambda t: t["phase"][0].update(gripper="half"), "gripper 'half': one of open, closed"),
+        (lambda t: t["task"].pop("max_task_s"), "[task]: missing key(s) max_task_s"),
+        (lambda t: t.update(phases=[]), "unknown key(s) phases"),
+        (lambda t: t.update(phase=[]), "no [[phase]] tables"),
+    ],
+)
+def test_scenario_validation_names_the_problem(edit, message):
+    table = grasp_table()
+    edit(table)
+    with pytest.raises(ScenarioError) as err:
+        Scenario.from_table(table, source="grasp.toml")
+    assert message in str(err.value)
+    assert str(err.value).startswith("grasp.toml: ")
+
+
+def test_scenario_file_errors(tmp_path):
+    with pytest.raises(ScenarioError, match="not found"):
+        Scenario.load(tmp_path / "missing.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[task\n")
+    with pytest.raises(ScenarioError, match="bad.toml"):
+        Scenario.load(bad)
+
+
+# The latency scenario as it was written out before the format had repeats: 90 phases
+# shuttle_0 .. shuttle_89 cycling through four legs (y +-0.2 m, z +-0.03 m from the tool).
+SHUTTLE_LEGS_M = [(0.0, 0.2, 0.03), (0.0, -0.2, 0.03), (0.0, 0.2, -0.03), (0.0, -0.2, -0.03)]
+SHUTTLE_PHASES = 90
+
+
+def test_latency_scenario_expands_to_the_90_shuttle_phases():
+    scenario = Scenario.load(LATENCY_FILE)
+    expected = [
+        Phase(
+            name=f"shuttle_{i}",
+            target=Target("tool", SHUTTLE_LEGS_M[i % 4]),
+            gripper="open",
+            tolerance_m=0.02,
+            timeout_s=20.0,
+            dwell_s=0.0,
+        )
+        for i in range(SHUTTLE_PHASES)
+    ]
+    assert list(scenario.phases) == expected
+    assert (scenario.max_task_s, scenario.held_object, scenario.carry_tolerance_m) == (
+        600.0,
+        "cube",
+        0.03,
+    )
+    assert len(LATENCY_FILE.read_text().splitlines()) < 80
+
+
+def test_repeat_entries_expand_in_place_with_numbered_names():
+    table = grasp_table()
+    first, second = table["phase"][0], table["phase"][1]
+    table["phase"] = [
+        first,
+        {"repeat": 3, "block": [{**second, "name": "a"}, {**second, "name": "b"}]},
+        {**second, "name": "last"},
+    ]
+    names = [p.name for p in Scenario.from_table(table).phases]
+    assert names == ["approach", "a_0", "b_1", "a_2", "last"]
+
+
+@pytest.mark.parametrize(
+    ("entry", "message"),
+    [
+        ({"repeat": 0, "block": [{}]}, "phase 1 (repeat): repeat: must be >= 1"),
+        ({"repeat": 2, "block": []}, "phase 1 (repeat): block: expected at least one"),
+        ({"repeat": 2.5, "block": [{}]}, "phase 1 (repeat).repeat: expected an integer"),
+        ({"repeat": 2}, "phase 1 (repeat): missing key(s) block"),
+        ({"repeat": 2, "block": [{}], "name": "x"}, "phase 1 (repeat): unknown key(s) name"),
+        (
+            {"repeat": 2, "block": [{"name": "leg", "speed": 1}]},
+            "phase 1 (repeat) block 0 ('leg'): unknown key(s) speed",
+        ),
+        (
+            {"repeat": 2, "block": [{"name": "leg", "repeat": 2}]},
+            "phase 1 (repeat) block 0 ('leg'): unknown key(s) repeat",
+        ),
+    ],
+)
+def test_repeat_errors_name_the_entry_and_the_key(entry, message):
+    table = grasp_table()
+    table["phase"] = [table["phase"][0], entry]
+    with pytest.raises(ScenarioError) as err:
+        Scenario.from_table(table, source="s.toml")
+    assert str(err.value).startswith("s.toml: ")
+    assert message in str(err.value)
+
+
+def test_repeated_names_must_stay_unique():
+    table = grasp_table()
+    second = table["phase"][1]
+    table["phase"] = [
+        {**second, "name": "leg_1"},
+        {"repeat": 2, "block": [{**second, "name": "leg"}]},
+    ]
+    with pytest.raises(ScenarioError, match="phase names must be unique"):
+        Scenario.from_table(table)
+
+
+# --- the inverse mapping and the gain ------------------------------------------------------
+
+
+@pytest.mark.parametrize("yaw_rad", [0.0, 0.3, -1.2, math.pi])
+@pytest.mark.parametrize(
+    "world_v", [(0.1, 0.0, 0.0), (0.0, -0.05, 0.02), (0.03, 0.04, -0.12), (0.0, 0.0, 0.002)]
+)
+def test_inverse_mapping_gives_back_the_intended_velocity(yaw_rad, world_v):
+    teleop = load_config().teleop
+    offset = hand_offset_for_velocity(np.array(world_v), yaw_rad, teleop)
+    # Beyond the deadband by exactly speed / gain: the deadband was added back.
+    expected_radius = np.linalg.norm(world_v) / teleop.rate_gain_per_s + teleop.deadband_m
+    assert np.linalg.norm(offset) == pytest.approx(expected_radius)
+    back = reference_tool_velocity(offset, yaw_rad, teleop)
+    np.testing.assert_allclose(back, world_v, atol=1e-12)
+
+
+def test_inverse_mapping_at_rest_and_the_view_rotation():
+    teleop = load_config().teleop
+    assert not hand_offset_for_velocity(np.zeros(3), 0.7, teleop).any()
+    # Looking along +y (yaw 90 deg), "forward" on the handle is world +y.
+    offset = hand_offset_for_velocity(np.array([0.0, 0.1, 0.0]), math.pi / 2, teleop)
+    np.testing.assert_allclose(offset / np.linalg.norm(offset), [1.0, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(rot_z(0.4) @ rot_z(-0.4), np.eye(3), atol=1e-15)
+
+
+def test_critical_gain_limits():
+    assert critical_gain_per_s(0.2, 0.0) == pytest.approx(1 / (math.e * 0.2))
+    assert critical_gain_per_s(0.0, 0.15) == pytest.approx(1 / (4 * 0.15))
+    k = critical_gain_per_s(0.25, 0.15)
+    assert critical_gain_per_s(0.25, 1e-9) > k > critical_gain_per_s(0.25, 0.3)
+    assert k * 0.25 < math.pi / 2 / 4  # far inside the delayed loop's stability bound
+
+
+# --- the closed loop, simulated in Python ------------------------------------------------
+
+
+class IntegratorWorld:
+    """The robot as a pure integrator of the mapped handle velocity.
+
+    Decisions at 100 Hz on 1 kHz ticks, each applied from ``tick + lead`` (plus an optional
+    extra lag standing in for the handle's dynamics); the operator sees every sample
+    ``reaction_delay_s`` late through an :class:`ObservationBuffer`. The cube moves with
+    the tool while the gripper is closed and the cube was within GRASP_RADIUS_M when it
+    closed; ``sag_m_s`` is a downward drift while holding (the cube's weight on the handle).
+    """
+
+    def __init__(self, scenario: Scenario, *, extra_lag_ticks: int = 0, sag_m_s: float = 0.0):
+        cfg = load_config()
+        self.cfg = cfg
+        self.operator = ScriptedOperator(scenario, cfg.operator, cfg.teleop, cfg.haptic, TIMESTEP_S)
+        delay = round(cfg.operator.reaction_delay_s / TIMESTEP_S)
+        self.buffer = ObservationBuffer(("cube", "bin"), delay, cfg.hmd.head_yaw_rad)
+        self.period = round(1.0 / (cfg.operator.decision_rate_hz * TIMESTEP_S))
+        self.lag = self.period + extra_lag_ticks
+        self.sag_m_s = sag_m_s
+        self.tool = HOME_TOOL_M.copy()
+        self.cube = CUBE_M.copy()
+        self.trace: list[tuple[int, int, np.ndarray, float]] = []  # tick, phase, tool, speed
+
+    def yaw(self, tick: int) -> float:
+        """The HMD's slow sway (rad): the operator sees it late, the controller now."""
+        return 0.25 * math.sin(2 * math.pi * tick * TIMESTEP_S / 7.0) + 0.3
+
+    def run(self, max_s: float) -> ScriptedOperator:
+        pending: dict[int, tuple[np.ndarray, Button]] = {}
+        hand, buttons = np.zeros(3), Button.NONE
+        held: np.ndarray | None = None
+        for tick in range(round(max_s / TIMESTEP_S)):
+            if tick % self.period == 0:
+                self.buffer.add_tool(tick, self.tool)
+                self.buffer.add_objects(tick, np.array([self.cube, BIN_M]))
+                self.buffer.add_head(tick, self.yaw(tick))
+                command = self.operator.decide(tick, self.buffer.observe(tick))
+                pending[tick + self.lag] = (command.target_p_m, command.buttons)
+                if command.done:
+                    return self.operator
+            if tick in pending:
+                hand, buttons = pending.pop(tick)
+            v = reference_tool_velocity(hand, self.yaw(tick), self.cfg.teleop)
+            closed = bool(buttons & Button.GRIPPER_CLOSE)
+            if closed and held is None and np.linalg.norm(self.cube - self.tool) < GRASP_RADIUS_M:
+                held = self.cube - self.tool
+            elif not closed and held is not None:
+                held = None
+                self.cube = np.array([*self.cube[:2], BIN_M[2] + 0.035])  # drops onto the floor
+            if held is not None:
+                v = v + np.array([0.0, 0.0, -self.sag_m_s])
+            self.tool = self.tool + v * TIMESTEP_S
+            if held is not None:
+                self.cube = self.tool + held
+            self.trace.append((tick, self.operator.phase, self.tool.copy(), np.linalg.norm(v)))
+        return self.operator
+
+
+@pytest.mark.parametrize(
+    ("extra_lag_ticks", "sag_m_s"), [(0, 0.0), (60, 0.0), (0, 0.03)], ids=["plain", "lag", "sag"]
+)
+def test_operator_plays_the_grasp_task_to_success(extra_lag_ticks, sag_m_s):
+    scenario = Scenario.load(GRASP_FILE)
+    world = IntegratorWorld(scenario, extra_lag_ticks=extra_lag_ticks, sag_m_s=sag_m_s)
+    operator = world.run(scenario.max_task_s + 1.0)
+    assert operator.done and operator.success, operator.failure
+    assert len(operator.phase_start_ticks) == len(scenario.phases)
+    assert np.all(np.diff(operator.phase_start_ticks) > 0)
+    # The cube ended in the bin, and the operator never asked for more than its cap.
+    assert np.all(np.abs(world.cube[:2] - BIN_M[:2]) < 0.09 - 0.025)
+    speeds = np.array([s for *_, s in world.trace])
+    assert speeds.max() <= world.cfg.teleop.max_tool_speed_m_s * 0.8 + 1e-9
+    # The descent never went below the cube centre (the fingertips stay off the table).
+    descend = scenario.phases.index(next(p for p in scenario.phases if p.name == "descend"))
+    z_descend = [tool[2] for _, phase, tool, _ in world.trace if phase == descend]
+    assert min(z_descend) > CUBE_M[2] - 1e-3
+
+
+@pytest.mark.parametrize("extra_lag_ticks", [0, 100])
+def test_delayed_p_loop_converges_without_overshoot(extra_lag_ticks):
+    """One long-dwell phase: the tool must settle on the target from one side only."""
+    table = grasp_table()
+    descend = next(p for p in table["phase"] if p["name"] == "descend")
+    table["phase"] = [{**descend, "tolerance_m": 0.001, "dwell_s": 8.0, "timeout_s": 25.0}]
+    world = IntegratorWorld(Scenario.from_table(table), extra_lag_ticks=extra_lag_ticks)
+    operator = world.run(20.0)
+    tool = np.array([p for _, _, p, _ in world.trace])
+    direction = (CUBE_M - HOME_TOOL_M) / np.linalg.norm(CUBE_M - HOME_TOOL_M)
+    overshoot_m = float(((tool - CUBE_M) @ direction).max())
+    assert overshoot_m < 0.0, f"overshoot {overshoot_m * 1e3:.2f} mm"
+    assert np.linalg.norm(tool[-1] - CUBE_M) < 0.001
+    assert operator.done and operator.success  # the 8 s dwell inside 1 mm completed
+
+
+def test_timeout_ends_the_task_without_success():
+    table = grasp_table()
+    table["phase"][0]["timeout_s"] = 1.0  # the approach takes about 4 s
+    world = IntegratorWorld(Scenario.from_table(table))
+    operator = world.run(10.0)
+    assert operator.done and not operator.success
+    assert "timeout in approach" in operator.failure
+    assert operator.done_tick * TIMESTEP_S == pytest.approx(0.2 + 1.0, abs=0.02)
+
+
+def test_observation_buffer_returns_what_was_seen_a_delay_ago():
+    buffer = ObservationBuffer(("cube", "bin"), delay_ticks=200, default_yaw_rad=0.1)
+    assert buffer.observe(1000) is None
+    for tick in range(0, 1001, 10):
+        buffer.add_tool(tick, [tick * 1e-3, 0, 0])
+        buffer.add_objects(tick, np.array([[0, tick * 1e-3, 0], [1, 1, 0]]))
+    seen = buffer.observe(1005)
+    assert seen.tick == 800 and seen.tool_p_m[0] == pytest.approx(0.8)
+    assert seen.objects_p_m["cube"][1] == pytest.approx(0.8) and seen.view_yaw_rad == 0.1
+    buffer.add_head(790, 0.5)
+    buffer.add_head(812, 0.7)
+    assert buffer.observe(1005).view_yaw_rad == 0.5
+    assert buffer.ready(1005, 790) and not buffer.ready(1005, 801)
+    buffer.add_tool(0, [9, 9, 9])  # a new run: the tool's history starts over
+    assert buffer.observe(1005).tool_p_m[0] == 9
+
+
+# --- the service's decision loop, without a bus -----------------------------------------
+
+
+class Outputs:
+    """OperatorOutputs that keeps what the loop sends."""
+
+    def __init__(self) -> None:
+        self.hands: dict[int, HandCommand] = {}
+        self.events: list[tuple[int, int, int, float]] = []
+
+    def hand(self, valid_from_tick: int, command: HandCommand) -> None:
+        self.hands[valid_from_tick] = command
+
+    def event(self, event: Event, tick: int, step: int, value: float) -> None:
+        self.events.append((int(event), tick, step, value))
+
+
+def test_operator_loop_answers_each_scene_tick_toward_the_cube():
+    """The operator service's decisions (tests/integration/test_operator.py runs the same
+    through a process): one HAND_INPUT per scene tick, valid a decision period later."""
+    config = load_config(None, ['run.mode="lockstep"'])
+    outputs = Outputs()
+    loop = OperatorLoop(config, Scenario.load(GRASP_FILE), outputs, lockstep=True)
+    lead = loop.lead_ticks
+    last_tick = 600
+    for tick in range(0, last_tick + 1, 10):
+        loop.buffer.add_objects(tick, np.array([CUBE_M, BIN_M]))
+        loop.buffer.add_tool(tick, HOME_TOOL_M)
+        loop.on_arrival(tick)
+    assert sorted(outputs.hands) == list(range(lead, last_tick + lead + 1, 10))
+    assert not any(outputs.hands[t + lead].target_p_m.any() for t in range(0, 200, 10))
+    goal = CUBE_M + [0.0, 0.0, 0.12] - HOME_TOOL_M
+    offsets = [outputs.hands[t + lead].target_p_m for t in range(210, last_tick + 1, 10)]
+    for offset in offsets:
+        assert offset @ goal / (np.linalg.norm(offset) * np.linalg.norm(goal)) > 0.999
+    assert np.all(np.diff([np.linalg.norm(o) for o in offsets]) > 0)
+    assert outputs.events == [(int(Event.PHASE), 200, 200, 0.0)]
+    loop.on_arrival(last_tick)  # a re-send
+    loop.on_started()  # the plant's STARTED after this run's poses: a new run
+    summary = loop.summary()
+    assert summary["duplicate_poses"] == 1 and summary["runs"] == 2  # tick 0, then STARTED
+    assert summary["decisions"] == last_tick // 10 + 1 and summary["phases"] == []
+
+
+def test_operator_loop_refuses_decisions_faster_than_the_scene():
+    config = load_config(None, ["operator.decision_rate_hz=200"])
+    with pytest.raises(ConfigError, match="decision_rate_hz"):
+        OperatorLoop(config, Scenario.load(GRASP_FILE), Outputs(), lockstep=False)
