@@ -34,8 +34,9 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from services.eyeview import EyeRenderer, lower_priority
+from services.eyeview import lower_priority
 from teleop.core.config import load_config
+from teleop.viz.eyeview import EyeRenderer
 
 TICK_S = 0.001  # the plant's period
 LATE_S = 0.0009  # a tick this late is an overrun for the plant's loop timer
