@@ -97,7 +97,7 @@ class ControllerService(Service):
             1, round(1.0 / (self.config.control.status_rate_hz * self.timestep_s))
         )
         self.command_pub = self.keep(
-            Publisher.declare(self.session, self.topics.joint_command, JOINT_COMMAND)
+            Publisher.for_stream(self.session, self.topics, "joint_command")
         )
         self._command = JOINT_COMMAND.new()
         self._lock = threading.Lock()
@@ -198,7 +198,7 @@ class PathTask:
         self.metrics = PathMetrics(settle_s=config.run.settle_s)
         assert service.session is not None
         self.status_pub = service.keep(
-            Publisher.declare(service.session, service.topics.control_status, CONTROL_STATUS)
+            Publisher.for_stream(service.session, service.topics, "control_status")
         )
         self._status = CONTROL_STATUS.new()
 
@@ -268,20 +268,13 @@ class TeleopTask:
         )
         self.hmd_lead_ticks = round(config.hmd.prediction_s / service.timestep_s)
         self.stale_ticks = round(config.haptic.stale_feedback_s / service.timestep_s)
-        self.feedback_pub = service.keep(
-            Publisher.declare(session, topics.force_feedback, FORCE_FEEDBACK)
-        )
+        self.feedback_pub = service.keep(Publisher.for_stream(session, topics, "force_feedback"))
         self.feedback_batch = service.keep(  # the recorder's copy, several per message
-            BatchPublisher.declare(
-                session,
-                topics.force_feedback_batch,
-                FORCE_FEEDBACK,
-                config.bus.observer_batch_records,
+            BatchPublisher.for_stream(
+                session, topics, "force_feedback_batch", config.bus.observer_batch_records
             )
         )
-        self.status_pub = service.keep(
-            Publisher.declare(session, topics.teleop_status, TELEOP_STATUS)
-        )
+        self.status_pub = service.keep(Publisher.for_stream(session, topics, "teleop_status"))
         self._feedback = FORCE_FEEDBACK.new()
         self.feedback_count = 0  # FORCE_FEEDBACK records sent (their seq)
         self._status = TELEOP_STATUS.new()
@@ -421,7 +414,7 @@ class TeleopTask:
         t0 = time.monotonic_ns()
         prepared_seq, terms, obstacle = self._prepared
         if prepared_seq != tick:  # not prepared for this state: all of it here
-            terms, obstacle = None, self._proximity_sample(state)
+            terms, obstacle = None, ProximitySample.from_state(state)
         output, gripper_cmd, _, _ = self._control(tick, state, haptic, obstacle, terms)
         service.compute_ns_total += time.monotonic_ns() - t0
         trace = np.zeros(N_STAGES, dtype=np.int64)  # np.zeros_like costs ~10 us here
@@ -449,7 +442,7 @@ class TeleopTask:
         t0 = time.monotonic_ns()
         handle_d_m = np.array(haptic["device_p_m"]) if haptic is not None else np.zeros(3)
         yaw_rad = self._head_yaw_rad(tick)
-        obstacle = self._proximity_sample(state)
+        obstacle = ProximitySample.from_state(state)
         components, device_f_n, held_mass = self._feedback_force(
             state, obstacle, handle_d_m, yaw_rad
         )
@@ -546,7 +539,7 @@ class TeleopTask:
         t0 = time.monotonic_ns()
         if haptic is None:
             self.no_input_cycles += 1
-        obstacle = self._proximity_sample(state)
+        obstacle = ProximitySample.from_state(state)
         output, gripper_cmd, handle_d_m, yaw_rad = self._control(tick, state, haptic, obstacle)
         components, device_f_n, held_mass = self._feedback_force(
             state, obstacle, handle_d_m, yaw_rad
@@ -561,20 +554,6 @@ class TeleopTask:
         self._measure(output, components, device_f_n, held_mass)
         if tick % service.status_every_steps == 0:
             self._publish_status(tick, state, output, held_mass > 0)
-
-    @staticmethod
-    def _proximity_sample(state: np.ndarray) -> ProximitySample | None:
-        """The closest obstacle in ``state`` (PLANT_STATE); None when none is in reach."""
-        if int(state["obstacle_geom"]) < 0:
-            return None
-        return ProximitySample(
-            distance_m=float(state["distance_m"]),
-            world_p_arm_m=np.array(state["world_p_arm_m"]),
-            world_p_obstacle_m=np.array(state["world_p_obstacle_m"]),
-            world_n_away=np.array(state["world_n_away"]),
-            arm_body=int(state["arm_body"]),
-            obstacle=int(state["obstacle_geom"]),
-        )
 
     def _publish_feedback(
         self,

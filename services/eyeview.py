@@ -33,7 +33,6 @@ import time
 from typing import Any
 
 import numpy as np
-import zenoh
 
 from shm.provider import get_provider
 from teleop.bus.messages import (
@@ -124,16 +123,9 @@ class EyeViewService(Service):
         )
         self.keep(subscribe(self.session, self.topics.head_pose, HEAD_POSE, self.heads, self.drops))
         shm = get_provider(self.config.bus.shm_pool_bytes) if self.config.bus.shm else None
-        # A viewer stream: DROP rather than block a slow receiver, below the control traffic.
+        # A viewer stream (teleop.bus.graph): dropped rather than blocking a slow receiver.
         self.frame_pub = self.keep(
-            Publisher.declare(
-                self.session,
-                self.topics.eye_view,
-                EYE_VIEW,
-                shm=shm,
-                priority=zenoh.Priority.DATA_LOW,
-                congestion_control=zenoh.CongestionControl.DROP,
-            )
+            Publisher.for_stream(self.session, self.topics, "eye_view", shm=shm)
         )
         self._frame = EYE_VIEW.new()
         self._frame["width_px"] = eye.width_px

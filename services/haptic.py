@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from teleop.bus.messages import FORCE_FEEDBACK, HAND_INPUT, HAPTIC_STATE, PLANT_STATE
+from teleop.bus.messages import FORCE_FEEDBACK, HAND_INPUT, PLANT_STATE
 from teleop.bus.service import Service, service_main
 from teleop.bus.session import BatchPublisher, Publisher, subscribe
 from teleop.core.clock import MonotonicClock
@@ -42,15 +42,10 @@ class HapticService(Service):
         self.device = EmulatedDevice(cfg.haptic, cfg.plant.timestep_s)
         self.device.connect()
         self.loop = HapticLoop(cfg, self.device, self, MonotonicClock(), lockstep=self.lockstep)
-        self.state_pub = self.keep(
-            Publisher.declare(self.session, self.topics.haptic_state, HAPTIC_STATE)
-        )
+        self.state_pub = self.keep(Publisher.for_stream(self.session, self.topics, "haptic_state"))
         self.state_batch = self.keep(  # the recorder's copy, several samples per message
-            BatchPublisher.declare(
-                self.session,
-                self.topics.haptic_state_batch,
-                HAPTIC_STATE,
-                cfg.bus.observer_batch_records,
+            BatchPublisher.for_stream(
+                self.session, self.topics, "haptic_state_batch", cfg.bus.observer_batch_records
             )
         )
         topics, drops = self.topics, self.drops

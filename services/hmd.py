@@ -36,7 +36,7 @@ class HmdService(Service):
         assert self.session is not None
         self.loop = HmdLoop(self.config)
         self.timestep_ns = round(self.config.plant.timestep_s * NS_PER_S)
-        self.pose_pub = self.keep(Publisher.declare(self.session, self.topics.head_pose, HEAD_POSE))
+        self.pose_pub = self.keep(Publisher.for_stream(self.session, self.topics, "head_pose"))
         self._record = HEAD_POSE.new()
         self._lock = threading.Lock()
         self.published = 0

@@ -42,10 +42,8 @@ class OperatorService(Service):
         self.timestep_ns = round(cfg.plant.timestep_s * NS_PER_S)
         self.scenario = Scenario.load(cfg.operator.scenario_path, cfg.robot.object_bodies)
         self.loop = OperatorLoop(cfg, self.scenario, self, lockstep=cfg.run.mode == "lockstep")
-        self.hand_pub = self.keep(
-            Publisher.declare(self.session, self.topics.hand_input, HAND_INPUT)
-        )
-        self.events_pub = self.keep(Publisher.declare(self.session, self.topics.events, RUN_EVENT))
+        self.hand_pub = self.keep(Publisher.for_stream(self.session, self.topics, "hand_input"))
+        self.events_pub = self.keep(Publisher.for_stream(self.session, self.topics, "events"))
         self._hand = HAND_INPUT.new()
         self._event = RUN_EVENT.new()
         # Tool-pose ticks and new-run markers, in arrival order, for the run thread.

@@ -53,21 +53,13 @@ import PIL.Image
 import rerun as rr
 import zenoh
 
+from teleop.bus import graph
 from teleop.bus.messages import (
-    CONTROL_STATUS,
     EYE_VIEW,
-    FORCE_FEEDBACK,
-    HAND_INPUT,
-    HAPTIC_STATE,
-    HEAD_POSE,
     MAX_JOINTS,
     MAX_OBJECTS,
-    OBJECT_POSES,
-    PLANT_STATE,
-    RUN_EVENT,
-    TELEOP_STATUS,
-    TOOL_POSE,
     Event,
+    FrameSchema,
     Kind,
     Schema,
     Stage,
@@ -187,33 +179,20 @@ EVENT_LEVELS: Mapping[Event, str] = {
 # TASK_DONE's value: 1 success, 0 the operator gave up.
 TASK_OUTCOMES: Mapping[bool, str] = {True: "success", False: "gave up"}
 
-# Every stream of the Topics registry with its schema; the name is the Topics attribute
-# and the key of the per-stream counters in the summary.
-STREAM_SCHEMAS: Mapping[str, Schema] = {
-    "plant_state": PLANT_STATE,
-    "tool_pose": TOOL_POSE,
-    "objects": OBJECT_POSES,
-    "control_status": CONTROL_STATUS,
-    "events": RUN_EVENT,
-    "haptic_state": HAPTIC_STATE,
-    "hand_input": HAND_INPUT,
-    "force_feedback": FORCE_FEEDBACK,
-    "head_pose": HEAD_POSE,
-    "teleop_status": TELEOP_STATUS,
-}
-# Streams the recorder takes from their observers' copy (several records per message):
-# stream name -> Topics attribute of the copy.
-BATCHED_STREAMS: Mapping[str, str] = {
-    "plant_state": "plant_state_batch",
-    "haptic_state": "haptic_state_batch",
-    "force_feedback": "force_feedback_batch",
-}
+# The record streams the recorder takes (teleop.bus.graph: it is among their consumers;
+# image frames come on a subscription of their own), in the graph's order.
+_RECORDED = [
+    s for s in graph.STREAMS if "recorder" in s.consumers and not isinstance(s.schema, FrameSchema)
+]
+# Every stream logged, by name (a Topics attribute, and the key of the per-stream counters in
+# the summary), with its schema: a batched copy is logged under the stream it copies.
+STREAM_SCHEMAS: Mapping[str, Schema] = {s.batch_of or s.name: s.schema for s in _RECORDED}
+# Streams the recorder takes from their observers' copy: stream name -> name of the copy.
+BATCHED_STREAMS: Mapping[str, str] = {s.batch_of: s.name for s in _RECORDED if s.batch_of}
 # Periodic streams: their loop rate is logged and their seq checked for gaps and restarts.
-# RUN_EVENT is sporadic and has several producers, each with its own counter.
-PERIODIC_STREAMS = frozenset(STREAM_SCHEMAS) - {"events"}
-# Of those, the streams whose seq goes up by one per record: CONTROL_STATUS carries the
-# controller's cycle counter (one record per status period), so it is not checked.
-SEQ_CHECKED_STREAMS = PERIODIC_STREAMS - {"control_status"}
+PERIODIC_STREAMS = frozenset(n for n in STREAM_SCHEMAS if graph.stream(n).periodic)
+# Of those, the streams whose seq goes up by one per record (not a cycle counter).
+SEQ_CHECKED_STREAMS = frozenset(n for n in PERIODIC_STREAMS if graph.stream(n).seq_per_record)
 
 
 def wxyz_to_xyzw(q_wxyz: np.ndarray) -> np.ndarray:

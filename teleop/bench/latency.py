@@ -447,7 +447,7 @@ def run_floor(
     """The bare relay chain under supervisord: paced, back to back, then the sweep.
 
     Each relay runs on the CPUs and under the scheduling of the service whose place it
-    takes (:data:`teleop.core.config.FLOOR_STAND_INS`).
+    takes (:data:`teleop.bench.relay.FLOOR_STAND_INS`).
     """
     run_dir = run_dir.absolute()
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -460,7 +460,11 @@ def run_floor(
     programs = []
     for relay in RELAYS:
         command = service_command(
-            relay.name, run_dir, config_file, [*relay_overrides, *mesh[relay.name]]
+            relay.name,
+            run_dir,
+            config_file,
+            [*relay_overrides, *mesh[relay.name]],
+            module=("teleop.bench.relay", relay.name),
         )
         programs.append(
             Program(name=relay.name, command=command, environment=dict(SERVICE_ENVIRONMENT))

@@ -21,9 +21,10 @@ completed traces.
 from __future__ import annotations
 
 import struct
+import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -32,9 +33,9 @@ import zenoh
 
 from shm.provider import SHM_THRESHOLD_BYTES, get_provider, publish_bytes
 from teleop.bus.messages import N_STAGES, Stage
-from teleop.bus.service import Service
+from teleop.bus.service import Service, service_main
 from teleop.bus.stamps import StampLog
-from teleop.bus.topics import Topics
+from teleop.bus.topics import ROOT, Topics
 from teleop.core.clock import LoopTimer, MonotonicClock
 
 # Payload prefix: seq (u8) and the trace stamps (i8 each), same indices as the header's.
@@ -121,13 +122,15 @@ class RelayService(Service):
             out = self.keep(
                 RawPublisher(
                     self.session,
-                    self.topics.floor(route.out_leg),
+                    floor_key(self.topics.robot_id, route.out_leg),
                     bus.shm_pool_bytes if bus.shm else None,
                 )
             )
             self.keep(
                 subscribe_raw(
-                    self.session, self.topics.floor(route.in_leg), self._forward(route, out)
+                    self.session,
+                    floor_key(self.topics.robot_id, route.in_leg),
+                    self._forward(route, out),
                 )
             )
         self.announce()
@@ -157,6 +160,7 @@ class ControllerRelay(RelayService):
     """The controller's place: haptic -> command, and state -> feedback."""
 
     name = "relay_controller"
+    scheduling_as = "controller"
     ROUTES = (
         Route(LEG_HAPTIC, LEG_COMMAND, (Stage.CONTROLLER_RX,), Stage.CONTROLLER_TX),
         Route(LEG_STATE, LEG_FEEDBACK, (Stage.CONTROLLER_STATE_RX,), Stage.FEEDBACK_TX),
@@ -167,12 +171,23 @@ class PlantRelay(RelayService):
     """The plant's place: command -> state (applied the moment it arrives: no step)."""
 
     name = "relay_plant"
+    scheduling_as = "plant"
     ROUTES = (
         Route(LEG_COMMAND, LEG_STATE, (Stage.PLANT_RX, Stage.PLANT_APPLIED), Stage.PLANT_STATE_TX),
     )
 
 
 RELAYS: tuple[type[RelayService], ...] = (ControllerRelay, PlantRelay)
+# Each relay and the service whose place (CPUs, scheduling) it takes in the loop.
+FLOOR_STAND_INS: Mapping[str, str] = {relay.name: relay.scheduling_as for relay in RELAYS}
+
+
+def floor_key(robot_id: str, leg: str) -> str:
+    """Key of one leg of the floor's relay chain, e.g. ``teleop/arm0/floor/command``:
+    under the robot's keys (same session config and QoS), apart from its real streams."""
+    if not leg or any(c in leg for c in "/*$?#"):
+        raise ValueError(f"leg name {leg!r}: non-empty, one key chunk")
+    return f"{ROOT}/{robot_id}/floor/{leg}"
 
 
 class FloorOrigin:
@@ -183,7 +198,7 @@ class FloorOrigin:
     """
 
     def __init__(self, session: zenoh.Session, topics: Topics, shm_pool_bytes: int | None) -> None:
-        self._pub = RawPublisher(session, topics.floor(LEG_HAPTIC), shm_pool_bytes)
+        self._pub = RawPublisher(session, floor_key(topics.robot_id, LEG_HAPTIC), shm_pool_bytes)
         self._cond = threading.Condition()
         self._last_seq = -1
         self.trace_log = StampLog(N_STAGES)
@@ -191,7 +206,9 @@ class FloorOrigin:
         self.received = 0
         self.reordered = 0
         self._recording = True
-        self._sub = subscribe_raw(session, topics.floor(LEG_FEEDBACK), self._on_return)
+        self._sub = subscribe_raw(
+            session, floor_key(topics.robot_id, LEG_FEEDBACK), self._on_return
+        )
 
     def _on_return(self, data: bytes, rx_ns: int) -> None:
         if len(data) < FLOOR_PREFIX_BYTES:
@@ -260,3 +277,17 @@ class FloorOrigin:
     def close(self) -> None:
         self._sub.undeclare()
         self._pub.undeclare()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m teleop.bench.relay RELAY [service options]``: one relay process."""
+    args = sys.argv[1:] if argv is None else argv
+    relays = {relay.name: relay for relay in RELAYS}
+    if not args or args[0] not in relays:
+        print(f"usage: python -m teleop.bench.relay {{{','.join(relays)}}} [options]")
+        return 2
+    return service_main(relays[args[0]], args[1:])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -72,6 +72,9 @@ class Service:
     """Base of every service: a Zenoh session, a liveliness token, drop counters."""
 
     name: ClassVar[str] = "service"
+    # The service whose CPUs and scheduling this process takes (empty: its own name's):
+    # a stand-in, such as a relay of the latency floor, runs where the real one runs.
+    scheduling_as: ClassVar[str] = ""
 
     def __init__(self, config: Config, options: ServiceOptions | None = None) -> None:
         self.config = config
@@ -286,8 +289,9 @@ def service_main(service_class: type[Service], argv: list[str] | None = None) ->
         peers=tuple(s for s in args.peers.split(",") if s),
         continuous=args.continuous,
     )
-    pin_to_cpus(config.cpu.for_service(service_class.name, config.run.mode))
-    fifo_priority = config.cpu.fifo_priority_for(service_class.name, config.run.mode)
+    scheduled_as = service_class.scheduling_as or service_class.name
+    pin_to_cpus(config.cpu.for_service(scheduled_as, config.run.mode))
+    fifo_priority = config.cpu.fifo_priority_for(scheduled_as, config.run.mode)
     stop = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:

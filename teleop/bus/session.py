@@ -23,6 +23,7 @@ import zenoh
 from zenoh.shm import ShmProvider
 
 from shm.provider import SHM_THRESHOLD_BYTES, publish_bytes
+from teleop.bus import graph
 from teleop.bus.messages import DecodeError, DropCounter, FrameSchema, Schema
 from teleop.bus.topics import Topics
 from teleop.core.config import BusConfig
@@ -148,15 +149,37 @@ class Publisher:
         express: bool = True,
         priority: zenoh.Priority = zenoh.Priority.REAL_TIME,
         congestion_control: zenoh.CongestionControl = zenoh.CongestionControl.BLOCK,
+        reliability: zenoh.Reliability = zenoh.Reliability.RELIABLE,
     ) -> Publisher:
         pub = session.declare_publisher(
             key,
             congestion_control=congestion_control,
             priority=priority,
             express=express,
-            reliability=zenoh.Reliability.RELIABLE,
+            reliability=reliability,
         )
         return cls(pub, schema, shm)
+
+    @classmethod
+    def for_stream(
+        cls, session: zenoh.Session, topics: Topics, name: str, *, shm: ShmProvider | None = None
+    ) -> Publisher:
+        """A publisher of the graph's stream ``name`` (teleop.bus.graph): its key, record
+        kind and QoS as the graph describes them."""
+        stream = graph.stream(name)
+        qos = stream.qos
+        return cls.declare(
+            session,
+            getattr(topics, name),
+            stream.schema,
+            shm=shm,
+            express=qos.express,
+            priority=getattr(zenoh.Priority, qos.priority),
+            congestion_control=getattr(zenoh.CongestionControl, qos.congestion_control),
+            reliability=zenoh.Reliability.RELIABLE
+            if qos.reliable
+            else zenoh.Reliability.BEST_EFFORT,
+        )
 
     @property
     def key(self) -> str:
@@ -267,15 +290,13 @@ class BatchPublisher:
         self._pending: list[bytes] = []
 
     @classmethod
-    def declare(
-        cls,
-        session: zenoh.Session,
-        key: str,
-        schema: Schema,
-        records_per_message: int,
+    def for_stream(
+        cls, session: zenoh.Session, topics: Topics, name: str, records_per_message: int
     ) -> BatchPublisher:
-        publisher = Publisher.declare(session, key, schema, priority=zenoh.Priority.DATA)
-        return cls(publisher, records_per_message)
+        """The batched copy ``name`` of a stream (its ``batch_of`` in teleop.bus.graph)."""
+        if not graph.stream(name).batch_of:
+            raise ValueError(f"{name} is not a batched stream of the graph")
+        return cls(Publisher.for_stream(session, topics, name), records_per_message)
 
     def add(self, data: bytes) -> None:
         """Keep one encoded record; send the message once it is full."""

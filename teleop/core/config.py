@@ -404,11 +404,6 @@ class OperatorConfig:
         return REPO_ROOT / candidate
 
 
-# The latency floor's relays (teleop/relay.py) and the services whose places they take in
-# the loop: a relay gets its service's CPUs, so the floor runs under the stack's layout.
-FLOOR_STAND_INS: Mapping[str, str] = {"relay_controller": "controller", "relay_plant": "plant"}
-
-
 @dataclass(frozen=True)
 class CpuConfig:
     """CPU affinity of the services (CPU numbers; empty = let the kernel choose).
@@ -445,8 +440,7 @@ class CpuConfig:
     # Needs CAP_SYS_NICE (root has it); without it a warning says so and the service
     # runs normally scheduled.
     fifo_priority: int = 40
-    # Which processes get it: the loop services (and the relays of the latency floor that
-    # stand in for them: the floor is measured under the same scheduling).
+    # Which processes get it: the loop services.
     fifo_services: tuple[str, ...] = ("plant", "controller", "haptic")
     # Realtime runs: one spinner per CPU (teleop/idle_poll.py: SCHED_IDLE in a CPU cgroup
     # marked idle) so the idle CPUs poll instead of halting. On this KVM guest a halted
@@ -468,9 +462,7 @@ class CpuConfig:
         _require(0 <= self.fifo_priority <= 99, "cpu.fifo_priority in [0, 99]")
 
     def for_service(self, service: str, mode: str) -> tuple[int, ...]:
-        """The CPUs of ``service`` in timing ``mode`` (empty: the kernel's choice); a relay
-        of the latency floor runs where the service whose place it takes runs."""
-        service = FLOOR_STAND_INS.get(service, service)
+        """The CPUs of ``service`` in timing ``mode`` (empty: the kernel's choice)."""
         if service == "recorder" and mode == "lockstep":
             return self.recorder_lockstep
         return tuple(getattr(self, service, ()))
@@ -481,7 +473,6 @@ class CpuConfig:
 
     def fifo_priority_for(self, service: str, mode: str) -> int:
         """SCHED_FIFO priority of ``service`` in timing ``mode``; 0: normal scheduling."""
-        service = FLOOR_STAND_INS.get(service, service)
         if mode != "realtime" or service not in self.fifo_services:
             return 0
         return self.fifo_priority

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from teleop.bus import graph
 from teleop.bus.messages import RUN_EVENT, TOOL_POSE, DropCounter, Event
 from teleop.bus.session import (
     Latest,
@@ -45,28 +46,16 @@ from teleop.run.experiments import PROGRESS_FRACTION, ProgressFn
 from teleop.run.idle_poll import POLLING, read_status
 from teleop.run.supervise import Program, Stack
 
-# The processes of each scenario; the plant comes first and waits for all the others.
-SCENARIO_SERVICES = {
-    "path-following": ("plant", "controller", "recorder"),
-    "grasp": ("plant", "controller", "haptic", "hmd", "operator", "recorder"),
-}
-# The operator's eye view renders in a process of its own (see teleop/eyeview.py for why
-# not a thread in the plant); it joins the stack of any scenario when eyeview.enabled.
+# The operator's eye view renders in a process of its own (see services/eyeview.py for
+# why not a thread in the plant); it joins the stack of any scenario when eyeview.enabled.
 EYEVIEW = "eyeview"
-# Keeps the idle CPUs polling in realtime runs (teleop/idle_poll.py): not a bus service.
+# Keeps the idle CPUs polling in realtime runs (teleop/run/idle_poll.py): not a bus service.
 IDLE_POLL = "idle_poll"
+# Start order (supervisord priority: lower first) of the bus services, from the graph;
+# they still wait on liveliness.
+PRIORITY = {spec.name: spec.start_priority for spec in graph.SERVICES}
 IDLE_POLL_PRIORITY = 1  # before every service, and stopped after them
 RUNNER = "runner"
-# Start order (supervisord priority: lower first); services still wait on liveliness.
-PRIORITY = {
-    "recorder": 10,
-    "controller": 20,
-    "haptic": 20,
-    "hmd": 20,
-    "operator": 20,
-    "eyeview": 20,
-    "plant": 30,
-}
 # Environment of every service: no telemetry, headless rendering, unbuffered logs.
 SERVICE_ENVIRONMENT = {
     "RERUN_ANALYTICS": "0",
@@ -87,7 +76,7 @@ RUN_TIMEOUT_SLACK_S = 30.0
 def scenario_services(config: Config) -> tuple[str, ...]:
     """The processes of ``config.run.scenario``, plus the eye view when it is enabled
     (in realtime runs; in lockstep ones only with ``eyeview.in_lockstep``)."""
-    services = SCENARIO_SERVICES[config.run.scenario]
+    services = graph.scenario_services(config.run.scenario)
     eye = config.eyeview
     if eye.enabled and (config.run.mode == "realtime" or eye.in_lockstep):
         return (*services, EYEVIEW)
@@ -135,11 +124,17 @@ def peer_mesh(names: Sequence[str], listener: str | None) -> dict[str, list[str]
 
 
 def service_command(
-    name: str, run_dir: Path, config_file: Path | None, overrides: Sequence[str]
+    name: str,
+    run_dir: Path,
+    config_file: Path | None,
+    overrides: Sequence[str],
+    module: Sequence[str] = (),
 ) -> list[str]:
-    """``python -m services.<name>`` with the run's directory, config file and ``--set``
-    overrides: how a launcher starts a bus service or a relay."""
-    command = [sys.executable, "-m", f"services.{name}", "--run-dir", str(run_dir)]
+    """``python -m services.<name>`` (or ``python -m <module...>``) with the run's
+    directory, config file and ``--set`` overrides: how a launcher starts a process of
+    the service lifecycle (teleop.bus.service.service_main)."""
+    entry = list(module) or [f"services.{name}"]
+    command = [sys.executable, "-m", *entry, "--run-dir", str(run_dir)]
     if config_file is not None:
         command += ["--config", str(Path(config_file).absolute())]
     for override in overrides:

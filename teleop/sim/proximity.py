@@ -53,6 +53,30 @@ class ProximitySample:
         """True when an obstacle was found within the search distance."""
         return self.obstacle >= 0
 
+    def write_to(self, state: np.ndarray) -> None:
+        """Fill the proximity fields of a PLANT_STATE record (the plant's half)."""
+        state["distance_m"] = self.distance_m
+        state["world_p_arm_m"] = self.world_p_arm_m
+        state["world_p_obstacle_m"] = self.world_p_obstacle_m
+        state["world_n_away"] = self.world_n_away
+        state["arm_body"] = self.arm_body
+        state["obstacle_geom"] = self.obstacle
+
+    @classmethod
+    def from_state(cls, state: np.ndarray) -> ProximitySample | None:
+        """The closest obstacle a PLANT_STATE record carries (the controller's half);
+        None when none is in reach."""
+        if int(state["obstacle_geom"]) < 0:
+            return None
+        return cls(
+            distance_m=float(state["distance_m"]),
+            world_p_arm_m=np.array(state["world_p_arm_m"]),
+            world_p_obstacle_m=np.array(state["world_p_obstacle_m"]),
+            world_n_away=np.array(state["world_n_away"]),
+            arm_body=int(state["arm_body"]),
+            obstacle=int(state["obstacle_geom"]),
+        )
+
 
 def _natural_key(name: str) -> list[int | str]:
     """Sort key that puts obstacle_2 before obstacle_10."""

@@ -91,10 +91,10 @@ class Loop:
         self.services: tuple[Service, ...] = (self.plant, self.controller, self.haptic)
         for service in self.services:
             service.open()
-        self.plant.begin_run()
-        self.plant.begin_on_arrival(None)
-        self.plant._publish_state(None, 0, 0)  # state 0: the first sample is answered on it
-        state = self.plant._state.tobytes()
+        self.plant.loop.begin_run(None)
+        self.plant.loop.begin_on_arrival()
+        self.plant.loop._publish_state(None, 0, 0)  # state 0: the first sample is answered on it
+        state = self.plant.loop._state.tobytes()
         deliver(
             state,
             time.monotonic_ns(),
@@ -108,7 +108,7 @@ class Loop:
         feedback's stamps as rendered, which carry the whole chain's)."""
         controller, plant, haptic = self.controller, self.plant, self.haptic
         between()  # the device samples the handle on the plant's grid
-        deadline_ns = plant._grid.next_ns if plant._grid is not None else 0
+        deadline_ns = plant.loop.grid.next_ns if plant.loop.grid is not None else 0
         loop = haptic.loop
         with loop.cond:
             loop._step(max(loop._state_seq, 0), 0, None, time.monotonic_ns(), deadline_ns)
@@ -123,7 +123,7 @@ class Loop:
         command = controller._command.tobytes()
         between()
         deliver(command, time.monotonic_ns(), JOINT_COMMAND, plant._on_command, plant.drops)
-        state = plant._state.tobytes()
+        state = plant.loop._state.tobytes()
         between()
         deliver(state, time.monotonic_ns(), PLANT_STATE, controller._on_state, controller.drops)
         feedback = controller.task._feedback.tobytes()

@@ -349,7 +349,7 @@ def test_batch_publisher_delivers_every_record_in_order_and_drops_bad_batches():
     sub = bus.subscribe(
         listener, topics.plant_state_batch, m.PLANT_STATE, on_record, drops, batched=True
     )
-    batch = bus.BatchPublisher.declare(session, topics.plant_state_batch, m.PLANT_STATE, 3)
+    batch = bus.BatchPublisher.for_stream(session, topics, "plant_state_batch", 3)
     raw = bus.Publisher.declare(session, topics.plant_state_batch, m.PLANT_STATE)
     try:
         assert raw.wait_matched(TIMEOUT_S)

@@ -16,24 +16,17 @@ import json
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from services.plant import (
-    CATCH_UP_MAX_PERIODS,
-    OWN_STEP_AFTER_PERIODS,
-    DeviceClockGrid,
-    PlantService,
-)
 from teleop.bench import latency
-from teleop.bus.messages import JOINT_COMMAND, N_STAGES, Stage
-from teleop.bus.service import ServiceOptions
+from teleop.bench.relay import FLOOR_STAND_INS
+from teleop.bus.messages import N_STAGES, Stage
 from teleop.bus.stamps import StampLog
 from teleop.core.clock import NS_PER_S, NS_PER_US
-from teleop.core.config import FLOOR_STAND_INS, load_config
+from teleop.core.config import load_config
 from teleop.core.rundir import HAPTIC_SAMPLES_FILE, HAPTIC_TRACE_FILE
 
 # HDR histograms keep 3 significant digits: a percentile is within this fraction of the
@@ -140,75 +133,6 @@ def test_stamp_log_grows_saves_and_stays_bounded(tmp_path):
     assert log.overflow == 2
     log.save(tmp_path / "x.npy")
     np.testing.assert_array_equal(np.load(tmp_path / "x.npy"), log.rows)
-
-
-def test_device_clock_grid_steps_each_device_period_once():
-    grid = DeviceClockGrid(PERIOD_NS, start_ns=0)
-    assert not grid.locked and grid.own_step_ns == OWN_STEP_AFTER_PERIODS * PERIOD_NS
-    deadline_ns = 10_000_000  # the device's period, not the arrival time
-    grid.lock(deadline_ns)
-    assert grid.periods_ahead(deadline_ns) == 0
-    grid.stepped()
-    # The next device period is the next step's, whatever the arrival jitter.
-    assert grid.periods_ahead(deadline_ns + PERIOD_NS) == 0
-    # A command of a period already stepped is late; one two periods on has a gap.
-    assert grid.periods_ahead(deadline_ns) == -1
-    assert grid.periods_ahead(deadline_ns + 3 * PERIOD_NS) == 2
-    # Without a command, the plant steps the period itself a fixed time after it began.
-    assert grid.own_step_ns == deadline_ns + (1 + OWN_STEP_AFTER_PERIODS) * PERIOD_NS
-    grid.skip(3)  # a stall
-    assert grid.skipped == 3 and grid.periods_ahead(deadline_ns + 4 * PERIOD_NS) == 0
-    with pytest.raises(ValueError):
-        DeviceClockGrid(0, 0)
-
-
-def _plant_with_grid() -> PlantService:
-    """A realtime teleoperation plant, open but not run, stepping commands on arrival."""
-    config = load_config(None, ['run.scenario="grasp"', 'bus.endpoint="tcp/127.0.0.1:0"'])
-    plant = PlantService(config, ServiceOptions(listen=True))
-    plant.open()
-    plant.begin_on_arrival(None)
-    return plant
-
-
-def _command(seq: int, deadline_ns: int) -> np.ndarray:
-    rec = JOINT_COMMAND.new()
-    rec["seq"] = seq
-    rec["n_joints"] = 6
-    rec["device_deadline_ns"] = deadline_ns
-    now_ns = time.monotonic_ns()
-    rec["trace_ns"][Stage.HAPTIC_SAMPLE] = now_ns
-    rec["trace_ns"][Stage.CONTROLLER_TX] = now_ns
-    return rec
-
-
-def test_plant_steps_once_per_device_period_and_never_runs_ahead():
-    """Commands step at once; a late one merges, a gap is filled, sim time = device time."""
-    plant = _plant_with_grid()
-    try:
-        t0_ns = time.monotonic_ns()
-        plant._arrival_command(_command(1, t0_ns), t0_ns)
-        assert plant.plant.step_count == 1 and plant.steps_on_arrival == 1
-        # The next period's command: one more step, on arrival.
-        plant._arrival_command(_command(2, t0_ns + PERIOD_NS), t0_ns)
-        assert plant.plant.step_count == 2
-        # A late command (its period was already stepped) takes no step of its own.
-        plant._arrival_command(_command(3, t0_ns + PERIOD_NS), t0_ns)
-        assert plant.plant.step_count == 2 and plant.commands_late == 1
-        # A command two periods on: the period in between (no command) is stepped first.
-        plant._arrival_command(_command(4, t0_ns + 3 * PERIOD_NS), t0_ns)
-        assert plant.plant.step_count == 4 and plant.steps_without_command == 1
-        # After a long gap only CATCH_UP_MAX_PERIODS are stepped back to back.
-        plant._arrival_command(_command(5, t0_ns + 20 * PERIOD_NS), t0_ns)
-        assert plant.plant.step_count == 5 + CATCH_UP_MAX_PERIODS
-        assert plant._grid.skipped == 20 - 4 - CATCH_UP_MAX_PERIODS
-        # Sim time is the device's clock: one period per device period since the first.
-        assert plant._grid.periods_ahead(t0_ns + 21 * PERIOD_NS) == 0
-        # A restarted device (its clock far from the plant's) re-locks the grid.
-        plant._arrival_command(_command(6, t0_ns + 5000 * PERIOD_NS), t0_ns)
-        assert plant._grid.locks == 2
-    finally:
-        plant.close()
 
 
 # -- real processes -----------------------------------------------------------------------

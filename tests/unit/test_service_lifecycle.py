@@ -5,7 +5,8 @@ from __future__ import annotations
 import logging
 import os
 
-from teleop.bus.service import fifo_scheduling, pin_to_cpus
+from teleop.bench.relay import FLOOR_STAND_INS, RELAYS, PlantRelay
+from teleop.bus.service import Service, fifo_scheduling, pin_to_cpus
 from teleop.core.clock import FINE_SLEEP_MARGIN_NS, MonotonicClock
 from teleop.core.config import load_config
 
@@ -46,7 +47,7 @@ def test_fifo_scheduling_applies_inside_the_block_and_restores_after(caplog):
 def test_fifo_priority_goes_to_the_loop_services_in_realtime_only():
     cpu = load_config(None, []).cpu
     assert cpu.fifo_priority > 0
-    for name in ("plant", "controller", "haptic", "relay_plant", "relay_controller"):
+    for name in ("plant", "controller", "haptic"):
         assert cpu.fifo_priority_for(name, "realtime") == cpu.fifo_priority
         assert cpu.fifo_priority_for(name, "lockstep") == 0
     for name in ("recorder", "eyeview", "hmd", "operator"):
@@ -57,9 +58,6 @@ def test_fifo_priority_goes_to_the_loop_services_in_realtime_only():
 
 
 def test_the_floor_relays_run_where_the_services_they_stand_in_for_run():
-    cpu = load_config(None, ["cpu.plant=[1]", "cpu.controller=[0]"]).cpu
-    assert cpu.for_service("relay_plant", "realtime") == (1,)
-    assert cpu.for_service("relay_controller", "realtime") == (0,)
-    cpu = load_config(None, ['cpu.fifo_services=["plant"]']).cpu
-    assert cpu.fifo_priority_for("relay_plant", "realtime") == cpu.fifo_priority
-    assert cpu.fifo_priority_for("relay_controller", "realtime") == 0
+    assert FLOOR_STAND_INS == {"relay_controller": "controller", "relay_plant": "plant"}
+    assert {relay.name: relay.scheduling_as for relay in RELAYS} == FLOOR_STAND_INS
+    assert PlantRelay.scheduling_as == "plant" and Service.scheduling_as == ""

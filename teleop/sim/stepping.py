@@ -1,0 +1,747 @@
+"""The plant's loop as pure code: MuJoCo stepped at 1 kHz in realtime or lockstep.
+
+:class:`PlantLoop` takes the JOINT_COMMAND records the plant service receives, steps the
+:class:`teleop.sim.plant.Plant`, and hands every record it fills (PLANT_STATE, TOOL_POSE,
+OBJECT_POSES, RUN_EVENT) to :class:`PlantOutputs`. Time comes from an injected
+:class:`teleop.core.clock.Clock`, so a test drives it on a fake clock without Zenoh;
+``services/plant.py`` is the bus adapter around it. One code path, three pacings:
+
+- realtime, plant tick: a :class:`LoopTimer` paces the steps, one per period on average,
+  after a stall skipping ticks, never bursting; each step applies the newest command.
+- realtime, apply on arrival (teleoperation with ``plant.apply_on_arrival``): each command
+  enters a step the moment it arrives, in the Zenoh callback; the steps follow the haptic
+  device's clock, one per device period (:class:`DeviceClockGrid`), so a command never
+  waits for the plant's tick, and a period without a command is stepped with the last one.
+- lockstep: the plant publishes a state and steps when the command that answers it
+  (``state_seq``) arrives, inside the command callback, so a cycle costs no thread
+  hand-off: deterministic, as fast as plant + controller allow.
+
+In both realtime pacings one :class:`Watchdog` decides: it brakes (holds the arm where it
+is) when the command to apply answers a state older than ``plant.watchdog_s``, and
+resumes as soon as a fresh command arrives.
+
+Published every step: PLANT_STATE, one record that also carries the contact on the
+gripper and the closest obstacle. In teleoperation those are computed every step (they
+feed the 1 kHz force feedback); otherwise only every ``1 / scene_rate_hz`` (their cost),
+and ``interaction_step`` says when. Every ``1 / scene_rate_hz``: TOOL_POSE,
+OBJECT_POSES. On start, finish, grasp, release and watchdog changes: RUN_EVENT.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import threading
+from dataclasses import asdict, dataclass
+from typing import Any, NamedTuple, Protocol
+
+import numpy as np
+
+from teleop.bus.messages import OBJECT_POSES, PLANT_STATE, RUN_EVENT, TOOL_POSE, Event, Flag, Stage
+from teleop.bus.session import Latest
+from teleop.bus.stamps import Inbound
+from teleop.core.clock import NS_PER_S, Clock, LoopTimer
+from teleop.core.config import Config
+from teleop.sim.contact import finger_bodies, held_mass_kg, held_object
+from teleop.sim.plant import Plant, initial_configuration
+from teleop.sim.proximity import FAR_DISTANCE_M, ObstacleProximity, ProximitySample
+
+logger = logging.getLogger(__name__)
+
+# Lockstep: re-send the pending state if no command answers it within this time (s).
+LOCKSTEP_RESEND_S = 1.0
+# Apply on arrival: a device period whose command has not come this many periods after
+# the period began is stepped without it (with the last command, or braking). A command
+# normally reaches the plant 0.3-1.5 ms after its handle sample (teleop latency, p50-p99,
+# 2026-11-22); one that comes after its period was stepped is merged into the next step
+# instead of taking one of its own.
+OWN_STEP_AFTER_PERIODS = 2
+# Apply on arrival: periods stepped back to back at most to catch up (periods before a
+# command that got none, or the run thread after a stall); older ones are skipped, never
+# run in a burst.
+CATCH_UP_MAX_PERIODS = 2
+# Apply on arrival: a command this many periods away from the plant's next one (either
+# way) means the device's clock started over (a restarted haptic service): re-lock to it.
+RELOCK_PERIODS = 1000
+
+
+class DeviceClockGrid:
+    """The realtime plant's steps on the haptic device's clock (times in ns, monotonic).
+
+    The device samples the handle on absolute deadlines ``t0 + k * period`` of the host's
+    monotonic clock, and each teleoperation command carries the deadline of the period
+    whose sample it answers (``device_deadline_ns``). The plant takes exactly one step
+    per device period, as a fieldbus slave follows the master's distributed clock:
+    ``next_ns`` is the period of the next step. A command for that period steps at once;
+    one for a later period first steps the periods in between, which got no command
+    (shed upstream or skipped by the device), with the last command; one for a period
+    already stepped is late and only becomes the command held for the next step. A
+    period without a command is stepped by the plant's own thread
+    ``OWN_STEP_AFTER_PERIODS`` periods after it began. So commands never wait for a
+    window, sim time stays on the device's clock (no drift either way), and the plant
+    still keeps wall-clock time when no command comes at all.
+
+    Before the first command the grid runs from ``start_ns``; :meth:`lock` puts the
+    next step on the first command's period. Pure arithmetic, no clock of its own.
+    """
+
+    def __init__(self, period_ns: int, start_ns: int) -> None:
+        if period_ns <= 0:
+            raise ValueError(f"period_ns must be > 0, got {period_ns}")
+        self.period_ns = period_ns
+        self.next_ns = start_ns  # start of the device period the next step covers
+        self.skipped = 0  # periods never stepped (stalls longer than the catch-up)
+        self.locks = 0  # times the grid (re-)locked to a command's period
+
+    @property
+    def locked(self) -> bool:
+        return self.locks > 0
+
+    def lock(self, deadline_ns: int) -> None:
+        """The next step covers the device period that starts at ``deadline_ns``."""
+        self.next_ns = deadline_ns
+        self.locks += 1
+
+    def periods_ahead(self, deadline_ns: int) -> int:
+        """Periods from the next step's to the one starting at ``deadline_ns`` (negative:
+        already stepped)."""
+        return round((deadline_ns - self.next_ns) / self.period_ns)
+
+    @property
+    def own_step_ns(self) -> int:
+        """When the plant steps the next period itself if no command came for it."""
+        return self.next_ns + OWN_STEP_AFTER_PERIODS * self.period_ns
+
+    def stepped(self) -> None:
+        """The next period was stepped."""
+        self.next_ns += self.period_ns
+
+    def skip(self, periods: int) -> None:
+        """Give up ``periods`` periods without stepping them (a stall)."""
+        self.skipped += periods
+        self.next_ns += periods * self.period_ns
+
+
+# Lockstep cycle breakdown: the newest cycles kept (a ring; 60 s of lockstep fits).
+CYCLE_STATS_CAPACITY = 1 << 16
+
+
+class LockstepCycleStats:
+    """Where a lockstep cycle's wall time goes, from the stamps the records carry.
+
+    One cycle: the plant sends state k (``PLANT_STATE_TX``), the controller receives
+    it and answers (``CONTROLLER_RX``, ``CONTROLLER_TX``), the plant receives the
+    command (``PLANT_RX``), steps (``PLANT_APPLIED``) and sends state k + 1 + d (d:
+    ``plant.lockstep_delay_steps``). All stamps are this host's monotonic clock, so the
+    segments are exact and add up to the cycle. With d states in flight besides the
+    pending one, the plant's ``period`` (between two states sent) is about the cycle
+    divided by d + 1 when neither plant nor controller is the bottleneck.
+    """
+
+    SEGMENTS = ("to_controller", "controller", "to_plant", "plant_rx", "plant_step")
+
+    def __init__(self, capacity: int = CYCLE_STATS_CAPACITY) -> None:
+        self._stamps_ns = np.zeros((capacity, len(self.SEGMENTS) + 1), dtype=np.int64)
+        self._count = 0
+
+    _STAGES = [Stage.CONTROLLER_RX, Stage.CONTROLLER_TX, Stage.PLANT_RX, Stage.PLANT_APPLIED,
+               Stage.PLANT_STATE_TX]  # fmt: skip
+
+    def add(self, answered_state_tx_ns: int, trace_ns: np.ndarray) -> None:
+        """Record one cycle from the new state's stamps (they include the command's)."""
+        row = self._stamps_ns[self._count % len(self._stamps_ns)]
+        row[0] = answered_state_tx_ns
+        row[1:] = trace_ns[self._STAGES]
+        self._count += 1
+
+    def summary(self) -> dict[str, float]:
+        """Median microseconds of each segment and of the whole cycle ({} if none)."""
+        rows = self._stamps_ns[: min(self._count, len(self._stamps_ns))]
+        rows = rows[(rows > 0).all(axis=1)]
+        if not len(rows):
+            return {}
+        segments_us = np.diff(rows, axis=1) / 1e3
+        medians = np.median(segments_us, axis=0)
+        result = {name: round(float(m), 1) for name, m in zip(self.SEGMENTS, medians, strict=True)}
+        result["cycle"] = round(float(np.median(rows[:, -1] - rows[:, 0]) / 1e3), 1)
+        if len(rows) > 1:
+            sent_ns = np.sort(rows[:, -1])
+            result["period"] = round(float(np.median(np.diff(sent_ns))) / 1e3, 1)
+        return result
+
+
+class Judgement(NamedTuple):
+    """The watchdog's word on one step: apply the command or brake, and the event (with
+    its value) to announce first, if the watchdog changed its mind."""
+
+    apply: bool
+    event: Event | None = None
+    value: float = 0.0
+
+
+class Watchdog:
+    """The plant's command watchdog: the one brake/resume decision of every realtime step.
+
+    A command is fresh while it answers a state at most ``limit_steps`` states older than
+    the plant's newest (``state_seq``, the plant's own numbering). A step with a stale
+    command (or none yet) brakes; the first stale step after fresh ones announces
+    WATCHDOG_BRAKE with the command's age (s), the first fresh one after braking
+    WATCHDOG_RESUME.
+    """
+
+    def __init__(self, limit_steps: int, timestep_s: float) -> None:
+        self.limit_steps = limit_steps
+        self.timestep_s = timestep_s
+        self.braking = False
+        self.brakes = 0  # times it started braking on a stale command
+        self.stale_steps = 0  # steps braked on a stale command (not before the first one)
+
+    def reset(self) -> None:
+        """A new run: not braking (the counters keep counting)."""
+        self.braking = False
+
+    def judge(self, command: np.ndarray | None, state_seq: int) -> Judgement:
+        """Apply ``command`` at the step after state ``state_seq``, or brake?"""
+        if command is None:
+            return Judgement(False)
+        age_steps = state_seq - int(command["state_seq"])
+        if age_steps <= self.limit_steps:
+            if self.braking:
+                self.braking = False
+                return Judgement(True, Event.WATCHDOG_RESUME)
+            return Judgement(True)
+        self.stale_steps += 1
+        if self.braking:
+            return Judgement(False)
+        self.braking = True
+        self.brakes += 1
+        return Judgement(False, Event.WATCHDOG_BRAKE, age_steps * self.timestep_s)
+
+
+class PlantOutputs(Protocol):
+    """Where :class:`PlantLoop` sends its records (the service: the bus)."""
+
+    def put(self, stream: str, rec: np.ndarray) -> bytes:
+        """Send ``rec`` on ``stream`` (a Topics attribute: plant_state, tool_pose,
+        objects, events); the bytes sent."""
+        ...
+
+    def put_bytes(self, stream: str, data: bytes) -> None:
+        """Send bytes already encoded (a lockstep re-send) on ``stream``."""
+        ...
+
+    def flush(self) -> None:
+        """The run's last states are out: hand observers what is still batched."""
+        ...
+
+
+@dataclass
+class PlantFigures:
+    """Figures of merit over the run (world frame, SI)."""
+
+    max_contact_force_n: float = 0.0
+    min_obstacle_clearance_m: float = math.inf
+    max_tool_speed_m_s: float = 0.0
+
+
+@dataclass
+class ArrivalCounts:
+    """What happened to the commands of the apply-on-arrival pacing."""
+
+    steps_on_arrival: int = 0  # steps a command started the moment it arrived
+    steps_without_command: int = 0  # device periods stepped without a new command
+    stalls: int = 0  # times the plant fell behind by more than the catch-up (skipped)
+    commands_late: int = 0  # came after their period was stepped: merged into the next
+    commands_stale: int = 0  # arrived too old to apply (the watchdog brakes instead)
+
+
+class PlantLoop:
+    """The plant's stepping, pacing and publishing, driven by commands and a clock.
+
+    Thread safety: the realtime tick pacing runs on the caller's thread only; the
+    apply-on-arrival and lockstep pacings step from the command callback too, under
+    ``cond`` / ``lock`` (held by :meth:`on_command` and the run loops).
+    """
+
+    def __init__(self, config: Config, outputs: PlantOutputs, clock: Clock) -> None:
+        self.config = config
+        self.outputs = outputs
+        self.clock = clock
+        plant_cfg = config.plant
+        self.plant = Plant(config)
+        self.period_ns = self.plant.timestep_ns
+        self.scene_every_steps = max(
+            1, round(1.0 / (plant_cfg.scene_rate_hz * plant_cfg.timestep_s))
+        )
+        # Contact and obstacle proximity feed the 1 kHz force feedback of teleoperation;
+        # otherwise only the recorder reads them, at the scene rate (computing them costs
+        # the plant a contact scan and a narrow-phase distance query per step).
+        teleoperated = config.run.scenario == "grasp"
+        self.interaction_every_steps = 1 if teleoperated else self.scene_every_steps
+        self.lockstep = config.run.mode == "lockstep"
+        # In teleoperation the haptic device's clock paces the commands; in path following
+        # each command answers the plant's own state, so the plant's tick is the loop's only
+        # clock and the newest command is the one to apply.
+        self.apply_on_arrival = plant_cfg.apply_on_arrival and teleoperated and not self.lockstep
+        # Realtime: the control-free half of the next step while the command is on its way.
+        # Not in lockstep: there the state's send would wait behind it.
+        self.prepare_ahead = not self.lockstep
+        self.watchdog = Watchdog(
+            int(plant_cfg.watchdog_s / plant_cfg.timestep_s), plant_cfg.timestep_s
+        )
+        # Step k applies the command answering state k - delay_steps (PlantConfig).
+        self.delay_steps = plant_cfg.lockstep_delay_steps
+        self.proximity = ObstacleProximity(self.plant.model, self.plant.data, config.robot)
+        self._fingers = finger_bodies(self.plant.model, config.robot)
+        self._state = PLANT_STATE.new()
+        self._state["held_body"] = -1  # nothing held, no obstacle in reach (until computed)
+        self._state["obstacle_geom"] = -1
+        self._state["arm_body"] = -1
+        self._state["distance_m"] = FAR_DISTANCE_M
+        self._tool = TOOL_POSE.new()
+        self._objects = OBJECT_POSES.new()
+        self._event = RUN_EVENT.new()
+        self.figures = PlantFigures()
+        self.arrival = ArrivalCounts()
+        self.command_in = Inbound(Stage.CONTROLLER_TX)  # JOINT_COMMAND order, age, shed log
+        self.commands = Latest()  # realtime tick pacing: the newest command
+        self.cycle_stats = LockstepCycleStats()
+        self.timer: LoopTimer | None = None
+        self.grid: DeviceClockGrid | None = None
+        # Lockstep: what was sent for each state in flight (stream, bytes), for a re-send.
+        self._sent_ticks: collections.deque[list[tuple[str, bytes]]] | None = None
+        if self.lockstep:
+            self._sent_ticks = collections.deque(maxlen=self.delay_steps + 1)
+        self.lock = threading.Lock()  # lockstep: the run thread and the command callback
+        self.cond = threading.Condition()  # apply on arrival: likewise
+        self.state_seq = -1
+        self.commands_applied = 0
+        self.unanswered_commands = 0  # lockstep: commands answering another state
+        self.finish_tick: int | None = None  # the operator's TASK_DONE (None: duration)
+        self.finished = False
+        self.wall_s = 0.0
+        self._steps: int | None = None  # the run's length in steps (None: until stopped)
+        self._closest: tuple[int, ProximitySample | None] = (-1, None)  # (step, ahead)
+        self._held_body = -1
+        self._held_command: np.ndarray | None = None
+        self._last_applied_seq = -1
+        self._lockstep_running = False
+        self._lockstep_done = threading.Event()
+        self._arrival_running = False
+
+    # -- inputs --------------------------------------------------------------------------
+    def on_command(self, rec: np.ndarray, rx_ns: int) -> None:
+        """A JOINT_COMMAND for this arm arrived at ``rx_ns``: step with it now (lockstep,
+        apply on arrival) or keep it for the next tick."""
+        if self._lockstep_running:
+            self._lockstep_cycle(rec, rx_ns)
+        elif self._arrival_running:
+            self._arrival_command(rec, rx_ns)
+        else:
+            self.commands(rec, rx_ns)
+
+    def on_task_done(self, step: int) -> None:
+        """The operator's TASK_DONE: the run ends at tick ``step``."""
+        self.finish_tick = step
+        logger.info("task done: the run ends at tick %d", step)
+
+    def should_step(self) -> bool:
+        """False once the run's duration, or the tick the operator asked for, is reached."""
+        if self._steps is not None and self.plant.step_count >= self._steps:
+            return False
+        return self.finish_tick is None or self.plant.step_count < self.finish_tick
+
+    # -- the run -------------------------------------------------------------------------
+    def run(self, stop: threading.Event, steps: int | None) -> None:
+        """One run of ``steps`` steps (None: until stopped) from the initial configuration;
+        ``finished`` says whether it ran to its end (not stopped)."""
+        self.begin_run(steps)
+        self.publish_event(Event.STARTED)
+        start_ns = self.clock.now_ns()
+        if self.lockstep:
+            self._start_lockstep()
+            self._run_lockstep(stop)
+        else:
+            self._publish_state(None, 0, 0)
+            if self.apply_on_arrival:
+                self._run_on_arrival(stop)
+            else:
+                self._run_realtime(stop)
+        self.wall_s = (self.clock.now_ns() - start_ns) / NS_PER_S
+        self.outputs.flush()  # the observers get the run's last states now
+        if not stop.is_set():
+            self.finished = True
+            self.publish_event(Event.FINISHED)
+
+    def begin_run(self, steps: int | None) -> None:
+        """The plant back in the run's initial configuration, nothing held or pending."""
+        self.plant.reset(initial_configuration(self.config))
+        self._steps = steps
+        self._closest = (-1, None)
+        self.finish_tick = None
+        self._held_body = -1
+        self._held_command = None
+        self._last_applied_seq = -1
+        self.watchdog.reset()
+
+    def _run_realtime(self, stop: threading.Event) -> None:
+        self.timer = LoopTimer(self.period_ns, self.clock)
+        while not stop.is_set() and self.should_step():
+            self.timer.wait()
+            self.tick()
+
+    def tick(self) -> None:
+        """One step of the plant-tick pacing, with the newest command."""
+        latest = self.commands.get()
+        command, rx_ns = latest if latest is not None else (None, 0)
+        self._step_with(command, rx_ns)
+
+    def _step_with(
+        self, command: np.ndarray | None, rx_ns: int, traced: bool | None = None
+    ) -> bool:
+        """One realtime step with ``command`` (None: none yet), or braking if the watchdog
+        says so; whether it was applied. ``traced``: the command entered this step first
+        hand (its stamps go on in the state); None: if it was not applied before."""
+        judgement = self.watchdog.judge(command, self.state_seq)
+        if judgement.event is not None:
+            self.publish_event(judgement.event, judgement.value)
+        if not judgement.apply:
+            self.plant.step_braking()
+            self._publish_state(None, 0, 0)
+            return False
+        assert command is not None
+        applied_ns = self.clock.now_ns()
+        self.plant.step(
+            command["qd_ref_rad_s"][: self.plant.n_joints], float(command["gripper_cmd"])
+        )
+        new_command = int(command["seq"]) != self._last_applied_seq
+        if new_command:
+            self.commands_applied += 1
+            self._last_applied_seq = int(command["seq"])
+        self._publish_state(
+            command, rx_ns, applied_ns, traced=new_command if traced is None else traced
+        )
+        return True
+
+    # -- realtime, apply on arrival -----------------------------------------------------
+    def _run_on_arrival(self, stop: threading.Event) -> None:
+        """Step each command on arrival (in its callback); this thread steps the device
+        periods no command came for (see :class:`DeviceClockGrid`)."""
+        with self.cond:
+            self.begin_on_arrival()
+            try:
+                while not stop.is_set() and self.should_step():
+                    now_ns = self.clock.now_ns()
+                    wait_ns = self.own_step_due(now_ns)
+                    if wait_ns > 0:
+                        self.cond.wait(wait_ns / NS_PER_S)
+                    else:
+                        self.own_step(now_ns)
+            finally:
+                self._arrival_running = False
+
+    def begin_on_arrival(self) -> None:
+        """From now on, commands step the plant as they arrive (in their callback), on a
+        new device clock grid. The caller holds ``cond``, or is a test or benchmark
+        driving the loop directly."""
+        self.grid = DeviceClockGrid(self.period_ns, self.clock.now_ns())
+        self._held_command = None
+        self._last_applied_seq = -1
+        self.watchdog.reset()
+        self.command_in.restart()
+        self._arrival_running = True
+
+    def own_step_due(self, now_ns: int) -> int:
+        """Nanoseconds until this loop steps the next period itself (<= 0: now)."""
+        assert self.grid is not None
+        return self.grid.own_step_ns - now_ns
+
+    def own_step(self, now_ns: int) -> None:
+        """Step the next device period without a new command; after a stall, skip the
+        periods beyond the catch-up instead of bursting through them."""
+        grid = self.grid
+        assert grid is not None
+        behind = (now_ns - grid.own_step_ns) // self.period_ns
+        if behind > CATCH_UP_MAX_PERIODS:
+            self.arrival.stalls += 1
+            grid.skip(int(behind) - CATCH_UP_MAX_PERIODS)
+        self._arrival_step(None, 0)
+
+    def _arrival_command(self, command: np.ndarray, rx_ns: int) -> None:
+        """A command arrived: step its device period now (after any before it that got
+        no command), or hold it for the next step if its period is past."""
+        with self.cond:
+            grid = self.grid
+            if not self._arrival_running or grid is None:
+                return
+            if not self.command_in.accept(command, self.clock.now_ns()):
+                return  # older than one applied, or a backlog: a newer one is right behind
+            deadline_ns = int(command["device_deadline_ns"])
+            ahead = 0  # a command not paced by a device steps the next period
+            if deadline_ns > 0:
+                if not grid.locked or abs(grid.periods_ahead(deadline_ns)) > RELOCK_PERIODS:
+                    grid.lock(deadline_ns)
+                ahead = grid.periods_ahead(deadline_ns)
+            if ahead < 0:  # its period was stepped without it: the next step applies it
+                self.arrival.commands_late += 1
+                self.command_in.log_dropped(command)
+                self._held_command = command
+                return
+            if ahead > CATCH_UP_MAX_PERIODS:  # the periods before it are too far behind
+                self.arrival.stalls += 1
+                grid.skip(ahead - CATCH_UP_MAX_PERIODS)
+                ahead = CATCH_UP_MAX_PERIODS
+            for _ in range(ahead):
+                if self.should_step():
+                    self._arrival_step(None, 0)
+            if self.should_step():
+                self.arrival.steps_on_arrival += 1
+                self._arrival_step(command, rx_ns)
+            self.cond.notify_all()  # the run thread's next own step moved
+
+    def _arrival_step(self, command: np.ndarray | None, rx_ns: int) -> None:
+        """Step the grid's next device period with ``command`` (None: with the one held,
+        braking if that is stale); the caller holds ``cond``."""
+        assert self.grid is not None
+        if command is not None:
+            self._held_command = command
+        else:
+            self.arrival.steps_without_command += 1
+        applied = self._step_with(self._held_command, rx_ns, traced=command is not None)
+        if not applied and command is not None:
+            self.arrival.commands_stale += 1
+            self.command_in.log_dropped(command)
+        self.grid.stepped()
+
+    # -- lockstep ------------------------------------------------------------------------
+    def _start_lockstep(self) -> None:
+        """Publish state 0, then take the first ``lockstep_delay_steps`` steps, which no
+        command answers; the command callback may step from then on.
+
+        All under the lock, with the callback already enabled: an answer that comes back
+        while these steps run waits for the lock instead of finding lockstep not started
+        (it would be lost, and the run would wait for it forever).
+        """
+        with self.lock:
+            self._lockstep_done.clear()
+            self._lockstep_running = True
+            self._publish_state(None, 0, 0)
+            for _ in range(self.delay_steps):
+                if not self.should_step():
+                    break
+                self.plant.step_before_commands()
+                self._publish_state(None, 0, 0)
+            if not self.should_step():
+                self._lockstep_done.set()  # the steps before commands were the whole run
+
+    def _run_lockstep(self, stop: threading.Event) -> None:
+        """Let the command callback drive the steps; re-send the state if it goes unanswered."""
+        try:
+            last_step = -1
+            while not stop.is_set() and not self._lockstep_done.wait(LOCKSTEP_RESEND_S):
+                with self.lock:
+                    if self.plant.step_count == last_step:
+                        self.republish_pending()
+                    last_step = self.plant.step_count
+        finally:
+            with self.lock:
+                self._lockstep_running = False
+
+    def republish_pending(self) -> None:
+        """Send the records of the states in flight again, byte for byte (same seq and
+        stamps; a state carries its tick's contact and proximity): the pending tick's
+        and, with a lockstep delay, those whose answers the plant still needs.
+
+        A controller that has them ignores them (or its tick barrier drops them); one
+        that missed them (e.g. not yet subscribed) gets the whole tick; a recorder logs
+        the same samples at the same times.
+        """
+        for records in self._sent_ticks or ():
+            for stream, data in records:
+                self.outputs.put_bytes(stream, data)
+
+    def _lockstep_cycle(self, command: np.ndarray, rx_ns: int) -> None:
+        """Apply the command answering the pending state, step, publish the next state."""
+        with self.lock:
+            if not self._lockstep_running or self._lockstep_done.is_set():
+                return
+            if int(command["state_seq"]) != self.state_seq - self.delay_steps:
+                self.unanswered_commands += 1
+                return
+            applied_ns = self.clock.now_ns()
+            self.plant.step(
+                command["qd_ref_rad_s"][: self.plant.n_joints], float(command["gripper_cmd"])
+            )
+            self.commands_applied += 1
+            if not self.should_step():
+                self._lockstep_done.set()
+            answered_tx_ns = int(command["trace_ns"][Stage.PLANT_STATE_TX])  # its state's
+            self._publish_state(command, rx_ns, applied_ns)
+            self.cycle_stats.add(answered_tx_ns, self._state["trace_ns"])
+
+    # -- publishing ----------------------------------------------------------------------
+    def publish_event(self, event: Event, value: float = 0.0) -> None:
+        rec = self._event
+        rec["seq"] += 1
+        rec["t_source_ns"] = self.clock.now_ns()
+        rec["sim_time_ns"] = self.plant.step_count * self.period_ns
+        rec["step"] = self.plant.step_count
+        rec["event"] = event
+        rec["value"] = value
+        self.outputs.put("events", rec)
+        logger.info("event %s at step %d", event.name, self.plant.step_count)
+
+    def _publish_state(
+        self, command: np.ndarray | None, rx_ns: int, applied_ns: int, *, traced: bool = True
+    ) -> None:
+        """Publish the state after a step; ``traced``: the command entered it first-hand
+        (its stamps continue in this state), else it was only held from an earlier step."""
+        sample = self.plant.sample()
+        n = self.plant.n_joints
+        rec = self._state
+        if self._sent_ticks is not None:
+            self._sent_ticks.append([])
+        self.state_seq += 1
+        rec["seq"] = self.state_seq
+        rec["flags"] = Flag.BRAKING if self.plant.braking else Flag.NONE
+        rec["sim_time_ns"] = sample.sim_time_ns
+        rec["step"] = sample.step
+        rec["n_joints"] = n
+        rec["q_rad"][:n] = sample.q_rad
+        rec["qd_rad_s"][:n] = sample.qd_rad_s
+        rec["qd_ref_applied_rad_s"][:n] = self.plant.applied_qd_ref_rad_s()
+        rec["gripper_cmd_applied"] = self.plant.gripper_cmd
+        rec["gripper_opening_m"] = sample.gripper_opening_m
+        grasp_event = None
+        if sample.step % self.interaction_every_steps == 0:
+            grasp_event = self._sample_interaction(sample.step)
+        if command is not None:
+            rec["cmd_seq_applied"] = command["seq"]
+        if command is not None and traced:
+            rec["trace_ns"][:] = command["trace_ns"]
+            rec["trace_ns"][Stage.PLANT_RX] = rx_ns
+            rec["trace_ns"][Stage.PLANT_APPLIED] = applied_ns
+        else:
+            rec["trace_ns"][:] = 0  # no command entered this step: nothing to trace
+        now_ns = self.clock.now_ns()
+        rec["t_source_ns"] = now_ns
+        rec["trace_ns"][Stage.PLANT_STATE_TX] = now_ns
+        self._put("plant_state", rec)
+        if grasp_event is not None:
+            self.publish_event(grasp_event, float(max(int(rec["held_body"]), 0)))
+        if sample.step % self.scene_every_steps == 0:
+            self._publish_scene(sample.sim_time_ns, now_ns)
+        figures = self.figures
+        figures.max_tool_speed_m_s = max(figures.max_tool_speed_m_s, self.plant.tool_speed_m_s())
+        if self.prepare_ahead:
+            self._prepare_next_step(sample.step + 1)
+
+    def _prepare_next_step(self, step: int) -> None:
+        """While the command is on its way: the control-free half of the next physics step
+        (:meth:`Plant.prepare_step`) and, when that step's state carries them, the closest
+        obstacle, which depends on the positions only (the same numbers as after the step:
+        a step's collision geometry is that of the state it starts from)."""
+        self.plant.prepare_step()
+        if step % self.interaction_every_steps == 0:
+            self._closest = (step, self.proximity.closest())
+
+    def _sample_interaction(self, step: int) -> Event | None:
+        """Fill the state record's contact and proximity fields from the plant as it is.
+
+        Returns GRASP or RELEASE when the held object changed (the caller announces it
+        after the state, so the event follows the state that shows it), else None.
+        """
+        rec = self._state
+        rec["interaction_step"] = step
+        prepared_step, closest = self._closest
+        if prepared_step != step or closest is None:
+            closest = self.proximity.closest()
+        figures = self.figures
+        figures.min_obstacle_clearance_m = min(figures.min_obstacle_clearance_m, closest.distance_m)
+        closest.write_to(rec)
+        force_n, count = self.plant.gripper_contact_force()
+        figures.max_contact_force_n = max(
+            figures.max_contact_force_n, math.hypot(*force_n.tolist())
+        )
+        model, data = self.plant.model, self.plant.data
+        held = held_object(model, data, self._fingers, self.plant.object_bodies) if count else -1
+        event = None
+        if (held >= 0) != (self._held_body >= 0):
+            event = Event.GRASP if held >= 0 else Event.RELEASE
+        self._held_body = held
+        rec["held_body"] = held
+        rec["held_mass_kg"] = held_mass_kg(model, held, 0.0)
+        rec["world_f_contact_n"] = force_n
+        rec["n_contacts"] = count
+        return event
+
+    def _publish_scene(self, sim_time_ns: int, now_ns: int) -> None:
+        position, quat = self.plant.tool_pose()
+        for rec in (self._tool, self._objects):
+            rec["seq"] += 1
+            rec["t_source_ns"] = now_ns
+            rec["sim_time_ns"] = sim_time_ns
+        self._tool["world_p_tool_m"] = position
+        self._tool["world_q_tool_wxyz"] = quat
+        self._put("tool_pose", self._tool)
+        positions, quats = self.plant.object_poses()
+        n = len(positions)
+        self._objects["n_objects"] = n
+        self._objects["world_p_m"][:n] = positions
+        self._objects["world_q_wxyz"][:n] = quats
+        self._put("objects", self._objects)
+
+    def _put(self, stream: str, rec: np.ndarray) -> None:
+        """Publish one record of the current tick (kept for a lockstep re-send)."""
+        data = self.outputs.put(stream, rec)
+        if self._sent_ticks is not None:
+            self._sent_ticks[-1].append((stream, data))
+
+    # -- summary -------------------------------------------------------------------------
+    def summary(self) -> dict[str, Any]:
+        """The run's figures (the plant service's summary, less the service's own)."""
+        plant_cfg = self.config.plant
+        sim_time_s = self.plant.step_count * plant_cfg.timestep_s
+        timer = self.timer.summary() if self.timer is not None else {}
+        figures = self.figures
+        summary: dict[str, Any] = {
+            "mode": self.config.run.mode,
+            "finished": self.finished,
+            "steps": self.plant.step_count,
+            "sim_time_s": sim_time_s,
+            "wall_s": self.wall_s,
+            "realtime_factor": sim_time_s / self.wall_s if self.wall_s > 0 else None,
+            "overrun_fraction": timer.get("overrun_fraction", 0.0),
+            "skipped_ticks": timer.get("skipped", 0),
+            "loop": timer,
+            "commands_applied": self.commands_applied,
+            "stale_commands": self.watchdog.brakes,
+            "stale_steps": self.watchdog.stale_steps,
+            "unanswered_commands": self.unanswered_commands,
+            "lockstep_cycle_us": self.cycle_stats.summary(),
+            "final_state_sha256": self.plant.state_sha256(),
+            "max_contact_force_n": figures.max_contact_force_n,
+            "obstacle_min_clearance_m": figures.min_obstacle_clearance_m,
+            "tool_speed_max_m_s": figures.max_tool_speed_m_s,
+            "object_in_box": self.plant.object_in_bin(),
+            "rate_hz": self.plant.step_count / self.wall_s if self.wall_s > 0 else None,
+        }
+        if self.grid is not None:
+            steps = max(self.plant.step_count, 1)
+            summary["overrun_fraction"] = self.arrival.stalls / steps
+            summary["skipped_ticks"] = self.grid.skipped
+            summary["arrival"] = {
+                **asdict(self.arrival),
+                "grid_locks": self.grid.locks,
+                "commands_lost": self.command_in.seq.lost,
+                "commands_reordered": self.command_in.seq.reordered,
+                "commands_shed": self.command_in.shed,
+            }
+        summary["object_poses_m"] = {
+            name: self.plant.data.xpos[body].tolist()
+            for name, body in zip(
+                self.config.robot.object_bodies, self.plant.object_bodies, strict=True
+            )
+        }
+        return summary

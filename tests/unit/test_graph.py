@@ -1,0 +1,57 @@
+"""The graph description: consistent, the one source of keys, QoS, tables and the doc."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from services import recorder
+from teleop.bus import graph
+from teleop.bus.topics import Topics
+from teleop.core.config import load_config
+from teleop.run.stack import PRIORITY, scenario_services
+
+PROTOCOL_DOC = Path(__file__).resolve().parents[2] / "docs" / "protocol.md"
+BEGIN, END = "<!-- graph_tables() begin -->", "<!-- graph_tables() end -->"
+
+
+def test_every_producer_and_consumer_is_a_service_of_the_graph():
+    known = set(graph.SERVICES_BY_NAME) | {"launcher"}
+    for stream in graph.STREAMS:
+        assert stream.producers and set(stream.producers) <= known, stream.name
+        assert stream.consumers and set(stream.consumers) <= known, stream.name
+        if stream.batch_of:
+            copied = graph.stream(stream.batch_of)
+            assert (copied.schema, copied.producers) == (stream.schema, stream.producers)
+
+
+def test_topics_keys_come_from_the_graph():
+    topics = Topics("arm7")
+    for stream in graph.STREAMS:
+        assert getattr(topics, stream.name) == f"teleop/arm7/{stream.key}"
+    assert len({s.key for s in graph.STREAMS}) == len(graph.STREAMS)
+    with pytest.raises(KeyError, match="no stream 'nope'"):
+        graph.stream("nope")
+
+
+def test_the_recorder_and_the_launcher_read_the_graph():
+    assert recorder.BATCHED_STREAMS == {
+        "plant_state": "plant_state_batch",
+        "haptic_state": "haptic_state_batch",
+        "force_feedback": "force_feedback_batch",
+    }
+    assert "joint_command" not in recorder.STREAM_SCHEMAS  # the plant's state carries it
+    assert "events" not in recorder.PERIODIC_STREAMS
+    assert "control_status" not in recorder.SEQ_CHECKED_STREAMS
+    grasp = scenario_services(load_config(None, ['run.scenario="grasp"', "eyeview.enabled=false"]))
+    assert grasp == ("plant", "controller", "haptic", "hmd", "operator", "recorder")
+    assert PRIORITY["plant"] > PRIORITY["controller"] > PRIORITY["recorder"]
+
+
+def test_protocol_doc_embeds_the_current_graph_tables():
+    text = PROTOCOL_DOC.read_text()
+    embedded = text[text.index(BEGIN) + len(BEGIN) : text.index(END)]
+    assert embedded.strip() == graph.graph_tables().strip(), (
+        "docs/protocol.md is stale: paste `python -m teleop.bus.graph` between the markers"
+    )
