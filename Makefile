@@ -11,7 +11,7 @@ export RERUN_ANALYTICS := 0
 export TELEMETRY_ENABLED := false
 export MUJOCO_GL ?= egl
 
-.PHONY: demo test test-web chromium lint venv clean
+.PHONY: demo test test-fast test-web chromium lint venv clean
 
 venv: $(STAMP)
 
@@ -39,6 +39,10 @@ lint: $(STAMP)
 test: lint
 	-@test -x $(CHROMIUM) || $(MAKE) --no-print-directory chromium
 	$(BIN)/python -m pytest
+
+# The unit and integration layers only (no supervisord stacks): a minute or so.
+test-fast: lint
+	$(BIN)/python -m pytest -m "not slow"
 
 # Debian's Chromium, for the headless screenshot of the web viewer served by --web.
 # `make test` installs it when it can and runs the screenshot test when it is there (else

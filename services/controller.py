@@ -1,88 +1,30 @@
-"""The controller service: one control cycle per plant state, event driven.
+"""The controller service: :mod:`teleop.control.cycle` on the bus.
 
-Two tasks share the service (``run.scenario``):
-
-- path-following (paper experiment 1): each PLANT_STATE is handled in the Zenoh
-  callback that delivers it (a hand-off to a service thread cost about 60 us per
-  cycle on this 2-core machine) with the same :class:`PathFollowingController` as
-  the in-process run.
-- grasp (experiment 2, bilateral teleoperation): the cycle also needs the haptic
-  handle of the same tick (and the HMD view yaw); the contact force and the obstacle
-  proximity come in the PLANT_STATE itself (the plant computes them every step in
-  teleoperation). In lockstep a :class:`TickBarrier` joins state and handle, so the run
-  is deterministic; each cycle publishes the FORCE_FEEDBACK first (the haptic device
-  waits for it in lockstep), then the JOINT_COMMAND. In realtime the loop is event
-  driven in the Zenoh callbacks, one half-cycle per arrival (no thread hand-off, no
-  waiting for a tick): each HAPTIC_STATE sample becomes one JOINT_COMMAND at once
-  (control law on the newest state), and each PLANT_STATE one FORCE_FEEDBACK (from its
-  own contact and proximity and the newest handle), so a handle sample reaches the
-  plant, and the state it caused reaches the handle, without waiting for anybody's
-  period. A handle sample older than
-  ``haptic.stale_feedback_s`` counts as "no input" (the tool holds still).
-
-Every command names the state it answers (``state_seq``). A controller too slow for
-the plant's rate makes its commands stale and the plant's watchdog brakes: the safe
-failure.
+Inputs: PLANT_STATE (every task) and, in teleoperation, HAPTIC_STATE and HEAD_POSE.
+Outputs: JOINT_COMMAND, and CONTROL_STATUS (path following) or FORCE_FEEDBACK (with
+its batched copy for the recorder) and TELEOP_STATUS (teleoperation). Each input is
+handled in the Zenoh callback that delivers it (a hand-off to a service thread costs
+about 60 us per cycle on a 2-core machine); the cycles themselves are the cores'.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import sys
 import threading
-import time
 from typing import Any
 
-import mujoco
 import numpy as np
 
-from teleop.bus.messages import (
-    CONTROL_STATUS,
-    FORCE_FEEDBACK,
-    HAPTIC_STATE,
-    HEAD_POSE,
-    JOINT_COMMAND,
-    N_STAGES,
-    PLANT_STATE,
-    TELEOP_STATUS,
-    Button,
-    DecodeError,
-    Kind,
-    Reason,
-    Stage,
-)
+from teleop.bus.messages import HAPTIC_STATE, HEAD_POSE, PLANT_STATE, DecodeError, Kind, Reason
 from teleop.bus.service import Service, service_main
-from teleop.bus.session import BatchPublisher, Latest, Publisher, subscribe
-from teleop.bus.stamps import SHED_AGE_NS, SeqCheck, StampLog
-from teleop.control.feedback import (
-    FeedbackComponents,
-    check_stability,
-    device_force,
-    feedback_components,
-)
+from teleop.bus.session import BatchPublisher, Publisher, subscribe
+from teleop.control.cycle import BilateralCycle, ControllerCore, PathCycle
 from teleop.control.kinematics import build_arm_model
-from teleop.control.path import ControlOutput, PathFollowingController
-from teleop.control.teleop import (
-    JointStateTerms,
-    TeleopController,
-    TeleopOutput,
-    teleop_reference,
-)
+from teleop.core.clock import MonotonicClock
 from teleop.core.rundir import shed_path
-from teleop.core.ticks import TickBarrier, TickedInputs, expected_valid_from
-from teleop.run.experiments import PathMetrics
-from teleop.sim.proximity import ProximitySample, body_names
 
 logger = logging.getLogger(__name__)
-
-# The path-following task keeps the gripper open (fraction of full opening).
-GRIPPER_OPEN = 1.0
-GRIPPER_CLOSED = 0.0
-# Lockstep: how long a cycle waits for the HMD record that applies at its tick (s).
-HEAD_POSE_WAIT_S = 1.0
-_CLUTCH = int(Button.CLUTCH)
-_GRIPPER_CLOSE = int(Button.GRIPPER_CLOSE)
 
 
 class ControllerService(Service):
@@ -91,548 +33,54 @@ class ControllerService(Service):
     def open(self) -> None:
         super().open()
         assert self.session is not None
+        session, topics, drops = self.session, self.topics, self.drops
         self.arm = build_arm_model(self.config.robot)
-        self.timestep_s = self.config.plant.timestep_s
-        self.status_every_steps = max(
-            1, round(1.0 / (self.config.control.status_rate_hz * self.timestep_s))
-        )
-        self.command_pub = self.keep(
-            Publisher.for_stream(self.session, self.topics, "joint_command")
-        )
-        self._command = JOINT_COMMAND.new()
-        self._lock = threading.Lock()
-        self._last_seq = -1
-        # t_source_ns of this run's state 0: a state 0 with the same stamp is the plant
-        # re-sending it (byte for byte), not a new run.
-        self._run_start_ns = -1
-        self.cycles = 0
-        self.skipped_states = 0
-        self.runs = 0
-        self.compute_ns_total = 0
-        if self.config.run.scenario == "grasp":
-            self.task: PathTask | TeleopTask = TeleopTask(self)
-        else:
-            self.task = PathTask(self)
-        self.keep(
-            subscribe(
-                self.session, self.topics.plant_state, PLANT_STATE, self._on_state, self.drops
+        teleoperated = self.config.run.scenario == "grasp"
+        outputs = ["joint_command"]
+        outputs += ["force_feedback", "teleop_status"] if teleoperated else ["control_status"]
+        self.publishers = {name: self.keep(Publisher.for_stream(session, topics, name))
+                           for name in outputs}  # fmt: skip
+        self.feedback_batch: BatchPublisher | None = None
+        core_class = BilateralCycle if teleoperated else PathCycle
+        self.core: ControllerCore = core_class(self.config, self.arm, self, MonotonicClock())
+        if isinstance(self.core, BilateralCycle):
+            self.feedback_batch = self.keep(  # the recorder's copy, several per message
+                BatchPublisher.for_stream(
+                    session, topics, "force_feedback_batch", self.config.bus.observer_batch_records
+                )
             )
-        )
+            core = self.core
+            self.keep(subscribe(session, topics.haptic_state, HAPTIC_STATE, core.on_haptic, drops))
+            self.keep(subscribe(session, topics.head_pose, HEAD_POSE, core.on_head_pose, drops))
+        self.keep(subscribe(session, topics.plant_state, PLANT_STATE, self._on_state, drops))
         self.announce()
 
     def _on_state(self, rec: np.ndarray, rx_ns: int) -> None:
+        """Accept states of exactly this arm; anything else is counted and dropped."""
         if int(rec["n_joints"]) != self.arm.n_joints:
             detail = f"n_joints={int(rec['n_joints'])}, arm has {self.arm.n_joints}"
             self.drops.record(DecodeError(Kind.PLANT_STATE, Reason.COUNT, detail))
             return
-        with self._lock:
-            seq = int(rec["seq"])
-            if seq == 0 and int(rec["t_source_ns"]) != self._run_start_ns:
-                self._run_start_ns = int(rec["t_source_ns"])  # a new run (or plant restart):
-                self.task.reset()  # forget the task state
-                self.runs += 1
-            elif seq <= self._last_seq:
-                return  # a re-sent state this controller has already answered
-            elif self._last_seq >= 0 and seq > self._last_seq + 1:
-                self.skipped_states += seq - self._last_seq - 1
-            self._last_seq = seq
-        self.task.on_state(rec, rx_ns)
+        self.core.on_state(rec, rx_ns)
 
-    def publish_command(
-        self,
-        state: np.ndarray,
-        qd_ref_rad_s: np.ndarray,
-        gripper_cmd: float,
-        trace: np.ndarray,
-        device_deadline_ns: int = 0,
-    ) -> None:
-        """Send the joint velocity references that answer ``state`` (and, in realtime
-        teleoperation, the handle sample of the device period ``device_deadline_ns``)."""
-        n = self.arm.n_joints
-        self.cycles += 1
-        cmd = self._command
-        cmd["seq"] = self.cycles
-        cmd["state_seq"] = state["seq"]
-        cmd["device_deadline_ns"] = device_deadline_ns
-        cmd["n_joints"] = n
-        cmd["qd_ref_rad_s"][:n] = qd_ref_rad_s
-        cmd["gripper_cmd"] = gripper_cmd
-        cmd["trace_ns"][:] = trace
-        now_ns = time.monotonic_ns()
-        cmd["trace_ns"][Stage.CONTROLLER_TX] = now_ns
-        cmd["t_source_ns"] = now_ns
-        self.command_pub.put(cmd)
+    # -- ControllerOutputs ---------------------------------------------------------------
+    def put(self, stream: str, rec: np.ndarray) -> None:
+        data = self.publishers[stream].put(rec)
+        if stream == "force_feedback" and self.feedback_batch is not None:
+            self.feedback_batch.add(data)
 
+    # -- lifecycle -----------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
-        """The task's own loop, if it has one; else the work is all in bus callbacks."""
-        self.task.run(stop)
+        stop.wait()  # every cycle runs in the bus callbacks
 
     def close(self) -> None:
-        task = getattr(self, "task", None)
-        if self.options.run_dir is not None and isinstance(task, TeleopTask):
-            with task._rt_lock:
-                task.shed_log.save(shed_path(self.options.run_dir, self.name))
+        core = getattr(self, "core", None)  # None if open() failed before building it
+        if self.options.run_dir is not None and isinstance(core, BilateralCycle):
+            core.save_shed_log(shed_path(self.options.run_dir, self.name))
         super().close()
 
     def summary(self) -> dict[str, Any]:
-        mean_compute_us = self.compute_ns_total / self.cycles / 1e3 if self.cycles else None
-        return {
-            **super().summary(),
-            **self.task.summary(),
-            "cycles": self.cycles,
-            "skipped_states": self.skipped_states,
-            "runs": self.runs,
-            "compute_mean_us": mean_compute_us,
-        }
-
-
-class PathTask:
-    """Paper experiment 1: autonomous path following."""
-
-    def __init__(self, service: ControllerService) -> None:
-        self.service = service
-        config = service.config
-        self.controller = PathFollowingController(
-            service.arm, config.control, config.path, period_s=service.timestep_s
-        )
-        self.metrics = PathMetrics(settle_s=config.run.settle_s)
-        assert service.session is not None
-        self.status_pub = service.keep(
-            Publisher.for_stream(service.session, service.topics, "control_status")
-        )
-        self._status = CONTROL_STATUS.new()
-
-    def reset(self) -> None:
-        self.controller.reset()
-        self.metrics = PathMetrics(settle_s=self.service.config.run.settle_s)
-
-    def run(self, stop: threading.Event) -> None:
-        stop.wait()  # every cycle runs in the state callback
-
-    def on_state(self, state: np.ndarray, rx_ns: int) -> None:
-        n = self.service.arm.n_joints
-        t0 = time.monotonic_ns()
-        output = self.controller.update(state["q_rad"][:n], state["qd_rad_s"][:n])
-        self.service.compute_ns_total += time.monotonic_ns() - t0
-        trace = state["trace_ns"].copy()
-        trace[Stage.CONTROLLER_RX] = rx_ns  # path following: the state is the input
-        self.service.publish_command(state, output.qd_ref_rad_s, GRIPPER_OPEN, trace)
-        sim_time_ns = int(state["sim_time_ns"])
-        self.metrics.add(sim_time_ns * 1e-9, output)
-        if int(state["step"]) % self.service.status_every_steps == 0:
-            self._publish_status(output, sim_time_ns)
-
-    def _publish_status(self, output: ControlOutput, sim_time_ns: int) -> None:
-        n = self.service.arm.n_joints
-        rec = self._status
-        rec["seq"] = self.service.cycles
-        rec["t_source_ns"] = time.monotonic_ns()
-        rec["sim_time_ns"] = sim_time_ns
-        rec["desired_p_m"] = output.desired_p_m
-        rec["tool_p_m"] = output.tool_p_m
-        rec["path_error_m"] = output.path_error_m
-        rec["manipulability"] = output.manipulability
-        rec["path_s"] = output.path_s
-        rec["n_joints"] = n
-        rec["qd_cmd_rad_s"][:n] = output.qd_c_rad_s
-        self.status_pub.put(rec)
-
-    def summary(self) -> dict[str, Any]:
-        return {
-            **self.metrics.summary(),
-            "settle_s": self.metrics.settle_s,
-            "compensation": self.service.config.control.compensation,
-        }
-
-
-class TeleopTask:
-    """Paper experiment 2: bilateral teleoperation through the haptic device."""
-
-    INPUTS = ("state", "haptic")  # joined per tick in lockstep; the state has contact too
-
-    def __init__(self, service: ControllerService) -> None:
-        self.service = service
-        config = service.config
-        session = service.session
-        assert session is not None
-        topics = service.topics
-        self.lockstep = config.run.mode == "lockstep"
-        self.stability = check_stability(config.teleop, config.haptic, service.timestep_s)
-        mj_model = mujoco.MjModel.from_xml_path(str(config.robot.scene_path))
-        self.controller = TeleopController(
-            service.arm,
-            config.teleop,
-            config.control,
-            period_s=service.timestep_s,
-            mj_body_names=body_names(mj_model),
-        )
-        self.hmd_lead_ticks = round(config.hmd.prediction_s / service.timestep_s)
-        self.stale_ticks = round(config.haptic.stale_feedback_s / service.timestep_s)
-        self.feedback_pub = service.keep(Publisher.for_stream(session, topics, "force_feedback"))
-        self.feedback_batch = service.keep(  # the recorder's copy, several per message
-            BatchPublisher.for_stream(
-                session, topics, "force_feedback_batch", config.bus.observer_batch_records
-            )
-        )
-        self.status_pub = service.keep(Publisher.for_stream(session, topics, "teleop_status"))
-        self._feedback = FORCE_FEEDBACK.new()
-        self.feedback_count = 0  # FORCE_FEEDBACK records sent (their seq)
-        self._status = TELEOP_STATUS.new()
-        self.head_poses = TickedInputs()
-        self.haptic = Latest()
-        self.barrier = TickBarrier(self.INPUTS, self._on_tick)
-        self.states = Latest()  # realtime: the newest state, handled by run()
-        drops = service.drops
-        service.keep(subscribe(session, topics.haptic_state, HAPTIC_STATE, self._on_haptic, drops))
-        service.keep(subscribe(session, topics.head_pose, HEAD_POSE, self._on_head_pose, drops))
-        # Realtime: both half-cycles run in the Zenoh callbacks (the haptic and plant links
-        # are served by different threads), one at a time (``_rt_busy``); an input that
-        # arrives meanwhile waits in ``_pending``, newest wins (see _dispatch).
-        self._rt_lock = threading.Lock()  # guards the fields below, held briefly
-        self._rt_busy = False
-        self._pending: dict[str, Any] = {}
-        self._last_output: TeleopOutput | None = None
-        # Realtime: (state seq, its joint-state terms of the control law, its closest
-        # obstacle), prepared after that state's feedback went out, so a handle sample
-        # answered on that state runs only the handle-dependent rest of the law
-        # (TeleopController.prepare).
-        self._prepared: tuple[int, JointStateTerms | None, ProximitySample | None]
-        self._prepared = (-1, None, None)
-        self.haptic_seq = SeqCheck()  # HAPTIC_STATE gaps and reordering (realtime)
-        self.haptic_before_state = 0  # samples that arrived before any plant state
-        self.haptic_shed = 0  # samples not answered: too old, or superseded while busy
-        self.states_shed = 0  # states not answered with feedback, same reasons
-        self.shed_log = StampLog(1)  # HAPTIC_SAMPLE stamps of the loops shed here
-        self._reset_metrics()
-
-    def _reset_metrics(self) -> None:
-        self.tracking_sq_sum = 0.0
-        self.tracking_count = 0
-        self.max_obstacle_force_n = 0.0
-        self.max_device_force_n = 0.0
-        self.held_weight_sum_n = 0.0
-        self.held_count = 0
-        self.no_input_cycles = 0
-        self.missing_head_poses = 0
-
-    def reset(self) -> None:
-        self.controller.reset()
-        self.barrier.reset()
-        self._prepared = (-1, None, None)
-        self._reset_metrics()
-
-    # -- inputs --------------------------------------------------------------------------
-    def _on_haptic(self, rec: np.ndarray, rx_ns: int) -> None:
-        if self.lockstep:
-            self.barrier.put("haptic", int(rec["tick"]), rec)
-        else:
-            self.haptic(rec, rx_ns)
-            self._dispatch("haptic", (rec, rx_ns))
-
-    def _on_head_pose(self, rec: np.ndarray, rx_ns: int) -> None:
-        self.head_poses.put(int(rec["valid_from_tick"]), rec)
-
-    def on_state(self, state: np.ndarray, rx_ns: int) -> None:
-        if self.lockstep:
-            state["trace_ns"][Stage.CONTROLLER_RX] = rx_ns
-            self.barrier.put("state", int(state["seq"]), state)
-        else:
-            state["trace_ns"][Stage.CONTROLLER_STATE_RX] = rx_ns
-            self.states(state, rx_ns)
-            self._dispatch("state", state)
-
-    def run(self, stop: threading.Event) -> None:
-        """Nothing to do here: every cycle runs in the bus callbacks (both modes)."""
-        stop.wait()
-
-    # -- realtime half-cycles ------------------------------------------------------------
-    def _dispatch(self, kind: str, item: Any) -> None:
-        """Run a half-cycle now if the controller is free, else leave it pending.
-
-        The callback that finds the controller free runs its own input, then the inputs
-        that arrived meanwhile (newest of each kind; older ones are superseded: shed and
-        logged). A busy controller thus never makes a Zenoh thread wait, no backlog
-        builds up behind a slow cycle, and with a free controller an input costs no
-        hand-off. One pass only: what arrives during it waits for the next callback
-        (each stream comes at 1 kHz), so no thread loops forever under overload.
-        """
-        with self._rt_lock:
-            if kind == "haptic":
-                if not self.haptic_seq.accept(int(item[0]["seq"])):
-                    return
-            older = self._pending.pop(kind, None)
-            if older is not None:
-                self._supersede(kind, older)
-            if self._rt_busy:
-                self._pending[kind] = item
-                return
-            self._rt_busy = True
-        try:
-            self._half_cycle(kind, item)
-            with self._rt_lock:
-                pending, self._pending = self._pending, {}
-            for name in ("haptic", "state"):
-                if name in pending:
-                    self._half_cycle(name, pending[name])
-        finally:
-            with self._rt_lock:
-                self._rt_busy = False
-
-    def _half_cycle(self, kind: str, item: Any) -> None:
-        if kind == "haptic":
-            self._command_realtime(*item)
-        else:
-            self._feedback_realtime(item)
-
-    def _supersede(self, kind: str, item: Any) -> None:
-        """A pending input replaced by a newer one of its kind (lock held)."""
-        trace = item[0]["trace_ns"] if kind == "haptic" else item["trace_ns"]
-        if kind == "haptic":
-            self.haptic_shed += 1
-        else:
-            self.states_shed += 1
-        if int(trace[Stage.HAPTIC_SAMPLE]) > 0:
-            self.shed_log.append((int(trace[Stage.HAPTIC_SAMPLE]),))
-
-    def _shed(self, kind: str, item: Any) -> None:
-        with self._rt_lock:
-            self._supersede(kind, item)
-
-    def _command_realtime(self, haptic: np.ndarray, rx_ns: int) -> None:
-        """One HAPTIC_STATE sample -> one JOINT_COMMAND, on the newest plant state."""
-        sample_ns = int(haptic["trace_ns"][Stage.HAPTIC_SAMPLE])
-        if time.monotonic_ns() - sample_ns > SHED_AGE_NS:
-            self._shed("haptic", (haptic, rx_ns))
-            return
-        latest_state = self.states.get()
-        if latest_state is None:
-            self.haptic_before_state += 1
-            return
-        state = latest_state[0]
-        tick = int(state["seq"])
-        service = self.service
-        t0 = time.monotonic_ns()
-        prepared_seq, terms, obstacle = self._prepared
-        if prepared_seq != tick:  # not prepared for this state: all of it here
-            terms, obstacle = None, ProximitySample.from_state(state)
-        output, gripper_cmd, _, _ = self._control(tick, state, haptic, obstacle, terms)
-        service.compute_ns_total += time.monotonic_ns() - t0
-        trace = np.zeros(N_STAGES, dtype=np.int64)  # np.zeros_like costs ~10 us here
-        trace[Stage.HAPTIC_SAMPLE] = haptic["trace_ns"][Stage.HAPTIC_SAMPLE]
-        trace[Stage.CONTROLLER_RX] = rx_ns
-        deadline_ns = int(haptic["device_deadline_ns"])
-        service.publish_command(state, output.qd_ref_rad_s, gripper_cmd, trace, deadline_ns)
-        self._last_output = output
-        if tick % service.status_every_steps == 0:
-            self._publish_status(tick, state, output, float(state["held_mass_kg"]) > 0)
-
-    def _feedback_realtime(self, state: np.ndarray) -> None:
-        """One PLANT_STATE -> one FORCE_FEEDBACK (its trace continues the command's)."""
-        if time.monotonic_ns() - int(state["trace_ns"][Stage.PLANT_STATE_TX]) > SHED_AGE_NS:
-            self._shed("state", state)
-            return
-        service = self.service
-        tick = int(state["seq"])
-        latest = self.haptic.get()
-        haptic = latest[0] if latest is not None else None
-        if haptic is not None and tick - int(haptic["tick"]) > self.stale_ticks:
-            haptic = None
-        if haptic is None:
-            self.no_input_cycles += 1
-        t0 = time.monotonic_ns()
-        handle_d_m = np.array(haptic["device_p_m"]) if haptic is not None else np.zeros(3)
-        yaw_rad = self._head_yaw_rad(tick)
-        obstacle = ProximitySample.from_state(state)
-        components, device_f_n, held_mass = self._feedback_force(
-            state, obstacle, handle_d_m, yaw_rad
-        )
-        service.compute_ns_total += time.monotonic_ns() - t0
-        self._publish_feedback(tick, state, components, device_f_n, state["trace_ns"])
-        if self._last_output is not None:
-            self._measure(self._last_output, components, device_f_n, held_mass)
-        # Off the loop's critical path: the next handle sample will be answered on this
-        # state; its joint-state half of the control law can run now.
-        n = service.arm.n_joints
-        t0 = time.monotonic_ns()
-        terms = self.controller.prepare(state["q_rad"][:n], state["qd_rad_s"][:n])
-        self._prepared = (tick, terms, obstacle)
-        service.compute_ns_total += time.monotonic_ns() - t0
-
-    def _control(
-        self,
-        tick: int,
-        state: np.ndarray,
-        haptic: np.ndarray | None,
-        obstacle: ProximitySample | None,
-        terms: JointStateTerms | None = None,
-    ) -> tuple[TeleopOutput, float, np.ndarray, float]:
-        """One control law cycle from the handle (None: no input, the tool holds still);
-        ``terms``: the joint-state half of the law, prepared from ``state`` (None:
-        computed here).
-
-        Returns the output, the gripper command, the handle offset (m, device frame) and
-        the view yaw (rad) it was computed with.
-        """
-        if haptic is None:
-            handle_d_m, buttons = np.zeros(3), 0
-        else:  # the record is this service's own and never written: a view will do
-            handle_d_m, buttons = haptic["device_p_m"], int(haptic["buttons"])
-        # Plain int bit tests: an enum.Flag operation costs microseconds per call.
-        clutch = bool(buttons & _CLUTCH)
-        gripper_cmd = GRIPPER_CLOSED if buttons & _GRIPPER_CLOSE else GRIPPER_OPEN
-        yaw_rad = self._head_yaw_rad(tick)
-        v_ref = teleop_reference(handle_d_m, yaw_rad, clutch, self.service.config.teleop)
-        n = self.service.arm.n_joints
-        output = self.controller.update(
-            state["q_rad"][:n],
-            state["qd_rad_s"][:n],
-            v_ref,
-            obstacle,
-            gripper_cmd,
-            clutch,
-            terms=terms,
-        )
-        return output, gripper_cmd, handle_d_m, yaw_rad
-
-    def _feedback_force(
-        self,
-        state: np.ndarray,
-        obstacle: ProximitySample | None,
-        handle_d_m: np.ndarray,
-        yaw_rad: float,
-    ) -> tuple[FeedbackComponents, np.ndarray, float]:
-        """Force feedback components, the device force (N, device frame) and the held mass,
-        from the contact in ``state`` (PLANT_STATE)."""
-        config = self.service.config
-        world_f_gripper_n = np.array(state["world_f_contact_n"])
-        held_mass_kg = float(state["held_mass_kg"])
-        components = feedback_components(
-            world_f_gripper_n, held_mass_kg, obstacle, handle_d_m, config.teleop
-        )
-        device_f_n = device_force(components, yaw_rad, config.teleop, config.haptic)
-        return components, device_f_n, held_mass_kg
-
-    def _head_yaw_rad(self, tick: int) -> float:
-        """The HMD's predicted view yaw that applies at ``tick`` (config yaw before any)."""
-        hmd = self.service.config.hmd
-        if tick < self.hmd_lead_ticks:  # before the first HMD record can apply
-            return hmd.head_yaw_rad
-        if self.lockstep:
-            valid_from = expected_valid_from(tick, hmd.rate_hz, self.service.timestep_s,
-                                             self.hmd_lead_ticks)  # fmt: skip
-            assert valid_from is not None
-            rec = self.head_poses.wait_for(valid_from, HEAD_POSE_WAIT_S)
-        else:  # the newest record: no need to know which one the schedule expects
-            rec = self.head_poses.latest_at(tick)
-        if rec is None:
-            self.missing_head_poses += 1
-            return hmd.head_yaw_rad
-        return float(rec["predicted_yaw_rad"])
-
-    # -- the cycle -----------------------------------------------------------------------
-    def _on_tick(self, tick: int, records: dict[str, np.ndarray]) -> None:
-        service = self.service
-        state = records["state"]
-        haptic = records.get("haptic")
-        if haptic is not None and tick - int(haptic["tick"]) > self.stale_ticks:
-            haptic = None  # the handle went silent: no reference, the tool holds still
-        t0 = time.monotonic_ns()
-        if haptic is None:
-            self.no_input_cycles += 1
-        obstacle = ProximitySample.from_state(state)
-        output, gripper_cmd, handle_d_m, yaw_rad = self._control(tick, state, haptic, obstacle)
-        components, device_f_n, held_mass = self._feedback_force(
-            state, obstacle, handle_d_m, yaw_rad
-        )
-        service.compute_ns_total += time.monotonic_ns() - t0
-
-        trace = state["trace_ns"].copy()
-        if haptic is not None:
-            trace[Stage.HAPTIC_SAMPLE] = haptic["trace_ns"][Stage.HAPTIC_SAMPLE]
-        self._publish_feedback(tick, state, components, device_f_n, trace)
-        service.publish_command(state, output.qd_ref_rad_s, gripper_cmd, trace)
-        self._measure(output, components, device_f_n, held_mass)
-        if tick % service.status_every_steps == 0:
-            self._publish_status(tick, state, output, held_mass > 0)
-
-    def _publish_feedback(
-        self,
-        tick: int,
-        state: np.ndarray,
-        components: Any,
-        device_f_n: np.ndarray,
-        trace: np.ndarray,
-    ) -> None:
-        rec = self._feedback
-        self.feedback_count += 1  # a Python int: += on a record field costs ~5 us
-        rec["seq"] = self.feedback_count
-        rec["tick"] = tick
-        rec["sim_time_ns"] = state["sim_time_ns"]
-        rec["device_f_n"] = device_f_n
-        rec["world_f_contact_n"] = components.world_contact_f_n
-        rec["world_f_weight_n"] = components.world_weight_f_n
-        rec["world_f_obstacle_n"] = components.world_obstacle_f_n
-        rec["device_f_workspace_n"] = components.device_workspace_f_n
-        rec["trace_ns"][:] = trace
-        now_ns = time.monotonic_ns()
-        rec["trace_ns"][Stage.FEEDBACK_TX] = now_ns
-        rec["t_source_ns"] = now_ns
-        self.feedback_batch.add(self.feedback_pub.put(rec))
-
-    def _measure(
-        self, output: TeleopOutput, components: Any, device_f_n: np.ndarray, held_mass: float
-    ) -> None:
-        # Runs after the feedback went out, before the next input: in floats (a numpy norm
-        # of a 3-vector costs ~3 us warm, several times that cold).
-        error = output.world_v_ref_m_s - output.world_v_tool_m_s
-        self.tracking_sq_sum += float(error @ error)
-        self.tracking_count += 1
-        obstacle_n = math.hypot(*components.world_obstacle_f_n.tolist())
-        self.max_obstacle_force_n = max(self.max_obstacle_force_n, obstacle_n)
-        self.max_device_force_n = max(self.max_device_force_n, math.hypot(*device_f_n.tolist()))
-        if held_mass > 0:
-            self.held_weight_sum_n += math.hypot(*components.world_weight_f_n.tolist())
-            self.held_count += 1
-
-    def _publish_status(
-        self, tick: int, state: np.ndarray, output: TeleopOutput, holding: bool
-    ) -> None:
-        rec = self._status
-        rec["seq"] += 1
-        rec["t_source_ns"] = time.monotonic_ns()
-        rec["tick"] = tick
-        rec["sim_time_ns"] = state["sim_time_ns"]
-        rec["world_v_ref_m_s"] = output.world_v_ref_m_s
-        rec["world_v_tool_m_s"] = output.world_v_tool_m_s
-        rec["world_p_tool_m"] = output.world_p_tool_m
-        rec["speed_scale"] = min(1.0, max(0.0, output.speed_scale))
-        rec["gripper_cmd"] = output.gripper_cmd
-        rec["holding"] = int(holding)
-        self.status_pub.put(rec)
-
-    def summary(self) -> dict[str, Any]:
-        rms = (self.tracking_sq_sum / self.tracking_count) ** 0.5 if self.tracking_count else None
-        held = self.held_weight_sum_n / self.held_count if self.held_count else None
-        return {
-            "velocity_tracking_rms_m_s": rms,
-            "max_obstacle_force_n": self.max_obstacle_force_n,
-            "max_device_force_command_n": self.max_device_force_n,
-            "held_weight_n": held,
-            "held_cycles": self.held_count,
-            "no_input_cycles": self.no_input_cycles,
-            "missing_head_poses": self.missing_head_poses,
-            "barrier_dropped": self.barrier.dropped,
-            "haptic_lost": self.haptic_seq.lost,
-            "haptic_reordered": self.haptic_seq.reordered,
-            "haptic_before_state": self.haptic_before_state,
-            "haptic_shed": self.haptic_shed,
-            "states_shed": self.states_shed,
-            "stability": {
-                "k_max_n_per_m": self.stability.k_max_n_per_m,
-                "k_workspace_n_per_m": self.stability.k_workspace_n_per_m,
-                "k_obstacle_handle_n_per_m": self.stability.k_obstacle_handle_n_per_m,
-            },
-        }
+        return {**super().summary(), **self.core.summary()}
 
 
 def main() -> int:

@@ -32,6 +32,7 @@ import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -700,6 +701,7 @@ def measure(
     report, raw = build_report(stack, stack_tcp, floor, floor_tcp, old)
     report["duration_s"] = duration_s
     report["baseline_duration_s"] = base_s
+    report["date_utc"] = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
     report["machine"]["loadavg_before"] = load_before
     report["wall_s"] = time.monotonic() - started
     report["run_dir"] = str(run_dir)

@@ -121,12 +121,16 @@ class Inbound:
     under its own lock.
     """
 
-    def __init__(self, tx_stage: Stage, shed_age_ns: int = SHED_AGE_NS) -> None:
+    def __init__(
+        self, tx_stage: Stage, shed_age_ns: int = SHED_AGE_NS, shed_log: StampLog | None = None
+    ) -> None:
         self.tx_stage = tx_stage
         self.shed_age_ns = shed_age_ns
         self.seq = SeqCheck()
-        self.shed = 0  # records dropped as too old on arrival (see accept)
-        self.shed_log = StampLog(1)  # HAPTIC_SAMPLE stamps of the loops dropped here
+        self.shed = 0  # records dropped unanswered: too old, or superseded (see drop)
+        # HAPTIC_SAMPLE stamps of the loops dropped here (one log may serve several streams
+        # of a service: the latency report counts loops, not streams)
+        self.shed_log = shed_log if shed_log is not None else StampLog(1)
 
     def accept(self, rec: np.ndarray, now_ns: int, *, check_seq: bool = True) -> bool:
         """True if ``rec`` is to be used: newer than the last one (``check_seq``) and
@@ -134,10 +138,14 @@ class Inbound:
         if check_seq and not self.seq.accept(int(rec["seq"])):
             return False
         if self.too_old(rec, now_ns):
-            self.shed += 1
-            self.log_dropped(rec)
+            self.drop(rec)
             return False
         return True
+
+    def drop(self, rec: np.ndarray) -> None:
+        """``rec`` goes unanswered (too old, or superseded by a newer one): count, log."""
+        self.shed += 1
+        self.log_dropped(rec)
 
     def too_old(self, rec: np.ndarray, now_ns: int) -> bool:
         """Whether ``rec`` left its sender more than ``shed_age_ns`` before ``now_ns``."""

@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 import operator
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -249,3 +249,31 @@ class PathFollowingController:
             manipulability=w,
             path_s=self._s,
         )
+
+
+@dataclass
+class PathMetrics:
+    """Accumulates the path-following figures of merit, after the settling time."""
+
+    settle_s: float
+    errors_m: list[float] = field(default_factory=list)
+    min_manipulability: float = float("inf")
+
+    def add(self, sim_time_s: float, output: ControlOutput) -> None:
+        self.min_manipulability = min(self.min_manipulability, output.manipulability)
+        if sim_time_s >= self.settle_s:
+            self.errors_m.append(output.path_error_m)
+
+    def summary(self) -> dict[str, float | None]:
+        if not self.errors_m:
+            return {
+                "path_error_rms_m": None,
+                "path_error_max_m": None,
+                "min_manipulability": self.min_manipulability,
+            }
+        errors = np.asarray(self.errors_m)
+        return {
+            "path_error_rms_m": float(np.sqrt(np.mean(errors**2))),
+            "path_error_max_m": float(errors.max()),
+            "min_manipulability": float(self.min_manipulability),
+        }

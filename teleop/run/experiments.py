@@ -11,12 +11,11 @@ import collections
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from teleop.control.kinematics import build_arm_model
-from teleop.control.path import ControlOutput, PathFollowingController
+from teleop.control.path import PathFollowingController, PathMetrics
 from teleop.core.config import Config
 from teleop.sim.plant import Plant, initial_configuration
 
@@ -24,34 +23,6 @@ from teleop.sim.plant import Plant, initial_configuration
 PROGRESS_FRACTION = 0.1
 
 ProgressFn = Callable[[float, float], None]
-
-
-@dataclass
-class PathMetrics:
-    """Accumulates the path-following figures of merit, after the settling time."""
-
-    settle_s: float
-    errors_m: list[float] = field(default_factory=list)
-    min_manipulability: float = float("inf")
-
-    def add(self, sim_time_s: float, output: ControlOutput) -> None:
-        self.min_manipulability = min(self.min_manipulability, output.manipulability)
-        if sim_time_s >= self.settle_s:
-            self.errors_m.append(output.path_error_m)
-
-    def summary(self) -> dict[str, float | None]:
-        if not self.errors_m:
-            return {
-                "path_error_rms_m": None,
-                "path_error_max_m": None,
-                "min_manipulability": self.min_manipulability,
-            }
-        errors = np.asarray(self.errors_m)
-        return {
-            "path_error_rms_m": float(np.sqrt(np.mean(errors**2))),
-            "path_error_max_m": float(errors.max()),
-            "min_manipulability": float(self.min_manipulability),
-        }
 
 
 def print_progress(fraction: float, sim_time_s: float) -> None:

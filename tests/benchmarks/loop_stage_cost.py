@@ -114,19 +114,19 @@ class Loop:
             loop._step(max(loop._state_seq, 0), 0, None, time.monotonic_ns(), deadline_ns)
         sample = loop.record.tobytes()
         between()
-        cycles = controller.cycles
+        cycles = controller.core.cycles
         deliver(
-            sample, time.monotonic_ns(), HAPTIC_STATE, controller.task._on_haptic, controller.drops
+            sample, time.monotonic_ns(), HAPTIC_STATE, controller.core.on_haptic, controller.drops
         )
-        if controller.cycles == cycles:
+        if controller.core.cycles == cycles:
             raise RuntimeError("the controller did not answer the sample (shed)")
-        command = controller._command.tobytes()
+        command = controller.core._command.tobytes()
         between()
         deliver(command, time.monotonic_ns(), JOINT_COMMAND, plant._on_command, plant.drops)
         state = plant.loop._state.tobytes()
         between()
         deliver(state, time.monotonic_ns(), PLANT_STATE, controller._on_state, controller.drops)
-        feedback = controller.task._feedback.tobytes()
+        feedback = controller.core._feedback.tobytes()
         between()
         before = len(loop.trace_log)
         deliver(feedback, time.monotonic_ns(), FORCE_FEEDBACK, haptic._on_feedback, haptic.drops)

@@ -5,9 +5,13 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import time
+import threading
 from pathlib import Path
 
+from teleop.bus.messages import PLANT_STATE, DropCounter
+from teleop.bus.session import close_session, open_session, subscribe
+from teleop.bus.topics import Topics
+from teleop.core.config import load_config
 from teleop.run.stack import free_loopback_port
 
 SUMMARY_KEYS = {
@@ -62,6 +66,32 @@ def _read_json(path: Path) -> dict:
     return json.loads(path.read_text())
 
 
+# Plant states that applied a controller command, seen on the bus before `teleop down`.
+STATES_TO_SEE = 500
+
+
+def applied_states(endpoint_override: str, count: int) -> int:
+    """Join the stack's bus (the plant listens on ``bus.endpoint``) and wait, event driven,
+    for ``count`` plant states that carry an applied command; how many came."""
+    config = load_config(None, [endpoint_override, "bus.gossip=false"])
+    topics = Topics(config.robot.robot_id)
+    seen, done = [0], threading.Event()
+
+    def on_state(rec, rx_ns) -> None:
+        if int(rec["cmd_seq_applied"]) > 0:
+            seen[0] += 1
+            if seen[0] >= count:
+                done.set()
+
+    session = open_session(config.bus, listen=False)
+    sub = subscribe(session, topics.plant_state, PLANT_STATE, on_state, DropCounter())
+    try:
+        done.wait(UP_TIMEOUT_S)  # bounds a failure only
+        return min(seen[0], count)
+    finally:
+        close_session(session, sub)
+
+
 def test_up_status_down_runs_a_linked_stack_until_stopped(tmp_path):
     """The README's long-running stack: `teleop up` starts the services detached (the
     plant listens, the others join it by the launcher's mesh), `teleop status` says
@@ -73,22 +103,19 @@ def test_up_status_down_runs_a_linked_stack_until_stopped(tmp_path):
     try:
         assert up.returncode == 0, up.stderr
         services = ("plant", "controller", "recorder", "eyeview")
-        deadline = time.monotonic() + UP_TIMEOUT_S
-        logs = [run_dir / "logs" / f"{name}.log" for name in services]
-        while not all(log.exists() and "running (robot" in log.read_text() for log in logs):
-            assert time.monotonic() < deadline, "services not running after the timeout"
-            time.sleep(0.2)
+        # The plant steps only once every service is ready: its states applying the
+        # controller's commands mean the whole stack runs.
+        assert applied_states(endpoint, STATES_TO_SEE) == STATES_TO_SEE
         status = teleop("status", "--run-dir", str(run_dir))
         assert status.returncode == 0, status.stdout + status.stderr
         for name in services:
             assert f"{name:12s} RUNNING" in status.stdout
-        time.sleep(1.0)  # a second of path following: ~1000 commands
     finally:
         down = teleop("down", "--run-dir", str(run_dir))
     assert down.returncode == 0, down.stderr
     assert teleop("status", "--run-dir", str(run_dir)).returncode != 0  # nothing left
     plant = _read_json(run_dir / "plant.summary.json")
-    assert plant["commands_applied"] > 500 and plant["stale_commands"] == 0
+    assert plant["commands_applied"] >= STATES_TO_SEE and plant["stale_commands"] == 0
     for name in services:
         assert _read_json(run_dir / f"{name}.summary.json")["unlinked_peers"] == [], name
     assert (run_dir / "recording.rrd").stat().st_size > 0

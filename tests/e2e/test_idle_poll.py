@@ -45,6 +45,12 @@ def _alive(pid: int) -> bool:
         return False
 
 
+def _user_ticks(pid: int) -> int:
+    """CPU time (clock ticks) ``pid`` has spent in user space."""
+    with open(f"/proc/{pid}/stat") as f:
+        return int(f.read().rsplit(")", 1)[1].split()[11])
+
+
 def _is_polling(pid: int) -> bool:
     return os.sched_getscheduler(pid) == os.SCHED_IDLE
 
@@ -62,10 +68,7 @@ def test_poller_spins_pinned_at_sched_idle_and_stops_on_sigint(tmp_path):
         assert os.sched_getaffinity(proc.pid) == {cpu}
         with open(f"/proc/{proc.pid}/cgroup") as f:
             assert f"/{IDLE_CGROUP_NAME}\n" in f.read()
-        time.sleep(0.3)
-        with open(f"/proc/{proc.pid}/stat") as f:
-            utime_ticks = int(f.read().rsplit(")", 1)[1].split()[11])
-        assert utime_ticks > 0, "the poller should be spinning in user space"
+        _wait_for(lambda: _user_ticks(proc.pid) > 0, "the poller to spin in user space")
         assert read_status(status) == POLLING
         report = idle_poll_report([cpu], tmp_path)
         assert report == {"idle_poll_cpus": [cpu], "idle_poll_failed": {}}
@@ -77,33 +80,22 @@ def test_poller_spins_pinned_at_sched_idle_and_stops_on_sigint(tmp_path):
         proc.wait()
 
 
-# Spins for 1 s on the CPU given, then prints the share of that second it got.
-HOG = (
-    "import os, sys, time; os.sched_setaffinity(0, {int(sys.argv[1])}); "
-    "t0, c0 = time.monotonic(), time.process_time()\n"
-    "while time.monotonic() - t0 < 1.0: pass\n"
-    "print((time.process_time() - c0) / (time.monotonic() - t0))"
-)
-
-
-def test_poller_leaves_its_cpu_to_a_process_of_another_session():
-    # In its own session (its own autogroup), a CPU-bound process must get nearly all of
-    # the CPU the poller spins on. A SCHED_IDLE spinner outside the idle cgroup gave it
-    # half (its autogroup competed as a nice-0 group) and starved kernel threads.
+def test_poller_sits_in_a_cgroup_marked_idle_so_any_other_process_preempts_it():
+    # SCHED_IDLE alone is not enough: a spinner left in its session's autogroup competes
+    # at the root as a nice-0 group (another session's CPU-bound process got half the CPU)
+    # and starves the CPU's kernel threads. Inside a cgroup with cpu.idle = 1 the whole
+    # group yields to any other work. How much of the CPU another process gets is a
+    # measurement: tests/benchmarks/idle_poll_share.py prints it as a ratio.
     cpu = max(os.sched_getaffinity(0))
     poller = subprocess.Popen([*POLLER, "--cpu", str(cpu)], stderr=subprocess.DEVNULL)
     try:
         _wait_for(lambda: _is_polling(poller.pid), "the poller to start")
-        hog = subprocess.run(
-            [sys.executable, "-c", HOG, str(cpu)],
-            capture_output=True,
-            text=True,
-            timeout=30,
-            start_new_session=True,
-        )
-        assert hog.returncode == 0, hog.stderr
-        # Nearly all of it; a margin for the host's steal time (the bug gave 0.5).
-        assert float(hog.stdout) > 0.75
+        with open(f"/proc/{poller.pid}/cgroup") as f:
+            groups = [line.rsplit(":", 1)[1] for line in f.read().splitlines()]
+        assert f"/{IDLE_CGROUP_NAME}" in groups
+        found = cpu_cgroup_root(Path("/proc/self/mountinfo").read_text())
+        assert found is not None
+        assert (found[0] / IDLE_CGROUP_NAME / "cpu.idle").read_text().strip() == "1"
     finally:
         poller.send_signal(signal.SIGINT)
         poller.wait(WAIT_TIMEOUT_S)

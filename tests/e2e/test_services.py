@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -34,6 +35,9 @@ from teleop.viz.rrd import Recording
 
 OBSERVER = "observer"
 ALIVE_TIMEOUT_S = 60.0
+# Sim time may lead wall time by the run's first periods (its wall clock starts after
+# the first state goes out): a fraction of a 4 s run, far below any real pacing error.
+REALTIME_AHEAD_TOLERANCE = 0.05
 EVENT_TIMEOUT_S = 30.0
 
 
@@ -106,9 +110,10 @@ def test_realtime_run_keeps_time_and_accuracy(tmp_path):
         tmp_path, "rt", "--mode", "realtime", "--duration", "4", "--set", "run.settle_s=2"
     )
     assert summary["mode"] == "realtime" and summary["steps"] == 4000
-    # Generous bounds: this checks that realtime mode paces on wall-clock time at all;
-    # the 1 % figures are measured by the benchmark, not asserted on a shared machine.
-    assert 0.8 < summary["realtime_factor"] < 1.05
+    # Realtime pacing never runs ahead of the wall clock (a loaded machine can only make
+    # it slower); how close to 1.0 it keeps is measured by tests/benchmarks/lockstep_speed.py
+    # and `teleop latency`, not asserted on a shared machine.
+    assert summary["realtime_factor"] <= 1.0 + REALTIME_AHEAD_TOLERANCE
     assert summary["path_error_rms_m"] < 0.001
     assert summary["dropped_messages"] == 0
 
@@ -224,20 +229,31 @@ def test_plant_drops_bad_commands_counts_them_and_keeps_running(realtime_pair, t
     assert summary["dropped_messages"] == 4
 
 
+def wait_for_line(stream, needle: str, timeout_s: float) -> bool:
+    """Read ``stream`` (a process's text output) until a line holds ``needle``; False if
+    the stream ends or ``timeout_s`` passes first (the timeout only bounds a failure)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        ready, _, _ = select.select([stream], [], [], 1.0)
+        if not ready:
+            continue
+        line = stream.readline()
+        if not line:
+            return False
+        if needle in (line.decode(errors="replace") if isinstance(line, bytes) else line):
+            return True
+    return False
+
+
 def test_ctrl_c_on_a_run_leaves_no_process_behind(tmp_path):
     run_dir = tmp_path / "interrupted"
     proc = subprocess.Popen(
         [sys.executable, "-m", "teleop.cli", "run", "path-following", "--mode", "realtime",
-         "--duration", "60", "--run-dir", str(run_dir), "--quiet"],
+         "--duration", "20", "--run-dir", str(run_dir)],
         stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
     )  # fmt: skip
-    deadline = time.monotonic() + ALIVE_TIMEOUT_S
-    log = run_dir / "logs" / "plant.log"
-    while time.monotonic() < deadline and "event STARTED" not in (
-        log.read_text() if log.exists() else ""
-    ):
-        time.sleep(0.1)
-    assert "event STARTED" in log.read_text()
+    # The first progress line (10 % of the run) says the run is under way.
+    assert wait_for_line(proc.stderr, "sim t =", ALIVE_TIMEOUT_S), "the run never started"
     proc.send_signal(signal.SIGINT)
     proc.communicate(timeout=60)
     assert proc.returncode != 0

@@ -1,0 +1,162 @@
+"""The latency report's statistics on synthetic data: percentiles against an exact
+reference, hops, chain accounting, ratios to the floor, conclusions, the stamp log."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from teleop.bench import latency
+from teleop.bus.messages import N_STAGES, Stage
+from teleop.bus.stamps import StampLog
+from teleop.core.clock import NS_PER_S, NS_PER_US
+
+# HDR histograms keep 3 significant digits: a percentile is within this fraction of the
+# exact order statistic (the bucket's highest equivalent value; 2^-10 < 1e-3).
+HDR_RELATIVE_PRECISION = 1e-3
+PERIOD_NS = 1_000_000
+
+
+def _reference(values_ns: np.ndarray, pct: float) -> float:
+    """The exact order statistic HDR approximates (nearest rank, the rank rounded half up
+    as HdrHistogram does; numpy's inverted_cdf takes the ceiling instead), in us."""
+    rank = max(1, int(pct * values_ns.size / 100.0 + 0.5))
+    return float(np.sort(values_ns)[rank - 1]) / NS_PER_US
+
+
+def assert_matches_reference(figures: dict, values_ns: np.ndarray) -> None:
+    assert figures["count"] == values_ns.size
+    for key, pct in latency.PERCENTILES.items():
+        exact = _reference(values_ns, pct)
+        assert figures[key] == pytest.approx(exact, rel=HDR_RELATIVE_PRECISION, abs=1e-3), key
+    assert figures["max"] == pytest.approx(values_ns.max() / NS_PER_US)
+
+
+def _synthetic_traces(n: int, rng: np.random.Generator) -> np.ndarray:
+    """Loops every PERIOD_NS with positive random gaps between consecutive stages."""
+    gaps = rng.integers(1_000, 200_000, size=(n, N_STAGES))
+    gaps[:, 0] = 0
+    traces = np.cumsum(gaps, axis=1) + (np.arange(n) * PERIOD_NS)[:, None] + NS_PER_S
+    return traces.astype(np.int64)
+
+
+def test_percentiles_match_numpy_within_hdr_precision():
+    rng = np.random.default_rng(0)
+    values_ns = rng.lognormal(mean=np.log(300e3), sigma=0.8, size=20_000).astype(np.int64)
+    assert_matches_reference(latency.stats_us(values_ns), values_ns)
+    assert latency.stats_us(np.array([], dtype=np.int64))["p99"] is None
+
+
+def test_hops_add_up_to_the_round_trip_and_incomplete_loops_are_left_out():
+    rng = np.random.default_rng(1)
+    traces = _synthetic_traces(3000, rng)
+    broken = traces[:10].copy()
+    broken[:, Stage.PLANT_APPLIED] = 0  # a state the plant stepped without a new command
+    loops = latency.complete_loops(np.vstack([traces, broken]))
+    assert loops.shape[0] == 3000
+    total = sum(latency.hop_ns(loops, hop) for hop in latency.HOPS)
+    np.testing.assert_array_equal(total, latency.hop_ns(loops, latency.ROUND_TRIP))
+    report = latency.analyse(traces)
+    kept = latency.after_warmup(traces)
+    assert kept.shape[0] == 3000 - round(latency.WARMUP_S * NS_PER_S / PERIOD_NS)
+    assert_matches_reference(report["round_trip_us"], latency.hop_ns(kept, latency.ROUND_TRIP))
+    assert report["non_monotonic"] == 0
+    swapped = traces.copy()
+    swapped[5, Stage.PLANT_RX], swapped[5, Stage.PLANT_APPLIED] = (
+        swapped[5, Stage.PLANT_APPLIED],
+        swapped[5, Stage.PLANT_RX],
+    )
+    assert latency.non_monotonic(swapped) == 1
+
+
+def test_chain_accounting_finds_missing_and_duplicate_samples():
+    rng = np.random.default_rng(2)
+    traces = _synthetic_traces(100, rng)
+    samples = np.stack([np.arange(100), traces[:, Stage.HAPTIC_SAMPLE]], axis=1)
+    assert latency.chain_accounting(samples, traces) == {
+        "samples": 100,
+        "returned": 100,
+        "missing": 0,
+        "shed": 0,
+        "unaccounted": 0,
+        "duplicates": 0,
+    }
+    damaged = np.vstack([np.delete(traces, [40, 41], axis=0), traces[[7]]])
+    shed = traces[[41], Stage.HAPTIC_SAMPLE]
+    counts = latency.chain_accounting(samples, damaged, shed)
+    assert counts["missing"] == 2 and counts["duplicates"] == 1
+    assert counts["shed"] == 1 and counts["unaccounted"] == 1
+
+
+def test_overhead_is_a_ratio_to_the_floor_and_none_without_a_floor_stage():
+    stack = {"round_trip_us": {"p50": 300.0, "p99": 900.0}, "hops": {"plant_wait": {"p50": 5.0,
+             "p99": 9.0}}}  # fmt: skip
+    floor = {"round_trip_us": {"p50": 200.0, "p99": 600.0}, "hops": {"plant_wait": {"p50": 0.001,
+             "p99": 0.001}}}  # fmt: skip
+    result = latency.overhead(stack, floor)
+    assert result["round_trip"]["p50_ratio"] == pytest.approx(1.5)
+    assert result["round_trip"]["p99_extra_us"] == pytest.approx(300.0)
+    assert result["plant_wait"]["p50_ratio"] is None
+    assert result["plant_wait"]["p50_extra_us"] == pytest.approx(4.999)
+
+
+def test_stamp_log_grows_saves_and_stays_bounded(tmp_path):
+    log = StampLog(3, capacity_rows=2, max_rows=5)
+    for i in range(7):
+        log.append((i, 2 * i, 3 * i))
+    np.testing.assert_array_equal(log.rows[:, 1], [0, 2, 4, 6, 8])
+    assert log.overflow == 2
+    log.save(tmp_path / "x.npy")
+    np.testing.assert_array_equal(np.load(tmp_path / "x.npy"), log.rows)
+
+
+def test_conclusions_name_the_frame_and_1mib_sizes_and_a_side_that_got_nothing():
+    stats = {"p50": 500.0, "p99": 900.0}
+    empty = {"count": 0, "p50": None, "p99": None}
+    report = {
+        "round_trip_us": stats,
+        "floor_us": {"p50": 250.0, "p99": 600.0},
+        "floor_back_to_back_us": {"p99": 300.0},
+        "overhead": {"round_trip": {"p99_ratio": 1.5}},
+        "lost": {"haptic": 0, "command": 0, "feedback": 0},
+        "reordered": {"haptic": 0},
+        "chain": {"missing": 0, "samples": 10},
+        "shed": {"haptic": 0},
+        "machine": {"idle_poll_cpus": [0, 1]},
+        "payload_sweep": [
+            {"bytes": 64, "shm_us": stats, "tcp_us": stats, "tcp_over_shm_p50": 1.0,
+             "shm_faster": False},
+            {"bytes": latency.EYE_VIEW_FRAME_BYTES, "shm_us": {"p50": 400.0},
+             "tcp_us": {"p50": 800.0}, "tcp_over_shm_p50": 2.0, "shm_faster": True},
+            {"bytes": 1 << 20, "shm_us": {"p50": 1000.0}, "tcp_us": empty,
+             "tcp_over_shm_p50": None, "shm_faster": False},
+        ],
+    }  # fmt: skip
+    lines = latency.conclusions(report)
+    assert not any(line.startswith("64 B") for line in lines)
+    assert f"{latency.EYE_VIEW_FRAME_BYTES} B (eye-view frame): SHM is faster" in "\n".join(lines)
+    assert "1048576 B: no payload came back over TCP" in lines
+    assert lines[-2].startswith("idle CPUs polled (cpu.idle_poll): 0, 1;")
+    report["machine"]["idle_poll_cpus"] = []
+    assert "idle CPUs halt (cpu.idle_poll off)" in latency.conclusions(report)
+    report["machine"]["idle_poll_failed"] = {1: "not polled: no CPU cgroup hierarchy"}
+    lines = latency.conclusions(report)
+    assert "idle CPUs halt (cpu.idle_poll off)" not in lines
+    assert "idle CPU 1 halts, its poller says: not polled: no CPU cgroup hierarchy" in lines
+
+
+def test_variant_rounds_rotate_so_every_variant_runs_in_every_position():
+    sys.path.insert(0, str(Path(__file__).parents[1] / "benchmarks"))
+    try:
+        from variants import round_order
+    finally:
+        sys.path.pop(0)
+    names = ["default", "a", "b"]
+    orders = [round_order(names, r) for r in range(3)]
+    assert orders[0] == names
+    for position in range(3):
+        assert sorted(order[position] for order in orders) == sorted(names)
+    assert round_order(names, 3) == names
