@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from shm.provider import get_provider
+import shm
 from teleop.bus.messages import (
     EYE_VIEW,
     HEAD_POSE,
@@ -122,10 +122,10 @@ class EyeViewService(Service):
             subscribe(self.session, self.topics.objects, OBJECT_POSES, self.objects, self.drops)
         )
         self.keep(subscribe(self.session, self.topics.head_pose, HEAD_POSE, self.heads, self.drops))
-        shm = get_provider(self.config.bus.shm_pool_bytes) if self.config.bus.shm else None
+        provider = shm.get_provider(self.config.bus.shm_pool_bytes) if self.config.bus.shm else None
         # A viewer stream (teleop.bus.graph): dropped rather than blocking a slow receiver.
         self.frame_pub = self.keep(
-            Publisher.for_stream(self.session, self.topics, "eye_view", shm=shm)
+            Publisher.for_stream(self.session, self.topics, "eye_view", shm=provider)
         )
         self._frame = EYE_VIEW.new()
         self._frame["width_px"] = eye.width_px

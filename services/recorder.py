@@ -69,6 +69,7 @@ from teleop.bus.session import subscribe, subscribe_frames
 from teleop.control.path import DesiredPath
 from teleop.control.teleop import view_to_world
 from teleop.core.config import Config, ConfigError, ModelError
+from teleop.core.rundir import RECORDING_FILE
 from teleop.viz.blueprint import build_blueprint
 from teleop.viz.entities import (
     APPLICATION_ID,
@@ -114,7 +115,6 @@ from teleop.viz.entities import (
     ENTITY_WORLD,
     FEEDBACK_COMPONENTS,
     FORCE_ARROW_COLORS,
-    RRD_FILE_NAME,
     TIMELINE_SIM,
     TIMELINE_SOURCE,
     axis_entity,
@@ -454,7 +454,7 @@ class RecorderService(Service):
         if self.config.recorder.rrd_path:
             return Path(self.config.recorder.rrd_path)
         if self.options.run_dir is not None:
-            return self.options.run_dir / RRD_FILE_NAME
+            return self.options.run_dir / RECORDING_FILE
         raise ConfigError("recorder.rrd_path is empty and no --run-dir was given")
 
     # -- lifecycle ---------------------------------------------------------------------

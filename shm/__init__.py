@@ -1,5 +1,19 @@
 """Shared-memory transport helpers (see :mod:`shm.provider`)."""
 
-from shm.provider import SHM_THRESHOLD_BYTES, get_provider, publish_bytes, took_shm_path
+from shm.provider import (
+    SHM_THRESHOLD_BYTES,
+    configure_session,
+    get_provider,
+    publish_bytes,
+    put_by_size,
+    took_shm_path,
+)
 
-__all__ = ["SHM_THRESHOLD_BYTES", "get_provider", "publish_bytes", "took_shm_path"]
+__all__ = [
+    "SHM_THRESHOLD_BYTES",
+    "configure_session",
+    "get_provider",
+    "publish_bytes",
+    "put_by_size",
+    "took_shm_path",
+]

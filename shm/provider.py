@@ -12,6 +12,7 @@ once in (slice assignment) and once out (``to_bytes``) on the receiving side.
 
 from __future__ import annotations
 
+import json
 import threading
 
 import zenoh
@@ -39,6 +40,40 @@ def get_provider(pool_bytes: int) -> ShmProvider:
             provider = ShmProvider.default_backend(pool_bytes)
             _providers[pool_bytes] = provider
         return provider
+
+
+def configure_session(conf: zenoh.Config, *, enabled: bool, lowlatency: bool) -> None:
+    """Set a session's shared-memory transport in ``conf``: on or off, and Zenoh's
+    low-latency unicast transport (``lowlatency``, only with shared memory: it carries
+    no QoS, so priorities and express stop applying, and every put goes out at once).
+
+    With shared memory on: segments created at start (``init``: no first-message delay),
+    used for puts only (a query dropped under CPU stalls otherwise), for payloads of at
+    least :data:`SHM_THRESHOLD_BYTES`.
+    """
+    key = "transport/shared_memory"
+    conf.insert_json5(f"{key}/enabled", json.dumps(enabled))
+    lowlatency = enabled and lowlatency
+    conf.insert_json5("transport/unicast/lowlatency", json.dumps(lowlatency))
+    conf.insert_json5("transport/unicast/qos/enabled", json.dumps(not lowlatency))
+    if enabled:
+        conf.insert_json5(f"{key}/mode", json.dumps("init"))
+        conf.insert_json5(f"{key}/transport_optimization/messages", json.dumps(["put"]))
+        conf.insert_json5(
+            f"{key}/transport_optimization/message_size_threshold",
+            json.dumps(SHM_THRESHOLD_BYTES),
+        )
+
+
+def put_by_size(
+    pub: zenoh.Publisher, data: bytes | bytearray, provider: ShmProvider | None
+) -> None:
+    """Put ``data`` on ``pub`` by the path its size calls for: through a SHM buffer of
+    ``provider`` at or above the threshold, inline below it (or without a provider)."""
+    if provider is not None and len(data) >= SHM_THRESHOLD_BYTES:
+        publish_bytes(pub, data, provider)
+    else:
+        pub.put(bytes(data))
 
 
 def publish_bytes(pub: zenoh.Publisher, data: bytes | bytearray, provider: ShmProvider) -> None:

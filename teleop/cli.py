@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from teleop.core.config import SCENARIOS, Config, ConfigError, ModelError, load_config
+from teleop.core.rundir import LATENCY_RECORDING_FILE, WEB_VIEWER_LOG_FILE
 
 if TYPE_CHECKING:
     from teleop.viz.viewer import WebViewer
@@ -31,7 +32,6 @@ if TYPE_CHECKING:
 DEFAULT_RUN_DIR = Path("runs") / "latest"
 DEFAULT_UP_DIR = Path("runs") / "up"
 DEFAULT_LATENCY_DIR = Path("runs") / "latency"
-WEB_VIEWER_LOG = "web-viewer.log"  # in the run directory of `teleop run --web`
 
 # Exit codes: 0 success, 1 the run failed its own checks, 2 bad usage or config.
 EXIT_FAILED = 1
@@ -258,7 +258,7 @@ def _run(args: argparse.Namespace) -> int:
         web = serve_web(
             web_port=args.web_port,
             grpc_port=args.grpc_port,
-            log_path=args.run_dir / WEB_VIEWER_LOG,
+            log_path=args.run_dir / WEB_VIEWER_LOG_FILE,
         )
         overrides.append(f'recorder.grpc_url="{web.grpc_url}"')
         config = load_config(args.config, overrides)
@@ -324,7 +324,7 @@ def _latency(args: argparse.Namespace) -> int:
         progress=latency.print_progress,
         **kwargs,
     )
-    rrd = args.rrd if args.rrd is not None else args.run_dir / "latency.rrd"
+    rrd = args.rrd if args.rrd is not None else args.run_dir / LATENCY_RECORDING_FILE
     latency.log_to_rerun(report, raw, rrd)
     report["rrd"] = str(rrd)
     if args.png is not None:

@@ -668,8 +668,8 @@ def measure(
     }
     # The paced floor brackets the stack, half before and half after it: this host's
     # wake-up costs drift over minutes, and the p99 ratio compares like with like only
-    # when the floor spans the stack's minutes (the paced floor before the stack gave
-    # 0.7-2.6 ms p99 in consecutive runs on 2026-11-24).
+    # when the floor spans the stack's minutes (the paced floor's p99 alone varies
+    # several-fold between consecutive runs).
     half_s = base_s / 2
     say(f"floor, SHM on: relay chain paced {half_s:g} s, back to back, payload sweep")
     before = run_floor(

@@ -31,7 +31,7 @@ from typing import Any, ClassVar
 import numpy as np
 import zenoh
 
-from shm.provider import SHM_THRESHOLD_BYTES, get_provider, publish_bytes
+import shm
 from teleop.bus.messages import N_STAGES, Stage
 from teleop.bus.service import Service, service_main
 from teleop.bus.stamps import StampLog
@@ -95,13 +95,10 @@ class RawPublisher:
             express=True,
             reliability=zenoh.Reliability.RELIABLE,
         )
-        self._shm = get_provider(shm_pool_bytes) if shm_pool_bytes else None
+        self._shm = shm.get_provider(shm_pool_bytes) if shm_pool_bytes else None
 
     def put(self, data: bytes | bytearray) -> None:
-        if self._shm is not None and len(data) >= SHM_THRESHOLD_BYTES:
-            publish_bytes(self._pub, data, self._shm)
-        else:
-            self._pub.put(bytes(data))
+        shm.put_by_size(self._pub, data, self._shm)
 
     def undeclare(self) -> None:
         self._pub.undeclare()

@@ -36,6 +36,7 @@ from teleop.bus.session import (
 )
 from teleop.bus.topics import Topics
 from teleop.core.config import Config, ConfigError, ModelError, load_config
+from teleop.core.rundir import summary_path
 
 logger = logging.getLogger(__name__)
 
@@ -147,8 +148,8 @@ class Service:
         Why: peers link to each other directly, each pair on its own schedule after they
         find each other, and a put sent before a pair's link is up is lost. The plant
         starts the run only once every service is ready (``await_services``), so
-        nothing the run sends is lost on a link still being made: in a lockstep run,
-        which can end within a second, all of a controller's statuses once were.
+        nothing the run sends is lost on a link still being made (a lockstep run can end
+        within a second: a link made late would miss all of it).
         """
         assert self.session is not None
         missing = self._wait_tokens(stop, self.options.peers, ready=False, limit_s=PEER_LINK_WAIT_S)
@@ -199,7 +200,7 @@ class Service:
     def write_summary(self) -> None:
         if self.options.run_dir is None:
             return
-        path = self.options.run_dir / f"{self.name}.summary.json"
+        path = summary_path(self.options.run_dir, self.name)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp")
         tmp.write_text(json.dumps(self.summary(), indent=2) + "\n")

@@ -22,7 +22,7 @@ import numpy as np
 import zenoh
 from zenoh.shm import ShmProvider
 
-from shm.provider import SHM_THRESHOLD_BYTES, publish_bytes
+from shm.provider import configure_session, put_by_size, took_shm_path
 from teleop.bus import graph
 from teleop.bus.messages import DecodeError, DropCounter, FrameSchema, Schema
 from teleop.bus.topics import Topics
@@ -82,18 +82,7 @@ def open_session(
         conf.insert_json5(
             "downsampling", _json([{"flows": ["ingress"], "messages": ["put"], "rules": rules}])
         )
-    shm_key = "transport/shared_memory"
-    conf.insert_json5(f"{shm_key}/enabled", _json(bus.shm))
-    lowlatency = bus.shm and bus.lowlatency  # see BusConfig.lowlatency
-    conf.insert_json5("transport/unicast/lowlatency", _json(lowlatency))
-    conf.insert_json5("transport/unicast/qos/enabled", _json(not lowlatency))
-    if bus.shm:
-        conf.insert_json5(f"{shm_key}/mode", _json("init"))
-        conf.insert_json5(f"{shm_key}/transport_optimization/messages", _json(["put"]))
-        conf.insert_json5(
-            f"{shm_key}/transport_optimization/message_size_threshold",
-            _json(SHM_THRESHOLD_BYTES),
-        )
+    configure_session(conf, enabled=bus.shm, lowlatency=bus.lowlatency)  # BusConfig
     for entry in bus.zenoh_overrides:
         path, _, value = entry.partition("=")
         conf.insert_json5(path.strip(), value.strip())
@@ -193,10 +182,7 @@ class Publisher:
 
     def put_bytes(self, data: bytes) -> None:
         """Send raw bytes (already encoded) on the path their size calls for."""
-        if self._shm is not None and len(data) >= SHM_THRESHOLD_BYTES:
-            publish_bytes(self._pub, data, self._shm)
-        else:
-            self._pub.put(data)
+        put_by_size(self._pub, data, self._shm)
 
     def wait_matched(self, timeout_s: float) -> bool:
         """Wait until at least one subscriber matches this publisher (event driven)."""
@@ -332,7 +318,7 @@ def subscribe_frames(
 
     def on_sample(sample: zenoh.Sample) -> None:
         rx_ns = time.monotonic_ns()
-        via_shm = sample.payload.as_shm() is not None
+        via_shm = took_shm_path(sample)
         try:
             rec, pixels = schema.decode_frame(sample.payload.to_bytes())
         except DecodeError as err:

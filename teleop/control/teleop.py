@@ -342,8 +342,8 @@ class JointStateTerms:
     The plant state arrives ~0.5 ms before the handle sample it is answered with, so
     :meth:`TeleopController.prepare` computes these ahead and
     :meth:`TeleopController.update` only adds what depends on the operator, the obstacle
-    and the controller's own state. Exactly the values (and the operations) ``update``
-    used to compute itself, so its outputs are bit for bit the same. The arrays are
+    and the controller's own state. The same values (and operations) ``update`` computes
+    when no terms are given, so its outputs are bit for bit the same either way. The arrays are
     read-only: the terms may be kept and used later, and two of them end up in the
     :class:`TeleopOutput`.
     """

@@ -288,10 +288,11 @@ class HmdConfig:
 class EyeViewConfig:
     """The operator's eye view: the scene rendered from the HMD's predicted pose.
 
-    A service of its own (``teleop/eyeview.py``) renders with MuJoCo's offscreen
-    renderer at ``rate_hz`` and publishes EYE_VIEW frames (over shared memory: a frame
-    is far above the SHM threshold). Without an HMD (path following) it renders from
-    the fixed viewpoint below. Defaults are sized for 2 busy cores (see README).
+    A service of its own (``services/eyeview.py``, renderer in ``teleop/viz/eyeview.py``)
+    renders with MuJoCo's offscreen renderer at ``rate_hz`` and publishes EYE_VIEW frames
+    (over shared memory: a frame is far above the SHM threshold). Without an HMD (path
+    following) it renders from the fixed viewpoint below. Defaults are sized for 2 busy
+    cores (docs/eye-view.md).
     """
 
     enabled: bool = True
@@ -387,7 +388,7 @@ class OperatorConfig:
     reaction_delay_s: float = 0.2
     decision_rate_hz: float = 100.0
     # The largest offset the hand gives the handle (m); the operator's gain follows from
-    # reaction_delay_s (no overshoot for a delayed P loop, see teleop/operator.py).
+    # reaction_delay_s (no overshoot for a delayed P loop, see teleop/devices/operator.py).
     max_hand_offset_m: float = 0.045
 
     def __post_init__(self) -> None:
@@ -410,12 +411,10 @@ class CpuConfig:
 
     The default is laid out for the 2-core target: the plant alone on CPU 0 (warm
     caches, no migrations, nothing waking up on its core), controller, recorder and eye
-    view on CPU 1; haptic, HMD and operator free. Measured on the quiet machine
-    (2026-11-22), realtime path following 60 s with recorder and eye view: realtime
-    factor 0.999 and 0.27 % plant overruns pinned, against 0.975 and 2.6 % unpinned;
-    realtime grasp: realtime factor 0.91 against 0.87. Lockstep speed is the same
-    either way (2.0x against 1.9x). CPUs the machine does not have are ignored (a
-    warning says so); on a machine with more cores give each loop its own.
+    view on CPU 1; haptic, HMD and operator free. Pinned, the realtime plant keeps time
+    closer and overruns less than unpinned; lockstep speed is the same either way.
+    CPUs the machine does not have are ignored (a warning says so); on a machine with
+    more cores give each loop its own.
     """
 
     plant: tuple[int, ...] = (0,)
@@ -431,24 +430,22 @@ class CpuConfig:
     # Realtime runs: SCHED_FIFO priority (1-99) of the bilateral loop's processes; 0 =
     # normal scheduling. A FIFO thread that wakes runs at once, ahead of every normal
     # process (recorder, eye view, HMD, operator, anything else on the host), so a
-    # message waits for a core only while another loop service is working. Measured on
-    # the 2-core machine (2026-11-22, teleop latency, 20 s): round trip p99 10.0 ->
-    # 3.5 ms, samples shed while behind 3213 -> 115, the loop services' hops near the
-    # floor. The loops are event driven (no busy wait), and the kernel's RT throttling
-    # (sched_rt_runtime_us) keeps 5 % of each CPU for normal tasks in any case. Not in
-    # lockstep: there plant and controller run flat out and would starve the recorder.
-    # Needs CAP_SYS_NICE (root has it); without it a warning says so and the service
-    # runs normally scheduled.
+    # message waits for a core only while another loop service is working: on a 2-core
+    # machine the round trip's p99 and the samples shed while behind fall several-fold
+    # (tests/benchmarks/latency_stack_variants.py measures it). The loops are event
+    # driven (no busy wait), and the kernel's RT throttling (sched_rt_runtime_us) keeps
+    # 5 % of each CPU for normal tasks in any case. Not in lockstep: there plant and
+    # controller run flat out and would starve the recorder. Needs CAP_SYS_NICE (root
+    # has it); without it a warning says so and the service runs normally scheduled.
     fifo_priority: int = 40
     # Which processes get it: the loop services.
     fifo_services: tuple[str, ...] = ("plant", "controller", "haptic")
-    # Realtime runs: one spinner per CPU (teleop/idle_poll.py: SCHED_IDLE in a CPU cgroup
-    # marked idle) so the idle CPUs poll instead of halting. On this KVM guest a halted
-    # vCPU leaves its host core (cold caches, a hypervisor exit on every wake-up): with
-    # polling the round trip fell to 0.83x p50 and 0.78x p99, and the services' own CPU
-    # time to 0.88x (2026-11-22, 3 rounds). Anything else that wants a CPU preempts its
-    # spinner at once; the cost is CPUs that read 100 % busy while the stack runs. The
-    # floor's relay chain polls alike.
+    # Realtime runs: one spinner per CPU (teleop/run/idle_poll.py: SCHED_IDLE in a CPU
+    # cgroup marked idle) so the idle CPUs poll instead of halting. On a KVM guest a
+    # halted vCPU leaves its host core (cold caches, a hypervisor exit on every wake-up);
+    # polling shortens the round trip and the services' own CPU time. Anything else that
+    # wants a CPU preempts its spinner at once; the cost is CPUs that read 100 % busy
+    # while the stack runs. The floor's relay chain polls alike.
     idle_poll: bool = True
     # Which CPUs poll (empty: every CPU the launching process may use). On a machine
     # with more cores than the stack needs, list the loop services' CPUs only.
@@ -492,13 +489,11 @@ class BusConfig:
     # no TX pipeline thread to hand it to; it has no QoS, so no priorities, and cannot
     # fragment: every payload over the SHM threshold then goes through shared memory,
     # which never falls back to the socket; without shm the default transport is kept,
-    # as TCP must fragment an eye-view frame). Measured on the whole stack (2026-11-22,
-    # tests/benchmarks/latency_stack_variants.py, 7 rounds of 15 s): round trip p50
-    # x0.66-0.73 and p99 x0.70-0.82 of the default transport, lower in 6 of 7 rounds.
-    # With it, two peers of a stack sometimes never linked to each other (3 stacks in
-    # 14: both connected at once); local.json5 now lets only one of a pair connect
-    # (gossip autoconnect_strategy "greater-zid"): 0 in 20 since, and the launchers no
-    # longer use gossip (see gossip below). Service.become_ready reports a pair that
+    # as TCP must fragment an eye-view frame). It shortens the round trip by about a
+    # third (tests/benchmarks/latency_stack_variants.py). With it, two peers that connect
+    # to each other at once may never link: local.json5 lets only one of a pair connect
+    # (gossip autoconnect_strategy "greater-zid"), and the launchers link the services
+    # by an explicit mesh (see gossip below). Service.become_ready reports a pair that
     # never links (unlinked_peers).
     lowlatency: bool = True
     # How the peers of a run find each other. With gossip (the default), every process
@@ -509,8 +504,8 @@ class BusConfig:
     # receive thread that handles gossip's link states holds the routing lock while it
     # blocks on a send, and a session declaring a subscriber meanwhile waits for that
     # lock for ever (a known class of upstream deadlocks under peer churn, zenoh issue
-    # 2581). Seen here at start-up: a service stuck in declare_subscriber, never alive,
-    # deaf to SIGINT (2 stacks of 25, 2026-11-22; 0 of 30 with the mesh).
+    # 2581): at start-up a service stuck in declare_subscriber, never alive, deaf to
+    # SIGINT, in a few stacks of a hundred; none with the mesh.
     gossip: bool = True
     # This process's own listening endpoint when it is not the run's listener; empty:
     # an ephemeral loopback port (the peers learn it through gossip).

@@ -9,6 +9,24 @@ from __future__ import annotations
 
 from pathlib import Path
 
+# Every service's summary, written atomically when it closes (teleop.bus.service), read
+# and merged by the launcher (teleop.run.stack).
+SUMMARY_SUFFIX = ".summary.json"
+# The recorder's Rerun recording when recorder.rrd_path is empty.
+RECORDING_FILE = "recording.rrd"
+# supervisord's own files (teleop.run.supervise): its config, control socket, pid file,
+# log, console output (config errors), and the directory of the programs' logs.
+SUPERVISOR_CONF_FILE = "supervisord.conf"
+SUPERVISOR_SOCKET_FILE = "supervisor.sock"
+SUPERVISOR_PID_FILE = "supervisord.pid"
+SUPERVISOR_LOG_FILE = "supervisord.log"
+SUPERVISOR_CONSOLE_FILE = "supervisord.console.log"
+LOG_DIR = "logs"
+# The log of the web viewer that `teleop run --web` serves.
+WEB_VIEWER_LOG_FILE = "web-viewer.log"
+# The Rerun recording of `teleop latency`'s figures (in its run directory).
+LATENCY_RECORDING_FILE = "latency.rrd"
+
 # Raw latency files the haptic service writes at exit (read by ``teleop latency``):
 # one trace row (N_STAGES stamps) per rendered feedback, one (seq, sample ns) per sample.
 HAPTIC_TRACE_FILE = "haptic.trace.npy"
@@ -21,3 +39,13 @@ SHED_FILE_SUFFIX = ".shed.npy"
 def shed_path(run_dir: Path, service: str) -> Path:
     """Where ``service`` writes the stamps of the samples it shed."""
     return Path(run_dir) / f"{service}{SHED_FILE_SUFFIX}"
+
+
+def summary_path(run_dir: Path, service: str) -> Path:
+    """Where ``service`` writes its summary when it closes."""
+    return Path(run_dir) / f"{service}{SUMMARY_SUFFIX}"
+
+
+def idle_poll_status_path(run_dir: Path, cpu: int) -> Path:
+    """Where the idle poller of ``cpu`` writes its status ('polling' or why not)."""
+    return Path(run_dir) / f"idle_poll_cpu{cpu}.status"

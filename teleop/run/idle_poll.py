@@ -21,13 +21,11 @@ has. That takes two settings, and the second is the one that matters:
   ``madvise`` callers hung in D state. A poller that cannot join an idle group does not
   spin: it logs why and sleeps until stopped (the stack runs, just without polling).
 
-Measured (2026-11-22, this machine, ``tests/benchmarks/latency_stack_variants.py
---duration 15 --repeat 3 --variants default,idle_poll_off``): round trip p50 658 -> 548
-us (0.83x), p99 1150 -> 900 us (0.78x), and the services' own CPU time 1.37 -> 1.20
-cores (their work runs on warm caches). The bare relay chain (the floor) did not move.
-The cost: the CPUs read 100 % busy while a realtime stack runs. ``cpu.idle_poll =
-false`` turns it off (laptops on battery, hosts shared with other work); lockstep runs
-never poll.
+What it gains is measured by ``tests/benchmarks/latency_stack_variants.py --variants
+default,idle_poll_off`` (round trip and the services' own CPU time, as ratios; on a
+2-core KVM guest both fall: the services' work runs on warm caches). The cost: the
+CPUs read 100 % busy while a realtime stack runs. ``cpu.idle_poll = false`` turns it
+off (laptops on battery, hosts shared with other work); lockstep runs never poll.
 """
 
 from __future__ import annotations
@@ -132,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
         description="Keep one CPU polling instead of halting while a realtime stack runs "
         "(SCHED_IDLE, in a CPU cgroup marked idle: anything else that wants the CPU gets "
         "it at once). Started by the stack under supervisord when cpu.idle_poll is true; "
-        "see teleop/idle_poll.py for why.",
+        "see teleop/run/idle_poll.py for why.",
     )
     parser.add_argument("--cpu", type=int, required=True, help="the CPU to keep polling")
     parser.add_argument(

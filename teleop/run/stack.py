@@ -42,6 +42,7 @@ from teleop.bus.session import (
 )
 from teleop.bus.topics import Topics
 from teleop.core.config import Config
+from teleop.core.rundir import RECORDING_FILE, SUMMARY_SUFFIX, idle_poll_status_path, summary_path
 from teleop.run.experiments import PROGRESS_FRACTION, ProgressFn
 from teleop.run.idle_poll import POLLING, read_status
 from teleop.run.supervise import Program, Stack
@@ -189,11 +190,6 @@ def idle_poll_cpus(config: Config) -> list[int]:
     return sorted(wanted & available)
 
 
-def idle_poll_status_path(run_dir: Path, cpu: int) -> Path:
-    """Where the poller of ``cpu`` says whether it polls (teleop.run.idle_poll.read_status)."""
-    return run_dir / f"{IDLE_POLL}_cpu{cpu}.status"
-
-
 def idle_poll_programs(cpus: Sequence[int], run_dir: Path) -> list[Program]:
     """One idle poller (``services.idle_poll``) per CPU of ``cpus`` (:func:`idle_poll_cpus`).
     They start first and stop last (supervisord priority), so they span the whole run;
@@ -224,7 +220,7 @@ def idle_poll_report(cpus: Sequence[int], run_dir: Path) -> dict[str, Any]:
 
 
 def _read_summary(run_dir: Path, service: str) -> dict[str, Any]:
-    path = run_dir / f"{service}.summary.json"
+    path = summary_path(run_dir, service)
     if not path.exists():
         raise RunError(f"{service} wrote no summary ({path}); see {run_dir / 'logs'}")
     return json.loads(path.read_text())
@@ -241,7 +237,7 @@ def run_on_services(
     services = scenario_services(config)
     run_dir = run_dir.absolute()
     run_dir.mkdir(parents=True, exist_ok=True)
-    for stale in run_dir.glob("*.summary.json"):
+    for stale in run_dir.glob(f"*{SUMMARY_SUFFIX}"):
         stale.unlink()
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     run_overrides = [
@@ -251,7 +247,7 @@ def run_on_services(
         f'run.scenario="{config.run.scenario}"',
     ]
     if not config.recorder.rrd_path:
-        run_overrides.append(f'recorder.rrd_path="{run_dir / "recording.rrd"}"')
+        run_overrides.append(f'recorder.rrd_path="{run_dir / RECORDING_FILE}"')
     bus = replace(config.bus, endpoint=endpoint, gossip=False)  # the mesh's listener
     topics = Topics(config.robot.robot_id)
     drops = DropCounter()
@@ -410,7 +406,7 @@ def start_detached(
     run_dir = run_dir.absolute()
     run_overrides = list(overrides)
     if not config.recorder.rrd_path:
-        run_overrides.append(f'recorder.rrd_path="{run_dir / "recording.rrd"}"')
+        run_overrides.append(f'recorder.rrd_path="{run_dir / RECORDING_FILE}"')
     services = scenario_services(config)
     programs = service_programs(
         services,

@@ -32,6 +32,15 @@ from typing import Any
 
 from supervisor.xmlrpc import SupervisorTransport
 
+from teleop.core.rundir import (
+    LOG_DIR,
+    SUPERVISOR_CONF_FILE,
+    SUPERVISOR_CONSOLE_FILE,
+    SUPERVISOR_LOG_FILE,
+    SUPERVISOR_PID_FILE,
+    SUPERVISOR_SOCKET_FILE,
+)
+
 # Seconds supervisord waits after the stop signal (SIGINT) before SIGKILLing a program's group.
 # A clean stop takes well under a second; a recorder finishing its .rrd on a starved 2-core
 # machine was seen to need more than 5 s (then it was killed and wrote no summary).
@@ -54,12 +63,6 @@ UNIX_SOCKET_PATH_MAX_BYTES = 107
 # Default startsecs: a program must stay up this long to count as started (supervisord's), s.
 DEFAULT_STARTSECS = 1
 
-CONF_NAME = "supervisord.conf"
-SOCKET_NAME = "supervisor.sock"
-PIDFILE_NAME = "supervisord.pid"
-LOGFILE_NAME = "supervisord.log"
-CONSOLE_LOG_NAME = "supervisord.console.log"  # supervisord's stdout/stderr (config errors)
-LOG_DIR_NAME = "logs"
 
 _PROGRAM_NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
 _ENV_KEY_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
@@ -212,17 +215,17 @@ class Stack:
     @property
     def conf_path(self) -> Path:
         """The rendered supervisord configuration."""
-        return self.run_dir / CONF_NAME
+        return self.run_dir / SUPERVISOR_CONF_FILE
 
     @property
     def socket_path(self) -> Path:
         """supervisord's XML-RPC unix socket."""
-        return self.run_dir / SOCKET_NAME
+        return self.run_dir / SUPERVISOR_SOCKET_FILE
 
     @property
     def log_dir(self) -> Path:
         """Directory of the per-program logs (stdout and stderr merged)."""
-        return self.run_dir / LOG_DIR_NAME
+        return self.run_dir / LOG_DIR
 
     def log_path(self, name: str) -> Path:
         """Log file of program ``name``."""
@@ -236,8 +239,8 @@ class Stack:
             "[supervisord]",
             "nodaemon=true",
             "silent=true",
-            f"logfile={_path_value(run / LOGFILE_NAME, 'logfile')}",
-            f"pidfile={_path_value(run / PIDFILE_NAME, 'pidfile')}",
+            f"logfile={_path_value(run / SUPERVISOR_LOG_FILE, 'logfile')}",
+            f"pidfile={_path_value(run / SUPERVISOR_PID_FILE, 'pidfile')}",
             f"childlogdir={_path_value(self.log_dir, 'childlogdir')}",
             "",
             "[unix_http_server]",
@@ -300,7 +303,7 @@ class Stack:
             # The kernel's parent-death signal fires when the creating *thread* ends, so it
             # is only tied to the process lifetime when set from the main thread.
             argv = [sys.executable, "-c", _EXEC_WITH_PDEATHSIG, str(os.getpid()), *argv]
-        with open(self.run_dir / CONSOLE_LOG_NAME, "ab") as console:
+        with open(self.run_dir / SUPERVISOR_CONSOLE_FILE, "ab") as console:
             self._proc = subprocess.Popen(
                 argv,
                 stdin=subprocess.DEVNULL,
@@ -323,7 +326,7 @@ class Stack:
             if self._proc.poll() is not None:
                 raise StackError(
                     f"supervisord exited with code {self._proc.returncode}:\n"
-                    + _tail(self.run_dir / CONSOLE_LOG_NAME)
+                    + _tail(self.run_dir / SUPERVISOR_CONSOLE_FILE)
                 )
             with contextlib.suppress(OSError, xmlrpc.client.Error, http.client.HTTPException):
                 states = self.status()
@@ -342,7 +345,7 @@ class Stack:
                 )
                 raise StackError(
                     f"stack not RUNNING after {timeout_s} s: {pending}\n{tails}\n"
-                    f"--- supervisord:\n{_tail(self.run_dir / CONSOLE_LOG_NAME)}"
+                    f"--- supervisord:\n{_tail(self.run_dir / SUPERVISOR_CONSOLE_FILE)}"
                 )
             time.sleep(POLL_INTERVAL_S)
 
@@ -414,7 +417,7 @@ class Stack:
         """Pid of this stack's supervisord, or None if it is not running."""
         if self._proc is not None:
             return self._proc.pid if self._proc.poll() is None else None
-        pid = _read_pid(self.run_dir / PIDFILE_NAME)
+        pid = _read_pid(self.run_dir / SUPERVISOR_PID_FILE)
         if pid is not None and _is_supervisord_of(pid, self.conf_path):
             return pid
         return None

@@ -244,7 +244,7 @@ class Plant:
         anything else, in ``data.contact`` order.
 
         Geom pairs as Python ints: a pass over them costs half of one MjContact per
-        contact, or of numpy masks (cold caches included, measured 2026-11-22).
+        contact, or of numpy masks (cold caches included).
         """
         found = []
         for i, (geom1, geom2) in enumerate(self.data.contact.geom.tolist()):

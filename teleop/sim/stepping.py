@@ -53,9 +53,9 @@ logger = logging.getLogger(__name__)
 LOCKSTEP_RESEND_S = 1.0
 # Apply on arrival: a device period whose command has not come this many periods after
 # the period began is stepped without it (with the last command, or braking). A command
-# normally reaches the plant 0.3-1.5 ms after its handle sample (teleop latency, p50-p99,
-# 2026-11-22); one that comes after its period was stepped is merged into the next step
-# instead of taking one of its own.
+# normally reaches the plant well within a period or two of its handle sample (see
+# docs/latency.md); one that comes after its period was stepped is merged into the next
+# step instead of taking one of its own.
 OWN_STEP_AFTER_PERIODS = 2
 # Apply on arrival: periods stepped back to back at most to catch up (periods before a
 # command that got none, or the run thread after a stall); older ones are skipped, never

@@ -11,7 +11,6 @@ from collections.abc import Mapping
 from teleop.bus.messages import Stage
 
 APPLICATION_ID = "zenoh-teleop"  # Rerun application id: the viewer groups recordings by it
-RRD_FILE_NAME = "recording.rrd"  # in the run directory when recorder.rrd_path is empty
 
 # --- Timelines ------------------------------------------------------------------------------
 TIMELINE_SIM = "sim_time"  # duration timeline from sim_time_ns

@@ -1,6 +1,6 @@
 """Benchmark: the bilateral loop's round trip against the transport floor, repeated.
 
-Each repeat is one full ``teleop latency`` measurement (teleop/latency.py): the floor
+Each repeat is one full ``teleop latency`` measurement (teleop/bench/latency.py): the floor
 chain, the stack with SHM on and off, the payload sweep and the old-timing stack, all
 in the same minutes. The report gives the medians over repeats of the round trip's
 p50/p99, the floor's, their ratio, and the SHM/TCP ratios of the sweep, and writes them

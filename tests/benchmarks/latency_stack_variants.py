@@ -2,7 +2,7 @@
 
 ``latency_tuning.py`` tries settings on the bare relay chain; this one runs the realtime
 teleoperation stack itself (every service, the recorder and the eye view, the scripted
-operator shuttling the tool: ``teleop/latency.py:run_stack``) once per variant, each in
+operator shuttling the tool: ``teleop/bench/latency.py:run_stack``) once per variant, each in
 a fresh process so that environment settings reach every service. Rounds alternate
 the variants so that machine noise hits all alike; the report gives, per variant, the
 median over rounds of the round trip's p50 and p99, its ratio to the default measured

@@ -1,6 +1,6 @@
 """Benchmark: Zenoh and process settings for 1 kHz round trips on 2 cores (issue 6, item 6).
 
-Each variant runs the transport floor (teleop/relay.py: the loop's four legs between
+Each variant runs the transport floor (teleop/bench/relay.py: the loop's four legs between
 three Python processes, no work) paced at 1 kHz and back to back, each in a fresh
 process so that environment settings (Zenoh's runtime threads) reach every end. Rounds
 alternate the variants so that machine noise hits all alike; the report gives, per

@@ -2,7 +2,7 @@
 
 ``teleop latency`` measures the stages in the running stack: there each costs 3-10x what
 the same code takes in a tight loop. Thread CPU time equals wall time across them (so no
-waiting: measured 2026-11-22), and the other processes that run on the core between two
+waiting), and the other processes that run on the core between two
 wake-ups evict the service's code and data from the caches. This script measures that
 directly and without the stack's noise: one process holds a plant, a controller and a
 haptic service (real objects, each with its own Zenoh session and robot id, so nothing

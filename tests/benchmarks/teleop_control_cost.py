@@ -57,7 +57,7 @@ from teleop.sim.proximity import (
     body_names,
 )
 
-# The last commit with the numpy/SVD control cycle (main before this change).
+# The baseline: the commit with the numpy/SVD control cycle, compared in the same run.
 BASELINE_REV = "c3b27db80a4ab51a194820217ab9f407d213752d"
 # Outputs must agree to this, relative to the largest magnitude of the field over the run.
 RELATIVE_TOLERANCE = 1e-10

@@ -61,9 +61,8 @@ def alternate(
     ``describe(figures)``; the figures of each variant, round by round.
 
     The order rotates from round to round (round r starts at variant r), so every
-    variant runs in every position alike over len(names) rounds: on this host the
-    second run of a pair measured 1.13x where the same code, run first, measured 0.98x
-    (2026-11-22, 4 and 3 rounds of 15 s)."""
+    variant runs in every position alike over len(names) rounds: on a shared host the
+    second run of a pair can measure slower than the same code run first."""
     results: dict[str, list[dict[str, Any]]] = {name: [] for name in names}
     with tempfile.TemporaryDirectory(prefix=f"{Path(script).stem}-") as tmp:
         for round_index in range(repeat):

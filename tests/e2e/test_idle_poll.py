@@ -1,4 +1,4 @@
-"""The idle poller (teleop/idle_poll.py) as a real process: pinned, SCHED_IDLE in the
+"""The idle poller (teleop/run/idle_poll.py) as a real process: pinned, SCHED_IDLE in the
 idle cgroup, leaves its CPU to any other process, stops on supervisord's signal, exits
 with its parent, refuses a CPU it may not use; and which stacks get one per CPU."""
 
@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from teleop.core.config import load_config
+from teleop.core.rundir import idle_poll_status_path
 from teleop.run.idle_poll import IDLE_CGROUP_NAME, POLLING, cpu_cgroup_root, read_status
 from teleop.run.stack import (
     IDLE_POLL_PRIORITY,
@@ -20,7 +21,6 @@ from teleop.run.stack import (
     idle_poll_cpus,
     idle_poll_programs,
     idle_poll_report,
-    idle_poll_status_path,
 )
 
 # Waits poll with a deadline; the deadline only bounds a failure.

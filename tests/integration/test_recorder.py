@@ -27,6 +27,7 @@ from teleop.bus import messages as m
 from teleop.bus import session as bus
 from teleop.bus.service import ServiceOptions
 from teleop.core.config import Config, ConfigError, load_config
+from teleop.core.rundir import RECORDING_FILE
 from teleop.viz import entities as ent
 from teleop.viz.rrd import read_rrd
 
@@ -499,7 +500,7 @@ def test_no_rrd_path_and_no_run_dir_is_a_config_error():
 
 def test_default_rrd_path_is_in_the_run_dir(tmp_path):
     service = r.RecorderService(make_config("", free_endpoint()), ServiceOptions(run_dir=tmp_path))
-    assert service.rrd_path == tmp_path / ent.RRD_FILE_NAME
+    assert service.rrd_path == tmp_path / RECORDING_FILE
 
 
 def test_event_text_and_quaternion_order():
