@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services import recorder as r
 from teleop.control.feedback import STANDARD_GRAVITY_M_S2
 from teleop.core.config import load_config
 from teleop.viz import entities as ent
+from teleop.viz import recording
 from teleop.viz.blueprint import view_specs
 from teleop.viz.report import write_report
 from teleop.viz.rrd import Recording
@@ -135,7 +135,7 @@ def test_grasp_recording_holds_every_entity_the_blueprint_shows(obstacle_run):
 
     # Loop rates: one per flush of each periodic stream; hops: per record with both stamps.
     n_flushes = json.loads((run_dir / "recorder.summary.json").read_text())["flushes"]
-    for stream in r.PERIODIC_STREAMS - {"control_status"}:
+    for stream in recording.PERIODIC_STREAMS - {"control_status"}:
         n = len(data[ent.rate_entity(stream)]["Scalars:scalars"])
         assert 1 <= n <= n_flushes, stream
     hops = {e.split("/")[1]: data[e] for e in data if e.startswith(ent.ENTITY_LATENCY + "/")}

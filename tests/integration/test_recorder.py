@@ -29,6 +29,7 @@ from teleop.bus.service import ServiceOptions
 from teleop.core.config import Config, ConfigError, load_config
 from teleop.core.rundir import RECORDING_FILE
 from teleop.viz import entities as ent
+from teleop.viz import recording
 from teleop.viz.rrd import read_rrd
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")
@@ -119,7 +120,7 @@ def source_ns(i: int) -> int:
 
 
 def build(stream: str, i: int) -> np.ndarray:
-    rec = r.STREAM_SCHEMAS[stream].new()
+    rec = recording.STREAM_SCHEMAS[stream].new()
     rec["seq"] = i
     rec["t_source_ns"] = source_ns(i)
     if "sim_time_ns" in rec.dtype.names:
@@ -220,7 +221,9 @@ class Rig:
         topics = self.service.topics
         pubs = {  # plant states go on their observers' copy, here one record per message
             s: bus.Publisher.declare(
-                self.session, getattr(topics, r.BATCHED_STREAMS.get(s, s)), r.STREAM_SCHEMAS[s]
+                self.session,
+                getattr(topics, recording.BATCHED_STREAMS.get(s, s)),
+                recording.STREAM_SCHEMAS[s],
             )
             for s in counts
         }
@@ -232,7 +235,7 @@ class Rig:
                     if i < n:
                         pubs[stream].put(build(stream, first + i))
             expected = received or {s: first + n for s, n in counts.items()}
-            assert self.service.wait_received(expected, TIMEOUT_S), "recorder missed records"
+            assert self.service.writer.wait_received(expected, TIMEOUT_S), "recorder missed records"
         finally:
             for pub in pubs.values():
                 pub.undeclare()
@@ -278,7 +281,7 @@ def test_every_stream_is_logged_at_its_own_time(rig_factory, tmp_path):
     rig.publish(N)
     rig.finish()
     summary = json.loads((tmp_path / "recorder.summary.json").read_text())
-    assert summary["samples_logged"] == {**dict.fromkeys(r.STREAM_SCHEMAS, 0), **N}
+    assert summary["samples_logged"] == {**dict.fromkeys(recording.STREAM_SCHEMAS, 0), **N}
     assert summary["rerun_errors"] == 0 and summary["dropped_messages"] == 0
     assert sum(summary["overflow_drops"].values()) == 0
     assert summary["flushes"] >= 1 and summary["wall_time_s"] > 0
@@ -340,7 +343,7 @@ def test_every_stream_is_logged_at_its_own_time(rig_factory, tmp_path):
     assert texts[sim_ns(5)] == ["TASK_DONE (success) at step 5000"]
     assert texts[sim_ns(6)] == ["TASK_DONE (gave up) at step 6000"]
     levels = dict(zip(events[ent.TIMELINE_SIM], events["TextLog:level"], strict=True))
-    assert levels[sim_ns(1)] == [r.LEVEL_WARN]
+    assert levels[sim_ns(1)] == [recording.LEVEL_WARN]
 
     stats = json.loads(data[ent.ENTITY_STATS]["TextDocument:text"][0][0])
     assert stats["samples_logged"] == summary["samples_logged"]
@@ -354,7 +357,7 @@ def test_bilateral_streams_are_logged_at_their_own_time(rig_factory, tmp_path):
     rig.finish()
     summary = json.loads((tmp_path / "recorder.summary.json").read_text())
     assert summary["samples_logged"] == {
-        **dict.fromkeys(r.STREAM_SCHEMAS, 0),
+        **dict.fromkeys(recording.STREAM_SCHEMAS, 0),
         "tool_pose": n_tool,
         **N_BILATERAL,
     }
@@ -414,7 +417,7 @@ def test_bilateral_streams_are_logged_at_their_own_time(rig_factory, tmp_path):
         assert times[newest] == sim_ns(last)
         vectors = np.asarray(arrows["Arrows3D:vectors"][newest])
         origins = np.asarray(arrows["Arrows3D:origins"][newest])
-        expected_m = np.asarray(newest_n) * r.FORCE_ARROW_M_PER_N
+        expected_m = np.asarray(newest_n) * recording.FORCE_ARROW_M_PER_N
         np.testing.assert_allclose(vectors, [expected_m], atol=F32_TOLERANCE)
         np.testing.assert_allclose(origins, [newest_tool_m], atol=F32_TOLERANCE)
         assert arrows["Arrows3D:colors"]  # static, one colour per component
@@ -428,7 +431,7 @@ def test_bilateral_streams_are_logged_at_their_own_time(rig_factory, tmp_path):
     hmd = data[ent.ENTITY_HMD]
     assert sorted(hmd[ent.TIMELINE_SIM]) == sims("head_pose")
     quats = dict(zip(hmd[ent.TIMELINE_SIM], hmd["Transform3D:quaternion"], strict=True))
-    expected_q = r.yaw_pitch_to_xyzw(np.array(0.2), np.array(0.05))
+    expected_q = recording.yaw_pitch_to_xyzw(np.array(0.2), np.array(0.05))
     np.testing.assert_allclose(quats[sim_ns(10)][0], expected_q, atol=F32_TOLERANCE)
     assert hmd["Pinhole:image_from_camera"]  # static: the viewer draws a frustum
     assert hmd["Pinhole:camera_xyz"]
@@ -444,12 +447,16 @@ def test_bilateral_streams_are_logged_at_their_own_time(rig_factory, tmp_path):
     assert series(data, ent.ENTITY_TELEOP_SPEED_SCALE)[sim_ns(10)] == pytest.approx(0.9)
 
 
-class FaultyRecorder(r.RecorderService):
+class FaultyWriter(recording.RecordingWriter):
     """Sends a malformed control-status batch (more values than times): a real Rerun error."""
 
     def _write_control_status(self, records: np.ndarray) -> None:
         values = np.zeros(records.size + 1)
         self._send_scalars(ent.ENTITY_PATH_ERROR, self._indexes(records), values)
+
+
+class FaultyRecorder(r.RecorderService):
+    writer_class = FaultyWriter
 
 
 def test_rerun_error_is_counted_and_recording_goes_on(rig_factory, tmp_path):
@@ -459,7 +466,7 @@ def test_rerun_error_is_counted_and_recording_goes_on(rig_factory, tmp_path):
     rig.publish(counts)
     # The first batch is flushed (and rejected) before the second one arrives.
     # (+2: the flush under way when the wait starts may have missed the last records.)
-    assert rig.service.wait_flushes(rig.service.flushes + 2, TIMEOUT_S)
+    assert rig.service.writer.wait_flushes(rig.service.writer.flushes + 2, TIMEOUT_S)
     rig.publish(counts, first=n)
     rig.finish()
     summary = json.loads((tmp_path / "recorder.summary.json").read_text())
@@ -474,7 +481,7 @@ def test_rerun_error_is_counted_and_recording_goes_on(rig_factory, tmp_path):
 
 def test_buffer_is_bounded_and_keeps_the_newest():
     capacity, sent = 10, 25
-    buffer = r.StreamBuffer(m.PLANT_STATE, capacity, threading.Condition())
+    buffer = recording.StreamBuffer(m.PLANT_STATE, capacity, threading.Condition())
     for i in range(sent):
         buffer(build("plant_state", i), 0)
     assert (buffer.received, buffer.overflow) == (sent, sent - capacity)
@@ -485,7 +492,7 @@ def test_buffer_is_bounded_and_keeps_the_newest():
 
 
 def test_record_copy_outlives_the_received_bytes():
-    buffer = r.StreamBuffer(m.TOOL_POSE, 4, threading.Condition())
+    buffer = recording.StreamBuffer(m.TOOL_POSE, 4, threading.Condition())
     wire = bytearray(m.TOOL_POSE.encode(build("tool_pose", 3)))
     buffer(np.frombuffer(wire, m.TOOL_POSE.dtype, 1).reshape(()), 0)
     wire[:] = bytes(len(wire))  # the receive buffer is reused
@@ -504,10 +511,12 @@ def test_default_rrd_path_is_in_the_run_dir(tmp_path):
 
 
 def test_event_text_and_quaternion_order():
-    assert r.event_text(int(m.Event.WATCHDOG_BRAKE), 123, 0.0) == "WATCHDOG_BRAKE at step 123"
-    assert r.event_text(99, 1, 0.0) == "EVENT_99 at step 1"
+    assert (
+        recording.event_text(int(m.Event.WATCHDOG_BRAKE), 123, 0.0) == "WATCHDOG_BRAKE at step 123"
+    )
+    assert recording.event_text(99, 1, 0.0) == "EVENT_99 at step 1"
     q_wxyz = np.array([[0.5, 0.1, 0.2, 0.3]])
-    np.testing.assert_array_equal(r.wxyz_to_xyzw(q_wxyz), [[0.1, 0.2, 0.3, 0.5]])
+    np.testing.assert_array_equal(recording.wxyz_to_xyzw(q_wxyz), [[0.1, 0.2, 0.3, 0.5]])
 
 
 def rotate(q_xyzw: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -520,7 +529,7 @@ def rotate(q_xyzw: np.ndarray, v: np.ndarray) -> np.ndarray:
     ("yaw_rad", "pitch_rad"), [(0.0, 0.0), (0.7, 0.0), (0.3, 0.2), (-2.5, -0.4)]
 )
 def test_head_quaternion_looks_along_yaw_and_pitch(yaw_rad, pitch_rad):
-    q = r.yaw_pitch_to_xyzw(np.array([yaw_rad]), np.array([pitch_rad]))[0]
+    q = recording.yaw_pitch_to_xyzw(np.array([yaw_rad]), np.array([pitch_rad]))[0]
     assert np.linalg.norm(q) == pytest.approx(1.0)
     # The head's +x (forward): yaw turns it toward +y, positive pitch lowers the nose.
     forward = [
@@ -538,7 +547,7 @@ def test_rates_hops_and_seq_gaps_are_derived_from_the_records(rig_factory, tmp_p
     rig = rig_factory()
     n = 60
     rig.publish({"plant_state": n})
-    assert rig.service.wait_flushes(rig.service.flushes + 2, TIMEOUT_S)
+    assert rig.service.writer.wait_flushes(rig.service.writer.flushes + 2, TIMEOUT_S)
     missing = 7
     # The seq jumps: 7 records lost.
     rig.publish({"plant_state": n}, first=n + missing, received={"plant_state": 2 * n})

@@ -6,11 +6,11 @@ from pathlib import Path
 
 import pytest
 
-from services import recorder
 from teleop.bus import graph
 from teleop.bus.topics import Topics
 from teleop.core.config import load_config
 from teleop.run.stack import PRIORITY, scenario_services
+from teleop.viz import recording as recorder
 
 PROTOCOL_DOC = Path(__file__).resolve().parents[2] / "docs" / "protocol.md"
 BEGIN, END = "<!-- graph_tables() begin -->", "<!-- graph_tables() end -->"
