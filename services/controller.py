@@ -83,9 +83,5 @@ class ControllerService(Service):
         return {**super().summary(), **self.core.summary()}
 
 
-def main() -> int:
-    return service_main(ControllerService)
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(service_main(ControllerService))

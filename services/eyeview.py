@@ -252,9 +252,5 @@ class EyeViewService(Service):
         }
 
 
-def main() -> int:
-    return service_main(EyeViewService)
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(service_main(EyeViewService))

@@ -106,9 +106,5 @@ class HapticService(Service):
         return {**super().summary(), "mode": self.config.run.mode, **self.loop.summary()}
 
 
-def main() -> int:
-    return service_main(HapticService)
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(service_main(HapticService))

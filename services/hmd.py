@@ -72,9 +72,5 @@ class HmdService(Service):
             }
 
 
-def main() -> int:
-    return service_main(HmdService)
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(service_main(HmdService))

@@ -123,9 +123,5 @@ class OperatorService(Service):
         return {**super().summary(), **self.loop.summary()}
 
 
-def main() -> int:
-    return service_main(OperatorService)
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(service_main(OperatorService))

@@ -108,9 +108,5 @@ class PlantService(Service):
         return {**super().summary(), **self.loop.summary()}
 
 
-def main() -> int:
-    return service_main(PlantService)
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(service_main(PlantService))

@@ -134,9 +134,5 @@ class RecorderService(Service):
         return {**super().summary(), **self.writer.stats()}
 
 
-def main() -> int:
-    return service_main(RecorderService)
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(service_main(RecorderService))
