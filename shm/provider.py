@@ -4,7 +4,8 @@ Zenoh moves a payload through shared memory when it is published from a buffer o
 SHM provider (``ZShmMut``) and both ends have shared memory enabled; the receiver then
 maps the same pages instead of reading a socket. Small payloads cost less inline, so the
 publisher only takes the SHM path at or above :data:`SHM_THRESHOLD_BYTES`, the same
-value the session uses for its own transport optimisation (``open_session`` sets it).
+value the session uses for its own transport optimisation (:func:`configure_session`
+sets it).
 
 Python cannot write into a ``ZShmMut`` through the buffer protocol: the data is copied
 once in (slice assignment) and once out (``to_bytes``) on the receiving side.

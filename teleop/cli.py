@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from teleop.core.config import SCENARIOS, Config, ConfigError, ModelError, load_config
-from teleop.core.rundir import LATENCY_RECORDING_FILE, WEB_VIEWER_LOG_FILE
+from teleop.core.rundir import LATENCY_RECORDING_FILE, LOG_DIR, WEB_VIEWER_LOG_FILE
 
 if TYPE_CHECKING:
     from teleop.viz.viewer import WebViewer
@@ -367,7 +367,7 @@ def _up(args: argparse.Namespace) -> int:
     status = start_detached(config, args.config, overrides, args.run_dir)
     for name, state in status.items():
         print(f"{name:12s} {state}")
-    print(f"bus: {config.bus.endpoint}   logs: {args.run_dir / 'logs'}   stop: teleop down")
+    print(f"bus: {config.bus.endpoint}   logs: {args.run_dir / LOG_DIR}   stop: teleop down")
     return 0
 
 

@@ -288,7 +288,7 @@ def run_stack(
     for stale in (
         run_dir / HAPTIC_TRACE_FILE,
         run_dir / HAPTIC_SAMPLES_FILE,
-        *run_dir.glob("*.shed.npy"),
+        *run_dir.glob(f"*{SHED_FILE_SUFFIX}"),
     ):
         stale.unlink(missing_ok=True)
     summary = run_on_services(config, config_file, all_overrides, run_dir, progress=None)

@@ -43,7 +43,7 @@ SEQ_FORMAT = struct.Struct("<Q")
 STAMP_FORMAT = struct.Struct("<q")
 TRACE_OFFSET = SEQ_FORMAT.size
 FLOOR_PREFIX_BYTES = TRACE_OFFSET + N_STAGES * STAMP_FORMAT.size
-# Legs of the chain, in loop order (each is a key of Topics.floor).
+# Legs of the chain, in loop order (each a key of floor_key).
 LEG_HAPTIC = "haptic"
 LEG_COMMAND = "command"
 LEG_STATE = "state"

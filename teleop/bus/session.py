@@ -313,7 +313,7 @@ def subscribe_frames(
 
     Like :func:`subscribe`, for a :class:`FrameSchema`: the pixels are a read-only
     (H, W, C) view of the received bytes, and ``via_shm`` tells whether the sample
-    came through shared memory (``payload.as_shm()`` is not None).
+    came through shared memory (:func:`shm.took_shm_path`).
     """
 
     def on_sample(sample: zenoh.Sample) -> None:

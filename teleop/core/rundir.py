@@ -21,11 +21,15 @@ SUPERVISOR_SOCKET_FILE = "supervisor.sock"
 SUPERVISOR_PID_FILE = "supervisord.pid"
 SUPERVISOR_LOG_FILE = "supervisord.log"
 SUPERVISOR_CONSOLE_FILE = "supervisord.console.log"
-LOG_DIR = "logs"
+LOG_DIR = "logs"  # one ``<program>.log`` per supervised program (program_log_path)
 # The log of the web viewer that `teleop run --web` serves.
 WEB_VIEWER_LOG_FILE = "web-viewer.log"
 # The Rerun recording of `teleop latency`'s figures (in its run directory).
 LATENCY_RECORDING_FILE = "latency.rrd"
+# `teleop report` (teleop.viz.report) and `teleop run --report`: the figures and the
+# summary go into ``<recording stem>_report/`` next to the recording.
+REPORT_DIR_SUFFIX = "_report"
+REPORT_SUMMARY_FILE = "report.md"
 
 # Raw latency files the haptic service writes at exit (read by ``teleop latency``):
 # one trace row (N_STAGES stamps) per rendered feedback, one (seq, sample ns) per sample.
@@ -44,6 +48,17 @@ def shed_path(run_dir: Path, service: str) -> Path:
 def summary_path(run_dir: Path, service: str) -> Path:
     """Where ``service`` writes its summary when it closes."""
     return Path(run_dir) / f"{service}{SUMMARY_SUFFIX}"
+
+
+def program_log_path(run_dir: Path, program: str) -> Path:
+    """Where supervisord writes the output of ``program`` (a service or an idle poller)."""
+    return Path(run_dir) / LOG_DIR / f"{program}.log"
+
+
+def report_dir(rrd_path: Path) -> Path:
+    """The directory of the report of the recording ``rrd_path`` (next to it)."""
+    rrd_path = Path(rrd_path)
+    return rrd_path.parent / f"{rrd_path.stem}{REPORT_DIR_SUFFIX}"
 
 
 def idle_poll_status_path(run_dir: Path, cpu: int) -> Path:

@@ -42,7 +42,13 @@ from teleop.bus.session import (
 )
 from teleop.bus.topics import Topics
 from teleop.core.config import Config
-from teleop.core.rundir import RECORDING_FILE, SUMMARY_SUFFIX, idle_poll_status_path, summary_path
+from teleop.core.rundir import (
+    LOG_DIR,
+    RECORDING_FILE,
+    SUMMARY_SUFFIX,
+    idle_poll_status_path,
+    summary_path,
+)
 from teleop.run.experiments import PROGRESS_FRACTION, ProgressFn
 from teleop.run.idle_poll import POLLING, read_status
 from teleop.run.supervise import Program, Stack
@@ -222,7 +228,7 @@ def idle_poll_report(cpus: Sequence[int], run_dir: Path) -> dict[str, Any]:
 def _read_summary(run_dir: Path, service: str) -> dict[str, Any]:
     path = summary_path(run_dir, service)
     if not path.exists():
-        raise RunError(f"{service} wrote no summary ({path}); see {run_dir / 'logs'}")
+        raise RunError(f"{service} wrote no summary ({path}); see {run_dir / LOG_DIR}")
     return json.loads(path.read_text())
 
 

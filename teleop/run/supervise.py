@@ -39,6 +39,7 @@ from teleop.core.rundir import (
     SUPERVISOR_LOG_FILE,
     SUPERVISOR_PID_FILE,
     SUPERVISOR_SOCKET_FILE,
+    program_log_path,
 )
 
 # Seconds supervisord waits after the stop signal (SIGINT) before SIGKILLing a program's group.
@@ -229,7 +230,7 @@ class Stack:
 
     def log_path(self, name: str) -> Path:
         """Log file of program ``name``."""
-        return self.log_dir / f"{name}.log"
+        return program_log_path(self.run_dir, name)
 
     def render(self) -> str:
         """The supervisord.conf text for this stack (raises ValueError if a value can't fit)."""

@@ -27,12 +27,11 @@ matplotlib.use("Agg")  # files only, never a window
 import matplotlib.pyplot as plt  # noqa: E402  (after the backend choice)
 import numpy as np  # noqa: E402
 
+from teleop.core.rundir import REPORT_SUMMARY_FILE, report_dir  # noqa: E402
 from teleop.viz import entities as r  # noqa: E402
 from teleop.viz import rrd  # noqa: E402
 from teleop.viz.scene3d import ENTITY_GHOSTS, GHOST_SKELETON  # noqa: E402
 
-REPORT_SUFFIX = "_report"  # output directory: <stem>_report next to the recording
-SUMMARY_NAME = "report.md"
 DPI = 130  # PNG resolution (dots per inch)
 FIG_SIZE_WIDE_IN = (8.0, 4.0)  # one time-series panel (inches)
 FIG_SIZE_AXES_IN = (8.0, 6.5)  # three stacked per-axis panels
@@ -59,8 +58,8 @@ class Report:
 
 
 def default_out_dir(rrd_path: Path) -> Path:
-    """``<dir>/<stem>_report`` next to the recording."""
-    return rrd_path.parent / f"{rrd_path.stem}{REPORT_SUFFIX}"
+    """``<dir>/<stem>_report`` next to the recording (teleop.core.rundir.report_dir)."""
+    return report_dir(rrd_path)
 
 
 def _save(fig: plt.Figure, path: Path, report: Report) -> None:
@@ -414,6 +413,6 @@ def write_report(
         _fig_forces(sim, report, t0)
     _fig_timing(rec, report)
     summary = _summary_text(path, report, _events(rec), _stats(rec))
-    report.summary = report.out_dir / SUMMARY_NAME
+    report.summary = report.out_dir / REPORT_SUMMARY_FILE
     report.summary.write_text(summary)
     return report

@@ -27,7 +27,7 @@ from teleop.bus import messages as m
 from teleop.bus import session as bus
 from teleop.bus.service import ServiceOptions
 from teleop.core.config import Config, ConfigError, load_config
-from teleop.core.rundir import RECORDING_FILE
+from teleop.core.rundir import RECORDING_FILE, summary_path
 from teleop.viz import entities as ent
 from teleop.viz import recording
 from teleop.viz.rrd import read_rrd
@@ -280,7 +280,7 @@ def test_every_stream_is_logged_at_its_own_time(rig_factory, tmp_path):
     rig = rig_factory()
     rig.publish(N)
     rig.finish()
-    summary = json.loads((tmp_path / "recorder.summary.json").read_text())
+    summary = json.loads(summary_path(tmp_path, "recorder").read_text())
     assert summary["samples_logged"] == {**dict.fromkeys(recording.STREAM_SCHEMAS, 0), **N}
     assert summary["rerun_errors"] == 0 and summary["dropped_messages"] == 0
     assert sum(summary["overflow_drops"].values()) == 0
@@ -355,7 +355,7 @@ def test_bilateral_streams_are_logged_at_their_own_time(rig_factory, tmp_path):
     rig.publish({"tool_pose": n_tool})  # first, so the force arrows start at tool n_tool - 1
     rig.publish(N_BILATERAL)
     rig.finish()
-    summary = json.loads((tmp_path / "recorder.summary.json").read_text())
+    summary = json.loads(summary_path(tmp_path, "recorder").read_text())
     assert summary["samples_logged"] == {
         **dict.fromkeys(recording.STREAM_SCHEMAS, 0),
         "tool_pose": n_tool,
@@ -469,7 +469,7 @@ def test_rerun_error_is_counted_and_recording_goes_on(rig_factory, tmp_path):
     assert rig.service.writer.wait_flushes(rig.service.writer.flushes + 2, TIMEOUT_S)
     rig.publish(counts, first=n)
     rig.finish()
-    summary = json.loads((tmp_path / "recorder.summary.json").read_text())
+    summary = json.loads(summary_path(tmp_path, "recorder").read_text())
     assert summary["rerun_errors"] >= 2  # one per flush that held control-status records
     assert summary["samples_logged"]["control_status"] == 0
     assert summary["samples_logged"]["plant_state"] == 2 * n
