@@ -43,8 +43,8 @@ from teleop.core.rundir import (
 )
 
 # Seconds supervisord waits after the stop signal (SIGINT) before SIGKILLing a program's group.
-# A clean stop takes well under a second; a recorder finishing its .rrd on a starved 2-core
-# machine was seen to need more than 5 s (then it was killed and wrote no summary).
+# A clean stop takes well under a second, but a recorder finishing its .rrd on a starved
+# 2-core machine can need several seconds, and a killed recorder writes no summary.
 STOP_WAIT_S = 15
 # Default time for start(): supervisord up plus every program RUNNING (startsecs included), s.
 DEFAULT_START_TIMEOUT_S = 15.0
