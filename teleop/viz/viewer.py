@@ -11,6 +11,8 @@ The gRPC server keeps what it received for viewers that connect later.
 
 from __future__ import annotations
 
+import contextlib
+import os
 import shutil
 import signal
 import socket
@@ -81,21 +83,34 @@ class WebViewer:
         return self.process.wait()
 
     def stop(self) -> None:
-        """Stop the server (SIGINT, then SIGKILL after STOP_TIMEOUT_S). Safe to call twice."""
+        """Stop the server (SIGINT, then SIGKILL after STOP_TIMEOUT_S). Safe to call twice.
+
+        The signals go to the server's whole process group: ``rerun`` is a Python wrapper
+        around the native server, and a signal to the wrapper alone can leave the native
+        server running (and spinning) after the wrapper is gone.
+        """
         if self.process.poll() is not None:
+            _signal_group(self.process.pid, signal.SIGKILL)  # whatever the wrapper left
             return
-        self.process.send_signal(signal.SIGINT)
+        _signal_group(self.process.pid, signal.SIGINT)
         try:
             self.process.wait(STOP_TIMEOUT_S)
         except subprocess.TimeoutExpired:
-            self.process.kill()
+            _signal_group(self.process.pid, signal.SIGKILL)
             self.process.wait()
+        _signal_group(self.process.pid, signal.SIGKILL)
 
     def __enter__(self) -> WebViewer:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+def _signal_group(pid: int, signum: signal.Signals) -> None:
+    """Send ``signum`` to the process group led by ``pid`` (gone already: nothing to do)."""
+    with contextlib.suppress(ProcessLookupError, PermissionError):
+        os.killpg(pid, signum)
 
 
 def _wait_listening(process: subprocess.Popen[bytes], port: int, timeout_s: float) -> None:
@@ -142,7 +157,10 @@ def serve_web(
         args.append(str(rrd_path))
     log = open(log_path, "ab") if log_path is not None else subprocess.DEVNULL
     try:
-        process = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=log, stderr=log)
+        # A process group of its own, so that stop() reaches the native server too.
+        process = subprocess.Popen(
+            args, stdin=subprocess.DEVNULL, stdout=log, stderr=log, start_new_session=True
+        )
     finally:
         if log_path is not None:
             log.close()
