@@ -18,9 +18,10 @@ and joint limits and capped in tool speed, and dynamic compensation (shared with
 following) turns the kinematic command into references for the velocity loops.
 
 Cost: the law runs once per haptic sample (1 kHz) on the bilateral loop's critical path.
-At these sizes (3- and 6-vectors, 3x3 and 6x6 matrices) a numpy call costs ~0.5-3 us
-whatever it computes, more than the arithmetic, so the cycle works on Python floats
-between the Pinocchio calls and calls LAPACK directly for the two factorisations.
+At these sizes (3- and 6-vectors, 3x3 and 6x6 matrices) a numpy call's overhead
+outweighs what it computes, so the cycle works on Python floats
+between the Pinocchio calls and calls LAPACK directly for the two factorisations
+(tests/benchmarks/teleop_control_cost.py measures it against the numpy form).
 The part that depends only on the joint state (tool pose and Jacobian, the least
 squares' matrix, condition number, measured tool velocity, the dynamic compensation's
 terms) is :meth:`TeleopController.prepare`: the plant state arrives before the handle
@@ -115,7 +116,7 @@ def teleop_reference(
 
 
 def _norm(v: np.ndarray) -> float:
-    """Euclidean norm of a 3-vector (np.linalg.norm costs ~3 us at this size)."""
+    """Euclidean norm of a 3-vector (np.linalg.norm's overhead outweighs it at this size)."""
     return math.hypot(*v.tolist())
 
 
@@ -130,8 +131,8 @@ def _within_limits(values: list[float], limits: list[float]) -> tuple[list[float
 
 @functools.lru_cache(maxsize=16)
 def _identity(size: int, scale: float = 1.0) -> np.ndarray:
-    """Read-only ``scale`` I (size, size), for constant scales: np.eye and the product
-    cost ~1.5 us per call at this size."""
+    """Read-only ``scale`` I (size, size), for constant scales: built once instead of
+    an np.eye and a product per call."""
     identity = scale * np.eye(size)
     identity.flags.writeable = False
     return identity
@@ -148,8 +149,8 @@ def position_condition_number(jacobian_position: np.ndarray) -> float:
 
 def _condition_number_of_gram(gram: np.ndarray) -> float:
     """sqrt(l_max / l_min) of a Gram matrix J J^T (inf if singular): the condition number
-    of J. LAPACK's dsyevd directly, as np.linalg.eigvalsh does, without its ~3 us of
-    argument checks and error-state handling."""
+    of J. LAPACK's dsyevd directly, as np.linalg.eigvalsh does, without its argument
+    checks and error-state handling."""
     eigenvalues, _, info = lapack.dsyevd(gram, compute_v=0, lower=1)
     if info != 0:
         raise np.linalg.LinAlgError(f"dsyevd failed (info {info})")
@@ -201,8 +202,8 @@ def joint_limit_scale(
 def _joint_limit_factor(
     q_rad: float, qd_rad_s: float, lower_rad: float, upper_rad: float, margin_rad: float
 ) -> float:
-    """One joint's factor of :func:`joint_limit_scale`, in floats (the numpy form costs
-    ~15 us in where/minimum/maximum on 6-vectors)."""
+    """One joint's factor of :func:`joint_limit_scale`, in floats (the numpy form's
+    where/minimum/maximum on 6-vectors cost more than the arithmetic)."""
     if qd_rad_s > 0.0:
         return min(max((upper_rad - q_rad) / margin_rad, 0.0), 1.0)
     if qd_rad_s < 0.0:
@@ -319,7 +320,7 @@ class TeleopOutput(NamedTuple):
 
     ``world_v_tool_m_s`` and ``world_p_tool_m`` are the cycle's :class:`JointStateTerms`
     arrays, read-only (copy them to change them). A NamedTuple: immutable like a frozen
-    dataclass, and built in ~0.5 us instead of ~3 us on the loop's critical path.
+    dataclass, and several times cheaper to build on the loop's critical path.
     """
 
     qd_ref_rad_s: np.ndarray  # (n,) to the plant's velocity loops
@@ -339,7 +340,7 @@ class TeleopOutput(NamedTuple):
 class JointStateTerms:
     """The part of a teleoperation cycle that depends only on the joint state (q, q').
 
-    The plant state arrives ~0.5 ms before the handle sample it is answered with, so
+    The plant state arrives before the handle sample it is answered with, so
     :meth:`TeleopController.prepare` computes these ahead and
     :meth:`TeleopController.update` only adds what depends on the operator, the obstacle
     and the controller's own state. The same values (and operations) ``update`` computes

@@ -2,14 +2,28 @@
 
 from __future__ import annotations
 
+import collections
+import math
+import threading
+
 import numpy as np
 import pytest
 
-from teleop.bus.messages import HAPTIC_STATE, PLANT_STATE, Stage
+from teleop.bus.messages import HAPTIC_STATE, HEAD_POSE, PLANT_STATE, Stage
 from teleop.control.cycle import BilateralCycle, PathCycle
-from teleop.control.kinematics import build_arm_model
+from teleop.control.kinematics import build_arm_model, tool_position_and_jacobian
 from teleop.core.clock import FakeClock
 from teleop.core.config import load_config
+from teleop.run.experiments import run_path_following_inprocess
+from teleop.sim.stepping import PlantLoop
+
+GRASP = 'run.scenario="grasp"'
+LOCKSTEP = 'run.mode="lockstep"'
+REALTIME = 'run.mode="realtime"'
+# Standard gravity (m/s^2), as the scene and the weight feedback use it.
+GRAVITY_M_S2 = 9.81
+# The path error (m) the in-process path-following test holds a settled run to.
+PATH_RMS_BAR_M = 0.001
 
 
 class Sent:
@@ -125,3 +139,194 @@ def test_a_cycle_spends_its_compute_time_on_the_injected_clock(cycle_class):
     if isinstance(cycle, BilateralCycle):
         cycle.on_haptic(handle(1, 0, clock.now_ns()), clock.now_ns())
     assert cycle.summary()["compute_mean_us"] == 0.0  # a fake clock stands still
+
+
+def rz(yaw_rad: float) -> np.ndarray:
+    """View -> world rotation about z (3, 3), written out independently of the controller."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def head_pose(valid_from_tick: int, yaw_rad: float) -> np.ndarray:
+    rec = HEAD_POSE.new()
+    rec["valid_from_tick"] = valid_from_tick
+    rec["predicted_yaw_rad"] = yaw_rad
+    return rec
+
+
+def one_cycle(cycle, sent, clock, config, device_p_m) -> tuple[np.ndarray, np.ndarray]:
+    """State 0 and one handle sample: the (world tool-velocity reference, joint command)."""
+    now = clock.now_ns()
+    cycle.on_state(state(config, 0, now), now)
+    cycle.on_haptic(handle(1, 0, now, device_p_m), now)
+    world_v_ref_m_s = sent.last("teleop_status")["world_v_ref_m_s"]
+    qd_ref_rad_s = sent.last("joint_command")["qd_ref_rad_s"][: cycle.arm.n_joints]
+    return world_v_ref_m_s, qd_ref_rad_s
+
+
+@pytest.mark.parametrize("yaw_rad", [0.0, math.pi / 2, -0.7])
+@pytest.mark.parametrize("mode", ["lockstep", "realtime"])
+def test_a_handle_displacement_commands_a_tool_velocity_in_the_view_frame(mode, yaw_rad):
+    """Lockstep takes the view yaw from the config before the first HMD pose applies;
+    realtime (no prediction lead) from the HEAD_POSE record valid at the tick."""
+    overrides = [f'run.mode="{mode}"', GRASP]
+    if mode == "lockstep":
+        overrides.append(f"hmd.head_yaw_rad={yaw_rad}")
+    else:
+        overrides.append("hmd.prediction_s=0.0")
+    device_p_m = np.array([0.03, 0.01, -0.005])  # outside the deadband
+
+    cycle, sent, clock, config = make(BilateralCycle, *overrides)
+    if mode == "realtime":
+        cycle.on_head_pose(head_pose(0, yaw_rad), clock.now_ns())
+    world_v_ref, qd_ref = one_cycle(cycle, sent, clock, config, device_p_m)
+    rest, rest_sent, rest_clock, _ = make(BilateralCycle, *overrides)
+    if mode == "realtime":
+        rest.on_head_pose(head_pose(0, yaw_rad), rest_clock.now_ns())
+    _, qd_rest = one_cycle(rest, rest_sent, rest_clock, config, np.zeros(3))
+
+    tcfg = config.teleop
+    norm = float(np.linalg.norm(device_p_m))
+    speed = min(tcfg.rate_gain_per_s * (norm - tcfg.deadband_m), tcfg.max_tool_speed_m_s)
+    expected = rz(yaw_rad) @ (speed * device_p_m / norm)  # handle forward = view forward
+    np.testing.assert_allclose(world_v_ref, expected, atol=1e-12)
+    # What the handle adds to the joint command moves the tool along the reference.
+    _, jacobian = tool_position_and_jacobian(cycle.arm, np.array(config.robot.home_q_rad))
+    world_v_added = jacobian[:3] @ (qd_ref - qd_rest)
+    assert world_v_added @ expected > 0.0
+    assert cycle.missing_head_poses == 0
+
+
+def test_feedback_renders_contact_held_weight_obstacle_and_workspace_in_the_device_frame():
+    yaw_rad = 0.3
+    cycle, sent, clock, config = make(
+        BilateralCycle, LOCKSTEP, GRASP, f"hmd.head_yaw_rad={yaw_rad}"
+    )
+    tcfg = config.teleop
+    now = clock.now_ns()
+    rec = state(config, 0, now)
+    rec["world_f_contact_n"] = (1.0, -2.0, -3.0)  # measured on the gripper, weight included
+    rec["held_mass_kg"] = 0.2
+    distance_m = tcfg.obstacle_influence_m / 2
+    rec["distance_m"] = distance_m
+    rec["world_n_away"] = (0.0, 1.0, 0.0)
+    rec["world_p_arm_m"] = (0.3, 0.1, 0.4)
+    rec["world_p_obstacle_m"] = (0.3, 0.1 - distance_m, 0.4)
+    rec["arm_body"] = 5
+    rec["obstacle_geom"] = 2
+    handle_m = tcfg.workspace_free_m + 0.005  # just outside the free sphere, along x
+    cycle.on_state(rec, now)
+    cycle.on_haptic(handle(1, 0, now, (handle_m, 0.0, 0.0)), now)
+    feedback = sent.last("force_feedback")
+
+    weight = np.array([0.0, 0.0, -0.2 * GRAVITY_M_S2])
+    contact = np.array([1.0, -2.0, -3.0]) - weight
+    obstacle = np.array(
+        [0.0, tcfg.obstacle_stiffness_n_per_m * (tcfg.obstacle_influence_m - distance_m), 0.0]
+    )
+    workspace = np.array([-tcfg.workspace_stiffness_n_per_m * 0.005, 0.0, 0.0])
+    np.testing.assert_allclose(feedback["world_f_weight_n"], weight, atol=1e-12)
+    np.testing.assert_allclose(feedback["world_f_contact_n"], contact, atol=1e-12)
+    np.testing.assert_allclose(feedback["world_f_obstacle_n"], obstacle, atol=1e-12)
+    np.testing.assert_allclose(feedback["device_f_workspace_n"], workspace, atol=1e-12)
+    device = tcfg.force_scale * rz(yaw_rad).T @ (contact + weight + obstacle) + workspace
+    assert np.linalg.norm(device) < config.haptic.peak_force_n  # no saturation here
+    np.testing.assert_allclose(feedback["device_f_n"], device, atol=1e-12)
+    summary = cycle.summary()
+    assert summary["max_obstacle_force_n"] == pytest.approx(np.linalg.norm(obstacle))
+    assert summary["held_weight_n"] == pytest.approx(0.2 * GRAVITY_M_S2)
+    assert summary["held_cycles"] == 1
+    assert sent.last("teleop_status")["holding"] == 1
+
+
+def test_feedback_saturates_at_the_device_peak_force_keeping_its_direction():
+    cycle, sent, clock, config = make(BilateralCycle, LOCKSTEP, GRASP, "hmd.head_yaw_rad=0.0")
+    now = clock.now_ns()
+    rec = state(config, 0, now)
+    rec["world_f_contact_n"] = (0.0, 0.0, -100.0)
+    cycle.on_state(rec, now)
+    cycle.on_haptic(handle(1, 0, now, (0.0, 0.0, 0.0)), now)
+    device = sent.last("force_feedback")["device_f_n"]
+    np.testing.assert_allclose(device, (0.0, 0.0, -config.haptic.peak_force_n), atol=1e-12)
+
+
+def test_a_stale_handle_gives_zero_feedback_and_drives_no_motion():
+    """A handle more than stale_ticks behind the plant is "no input": no workspace spring,
+    so with no contact nor obstacle the device force is exactly zero; a sample older
+    than the shed age on the clock is never answered with a command (the plant's
+    watchdog brakes the arm)."""
+    cycle, sent, clock, config = make(BilateralCycle, REALTIME, GRASP)
+    handle_m = config.teleop.workspace_free_m + 0.01  # the spring pulls while the input is live
+    now = clock.now_ns()
+    cycle.on_state(state(config, 0, now), now)
+    cycle.on_haptic(handle(1, 0, now, (handle_m, 0.0, 0.0)), now)
+    assert sent.streams().count("joint_command") == 1
+    cycle.on_state(state(config, 1, now), now)  # the handle is fresh: the spring renders
+    assert sent.last("force_feedback")["device_f_n"][0] < 0.0
+    cycle.on_state(state(config, cycle.stale_ticks + 1, now), now)  # now it is stale
+    assert np.array_equal(sent.last("force_feedback")["device_f_n"], np.zeros(3))
+    assert np.array_equal(sent.last("force_feedback")["device_f_workspace_n"], np.zeros(3))
+    clock.advance(2 * cycle.haptic_in.shed_age_ns)
+    late = clock.now_ns()
+    cycle.on_haptic(handle(2, 1, now, (handle_m, 0.0, 0.0)), late)  # sampled long ago
+    assert sent.streams().count("joint_command") == 1  # no command: nothing drives the tool
+    assert cycle.summary()["haptic_shed"] == 1
+
+
+class Wire:
+    """Plant and controller outputs in one process: each stream's records queue up for
+    the test to deliver, so neither core calls the other from inside its own cycle."""
+
+    def __init__(self) -> None:
+        self.queues: dict[str, collections.deque[np.ndarray]] = collections.defaultdict(
+            collections.deque
+        )
+
+    def put(self, stream: str, rec: np.ndarray) -> bytes:
+        self.queues[stream].append(rec.copy())
+        return rec.tobytes()
+
+    def put_bytes(self, stream: str, data: bytes) -> None:
+        """A lockstep re-send: the test delivers every record once, so none is needed."""
+
+    def flush(self) -> None:
+        """Nothing is batched here."""
+
+
+def test_the_path_cycle_converges_on_the_in_process_plant_like_the_in_process_run():
+    """The plant's lockstep loop and the path cycle, records handed from one to the
+    other: from the seeded start off the path the tool settles on it, and the run is the
+    in-process experiment's bit for bit (same figures, same final plant state)."""
+    overrides = (LOCKSTEP, "run.duration_s=3", "run.settle_s=1", "run.seed=3")
+    config = load_config(None, overrides)
+    wire, clock = Wire(), FakeClock(start_ns=10**12)
+    loop = PlantLoop(config, wire, clock)
+    cycle = PathCycle(config, build_arm_model(config.robot), wire, clock)
+    steps = round(config.run.duration_s / config.plant.timestep_s)
+    stop = threading.Event()
+    runner = threading.Thread(target=loop.run, args=(stop, steps))
+    runner.start()
+    states, commands = wire.queues["plant_state"], wire.queues["joint_command"]
+    try:
+        while not states and runner.is_alive():  # state 0 comes from the run's thread
+            runner.join(timeout=0.001)
+        while states:  # each command steps the plant, which publishes the next state
+            cycle.on_state(states.popleft(), clock.now_ns())
+            while commands:
+                loop.on_command(commands.popleft(), clock.now_ns())
+        runner.join(timeout=30)
+        assert not runner.is_alive()
+    finally:
+        stop.set()
+        runner.join(timeout=30)
+    assert loop.finished and loop.plant.step_count == steps
+
+    errors_m = [float(rec["path_error_m"]) for rec in wire.queues["control_status"]]
+    assert errors_m[0] > 10 * PATH_RMS_BAR_M  # the seeded start is off the path
+    summary = cycle.summary()
+    assert summary["path_error_rms_m"] <= PATH_RMS_BAR_M
+    assert summary["cycles"] == steps + 1  # every state answered, the last one too
+    reference = run_path_following_inprocess(config, progress=None)
+    for key in ("path_error_rms_m", "path_error_max_m", "min_manipulability"):
+        assert summary[key] == reference[key]
+    assert loop.plant.state_sha256() == reference["final_state_sha256"]
