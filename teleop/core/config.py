@@ -125,14 +125,14 @@ class PlantConfig:
     # step per haptic device period, on the device's clock: see DeviceClockGrid) instead
     # of waiting for the plant's next 1 kHz tick; without commands the plant still steps
     # once per period. Path following always uses the tick.
-    # Measured (teleop latency): see README "Latency". false: apply the newest command at
-    # each tick of the plant's own clock.
+    # What it gains: docs/realtime.md ("old timing" in `teleop latency`). false: apply the
+    # newest command at each tick of the plant's own clock.
     apply_on_arrival: bool = True
     # Lockstep and the in-process run: step k applies the command that answers state
     # k - lockstep_delay_steps (before that: hold still, gripper open). 1: the controller's
     # one-sample computation delay, as in realtime (a command reaches the plant during
     # the period after the state it answers); plant and controller then work at the same
-    # time on two states in flight (measured: see README "Benchmarks"). 0: each step
+    # time on two states in flight (tests/benchmarks/lockstep_speed.py). 0: each step
     # waits for the answer to its own state, so plant and controller take turns.
     lockstep_delay_steps: int = 1
 
@@ -240,7 +240,7 @@ class HapticConfig:
     stale_feedback_s: float = 0.020
     fade_s: float = 0.020
     # Realtime: hand a feedback force to the motors the moment it arrives (as a driver
-    # does) instead of at the device loop's next 1 ms step; see README "Latency".
+    # does) instead of at the device loop's next 1 ms step; see docs/realtime.md.
     render_on_arrival: bool = True
     # The operator's hand, a spring-damper pulling the handle to the hand's target.
     hand_stiffness_n_per_m: float = 200.0
@@ -305,8 +305,8 @@ class EyeViewConfig:
     height_px: int = 240
     # Vertical field of view (rad): a headset's, about 90 degrees.
     fov_y_rad: float = 1.5707963267948966
-    # Shadow mapping costs about 10x the rest of a software-rendered frame (measured
-    # here: 60-67 ms against 6.5 ms at 320x240), so it is off by default.
+    # Shadow mapping costs about 10x the rest of a software-rendered frame (60-67 ms
+    # against 6.5 ms at 320x240 with software GL), so it is off by default.
     shadows: bool = False
     # PLANT_STATE batches are taken at most this often (Zenoh ingress downsampling): the
     # renderer needs one state per frame, not the plant's 1 kHz. 0: take every one.

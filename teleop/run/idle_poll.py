@@ -15,11 +15,11 @@ has. That takes two settings, and the second is the one that matters:
   wakes preempts it at once);
 - it first moves itself into a CPU cgroup marked idle (``cpu.idle = 1``, Linux 5.15+),
   so the same holds between groups. A SCHED_IDLE task is idle only within its group:
-  left in its session's autogroup it competed at the root as a whole nice-0 group, and
-  on this machine it starved the CPU's kernel threads (ksoftirqd, the per-CPU
-  workqueues) for minutes, until TCP loopback stopped delivering and ``mprotect`` /
-  ``madvise`` callers hung in D state. A poller that cannot join an idle group does not
-  spin: it logs why and sleeps until stopped (the stack runs, just without polling).
+  left in its session's autogroup it competes at the root as a whole nice-0 group and
+  can starve the CPU's kernel threads (ksoftirqd, the per-CPU workqueues) for minutes,
+  until TCP loopback stops delivering and ``mprotect`` / ``madvise`` callers hang in D
+  state. A poller that cannot join an idle group does not spin: it logs why and sleeps
+  until stopped (the stack runs, just without polling).
 
 What it gains is measured by ``tests/benchmarks/latency_stack_variants.py --variants
 default,idle_poll_off`` (round trip and the services' own CPU time, as ratios; on a

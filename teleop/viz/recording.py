@@ -809,7 +809,7 @@ class RecordingWriter:
         for component in FORCE_ARROW_COLORS:
             field, _ = FEEDBACK_COMPONENTS[component]
             force_n = newest[field]
-            if component == "device":  # device frame -> world: the view yaw (teleop_control)
+            if component == "device":  # device frame -> world: rotated by the view yaw
                 force_n = force_n @ view_to_world(self._yaw_rad).T
             vectors = force_n * FORCE_ARROW_M_PER_N
             self._send(
