@@ -55,7 +55,7 @@ $(CHROMIUM):
 chromium: $(CHROMIUM)
 
 test-web: $(STAMP) $(CHROMIUM)
-	TELEOP_REQUIRE_CHROMIUM=1 $(BIN)/python -m pytest tests/test_viewer.py
+	TELEOP_REQUIRE_CHROMIUM=1 $(BIN)/python -m pytest tests/e2e/test_viewer.py
 
 clean:
 	rm -rf runs .pytest_cache

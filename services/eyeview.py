@@ -5,8 +5,8 @@ is its bus adapter: it drives the renderer at ``eyeview.rate_hz`` of wall-clock 
 publishes EYE_VIEW frames. A frame (320 x 240 RGB: 230 kB) is far above the SHM
 threshold, so it always takes the shared-memory path.
 
-Why a process of its own and not a render thread inside the plant (see README
-"Operator's eye view"): MuJoCo's renderer does release the GIL while it draws, but a
+Why a process of its own and not a render thread inside the plant (see
+docs/eye-view.md): MuJoCo's renderer does release the GIL while it draws, but a
 software-GL frame still costs milliseconds of CPU in llvmpipe threads that would share
 the plant's scheduling priority, and any Python work around it (state copy, encoding,
 the Zenoh put) holds the GIL that the plant's 1 kHz loop needs. A separate process runs

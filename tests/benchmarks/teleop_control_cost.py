@@ -30,8 +30,10 @@ fast cycle / prepared cycle.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import gc
+import importlib
 import json
 import math
 import os
@@ -40,13 +42,15 @@ import subprocess
 import sys
 import time
 import types
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from teleop.control import feedback, teleop_control
+from teleop.control import feedback
+from teleop.control import teleop as teleop_control
 from teleop.control.kinematics import ArmModel, build_arm_model, tool_position_and_jacobian
 from teleop.core.config import Config, SceneConfig, load_config
 from teleop.sim.plant import Plant, initial_configuration
@@ -95,33 +99,76 @@ class Implementation:
     prepared: bool = False  # prepare() then update(terms=...), timed apart
 
 
+def output_fields(out: Any) -> dict[str, Any]:
+    """A control output's fields by name: the baseline's is a dataclass, the current one a
+    NamedTuple."""
+    if dataclasses.is_dataclass(out):
+        return {f.name: getattr(out, f.name) for f in dataclasses.fields(out)}
+    return dict(out._asdict())
+
+
 def parts_of(impl: Implementation) -> tuple[str, ...]:
     return (PREPARE, *PARTS) if impl.prepared else PARTS
 
 
-def _module_from_git(rev: str, path: str, name: str) -> types.ModuleType:
+# The baseline predates the layered package: the modules it imports, by their old names.
+OLD_LAYOUT = {
+    "teleop.config": "teleop.core.config",
+    "teleop.kinematics": "teleop.control.kinematics",
+    "teleop.control": "teleop.control.path",
+    "teleop.teleop_control": "teleop.control.teleop",
+    "teleop.feedback": "teleop.control.feedback",
+    "teleop.proximity": "teleop.sim.proximity",
+}
+
+
+@contextlib.contextmanager
+def _old_layout(baseline: dict[str, types.ModuleType]) -> Iterator[None]:
+    """While the baseline's source runs, its imports by old name find the baseline's own
+    modules loaded so far (``baseline``, by old name), else the current ones."""
+    saved = {old: sys.modules.get(old) for old in OLD_LAYOUT}
+    for old, new in OLD_LAYOUT.items():
+        sys.modules[old] = baseline.get(old) or importlib.import_module(new)
+    try:
+        yield
+    finally:
+        for old, module in saved.items():
+            if module is None:
+                sys.modules.pop(old, None)
+            else:
+                sys.modules[old] = module
+
+
+def _module_from_git(
+    rev: str, path: str, name: str, baseline: dict[str, types.ModuleType]
+) -> types.ModuleType:
     source = subprocess.run(
         ["git", "show", f"{rev}:{path}"], check=True, capture_output=True, text=True
     ).stdout
     module = types.ModuleType(name)
     sys.modules[name] = module  # dataclasses look their module up
-    exec(compile(source, f"{rev[:10]}:{path}", "exec"), module.__dict__)  # noqa: S102
+    with _old_layout(baseline):
+        exec(compile(source, f"{rev[:10]}:{path}", "exec"), module.__dict__)  # noqa: S102
     return module
+
+
+# The baseline's modules (teleop/<name>.py at BASELINE_REV) and the current ones they are.
+BASELINE_MODULES = {
+    "kinematics": "teleop.control.kinematics",
+    "control": "teleop.control.path",
+    "teleop_control": "teleop.control.teleop",
+    "feedback": "teleop.control.feedback",
+}
 
 
 def load_baseline(rev: str) -> Implementation:
     """The baseline's teleop_control and feedback, with what they import from the
     project's kinematics, control and teleop_control modules bound to the baseline's
     versions too (so no later change of those files speeds the baseline up)."""
-    modules = {}
-    for name in ("kinematics", "control", "teleop_control", "feedback"):
-        module = _module_from_git(rev, f"teleop/{name}.py", f"baseline_{name}")
-        for current_name, baseline_module in modules.items():
-            current = sys.modules[f"teleop.{current_name}"]
-            for attr, value in vars(module).items():
-                if getattr(current, attr, None) is value:
-                    setattr(module, attr, getattr(baseline_module, attr))
-        modules[name] = module
+    modules: dict[str, types.ModuleType] = {}
+    for name in BASELINE_MODULES:
+        loaded = {f"teleop.{n}": m for n, m in modules.items()}
+        modules[name] = _module_from_git(rev, f"teleop/{name}.py", f"baseline_{name}", loaded)
     return Implementation("baseline", modules["teleop_control"], modules["feedback"])
 
 
@@ -262,7 +309,7 @@ class Replay:
             self.times["update"].append(t2 - t1)
             self.times["feedback"].append(t3 - t2)
             self.times["cycle"].append(t3 - t0)
-            fields = {f.name: getattr(out, f.name) for f in dataclasses.fields(out)}
+            fields = output_fields(out)
             fields["v_ref"] = v_ref
             fields["device_f_n"] = device_f_n
             fields["world_robot_f_n"] = components.world_robot_f_n
