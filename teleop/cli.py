@@ -296,7 +296,7 @@ def _run_and_report(
         print(f"report: {report.summary}", file=sys.stderr)
     if web is not None:
         print(f"web viewer: {web.url} (Ctrl-C to stop)", file=sys.stderr, flush=True)
-        web.wait()
+        _serve_until_stopped(web)
     if summary.get("success") is False:
         print("teleop: the task did not succeed", file=sys.stderr)
         return EXIT_FAILED
@@ -336,6 +336,15 @@ def _latency(args: argparse.Namespace) -> int:
     return 0
 
 
+def _serve_until_stopped(web: WebViewer) -> int:
+    """Wait while the web viewer serves; SIGINT or SIGTERM stops it (KeyboardInterrupt),
+    even when this process was started with SIGINT ignored (a background job)."""
+    from teleop.run.supervise import interrupt_on_signals
+
+    with interrupt_on_signals():
+        return web.wait()
+
+
 def _view(args: argparse.Namespace) -> int:
     from teleop.viz import viewer
 
@@ -345,7 +354,7 @@ def _view(args: argparse.Namespace) -> int:
         return viewer.open_native(args.rrd)
     with viewer.serve_web(args.rrd, web_port=args.web_port, grpc_port=args.grpc_port) as web:
         print(f"web viewer: {web.url} (Ctrl-C to stop)", flush=True)
-        return web.wait()
+        return _serve_until_stopped(web)
 
 
 def _report(args: argparse.Namespace) -> int:
