@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING
 
 from teleop.core.config import SCENARIOS, Config, ConfigError, ModelError, load_config
 from teleop.core.rundir import LATENCY_RECORDING_FILE, LOG_DIR, WEB_VIEWER_LOG_FILE
+from teleop.run.supervise import interrupt_on_signals
 
 if TYPE_CHECKING:
     from teleop.viz.viewer import WebViewer
@@ -296,7 +297,7 @@ def _run_and_report(
         print(f"report: {report.summary}", file=sys.stderr)
     if web is not None:
         print(f"web viewer: {web.url} (Ctrl-C to stop)", file=sys.stderr, flush=True)
-        _serve_until_stopped(web)
+        web.wait()
     if summary.get("success") is False:
         print("teleop: the task did not succeed", file=sys.stderr)
         return EXIT_FAILED
@@ -336,15 +337,6 @@ def _latency(args: argparse.Namespace) -> int:
     return 0
 
 
-def _serve_until_stopped(web: WebViewer) -> int:
-    """Wait while the web viewer serves; SIGINT or SIGTERM stops it (KeyboardInterrupt),
-    even when this process was started with SIGINT ignored (a background job)."""
-    from teleop.run.supervise import interrupt_on_signals
-
-    with interrupt_on_signals():
-        return web.wait()
-
-
 def _view(args: argparse.Namespace) -> int:
     from teleop.viz import viewer
 
@@ -354,7 +346,7 @@ def _view(args: argparse.Namespace) -> int:
         return viewer.open_native(args.rrd)
     with viewer.serve_web(args.rrd, web_port=args.web_port, grpc_port=args.grpc_port) as web:
         print(f"web viewer: {web.url} (Ctrl-C to stop)", flush=True)
-        return _serve_until_stopped(web)
+        return web.wait()
 
 
 def _report(args: argparse.Namespace) -> int:
@@ -419,7 +411,11 @@ def main(argv: list[str] | None = None) -> int:
             "status": _status,
             "down": _down,
         }[args.command]
-        return handler(args)
+        # SIGINT and SIGTERM raise KeyboardInterrupt from the start, so every command's
+        # clean-up runs (servers, stacks) whatever this process inherited: a background
+        # job starts with SIGINT ignored, and SIGTERM would end it without unwinding.
+        with interrupt_on_signals():
+            return handler(args)
     except (ConfigError, ModelError, FileNotFoundError) as exc:
         print(f"teleop: {exc}", file=sys.stderr)
         return EXIT_USAGE
