@@ -132,10 +132,10 @@ class Inbound:
         # of a service: the latency report counts loops, not streams)
         self.shed_log = shed_log if shed_log is not None else StampLog(1)
 
-    def accept(self, rec: np.ndarray, now_ns: int, *, check_seq: bool = True) -> bool:
-        """True if ``rec`` is to be used: newer than the last one (``check_seq``) and
-        fresh at ``now_ns``. A stale record is counted in ``shed`` and logged."""
-        if check_seq and not self.seq.accept(int(rec["seq"])):
+    def accept(self, rec: np.ndarray, now_ns: int) -> bool:
+        """True if ``rec`` is to be used: newer than the last one and fresh at
+        ``now_ns``. A stale record is counted in ``shed`` and logged."""
+        if not self.seq.accept(int(rec["seq"])):
             return False
         if self.too_old(rec, now_ns):
             self.drop(rec)

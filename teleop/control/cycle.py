@@ -86,7 +86,9 @@ class ControllerOutputs(Protocol):
 class ControllerCore:
     """What both tasks share: which states start a cycle, the command, the counters."""
 
-    def __init__(self, config: Config, arm: ArmModel, outputs: ControllerOutputs, clock: Clock):
+    def __init__(
+        self, config: Config, arm: ArmModel, outputs: ControllerOutputs, clock: Clock
+    ) -> None:
         self.config = config
         self.arm = arm
         self.outputs = outputs
@@ -169,7 +171,9 @@ class ControllerCore:
 class PathCycle(ControllerCore):
     """Paper experiment 1: autonomous path following, one command per state."""
 
-    def __init__(self, config: Config, arm: ArmModel, outputs: ControllerOutputs, clock: Clock):
+    def __init__(
+        self, config: Config, arm: ArmModel, outputs: ControllerOutputs, clock: Clock
+    ) -> None:
         super().__init__(config, arm, outputs, clock)
         self.controller = PathFollowingController(
             arm, config.control, config.path, period_s=self.timestep_s
@@ -229,7 +233,9 @@ class BilateralCycle(ControllerCore):
 
     INPUTS = ("state", "haptic")  # joined per tick in lockstep; the state has contact too
 
-    def __init__(self, config: Config, arm: ArmModel, outputs: ControllerOutputs, clock: Clock):
+    def __init__(
+        self, config: Config, arm: ArmModel, outputs: ControllerOutputs, clock: Clock
+    ) -> None:
         super().__init__(config, arm, outputs, clock)
         self.lockstep = config.run.mode == "lockstep"
         self.stability = check_stability(config.teleop, config.haptic, self.timestep_s)

@@ -89,16 +89,14 @@ class WebViewer:
         around the native server, and a signal to the wrapper alone can leave the native
         server running (and spinning) after the wrapper is gone.
         """
-        if self.process.poll() is not None:
-            _signal_group(self.process.pid, signal.SIGKILL)  # whatever the wrapper left
-            return
-        _signal_group(self.process.pid, signal.SIGINT)
-        try:
-            self.process.wait(STOP_TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            _signal_group(self.process.pid, signal.SIGKILL)
-            self.process.wait()
-        _signal_group(self.process.pid, signal.SIGKILL)
+        if self.process.poll() is None:
+            _signal_group(self.process.pid, signal.SIGINT)
+            try:
+                self.process.wait(STOP_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                _signal_group(self.process.pid, signal.SIGKILL)
+                self.process.wait()
+        _signal_group(self.process.pid, signal.SIGKILL)  # whatever the wrapper left behind
 
     def __enter__(self) -> WebViewer:
         return self

@@ -34,5 +34,3 @@ def test_inbound_drops_older_and_stale_records_and_logs_their_loops():
     # a record of no teleoperation loop (no sample stamp) is shed but leaves no stamp
     assert not inbound.accept(command(3, 0), now_ns)
     assert inbound.shed == 2 and len(inbound.shed_log) == 1
-    # without the sequence check only freshness counts
-    assert inbound.accept(command(1, now_ns), now_ns, check_seq=False)
