@@ -122,7 +122,15 @@ class EyeViewService(Service):
             subscribe(self.session, self.topics.objects, OBJECT_POSES, self.objects, self.drops)
         )
         self.keep(subscribe(self.session, self.topics.head_pose, HEAD_POSE, self.heads, self.drops))
-        provider = shm.get_provider(self.config.bus.shm_pool_bytes) if self.config.bus.shm else None
+        # Within the locked-memory limit: a smaller pool, or the socket path (counted in
+        # the summary's shm_pool) when not even FRAMES_IN_FLIGHT frames fit.
+        provider, self.pool = None, None
+        if self.config.bus.shm:
+            provider, self.pool = shm.open_provider(
+                self.config.bus.shm_pool_bytes, frame_bytes * FRAMES_IN_FLIGHT
+            )
+            if self.pool.reason:
+                logger.warning("shared memory: %s", self.pool.reason)
         # A viewer stream (teleop.bus.graph): dropped rather than blocking a slow receiver.
         self.frame_pub = self.keep(
             Publisher.for_stream(self.session, self.topics, "eye_view", shm=provider)
@@ -243,6 +251,7 @@ class EyeViewService(Service):
             "frames_without_state": self.frames_without_state,
             "states_received": self.states.count,
             "frame_bytes": EYE_VIEW.frame_bytes(eye.width_px, eye.height_px),
+            "shm_pool": self.pool.as_dict() if getattr(self, "pool", None) else None,
             "render_ms_p50": float(p50),
             "render_ms_p99": float(p99),
             "loop": self.timer.summary() if self.timer is not None else {},

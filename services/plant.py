@@ -95,6 +95,9 @@ class PlantService(Service):
         self.loop.run(stop, steps)
         if self.loop.finished:
             logger.info("run finished: %s", self.summary())
+            # The run's end on file as well as on the bus: the runner ends the run on
+            # either, so a FINISHED event lost on a starved machine cannot hang it.
+            self.write_summary()
             stop.wait()  # hold (no stepping) until stopped: supervisord must not restart us
 
     def close(self) -> None:

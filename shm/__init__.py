@@ -2,8 +2,11 @@
 
 from shm.provider import (
     SHM_THRESHOLD_BYTES,
+    PoolReport,
     configure_session,
     get_provider,
+    memlock_budget_bytes,
+    open_provider,
     publish_bytes,
     put_by_size,
     took_shm_path,
@@ -11,8 +14,11 @@ from shm.provider import (
 
 __all__ = [
     "SHM_THRESHOLD_BYTES",
+    "PoolReport",
     "configure_session",
     "get_provider",
+    "memlock_budget_bytes",
+    "open_provider",
     "publish_bytes",
     "put_by_size",
     "took_shm_path",

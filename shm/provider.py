@@ -9,12 +9,25 @@ sets it).
 
 Python cannot write into a ``ZShmMut`` through the buffer protocol: the data is copied
 once in (slice assignment) and once out (``to_bytes``) on the receiving side.
+
+SHM segments are locked in memory, so a process without ``CAP_IPC_LOCK`` (an ordinary
+user) can hold only ``RLIMIT_MEMLOCK`` bytes of them (``ulimit -l``, often 8 MiB), and a
+Zenoh session itself locks about 1.3 MiB. A pool above what is left fails to be created
+(``OS error 12``), and with the low-latency transport a large put that finds no pool is
+lost without an error. So every pool here is sized within :func:`memlock_budget_bytes`:
+the provider's pool (:func:`open_provider`, which falls back to the socket path when
+not even the minimum fits) and the session's own transport pool
+(:func:`configure_session`).
 """
 
 from __future__ import annotations
 
 import json
+import re
+import resource
 import threading
+from dataclasses import dataclass
+from pathlib import Path
 
 import zenoh
 from zenoh.shm import BlockOn, GarbageCollect, ShmProvider
@@ -23,8 +36,116 @@ from zenoh.shm import BlockOn, GarbageCollect, ShmProvider
 # default message_size_threshold: below it a socket write is cheaper than SHM bookkeeping.
 SHM_THRESHOLD_BYTES = 3072
 
+# Memory a Zenoh session locks by itself (links, buffers), seen at about 1.3 MiB; kept
+# free for it when a pool is sized before the session opens, bytes.
+SESSION_LOCKED_BYTES = 2 * 1024 * 1024
+# Kept free besides a pool (segment headers, other small locked buffers), bytes.
+MEMLOCK_MARGIN_BYTES = 256 * 1024
+# Pools are sized in whole multiples of this (Zenoh's allocation granularity is far
+# smaller; a round size reads better in a summary), bytes.
+POOL_GRANULE_BYTES = 64 * 1024
+# Bit of CAP_IPC_LOCK in /proc/self/status CapEff: a process that has it is not bound by
+# RLIMIT_MEMLOCK.
+CAP_IPC_LOCK_BIT = 14
+_PROC_STATUS = Path("/proc/self/status")
+
 _lock = threading.Lock()
 _providers: dict[int, ShmProvider] = {}
+
+
+def _status_field(name: str) -> str | None:
+    match = re.search(rf"^{name}:\s*(\S+)", _PROC_STATUS.read_text(), re.MULTILINE)
+    return match.group(1) if match else None
+
+
+def memlock_budget_bytes(reserve_bytes: int = 0) -> int | None:
+    """Bytes this process may still lock (``RLIMIT_MEMLOCK`` soft limit minus what it has
+    locked, ``VmLck``, minus ``reserve_bytes`` and a margin); None when nothing bounds it
+    (the limit is infinite, or the process has ``CAP_IPC_LOCK``, as root does)."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_MEMLOCK)
+    cap_eff = _status_field("CapEff")
+    if soft == resource.RLIM_INFINITY or (
+        cap_eff is not None and int(cap_eff, 16) >> CAP_IPC_LOCK_BIT & 1
+    ):
+        return None
+    locked_kib = _status_field("VmLck")
+    locked = int(locked_kib) * 1024 if locked_kib is not None else 0
+    return max(0, soft - locked - reserve_bytes - MEMLOCK_MARGIN_BYTES)
+
+
+def fit_pool_bytes(requested_bytes: int, budget_bytes: int | None) -> int:
+    """The largest pool of at most ``requested_bytes`` within ``budget_bytes`` (None: no
+    bound), in whole :data:`POOL_GRANULE_BYTES`; 0 when not even one fits."""
+    if budget_bytes is None or requested_bytes <= budget_bytes:
+        return requested_bytes
+    return budget_bytes // POOL_GRANULE_BYTES * POOL_GRANULE_BYTES
+
+
+@dataclass(frozen=True)
+class PoolReport:
+    """How a process's SHM pool came out, for its summary."""
+
+    requested_bytes: int
+    pool_bytes: int  # 0: no pool, payloads go over the socket
+    memlock_limit_bytes: int | None  # RLIMIT_MEMLOCK soft limit; None: unlimited
+    memlock_bound: bool  # the limit applies to this process (no CAP_IPC_LOCK)
+    reason: str  # why the pool is smaller than asked or absent; empty when it is not
+
+    @property
+    def path(self) -> str:
+        """ "shm" when payloads go through the pool, "socket" when there is none."""
+        return "shm" if self.pool_bytes else "socket"
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "path": self.path,
+            "requested_bytes": self.requested_bytes,
+            "pool_bytes": self.pool_bytes,
+            "memlock_limit_bytes": self.memlock_limit_bytes,
+            "memlock_bound": self.memlock_bound,
+            "reason": self.reason,
+        }
+
+
+def memlock_limit_bytes() -> int | None:
+    """``RLIMIT_MEMLOCK``'s soft limit (``ulimit -l``), bytes; None when unlimited."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_MEMLOCK)
+    return None if soft == resource.RLIM_INFINITY else soft
+
+
+def open_provider(
+    requested_bytes: int, minimum_bytes: int
+) -> tuple[ShmProvider | None, PoolReport]:
+    """The process's provider with a pool of ``requested_bytes``, or less to fit the
+    locked-memory limit (never less than ``minimum_bytes``); without one (even the
+    minimum does not fit, or Zenoh refuses the segment) None: the caller publishes over
+    the socket. The report says which, and why."""
+    budget = memlock_budget_bytes()
+    pool_bytes = fit_pool_bytes(requested_bytes, budget)
+    limit = memlock_limit_bytes()
+    reason = ""
+    if pool_bytes < requested_bytes:
+        reason = (
+            f"RLIMIT_MEMLOCK (ulimit -l) {limit} B leaves {budget} B to lock: pool of "
+            f"{pool_bytes} B instead of {requested_bytes} B"
+        )
+    provider = None
+    if pool_bytes < minimum_bytes:
+        reason = (
+            f"RLIMIT_MEMLOCK (ulimit -l) {limit} B leaves {budget} B to lock, below the "
+            f"{minimum_bytes} B needed: socket path (raise the limit, or run with "
+            "--set bus.shm=false: the low-latency transport cannot carry large payloads "
+            "without a pool)"
+        )
+        pool_bytes = 0
+    else:
+        try:
+            provider = get_provider(pool_bytes)
+        except zenoh.ZError as exc:
+            reason = f"SHM pool of {pool_bytes} B refused ({exc}): socket path"
+            pool_bytes = 0
+    report = PoolReport(requested_bytes, pool_bytes, limit, budget is not None, reason)
+    return provider, report
 
 
 def get_provider(pool_bytes: int) -> ShmProvider:
@@ -50,7 +171,8 @@ def configure_session(conf: zenoh.Config, *, enabled: bool, lowlatency: bool) ->
 
     With shared memory on: segments created at start (``init``: no first-message delay),
     used for puts only (a query dropped under CPU stalls otherwise), for payloads of at
-    least :data:`SHM_THRESHOLD_BYTES`.
+    least :data:`SHM_THRESHOLD_BYTES`, its transport pool (``pool_size``, taken when a
+    large payload is put without a provider) shrunk to fit the locked-memory limit.
     """
     key = "transport/shared_memory"
     conf.insert_json5(f"{key}/enabled", json.dumps(enabled))
@@ -64,6 +186,11 @@ def configure_session(conf: zenoh.Config, *, enabled: bool, lowlatency: bool) ->
             f"{key}/transport_optimization/message_size_threshold",
             json.dumps(SHM_THRESHOLD_BYTES),
         )
+        pool_key = f"{key}/transport_optimization/pool_size"
+        requested = int(json.loads(conf.get_json(pool_key)))
+        fitted = fit_pool_bytes(requested, memlock_budget_bytes(SESSION_LOCKED_BYTES))
+        if fitted < requested:
+            conf.insert_json5(pool_key, json.dumps(max(fitted, POOL_GRANULE_BYTES)))
 
 
 def put_by_size(

@@ -86,6 +86,10 @@ class Service:
         self._entities: list[Any] = []
         self._closed = False
         self.unlinked_peers: list[str] = []  # peers never seen (become_ready gave up)
+        # Realtime privileges asked for and whether the kernel granted them (service_main
+        # fills it in): {"sched_fifo": ..., "cpu_pinning": ...}, each "granted ...",
+        # "refused: <why>" or "not requested".
+        self.privileges: dict[str, str] = {}
 
     # -- lifecycle ---------------------------------------------------------------------
     def open(self) -> None:
@@ -116,6 +120,7 @@ class Service:
             "dropped_messages": self.drops.total,
             "cpu_s": time.process_time(),
             "unlinked_peers": self.unlinked_peers,
+            "privileges": self.privileges,
         }
 
     def close(self) -> None:
@@ -207,39 +212,54 @@ class Service:
         os.replace(tmp, path)
 
 
-def pin_to_cpus(cpus: tuple[int, ...]) -> None:
-    """Run this process on the given CPUs (those that exist); no-op when none is given."""
+# A privilege's outcome in Service.privileges when it was not asked for.
+NOT_REQUESTED = "not requested"
+REFUSED = "refused"
+
+
+def pin_to_cpus(cpus: tuple[int, ...]) -> str:
+    """Run this process on the given CPUs (those that exist); no-op when none is given.
+    Returns the outcome for the summary: "granted [...]", "refused: <why>" or
+    NOT_REQUESTED."""
+    if not cpus:
+        return NOT_REQUESTED
     available = os.sched_getaffinity(0)
     wanted = set(cpus) & available
-    if cpus and not wanted:
+    if not wanted:
         logger.warning("cpu affinity %s: no such CPU here (have %s), not pinned", cpus, available)
-    if wanted:
+        return f"{REFUSED}: CPU(s) {list(cpus)} not available (have {sorted(available)})"
+    try:
         os.sched_setaffinity(0, wanted)
-        logger.info("pinned to CPU(s) %s", sorted(wanted))
+    except OSError as exc:
+        logger.warning("cpu affinity %s refused (%s): not pinned", sorted(wanted), exc)
+        return f"{REFUSED}: {exc}"
+    logger.info("pinned to CPU(s) %s", sorted(wanted))
+    return f"granted {sorted(wanted)}"
 
 
 @contextlib.contextmanager
-def fifo_scheduling(priority: int) -> Iterator[bool]:
+def fifo_scheduling(priority: int) -> Iterator[str]:
     """Within the block, run the calling thread, and every thread it starts (Zenoh's
     included, so open the session inside), under SCHED_FIFO at ``priority``; yields
-    whether it took effect. The calling thread's old policy is back after the block.
+    the outcome for the summary ("granted ...", "refused: <why>" or NOT_REQUESTED). The
+    calling thread's old policy is back after the block.
 
     No-op for 0. Without CAP_SYS_NICE the kernel refuses: a warning says so and the
     thread stays normally scheduled.
     """
     if priority <= 0:
-        yield False
+        yield NOT_REQUESTED
         return
     old_policy, old_param = os.sched_getscheduler(0), os.sched_getparam(0)
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
     except OSError as exc:
         logger.warning("SCHED_FIFO priority %d refused (%s): normal scheduling", priority, exc)
-        yield False
+        yield f"{REFUSED}: {exc.strerror or exc} (needs CAP_SYS_NICE or RLIMIT_RTPRIO)"
         return
     logger.info("SCHED_FIFO priority %d", priority)
     try:
-        yield True
+        yield f"granted (priority {priority})"
     finally:
         os.sched_setscheduler(0, old_policy, old_param)
 
@@ -291,7 +311,7 @@ def service_main(service_class: type[Service], argv: list[str] | None = None) ->
         continuous=args.continuous,
     )
     scheduled_as = service_class.scheduling_as or service_class.name
-    pin_to_cpus(config.cpu.for_service(scheduled_as, config.run.mode))
+    pinning = pin_to_cpus(config.cpu.for_service(scheduled_as, config.run.mode))
     fifo_priority = config.cpu.fifo_priority_for(scheduled_as, config.run.mode)
     stop = threading.Event()
 
@@ -302,7 +322,8 @@ def service_main(service_class: type[Service], argv: list[str] | None = None) ->
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     try:
-        with fifo_scheduling(fifo_priority), service_class(config, options) as service:
+        with fifo_scheduling(fifo_priority) as fifo, service_class(config, options) as service:
+            service.privileges.update(sched_fifo=fifo, cpu_pinning=pinning)
             if service.become_ready(stop):
                 logger.info("running (robot %s)", config.robot.robot_id)
                 service.run(stop)

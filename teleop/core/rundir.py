@@ -40,6 +40,39 @@ HAPTIC_SAMPLES_FILE = "haptic.samples.npy"
 SHED_FILE_SUFFIX = ".shed.npy"
 
 
+# What a run leaves in its directory (besides supervisord's socket and config, which the
+# next start rewrites), removed before the next run there so that nothing stale (a summary
+# saying success, a log of another run) survives a run that fails: clear_run_results.
+_RUN_RESULT_GLOBS = (
+    f"*{SUMMARY_SUFFIX}",
+    f"*{SHED_FILE_SUFFIX}",
+    "*.status",
+    HAPTIC_TRACE_FILE,
+    HAPTIC_SAMPLES_FILE,
+    RECORDING_FILE,
+    SUPERVISOR_LOG_FILE,
+    SUPERVISOR_CONSOLE_FILE,
+    WEB_VIEWER_LOG_FILE,
+    f"{LOG_DIR}/*.log",
+)
+
+
+def clear_run_results(run_dir: Path) -> list[Path]:
+    """Remove the previous run's results from ``run_dir`` (summaries, logs, recording,
+    its report); the files removed. Call only when no stack runs there."""
+    run_dir = Path(run_dir)
+    removed = [path for pattern in _RUN_RESULT_GLOBS for path in run_dir.glob(pattern)]
+    for path in removed:
+        path.unlink(missing_ok=True)
+    report = report_dir(run_dir / RECORDING_FILE)
+    if report.is_dir():
+        for path in report.iterdir():
+            if path.is_file():
+                path.unlink()
+                removed.append(path)
+    return removed
+
+
 def shed_path(run_dir: Path, service: str) -> Path:
     """Where ``service`` writes the stamps of the samples it shed."""
     return Path(run_dir) / f"{service}{SHED_FILE_SUFFIX}"

@@ -45,13 +45,14 @@ from teleop.core.config import Config
 from teleop.core.rundir import (
     LOG_DIR,
     RECORDING_FILE,
-    SUMMARY_SUFFIX,
+    clear_run_results,
     idle_poll_status_path,
     summary_path,
 )
 from teleop.run.experiments import PROGRESS_FRACTION, ProgressFn
 from teleop.run.idle_poll import POLLING, read_status
-from teleop.run.supervise import Program, Stack
+from teleop.run.supervise import Program, Stack, StackError
+from teleop.run.verdict import machine_section, realtime_health
 
 # The operator's eye view renders in a process of its own (see services/eyeview.py for
 # why not a thread in the plant); it joins the stack of any scenario when eyeview.enabled.
@@ -243,8 +244,8 @@ def run_on_services(
     services = scenario_services(config)
     run_dir = run_dir.absolute()
     run_dir.mkdir(parents=True, exist_ok=True)
-    for stale in run_dir.glob(f"*{SUMMARY_SUFFIX}"):
-        stale.unlink()
+    refuse_if_running(run_dir)
+    clear_run_results(run_dir)
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     run_overrides = [
         *overrides,
@@ -288,7 +289,7 @@ def run_on_services(
         wall_start = time.perf_counter()
         with Stack(run_dir, programs) as stack:
             wait_alive(session, topics, services, ALIVE_TIMEOUT_S)
-            _wait_finished(finished, tool, config, deadline_s, stack, progress)
+            _wait_finished(finished, tool, config, deadline_s, stack, progress, run_dir)
         wall_s = time.perf_counter() - wall_start
     finally:
         close_session(session, *reversed(entities))
@@ -316,8 +317,18 @@ def run_on_services(
                 "min_manipulability": controller["min_manipulability"],
             }
         )
+    idle_poll = idle_poll_report(polled_cpus, run_dir)
+    health = realtime_health(
+        config.run.mode,
+        overrun_fraction=plant["overrun_fraction"],
+        realtime_factor=plant["realtime_factor"] or 0.0,
+        watchdog_brakes=plant["stale_commands"],
+        dropped_messages=dropped,
+        unlinked_peers=unlinked,
+    )
     summary.update(
         {
+            **health.as_dict(),
             "steps": plant["steps"],
             "wall_s": plant["wall_s"],
             "realtime_factor": plant["realtime_factor"],
@@ -328,7 +339,8 @@ def run_on_services(
             "skipped_states": controller["skipped_states"],
             "final_state_sha256": plant["final_state_sha256"],
             "stack_wall_s": wall_s,
-            **idle_poll_report(polled_cpus, run_dir),
+            **idle_poll,
+            "machine": machine_section(summaries, polled_cpus, idle_poll),
             "eye_view": _eye_view_summary(summaries),
             "rrd": summaries["recorder"].get("rrd_path"),
             "run_dir": str(run_dir),
@@ -384,11 +396,14 @@ def _wait_finished(
     deadline_s: float,
     stack: Stack,
     progress: ProgressFn | None,
+    run_dir: Path,
 ) -> None:
-    """Wait for the plant's FINISHED event, reporting progress from the scene stream."""
+    """Wait until the plant has finished: its FINISHED event, or its summary on file
+    saying so (written as it finishes: an event lost on a starved machine does not hang
+    the run). Reports progress from the scene stream meanwhile."""
     start = time.monotonic()
     next_report = PROGRESS_FRACTION
-    while not finished.wait(timeout=0.5):
+    while not finished.wait(timeout=0.5) and not _plant_finished(run_dir):
         if time.monotonic() - start > deadline_s:
             raise RunError(f"run did not finish within {deadline_s:g} s: {stack.status()}")
         failed = {n: s for n, s in stack.status().items() if s not in ("RUNNING", "STARTING")}
@@ -405,11 +420,34 @@ def _wait_finished(
         progress(1.0, config.run.duration_s)
 
 
+def _plant_finished(run_dir: Path) -> bool:
+    """True when the plant's summary is on file and says the run finished."""
+    path = summary_path(run_dir, "plant")
+    try:
+        return bool(json.loads(path.read_text()).get("finished"))
+    except (OSError, ValueError):
+        return False
+
+
+def refuse_if_running(run_dir: Path) -> None:
+    """Raise RunError when a stack already runs in ``run_dir`` (a `teleop up`, or
+    another run): two stacks cannot share a run directory."""
+    try:
+        Stack.attach(run_dir)
+    except StackError:
+        return
+    raise RunError(
+        f"a stack already runs in {run_dir}: stop it (teleop down --run-dir {run_dir}) "
+        "or use another --run-dir"
+    )
+
+
 def start_detached(
     config: Config, config_file: Path | None, overrides: Sequence[str], run_dir: Path
 ) -> dict[str, str]:
     """``teleop up``: the stack with the plant as listener, running until stopped."""
     run_dir = run_dir.absolute()
+    refuse_if_running(run_dir)
     run_overrides = list(overrides)
     if not config.recorder.rrd_path:
         run_overrides.append(f'recorder.rrd_path="{run_dir / RECORDING_FILE}"')

@@ -15,14 +15,14 @@ def test_pin_to_cpus_uses_existing_cpus_and_ignores_others(caplog):
     original = os.sched_getaffinity(0)
     try:
         first = min(original)
-        pin_to_cpus((first, 10_000))
+        assert pin_to_cpus((first, 10_000)) == f"granted [{first}]"
         assert os.sched_getaffinity(0) == {first}
         os.sched_setaffinity(0, original)
         with caplog.at_level(logging.WARNING):
-            pin_to_cpus((10_000,))
-        assert os.sched_getaffinity(0) == original
+            outcome = pin_to_cpus((10_000,))
+        assert outcome.startswith("refused") and os.sched_getaffinity(0) == original
         assert "no such CPU" in caplog.text
-        pin_to_cpus(())
+        assert pin_to_cpus(()) == "not requested"
         assert os.sched_getaffinity(0) == original
     finally:
         os.sched_setaffinity(0, original)
@@ -30,16 +30,17 @@ def test_pin_to_cpus_uses_existing_cpus_and_ignores_others(caplog):
 
 def test_fifo_scheduling_applies_inside_the_block_and_restores_after(caplog):
     before = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
-    with fifo_scheduling(0) as applied:  # 0: normal scheduling, nothing to do
-        assert not applied and os.sched_getscheduler(0) == before[0]
-    with caplog.at_level(logging.INFO), fifo_scheduling(7) as applied:
-        if applied:  # CAP_SYS_NICE (root): the kernel accepted it
+    with fifo_scheduling(0) as outcome:  # 0: normal scheduling, nothing to do
+        assert outcome == "not requested" and os.sched_getscheduler(0) == before[0]
+    with caplog.at_level(logging.INFO), fifo_scheduling(7) as outcome:
+        if outcome.startswith("granted"):  # CAP_SYS_NICE (root): the kernel accepted it
             assert os.sched_getscheduler(0) == os.SCHED_FIFO
             assert os.sched_getparam(0).sched_priority == 7
             # A clock built now sleeps in one go: no timer slack under a realtime policy.
             assert MonotonicClock().fine_margin_ns == 0
         else:  # refused: said once, the thread keeps its policy
-            assert "refused" in caplog.text and os.sched_getscheduler(0) == before[0]
+            assert outcome.startswith("refused") and "refused" in caplog.text
+            assert os.sched_getscheduler(0) == before[0]
     assert (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority) == before
     assert MonotonicClock().fine_margin_ns == FINE_SLEEP_MARGIN_NS
 
