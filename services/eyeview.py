@@ -224,7 +224,8 @@ class EyeViewService(Service):
         rec["yaw_rad"] = yaw
         rec["pitch_rad"] = pitch
         rec["publish_ns"] = time.monotonic_ns()
-        self.frame_pub.put_bytes(EYE_VIEW.encode_frame(rec, pixels))
+        if not self.frame_pub.put_bytes(EYE_VIEW.encode_frame(rec, pixels)):
+            return True  # the pool is full: counted in frames_dropped_pool_full
         self.frames_published += 1
         return True
 
@@ -248,6 +249,9 @@ class EyeViewService(Service):
             **super().summary(),
             "frames_published": self.frames_published,
             "frames_from_hmd": self.frames_from_hmd,
+            "frames_dropped_pool_full": self.frame_pub.dropped_pool_full
+            if hasattr(self, "frame_pub")
+            else 0,
             "frames_without_state": self.frames_without_state,
             "states_received": self.states.count,
             "frame_bytes": EYE_VIEW.frame_bytes(eye.width_px, eye.height_px),

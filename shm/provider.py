@@ -11,12 +11,14 @@ Python cannot write into a ``ZShmMut`` through the buffer protocol: the data is 
 once in (slice assignment) and once out (``to_bytes``) on the receiving side.
 
 SHM segments are locked in memory, so a process without ``CAP_IPC_LOCK`` (an ordinary
-user) can hold only ``RLIMIT_MEMLOCK`` bytes of them (``ulimit -l``, often 8 MiB), and a
-Zenoh session itself locks about 1.3 MiB. A pool above what is left fails to be created
-(``OS error 12``), and with the low-latency transport a large put that finds no pool is
-lost without an error. So every pool here is sized within :func:`memlock_budget_bytes`:
-the provider's pool (:func:`open_provider`, which falls back to the socket path when
-not even the minimum fits) and the session's own transport pool
+user) can hold only ``RLIMIT_MEMLOCK`` bytes of them (``ulimit -l``, often 8 MiB). Seen
+with Zenoh 1.10.2: a session locks about 1.3 MiB by itself; a publisher's pool costs its
+size; a receiver that maps it costs the pool's size plus about 1.3-2.5 MiB. A pool the
+publisher cannot lock fails to be created (``OS error 12``); one a receiver cannot map
+is silently not received; and with the low-latency transport a large put that finds no
+pool is lost without an error. So every pool here is sized within the limit, for the
+receivers as well: the provider's pool (:func:`open_provider`, which falls back to the
+socket path when not even the minimum fits) and the session's own transport pool
 (:func:`configure_session`).
 """
 
@@ -36,9 +38,12 @@ from zenoh.shm import BlockOn, GarbageCollect, ShmProvider
 # default message_size_threshold: below it a socket write is cheaper than SHM bookkeeping.
 SHM_THRESHOLD_BYTES = 3072
 
-# Memory a Zenoh session locks by itself (links, buffers), seen at about 1.3 MiB; kept
-# free for it when a pool is sized before the session opens, bytes.
-SESSION_LOCKED_BYTES = 2 * 1024 * 1024
+# Locked memory of a process that receives from a pool, besides the pool itself: its
+# session and Zenoh's fixed SHM mappings (seen: about 3.9 MiB in the recorder), bytes.
+RECEIVER_LOCKED_BYTES = 4 * 1024 * 1024
+# A pool takes at most this share of what a receiver has left after RECEIVER_LOCKED_BYTES:
+# the receiver's fixed share was measured in one stack, so keep a margin of 2x.
+RECEIVER_POOL_SHARE = 0.5
 # Kept free besides a pool (segment headers, other small locked buffers), bytes.
 MEMLOCK_MARGIN_BYTES = 256 * 1024
 # Pools are sized in whole multiples of this (Zenoh's allocation granularity is far
@@ -113,6 +118,17 @@ def memlock_limit_bytes() -> int | None:
     return None if soft == resource.RLIM_INFINITY else soft
 
 
+def shared_pool_budget_bytes() -> int | None:
+    """The largest pool this process can lock and a receiver under the same limit can
+    map (the run's processes are one user's: same limit); None when nothing bounds it."""
+    own = memlock_budget_bytes()
+    limit = memlock_limit_bytes()
+    if own is None or limit is None:
+        return None
+    receiver = int(max(0, limit - RECEIVER_LOCKED_BYTES) * RECEIVER_POOL_SHARE)
+    return min(own, receiver)
+
+
 def open_provider(
     requested_bytes: int, minimum_bytes: int
 ) -> tuple[ShmProvider | None, PoolReport]:
@@ -120,19 +136,21 @@ def open_provider(
     locked-memory limit (never less than ``minimum_bytes``); without one (even the
     minimum does not fit, or Zenoh refuses the segment) None: the caller publishes over
     the socket. The report says which, and why."""
-    budget = memlock_budget_bytes()
+    budget = shared_pool_budget_bytes()
     pool_bytes = fit_pool_bytes(requested_bytes, budget)
     limit = memlock_limit_bytes()
     reason = ""
     if pool_bytes < requested_bytes:
         reason = (
-            f"RLIMIT_MEMLOCK (ulimit -l) {limit} B leaves {budget} B to lock: pool of "
-            f"{pool_bytes} B instead of {requested_bytes} B"
+            f"RLIMIT_MEMLOCK (ulimit -l) {limit} B leaves room for a pool of {budget} B "
+            f"(in this process and its receivers): pool of {pool_bytes} B instead of "
+            f"{requested_bytes} B"
         )
     provider = None
     if pool_bytes < minimum_bytes:
         reason = (
-            f"RLIMIT_MEMLOCK (ulimit -l) {limit} B leaves {budget} B to lock, below the "
+            f"RLIMIT_MEMLOCK (ulimit -l) {limit} B leaves room for a pool of {budget} B, "
+            f"below the "
             f"{minimum_bytes} B needed: socket path (raise the limit, or run with "
             "--set bus.shm=false: the low-latency transport cannot carry large payloads "
             "without a pool)"
@@ -188,31 +206,49 @@ def configure_session(conf: zenoh.Config, *, enabled: bool, lowlatency: bool) ->
         )
         pool_key = f"{key}/transport_optimization/pool_size"
         requested = int(json.loads(conf.get_json(pool_key)))
-        fitted = fit_pool_bytes(requested, memlock_budget_bytes(SESSION_LOCKED_BYTES))
+        fitted = fit_pool_bytes(requested, shared_pool_budget_bytes())
         if fitted < requested:
             conf.insert_json5(pool_key, json.dumps(max(fitted, POOL_GRANULE_BYTES)))
 
 
 def put_by_size(
-    pub: zenoh.Publisher, data: bytes | bytearray, provider: ShmProvider | None
-) -> None:
+    pub: zenoh.Publisher,
+    data: bytes | bytearray,
+    provider: ShmProvider | None,
+    *,
+    block: bool = True,
+) -> bool:
     """Put ``data`` on ``pub`` by the path its size calls for: through a SHM buffer of
-    ``provider`` at or above the threshold, inline below it (or without a provider)."""
+    ``provider`` at or above the threshold, inline below it (or without a provider).
+    False when the pool was full and ``block`` is off (see :func:`publish_bytes`)."""
     if provider is not None and len(data) >= SHM_THRESHOLD_BYTES:
-        publish_bytes(pub, data, provider)
-    else:
-        pub.put(bytes(data))
+        return publish_bytes(pub, data, provider, block=block)
+    pub.put(bytes(data))
+    return True
 
 
-def publish_bytes(pub: zenoh.Publisher, data: bytes | bytearray, provider: ShmProvider) -> None:
-    """Copy ``data`` into a SHM buffer of ``provider`` and put it on ``pub``.
+def publish_bytes(
+    pub: zenoh.Publisher, data: bytes | bytearray, provider: ShmProvider, *, block: bool = True
+) -> bool:
+    """Copy ``data`` into a SHM buffer of ``provider`` and put it on ``pub``; whether it
+    was sent.
 
-    Allocation blocks (after garbage-collecting buffers receivers have released) when
-    the pool is full, rather than silently falling back to the socket path.
+    When the pool is full (receivers still hold its buffers), allocation first
+    garbage-collects the buffers receivers have released; then, with ``block``, it waits
+    for more (a stream that must not lose a record), else the record is not sent and
+    False returned (a viewer's stream: a slow receiver must not stall the publisher, and
+    a thread blocked in that native wait cannot even run its stop signal's handler).
     """
-    buf = provider.alloc(len(data), policy=BlockOn(GarbageCollect()))
+    policy = BlockOn(GarbageCollect()) if block else GarbageCollect()
+    try:
+        buf = provider.alloc(len(data), policy=policy)
+    except zenoh.ZError:
+        if block:
+            raise
+        return False
     buf[:] = data
     pub.put(buf)
+    return True
 
 
 def took_shm_path(sample: zenoh.Sample) -> bool:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import faulthandler
 import json
 import logging
 import os
@@ -297,6 +298,9 @@ def service_main(service_class: type[Service], argv: list[str] | None = None) ->
         format=f"%(asctime)s {service_class.name} %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
+    # `kill -USR1 <pid>` prints every thread's stack to the log, even while the main
+    # thread is stuck in native code (where a Python signal handler cannot run).
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     args = build_service_parser(service_class.name).parse_args(argv)
     try:
         config = load_config(args.config, args.overrides)

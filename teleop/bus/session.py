@@ -122,10 +122,15 @@ class Publisher:
     once anyway.
     """
 
-    def __init__(self, pub: zenoh.Publisher, schema: Schema, shm: ShmProvider | None) -> None:
+    def __init__(
+        self, pub: zenoh.Publisher, schema: Schema, shm: ShmProvider | None, block: bool = True
+    ) -> None:
         self._pub = pub
         self.schema = schema
         self._shm = shm
+        # A DROP stream never waits for room in the SHM pool: such a record is dropped.
+        self._block = block
+        self.dropped_pool_full = 0
 
     @classmethod
     def declare(
@@ -147,7 +152,7 @@ class Publisher:
             express=express,
             reliability=reliability,
         )
-        return cls(pub, schema, shm)
+        return cls(pub, schema, shm, congestion_control == zenoh.CongestionControl.BLOCK)
 
     @classmethod
     def for_stream(
@@ -180,9 +185,12 @@ class Publisher:
         self.put_bytes(data)
         return data
 
-    def put_bytes(self, data: bytes) -> None:
-        """Send raw bytes (already encoded) on the path their size calls for."""
-        put_by_size(self._pub, data, self._shm)
+    def put_bytes(self, data: bytes) -> bool:
+        """Send raw bytes (already encoded) on the path their size calls for; False when
+        a DROP stream's record was dropped for a full SHM pool (``dropped_pool_full``)."""
+        sent = put_by_size(self._pub, data, self._shm, block=self._block)
+        self.dropped_pool_full += not sent
+        return sent
 
     def wait_matched(self, timeout_s: float) -> bool:
         """Wait until at least one subscriber matches this publisher (event driven)."""
