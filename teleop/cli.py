@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING
 from teleop.core.config import SCENARIOS, Config, ConfigError, ModelError, load_config
 from teleop.core.rundir import LATENCY_RECORDING_FILE, LOG_DIR, WEB_VIEWER_LOG_FILE
 from teleop.run.supervise import interrupt_on_signals
+from teleop.run.verdict import LOST
 
 if TYPE_CHECKING:
     from teleop.viz.viewer import WebViewer
@@ -34,9 +35,12 @@ DEFAULT_RUN_DIR = Path("runs") / "latest"
 DEFAULT_UP_DIR = Path("runs") / "up"
 DEFAULT_LATENCY_DIR = Path("runs") / "latency"
 
-# Exit codes: 0 success, 1 the run failed its own checks, 2 bad usage or config.
+# Exit codes: 0 success, 1 the run failed its own checks, 2 bad usage or config, 3 the
+# task succeeded but the run lost real time (realtime_verdict "lost": its figures are not
+# those of a realtime run; teleop.run.verdict).
 EXIT_FAILED = 1
 EXIT_USAGE = 2
+EXIT_REALTIME_LOST = 3
 
 
 def _add_config_arguments(parser: argparse.ArgumentParser) -> None:
@@ -301,6 +305,9 @@ def _run_and_report(
     if summary.get("success") is False:
         print("teleop: the task did not succeed", file=sys.stderr)
         return EXIT_FAILED
+    if summary.get("realtime_verdict") == LOST:
+        print("teleop: the run lost real time (see realtime_problems)", file=sys.stderr)
+        return EXIT_REALTIME_LOST
     return 0
 
 

@@ -323,6 +323,8 @@ def run_on_services(
         overrun_fraction=plant["overrun_fraction"],
         realtime_factor=plant["realtime_factor"] or 0.0,
         watchdog_brakes=plant["stale_commands"],
+        braked_steps=plant["stale_steps"],
+        steps=plant["steps"],
         dropped_messages=dropped,
         unlinked_peers=unlinked,
     )

@@ -1,0 +1,72 @@
+"""The run's verdict on its own real time and the machine section (pure functions)."""
+
+from __future__ import annotations
+
+from teleop.run.verdict import (
+    CLEAN,
+    DEGRADED,
+    LOST,
+    machine_section,
+    realtime_health,
+    refused_privileges,
+)
+
+QUIET = {
+    "overrun_fraction": 0.0002,
+    "realtime_factor": 0.999,
+    "watchdog_brakes": 0,
+    "braked_steps": 0,
+    "steps": 20_000,
+    "dropped_messages": 0,
+    "unlinked_peers": {},
+}
+
+
+def test_a_quiet_realtime_run_is_clean():
+    health = realtime_health("realtime", **QUIET)
+    assert health.verdict == CLEAN and health.problems == ()
+
+
+def test_a_few_short_brakes_degrade_a_run_and_say_how_many():
+    health = realtime_health("realtime", **{**QUIET, "watchdog_brakes": 7, "braked_steps": 87})
+    assert health.verdict == DEGRADED
+    assert "7 time(s), 87 steps" in health.problems[0]
+
+
+def test_a_starved_run_is_lost_with_every_bound_it_missed():
+    starved = {
+        **QUIET,
+        "overrun_fraction": 0.08,
+        "realtime_factor": 0.7,
+        "watchdog_brakes": 40,
+        "braked_steps": 1500,
+    }
+    health = realtime_health("realtime", **starved)
+    assert health.verdict == LOST
+    assert len(health.problems) == 3
+    assert any("8.00%" in p for p in health.problems)
+    assert any("0.700 x real time" in p for p in health.problems)
+
+
+def test_lockstep_has_no_real_time_to_lose_but_unlinked_services_lose_data():
+    slow = {**QUIET, "overrun_fraction": 0.5, "realtime_factor": 0.1}
+    assert realtime_health("lockstep", **slow).verdict == CLEAN
+    unlinked = {**QUIET, "unlinked_peers": {"plant": ["recorder"]}}
+    assert realtime_health("lockstep", **unlinked).verdict == LOST
+
+
+def test_the_machine_section_says_which_privileges_were_granted_and_refused():
+    summaries = {
+        "plant": {"privileges": {"sched_fifo": "refused: EPERM", "cpu_pinning": "granted [0]"}},
+        "recorder": {"privileges": {"sched_fifo": "not requested", "cpu_pinning": "granted [1]"}},
+        "eyeview": {"privileges": {}, "shm_pool": {"pool_bytes": 2 << 20, "reason": "ulimit"}},
+    }
+    idle = {"idle_poll_cpus": [], "idle_poll_failed": {0: "not polled: EACCES"}}
+    machine = machine_section(summaries, [0], idle)
+    assert machine["sched_fifo"] == {"granted": {}, "refused": {"plant": "refused: EPERM"}}
+    assert set(machine["cpu_pinning"]["granted"]) == {"plant", "recorder"}
+    assert machine["idle_cgroup"]["refused"] == {"0": "not polled: EACCES"}
+    lines = refused_privileges(machine)
+    assert len(lines) == 3
+    assert lines[0].startswith("SCHED_FIFO refused for plant")
+    assert "ulimit" in lines[2]
