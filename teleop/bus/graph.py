@@ -27,6 +27,7 @@ from teleop.bus.messages import (
     RUN_EVENT,
     TELEOP_STATUS,
     TOOL_POSE,
+    Event,
     Schema,
 )
 
@@ -96,9 +97,12 @@ STREAMS: tuple[Stream, ...] = (
     Stream("control_status", "control/status", CONTROL_STATUS, ("controller",), ("recorder",),
            "`control.status_rate_hz` (100 Hz)", seq_per_record=False,
            note="`seq` is the controller's cycle counter"),
-    Stream("events", "events", RUN_EVENT, ("plant", "operator"),
-           ("plant", "operator", "recorder", "launcher"), "on change", periodic=False,
-           note="each producer counts its own `seq`; the plant takes TASK_DONE"),
+    Stream("plant_events", "events/plant", RUN_EVENT, ("plant",),
+           ("operator", "recorder", "launcher"), "on change", periodic=False,
+           note="STARTED, FINISHED, WATCHDOG_BRAKE, WATCHDOG_RESUME, GRASP, RELEASE"),
+    Stream("operator_events", "events/operator", RUN_EVENT, ("operator",),
+           ("plant", "recorder"), "on change", periodic=False,
+           note="PHASE, TASK_DONE (the plant ends the run at its `step`)"),
     Stream("haptic_state", "haptic/state", HAPTIC_STATE, ("haptic",), ("controller",),
            "1 kHz, one per device period"),
     Stream("haptic_state_batch", "haptic/state/batch", HAPTIC_STATE, ("haptic",),
@@ -128,6 +132,26 @@ def stream(name: str) -> Stream:
         return STREAMS_BY_NAME[name]
     except KeyError:
         raise KeyError(f"no stream {name!r}; streams: {', '.join(STREAMS_BY_NAME)}") from None
+
+
+# The stream that carries each run event: its owner's. A receiver takes an event only from
+# its owner's stream (under access control only the owner may publish there), so no other
+# sender can end a run or fake a grasp.
+EVENT_STREAM: Mapping[Event, str] = {
+    Event.STARTED: "plant_events",
+    Event.FINISHED: "plant_events",
+    Event.WATCHDOG_BRAKE: "plant_events",
+    Event.WATCHDOG_RESUME: "plant_events",
+    Event.GRASP: "plant_events",
+    Event.RELEASE: "plant_events",
+    Event.PHASE: "operator_events",
+    Event.TASK_DONE: "operator_events",
+}
+
+
+def event_on_own_stream(stream_name: str, event: int) -> bool:
+    """Whether a RUN_EVENT ``event`` may come on ``stream_name`` (its owner's stream)."""
+    return EVENT_STREAM.get(Event(event)) == stream_name  # decoded: a valid Event
 
 
 # Liveliness tokens under ``teleop/<robot_id>/``: (key with <service>, meaning).

@@ -50,7 +50,11 @@ RGB_CHANNELS = 3  # EYE_VIEW pixels: 8-bit R, G, B
 
 # Declared per-field limits (validated on decode; a record outside them is dropped).
 JOINT_POSITION_LIMIT_RAD = 100.0
-JOINT_VELOCITY_LIMIT_RAD_S = 100.0
+JOINT_VELOCITY_LIMIT_RAD_S = 100.0  # measured joint speeds (a collision may exceed the drives')
+# Joint velocity references: the widest drive range of the shipped arms (their velocity
+# actuators' ctrlrange, +-pi rad/s; tests/unit/test_plant_limits.py checks the models). The
+# plant clamps each joint to its own drive's range and the tool to plant.tool_speed_limit_m_s.
+JOINT_COMMAND_SPEED_LIMIT_RAD_S = 3.1416
 POSITION_LIMIT_M = 100.0  # |coordinate| of any point in the world frame
 QUAT_COMPONENT_LIMIT = 1.0 + 1e-6  # unit quaternion components, with rounding slack
 GRIPPER_OPENING_LIMIT_M = 1.0
@@ -148,6 +152,7 @@ class Reason(enum.StrEnum):
     NON_FINITE = "non_finite"
     COUNT = "count"
     RANGE = "range"
+    SOURCE = "source"  # well-formed, but on a stream its sender does not own (RUN_EVENT)
 
 
 class DecodeError(ValueError):
@@ -363,6 +368,11 @@ _POS = {"lo": -POSITION_LIMIT_M, "hi": POSITION_LIMIT_M, "unit": "m"}
 _QUAT = {"lo": -QUAT_COMPONENT_LIMIT, "hi": QUAT_COMPONENT_LIMIT, "unit": "1"}
 _QPOS = {"lo": -JOINT_POSITION_LIMIT_RAD, "hi": JOINT_POSITION_LIMIT_RAD, "unit": "rad"}
 _QVEL = {"lo": -JOINT_VELOCITY_LIMIT_RAD_S, "hi": JOINT_VELOCITY_LIMIT_RAD_S, "unit": "rad/s"}
+_QVEL_CMD = {
+    "lo": -JOINT_COMMAND_SPEED_LIMIT_RAD_S,
+    "hi": JOINT_COMMAND_SPEED_LIMIT_RAD_S,
+    "unit": "rad/s",
+}
 
 
 def _sim_time() -> Field:
@@ -452,12 +462,18 @@ PLANT_STATE = Schema(
 JOINT_COMMAND = Schema(
     Kind.JOINT_COMMAND,
     [
-        Field("state_seq", "u8", doc="seq of the PLANT_STATE this answers (lockstep)"),
+        Field(
+            "state_seq",
+            "u8",
+            doc="seq of the newest PLANT_STATE the sender has (every mode): the plant rejects "
+            "one it has not sent and brakes when the answered state is `plant.watchdog_s` "
+            "out of date",
+        ),
         _device_deadline(
             "device period of the handle sample this answers (its HAPTIC_STATE's); the "
             "realtime plant steps once per device period; 0: not paced by a device"
         ),
-        Field("qd_ref_rad_s", "f8", (MAX_JOINTS,), **_QVEL, doc="joint velocity references"),
+        Field("qd_ref_rad_s", "f8", (MAX_JOINTS,), **_QVEL_CMD, doc="joint velocity references"),
         Field("gripper_cmd", "f8", lo=0.0, hi=1.0, unit="1", doc="0 closed .. 1 open"),
         _n_joints(),
     ],

@@ -24,7 +24,7 @@ from zenoh.shm import ShmProvider
 
 from shm.provider import configure_session, put_by_size, took_shm_path
 from teleop.bus import graph
-from teleop.bus.messages import DecodeError, DropCounter, FrameSchema, Schema
+from teleop.bus.messages import DecodeError, DropCounter, Event, FrameSchema, Kind, Reason, Schema
 from teleop.bus.topics import Topics
 from teleop.core.config import BusConfig
 
@@ -231,6 +231,29 @@ def subscribe(
         deliver(sample.payload.to_bytes(), rx_ns, schema, callback, drops, batched=batched)
 
     return session.declare_subscriber(key, on_sample)
+
+
+def subscribe_events(
+    session: zenoh.Session,
+    topics: Topics,
+    stream_name: str,
+    callback: RecordCallback,
+    drops: DropCounter,
+) -> zenoh.Subscriber:
+    """Subscribe to one service's RUN_EVENT stream (``plant_events``, ``operator_events``):
+    ``callback`` gets only the events that service owns (:data:`graph.EVENT_STREAM`);
+    any other event there is counted in ``drops`` (reason ``source``) and dropped."""
+
+    def owned(rec: np.ndarray, rx_ns: int) -> None:
+        event = int(rec["event"])
+        if graph.event_on_own_stream(stream_name, event):
+            callback(rec, rx_ns)
+        else:
+            detail = f"{Event(event).name} on {stream_name}"
+            drops.record(DecodeError(Kind.RUN_EVENT, Reason.SOURCE, detail))
+
+    key = getattr(topics, stream_name)
+    return subscribe(session, key, graph.stream(stream_name).schema, owned, drops)
 
 
 def deliver(

@@ -115,8 +115,12 @@ class PlantConfig:
     """The MuJoCo plant: physics period and command watchdog."""
 
     timestep_s: float = 0.001
-    # A command older than this makes the plant brake to zero joint velocity.
+    # The plant brakes (holds the arm where it is) when the newest command answers a state
+    # that was superseded more than this long ago, on the plant's own clock.
     watchdog_s: float = 0.020
+    # The tool point's commanded speed is cut to this whatever a command asks (the plant
+    # owns the robot's limits; each joint is also held to its drive's range).
+    tool_speed_limit_m_s: float = 0.25
     # Rate of the scene streams (tool pose, object poses) and, outside teleoperation, of the
     # contact and proximity fields of the plant state (one per step; teleoperation: fresh
     # every step).
@@ -146,6 +150,7 @@ class PlantConfig:
             0 < self.scene_rate_hz <= 1 / self.timestep_s, "plant.scene_rate_hz in (0, 1/timestep]"
         )
         _require(self.watchdog_s >= self.timestep_s, "plant.watchdog_s >= plant.timestep_s")
+        _require(self.tool_speed_limit_m_s > 0, "plant.tool_speed_limit_m_s > 0")
 
 
 @dataclass(frozen=True)

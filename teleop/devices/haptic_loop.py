@@ -139,7 +139,7 @@ class HapticLoop:
         self.trace_log = StampLog(N_STAGES)
         self.sample_log = StampLog(2)  # (HAPTIC_STATE seq, HAPTIC_SAMPLE ns)
         self._pending_trace: np.ndarray | None = None  # render at the next step
-        self.feedback_in = Inbound(Stage.FEEDBACK_TX)  # order, age and shed log (realtime)
+        self.feedback_in = Inbound(Stage.FEEDBACK_TX, name="force_feedback")  # realtime
         self.feedback_superseded = 0  # replaced before the next step rendered it
         self._warned_oversized = False
         self._warned_no_operator = False

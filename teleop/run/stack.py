@@ -31,13 +31,14 @@ from typing import Any
 import numpy as np
 
 from teleop.bus import graph
-from teleop.bus.messages import RUN_EVENT, TOOL_POSE, DropCounter, Event
+from teleop.bus.messages import TOOL_POSE, DropCounter, Event
 from teleop.bus.session import (
     Latest,
     close_session,
     declare_alive,
     open_session,
     subscribe,
+    subscribe_events,
     wait_alive,
 )
 from teleop.bus.topics import Topics
@@ -268,7 +269,7 @@ def run_on_services(
     session = open_session(bus, listen=True)
     entities: list[Any] = []
     try:
-        entities.append(subscribe(session, topics.events, RUN_EVENT, on_event, drops))
+        entities.append(subscribe_events(session, topics, "plant_events", on_event, drops))
         entities.append(subscribe(session, topics.tool_pose, TOOL_POSE, tool, drops))
         entities.append(declare_alive(session, topics, RUNNER))
         entities.append(declare_alive(session, topics, RUNNER, ready=True))
@@ -323,6 +324,9 @@ def run_on_services(
             "realtime_factor": plant["realtime_factor"],
             "overrun_fraction": plant["overrun_fraction"],
             "stale_commands": plant["stale_commands"],
+            "commands_received": plant["commands_received"],
+            "commands_clamped": plant["commands_clamped"],
+            "command_stream": plant["command_stream"],
             "dropped_messages": dropped,
             "unlinked_peers": unlinked,
             "skipped_states": controller["skipped_states"],

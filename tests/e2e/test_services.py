@@ -128,7 +128,7 @@ class Observer:
         self.states = Latest()
         self.drops = DropCounter()
         self.entities = [
-            subscribe(self.session, topics.events, RUN_EVENT, self._on_event, self.drops),
+            subscribe(self.session, topics.plant_events, RUN_EVENT, self._on_event, self.drops),
             subscribe(self.session, topics.plant_state, PLANT_STATE, self._on_state, self.drops),
             declare_alive(self.session, topics, OBSERVER),
             declare_alive(self.session, topics, OBSERVER, ready=True),  # the plant awaits it

@@ -42,7 +42,7 @@ def test_the_recorder_and_the_launcher_read_the_graph():
         "force_feedback": "force_feedback_batch",
     }
     assert "joint_command" not in recorder.STREAM_SCHEMAS  # the plant's state carries it
-    assert "events" not in recorder.PERIODIC_STREAMS
+    assert not {"plant_events", "operator_events"} & recorder.PERIODIC_STREAMS
     assert "control_status" not in recorder.SEQ_CHECKED_STREAMS
     grasp = scenario_services(load_config(None, ['run.scenario="grasp"', "eyeview.enabled=false"]))
     assert grasp == ("plant", "controller", "haptic", "hmd", "operator", "recorder")
