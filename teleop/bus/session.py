@@ -16,6 +16,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -24,6 +25,7 @@ from zenoh.shm import ShmProvider
 
 from shm.provider import configure_session, put_by_size, took_shm_path
 from teleop.bus import graph
+from teleop.bus.access import zenoh_entries
 from teleop.bus.messages import DecodeError, DropCounter, Event, FrameSchema, Kind, Reason, Schema
 from teleop.bus.topics import Topics
 from teleop.core.config import BusConfig
@@ -83,6 +85,9 @@ def open_session(
             "downsampling", _json([{"flows": ["ingress"], "messages": ["put"], "rules": rules}])
         )
     configure_session(conf, enabled=bus.shm, lowlatency=bus.lowlatency)  # BusConfig
+    if bus.credentials_file:  # a launcher's run: authenticated, access-controlled
+        for path, value in zenoh_entries(Path(bus.credentials_file)).items():
+            conf.insert_json5(path, _json(value))
     for entry in bus.zenoh_overrides:
         path, _, value = entry.partition("=")
         conf.insert_json5(path.strip(), value.strip())

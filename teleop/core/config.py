@@ -520,6 +520,13 @@ class BusConfig:
     # Zenoh config entries set over the file, last: "path=json5", e.g.
     # 'transport/shared_memory/mode="lazy"' (the tuning benchmark tries variants this way).
     zenoh_overrides: tuple[str, ...] = ()
+    # Launchers (teleop run / up / latency) give every process of a run its own user,
+    # password and Zenoh id and an access-control list from the graph
+    # (teleop/bus/access.py): only this run's processes can link, each may publish only
+    # what the graph lets it. false: an open bus (any local process can join).
+    secure: bool = True
+    # This process's credentials file (written by its launcher; empty: no authentication).
+    credentials_file: str = ""
     # Plant states per message on the observers' copy of the state stream (recorder, eye
     # view; topics.plant_state_batch): one message instead of 10 saves the recorder ~9
     # wake-ups per 10 ms at 1 kHz.

@@ -23,7 +23,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from teleop.bus import graph
+from teleop.bus.access import LAUNCHER, write_run_credentials
 from teleop.bus.messages import TOOL_POSE, DropCounter, Event
 from teleop.bus.session import (
     Latest,
@@ -44,6 +45,7 @@ from teleop.bus.session import (
 from teleop.bus.topics import Topics
 from teleop.core.config import Config
 from teleop.core.rundir import (
+    AUTH_DIR,
     LOG_DIR,
     RECORDING_FILE,
     SUMMARY_SUFFIX,
@@ -63,7 +65,6 @@ IDLE_POLL = "idle_poll"
 # they still wait on liveliness.
 PRIORITY = {spec.name: spec.start_priority for spec in graph.SERVICES}
 IDLE_POLL_PRIORITY = 1  # before every service, and stopped after them
-RUNNER = "runner"
 # Environment of every service: no telemetry, headless rendering, unbuffered logs.
 SERVICE_ENVIRONMENT = {
     "RERUN_ANALYTICS": "0",
@@ -159,13 +160,18 @@ def service_programs(
     listener: str | None,
     await_services: dict[str, Sequence[str]],
     continuous: bool,
+    credentials: Mapping[str, Path] | None = None,
 ) -> list[Program]:
     """The supervisord programs of the stack, each given the same config and overrides,
-    then its place in the run's :func:`peer_mesh`."""
+    then its place in the run's :func:`peer_mesh` and its ``credentials`` file, if any
+    (:func:`run_credentials`)."""
     programs = []
     mesh = peer_mesh(services, listener)
     for name in services:
-        command = service_command(name, run_dir, config_file, [*overrides, *mesh[name]])
+        own = list(mesh[name])
+        if credentials is not None:
+            own.append(f'bus.credentials_file="{credentials[name]}"')
+        command = service_command(name, run_dir, config_file, [*overrides, *own])
         if name == listener:
             command.append("--listen")
         if await_services.get(name):
@@ -184,6 +190,16 @@ def service_programs(
             )
         )
     return programs
+
+
+def run_credentials(
+    config: Config, run_dir: Path, participants: Sequence[str]
+) -> dict[str, Path] | None:
+    """With ``bus.secure``: fresh credentials for ``participants`` in ``<run_dir>/auth``
+    (teleop.bus.access), their files by name; else None (an open bus)."""
+    if not config.bus.secure:
+        return None
+    return write_run_credentials(run_dir / AUTH_DIR, participants, config.robot.robot_id)
 
 
 def idle_poll_cpus(config: Config) -> list[int]:
@@ -255,7 +271,13 @@ def run_on_services(
     ]
     if not config.recorder.rrd_path:
         run_overrides.append(f'recorder.rrd_path="{run_dir / RECORDING_FILE}"')
-    bus = replace(config.bus, endpoint=endpoint, gossip=False)  # the mesh's listener
+    credentials = run_credentials(config, run_dir, [*services, LAUNCHER])
+    bus = replace(  # the mesh's listener
+        config.bus,
+        endpoint=endpoint,
+        gossip=False,
+        credentials_file=str(credentials[LAUNCHER]) if credentials else "",
+    )
     topics = Topics(config.robot.robot_id)
     drops = DropCounter()
     finished = threading.Event()
@@ -271,16 +293,17 @@ def run_on_services(
     try:
         entities.append(subscribe_events(session, topics, "plant_events", on_event, drops))
         entities.append(subscribe(session, topics.tool_pose, TOOL_POSE, tool, drops))
-        entities.append(declare_alive(session, topics, RUNNER))
-        entities.append(declare_alive(session, topics, RUNNER, ready=True))
+        entities.append(declare_alive(session, topics, LAUNCHER))
+        entities.append(declare_alive(session, topics, LAUNCHER, ready=True))
         programs = service_programs(
             services,
             config_file,
             run_overrides,
             run_dir,
             listener=None,
-            await_services={"plant": [*services[1:], RUNNER]},
+            await_services={"plant": [*services[1:], LAUNCHER]},
             continuous=False,
+            credentials=credentials,
         ) + idle_poll_programs(polled_cpus, run_dir)
         factor = (
             LOCKSTEP_TIMEOUT_FACTOR if config.run.mode == "lockstep" else REALTIME_TIMEOUT_FACTOR
@@ -426,6 +449,7 @@ def start_detached(
         listener="plant",
         await_services={"plant": list(services[1:])},
         continuous=True,
+        credentials=run_credentials(config, run_dir, services),
     ) + idle_poll_programs(idle_poll_cpus(config), run_dir)
     stack = Stack(run_dir, programs)
     stack.start(detach=True)
