@@ -198,12 +198,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="start the services under supervisord and leave them running",
         description=(
             "Start plant, controller and recorder under a detached supervisord. The plant "
-            "listens on bus.endpoint and runs path following until `teleop down`; the "
-            "recorder writes <run-dir>/recording.rrd (add --set recorder.spawn=true for a "
-            "live viewer)."
+            "listens on a free loopback port (printed; --endpoint to choose it) and runs "
+            "path following until `teleop down`; the recorder writes "
+            "<run-dir>/recording.rrd (add --set recorder.spawn=true for a live viewer). "
+            "Every service gets this run's credentials (<run-dir>/auth, bus.secure): no "
+            "other process or stack can join its bus."
         ),
     )
     up.add_argument("--mode", choices=("lockstep", "realtime"), default="realtime")
+    up.add_argument(
+        "--endpoint",
+        help="the bus's listening endpoint, e.g. tcp/127.0.0.1:7447 (default: a free port); "
+        "refused if taken",
+    )
     up.add_argument("--run-dir", type=Path, default=DEFAULT_UP_DIR, help="(default: %(default)s)")
     _add_config_arguments(up)
     for name, text in (
@@ -361,14 +368,20 @@ def _report(args: argparse.Namespace) -> int:
 
 
 def _up(args: argparse.Namespace) -> int:
-    from teleop.run.stack import start_detached
+    from teleop.run.stack import RunError, start_detached
 
     overrides = [*args.overrides, f'run.mode="{args.mode}"']
     config = load_config(args.config, overrides)
-    status = start_detached(config, args.config, overrides, args.run_dir)
+    try:
+        status, endpoint = start_detached(
+            config, args.config, overrides, args.run_dir, args.endpoint
+        )
+    except RunError as exc:
+        print(f"teleop: {exc}", file=sys.stderr)
+        return EXIT_FAILED
     for name, state in status.items():
         print(f"{name:12s} {state}")
-    print(f"bus: {config.bus.endpoint}   logs: {args.run_dir / LOG_DIR}   stop: teleop down")
+    print(f"bus: {endpoint}   logs: {args.run_dir / LOG_DIR}   stop: teleop down")
     return 0
 
 

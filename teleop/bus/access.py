@@ -38,6 +38,9 @@ from teleop.bus.graph import ALIVE_TOKEN, READY_TOKEN, ROOT
 # The launcher's own session (teleop run): it consumes the streams the graph lists for
 # "launcher" and declares its tokens under this name.
 LAUNCHER = "launcher"
+# A read-only participant every launcher adds: it may subscribe to every stream and
+# publish nothing (a user's own plotting script, a test watching the bus).
+OBSERVER = "observer"
 # The run's dictionary of user:password lines (every process accepts links from these).
 PASSWORDS_FILE = "passwords"
 # Message kinds of Zenoh's access control, by what they carry.
@@ -51,18 +54,21 @@ class Credentials:
 
     user: str
     password: str
-    zid: str  # Zenoh id, 32 hex digits
+    zid: str  # Zenoh id, 32 hex digits, the first not 0 (Zenoh refuses leading zeros)
 
     @classmethod
     def generate(cls, name: str) -> Credentials:
         if not name or not set(name) <= _NAME_ALPHABET:
             raise ValueError(f"participant name {name!r}: lower-case letters, digits, _ and -")
-        return cls(name, secrets.token_hex(16), secrets.token_hex(16))
+        zid = format(secrets.randbits(127) | 1 << 127, "032x")
+        return cls(name, secrets.token_hex(16), zid)
 
 
 def rights(participant: str) -> tuple[list[str], list[str]]:
     """Keys (after ``teleop/<robot>/``) the graph lets ``participant`` publish and
-    subscribe to."""
+    subscribe to (:data:`OBSERVER`: none, and every stream)."""
+    if participant == OBSERVER:
+        return [], [s.key for s in graph.STREAMS]
     produces = [s.key for s in graph.STREAMS if participant in s.producers]
     consumes = [s.key for s in graph.STREAMS if participant in s.consumers]
     return produces, consumes

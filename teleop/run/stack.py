@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from teleop.bus import graph
-from teleop.bus.access import LAUNCHER, write_run_credentials
+from teleop.bus.access import LAUNCHER, OBSERVER, write_run_credentials
 from teleop.bus.messages import TOOL_POSE, DropCounter, Event
 from teleop.bus.session import (
     Latest,
@@ -107,6 +107,21 @@ def free_loopback_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def ensure_endpoint_free(endpoint: str) -> None:
+    """Raise :class:`RunError` (one line, what to do) if ``endpoint``'s TCP port on this
+    host is taken: by another stack, or any program. A stack never joins another's bus."""
+    host, _, port = endpoint.partition("/")[2].rpartition(":")
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind((host or "127.0.0.1", int(port)))
+        except OSError as exc:
+            raise RunError(
+                f"bus endpoint {endpoint} is in use ({exc.strerror}): another stack or "
+                "program listens there; stop it (teleop down --run-dir DIR) or drop "
+                "--endpoint to take a free port"
+            ) from None
 
 
 def peer_mesh(names: Sequence[str], listener: str | None) -> dict[str, list[str]]:
@@ -195,11 +210,14 @@ def service_programs(
 def run_credentials(
     config: Config, run_dir: Path, participants: Sequence[str]
 ) -> dict[str, Path] | None:
-    """With ``bus.secure``: fresh credentials for ``participants`` in ``<run_dir>/auth``
-    (teleop.bus.access), their files by name; else None (an open bus)."""
+    """With ``bus.secure``: fresh credentials for ``participants`` and a read-only
+    :data:`OBSERVER` in ``<run_dir>/auth`` (teleop.bus.access), their files by name;
+    else None (an open bus)."""
     if not config.bus.secure:
         return None
-    return write_run_credentials(run_dir / AUTH_DIR, participants, config.robot.robot_id)
+    return write_run_credentials(
+        run_dir / AUTH_DIR, [*participants, OBSERVER], config.robot.robot_id
+    )
 
 
 def idle_poll_cpus(config: Config) -> list[int]:
@@ -433,11 +451,19 @@ def _wait_finished(
 
 
 def start_detached(
-    config: Config, config_file: Path | None, overrides: Sequence[str], run_dir: Path
-) -> dict[str, str]:
-    """``teleop up``: the stack with the plant as listener, running until stopped."""
+    config: Config,
+    config_file: Path | None,
+    overrides: Sequence[str],
+    run_dir: Path,
+    endpoint: str | None = None,
+) -> tuple[dict[str, str], str]:
+    """``teleop up``: the stack with the plant as listener on ``endpoint`` (None: a free
+    loopback port), running until stopped; the services' states and the endpoint.
+    Raises :class:`RunError` if the endpoint is taken."""
     run_dir = run_dir.absolute()
-    run_overrides = list(overrides)
+    endpoint = endpoint or f"tcp/127.0.0.1:{free_loopback_port()}"
+    ensure_endpoint_free(endpoint)
+    run_overrides = [*overrides, f'bus.endpoint="{endpoint}"']
     if not config.recorder.rrd_path:
         run_overrides.append(f'recorder.rrd_path="{run_dir / RECORDING_FILE}"')
     services = scenario_services(config)
@@ -453,4 +479,4 @@ def start_detached(
     ) + idle_poll_programs(idle_poll_cpus(config), run_dir)
     stack = Stack(run_dir, programs)
     stack.start(detach=True)
-    return stack.status()
+    return stack.status(), endpoint
