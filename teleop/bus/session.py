@@ -238,16 +238,10 @@ def subscribe(
     return session.declare_subscriber(key, on_sample)
 
 
-def subscribe_events(
-    session: zenoh.Session,
-    topics: Topics,
-    stream_name: str,
-    callback: RecordCallback,
-    drops: DropCounter,
-) -> zenoh.Subscriber:
-    """Subscribe to one service's RUN_EVENT stream (``plant_events``, ``operator_events``):
-    ``callback`` gets only the events that service owns (:data:`graph.EVENT_STREAM`);
-    any other event there is counted in ``drops`` (reason ``source``) and dropped."""
+def owned_events(stream_name: str, callback: RecordCallback, drops: DropCounter) -> RecordCallback:
+    """``callback`` behind a check that each RUN_EVENT is one the service of
+    ``stream_name`` owns (:data:`graph.EVENT_STREAM`); any other is counted in ``drops``
+    (reason ``source``) and dropped."""
 
     def owned(rec: np.ndarray, rx_ns: int) -> None:
         event = int(rec["event"])
@@ -257,8 +251,21 @@ def subscribe_events(
             detail = f"{Event(event).name} on {stream_name}"
             drops.record(DecodeError(Kind.RUN_EVENT, Reason.SOURCE, detail))
 
+    return owned
+
+
+def subscribe_events(
+    session: zenoh.Session,
+    topics: Topics,
+    stream_name: str,
+    callback: RecordCallback,
+    drops: DropCounter,
+) -> zenoh.Subscriber:
+    """Subscribe to one service's RUN_EVENT stream (``plant_events``, ``operator_events``):
+    ``callback`` gets only the events that service owns (:func:`owned_events`)."""
     key = getattr(topics, stream_name)
-    return subscribe(session, key, graph.stream(stream_name).schema, owned, drops)
+    schema = graph.stream(stream_name).schema
+    return subscribe(session, key, schema, owned_events(stream_name, callback, drops), drops)
 
 
 def deliver(
