@@ -73,8 +73,10 @@ class Stream:
     periodic: bool = True  # sent at a rate (its seq checked for gaps), not on change
     seq_per_record: bool = True  # seq goes up by one per record (not a cycle counter)
     note: str = ""  # what a reader of the protocol must know besides the above
+    scenarios: tuple[str, ...] = ()  # the scenarios whose stacks carry it (empty: all)
 
 
+PATH, TELEOP = ("path-following",), ("grasp",)  # streams of one scenario's stack only
 STREAMS: tuple[Stream, ...] = (
     Stream("plant_state", "state/plant", PLANT_STATE, ("plant",), ("controller", "haptic"),
            "1 kHz, one per plant step",
@@ -94,27 +96,28 @@ STREAMS: tuple[Stream, ...] = (
            note="realtime teleoperation: carries its sample's `device_deadline_ns`; the "
            "plant steps once per device period"),
     Stream("control_status", "control/status", CONTROL_STATUS, ("controller",), ("recorder",),
-           "`control.status_rate_hz` (100 Hz)", seq_per_record=False,
+           "`control.status_rate_hz` (100 Hz)", seq_per_record=False, scenarios=PATH,
            note="`seq` is the controller's cycle counter"),
     Stream("events", "events", RUN_EVENT, ("plant", "operator"),
            ("plant", "operator", "recorder", "launcher"), "on change", periodic=False,
            note="each producer counts its own `seq`; the plant takes TASK_DONE"),
     Stream("haptic_state", "haptic/state", HAPTIC_STATE, ("haptic",), ("controller",),
-           "1 kHz, one per device period"),
+           "1 kHz, one per device period", scenarios=TELEOP),
     Stream("haptic_state_batch", "haptic/state/batch", HAPTIC_STATE, ("haptic",),
            ("recorder",), "1 kHz / `bus.observer_batch_records`", qos=OBSERVER_QOS,
-           batch_of="haptic_state"),
+           batch_of="haptic_state", scenarios=TELEOP),
     Stream("hand_input", "operator/hand", HAND_INPUT, ("operator",), ("haptic", "recorder"),
-           "100 Hz", note="published ahead of its `valid_from_tick`"),
+           "100 Hz", note="published ahead of its `valid_from_tick`", scenarios=TELEOP),
     Stream("force_feedback", "haptic/feedback", FORCE_FEEDBACK, ("controller",), ("haptic",),
-           "1 kHz, one per plant state"),
+           "1 kHz, one per plant state", scenarios=TELEOP),
     Stream("force_feedback_batch", "haptic/feedback/batch", FORCE_FEEDBACK, ("controller",),
            ("recorder",), "1 kHz / `bus.observer_batch_records`", qos=OBSERVER_QOS,
-           batch_of="force_feedback"),
+           batch_of="force_feedback", scenarios=TELEOP),
     Stream("head_pose", "hmd/pose", HEAD_POSE, ("hmd",),
-           ("controller", "operator", "eyeview", "recorder"), "`hmd.rate_hz` (90 Hz)"),
+           ("controller", "operator", "eyeview", "recorder"), "`hmd.rate_hz` (90 Hz)",
+           scenarios=TELEOP),
     Stream("teleop_status", "control/teleop", TELEOP_STATUS, ("controller",),
-           ("recorder",), "100 Hz"),
+           ("recorder",), "100 Hz", scenarios=TELEOP),
     Stream("eye_view", "view/eye", EYE_VIEW, ("eyeview",), ("recorder",),
            "`eyeview.rate_hz` (5 Hz)", qos=VIEWER_QOS,
            note="record + pixels; always over shared memory on one host"),
@@ -164,6 +167,11 @@ SERVICES: tuple[ServiceSpec, ...] = (
                 optional="eyeview.enabled"),
 )  # fmt: skip
 SERVICES_BY_NAME: Mapping[str, ServiceSpec] = {s.name: s for s in SERVICES}
+
+
+def scenario_streams(scenario: str) -> tuple[Stream, ...]:
+    """The streams a stack of ``scenario`` carries."""
+    return tuple(s for s in STREAMS if not s.scenarios or scenario in s.scenarios)
 
 
 def scenario_services(scenario: str) -> tuple[str, ...]:

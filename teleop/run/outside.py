@@ -89,9 +89,9 @@ def write_outside_config(run_dir: Path, service: str, bus: BusConfig) -> Path:
     return path
 
 
-def _stream_lines(service: str, topics: Topics) -> list[str]:
+def _stream_lines(service: str, topics: Topics, scenario: str) -> list[str]:
     lines = []
-    for stream in graph.STREAMS:
+    for stream in graph.scenario_streams(scenario):
         role = []
         if service in stream.producers:
             role.append("publish" + (" (observers' batched copy)" if stream.batch_of else ""))
@@ -133,7 +133,7 @@ def join_instructions(
         lines.append(
             f"  then wait for  {topics.ready_all}  of: {', '.join(awaits)}  (before its work)"
         )
-    lines += ["  streams:", *_stream_lines(service, topics)]
+    lines += ["  streams:", *_stream_lines(service, topics, config.run.scenario)]
     lines.append(f"  waiting up to {timeout_s:g} s for it (--without-timeout)")
     return "\n".join(lines)
 
