@@ -137,21 +137,11 @@ class OutsideController:
         }
 
 
-def wait_for_tokens(session: zenoh.Session, key: str, names: set, timeout_s: float) -> None:
-    """Block until the liveliness tokens ``key/<name>`` of all ``names`` are present."""
-    seen, changed = set(), threading.Condition()
-
-    def on_token(sample: zenoh.Sample) -> None:
-        with changed:
-            name = str(sample.key_expr).rsplit("/", 1)[-1]
-            (seen.add if sample.kind == zenoh.SampleKind.PUT else seen.discard)(name)
-            changed.notify_all()
-
-    sub = session.liveliness().declare_subscriber(f"{key}/*", on_token, history=True)
-    with changed:
-        if not changed.wait_for(lambda: names <= seen, timeout_s):
-            raise SystemExit(f"not seen after {timeout_s} s: {sorted(names - seen)}")
-    sub.undeclare()
+def wait_for_tokens(session: zenoh.Session, key: str, names: set) -> None:
+    """Poll until the liveliness tokens ``key/<name>`` of all ``names`` are present."""
+    while names - {str(r.ok.key_expr).rsplit("/", 1)[-1]
+                   for r in session.liveliness().get(f"{key}/*") if r.ok}:  # fmt: skip
+        time.sleep(0.1)
 
 
 def main() -> None:
@@ -159,19 +149,17 @@ def main() -> None:
     parser.add_argument("zenoh_config", help="the file teleop run/up --without printed")
     parser.add_argument("--robot", default="arm0", help="robot id (default: arm0)")
     parser.add_argument("--peers", default="plant,recorder", help="the stack's services")
-    parser.add_argument("--timeout", type=float, default=600.0, help="give up after (s)")
+    parser.add_argument("--timeout", type=float, default=600.0, help="end after (s)")
     args = parser.parse_args()
     session = zenoh.open(zenoh.Config.from_file(args.zenoh_config))
     controller = OutsideController(session, args.robot)
-    tokens = f"teleop/{args.robot}"
-    alive = session.liveliness().declare_token(f"{tokens}/alive/controller")
-    wait_for_tokens(session, f"{tokens}/alive", set(args.peers.split(",")), args.timeout)
-    ready = session.liveliness().declare_token(f"{tokens}/ready/controller")  # the plant starts
+    key = f"teleop/{args.robot}"
+    tokens = [session.liveliness().declare_token(f"{key}/alive/controller")]  # dropped: gone
+    wait_for_tokens(session, f"{key}/alive", set(args.peers.split(",")))
+    tokens.append(session.liveliness().declare_token(f"{key}/ready/controller"))  # plant starts
     finished = controller.finished.wait(args.timeout)
     print(json.dumps({"finished": finished, **controller.summary()}), flush=True)
-    for entity in (ready, alive, *controller.subs, controller.pub):
-        entity.undeclare()
-    session.close()
+    session.close()  # undeclares everything: the tokens are gone
 
 
 if __name__ == "__main__":
