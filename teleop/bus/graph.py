@@ -194,11 +194,13 @@ def graph_tables() -> str:
             ", ".join(s.producers) + " -> " + ", ".join(s.consumers),
             s.rate,
             s.qos.describe(),
+            ", ".join(s.scenarios) or "all",
             s.note or (f"observers' copy of `{s.batch_of}`" if s.batch_of else ""),
         )
         for s in STREAMS
     ]
-    lines = _table(("stream", "key", "record", "from -> to", "rate", "QoS", "note"), streams)
+    header = ("stream", "key", "record", "from -> to", "rate", "QoS", "scenarios", "note")
+    lines = _table(header, streams)
     lines += ["", *_table(("token", "meaning"), [(f"`{k}`", m) for k, m in TOKENS])]
     services = [
         (f"`{s.name}`", ", ".join(s.scenarios), str(s.start_priority), s.optional or "always",
