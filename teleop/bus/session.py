@@ -51,7 +51,15 @@ def _json(value: Any) -> str:
 def open_session(
     bus: BusConfig, *, listen: bool, ingress_rate_hz: Mapping[str, float] | None = None
 ) -> zenoh.Session:
-    """Open a peer session from ``bus.zenoh_config_path`` plus the run's settings.
+    """Open a peer session configured by :func:`session_config`."""
+    return zenoh.open(session_config(bus, listen=listen, ingress_rate_hz=ingress_rate_hz))
+
+
+def session_config(
+    bus: BusConfig, *, listen: bool, ingress_rate_hz: Mapping[str, float] | None = None
+) -> zenoh.Config:
+    """The Zenoh config of a peer session: ``bus.zenoh_config_path`` plus the run's settings
+    (also what a service outside the stack is given: teleop.run.outside).
 
     ``listen=True``: this process is the run's listener on ``bus.endpoint`` (fails if
     the port is taken). ``listen=False``: connect to ``bus.endpoint``; if nobody listens
@@ -91,7 +99,7 @@ def open_session(
     for entry in bus.zenoh_overrides:
         path, _, value = entry.partition("=")
         conf.insert_json5(path.strip(), value.strip())
-    return zenoh.open(conf)
+    return conf
 
 
 def _undeclare(entity: Any) -> None:

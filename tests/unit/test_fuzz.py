@@ -41,6 +41,11 @@ RECORD_SCHEMAS = [s for s in m.SCHEMAS.values() if not isinstance(s, m.FrameSche
 def _float_pool(field: m.Field) -> np.ndarray:
     lo = -m.F64_MAX if field.lo is None else field.lo
     hi = m.F64_MAX if field.hi is None else field.hi
+    with np.errstate(over="ignore"):  # one step beyond F64_MAX is infinity: wanted
+        return _pool(lo, hi)
+
+
+def _pool(lo: float, hi: float) -> np.ndarray:
     return np.array(
         [0.0, lo, hi, np.nextafter(lo, -np.inf), np.nextafter(hi, np.inf), np.nan, np.inf,
          -np.inf, m.F64_MAX, -m.F64_MAX, 1e300, -1e-300, 0.5 * (lo + hi)]
