@@ -36,8 +36,8 @@ FINISHED = 2  # RUN_EVENT code
 GRIPPER_OPEN = 1.0
 
 # -- the path and the law ---------------------------------------------------------------
-AMPLITUDE_RAD = 0.3  # swing of every joint about its centre
-PERIOD_S = 4.0  # one swing
+AMPLITUDE_RAD = 0.1  # swing of every joint about its centre (the plant cuts the tool at 0.25 m/s)
+PERIOD_S = 6.0  # one swing
 CENTRE_OFFSET_RAD = 0.1  # the centre is this far from the start: the error starts at 0.1 rad
 GAIN_PER_S = 20.0  # K: a joint error of 0.01 rad asks for 0.2 rad/s more
 SPEED_LIMIT_RAD_S = 2.0  # the command is scaled down to this on its fastest joint
