@@ -59,7 +59,7 @@ except OSError:
     readable = False
 s = zenoh.open(conf)
 got = []
-sub = s.declare_subscriber("teleop/arm0/**", lambda sample: got.append(1))
+sub = s.declare_subscriber("teleop/arm0/state/**", lambda sample: got.append(1))
 pub = s.declare_publisher("teleop/arm0/cmd/joint_velocity")
 for _ in range(3000):
     pub.put(bytes(193))
