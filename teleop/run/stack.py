@@ -109,6 +109,12 @@ def free_loopback_port() -> int:
         return int(s.getsockname()[1])
 
 
+def loopback_endpoint(tls: bool) -> str:
+    """A free loopback endpoint for a process of a run: ``tls/`` in a TLS run
+    (``bus.tls``: its processes link only by mutual TLS), ``tcp/`` otherwise."""
+    return f"{'tls' if tls else 'tcp'}/127.0.0.1:{free_loopback_port()}"
+
+
 def ensure_endpoint_free(endpoint: str) -> None:
     """Raise :class:`RunError` (one line, what to do) if ``endpoint``'s TCP port on this
     host is taken: by another stack, or any program. A stack never joins another's bus."""
@@ -124,20 +130,22 @@ def ensure_endpoint_free(endpoint: str) -> None:
             ) from None
 
 
-def peer_mesh(names: Sequence[str], listener: str | None) -> dict[str, list[str]]:
+def peer_mesh(
+    names: Sequence[str], listener: str | None, *, tls: bool = False
+) -> dict[str, list[str]]:
     """Each process's ``--set`` overrides for an explicit mesh, gossip off (why: see
     BusConfig.gossip). Every process but ``listener`` listens on a loopback port of its
-    own and connects to the run's listener (``bus.endpoint``) and to the processes
-    before it in ``names``: each pair links once, by one connect, and no process needs
-    gossip to find another. The launcher's own session, if it is the listener, is
-    reached by everyone through ``bus.endpoint``.
+    own (``tls``: a ``tls/`` endpoint) and connects to the run's listener
+    (``bus.endpoint``) and to the processes before it in ``names``: each pair links
+    once, by one connect, and no process needs gossip to find another. The launcher's
+    own session, if it is the listener, is reached by everyone through ``bus.endpoint``.
     """
     listening: list[str] = []
     mesh: dict[str, list[str]] = {}
     for name in names:
         overrides = ["bus.gossip=false"]
         if name != listener:
-            own = f"tcp/127.0.0.1:{free_loopback_port()}"
+            own = loopback_endpoint(tls)
             overrides += [
                 f'bus.peer_listen_endpoint="{own}"',
                 f"bus.peer_connect_endpoints={json.dumps(listening, separators=(',', ':'))}",
@@ -176,12 +184,13 @@ def service_programs(
     await_services: dict[str, Sequence[str]],
     continuous: bool,
     credentials: Mapping[str, Path] | None = None,
+    tls: bool = False,
 ) -> list[Program]:
     """The supervisord programs of the stack, each given the same config and overrides,
-    then its place in the run's :func:`peer_mesh` and its ``credentials`` file, if any
-    (:func:`run_credentials`)."""
+    then its place in the run's :func:`peer_mesh` (``tls``: over TLS endpoints) and its
+    ``credentials`` file, if any (:func:`run_credentials`)."""
     programs = []
-    mesh = peer_mesh(services, listener)
+    mesh = peer_mesh(services, listener, tls=tls)
     for name in services:
         own = list(mesh[name])
         if credentials is not None:
@@ -211,12 +220,15 @@ def run_credentials(
     config: Config, run_dir: Path, participants: Sequence[str]
 ) -> dict[str, Path] | None:
     """With ``bus.secure``: fresh credentials for ``participants`` and a read-only
-    :data:`OBSERVER` in ``<run_dir>/auth`` (teleop.bus.access), their files by name;
-    else None (an open bus)."""
+    :data:`OBSERVER` in ``<run_dir>/auth`` (teleop.bus.access; with ``bus.tls`` their
+    certificates too), their files by name; else None (an open bus)."""
     if not config.bus.secure:
         return None
     return write_run_credentials(
-        run_dir / AUTH_DIR, [*participants, OBSERVER], config.robot.robot_id
+        run_dir / AUTH_DIR,
+        [*participants, OBSERVER],
+        config.robot.robot_id,
+        tls=config.bus.tls,
     )
 
 
@@ -280,7 +292,7 @@ def run_on_services(
     run_dir.mkdir(parents=True, exist_ok=True)
     for stale in run_dir.glob(f"*{SUMMARY_SUFFIX}"):
         stale.unlink()
-    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    endpoint = loopback_endpoint(config.bus.tls)
     run_overrides = [
         *overrides,
         f'bus.endpoint="{endpoint}"',
@@ -322,6 +334,7 @@ def run_on_services(
             await_services={"plant": [*services[1:], LAUNCHER]},
             continuous=False,
             credentials=credentials,
+            tls=config.bus.tls,
         ) + idle_poll_programs(polled_cpus, run_dir)
         factor = (
             LOCKSTEP_TIMEOUT_FACTOR if config.run.mode == "lockstep" else REALTIME_TIMEOUT_FACTOR
@@ -459,9 +472,12 @@ def start_detached(
 ) -> tuple[dict[str, str], str]:
     """``teleop up``: the stack with the plant as listener on ``endpoint`` (None: a free
     loopback port), running until stopped; the services' states and the endpoint.
-    Raises :class:`RunError` if the endpoint is taken."""
+    Raises :class:`RunError` if the endpoint is taken, or is not a ``tls/`` one in a
+    TLS run (``bus.tls``)."""
     run_dir = run_dir.absolute()
-    endpoint = endpoint or f"tcp/127.0.0.1:{free_loopback_port()}"
+    endpoint = endpoint or loopback_endpoint(config.bus.tls)
+    if config.bus.tls and not endpoint.startswith("tls/"):
+        raise RunError(f"bus.tls: the endpoint must be tls/HOST:PORT, not {endpoint}")
     ensure_endpoint_free(endpoint)
     run_overrides = [*overrides, f'bus.endpoint="{endpoint}"']
     if not config.recorder.rrd_path:
@@ -476,6 +492,7 @@ def start_detached(
         await_services={"plant": list(services[1:])},
         continuous=True,
         credentials=run_credentials(config, run_dir, services),
+        tls=config.bus.tls,
     ) + idle_poll_programs(idle_poll_cpus(config), run_dir)
     stack = Stack(run_dir, programs)
     stack.start(detach=True)
