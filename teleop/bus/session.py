@@ -52,7 +52,15 @@ def _json(value: Any) -> str:
 def open_session(
     bus: BusConfig, *, listen: bool, ingress_rate_hz: Mapping[str, float] | None = None
 ) -> zenoh.Session:
-    """Open a peer session from ``bus.zenoh_config_path`` plus the run's settings.
+    """Open a peer session configured by :func:`session_config`."""
+    return zenoh.open(session_config(bus, listen=listen, ingress_rate_hz=ingress_rate_hz))
+
+
+def session_config(
+    bus: BusConfig, *, listen: bool, ingress_rate_hz: Mapping[str, float] | None = None
+) -> zenoh.Config:
+    """The Zenoh config of a peer session: ``bus.zenoh_config_path`` plus the run's settings
+    (also what a service outside the stack is given: teleop.run.outside).
 
     ``listen=True``: this process is the run's listener on ``bus.endpoint`` (fails if
     the port is taken). ``listen=False``: connect to ``bus.endpoint``; if nobody listens
@@ -104,7 +112,7 @@ def open_session(
     for entry in bus.zenoh_overrides:
         path, _, value = entry.partition("=")
         conf.insert_json5(path.strip(), value.strip())
-    return zenoh.open(conf)
+    return conf
 
 
 def _undeclare(entity: Any) -> None:
@@ -251,16 +259,10 @@ def subscribe(
     return session.declare_subscriber(key, on_sample)
 
 
-def subscribe_events(
-    session: zenoh.Session,
-    topics: Topics,
-    stream_name: str,
-    callback: RecordCallback,
-    drops: DropCounter,
-) -> zenoh.Subscriber:
-    """Subscribe to one service's RUN_EVENT stream (``plant_events``, ``operator_events``):
-    ``callback`` gets only the events that service owns (:data:`graph.EVENT_STREAM`);
-    any other event there is counted in ``drops`` (reason ``source``) and dropped."""
+def owned_events(stream_name: str, callback: RecordCallback, drops: DropCounter) -> RecordCallback:
+    """``callback`` behind a check that each RUN_EVENT is one the service of
+    ``stream_name`` owns (:data:`graph.EVENT_STREAM`); any other is counted in ``drops``
+    (reason ``source``) and dropped."""
 
     def owned(rec: np.ndarray, rx_ns: int) -> None:
         event = int(rec["event"])
@@ -270,8 +272,21 @@ def subscribe_events(
             detail = f"{Event(event).name} on {stream_name}"
             drops.record(DecodeError(Kind.RUN_EVENT, Reason.SOURCE, detail))
 
+    return owned
+
+
+def subscribe_events(
+    session: zenoh.Session,
+    topics: Topics,
+    stream_name: str,
+    callback: RecordCallback,
+    drops: DropCounter,
+) -> zenoh.Subscriber:
+    """Subscribe to one service's RUN_EVENT stream (``plant_events``, ``operator_events``):
+    ``callback`` gets only the events that service owns (:func:`owned_events`)."""
     key = getattr(topics, stream_name)
-    return subscribe(session, key, graph.stream(stream_name).schema, owned, drops)
+    schema = graph.stream(stream_name).schema
+    return subscribe(session, key, schema, owned_events(stream_name, callback, drops), drops)
 
 
 def deliver(

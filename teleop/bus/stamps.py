@@ -89,9 +89,13 @@ class StampLog:
 # at most this much per record, never to the end of the u64 range.
 SEQ_WINDOW = 1 << 16
 # A producer that started over (or one a receiver joins late) is taken up after this many
-# consecutive records in order outside the window: one poisoned record cannot lock out the
-# stream's real producer, whose next record (in the window) clears the run.
+# rejected records in order among themselves (other records may come between): one
+# poisoned record cannot lock out the stream's real producer, whose next record (in the
+# window) is taken, or whose run of records re-anchors the check.
 RESYNC_RECORDS = 3
+# Runs of rejected records in order tracked at once: junk between a restarted producer's
+# records starts runs of its own, which evict the shortest, never a longer one.
+MAX_RESYNC_RUNS = 4
 # A record stamped more than this far in this host's future did not come from a clock of
 # this host: rejected (it would otherwise never be judged stale).
 FUTURE_STAMP_TOLERANCE_NS = 1_000_000
@@ -102,12 +106,13 @@ class SeqCheck:
 
     :meth:`accept` takes a record that is newer than the last one accepted by at most
     :data:`SEQ_WINDOW`; gaps count as ``lost``. A record not newer is ``reordered``, one
-    too far ahead is a ``jump``: both rejected. :data:`RESYNC_RECORDS` consecutive
-    rejected records that are in order among themselves mean the producer started over
-    (or this receiver joined late): the check re-anchors on them (``restarts``). The
-    first record of a stream is taken when its seq is within the window of zero (a
-    producer's first records), else it starts such a run. Not thread-safe: the owning
-    service calls it under its own lock.
+    too far ahead is a ``jump``: both rejected, and neither moves the check. Rejected
+    records in order among themselves form runs; one that reaches
+    :data:`RESYNC_RECORDS` records means the producer started over (or this receiver
+    joined late): the check re-anchors on it (``restarts``). The first record of a
+    stream is taken when its seq is within the window of zero (a producer's first
+    records), else it starts such a run. Not thread-safe: the owning service calls it
+    under its own lock.
     """
 
     def __init__(self) -> None:
@@ -116,8 +121,7 @@ class SeqCheck:
         self.reordered = 0
         self.jumps = 0
         self.restarts = 0
-        self._run_last = -1  # newest seq of the current run of rejected records in order
-        self._run_length = 0
+        self._runs: dict[int, int] = {}  # newest seq of a run of rejected records -> length
 
     def accept(self, seq: int) -> bool:
         """Count ``seq``; True if the record is to be used."""
@@ -125,28 +129,31 @@ class SeqCheck:
             if self.last_seq >= 0:
                 self.lost += seq - self.last_seq - 1
             self.last_seq = seq
-            self._run_length = 0
+            self._runs.clear()
             return True
         if seq <= self.last_seq:
             self.reordered += 1
         else:
             self.jumps += 1
-        if self._run_length and self._run_last < seq <= self._run_last + SEQ_WINDOW:
-            self._run_length += 1
-        else:
-            self._run_length = 1
-        self._run_last = seq
-        if self._run_length < RESYNC_RECORDS:
+        extends = [last for last in self._runs if last < seq <= last + SEQ_WINDOW]
+        length = 1
+        if extends:
+            newest = max(extends)
+            length = self._runs.pop(newest) + 1
+        elif len(self._runs) >= MAX_RESYNC_RUNS:
+            del self._runs[min(self._runs, key=self._runs.__getitem__)]  # shortest, oldest
+        if length < RESYNC_RECORDS:
+            self._runs[seq] = length
             return False
         self.restarts += 1  # the run's records were counted as rejected: not as lost
         self.last_seq = seq
-        self._run_length = 0
+        self._runs.clear()
         return True
 
     def restart(self) -> None:
         """The producer starts over (a new run): the next seq is not a gap."""
         self.last_seq = -1
-        self._run_length = 0
+        self._runs.clear()
 
     def counts(self) -> dict[str, int]:
         """The counters, by name (for a summary)."""

@@ -595,6 +595,8 @@ class BilateralCycle(ControllerCore):
             "haptic_before_state": self.haptic_before_state,
             "haptic_shed": self.haptic_in.shed,
             "states_shed": self.state_in.shed,
+            "haptic_stream": self.haptic_in.counts(),  # lost, reordered, jumps, restarts...
+            "state_stream": self.state_in.counts(),
             "stability": {
                 "k_max_n_per_m": self.stability.k_max_n_per_m,
                 "k_workspace_n_per_m": self.stability.k_workspace_n_per_m,

@@ -409,6 +409,7 @@ class HapticLoop:
             "feedback_reordered": self.feedback_in.seq.reordered,
             "feedback_superseded": self.feedback_superseded,
             "feedback_shed": self.feedback_in.shed,
+            "feedback_stream": self.feedback_in.counts(),  # lost, reordered, jumps, ...
             "feedback_rendered": len(self.trace_log) + self.trace_log.overflow,
             "trace_rows_not_kept": self.trace_log.overflow,
             "rate_hz": self._rate_hz(),
