@@ -236,7 +236,7 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument(
         "--endpoint",
         help="the bus's listening endpoint, e.g. tcp/127.0.0.1:7447 (default: a free port); "
-        "refused if taken",
+        "refused if taken; tls/127.0.0.1:PORT with --set bus.tls=true",
     )
     up.add_argument("--run-dir", type=Path, default=DEFAULT_UP_DIR, help="(default: %(default)s)")
     _add_without_arguments(up)

@@ -20,6 +20,10 @@ accepts it, not the other way round. Each process therefore matches a peer by ei
 its authenticated user name (links it accepted) or its Zenoh id (links it opened: the
 ids are per-run secrets in the same 0600 files, so a process squatting on a port
 cannot pass for a service of the run). See docs/protocol.md, "Access control".
+
+With ``bus.tls`` the run also gets a certificate authority and one certificate per
+participant (:mod:`teleop.bus.tls`): every link is mutual TLS, and a peer also matches
+its policy by its certificate's common name, which both ends of a link authenticate.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ from typing import Any
 
 from teleop.bus import graph
 from teleop.bus.graph import ALIVE_TOKEN, READY_TOKEN, ROOT
+from teleop.bus.tls import RunAuthority
 
 # The launcher's own session (teleop run): it consumes the streams the graph lists for
 # "launcher" and declares its tokens under this name.
@@ -43,6 +48,13 @@ LAUNCHER = "launcher"
 OBSERVER = "observer"
 # The run's dictionary of user:password lines (every process accepts links from these).
 PASSWORDS_FILE = "passwords"
+# With TLS: the run's certificate authority (every process's root of trust), and each
+# participant's certificate and private key (<name> + suffix).
+CA_FILE = "ca.pem"
+CERTIFICATE_SUFFIX = ".cert.pem"
+PRIVATE_KEY_SUFFIX = ".key.pem"
+# Zenoh's TLS settings (config path prefix).
+TLS_CONFIG = "transport/link/tls"
 # Message kinds of Zenoh's access control, by what they carry.
 _LIVELINESS_WATCH = ["declare_liveliness_subscriber", "liveliness_query"]
 _NAME_ALPHABET = frozenset("abcdefghijklmnopqrstuvwxyz0123456789_-")
@@ -84,13 +96,17 @@ def _rule(rule_id: str, messages: list[str], flow: str, keys: Iterable[str]) -> 
     }
 
 
-def access_control(credentials: Mapping[str, Credentials], robot_id: str) -> dict[str, Any]:
+def access_control(
+    credentials: Mapping[str, Credentials], robot_id: str, *, tls: bool = False
+) -> dict[str, Any]:
     """Zenoh's ``access_control`` section for a run of ``credentials``' participants.
 
     Rules are written from the point of view of a process looking at one peer (the
     subject): *ingress* is what the peer sends it, *egress* what it sends the peer. A
     peer may send the puts of the streams it produces and the subscriptions of those it
     consumes, and receive the converse; it may declare its own tokens and watch all.
+    A peer is recognised by its user name or its Zenoh id and, with ``tls``, by its
+    certificate's common name (the participant's name).
     """
     prefix = f"{ROOT}/{robot_id}"
     tokens = [f"{prefix}/{ALIVE_TOKEN}/*", f"{prefix}/{READY_TOKEN}/*"]
@@ -117,15 +133,18 @@ def access_control(credentials: Mapping[str, Credentials], robot_id: str) -> dic
                 _rule(f"{name}-receives", ["put"], "egress", consumed),
             ]
         rules += mine
-        subjects += [
+        mine_subjects = [
             {"id": f"{name}-by-user", "usernames": [cred.user]},
             {"id": f"{name}-by-zid", "zids": [cred.zid]},
         ]
+        if tls:
+            mine_subjects.append({"id": f"{name}-by-cert", "cert_common_names": [name]})
+        subjects += mine_subjects
         policies.append(
             {
                 "id": name,
                 "rules": [rule["id"] for rule in mine],
-                "subjects": [f"{name}-by-user", f"{name}-by-zid"],
+                "subjects": [subject["id"] for subject in mine_subjects],
             }
         )
     return {
@@ -145,24 +164,57 @@ def _write_private(path: Path, text: str) -> None:
     os.chmod(path, 0o600)  # an existing file keeps its mode through O_CREAT
 
 
+def write_run_certificates(
+    directory: Path, participants: Sequence[str]
+) -> dict[str, dict[str, str]]:
+    """A fresh certificate authority's certificate (:data:`CA_FILE`) and one certificate
+    and private key per participant in ``directory`` (mode 0600 each; the authority's
+    own key is never written); returns each participant's Zenoh TLS file settings."""
+    authority = RunAuthority()
+    ca_file = directory / CA_FILE
+    _write_private(ca_file, authority.certificate_pem.decode())
+    settings = {}
+    for name in participants:
+        issued = authority.issue(name)
+        certificate, key = (
+            directory / (name + CERTIFICATE_SUFFIX),
+            directory / (name + PRIVATE_KEY_SUFFIX),
+        )
+        _write_private(certificate, issued.certificate_pem.decode())
+        _write_private(key, issued.private_key_pem.decode())
+        settings[name] = {
+            "root_ca_certificate": str(ca_file),
+            "listen_certificate": str(certificate),
+            "listen_private_key": str(key),
+            "connect_certificate": str(certificate),
+            "connect_private_key": str(key),
+            "enable_mtls": True,
+        }
+    return settings
+
+
 def write_run_credentials(
-    directory: Path, participants: Sequence[str], robot_id: str
+    directory: Path, participants: Sequence[str], robot_id: str, *, tls: bool = False
 ) -> dict[str, Path]:
     """Fresh credentials for ``participants`` in ``directory`` (made mode 0700): the
     run's password dictionary and one file per participant (mode 0600) with its user,
     password, Zenoh id and the run's access-control list; returns the files by name
-    (each one ``bus.credentials_file`` of its participant)."""
+    (each one ``bus.credentials_file`` of its participant). ``tls``: also the run's
+    certificates (:func:`write_run_certificates`), named in each file."""
     directory = Path(directory).absolute()
     directory.mkdir(parents=True, exist_ok=True)
     os.chmod(directory, 0o700)
     credentials = {name: Credentials.generate(name) for name in participants}
     dictionary = directory / PASSWORDS_FILE
     _write_private(dictionary, "".join(f"{c.user}:{c.password}\n" for c in credentials.values()))
-    acl = access_control(credentials, robot_id)
+    acl = access_control(credentials, robot_id, tls=tls)
+    certificates = write_run_certificates(directory, list(credentials)) if tls else {}
     files = {}
     for name, cred in credentials.items():
         path = directory / f"{name}.json"
         content = {**asdict(cred), "dictionary_file": str(dictionary), "access_control": acl}
+        if tls:
+            content["tls"] = certificates[name]
         _write_private(path, json.dumps(content, indent=1))
         files[name] = path
     return files
@@ -170,9 +222,12 @@ def write_run_credentials(
 
 def zenoh_entries(credentials_file: Path) -> dict[str, Any]:
     """The Zenoh config entries (path -> value) a participant's credentials file sets:
-    its id, its user/password with the run's dictionary, the access-control list."""
+    its id, its user/password with the run's dictionary, the access-control list and,
+    in a TLS run, its certificate files (under :data:`TLS_CONFIG`)."""
     content = json.loads(Path(credentials_file).read_text())
+    tls = {f"{TLS_CONFIG}/{key}": value for key, value in content.get("tls", {}).items()}
     return {
+        **tls,
         "id": content["zid"],
         "transport/auth/usrpwd": {
             "user": content["user"],

@@ -25,16 +25,17 @@ from zenoh.shm import ShmProvider
 
 from shm.provider import configure_session, put_by_size, took_shm_path
 from teleop.bus import graph
-from teleop.bus.access import zenoh_entries
+from teleop.bus.access import TLS_CONFIG, zenoh_entries
 from teleop.bus.messages import DecodeError, DropCounter, Event, FrameSchema, Kind, Reason, Schema
 from teleop.bus.topics import Topics
-from teleop.core.config import BusConfig
+from teleop.core.config import BusConfig, ConfigError
 
 logger = logging.getLogger(__name__)
 
 # A connecting peer also listens here (loopback, ephemeral port) so that peers which
 # learn of it by gossip can open a direct link to it.
 PEER_LISTEN_ENDPOINT = "tcp/127.0.0.1:0"
+PEER_LISTEN_ENDPOINT_TLS = "tls/127.0.0.1:0"  # the same in a TLS run (bus.tls)
 
 # connect/timeout_ms: -1 keeps retrying in the background; 0 gives up after one attempt.
 CONNECT_RETRY_FOREVER = -1
@@ -72,7 +73,13 @@ def session_config(
     ``ingress_rate_hz`` maps key expressions to the most puts per second this session
     takes in (Zenoh's ingress downsampling: the rest are dropped before any Python
     callback runs), for a consumer that needs a fast stream only now and then.
+
+    A credentials file with certificates (a ``bus.tls`` run) makes every link mutual
+    TLS: each endpoint must then be a ``tls/`` one (:class:`ConfigError` otherwise, as a
+    ``tcp/`` link would bypass the certificates).
     """
+    secured = zenoh_entries(Path(bus.credentials_file)) if bus.credentials_file else {}
+    tls = any(path.startswith(TLS_CONFIG) for path in secured)
     conf = zenoh.Config.from_file(str(bus.zenoh_config_path))
     conf.insert_json5("mode", _json("peer"))
     conf.insert_json5("scouting/multicast/enabled", _json(False))
@@ -80,8 +87,15 @@ def session_config(
     if listen:
         listen_on, connect_to = [bus.endpoint], list(bus.peer_connect_endpoints)
     else:
-        listen_on = [bus.peer_listen_endpoint or PEER_LISTEN_ENDPOINT]
+        default_listen = PEER_LISTEN_ENDPOINT_TLS if tls else PEER_LISTEN_ENDPOINT
+        listen_on = [bus.peer_listen_endpoint or default_listen]
         connect_to = [bus.endpoint, *bus.peer_connect_endpoints]
+    plain = [endpoint for endpoint in (*listen_on, *connect_to) if not endpoint.startswith("tls/")]
+    if tls and plain:
+        raise ConfigError(
+            f"{bus.credentials_file} holds TLS certificates: bus endpoints must be "
+            f"tls/HOST:PORT, not {', '.join(plain)}"
+        )
     conf.insert_json5("listen/endpoints", _json(listen_on))
     conf.insert_json5("connect/endpoints", _json(connect_to))
     if connect_to:
@@ -93,9 +107,8 @@ def session_config(
             "downsampling", _json([{"flows": ["ingress"], "messages": ["put"], "rules": rules}])
         )
     configure_session(conf, enabled=bus.shm, lowlatency=bus.lowlatency)  # BusConfig
-    if bus.credentials_file:  # a launcher's run: authenticated, access-controlled
-        for path, value in zenoh_entries(Path(bus.credentials_file)).items():
-            conf.insert_json5(path, _json(value))
+    for path, value in secured.items():  # a launcher's run: authenticated, access-controlled
+        conf.insert_json5(path, _json(value))
     for entry in bus.zenoh_overrides:
         path, _, value = entry.partition("=")
         conf.insert_json5(path.strip(), value.strip())

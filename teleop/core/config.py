@@ -525,6 +525,13 @@ class BusConfig:
     # (teleop/bus/access.py): only this run's processes can link, each may publish only
     # what the graph lets it. false: an open bus (any local process can join).
     secure: bool = True
+    # With secure: the launchers also make a certificate authority for the run and one
+    # certificate per process (teleop/bus/tls.py) and link the run over tls/ endpoints
+    # only, mutual TLS (each end checks the other's certificate; the access-control list
+    # also knows a process by its certificate's name). Encrypts the bus; shared memory
+    # and the low-latency transport work over TLS links as over TCP. Cost: see
+    # docs/protocol.md, "TLS".
+    tls: bool = False
     # This process's credentials file (written by its launcher; empty: no authentication).
     credentials_file: str = ""
     # Plant states per message on the observers' copy of the state stream (recorder, eye
@@ -544,6 +551,10 @@ class BusConfig:
             "bus.zenoh_overrides: entries like path=json5value",
         )
         _require(self.shm_pool_bytes >= 1 << 16, "bus.shm_pool_bytes >= 65536")
+        _require(
+            self.secure or not self.tls,
+            "bus.tls needs bus.secure (the certificates come with the run's credentials)",
+        )
 
     @property
     def zenoh_config_path(self) -> Path:

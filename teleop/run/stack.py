@@ -121,6 +121,12 @@ def free_loopback_port() -> int:
         return int(s.getsockname()[1])
 
 
+def loopback_endpoint(tls: bool) -> str:
+    """A free loopback endpoint for a process of a run: ``tls/`` in a TLS run
+    (``bus.tls``: its processes link only by mutual TLS), ``tcp/`` otherwise."""
+    return f"{'tls' if tls else 'tcp'}/127.0.0.1:{free_loopback_port()}"
+
+
 def ensure_endpoint_free(endpoint: str) -> None:
     """Raise :class:`RunError` (one line, what to do) if ``endpoint``'s TCP port on this
     host is taken: by another stack, or any program. A stack never joins another's bus."""
@@ -136,20 +142,22 @@ def ensure_endpoint_free(endpoint: str) -> None:
             ) from None
 
 
-def peer_mesh(names: Sequence[str], listener: str | None) -> dict[str, list[str]]:
+def peer_mesh(
+    names: Sequence[str], listener: str | None, *, tls: bool = False
+) -> dict[str, list[str]]:
     """Each process's ``--set`` overrides for an explicit mesh, gossip off (why: see
     BusConfig.gossip). Every process but ``listener`` listens on a loopback port of its
-    own and connects to the run's listener (``bus.endpoint``) and to the processes
-    before it in ``names``: each pair links once, by one connect, and no process needs
-    gossip to find another. The launcher's own session, if it is the listener, is
-    reached by everyone through ``bus.endpoint``.
+    own (``tls``: a ``tls/`` endpoint) and connects to the run's listener
+    (``bus.endpoint``) and to the processes before it in ``names``: each pair links
+    once, by one connect, and no process needs gossip to find another. The launcher's
+    own session, if it is the listener, is reached by everyone through ``bus.endpoint``.
     """
     listening: list[str] = []
     mesh: dict[str, list[str]] = {}
     for name in names:
         overrides = ["bus.gossip=false"]
         if name != listener:
-            own = f"tcp/127.0.0.1:{free_loopback_port()}"
+            own = loopback_endpoint(tls)
             overrides += [
                 f'bus.peer_listen_endpoint="{own}"',
                 f"bus.peer_connect_endpoints={json.dumps(listening, separators=(',', ':'))}",
@@ -189,14 +197,15 @@ def service_programs(
     continuous: bool,
     credentials: Mapping[str, Path] | None = None,
     mesh: dict[str, list[str]] | None = None,
+    tls: bool = False,
 ) -> list[Program]:
     """The supervisord programs of ``services``, each given the same config and
     overrides, then its place in the run's ``mesh`` (default: a :func:`peer_mesh` of
-    ``services``; with outside services, one that includes them too) and its
-    ``credentials`` file, if any (:func:`run_credentials`)."""
+    ``services``, over TLS endpoints with ``tls``; with outside services, one that
+    includes them too) and its ``credentials`` file, if any (:func:`run_credentials`)."""
     programs = []
     if mesh is None:
-        mesh = peer_mesh(services, listener)
+        mesh = peer_mesh(services, listener, tls=tls)
     for name in services:
         own = list(mesh[name])
         if credentials is not None:
@@ -226,12 +235,15 @@ def run_credentials(
     config: Config, run_dir: Path, participants: Sequence[str]
 ) -> dict[str, Path] | None:
     """With ``bus.secure``: fresh credentials for ``participants`` and a read-only
-    :data:`OBSERVER` in ``<run_dir>/auth`` (teleop.bus.access), their files by name;
-    else None (an open bus)."""
+    :data:`OBSERVER` in ``<run_dir>/auth`` (teleop.bus.access; with ``bus.tls`` their
+    certificates too), their files by name; else None (an open bus)."""
     if not config.bus.secure:
         return None
     return write_run_credentials(
-        run_dir / AUTH_DIR, [*participants, OBSERVER], config.robot.robot_id
+        run_dir / AUTH_DIR,
+        [*participants, OBSERVER],
+        config.robot.robot_id,
+        tls=config.bus.tls,
     )
 
 
@@ -344,7 +356,7 @@ def run_on_services(
     run_dir.mkdir(parents=True, exist_ok=True)
     for stale in run_dir.glob(f"*{SUMMARY_SUFFIX}"):
         stale.unlink()
-    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    endpoint = loopback_endpoint(config.bus.tls)
     run_overrides = [
         *overrides,
         f'bus.endpoint="{endpoint}"',
@@ -382,7 +394,7 @@ def run_on_services(
         entities.append(subscribe(session, topics.tool_pose, TOOL_POSE, tool, drops))
         entities.append(declare_alive(session, topics, LAUNCHER))
         entities.append(declare_alive(session, topics, LAUNCHER, ready=True))
-        mesh = peer_mesh([*services, *outside], listener=None)
+        mesh = peer_mesh([*services, *outside], listener=None, tls=config.bus.tls)
         plant_awaits = _plant_awaits(stack_services, LAUNCHER)
         programs = service_programs(
             services,
@@ -558,7 +570,8 @@ def start_detached(
 ) -> tuple[dict[str, str], str]:
     """``teleop up``: the stack with the plant as listener on ``endpoint`` (None: a free
     loopback port), running until stopped; the services' states and the endpoint.
-    Raises :class:`RunError` if the endpoint is taken.
+    Raises :class:`RunError` if the endpoint is taken, or is not a ``tls/`` one in a
+    TLS run (``bus.tls``).
 
     ``without``: services left out, as in :func:`run_on_services`: once the rest is
     started, wait for their ready tokens (a session of this process linked to each of
@@ -566,7 +579,9 @@ def start_detached(
     RunError.
     """
     run_dir = run_dir.absolute()
-    endpoint = endpoint or f"tcp/127.0.0.1:{free_loopback_port()}"
+    endpoint = endpoint or loopback_endpoint(config.bus.tls)
+    if config.bus.tls and not endpoint.startswith("tls/"):
+        raise RunError(f"bus.tls: the endpoint must be tls/HOST:PORT, not {endpoint}")
     ensure_endpoint_free(endpoint)
     run_overrides = [*overrides, f'bus.endpoint="{endpoint}"']
     if not config.recorder.rrd_path:
@@ -574,7 +589,7 @@ def start_detached(
     stack_services = scenario_services(config)
     outside = check_without(stack_services, without)
     services = tuple(name for name in stack_services if name not in outside)
-    mesh = peer_mesh([*services, *outside], listener="plant")
+    mesh = peer_mesh([*services, *outside], listener="plant", tls=config.bus.tls)
     plant_awaits = _plant_awaits(stack_services)
     credentials = run_credentials(config, run_dir, stack_services)
     programs = service_programs(
@@ -598,7 +613,7 @@ def start_detached(
         for text, _ in joins:
             announce(text)
         observer = credentials[OBSERVER] if credentials is not None else None
-        _await_outside_detached(stack, config, [bus for _, bus in joins], outside,
+        _await_outside_detached(stack, config, endpoint, [bus for _, bus in joins], outside,
                                 without_timeout_s, announce, observer)  # fmt: skip
     return stack.status(), endpoint
 
@@ -606,6 +621,7 @@ def start_detached(
 def _await_outside_detached(
     stack: Stack,
     config: Config,
+    endpoint: str,
     outside_buses: Sequence[BusConfig],
     outside: Sequence[str],
     timeout_s: float,
@@ -614,9 +630,11 @@ def _await_outside_detached(
 ) -> None:
     """``teleop up``: wait for the outside services' ready tokens over links of this
     process's own to each (peers do not forward tokens), with the run's ``observer``
-    credentials (None: an open bus); stop the stack if they do not come."""
+    credentials (None: an open bus); stop the stack if they do not come. ``endpoint``:
+    the run's listener's."""
     watcher = replace(
         config.bus,
+        endpoint=endpoint,
         gossip=False,
         peer_listen_endpoint="",
         peer_connect_endpoints=tuple(bus.peer_listen_endpoint for bus in outside_buses),
