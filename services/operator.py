@@ -23,7 +23,7 @@ import zenoh
 
 from teleop.bus.messages import HAND_INPUT, HEAD_POSE, OBJECT_POSES, RUN_EVENT, TOOL_POSE, Event
 from teleop.bus.service import STOP_POLL_S, Service, service_main
-from teleop.bus.session import Publisher, subscribe
+from teleop.bus.session import Publisher, subscribe, subscribe_events
 from teleop.core.clock import NS_PER_S
 from teleop.devices.operator import HandCommand, OperatorLoop, Scenario
 
@@ -43,7 +43,9 @@ class OperatorService(Service):
         self.scenario = Scenario.load(cfg.operator.scenario_path, cfg.robot.object_bodies)
         self.loop = OperatorLoop(cfg, self.scenario, self, lockstep=cfg.run.mode == "lockstep")
         self.hand_pub = self.keep(Publisher.for_stream(self.session, self.topics, "hand_input"))
-        self.events_pub = self.keep(Publisher.for_stream(self.session, self.topics, "events"))
+        self.events_pub = self.keep(
+            Publisher.for_stream(self.session, self.topics, "operator_events")
+        )
         self._hand = HAND_INPUT.new()
         self._event = RUN_EVENT.new()
         # Tool-pose ticks and new-run markers, in arrival order, for the run thread.
@@ -52,7 +54,7 @@ class OperatorService(Service):
         self.keep(subscribe(self.session, topics.tool_pose, TOOL_POSE, self._on_tool, drops))
         self.keep(subscribe(self.session, topics.objects, OBJECT_POSES, self._on_objects, drops))
         self.keep(subscribe(self.session, topics.head_pose, HEAD_POSE, self._on_head, drops))
-        self.keep(subscribe(self.session, topics.events, RUN_EVENT, self._on_event, drops))
+        self.keep(subscribe_events(self.session, topics, "plant_events", self._on_event, drops))
         self.keep(
             self.session.liveliness().declare_subscriber(
                 topics.alive(HMD_SERVICE), self._on_hmd_token, history=True

@@ -1,7 +1,7 @@
 """The plant service: :class:`teleop.sim.stepping.PlantLoop` on the bus.
 
 Input: JOINT_COMMAND (from the controller, or any client that speaks docs/protocol.md),
-and RUN_EVENT (the operator's TASK_DONE names the tick at which the run ends). Outputs:
+and the operator's RUN_EVENTs (its TASK_DONE names the tick at which the run ends). Outputs:
 PLANT_STATE every step (and its batched copy for observers), TOOL_POSE and OBJECT_POSES
 at the scene rate, RUN_EVENT on start, finish, grasp, release and watchdog changes. The
 stepping, pacing and watchdog are in PlantLoop; this module wires them to Zenoh.
@@ -18,14 +18,13 @@ import numpy as np
 
 from teleop.bus.messages import (
     JOINT_COMMAND,
-    RUN_EVENT,
     DecodeError,
     Event,
     Kind,
     Reason,
 )
 from teleop.bus.service import Service, service_main
-from teleop.bus.session import BatchPublisher, Publisher, subscribe
+from teleop.bus.session import BatchPublisher, Publisher, subscribe, subscribe_events
 from teleop.core.clock import MonotonicClock
 from teleop.core.rundir import shed_path
 from teleop.sim.stepping import PlantLoop
@@ -44,7 +43,7 @@ class PlantService(Service):
             "plant_state": self.keep(Publisher.for_stream(session, topics, "plant_state")),
             "tool_pose": self.keep(Publisher.for_stream(session, topics, "tool_pose")),
             "objects": self.keep(Publisher.for_stream(session, topics, "objects")),
-            "events": self.keep(Publisher.for_stream(session, topics, "events")),
+            "plant_events": self.keep(Publisher.for_stream(session, topics, "plant_events")),
         }
         self.state_batch = self.keep(  # the observers' copy, several states per message
             BatchPublisher.for_stream(
@@ -52,7 +51,7 @@ class PlantService(Service):
             )
         )
         self.loop = PlantLoop(self.config, self, MonotonicClock())
-        self.keep(subscribe(session, topics.events, RUN_EVENT, self._on_event, self.drops))
+        self.keep(subscribe_events(session, topics, "operator_events", self._on_event, self.drops))
         self.keep(
             subscribe(session, topics.joint_command, JOINT_COMMAND, self._on_command, self.drops)
         )

@@ -17,9 +17,9 @@ from typing import Any, ClassVar
 
 import zenoh
 
-from teleop.bus.messages import EYE_VIEW
+from teleop.bus.messages import EYE_VIEW, RUN_EVENT
 from teleop.bus.service import Service, ServiceOptions, service_main
-from teleop.bus.session import subscribe, subscribe_frames
+from teleop.bus.session import subscribe, subscribe_events, subscribe_frames
 from teleop.core.config import Config, ConfigError
 from teleop.core.rundir import RECORDING_FILE
 from teleop.viz.recording import (
@@ -84,7 +84,10 @@ class RecorderService(Service):
                 batched = name in BATCHED_STREAMS
                 key = getattr(topics, BATCHED_STREAMS[name] if batched else name)
                 buffer = writer.buffers[name]
-                sub = subscribe(session, key, schema, buffer, drops, batched=batched)
+                if schema is RUN_EVENT:  # only the events the stream's service owns
+                    sub = subscribe_events(session, topics, name, buffer, drops)
+                else:
+                    sub = subscribe(session, key, schema, buffer, drops, batched=batched)
                 self._subscribers.append(self.keep(sub))
             sub = subscribe_frames(session, topics.eye_view, EYE_VIEW, writer.eye_view, drops)
             self._subscribers.append(self.keep(sub))

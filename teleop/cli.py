@@ -4,6 +4,7 @@
     teleop run path-following --mode lockstep --duration 20 --rrd out.rrd
     teleop run grasp --mode realtime --seed 0 --rrd out.rrd --summary-json out.json
     teleop up | status | down        (a long-running stack, realtime by default)
+    teleop run path-following --mode lockstep --without controller   (bring your own)
     teleop latency --duration 60 --json out.json --png out.png
     teleop run grasp --web | --spawn (watch the run in the web / native Rerun viewer)
     teleop view out.rrd [--web]      (open a saved recording)
@@ -35,6 +36,10 @@ DEFAULT_RUN_DIR = Path("runs") / "latest"
 DEFAULT_UP_DIR = Path("runs") / "up"
 DEFAULT_LATENCY_DIR = Path("runs") / "latency"
 
+# How long `--without` waits for the services left out (s); teleop.run.outside's default
+# (not imported from there: this module stays light until a command runs).
+DEFAULT_WITHOUT_TIMEOUT_S = 120.0
+
 # Exit codes: 0 success, 1 the run failed its own checks, 2 bad usage or config, 3 the
 # task succeeded but the run lost real time (realtime_verdict "lost": its figures are not
 # those of a realtime run; teleop.run.verdict).
@@ -57,6 +62,27 @@ def _add_config_arguments(parser: argparse.ArgumentParser) -> None:
         default=[],
         metavar="KEY=VALUE",
         help="override a config value, e.g. --set control.compensation=false (repeatable)",
+    )
+
+
+def _add_without_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--without",
+        action="append",
+        default=[],
+        metavar="SERVICE",
+        help="leave SERVICE out of the stack and run your own in its place (repeatable): "
+        "the rest starts, the command prints what yours must do to join (endpoints, "
+        "robot id, tokens, streams, and the Zenoh config file to open its session with: "
+        "<run-dir>/outside/SERVICE.json5) and waits for it; see docs/protocol.md and "
+        "examples/",
+    )
+    parser.add_argument(
+        "--without-timeout",
+        type=float,
+        default=DEFAULT_WITHOUT_TIMEOUT_S,
+        metavar="SECONDS",
+        help="how long to wait for the services left out to join (default: %(default)g)",
     )
 
 
@@ -116,6 +142,7 @@ def build_parser() -> argparse.ArgumentParser:
         "printed); it keeps serving after the run until Ctrl-C",
     )
     _add_web_port_arguments(run)
+    _add_without_arguments(run)
     run.add_argument(
         "--report",
         action="store_true",
@@ -202,13 +229,21 @@ def build_parser() -> argparse.ArgumentParser:
         help="start the services under supervisord and leave them running",
         description=(
             "Start plant, controller and recorder under a detached supervisord. The plant "
-            "listens on bus.endpoint and runs path following until `teleop down`; the "
-            "recorder writes <run-dir>/recording.rrd (add --set recorder.spawn=true for a "
-            "live viewer)."
+            "listens on a free loopback port (printed; --endpoint to choose it) and runs "
+            "path following until `teleop down`; the recorder writes "
+            "<run-dir>/recording.rrd (add --set recorder.spawn=true for a live viewer). "
+            "Every service gets this run's credentials (<run-dir>/auth, bus.secure): no "
+            "other process or stack can join its bus."
         ),
     )
     up.add_argument("--mode", choices=("lockstep", "realtime"), default="realtime")
+    up.add_argument(
+        "--endpoint",
+        help="the bus's listening endpoint, e.g. tcp/127.0.0.1:7447 (default: a free port); "
+        "refused if taken; tls/127.0.0.1:PORT with --set bus.tls=true",
+    )
     up.add_argument("--run-dir", type=Path, default=DEFAULT_UP_DIR, help="(default: %(default)s)")
+    _add_without_arguments(up)
     _add_config_arguments(up)
     for name, text in (
         ("status", "show the state of each service started by `teleop up`"),
@@ -252,8 +287,10 @@ def _run(args: argparse.Namespace) -> int:
             overrides.append(f'recorder.rrd_path="{args.rrd.absolute()}"')
         if args.spawn:
             overrides.append("recorder.spawn=true")
-    if args.inprocess and (args.spawn or args.web or args.report):
-        raise ConfigError("--spawn, --web and --report need the services run (drop --inprocess)")
+    if args.inprocess and (args.spawn or args.web or args.report or args.without):
+        raise ConfigError(
+            "--spawn, --web, --report and --without need the services run (drop --inprocess)"
+        )
     config = load_config(args.config, overrides)
     web = None
     if args.web:
@@ -289,10 +326,22 @@ def _run_and_report(
     if args.inprocess:
         summary = experiments.run_path_following_inprocess(config, progress=progress)
     else:
-        from teleop.run.stack import run_on_services
+        from teleop.run.stack import RunError, run_on_services
 
         print(f"  logs and summaries in {args.run_dir}", file=sys.stderr)
-        summary = run_on_services(config, args.config, overrides, args.run_dir, progress)
+        try:
+            summary = run_on_services(
+                config,
+                args.config,
+                overrides,
+                args.run_dir,
+                progress,
+                without=args.without,
+                without_timeout_s=args.without_timeout,
+            )
+        except RunError as exc:
+            print(f"teleop: {exc}", file=sys.stderr)
+            return EXIT_FAILED
     _emit_summary(summary, args.summary_json)
     if args.report and summary.get("rrd"):
         from teleop.viz.report import write_report
@@ -368,14 +417,26 @@ def _report(args: argparse.Namespace) -> int:
 
 
 def _up(args: argparse.Namespace) -> int:
-    from teleop.run.stack import start_detached
+    from teleop.run.stack import RunError, start_detached
 
     overrides = [*args.overrides, f'run.mode="{args.mode}"']
     config = load_config(args.config, overrides)
-    status = start_detached(config, args.config, overrides, args.run_dir)
+    try:
+        status, endpoint = start_detached(
+            config,
+            args.config,
+            overrides,
+            args.run_dir,
+            args.endpoint,
+            without=args.without,
+            without_timeout_s=args.without_timeout,
+        )
+    except RunError as exc:
+        print(f"teleop: {exc}", file=sys.stderr)
+        return EXIT_FAILED
     for name, state in status.items():
         print(f"{name:12s} {state}")
-    print(f"bus: {config.bus.endpoint}   logs: {args.run_dir / LOG_DIR}   stop: teleop down")
+    print(f"bus: {endpoint}   logs: {args.run_dir / LOG_DIR}   stop: teleop down")
     return 0
 
 

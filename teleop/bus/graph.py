@@ -27,6 +27,7 @@ from teleop.bus.messages import (
     RUN_EVENT,
     TELEOP_STATUS,
     TOOL_POSE,
+    Event,
     Schema,
 )
 
@@ -73,8 +74,10 @@ class Stream:
     periodic: bool = True  # sent at a rate (its seq checked for gaps), not on change
     seq_per_record: bool = True  # seq goes up by one per record (not a cycle counter)
     note: str = ""  # what a reader of the protocol must know besides the above
+    scenarios: tuple[str, ...] = ()  # the scenarios whose stacks carry it (empty: all)
 
 
+PATH, TELEOP = ("path-following",), ("grasp",)  # streams of one scenario's stack only
 STREAMS: tuple[Stream, ...] = (
     Stream("plant_state", "state/plant", PLANT_STATE, ("plant",), ("controller", "haptic"),
            "1 kHz, one per plant step",
@@ -94,27 +97,32 @@ STREAMS: tuple[Stream, ...] = (
            note="realtime teleoperation: carries its sample's `device_deadline_ns`; the "
            "plant steps once per device period"),
     Stream("control_status", "control/status", CONTROL_STATUS, ("controller",), ("recorder",),
-           "`control.status_rate_hz` (100 Hz)", seq_per_record=False,
+           "`control.status_rate_hz` (100 Hz)", seq_per_record=False, scenarios=PATH,
            note="`seq` is the controller's cycle counter"),
-    Stream("events", "events", RUN_EVENT, ("plant", "operator"),
-           ("plant", "operator", "recorder", "launcher"), "on change", periodic=False,
-           note="each producer counts its own `seq`; the plant takes TASK_DONE"),
+    Stream("plant_events", "events/plant", RUN_EVENT, ("plant",),
+           ("operator", "recorder", "launcher", "controller", "haptic"), "on change",
+           periodic=False,
+           note="STARTED, FINISHED, WATCHDOG_BRAKE, WATCHDOG_RESUME, GRASP, RELEASE"),
+    Stream("operator_events", "events/operator", RUN_EVENT, ("operator",),
+           ("plant", "recorder", "launcher"), "on change", periodic=False,
+           note="PHASE, TASK_DONE (the plant ends the run at its `step`)", scenarios=TELEOP),
     Stream("haptic_state", "haptic/state", HAPTIC_STATE, ("haptic",), ("controller",),
-           "1 kHz, one per device period"),
+           "1 kHz, one per device period", scenarios=TELEOP),
     Stream("haptic_state_batch", "haptic/state/batch", HAPTIC_STATE, ("haptic",),
            ("recorder",), "1 kHz / `bus.observer_batch_records`", qos=OBSERVER_QOS,
-           batch_of="haptic_state"),
+           batch_of="haptic_state", scenarios=TELEOP),
     Stream("hand_input", "operator/hand", HAND_INPUT, ("operator",), ("haptic", "recorder"),
-           "100 Hz", note="published ahead of its `valid_from_tick`"),
+           "100 Hz", note="published ahead of its `valid_from_tick`", scenarios=TELEOP),
     Stream("force_feedback", "haptic/feedback", FORCE_FEEDBACK, ("controller",), ("haptic",),
-           "1 kHz, one per plant state"),
+           "1 kHz, one per plant state", scenarios=TELEOP),
     Stream("force_feedback_batch", "haptic/feedback/batch", FORCE_FEEDBACK, ("controller",),
            ("recorder",), "1 kHz / `bus.observer_batch_records`", qos=OBSERVER_QOS,
-           batch_of="force_feedback"),
+           batch_of="force_feedback", scenarios=TELEOP),
     Stream("head_pose", "hmd/pose", HEAD_POSE, ("hmd",),
-           ("controller", "operator", "eyeview", "recorder"), "`hmd.rate_hz` (90 Hz)"),
+           ("controller", "operator", "eyeview", "recorder"), "`hmd.rate_hz` (90 Hz)",
+           scenarios=TELEOP),
     Stream("teleop_status", "control/teleop", TELEOP_STATUS, ("controller",),
-           ("recorder",), "100 Hz"),
+           ("recorder",), "100 Hz", scenarios=TELEOP),
     Stream("eye_view", "view/eye", EYE_VIEW, ("eyeview",), ("recorder",),
            "`eyeview.rate_hz` (5 Hz)", qos=VIEWER_QOS,
            note="record + pixels; always over shared memory on one host"),
@@ -128,6 +136,26 @@ def stream(name: str) -> Stream:
         return STREAMS_BY_NAME[name]
     except KeyError:
         raise KeyError(f"no stream {name!r}; streams: {', '.join(STREAMS_BY_NAME)}") from None
+
+
+# The stream that carries each run event: its owner's. A receiver takes an event only from
+# its owner's stream (under access control only the owner may publish there), so no other
+# sender can end a run or fake a grasp.
+EVENT_STREAM: Mapping[Event, str] = {
+    Event.STARTED: "plant_events",
+    Event.FINISHED: "plant_events",
+    Event.WATCHDOG_BRAKE: "plant_events",
+    Event.WATCHDOG_RESUME: "plant_events",
+    Event.GRASP: "plant_events",
+    Event.RELEASE: "plant_events",
+    Event.PHASE: "operator_events",
+    Event.TASK_DONE: "operator_events",
+}
+
+
+def event_on_own_stream(stream_name: str, event: int) -> bool:
+    """Whether a RUN_EVENT ``event`` may come on ``stream_name`` (its owner's stream)."""
+    return EVENT_STREAM.get(Event(event)) == stream_name  # decoded: a valid Event
 
 
 # Liveliness tokens under ``teleop/<robot_id>/``: (key with <service>, meaning).
@@ -166,6 +194,11 @@ SERVICES: tuple[ServiceSpec, ...] = (
 SERVICES_BY_NAME: Mapping[str, ServiceSpec] = {s.name: s for s in SERVICES}
 
 
+def scenario_streams(scenario: str) -> tuple[Stream, ...]:
+    """The streams a stack of ``scenario`` carries."""
+    return tuple(s for s in STREAMS if not s.scenarios or scenario in s.scenarios)
+
+
 def scenario_services(scenario: str) -> tuple[str, ...]:
     """The services every stack of ``scenario`` runs (optional ones left out), plant first."""
     return tuple(s.name for s in SERVICES if scenario in s.scenarios and not s.optional)
@@ -186,11 +219,13 @@ def graph_tables() -> str:
             ", ".join(s.producers) + " -> " + ", ".join(s.consumers),
             s.rate,
             s.qos.describe(),
+            ", ".join(s.scenarios) or "all",
             s.note or (f"observers' copy of `{s.batch_of}`" if s.batch_of else ""),
         )
         for s in STREAMS
     ]
-    lines = _table(("stream", "key", "record", "from -> to", "rate", "QoS", "note"), streams)
+    header = ("stream", "key", "record", "from -> to", "rate", "QoS", "scenarios", "note")
+    lines = _table(header, streams)
     lines += ["", *_table(("token", "meaning"), [(f"`{k}`", m) for k, m in TOKENS])]
     services = [
         (f"`{s.name}`", ", ".join(s.scenarios), str(s.start_priority), s.optional or "always",

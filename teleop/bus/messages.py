@@ -50,7 +50,11 @@ RGB_CHANNELS = 3  # EYE_VIEW pixels: 8-bit R, G, B
 
 # Declared per-field limits (validated on decode; a record outside them is dropped).
 JOINT_POSITION_LIMIT_RAD = 100.0
-JOINT_VELOCITY_LIMIT_RAD_S = 100.0
+JOINT_VELOCITY_LIMIT_RAD_S = 100.0  # measured joint speeds (a collision may exceed the drives')
+# Joint velocity references: the widest drive range of the shipped arms (their velocity
+# actuators' ctrlrange, +-pi rad/s; tests/unit/test_plant_limits.py checks the models). The
+# plant clamps each joint to its own drive's range and the tool to plant.tool_speed_limit_m_s.
+JOINT_COMMAND_SPEED_LIMIT_RAD_S = 3.1416
 POSITION_LIMIT_M = 100.0  # |coordinate| of any point in the world frame
 QUAT_COMPONENT_LIMIT = 1.0 + 1e-6  # unit quaternion components, with rounding slack
 GRIPPER_OPENING_LIMIT_M = 1.0
@@ -113,7 +117,7 @@ class Flag(enum.IntFlag):
     """Bits of the header's ``flags`` field."""
 
     NONE = 0
-    BRAKING = 1 << 0  # PLANT_STATE: the plant's command watchdog is braking the arm
+    BRAKING = 1 << 0  # PLANT_STATE: the watchdog brakes: the drives hold the arm where it is
     STALE = 1 << 1  # HAPTIC_STATE: the device is fading out a stale feedback force
 
 
@@ -148,6 +152,7 @@ class Reason(enum.StrEnum):
     NON_FINITE = "non_finite"
     COUNT = "count"
     RANGE = "range"
+    SOURCE = "source"  # well-formed, but on a stream its sender does not own (RUN_EVENT)
 
 
 class DecodeError(ValueError):
@@ -363,6 +368,11 @@ _POS = {"lo": -POSITION_LIMIT_M, "hi": POSITION_LIMIT_M, "unit": "m"}
 _QUAT = {"lo": -QUAT_COMPONENT_LIMIT, "hi": QUAT_COMPONENT_LIMIT, "unit": "1"}
 _QPOS = {"lo": -JOINT_POSITION_LIMIT_RAD, "hi": JOINT_POSITION_LIMIT_RAD, "unit": "rad"}
 _QVEL = {"lo": -JOINT_VELOCITY_LIMIT_RAD_S, "hi": JOINT_VELOCITY_LIMIT_RAD_S, "unit": "rad/s"}
+_QVEL_CMD = {
+    "lo": -JOINT_COMMAND_SPEED_LIMIT_RAD_S,
+    "hi": JOINT_COMMAND_SPEED_LIMIT_RAD_S,
+    "unit": "rad/s",
+}
 
 
 def _sim_time() -> Field:
@@ -452,12 +462,18 @@ PLANT_STATE = Schema(
 JOINT_COMMAND = Schema(
     Kind.JOINT_COMMAND,
     [
-        Field("state_seq", "u8", doc="seq of the PLANT_STATE this answers (lockstep)"),
+        Field(
+            "state_seq",
+            "u8",
+            doc="seq of the newest PLANT_STATE the sender has (every mode): the plant rejects "
+            "one it has not sent and brakes when the answered state is `plant.watchdog_s` "
+            "out of date",
+        ),
         _device_deadline(
             "device period of the handle sample this answers (its HAPTIC_STATE's); the "
             "realtime plant steps once per device period; 0: not paced by a device"
         ),
-        Field("qd_ref_rad_s", "f8", (MAX_JOINTS,), **_QVEL, doc="joint velocity references"),
+        Field("qd_ref_rad_s", "f8", (MAX_JOINTS,), **_QVEL_CMD, doc="joint velocity references"),
         Field("gripper_cmd", "f8", lo=0.0, hi=1.0, unit="1", doc="0 closed .. 1 open"),
         _n_joints(),
     ],
@@ -734,5 +750,60 @@ def layout_table() -> str:
     return "\n".join(out) + "\n"
 
 
+# What each code means, for people: docs/protocol.md's tables (code_tables) come from here.
+STAGE_STAMPED_BY: Mapping[Stage, str] = {
+    Stage.HAPTIC_SAMPLE: "haptic device, when the handle is sampled (= HAPTIC_STATE's "
+    "`t_source_ns`; the controller measures the sample's age from it)",
+    Stage.CONTROLLER_RX: "controller, on receiving the haptic sample (path following: the state)",
+    Stage.CONTROLLER_TX: "controller, just before publishing the command",
+    Stage.PLANT_RX: "plant, on receiving the command",
+    Stage.PLANT_APPLIED: "plant, when the command enters a physics step",
+    Stage.PLANT_STATE_TX: "plant, just before publishing the resulting state",
+    Stage.CONTROLLER_STATE_RX: "controller, on receiving that state (teleoperation)",
+    Stage.FEEDBACK_TX: "controller, just before publishing the force feedback computed from it",
+    Stage.FEEDBACK_RX: "haptic device, on receiving the feedback (not on the wire: raw log)",
+    Stage.FEEDBACK_RENDERED: "haptic device, when the force is set on the motors (raw log)",
+}
+EVENT_MEANINGS: Mapping[Event, tuple[str, str]] = {  # (sent by, meaning and value)
+    Event.STARTED: ("plant", "a run begins: its first PLANT_STATE (seq 0, step 0) follows"),
+    Event.FINISHED: ("plant", "the run is over (its duration, or the operator's TASK_DONE "
+                     "tick): no more states; the process and its tokens stay until stopped"),
+    Event.WATCHDOG_BRAKE: ("plant", "the command to apply answers a state older than "
+                           "`plant.watchdog_s`: the drives hold the arm where it is; value: "
+                           "the command's age (s)"),
+    Event.WATCHDOG_RESUME: ("plant", "a fresh command again: the plant follows the commands"),
+    Event.GRASP: ("plant", "an object is pinched between the fingers; value: its body id"),
+    Event.RELEASE: ("plant", "the held object left the gripper"),
+    Event.PHASE: ("operator", "a task phase began; value: its index in the scenario file"),
+    Event.TASK_DONE: ("operator", "the task is over (value: 1 success, 0 gave up); the "
+                      "plant ends the run at tick `step`, still ahead"),
+}  # fmt: skip
+FLAG_MEANINGS: Mapping[Flag, str] = {
+    Flag.BRAKING: "PLANT_STATE: the command watchdog brakes; the drives hold the arm where "
+    "braking began (`qd_ref_applied_rad_s` carries the hold references)",
+    Flag.STALE: "HAPTIC_STATE: the newest feedback is older than `haptic.stale_feedback_s`; "
+    "the device fades it out to zero over `haptic.fade_s`",
+}
+BUTTON_MEANINGS: Mapping[Button, str] = {
+    Button.GRIPPER_CLOSE: "held: close the gripper; released: open it",
+    Button.CLUTCH: "held: the handle moves without moving the robot (to reposition it)",
+}
+
+
+def code_tables() -> str:
+    """Markdown tables of the trace stages, RUN_EVENT codes, flag bits and button bits
+    (``docs/protocol.md`` embeds this text verbatim; a test checks they match)."""
+    out = ["| index | stage | stamped by |", "| ---: | --- | --- |"]
+    out += [f"| {int(s)} | {s.name} | {STAGE_STAMPED_BY[s]} |" for s in Stage]
+    out += ["", "| event | code | sent by | meaning |", "| --- | ---: | --- | --- |"]
+    out += [f"| {e.name} | {int(e)} | {EVENT_MEANINGS[e][0]} | {EVENT_MEANINGS[e][1]} |"
+            for e in Event]  # fmt: skip
+    out += ["", "| flag | bit value | meaning |", "| --- | ---: | --- |"]
+    out += [f"| {f.name} | {int(f)} | {FLAG_MEANINGS[f]} |" for f in Flag if f]
+    out += ["", "| button | bit value | meaning |", "| --- | ---: | --- |"]
+    out += [f"| {b.name} | {int(b)} | {BUTTON_MEANINGS[b]} |" for b in Button if b]
+    return "\n".join(out) + "\n"
+
+
 if __name__ == "__main__":
-    sys.stdout.write(layout_table())
+    sys.stdout.write(code_tables() if sys.argv[1:] == ["codes"] else layout_table())

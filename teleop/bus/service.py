@@ -27,7 +27,7 @@ from typing import Any, ClassVar
 
 import zenoh
 
-from teleop.bus.messages import DropCounter
+from teleop.bus.messages import DropCounter, Kind
 from teleop.bus.session import (
     ServicesMissing,
     close_session,
@@ -119,6 +119,11 @@ class Service:
         return {
             "service": self.name,
             "dropped_messages": self.drops.total,
+            # every rejected record, by record kind and reason (DecodeError / Reason)
+            "dropped_by_reason": {
+                f"{Kind(kind).name}:{reason}": count
+                for (kind, reason), count in sorted(self.drops.counts().items())
+            },
             "cpu_s": time.process_time(),
             "unlinked_peers": self.unlinked_peers,
             "privileges": self.privileges,

@@ -16,6 +16,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -24,15 +25,17 @@ from zenoh.shm import ShmProvider
 
 from shm.provider import configure_session, put_by_size, took_shm_path
 from teleop.bus import graph
-from teleop.bus.messages import DecodeError, DropCounter, FrameSchema, Schema
+from teleop.bus.access import TLS_CONFIG, zenoh_entries
+from teleop.bus.messages import DecodeError, DropCounter, Event, FrameSchema, Kind, Reason, Schema
 from teleop.bus.topics import Topics
-from teleop.core.config import BusConfig
+from teleop.core.config import BusConfig, ConfigError
 
 logger = logging.getLogger(__name__)
 
 # A connecting peer also listens here (loopback, ephemeral port) so that peers which
 # learn of it by gossip can open a direct link to it.
 PEER_LISTEN_ENDPOINT = "tcp/127.0.0.1:0"
+PEER_LISTEN_ENDPOINT_TLS = "tls/127.0.0.1:0"  # the same in a TLS run (bus.tls)
 
 # connect/timeout_ms: -1 keeps retrying in the background; 0 gives up after one attempt.
 CONNECT_RETRY_FOREVER = -1
@@ -49,7 +52,15 @@ def _json(value: Any) -> str:
 def open_session(
     bus: BusConfig, *, listen: bool, ingress_rate_hz: Mapping[str, float] | None = None
 ) -> zenoh.Session:
-    """Open a peer session from ``bus.zenoh_config_path`` plus the run's settings.
+    """Open a peer session configured by :func:`session_config`."""
+    return zenoh.open(session_config(bus, listen=listen, ingress_rate_hz=ingress_rate_hz))
+
+
+def session_config(
+    bus: BusConfig, *, listen: bool, ingress_rate_hz: Mapping[str, float] | None = None
+) -> zenoh.Config:
+    """The Zenoh config of a peer session: ``bus.zenoh_config_path`` plus the run's settings
+    (also what a service outside the stack is given: teleop.run.outside).
 
     ``listen=True``: this process is the run's listener on ``bus.endpoint`` (fails if
     the port is taken). ``listen=False``: connect to ``bus.endpoint``; if nobody listens
@@ -62,7 +73,13 @@ def open_session(
     ``ingress_rate_hz`` maps key expressions to the most puts per second this session
     takes in (Zenoh's ingress downsampling: the rest are dropped before any Python
     callback runs), for a consumer that needs a fast stream only now and then.
+
+    A credentials file with certificates (a ``bus.tls`` run) makes every link mutual
+    TLS: each endpoint must then be a ``tls/`` one (:class:`ConfigError` otherwise, as a
+    ``tcp/`` link would bypass the certificates).
     """
+    secured = zenoh_entries(Path(bus.credentials_file)) if bus.credentials_file else {}
+    tls = any(path.startswith(TLS_CONFIG) for path in secured)
     conf = zenoh.Config.from_file(str(bus.zenoh_config_path))
     conf.insert_json5("mode", _json("peer"))
     conf.insert_json5("scouting/multicast/enabled", _json(False))
@@ -70,8 +87,15 @@ def open_session(
     if listen:
         listen_on, connect_to = [bus.endpoint], list(bus.peer_connect_endpoints)
     else:
-        listen_on = [bus.peer_listen_endpoint or PEER_LISTEN_ENDPOINT]
+        default_listen = PEER_LISTEN_ENDPOINT_TLS if tls else PEER_LISTEN_ENDPOINT
+        listen_on = [bus.peer_listen_endpoint or default_listen]
         connect_to = [bus.endpoint, *bus.peer_connect_endpoints]
+    plain = [endpoint for endpoint in (*listen_on, *connect_to) if not endpoint.startswith("tls/")]
+    if tls and plain:
+        raise ConfigError(
+            f"{bus.credentials_file} holds TLS certificates: bus endpoints must be "
+            f"tls/HOST:PORT, not {', '.join(plain)}"
+        )
     conf.insert_json5("listen/endpoints", _json(listen_on))
     conf.insert_json5("connect/endpoints", _json(connect_to))
     if connect_to:
@@ -83,10 +107,12 @@ def open_session(
             "downsampling", _json([{"flows": ["ingress"], "messages": ["put"], "rules": rules}])
         )
     configure_session(conf, enabled=bus.shm, lowlatency=bus.lowlatency)  # BusConfig
+    for path, value in secured.items():  # a launcher's run: authenticated, access-controlled
+        conf.insert_json5(path, _json(value))
     for entry in bus.zenoh_overrides:
         path, _, value = entry.partition("=")
         conf.insert_json5(path.strip(), value.strip())
-    return zenoh.open(conf)
+    return conf
 
 
 def _undeclare(entity: Any) -> None:
@@ -239,6 +265,36 @@ def subscribe(
         deliver(sample.payload.to_bytes(), rx_ns, schema, callback, drops, batched=batched)
 
     return session.declare_subscriber(key, on_sample)
+
+
+def owned_events(stream_name: str, callback: RecordCallback, drops: DropCounter) -> RecordCallback:
+    """``callback`` behind a check that each RUN_EVENT is one the service of
+    ``stream_name`` owns (:data:`graph.EVENT_STREAM`); any other is counted in ``drops``
+    (reason ``source``) and dropped."""
+
+    def owned(rec: np.ndarray, rx_ns: int) -> None:
+        event = int(rec["event"])
+        if graph.event_on_own_stream(stream_name, event):
+            callback(rec, rx_ns)
+        else:
+            detail = f"{Event(event).name} on {stream_name}"
+            drops.record(DecodeError(Kind.RUN_EVENT, Reason.SOURCE, detail))
+
+    return owned
+
+
+def subscribe_events(
+    session: zenoh.Session,
+    topics: Topics,
+    stream_name: str,
+    callback: RecordCallback,
+    drops: DropCounter,
+) -> zenoh.Subscriber:
+    """Subscribe to one service's RUN_EVENT stream (``plant_events``, ``operator_events``):
+    ``callback`` gets only the events that service owns (:func:`owned_events`)."""
+    key = getattr(topics, stream_name)
+    schema = graph.stream(stream_name).schema
+    return subscribe(session, key, schema, owned_events(stream_name, callback, drops), drops)
 
 
 def deliver(

@@ -8,6 +8,7 @@ assignment (no allocation until the table doubles), cheap enough for a 1 kHz loo
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -15,6 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from teleop.bus.messages import Stage
+
+logger = logging.getLogger(__name__)
 
 # Rows allocated up front: about 65 s at 1 kHz before the first doubling.
 DEFAULT_CAPACITY_ROWS = 65_536
@@ -80,67 +83,158 @@ class StampLog:
         os.replace(tmp, path)
 
 
-class SeqCheck:
-    """Losses and reordering of one stream, from the ``seq`` of the records received.
+# Sequence window: a record more than this many seqs ahead of the newest accepted one is
+# suspicious (a poisoned counter, or a producer that started over), not a gap: at 1 kHz
+# about 65 s of consecutive losses. A sender can therefore move a receiver's counters by
+# at most this much per record, never to the end of the u64 range.
+SEQ_WINDOW = 1 << 16
+# A producer that started over (or one a receiver joins late) is taken up after this many
+# rejected records in order among themselves (other records may come between): one
+# poisoned record cannot lock out the stream's real producer, whose next record (in the
+# window) is taken, or whose run of records re-anchors the check.
+RESYNC_RECORDS = 3
+# Runs of rejected records in order tracked at once: junk between a restarted producer's
+# records starts runs of its own, which evict the shortest, never a longer one.
+MAX_RESYNC_RUNS = 4
+# A record stamped more than this far in this host's future did not come from a clock of
+# this host: rejected (it would otherwise never be judged stale).
+FUTURE_STAMP_TOLERANCE_NS = 1_000_000
 
-    :meth:`accept` says whether a record is newer than every one before it; gaps in
-    ``seq`` count as ``lost``, a record not newer as ``reordered``. Not thread-safe: the
-    owning service calls it under its own lock.
+
+class SeqCheck:
+    """Losses, reordering and restarts of one stream, from the ``seq`` of its records.
+
+    :meth:`accept` takes a record that is newer than the last one accepted by at most
+    :data:`SEQ_WINDOW`; gaps count as ``lost``. A record not newer is ``reordered``, one
+    too far ahead is a ``jump``: both rejected, and neither moves the check. Rejected
+    records in order among themselves form runs; one that reaches
+    :data:`RESYNC_RECORDS` records means the producer started over (or this receiver
+    joined late): the check re-anchors on it (``restarts``). The first record of a
+    stream is taken when its seq is within the window of zero (a producer's first
+    records), else it starts such a run. Not thread-safe: the owning service calls it
+    under its own lock.
     """
 
     def __init__(self) -> None:
         self.last_seq = -1  # newest seq accepted; -1: none since the (re)start
         self.lost = 0
         self.reordered = 0
+        self.jumps = 0
+        self.restarts = 0
+        self._runs: dict[int, int] = {}  # newest seq of a run of rejected records -> length
 
     def accept(self, seq: int) -> bool:
-        """Count ``seq``; False if it is not newer than the last one accepted."""
+        """Count ``seq``; True if the record is to be used."""
+        if self.last_seq < seq <= self.last_seq + SEQ_WINDOW:
+            if self.last_seq >= 0:
+                self.lost += seq - self.last_seq - 1
+            self.last_seq = seq
+            self._runs.clear()
+            return True
         if seq <= self.last_seq:
             self.reordered += 1
+        else:
+            self.jumps += 1
+        extends = [last for last in self._runs if last < seq <= last + SEQ_WINDOW]
+        length = 1
+        if extends:
+            newest = max(extends)
+            length = self._runs.pop(newest) + 1
+        elif len(self._runs) >= MAX_RESYNC_RUNS:
+            del self._runs[min(self._runs, key=self._runs.__getitem__)]  # shortest, oldest
+        if length < RESYNC_RECORDS:
+            self._runs[seq] = length
             return False
-        if self.last_seq >= 0:
-            self.lost += seq - self.last_seq - 1
+        self.restarts += 1  # the run's records were counted as rejected: not as lost
         self.last_seq = seq
+        self._runs.clear()
         return True
 
     def restart(self) -> None:
         """The producer starts over (a new run): the next seq is not a gap."""
         self.last_seq = -1
+        self._runs.clear()
+
+    def counts(self) -> dict[str, int]:
+        """The counters, by name (for a summary)."""
+        return {
+            "lost": self.lost,
+            "reordered": self.reordered,
+            "jumps": self.jumps,
+            "restarts": self.restarts,
+        }
 
 
 class Inbound:
     """Receiver-side bookkeeping of one realtime input stream, in one place.
 
-    Three checks every realtime receiver makes, in this order: the record is newer than
-    every one before it (:class:`SeqCheck`: gaps counted as lost, older ones as
-    reordered); it is not older than ``shed_age_ns`` on this host's monotonic clock,
-    measured from the stamp its sender wrote at ``tx_stage`` (else it is shed: the
-    receiver is behind); and what is shed (here or by the caller, e.g. superseded by a
-    newer record) has the HAPTIC_SAMPLE stamp of its loop logged, for the latency
-    report's count of loops that never closed. Not thread-safe: the owner calls it
-    under its own lock.
+    The checks every realtime receiver makes, in this order: the record's send stamp
+    (taken at ``tx_stage`` on this host's monotonic clock) is not in this host's future
+    (``future_stamp``: rejected) and not older than ``shed_age_ns`` (else it is shed: the
+    receiver is behind); then its seq is in order (:class:`SeqCheck`: gaps counted as
+    lost, older ones as reordered, jumps beyond the window rejected, a restarted producer
+    taken up). A rejected record never moves the seq check, so a stale or mis-stamped
+    record cannot lock out the real producer. What is shed (here or by the caller, e.g.
+    superseded by a newer record) has the HAPTIC_SAMPLE stamp of its loop logged, for the
+    latency report's count of loops that never closed. The first rejection of each
+    reason is logged. Not thread-safe: the owner calls it under its own lock.
     """
 
     def __init__(
-        self, tx_stage: Stage, shed_age_ns: int = SHED_AGE_NS, shed_log: StampLog | None = None
+        self,
+        tx_stage: Stage,
+        shed_age_ns: int = SHED_AGE_NS,
+        shed_log: StampLog | None = None,
+        name: str = "",
     ) -> None:
         self.tx_stage = tx_stage
         self.shed_age_ns = shed_age_ns
+        self.name = name or tx_stage.name  # for the log lines
         self.seq = SeqCheck()
         self.shed = 0  # records dropped unanswered: too old, or superseded (see drop)
+        self.future_stamps = 0
         # HAPTIC_SAMPLE stamps of the loops dropped here (one log may serve several streams
         # of a service: the latency report counts loops, not streams)
         self.shed_log = shed_log if shed_log is not None else StampLog(1)
+        self._logged: set[str] = set()
 
-    def accept(self, rec: np.ndarray, now_ns: int) -> bool:
-        """True if ``rec`` is to be used: newer than the last one and fresh at
-        ``now_ns``. A stale record is counted in ``shed`` and logged."""
-        if not self.seq.accept(int(rec["seq"])):
+    def accept(self, rec: np.ndarray, now_ns: int, *, shed: bool = True) -> bool:
+        """True if ``rec`` is to be used: in order, not stamped in the future and (with
+        ``shed``) not older than the shed age at ``now_ns``. A stale record is counted in
+        ``shed`` and logged."""
+        stamp_ns = int(rec["trace_ns"][self.tx_stage])
+        if stamp_ns > now_ns + FUTURE_STAMP_TOLERANCE_NS:
+            self.future_stamps += 1
+            self._log_once("future_stamp", stamp_ns - now_ns)
             return False
-        if self.too_old(rec, now_ns):
+        if shed and now_ns - stamp_ns > self.shed_age_ns:
             self.drop(rec)
             return False
-        return True
+        return self.accept_seq(int(rec["seq"]))
+
+    def accept_seq(self, seq: int) -> bool:
+        """The sequence check alone (:class:`SeqCheck`), its first rejection of each kind
+        and every restart logged."""
+        counts = (self.seq.reordered, self.seq.jumps, self.seq.restarts)
+        if self.seq.accept(seq):
+            if self.seq.restarts != counts[2]:
+                logger.warning("%s: the producer started over (seq %d): taken up", self.name, seq)
+            return True
+        if self.seq.jumps != counts[1]:
+            self._log_once("jump", seq)
+        else:
+            self._log_once("reordered", seq)
+        return False
+
+    def _log_once(self, reason: str, value: int) -> None:
+        if reason not in self._logged:
+            self._logged.add(reason)
+            logger.warning(
+                "%s: rejected a record (%s: %d); further ones are only counted",
+                self.name,
+                reason,
+                value,
+            )
 
     def drop(self, rec: np.ndarray) -> None:
         """``rec`` goes unanswered (too old, or superseded by a newer one): count, log."""
@@ -161,6 +255,10 @@ class Inbound:
     def restart(self) -> None:
         """The producer starts over (a new run): its next seq is not a gap."""
         self.seq.restart()
+
+    def counts(self) -> dict[str, int]:
+        """Every counter of the stream, by name (for a summary)."""
+        return {**self.seq.counts(), "shed": self.shed, "future_stamps": self.future_stamps}
 
     def save(self, path: Path) -> None:
         """Write the shed log (see :meth:`StampLog.save`)."""

@@ -269,8 +269,8 @@ class BilateralCycle(ControllerCore):
         # Realtime: the handle samples' order and age, the states' age, and one log of
         # the loops left unanswered here (too old, or superseded while busy).
         self.shed_log = StampLog(1)
-        self.haptic_in = Inbound(Stage.HAPTIC_SAMPLE, shed_log=self.shed_log)
-        self.state_in = Inbound(Stage.PLANT_STATE_TX, shed_log=self.shed_log)
+        self.haptic_in = Inbound(Stage.HAPTIC_SAMPLE, shed_log=self.shed_log, name="haptic_state")
+        self.state_in = Inbound(Stage.PLANT_STATE_TX, shed_log=self.shed_log, name="plant_state")
         self.haptic_before_state = 0  # samples that arrived before any plant state
         self._reset_metrics()
 
@@ -324,7 +324,7 @@ class BilateralCycle(ControllerCore):
         (each stream comes at 1 kHz), so no thread loops forever under overload.
         """
         with self._rt_lock:
-            if kind == "haptic" and not self.haptic_in.seq.accept(int(item[0]["seq"])):
+            if kind == "haptic" and not self.haptic_in.accept_seq(int(item[0]["seq"])):
                 return
             older = self._pending.pop(kind, None)
             if older is not None:
@@ -595,6 +595,8 @@ class BilateralCycle(ControllerCore):
             "haptic_before_state": self.haptic_before_state,
             "haptic_shed": self.haptic_in.shed,
             "states_shed": self.state_in.shed,
+            "haptic_stream": self.haptic_in.counts(),  # lost, reordered, jumps, restarts...
+            "state_stream": self.state_in.counts(),
             "stability": {
                 "k_max_n_per_m": self.stability.k_max_n_per_m,
                 "k_workspace_n_per_m": self.stability.k_workspace_n_per_m,

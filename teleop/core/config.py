@@ -115,8 +115,12 @@ class PlantConfig:
     """The MuJoCo plant: physics period and command watchdog."""
 
     timestep_s: float = 0.001
-    # A command older than this makes the plant brake to zero joint velocity.
+    # The plant brakes (holds the arm where it is) when the newest command answers a state
+    # that was superseded more than this long ago, on the plant's own clock.
     watchdog_s: float = 0.020
+    # The tool point's commanded speed is cut to this whatever a command asks (the plant
+    # owns the robot's limits; each joint is also held to its drive's range).
+    tool_speed_limit_m_s: float = 0.25
     # Rate of the scene streams (tool pose, object poses) and, outside teleoperation, of the
     # contact and proximity fields of the plant state (one per step; teleoperation: fresh
     # every step).
@@ -146,6 +150,7 @@ class PlantConfig:
             0 < self.scene_rate_hz <= 1 / self.timestep_s, "plant.scene_rate_hz in (0, 1/timestep]"
         )
         _require(self.watchdog_s >= self.timestep_s, "plant.watchdog_s >= plant.timestep_s")
+        _require(self.tool_speed_limit_m_s > 0, "plant.tool_speed_limit_m_s > 0")
 
 
 @dataclass(frozen=True)
@@ -515,6 +520,20 @@ class BusConfig:
     # Zenoh config entries set over the file, last: "path=json5", e.g.
     # 'transport/shared_memory/mode="lazy"' (the tuning benchmark tries variants this way).
     zenoh_overrides: tuple[str, ...] = ()
+    # Launchers (teleop run / up / latency) give every process of a run its own user,
+    # password and Zenoh id and an access-control list from the graph
+    # (teleop/bus/access.py): only this run's processes can link, each may publish only
+    # what the graph lets it. false: an open bus (any local process can join).
+    secure: bool = True
+    # With secure: the launchers also make a certificate authority for the run and one
+    # certificate per process (teleop/bus/tls.py) and link the run over tls/ endpoints
+    # only, mutual TLS (each end checks the other's certificate; the access-control list
+    # also knows a process by its certificate's name). Encrypts the bus; shared memory
+    # and the low-latency transport work over TLS links as over TCP. Cost: see
+    # docs/protocol.md, "TLS".
+    tls: bool = False
+    # This process's credentials file (written by its launcher; empty: no authentication).
+    credentials_file: str = ""
     # Plant states per message on the observers' copy of the state stream (recorder, eye
     # view; topics.plant_state_batch): one message instead of 10 saves the recorder ~9
     # wake-ups per 10 ms at 1 kHz.
@@ -532,6 +551,10 @@ class BusConfig:
             "bus.zenoh_overrides: entries like path=json5value",
         )
         _require(self.shm_pool_bytes >= 1 << 16, "bus.shm_pool_bytes >= 65536")
+        _require(
+            self.secure or not self.tls,
+            "bus.tls needs bus.secure (the certificates come with the run's credentials)",
+        )
 
     @property
     def zenoh_config_path(self) -> Path:

@@ -22,6 +22,8 @@ SUPERVISOR_PID_FILE = "supervisord.pid"
 SUPERVISOR_LOG_FILE = "supervisord.log"
 SUPERVISOR_CONSOLE_FILE = "supervisord.console.log"
 LOG_DIR = "logs"  # one ``<program>.log`` per supervised program (program_log_path)
+# The run's credentials (teleop.bus.access): mode 0700, its files 0600.
+AUTH_DIR = "auth"
 # The log of the web viewer that `teleop run --web` serves.
 WEB_VIEWER_LOG_FILE = "web-viewer.log"
 # The Rerun recording of `teleop latency`'s figures (in its run directory).

@@ -139,7 +139,7 @@ class HapticLoop:
         self.trace_log = StampLog(N_STAGES)
         self.sample_log = StampLog(2)  # (HAPTIC_STATE seq, HAPTIC_SAMPLE ns)
         self._pending_trace: np.ndarray | None = None  # render at the next step
-        self.feedback_in = Inbound(Stage.FEEDBACK_TX)  # order, age and shed log (realtime)
+        self.feedback_in = Inbound(Stage.FEEDBACK_TX, name="force_feedback")  # realtime
         self.feedback_superseded = 0  # replaced before the next step rendered it
         self._warned_oversized = False
         self._warned_no_operator = False
@@ -409,6 +409,7 @@ class HapticLoop:
             "feedback_reordered": self.feedback_in.seq.reordered,
             "feedback_superseded": self.feedback_superseded,
             "feedback_shed": self.feedback_in.shed,
+            "feedback_stream": self.feedback_in.counts(),  # lost, reordered, jumps, ...
             "feedback_rendered": len(self.trace_log) + self.trace_log.overflow,
             "trace_rows_not_kept": self.trace_log.overflow,
             "rate_hz": self._rate_hz(),

@@ -72,6 +72,7 @@ def run_path_following_inprocess(
         "compensation": config.control.compensation,
         **metrics.summary(),
         "steps": steps,
+        "commands_clamped": plant.clamped_steps,
         "wall_s": wall_s,
         "realtime_factor": config.run.duration_s / wall_s,
         "final_state_sha256": plant.state_sha256(),

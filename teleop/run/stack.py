@@ -13,6 +13,10 @@
 
 ``teleop up`` starts the same programs detached with the plant as listener and no
 end (``--continuous``); ``teleop down`` stops them.
+
+``--without SERVICE`` leaves services out of either: they keep their place in the peer
+mesh, the user runs them (teleop.run.outside), and the launcher waits for their ready
+tokens before the run goes on.
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -31,18 +35,21 @@ from typing import Any
 import numpy as np
 
 from teleop.bus import graph
-from teleop.bus.messages import RUN_EVENT, TOOL_POSE, DropCounter, Event
+from teleop.bus.access import LAUNCHER, OBSERVER, write_run_credentials
+from teleop.bus.messages import TOOL_POSE, DropCounter, Event
 from teleop.bus.session import (
     Latest,
     close_session,
     declare_alive,
     open_session,
     subscribe,
+    subscribe_events,
     wait_alive,
 )
 from teleop.bus.topics import Topics
-from teleop.core.config import Config
+from teleop.core.config import BusConfig, Config, load_config
 from teleop.core.rundir import (
+    AUTH_DIR,
     LOG_DIR,
     RECORDING_FILE,
     clear_run_results,
@@ -51,6 +58,14 @@ from teleop.core.rundir import (
 )
 from teleop.run.experiments import PROGRESS_FRACTION, ProgressFn
 from teleop.run.idle_poll import POLLING, read_status
+from teleop.run.outside import (
+    DEFAULT_WITHOUT_TIMEOUT_S,
+    OutsideMissing,
+    check_without,
+    join_instructions,
+    wait_for_outside,
+    write_outside_config,
+)
 from teleop.run.supervise import Program, Stack, StackError
 from teleop.run.verdict import machine_section, realtime_health
 
@@ -63,7 +78,6 @@ IDLE_POLL = "idle_poll"
 # they still wait on liveliness.
 PRIORITY = {spec.name: spec.start_priority for spec in graph.SERVICES}
 IDLE_POLL_PRIORITY = 1  # before every service, and stopped after them
-RUNNER = "runner"
 # Environment of every service: no telemetry, headless rendering, unbuffered logs.
 SERVICE_ENVIRONMENT = {
     "RERUN_ANALYTICS": "0",
@@ -108,20 +122,43 @@ def free_loopback_port() -> int:
         return int(s.getsockname()[1])
 
 
-def peer_mesh(names: Sequence[str], listener: str | None) -> dict[str, list[str]]:
+def loopback_endpoint(tls: bool) -> str:
+    """A free loopback endpoint for a process of a run: ``tls/`` in a TLS run
+    (``bus.tls``: its processes link only by mutual TLS), ``tcp/`` otherwise."""
+    return f"{'tls' if tls else 'tcp'}/127.0.0.1:{free_loopback_port()}"
+
+
+def ensure_endpoint_free(endpoint: str) -> None:
+    """Raise :class:`RunError` (one line, what to do) if ``endpoint``'s TCP port on this
+    host is taken: by another stack, or any program. A stack never joins another's bus."""
+    host, _, port = endpoint.partition("/")[2].rpartition(":")
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind((host or "127.0.0.1", int(port)))
+        except OSError as exc:
+            raise RunError(
+                f"bus endpoint {endpoint} is in use ({exc.strerror}): another stack or "
+                "program listens there; stop it (teleop down --run-dir DIR) or drop "
+                "--endpoint to take a free port"
+            ) from None
+
+
+def peer_mesh(
+    names: Sequence[str], listener: str | None, *, tls: bool = False
+) -> dict[str, list[str]]:
     """Each process's ``--set`` overrides for an explicit mesh, gossip off (why: see
     BusConfig.gossip). Every process but ``listener`` listens on a loopback port of its
-    own and connects to the run's listener (``bus.endpoint``) and to the processes
-    before it in ``names``: each pair links once, by one connect, and no process needs
-    gossip to find another. The launcher's own session, if it is the listener, is
-    reached by everyone through ``bus.endpoint``.
+    own (``tls``: a ``tls/`` endpoint) and connects to the run's listener
+    (``bus.endpoint``) and to the processes before it in ``names``: each pair links
+    once, by one connect, and no process needs gossip to find another. The launcher's
+    own session, if it is the listener, is reached by everyone through ``bus.endpoint``.
     """
     listening: list[str] = []
     mesh: dict[str, list[str]] = {}
     for name in names:
         overrides = ["bus.gossip=false"]
         if name != listener:
-            own = f"tcp/127.0.0.1:{free_loopback_port()}"
+            own = loopback_endpoint(tls)
             overrides += [
                 f'bus.peer_listen_endpoint="{own}"',
                 f"bus.peer_connect_endpoints={json.dumps(listening, separators=(',', ':'))}",
@@ -159,13 +196,22 @@ def service_programs(
     listener: str | None,
     await_services: dict[str, Sequence[str]],
     continuous: bool,
+    credentials: Mapping[str, Path] | None = None,
+    mesh: dict[str, list[str]] | None = None,
+    tls: bool = False,
 ) -> list[Program]:
-    """The supervisord programs of the stack, each given the same config and overrides,
-    then its place in the run's :func:`peer_mesh`."""
+    """The supervisord programs of ``services``, each given the same config and
+    overrides, then its place in the run's ``mesh`` (default: a :func:`peer_mesh` of
+    ``services``, over TLS endpoints with ``tls``; with outside services, one that
+    includes them too) and its ``credentials`` file, if any (:func:`run_credentials`)."""
     programs = []
-    mesh = peer_mesh(services, listener)
+    if mesh is None:
+        mesh = peer_mesh(services, listener, tls=tls)
     for name in services:
-        command = service_command(name, run_dir, config_file, [*overrides, *mesh[name]])
+        own = list(mesh[name])
+        if credentials is not None:
+            own.append(f'bus.credentials_file="{credentials[name]}"')
+        command = service_command(name, run_dir, config_file, [*overrides, *own])
         if name == listener:
             command.append("--listen")
         if await_services.get(name):
@@ -184,6 +230,22 @@ def service_programs(
             )
         )
     return programs
+
+
+def run_credentials(
+    config: Config, run_dir: Path, participants: Sequence[str]
+) -> dict[str, Path] | None:
+    """With ``bus.secure``: fresh credentials for ``participants`` and a read-only
+    :data:`OBSERVER` in ``<run_dir>/auth`` (teleop.bus.access; with ``bus.tls`` their
+    certificates too), their files by name; else None (an open bus)."""
+    if not config.bus.secure:
+        return None
+    return write_run_credentials(
+        run_dir / AUTH_DIR,
+        [*participants, OBSERVER],
+        config.robot.robot_id,
+        tls=config.bus.tls,
+    )
 
 
 def idle_poll_cpus(config: Config) -> list[int]:
@@ -233,20 +295,69 @@ def _read_summary(run_dir: Path, service: str) -> dict[str, Any]:
     return json.loads(path.read_text())
 
 
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def _plant_awaits(stack: Sequence[str], *extra: str) -> list[str]:
+    """What the plant waits for (ready tokens) before its first step: everyone else."""
+    return [name for name in stack if name != "plant"] + list(extra)
+
+
+def prepare_outside(
+    config_file: Path | None,
+    overrides: Sequence[str],
+    run_dir: Path,
+    stack: Sequence[str],
+    outside: Sequence[str],
+    mesh: dict[str, list[str]],
+    plant_awaits: Sequence[str],
+    timeout_s: float,
+    credentials: Mapping[str, Path] | None = None,
+) -> list[tuple[str, BusConfig]]:
+    """Write each outside service's Zenoh config (its place in ``mesh`` and, on a secure
+    bus, its ``credentials``); per service, the instructions that tell the user how to
+    join, and its bus settings."""
+    joins = []
+    for name in outside:
+        own_overrides = list(mesh[name])
+        if credentials is not None:
+            own_overrides.append(f'bus.credentials_file="{credentials[name]}"')
+        own = load_config(config_file, [*overrides, *own_overrides])
+        path = write_outside_config(run_dir, name, own.bus)
+        awaits = plant_awaits if name == "plant" else ()
+        text = join_instructions(name, own, path, stack, awaits=awaits, timeout_s=timeout_s)
+        joins.append((text, own.bus))
+    return joins
+
+
 def run_on_services(
     config: Config,
     config_file: Path | None,
     overrides: Sequence[str],
     run_dir: Path,
     progress: ProgressFn | None = None,
+    *,
+    without: Sequence[str] = (),
+    without_timeout_s: float = DEFAULT_WITHOUT_TIMEOUT_S,
+    announce: Callable[[str], None] = _stderr,
 ) -> dict[str, Any]:
-    """Run ``config.run.scenario`` on the supervised services; return the merged summary."""
-    services = scenario_services(config)
+    """Run ``config.run.scenario`` on the supervised services; return the merged summary.
+
+    ``without``: services left out; ``announce`` tells the user how to join each (its
+    Zenoh config is in the run directory), then the run waits up to
+    ``without_timeout_s`` for their ready tokens (RunError after that). Their summaries
+    are missing: the run's summary takes what the stack measured and lists them under
+    ``outside``.
+    """
+    stack_services = scenario_services(config)
+    outside = check_without(stack_services, without)
+    services = tuple(name for name in stack_services if name not in outside)
     run_dir = run_dir.absolute()
     run_dir.mkdir(parents=True, exist_ok=True)
     refuse_if_running(run_dir)
     clear_run_results(run_dir)
-    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    endpoint = loopback_endpoint(config.bus.tls)
     run_overrides = [
         *overrides,
         f'bus.endpoint="{endpoint}"',
@@ -255,33 +366,53 @@ def run_on_services(
     ]
     if not config.recorder.rrd_path:
         run_overrides.append(f'recorder.rrd_path="{run_dir / RECORDING_FILE}"')
-    bus = replace(config.bus, endpoint=endpoint, gossip=False)  # the mesh's listener
+    credentials = run_credentials(config, run_dir, [*stack_services, LAUNCHER])
+    bus = replace(  # the mesh's listener
+        config.bus,
+        endpoint=endpoint,
+        gossip=False,
+        credentials_file=str(credentials[LAUNCHER]) if credentials else "",
+    )
     topics = Topics(config.robot.robot_id)
     drops = DropCounter()
     finished = threading.Event()
+    task_done: list[float] = []  # the operator's TASK_DONE value (1: success), if any
     tool = Latest()
 
     def on_event(rec: np.ndarray, rx_ns: int) -> None:
         if int(rec["event"]) == Event.FINISHED:
             finished.set()
+        elif int(rec["event"]) == Event.TASK_DONE:
+            task_done.append(float(rec["value"]))
 
     polled_cpus = idle_poll_cpus(config)
     session = open_session(bus, listen=True)
     entities: list[Any] = []
     try:
-        entities.append(subscribe(session, topics.events, RUN_EVENT, on_event, drops))
+        entities.append(subscribe_events(session, topics, "plant_events", on_event, drops))
+        if config.run.scenario == "grasp":  # the operator's TASK_DONE (success or not)
+            entities.append(subscribe_events(session, topics, "operator_events", on_event, drops))
         entities.append(subscribe(session, topics.tool_pose, TOOL_POSE, tool, drops))
-        entities.append(declare_alive(session, topics, RUNNER))
-        entities.append(declare_alive(session, topics, RUNNER, ready=True))
+        entities.append(declare_alive(session, topics, LAUNCHER))
+        entities.append(declare_alive(session, topics, LAUNCHER, ready=True))
+        mesh = peer_mesh([*services, *outside], listener=None, tls=config.bus.tls)
+        plant_awaits = _plant_awaits(stack_services, LAUNCHER)
         programs = service_programs(
             services,
             config_file,
             run_overrides,
             run_dir,
             listener=None,
-            await_services={"plant": [*services[1:], RUNNER]},
+            await_services={"plant": plant_awaits},
             continuous=False,
+            credentials=credentials,
+            mesh=mesh,
         ) + idle_poll_programs(polled_cpus, run_dir)
+        for text, _ in prepare_outside(
+            config_file, run_overrides, run_dir, stack_services, outside, mesh, plant_awaits,
+            without_timeout_s, credentials,
+        ):  # fmt: skip
+            announce(text)
         factor = (
             LOCKSTEP_TIMEOUT_FACTOR if config.run.mode == "lockstep" else REALTIME_TIMEOUT_FACTOR
         )
@@ -289,6 +420,13 @@ def run_on_services(
         wall_start = time.perf_counter()
         with Stack(run_dir, programs) as stack:
             wait_alive(session, topics, services, ALIVE_TIMEOUT_S)
+            try:
+                wait_for_outside(
+                    session, topics, outside, without_timeout_s, announce,
+                    still_running=lambda: _check_running(stack),
+                )  # fmt: skip
+            except OutsideMissing as exc:
+                raise RunError(str(exc)) from None
             _wait_finished(finished, tool, config, deadline_s, stack, progress, run_dir)
         wall_s = time.perf_counter() - wall_start
     finally:
@@ -297,7 +435,8 @@ def run_on_services(
     summaries = {name: _read_summary(run_dir, name) for name in services}
     # A pair of peers that never linked: what one sent the other is lost (Service.become_ready).
     unlinked = {n: s["unlinked_peers"] for n, s in summaries.items() if s.get("unlinked_peers")}
-    plant, controller = summaries["plant"], summaries["controller"]
+    # An outside service wrote no summary: its figures are None, the stack's are there.
+    plant, controller = summaries.get("plant", {}), summaries.get("controller", {})
     dropped = sum(s.get("dropped_messages", 0) for s in summaries.values()) + drops.total
     summary: dict[str, Any] = {
         "scenario": config.run.scenario,
@@ -305,46 +444,51 @@ def run_on_services(
         "seed": config.run.seed,
     }
     if config.run.scenario == "grasp":
-        summary.update(_grasp_summary(summaries))
+        summary.update(_grasp_summary(summaries, task_done))
     else:
         summary.update(
             {
                 "duration_s": config.run.duration_s,
-                "settle_s": controller["settle_s"],
-                "compensation": controller["compensation"],
-                "path_error_rms_m": controller["path_error_rms_m"],
-                "path_error_max_m": controller["path_error_max_m"],
-                "min_manipulability": controller["min_manipulability"],
+                "settle_s": controller.get("settle_s"),
+                "compensation": controller.get("compensation"),
+                "path_error_rms_m": controller.get("path_error_rms_m"),
+                "path_error_max_m": controller.get("path_error_max_m"),
+                "min_manipulability": controller.get("min_manipulability"),
             }
         )
     idle_poll = idle_poll_report(polled_cpus, run_dir)
     health = realtime_health(
         config.run.mode,
-        overrun_fraction=plant["overrun_fraction"],
-        realtime_factor=plant["realtime_factor"] or 0.0,
-        watchdog_brakes=plant["stale_commands"],
-        braked_steps=plant["stale_steps"],
-        steps=plant["steps"],
+        overrun_fraction=plant.get("overrun_fraction", 0.0),
+        realtime_factor=plant.get("realtime_factor") or 0.0,
+        watchdog_brakes=plant.get("stale_commands", 0),
+        braked_steps=plant.get("stale_steps", 0),
+        steps=plant.get("steps", 0),
         dropped_messages=dropped,
         unlinked_peers=unlinked,
     )
     summary.update(
         {
             **health.as_dict(),
-            "steps": plant["steps"],
-            "wall_s": plant["wall_s"],
-            "realtime_factor": plant["realtime_factor"],
-            "overrun_fraction": plant["overrun_fraction"],
-            "stale_commands": plant["stale_commands"],
+            "outside": list(outside),
+            "steps": plant.get("steps"),
+            "wall_s": plant.get("wall_s"),
+            "realtime_factor": plant.get("realtime_factor"),
+            "overrun_fraction": plant.get("overrun_fraction"),
+            "commands_received": plant.get("commands_received"),
+            "commands_applied": plant.get("commands_applied"),
+            "commands_clamped": plant.get("commands_clamped"),
+            "command_stream": plant.get("command_stream"),
+            "stale_commands": plant.get("stale_commands"),
             "dropped_messages": dropped,
             "unlinked_peers": unlinked,
-            "skipped_states": controller["skipped_states"],
-            "final_state_sha256": plant["final_state_sha256"],
+            "skipped_states": controller.get("skipped_states"),
+            "final_state_sha256": plant.get("final_state_sha256"),
             "stack_wall_s": wall_s,
             **idle_poll,
             "machine": machine_section(summaries, polled_cpus, idle_poll),
             "eye_view": _eye_view_summary(summaries),
-            "rrd": summaries["recorder"].get("rrd_path"),
+            "rrd": summaries.get("recorder", {}).get("rrd_path"),
             "run_dir": str(run_dir),
             "services": summaries,
         }
@@ -357,7 +501,7 @@ def _eye_view_summary(summaries: dict[str, dict[str, Any]]) -> dict[str, Any] | 
     eyeview = summaries.get(EYEVIEW)
     if eyeview is None:
         return None
-    recorder = summaries["recorder"]
+    recorder = summaries.get("recorder", {})
     received = recorder.get("eye_view", {})
     return {
         "frames_published": eyeview["frames_published"],
@@ -371,18 +515,21 @@ def _eye_view_summary(summaries: dict[str, dict[str, Any]]) -> dict[str, Any] | 
     }
 
 
-def _grasp_summary(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """The teleoperation task's figures of merit, from the services that measured them."""
-    plant, controller = summaries["plant"], summaries["controller"]
-    haptic, operator = summaries["haptic"], summaries["operator"]
+def _grasp_summary(summaries: dict[str, dict[str, Any]], task_done: list[float]) -> dict[str, Any]:
+    """The teleoperation task's figures of merit, from the services that measured them
+    (an outside service's are None; an outside operator's success is its TASK_DONE's)."""
+    plant, controller = summaries.get("plant", {}), summaries.get("controller", {})
+    haptic, operator = summaries.get("haptic", {}), summaries.get("operator")
+    said_success = operator.get("success") if operator is not None else task_done[-1:] == [1.0]
+    operator = operator or {}
     return {
-        "success": bool(operator.get("success")) and bool(plant["object_in_box"]),
-        "object_in_box": plant["object_in_box"],
+        "success": bool(said_success) and bool(plant.get("object_in_box")),
+        "object_in_box": plant.get("object_in_box"),
         "duration_s": operator.get("task_duration_s"),
         "max_device_force_n": haptic.get("max_rendered_force_n"),
-        "max_contact_force_n": plant["max_contact_force_n"],
-        "obstacle_min_clearance_m": plant["obstacle_min_clearance_m"],
-        "tool_speed_max_m_s": plant["tool_speed_max_m_s"],
+        "max_contact_force_n": plant.get("max_contact_force_n"),
+        "obstacle_min_clearance_m": plant.get("obstacle_min_clearance_m"),
+        "tool_speed_max_m_s": plant.get("tool_speed_max_m_s"),
         "velocity_tracking_rms_m_s": controller.get("velocity_tracking_rms_m_s"),
         "stale_feedback_events": haptic.get("stale_feedback_events"),
         "max_obstacle_force_n": controller.get("max_obstacle_force_n"),
@@ -408,9 +555,7 @@ def _wait_finished(
     while not finished.wait(timeout=0.5) and not _plant_finished(run_dir):
         if time.monotonic() - start > deadline_s:
             raise RunError(f"run did not finish within {deadline_s:g} s: {stack.status()}")
-        failed = {n: s for n, s in stack.status().items() if s not in ("RUNNING", "STARTING")}
-        if failed:
-            raise RunError(f"service(s) stopped during the run: {failed}")
+        _check_running(stack)
         latest = tool.get()
         if progress is not None and latest is not None:
             sim_s = int(latest[0]["sim_time_ns"]) * 1e-9
@@ -444,25 +589,108 @@ def refuse_if_running(run_dir: Path) -> None:
     )
 
 
+def _check_running(stack: Stack) -> None:
+    """RunError if a service of ``stack`` is no longer running."""
+    failed = {n: s for n, s in stack.status().items() if s not in ("RUNNING", "STARTING")}
+    if failed:
+        raise RunError(f"service(s) stopped during the run: {failed}")
+
+
 def start_detached(
-    config: Config, config_file: Path | None, overrides: Sequence[str], run_dir: Path
-) -> dict[str, str]:
-    """``teleop up``: the stack with the plant as listener, running until stopped."""
+    config: Config,
+    config_file: Path | None,
+    overrides: Sequence[str],
+    run_dir: Path,
+    endpoint: str | None = None,
+    *,
+    without: Sequence[str] = (),
+    without_timeout_s: float = DEFAULT_WITHOUT_TIMEOUT_S,
+    announce: Callable[[str], None] = _stderr,
+) -> tuple[dict[str, str], str]:
+    """``teleop up``: the stack with the plant as listener on ``endpoint`` (None: a free
+    loopback port), running until stopped; the services' states and the endpoint.
+    Raises :class:`RunError` if the endpoint is taken, or is not a ``tls/`` one in a
+    TLS run (``bus.tls``).
+
+    ``without``: services left out, as in :func:`run_on_services`: once the rest is
+    started, wait for their ready tokens (a session of this process linked to each of
+    them); if one does not come within ``without_timeout_s``, stop the stack and raise
+    RunError.
+    """
     run_dir = run_dir.absolute()
     refuse_if_running(run_dir)
-    run_overrides = list(overrides)
+    endpoint = endpoint or loopback_endpoint(config.bus.tls)
+    if config.bus.tls and not endpoint.startswith("tls/"):
+        raise RunError(f"bus.tls: the endpoint must be tls/HOST:PORT, not {endpoint}")
+    ensure_endpoint_free(endpoint)
+    run_overrides = [*overrides, f'bus.endpoint="{endpoint}"']
     if not config.recorder.rrd_path:
         run_overrides.append(f'recorder.rrd_path="{run_dir / RECORDING_FILE}"')
-    services = scenario_services(config)
+    stack_services = scenario_services(config)
+    outside = check_without(stack_services, without)
+    services = tuple(name for name in stack_services if name not in outside)
+    mesh = peer_mesh([*services, *outside], listener="plant", tls=config.bus.tls)
+    plant_awaits = _plant_awaits(stack_services)
+    credentials = run_credentials(config, run_dir, stack_services)
     programs = service_programs(
         services,
         config_file,
         run_overrides,
         run_dir,
         listener="plant",
-        await_services={"plant": list(services[1:])},
+        await_services={"plant": plant_awaits},
         continuous=True,
+        credentials=credentials,
+        mesh=mesh,
     ) + idle_poll_programs(idle_poll_cpus(config), run_dir)
+    joins = prepare_outside(
+        config_file, run_overrides, run_dir, stack_services, outside, mesh, plant_awaits,
+        without_timeout_s, credentials,
+    )  # fmt: skip
     stack = Stack(run_dir, programs)
     stack.start(detach=True)
-    return stack.status()
+    if outside:
+        for text, _ in joins:
+            announce(text)
+        observer = credentials[OBSERVER] if credentials is not None else None
+        _await_outside_detached(stack, config, endpoint, [bus for _, bus in joins], outside,
+                                without_timeout_s, announce, observer)  # fmt: skip
+    return stack.status(), endpoint
+
+
+def _await_outside_detached(
+    stack: Stack,
+    config: Config,
+    endpoint: str,
+    outside_buses: Sequence[BusConfig],
+    outside: Sequence[str],
+    timeout_s: float,
+    announce: Callable[[str], None],
+    observer: Path | None,
+) -> None:
+    """``teleop up``: wait for the outside services' ready tokens over links of this
+    process's own to each (peers do not forward tokens), with the run's ``observer``
+    credentials (None: an open bus); stop the stack if they do not come. ``endpoint``:
+    the run's listener's."""
+    watcher = replace(
+        config.bus,
+        endpoint=endpoint,
+        gossip=False,
+        peer_listen_endpoint="",
+        peer_connect_endpoints=tuple(bus.peer_listen_endpoint for bus in outside_buses),
+        credentials_file=str(observer) if observer is not None else "",
+    )
+    session = open_session(watcher, listen=False)
+    try:
+        wait_for_outside(
+            session, Topics(config.robot.robot_id), outside, timeout_s, announce,
+            still_running=lambda: _check_running(stack),
+        )  # fmt: skip
+    except (OutsideMissing, RunError) as exc:
+        stack.stop()
+        raise RunError(f"{exc}; stopped the stack") from None
+    except BaseException:
+        stack.stop()
+        raise
+    finally:
+        close_session(session)

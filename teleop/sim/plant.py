@@ -109,6 +109,11 @@ class Plant:
         self._fingers_at = _as_slice(self.finger_qpos_index)
         self.ctrl_low = self.model.actuator_ctrlrange[self.actuator_index, 0].copy()
         self.ctrl_high = self.model.actuator_ctrlrange[self.actuator_index, 1].copy()
+        # The robot's own limits, enforced on every command whatever sent it: each joint
+        # within its drive's range, the tool point's commanded speed within this.
+        self.tool_speed_limit_m_s = config.plant.tool_speed_limit_m_s
+        self.clamped_steps = 0  # steps whose command was cut down to the limits
+        self._jacp = np.zeros((3, self.model.nv))
         self.step_count = 0
         self.gripper_cmd = 1.0  # the gripper command in effect (0 closed .. 1 open)
         self._hold_q_rad: np.ndarray | None = None
@@ -169,10 +174,28 @@ class Plant:
         self._step1_done = False
         self.step_count += 1
 
+    def limit(self, qd_ref_rad_s: np.ndarray) -> np.ndarray:
+        """``qd_ref_rad_s`` within the robot's limits: each joint clipped to its drive's
+        range (the velocity actuator's ctrlrange), then all scaled down together (the
+        direction kept) so the tool point's commanded speed, MuJoCo's site Jacobian at the
+        state the step starts from times the references, is at most
+        ``plant.tool_speed_limit_m_s``. Counts the steps it cut (``clamped_steps``)."""
+        qd = np.minimum(np.maximum(qd_ref_rad_s, self.ctrl_low), self.ctrl_high)
+        clamped = not np.array_equal(qd, qd_ref_rad_s)
+        self.prepare_step()  # positions-dependent data of the state the step starts from
+        mujoco.mj_jacSite(self.model, self.data, self._jacp, None, self.tool_site)
+        speed_m_s = math.hypot(*(self._jacp[:, self.dof_index] @ qd).tolist())
+        if speed_m_s > self.tool_speed_limit_m_s:
+            qd *= self.tool_speed_limit_m_s / speed_m_s
+            clamped = True
+        if clamped:
+            self.clamped_steps += 1
+        return qd
+
     def step(self, qd_ref_rad_s: np.ndarray, gripper_cmd: float) -> None:
-        """Apply velocity references (rad/s, clipped by the actuators) and advance one step."""
+        """Apply velocity references (rad/s, within :meth:`limit`) and advance one step."""
         self._hold_q_rad = None
-        self.data.ctrl[self._ctrl_at] = qd_ref_rad_s
+        self.data.ctrl[self._ctrl_at] = self.limit(qd_ref_rad_s)
         self.data.ctrl[self.gripper_actuator] = self._gripper_ctrl(gripper_cmd)
         self.gripper_cmd = min(max(gripper_cmd, 0.0), 1.0)
         self._advance()

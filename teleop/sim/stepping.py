@@ -180,33 +180,65 @@ class Judgement(NamedTuple):
     value: float = 0.0
 
 
+# States whose send time the watchdog remembers (a ring): 4 s at 1 kHz, far beyond any
+# watchdog limit; a command answering an older state is stale whatever the limit.
+STATE_HISTORY = 4096
+
+
 class Watchdog:
     """The plant's command watchdog: the one brake/resume decision of every realtime step.
 
-    A command is fresh while it answers a state at most ``limit_steps`` states older than
-    the plant's newest (``state_seq``, the plant's own numbering). A step with a stale
-    command (or none yet) brakes; the first stale step after fresh ones announces
-    WATCHDOG_BRAKE with the command's age (s), the first fresh one after braking
-    WATCHDOG_RESUME.
+    Judged on the plant's own clock and its own state numbering, never on a sender's
+    stamps: a command answering state k is fresh while k is the newest state the plant
+    sent, or while state k + 1 (the first the sender has not answered) went out at most
+    ``limit_ns`` ago. So a silent or stuck controller is braked ``limit_ns`` after it
+    could have answered, and a plant that stalls itself does not brake on its own delay.
+    A step with a stale command (or none yet) brakes; the first stale step after fresh
+    ones announces WATCHDOG_BRAKE with the answered state's age (s), the first fresh one
+    after braking WATCHDOG_RESUME.
     """
 
-    def __init__(self, limit_steps: int, timestep_s: float) -> None:
-        self.limit_steps = limit_steps
-        self.timestep_s = timestep_s
+    def __init__(self, limit_ns: int, history: int = STATE_HISTORY) -> None:
+        if limit_ns <= 0:
+            raise ValueError(f"limit_ns must be > 0, got {limit_ns}")
+        self.limit_ns = limit_ns
         self.braking = False
         self.brakes = 0  # times it started braking on a stale command
         self.stale_steps = 0  # steps braked on a stale command (not before the first one)
+        self._sent_seq = np.full(history, -1, dtype=np.int64)
+        self._sent_ns = np.zeros(history, dtype=np.int64)
+        self.newest_seq = -1
 
     def reset(self) -> None:
         """A new run: not braking (the counters keep counting)."""
         self.braking = False
 
-    def judge(self, command: np.ndarray | None, state_seq: int) -> Judgement:
-        """Apply ``command`` at the step after state ``state_seq``, or brake?"""
+    def state_sent(self, seq: int, now_ns: int) -> None:
+        """The plant sent state ``seq`` at ``now_ns``."""
+        slot = seq % len(self._sent_seq)
+        self._sent_seq[slot] = seq
+        self._sent_ns[slot] = now_ns
+        self.newest_seq = seq
+
+    def sent_ns(self, seq: int) -> int | None:
+        """When state ``seq`` was sent (None: not sent, or too long ago to remember)."""
+        slot = seq % len(self._sent_seq)
+        return int(self._sent_ns[slot]) if self._sent_seq[slot] == seq else None
+
+    def overdue_ns(self, answered_seq: int, now_ns: int) -> int:
+        """How long the sender of a command answering ``answered_seq`` has had a newer
+        state without answering it (0: it answers the newest)."""
+        if answered_seq >= self.newest_seq:
+            return 0
+        sent_ns = self.sent_ns(answered_seq + 1)
+        return now_ns - sent_ns if sent_ns is not None else np.iinfo(np.int64).max
+
+    def judge(self, command: np.ndarray | None, now_ns: int) -> Judgement:
+        """Apply ``command`` at the step about to be taken at ``now_ns``, or brake?"""
         if command is None:
             return Judgement(False)
-        age_steps = state_seq - int(command["state_seq"])
-        if age_steps <= self.limit_steps:
+        answered = int(command["state_seq"])
+        if self.overdue_ns(answered, now_ns) <= self.limit_ns:
             if self.braking:
                 self.braking = False
                 return Judgement(True, Event.WATCHDOG_RESUME)
@@ -216,7 +248,9 @@ class Watchdog:
             return Judgement(False)
         self.braking = True
         self.brakes += 1
-        return Judgement(False, Event.WATCHDOG_BRAKE, age_steps * self.timestep_s)
+        sent_ns = self.sent_ns(answered)
+        age_s = (now_ns - sent_ns) / NS_PER_S if sent_ns is not None else math.inf
+        return Judgement(False, Event.WATCHDOG_BRAKE, age_s)
 
 
 class PlantOutputs(Protocol):
@@ -224,7 +258,7 @@ class PlantOutputs(Protocol):
 
     def put(self, stream: str, rec: np.ndarray) -> bytes:
         """Send ``rec`` on ``stream`` (a Topics attribute: plant_state, tool_pose,
-        objects, events); the bytes sent."""
+        objects, plant_events); the bytes sent."""
         ...
 
     def put_bytes(self, stream: str, data: bytes) -> None:
@@ -287,9 +321,7 @@ class PlantLoop:
         # Realtime: the control-free half of the next step while the command is on its way.
         # Not in lockstep: there the state's send would wait behind it.
         self.prepare_ahead = not self.lockstep
-        self.watchdog = Watchdog(
-            int(plant_cfg.watchdog_s / plant_cfg.timestep_s), plant_cfg.timestep_s
-        )
+        self.watchdog = Watchdog(round(plant_cfg.watchdog_s * NS_PER_S))
         # Step k applies the command answering state k - delay_steps (PlantConfig).
         self.delay_steps = plant_cfg.lockstep_delay_steps
         self.proximity = ObstacleProximity(self.plant.model, self.plant.data, config.robot)
@@ -304,7 +336,12 @@ class PlantLoop:
         self._event = RUN_EVENT.new()
         self.figures = PlantFigures()
         self.arrival = ArrivalCounts()
-        self.command_in = Inbound(Stage.CONTROLLER_TX)  # JOINT_COMMAND order, age, shed log
+        # JOINT_COMMAND order, age and shed log; every command is admitted here first
+        self.command_in = Inbound(Stage.CONTROLLER_TX, name="joint_command")
+        self._admit_lock = threading.Lock()  # commands come on Zenoh's threads
+        self.commands_received = 0
+        self.commands_future_state = 0  # answering a state the plant has not sent
+        self._warned_future_state = False
         self.commands = Latest()  # realtime tick pacing: the newest command
         self.cycle_stats = LockstepCycleStats()
         self.timer: LoopTimer | None = None
@@ -332,14 +369,42 @@ class PlantLoop:
 
     # -- inputs --------------------------------------------------------------------------
     def on_command(self, rec: np.ndarray, rx_ns: int) -> None:
-        """A JOINT_COMMAND for this arm arrived at ``rx_ns``: step with it now (lockstep,
-        apply on arrival) or keep it for the next tick."""
+        """A JOINT_COMMAND for this arm arrived at ``rx_ns``: admitted (:meth:`admit`),
+        then stepped with now (lockstep, apply on arrival) or kept for the next tick."""
+        if not self.admit(rec):
+            return
         if self._lockstep_running:
             self._lockstep_cycle(rec, rx_ns)
         elif self._arrival_running:
             self._arrival_command(rec, rx_ns)
         else:
             self.commands(rec, rx_ns)
+
+    def admit(self, rec: np.ndarray) -> bool:
+        """Whether a command may steer the arm at all, whatever its sender claims: it
+        answers a state this plant has sent (``state_seq``), its send stamp is not in this
+        host's future, its ``seq`` is in order within the window (a restarted controller
+        is taken up, :class:`teleop.bus.stamps.SeqCheck`), and, applied on arrival, it is
+        not a backlog (older than the shed age). Every rejection is counted."""
+        with self._admit_lock:
+            self.commands_received += 1
+            if int(rec["state_seq"]) > self.state_seq:
+                self.commands_future_state += 1
+                if not self._warned_future_state:
+                    self._warned_future_state = True
+                    logger.warning(
+                        "rejected a command answering state %d (newest sent: %d); further "
+                        "ones are only counted",
+                        int(rec["state_seq"]),
+                        self.state_seq,
+                    )
+                return False
+            now_ns = self.clock.now_ns()
+            if self._arrival_running:
+                return self.command_in.accept(rec, now_ns)
+            # Tick and lockstep pacings: no shedding (the watchdog judges the age; lockstep
+            # waits for its answer however long it takes).
+            return self.command_in.accept(rec, now_ns, shed=False)
 
     def on_task_done(self, step: int) -> None:
         """The operator's TASK_DONE: the run ends at tick ``step``."""
@@ -363,7 +428,7 @@ class PlantLoop:
             self._start_lockstep()
             self._run_lockstep(stop)
         else:
-            self._publish_state(None, 0, 0)
+            self.publish_initial_state()
             if self.apply_on_arrival:
                 self._run_on_arrival(stop)
             else:
@@ -385,6 +450,10 @@ class PlantLoop:
         self._last_applied_seq = -1
         self.watchdog.reset()
 
+    def publish_initial_state(self) -> None:
+        """Realtime: send the run's first state, the one the first command answers."""
+        self._publish_state(None, 0, 0)
+
     def _run_realtime(self, stop: threading.Event) -> None:
         self.timer = LoopTimer(self.period_ns, self.clock)
         while not stop.is_set() and self.should_step():
@@ -403,7 +472,7 @@ class PlantLoop:
         """One realtime step with ``command`` (None: none yet), or braking if the watchdog
         says so; whether it was applied. ``traced``: the command entered this step first
         hand (its stamps go on in the state); None: if it was not applied before."""
-        judgement = self.watchdog.judge(command, self.state_seq)
+        judgement = self.watchdog.judge(command, self.clock.now_ns())
         if judgement.event is not None:
             self.publish_event(judgement.event, judgement.value)
         if not judgement.apply:
@@ -475,8 +544,6 @@ class PlantLoop:
             grid = self.grid
             if not self._arrival_running or grid is None:
                 return
-            if not self.command_in.accept(command, self.clock.now_ns()):
-                return  # older than one applied, or a backlog: a newer one is right behind
             deadline_ns = int(command["device_deadline_ns"])
             ahead = 0  # a command not paced by a device steps the next period
             if deadline_ns > 0:
@@ -589,7 +656,7 @@ class PlantLoop:
         rec["step"] = self.plant.step_count
         rec["event"] = event
         rec["value"] = value
-        self.outputs.put("events", rec)
+        self.outputs.put("plant_events", rec)
         logger.info("event %s at step %d", event.name, self.plant.step_count)
 
     def _publish_state(
@@ -628,6 +695,7 @@ class PlantLoop:
         rec["t_source_ns"] = now_ns
         rec["trace_ns"][Stage.PLANT_STATE_TX] = now_ns
         self._put("plant_state", rec)
+        self.watchdog.state_sent(self.state_seq, now_ns)
         if grasp_event is not None:
             self.publish_event(grasp_event, float(max(int(rec["held_body"]), 0)))
         if sample.step % self.scene_every_steps == 0:
@@ -715,7 +783,13 @@ class PlantLoop:
             "overrun_fraction": timer.get("overrun_fraction", 0.0),
             "skipped_ticks": timer.get("skipped", 0),
             "loop": timer,
+            "commands_received": self.commands_received,
             "commands_applied": self.commands_applied,
+            "commands_clamped": self.plant.clamped_steps,
+            "command_stream": {
+                **self.command_in.counts(),
+                "future_state": self.commands_future_state,
+            },
             "stale_commands": self.watchdog.brakes,
             "stale_steps": self.watchdog.stale_steps,
             "unanswered_commands": self.unanswered_commands,

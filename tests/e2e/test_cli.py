@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 import threading
@@ -12,7 +13,6 @@ from teleop.bus.messages import PLANT_STATE, DropCounter
 from teleop.bus.session import close_session, open_session, subscribe
 from teleop.bus.topics import Topics
 from teleop.core.config import load_config
-from teleop.run.stack import free_loopback_port
 
 SUMMARY_KEYS = {
     "scenario",
@@ -70,26 +70,40 @@ def _read_json(path: Path) -> dict:
 STATES_TO_SEE = 500
 
 
-def applied_states(endpoint_override: str, count: int) -> int:
-    """Join the stack's bus (the plant listens on ``bus.endpoint``) and wait, event driven,
-    for ``count`` plant states that carry an applied command; how many came."""
-    config = load_config(None, [endpoint_override, "bus.gossip=false"])
-    topics = Topics(config.robot.robot_id)
-    seen, done = [0], threading.Event()
+class StateCount:
+    """A session on the stack's bus (the plant listens on ``endpoint``) with
+    ``credentials`` (None: none), counting the plant states that carry an applied
+    command."""
 
-    def on_state(rec, rx_ns) -> None:
+    def __init__(self, endpoint: str, credentials: Path | None, target: int = 0) -> None:
+        overrides = [f'bus.endpoint="{endpoint}"', "bus.gossip=false"]
+        if credentials is not None:
+            overrides.append(f'bus.credentials_file="{credentials}"')
+        config = load_config(None, overrides)
+        self.count, self.target, self.done = 0, target, threading.Event()
+        self.session = open_session(config.bus, listen=False)
+        topics = Topics(config.robot.robot_id)
+        self.sub = subscribe(self.session, topics.plant_state, PLANT_STATE, self._on, DropCounter())
+
+    def _on(self, rec, rx_ns) -> None:
         if int(rec["cmd_seq_applied"]) > 0:
-            seen[0] += 1
-            if seen[0] >= count:
-                done.set()
+            self.count += 1
+            if self.target and self.count >= self.target:
+                self.done.set()
 
-    session = open_session(config.bus, listen=False)
-    sub = subscribe(session, topics.plant_state, PLANT_STATE, on_state, DropCounter())
+    def close(self) -> None:
+        close_session(self.session, self.sub)
+
+
+def applied_states(endpoint: str, count: int, credentials: Path | None) -> int:
+    """Wait, event driven, for ``count`` applied plant states (a bound of UP_TIMEOUT_S)
+    seen by a :class:`StateCount`; how many came."""
+    watcher = StateCount(endpoint, credentials, target=count)
     try:
-        done.wait(UP_TIMEOUT_S)  # bounds a failure only
-        return min(seen[0], count)
+        watcher.done.wait(UP_TIMEOUT_S)  # bounds a failure only
+        return min(watcher.count, count)
     finally:
-        close_session(session, sub)
+        watcher.close()
 
 
 def test_up_status_down_runs_a_linked_stack_until_stopped(tmp_path):
@@ -98,14 +112,20 @@ def test_up_status_down_runs_a_linked_stack_until_stopped(tmp_path):
     RUNNING, `teleop down` stops them. The plant applied the controller's commands and
     every pair linked (unlinked_peers empty), so the mesh worked without gossip."""
     run_dir = tmp_path / "up"
-    endpoint = f'bus.endpoint="tcp/127.0.0.1:{free_loopback_port()}"'  # not 7447: CI
-    up = teleop("up", "--mode", "realtime", "--run-dir", str(run_dir), "--set", endpoint)
+    up = teleop("up", "--mode", "realtime", "--run-dir", str(run_dir))
     try:
         assert up.returncode == 0, up.stderr
+        endpoint = re.search(r"bus: (tcp/127\.0\.0\.1:\d+)", up.stdout).group(1)
         services = ("plant", "controller", "recorder", "eyeview")
         # The plant steps only once every service is ready: its states applying the
-        # controller's commands mean the whole stack runs.
-        assert applied_states(endpoint, STATES_TO_SEE) == STATES_TO_SEE
+        # controller's commands mean the whole stack runs. The run's read-only observer
+        # credentials let this test watch; a second stack on the same endpoint is refused.
+        observer = run_dir / "auth" / "observer.json"
+        assert applied_states(endpoint, STATES_TO_SEE, observer) == STATES_TO_SEE
+        other = tmp_path / "other"
+        second = teleop("up", "--run-dir", str(other), "--endpoint", endpoint)
+        assert second.returncode == 1 and second.stderr.count("\n") == 1, second.stderr
+        assert f"bus endpoint {endpoint} is in use" in second.stderr
         status = teleop("status", "--run-dir", str(run_dir))
         assert status.returncode == 0, status.stdout + status.stderr
         for name in services:
@@ -119,3 +139,23 @@ def test_up_status_down_runs_a_linked_stack_until_stopped(tmp_path):
     for name in services:
         assert _read_json(run_dir / f"{name}.summary.json")["unlinked_peers"] == [], name
     assert (run_dir / "recording.rrd").stat().st_size > 0
+
+
+def test_a_session_without_the_runs_credentials_sees_nothing_of_a_stack(tmp_path):
+    """`teleop up`'s bus is closed to anyone without the run's files: a session with no
+    credentials (another user, another stack) gets none of the plant's states while
+    the run's observer gets them, through the same endpoint at the same time."""
+    run_dir = tmp_path / "up"
+    up = teleop("up", "--mode", "realtime", "--run-dir", str(run_dir))
+    try:
+        assert up.returncode == 0, up.stderr
+        endpoint = re.search(r"bus: (tcp/127\.0\.0\.1:\d+)", up.stdout).group(1)
+        stranger = StateCount(endpoint, None)
+        try:
+            observer = run_dir / "auth" / "observer.json"
+            assert applied_states(endpoint, STATES_TO_SEE, observer) == STATES_TO_SEE
+        finally:
+            stranger.close()
+        assert stranger.count == 0
+    finally:
+        assert teleop("down", "--run-dir", str(run_dir)).returncode == 0

@@ -148,7 +148,8 @@ def test_grasp_recording_holds_every_entity_the_blueprint_shows(obstacle_run):
         assert np.nanmin(values) >= 0.0 and not np.isnan(values).all(axis=0).any(), stream
 
     # Events: every RUN_EVENT plus the recorder's lines (services joining the bus).
-    assert len(data[ent.ENTITY_EVENTS]["TextLog:text"]) == logged["events"]
+    n_events = logged["plant_events"] + logged["operator_events"]
+    assert len(data[ent.ENTITY_EVENTS]["TextLog:text"]) == n_events
     texts = [t[0] for t in data[ent.ENTITY_RECORDER_EVENTS]["TextLog:text"]]
     assert any("GRASP" in t[0] for t in data[ent.ENTITY_EVENTS]["TextLog:text"])
     assert any(t == "service plant joined the bus" for t in texts)

@@ -105,6 +105,27 @@ def test_lockstep_delay_is_the_same_in_services_and_in_process(tmp_path, delay_s
     assert reference["path_error_max_m"] < 1e-3
 
 
+def test_a_tls_run_links_only_by_tls_and_equals_the_inprocess_run(tmp_path):
+    """With bus.tls every process of the run has its own certificate and every link of
+    the mesh is mutual TLS (tls/ endpoints only, none left on tcp/); the lockstep run is
+    the same run as in process."""
+    settings = ["--duration", "2", "--seed", "4", "--set", "run.settle_s=1"]
+    summary = run_services(
+        tmp_path, "tls", "--mode", "lockstep", *settings, "--set", "bus.tls=true"
+    )
+    reference = run_path_following_inprocess(
+        load_config(None, ["run.duration_s=2", "run.seed=4", "run.settle_s=1"]), progress=None
+    )
+    assert summary["final_state_sha256"] == reference["final_state_sha256"]
+    assert summary["steps"] == 2000 and summary["unlinked_peers"] == {}
+    assert summary["dropped_messages"] == 0 and summary["stale_commands"] == 0
+    run_dir = tmp_path / "tls"
+    commands = (run_dir / "supervisord.conf").read_text()
+    assert "tls/127.0.0.1:" in commands and "tcp/" not in commands
+    for name in ("plant", "controller", "recorder", "launcher", "observer"):
+        assert (run_dir / "auth" / f"{name}.cert.pem").exists(), name
+
+
 def test_realtime_run_keeps_time_and_accuracy(tmp_path):
     summary = run_services(
         tmp_path, "rt", "--mode", "realtime", "--duration", "4", "--set", "run.settle_s=2"
@@ -128,7 +149,7 @@ class Observer:
         self.states = Latest()
         self.drops = DropCounter()
         self.entities = [
-            subscribe(self.session, topics.events, RUN_EVENT, self._on_event, self.drops),
+            subscribe(self.session, topics.plant_events, RUN_EVENT, self._on_event, self.drops),
             subscribe(self.session, topics.plant_state, PLANT_STATE, self._on_state, self.drops),
             declare_alive(self.session, topics, OBSERVER),
             declare_alive(self.session, topics, OBSERVER, ready=True),  # the plant awaits it

@@ -46,7 +46,9 @@ class Bus:
         self.objects = Publisher.declare(self.session, self.topics.objects, OBJECT_POSES)
         self.entities = [
             subscribe(self.session, self.topics.hand_input, HAND_INPUT, self._on_hand, self.drops),
-            subscribe(self.session, self.topics.events, RUN_EVENT, self._on_event, self.drops),
+            subscribe(
+                self.session, self.topics.operator_events, RUN_EVENT, self._on_event, self.drops
+            ),
         ]
 
     def _on_hand(self, rec: np.ndarray, rx_ns: int) -> None:

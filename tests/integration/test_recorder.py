@@ -50,7 +50,8 @@ N = {  # records sent per stream
     "tool_pose": 400,
     "objects": 50,
     "control_status": 120,
-    "events": 7,
+    "plant_events": 4,  # EVENTS[:4]
+    "operator_events": 3,  # EVENTS[4:]
 }
 N_BILATERAL = {  # records sent per stream of the bilateral teleoperation test
     "haptic_state": 300,
@@ -150,9 +151,11 @@ def build(stream: str, i: int) -> np.ndarray:
         rec["manipulability"] = 0.05
         rec["desired_p_m"] = (0.1, 0.2, 0.3)
         rec["tool_p_m"] = (0.1, 0.2, 0.3 + 0.0001 * i)
-    elif stream == "events":
-        event, step, value = EVENTS[i]
+    elif stream in ("plant_events", "operator_events"):
+        index = i if stream == "plant_events" else N["plant_events"] + i
+        event, step, value = EVENTS[index]
         rec["event"], rec["step"], rec["value"] = event, step, value
+        rec["sim_time_ns"] = sim_ns(index)
     elif stream == "haptic_state":
         rec["tick"] = i
         rec["device_p_m"] = (0.0001 * i, -0.0001 * i, 0.01)

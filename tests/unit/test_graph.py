@@ -7,8 +7,9 @@ from pathlib import Path
 import pytest
 
 from teleop.bus import graph
+from teleop.bus.messages import Event, Stage, code_tables
 from teleop.bus.topics import Topics
-from teleop.core.config import load_config
+from teleop.core.config import SCENARIOS, load_config
 from teleop.run.stack import PRIORITY, scenario_services
 from teleop.viz import recording as recorder
 
@@ -42,7 +43,7 @@ def test_the_recorder_and_the_launcher_read_the_graph():
         "force_feedback": "force_feedback_batch",
     }
     assert "joint_command" not in recorder.STREAM_SCHEMAS  # the plant's state carries it
-    assert "events" not in recorder.PERIODIC_STREAMS
+    assert not {"plant_events", "operator_events"} & recorder.PERIODIC_STREAMS
     assert "control_status" not in recorder.SEQ_CHECKED_STREAMS
     grasp = scenario_services(load_config(None, ['run.scenario="grasp"', "eyeview.enabled=false"]))
     assert grasp == ("plant", "controller", "haptic", "hmd", "operator", "recorder")
@@ -55,3 +56,38 @@ def test_protocol_doc_embeds_the_current_graph_tables():
     assert embedded.strip() == graph.graph_tables().strip(), (
         "docs/protocol.md is stale: paste `python -m teleop.bus.graph` between the markers"
     )
+
+
+def _embedded(begin: str, end: str) -> str:
+    text = PROTOCOL_DOC.read_text()
+    return text[text.index(begin) + len(begin) : text.index(end)]
+
+
+def test_protocol_doc_embeds_the_current_codes_and_every_token():
+    """Trace stages, RUN_EVENT codes, flag and button bits are generated from the code;
+    every liveliness token of the graph is named in the doc as a client spells it."""
+    codes = _embedded("<!-- code_tables() begin -->", "<!-- code_tables() end -->")
+    assert codes.strip() == code_tables().strip(), (
+        "docs/protocol.md is stale: paste `python -m teleop.bus.messages codes` between the markers"
+    )
+    for stage in Stage:
+        assert f"| {int(stage)} | {stage.name} |" in codes
+    for event in Event:
+        assert f"| {event.name} | {int(event)} |" in codes
+    text = PROTOCOL_DOC.read_text()
+    topics = Topics("<robot_id>")
+    for token in (graph.ALIVE_TOKEN, graph.READY_TOKEN):
+        assert f"`teleop/<robot_id>/{token}/<service>`" in text
+        assert topics.alive("x", ready=token == graph.READY_TOKEN).startswith(
+            f"teleop/<robot_id>/{token}/"
+        )
+
+
+def test_scenario_streams_are_those_between_its_services():
+    for scenario in SCENARIOS:
+        services = set(graph.scenario_services(scenario)) | {"eyeview", "launcher"}
+        for stream in graph.scenario_streams(scenario):
+            assert set(stream.producers) & services, (scenario, stream.name)
+            assert set(stream.consumers) & services, (scenario, stream.name)
+    assert "control_status" not in {s.name for s in graph.scenario_streams("grasp")}
+    assert "haptic_state" not in {s.name for s in graph.scenario_streams("path-following")}

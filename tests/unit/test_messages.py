@@ -184,7 +184,7 @@ def test_rejects_values_outside_limits(schema: m.Schema, name: str, value: float
 def test_limits_are_inclusive():
     rec = m.JOINT_COMMAND.new()
     rec["gripper_cmd"] = 1.0
-    rec["qd_ref_rad_s"][:] = -m.JOINT_VELOCITY_LIMIT_RAD_S
+    rec["qd_ref_rad_s"][:] = -m.JOINT_COMMAND_SPEED_LIMIT_RAD_S
     rec["n_joints"] = m.MAX_JOINTS
     m.JOINT_COMMAND.decode(m.JOINT_COMMAND.encode(rec))
 

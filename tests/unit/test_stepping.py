@@ -41,7 +41,7 @@ class Recorded:
         self.flushes += 1
 
     def events(self) -> list[Event]:
-        return [Event(int(r["event"])) for r in self.records.get("events", [])]
+        return [Event(int(r["event"])) for r in self.records.get("plant_events", [])]
 
 
 def command(seq: int, state_seq: int, now_ns: int, deadline_ns: int = 0, qd: float = 0.1):
@@ -63,18 +63,27 @@ def make_loop(*overrides: str) -> tuple[PlantLoop, Recorded, FakeClock]:
     return PlantLoop(config, outputs, clock), outputs, clock
 
 
-def test_watchdog_brakes_once_after_its_limit_and_resumes_on_a_fresh_command():
-    dog = Watchdog(limit_steps=20, timestep_s=0.001)
-    cmd = command(1, state_seq=100, now_ns=0)
+def test_watchdog_judges_on_the_plants_clock_and_state_numbering():
+    ms = 1_000_000
+    dog = Watchdog(limit_ns=20 * ms)
     assert dog.judge(None, 0) == (False, None, 0.0)  # nothing yet: hold, no event
-    assert dog.judge(cmd, 120).apply  # 20 states old: still fresh
-    brake = dog.judge(cmd, 121)
+    for seq in range(101):  # states 0..100 sent 1 ms apart
+        dog.state_sent(seq, seq * ms)
+    cmd = command(1, state_seq=100, now_ns=0)
+    assert dog.judge(cmd, 500 * ms).apply  # answers the newest state: fresh however late
+    dog.state_sent(101, 101 * ms)
+    assert dog.judge(cmd, 121 * ms).apply  # state 101 out for 20 ms: still fresh
+    brake = dog.judge(cmd, 121 * ms + 1)
     assert not brake.apply and brake.event is Event.WATCHDOG_BRAKE
-    assert brake.value == pytest.approx(0.021)
-    assert dog.judge(cmd, 122) == (False, None, 0.0)  # still braking: no second event
-    resume = dog.judge(command(2, state_seq=122, now_ns=0), 122)
+    assert brake.value == pytest.approx(0.021, abs=1e-6)  # the answered state's age (s)
+    assert dog.judge(cmd, 122 * ms) == (False, None, 0.0)  # still braking: no second event
+    resume = dog.judge(command(2, state_seq=101, now_ns=0), 122 * ms)
     assert resume.apply and resume.event is Event.WATCHDOG_RESUME
     assert (dog.brakes, dog.stale_steps) == (1, 2)
+    # A state too old to remember (or never sent) is stale.
+    assert not dog.judge(command(3, state_seq=0, now_ns=0), 122 * ms).apply
+    with pytest.raises(ValueError):
+        Watchdog(0)
 
 
 def test_device_clock_grid_steps_each_device_period_once():
@@ -100,15 +109,18 @@ def test_device_clock_grid_steps_each_device_period_once():
 def test_plant_tick_pacing_brakes_on_a_stale_command_and_resumes():
     loop, out, clock = make_loop('run.mode="realtime"')
     loop.begin_run(None)
-    limit = loop.watchdog.limit_steps
+    loop.publish_initial_state()
+    limit_ms = round(loop.config.plant.watchdog_s * 1000)
     loop.tick()  # no command yet: braking, no event
     assert out.records["plant_state"][-1]["flags"] == Flag.BRAKING and out.events() == []
-    loop.on_command(command(1, state_seq=0, now_ns=clock.now_ns()), clock.now_ns())
-    for _ in range(limit + 1):  # applied while it answers a state at most `limit` old
+    loop.on_command(command(1, state_seq=1, now_ns=clock.now_ns()), clock.now_ns())
+    for _ in range(limit_ms + 1):  # applied while state 2 is out for at most the limit
+        clock.advance(PERIOD_NS)
         loop.tick()
     assert loop.commands_applied == 1 and out.events() == []
     assert out.records["plant_state"][-1]["flags"] == Flag.NONE
-    loop.tick()  # the command now answers a state more than the limit old
+    clock.advance(PERIOD_NS)
+    loop.tick()  # the command now answers a state superseded more than the limit ago
     assert out.events() == [Event.WATCHDOG_BRAKE]
     assert out.records["plant_state"][-1]["flags"] == Flag.BRAKING
     fresh = command(2, state_seq=loop.state_seq, now_ns=clock.now_ns())
@@ -125,6 +137,7 @@ def test_apply_on_arrival_steps_once_per_device_period_and_never_runs_ahead():
     loop, out, clock = make_loop('run.scenario="grasp"', 'run.mode="realtime"')
     assert loop.apply_on_arrival
     loop.begin_run(None)
+    loop.publish_initial_state()
     loop.begin_on_arrival()
     t0_ns = clock.now_ns()
 
@@ -170,6 +183,7 @@ def test_apply_on_arrival_steps_periods_without_commands_itself_and_skips_stalls
 def test_a_command_older_than_the_shed_age_is_shed_and_its_loop_logged():
     loop, out, clock = make_loop('run.scenario="grasp"', 'run.mode="realtime"')
     loop.begin_run(None)
+    loop.publish_initial_state()
     loop.begin_on_arrival()
     old = command(1, 0, clock.now_ns() - 10 * loop.command_in.shed_age_ns)
     loop.on_command(old, clock.now_ns())
@@ -185,8 +199,9 @@ def test_lockstep_steps_only_on_the_answer_to_the_pending_state():
     try:
         while loop.state_seq < 0:  # state 0 published
             clock.advance(1)
+        # a command answering a state not sent yet is rejected before anything else
         loop.on_command(command(1, state_seq=5, now_ns=clock.now_ns()), clock.now_ns())
-        assert loop.plant.step_count == 0 and loop.unanswered_commands == 1
+        assert loop.plant.step_count == 0 and loop.commands_future_state == 1
         for seq in range(3):
             loop.on_command(command(seq + 2, loop.state_seq, clock.now_ns()), clock.now_ns())
         runner.join(timeout=30)

@@ -1,0 +1,119 @@
+"""Per-run credentials and access control (teleop.bus.access) on real Zenoh sessions.
+
+A run's plant, controller and haptic service, each with its own credentials, linked as a
+launcher links them; a session with no credentials tries to join. Nothing waits on a
+fixed sleep: every negative check is bounded by a positive one that went through the
+same links at the same time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import socket
+import stat
+import threading
+
+import numpy as np
+
+from teleop.bus import session as bus
+from teleop.bus.access import PASSWORDS_FILE, write_run_credentials
+from teleop.bus.messages import HAPTIC_STATE, JOINT_COMMAND, PLANT_STATE, DropCounter
+from teleop.bus.topics import Topics
+from teleop.core.config import BusConfig
+
+ROBOT = "testarm"
+TIMEOUT_S = 10.0
+RECORDS = 300  # per sender: enough for any link to carry some if it is up
+
+
+def free_endpoint() -> str:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+class Seen:
+    """Records received on one subscription, by seq."""
+
+    def __init__(self) -> None:
+        self.seqs: list[int] = []
+        self.cond = threading.Condition()
+
+    def __call__(self, rec: np.ndarray, rx_ns: int) -> None:
+        with self.cond:
+            self.seqs.append(int(rec["seq"]))
+            self.cond.notify_all()
+
+    def wait(self, count: int) -> bool:
+        with self.cond:
+            return self.cond.wait_for(lambda: len(self.seqs) >= count, TIMEOUT_S)
+
+
+def test_only_the_graphs_producers_reach_a_stream_and_strangers_cannot_link(tmp_path):
+    files = write_run_credentials(tmp_path / "auth", ["plant", "controller", "haptic"], ROBOT)
+    assert stat.S_IMODE((tmp_path / "auth").stat().st_mode) == 0o700
+    assert stat.S_IMODE((tmp_path / "auth" / PASSWORDS_FILE).stat().st_mode) == 0o600
+    assert all(stat.S_IMODE(path.stat().st_mode) == 0o600 for path in files.values())
+
+    topics = Topics(ROBOT)
+    endpoint = free_endpoint()
+    own = {name: free_endpoint() for name in ("controller", "haptic", "stranger")}
+
+    def config(name: str, credentials: bool = True) -> BusConfig:
+        # as a launcher's mesh: each pair links once (the plant listens on `endpoint`)
+        connect = [own["controller"]] if name in ("haptic", "stranger") else []
+        return dataclasses.replace(
+            BusConfig(endpoint=endpoint),
+            gossip=False,
+            peer_listen_endpoint=own.get(name, ""),
+            peer_connect_endpoints=tuple(connect),
+            credentials_file=str(files[name]) if credentials else "",
+        )
+
+    drops = DropCounter()
+    plant = bus.open_session(config("plant"), listen=True)
+    controller = bus.open_session(config("controller"), listen=False)
+    haptic = bus.open_session(config("haptic"), listen=False)
+    stranger = bus.open_session(config("stranger", credentials=False), listen=False)
+    commands, states_at_controller, states_at_stranger = Seen(), Seen(), Seen()
+    haptic_at_controller = Seen()
+    entities: list[object] = [
+        bus.subscribe(plant, topics.joint_command, JOINT_COMMAND, commands, drops),
+        bus.subscribe(controller, topics.plant_state, PLANT_STATE, states_at_controller, drops),
+        bus.subscribe(controller, topics.haptic_state, HAPTIC_STATE, haptic_at_controller, drops),
+        bus.subscribe(stranger, topics.plant_state, PLANT_STATE, states_at_stranger, drops),
+    ]
+    try:
+        for name, session in (("plant", plant), ("controller", controller), ("haptic", haptic)):
+            entities.append(bus.declare_alive(session, topics, name))
+        bus.wait_alive(plant, topics, ["controller", "haptic"], TIMEOUT_S)
+        bus.wait_alive(controller, topics, ["plant", "haptic"], TIMEOUT_S)
+        publishers = {
+            "state": bus.Publisher.declare(plant, topics.plant_state, PLANT_STATE),
+            "command": bus.Publisher.declare(controller, topics.joint_command, JOINT_COMMAND),
+            "haptic": bus.Publisher.declare(haptic, topics.haptic_state, HAPTIC_STATE),
+            # the haptic service and a stranger posing as the controller
+            "haptic_command": bus.Publisher.declare(haptic, topics.joint_command, JOINT_COMMAND),
+            "stranger_command": bus.Publisher.declare(
+                stranger, topics.joint_command, JOINT_COMMAND
+            ),
+            "stranger_state": bus.Publisher.declare(stranger, topics.plant_state, PLANT_STATE),
+        }
+        entities += publishers.values()
+        # seq ranges tell the senders apart: 1.. real, 10_000.. haptic, 20_000.. stranger
+        first = {"haptic_command": 10_000, "stranger_command": 20_000, "stranger_state": 20_000}
+        for i in range(1, RECORDS + 1):
+            for name, pub in publishers.items():
+                rec = pub.schema.new()
+                rec["seq"] = first.get(name, 0) + i
+                pub.put(rec)
+        assert commands.wait(RECORDS), "the controller's commands did not reach the plant"
+        assert states_at_controller.wait(RECORDS), "the plant's states did not reach the controller"
+        assert haptic_at_controller.wait(RECORDS), "the haptic samples did not reach the controller"
+    finally:
+        for session in (stranger, haptic, controller, plant):
+            bus.close_session(session)  # its publishers, subscribers and tokens with it
+    assert sorted(commands.seqs) == list(range(1, RECORDS + 1))  # none from haptic or stranger
+    assert max(states_at_controller.seqs) <= RECORDS  # no state from the stranger
+    # the stranger never linked: it saw its own states only (Zenoh delivers those locally)
+    assert [seq for seq in states_at_stranger.seqs if seq <= RECORDS] == []
