@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING
 
 from teleop.core.config import SCENARIOS, Config, ConfigError, ModelError, load_config
 from teleop.core.rundir import LATENCY_RECORDING_FILE, LOG_DIR, WEB_VIEWER_LOG_FILE
+from teleop.run.failure import ServiceFailed
 from teleop.run.supervise import interrupt_on_signals
 from teleop.run.verdict import LOST
 
@@ -487,6 +488,14 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, ModelError, FileNotFoundError) as exc:
         print(f"teleop: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except ServiceFailed as exc:
+        print(f"teleop: the run failed:\n{exc.block()}", file=sys.stderr)
+        return EXIT_FAILED
+    except RuntimeError as exc:  # the stack's and the runner's errors: the message says why
+        if type(exc).__module__.partition(".")[0] != "teleop":
+            raise
+        print(f"teleop: {exc}", file=sys.stderr)
+        return EXIT_FAILED
     except KeyboardInterrupt:
         print("teleop: interrupted", file=sys.stderr)
         return 130

@@ -52,6 +52,8 @@ PEER_LINK_WAIT_S = 15.0
 # Exit code of a service whose config or model is unusable (supervisord will not retry
 # it forever: startretries bounds it, and the log says why).
 EXIT_CONFIG = 2
+# Exit code of a service that failed on an unexpected error (its traceback is logged).
+EXIT_FAILED = 1
 
 
 @dataclass(frozen=True)
@@ -140,7 +142,15 @@ class Service:
             self._entities.clear()
 
     def __enter__(self) -> Service:
-        self.open()
+        try:
+            self.open()
+        except BaseException:
+            # What open() made (a session, its threads) must go, or the process would
+            # neither exit nor stop on a signal after the error. Its summary may not be
+            # writable from a half-made service: the open() error is the one to report.
+            with contextlib.suppress(Exception):
+                self.close()
+            raise
         return self
 
     def __exit__(
@@ -339,5 +349,10 @@ def service_main(service_class: type[Service], argv: list[str] | None = None) ->
     except (ConfigError, ModelError) as exc:
         logger.error("%s", exc)
         return EXIT_CONFIG
+    except Exception:
+        # Logged whole (the launcher quotes the log's tail), then a plain exit: the
+        # session is closed by now (Service.__enter__/__exit__), nothing keeps us alive.
+        logger.exception("%s failed", service_class.name)
+        return EXIT_FAILED
     logger.info("stopped")
     return 0

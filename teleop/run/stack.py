@@ -21,8 +21,10 @@ tokens before the run goes on.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import signal
 import socket
 import sys
 import threading
@@ -33,12 +35,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import zenoh
 
 from teleop.bus import graph
 from teleop.bus.access import LAUNCHER, OBSERVER, write_run_credentials
 from teleop.bus.messages import TOOL_POSE, DropCounter, Event
 from teleop.bus.session import (
     Latest,
+    ServicesMissing,
     close_session,
     declare_alive,
     open_session,
@@ -57,6 +61,7 @@ from teleop.core.rundir import (
     summary_path,
 )
 from teleop.run.experiments import PROGRESS_FRACTION, ProgressFn
+from teleop.run.failure import ProgramWatch, ServiceFailed
 from teleop.run.idle_poll import POLLING, read_status
 from teleop.run.outside import (
     DEFAULT_WITHOUT_TIMEOUT_S,
@@ -80,6 +85,9 @@ PRIORITY = {spec.name: spec.start_priority for spec in graph.SERVICES}
 IDLE_POLL_PRIORITY = 1  # before every service, and stopped after them
 # Environment of every service: no telemetry, headless rendering, unbuffered logs.
 SERVICE_ENVIRONMENT = {
+    # This environment's executables first (the `rerun` viewer that recorder.spawn
+    # starts), also when the launcher runs from .venv/bin without an activated venv.
+    "PATH": os.pathsep.join((str(Path(sys.executable).parent), os.environ.get("PATH", os.defpath))),
     "RERUN_ANALYTICS": "0",
     "MUJOCO_GL": "egl",
     "PYTHONUNBUFFERED": "1",
@@ -89,6 +97,8 @@ SERVICE_ENVIRONMENT = {
 }
 # Waiting for all services to announce themselves (imports, model build, session) (s).
 ALIVE_TIMEOUT_S = 60.0
+# How often the wait for liveliness looks at the programs' states (s).
+ALIVE_POLL_S = 0.5
 # A run that does not finish within this many times its duration (plus slack) failed.
 LOCKSTEP_TIMEOUT_FACTOR = 20.0
 REALTIME_TIMEOUT_FACTOR = 2.0
@@ -419,15 +429,16 @@ def run_on_services(
         deadline_s = config.run.duration_s * factor + RUN_TIMEOUT_SLACK_S
         wall_start = time.perf_counter()
         with Stack(run_dir, programs) as stack:
-            wait_alive(session, topics, services, ALIVE_TIMEOUT_S)
+            check = _failure_check(stack)
+            _wait_alive(session, topics, services, stack, check)
             try:
                 wait_for_outside(
                     session, topics, outside, without_timeout_s, announce,
-                    still_running=lambda: _check_running(stack),
+                    still_running=check,
                 )  # fmt: skip
             except OutsideMissing as exc:
                 raise RunError(str(exc)) from None
-            _wait_finished(finished, tool, config, deadline_s, stack, progress, run_dir)
+            _wait_finished(finished, tool, config, deadline_s, stack, progress, run_dir, check)
         wall_s = time.perf_counter() - wall_start
     finally:
         close_session(session, *reversed(entities))
@@ -546,6 +557,7 @@ def _wait_finished(
     stack: Stack,
     progress: ProgressFn | None,
     run_dir: Path,
+    check: Callable[[], None],
 ) -> None:
     """Wait until the plant has finished: its FINISHED event, or its summary on file
     saying so (written as it finishes: an event lost on a starved machine does not hang
@@ -555,7 +567,7 @@ def _wait_finished(
     while not finished.wait(timeout=0.5) and not _plant_finished(run_dir):
         if time.monotonic() - start > deadline_s:
             raise RunError(f"run did not finish within {deadline_s:g} s: {stack.status()}")
-        _check_running(stack)
+        check()
         latest = tool.get()
         if progress is not None and latest is not None:
             sim_s = int(latest[0]["sim_time_ns"]) * 1e-9
@@ -589,11 +601,47 @@ def refuse_if_running(run_dir: Path) -> None:
     )
 
 
-def _check_running(stack: Stack) -> None:
-    """RunError if a service of ``stack`` is no longer running."""
-    failed = {n: s for n, s in stack.status().items() if s not in ("RUNNING", "STARTING")}
-    if failed:
-        raise RunError(f"service(s) stopped during the run: {failed}")
+def _failure_check(stack: Stack) -> Callable[[], None]:
+    """A check that raises :class:`ServiceFailed` (the failure block) as soon as a
+    program of ``stack`` has died, crash-looped or stopped (teleop.run.failure)."""
+    watch = ProgramWatch(stack.log_path, _read_log)
+    return lambda: watch.check(stack.process_infos())
+
+
+def _read_log(path: Path) -> str:
+    try:
+        return path.read_text(errors="replace")
+    except OSError as exc:
+        return f"(no log: {exc})"
+
+
+def _wait_alive(
+    session: zenoh.Session,
+    topics: Topics,
+    services: Sequence[str],
+    stack: Stack,
+    check: Callable[[], None],
+) -> None:
+    """Wait up to ALIVE_TIMEOUT_S for every service's liveliness token, checking the
+    programs meanwhile (one that dies fails the run at once, not after the time-out).
+    A service still not alive then has hung in its start-up: it is killed (it may not
+    answer the stop signal) and :class:`ServiceFailed` names it with its log."""
+    deadline = time.monotonic() + ALIVE_TIMEOUT_S
+    while True:
+        check()
+        try:
+            wait_alive(session, topics, services, ALIVE_POLL_S)
+            return
+        except ServicesMissing as exc:
+            if time.monotonic() < deadline:
+                continue
+            name = exc.missing[0]
+            with contextlib.suppress(StackError, OSError):
+                stack.signal_program(name, signal.SIGKILL)
+            path = stack.log_path(name)
+            raise ServiceFailed(
+                name, f"did not come alive within {ALIVE_TIMEOUT_S:g} s", path, _read_log(path)
+            ) from None
 
 
 def start_detached(
@@ -684,7 +732,7 @@ def _await_outside_detached(
     try:
         wait_for_outside(
             session, Topics(config.robot.robot_id), outside, timeout_s, announce,
-            still_running=lambda: _check_running(stack),
+            still_running=_failure_check(stack),
         )  # fmt: skip
     except (OutsideMissing, RunError) as exc:
         stack.stop()

@@ -41,6 +41,7 @@ from teleop.core.rundir import (
     SUPERVISOR_SOCKET_FILE,
     program_log_path,
 )
+from teleop.run.failure import ServiceFailed
 
 # Seconds supervisord waits after the stop signal (SIGINT) before SIGKILLing a program's group.
 # A clean stop takes well under a second, but a recorder finishing its .rrd on a starved
@@ -85,6 +86,10 @@ _EXEC_WITH_PDEATHSIG = (
 
 class StackError(RuntimeError):
     """The stack could not be started, reached or stopped; the message says why."""
+
+
+class ProgramFailed(StackError, ServiceFailed):
+    """A program of the stack failed to start: the failure block of teleop.run.failure."""
 
 
 @dataclass(frozen=True)
@@ -333,9 +338,11 @@ class Stack:
                 states = self.status()
             for name, state in states.items():
                 if state in _FAILED_STATES:
-                    raise StackError(
-                        f"program {name!r} failed to start ({state}); "
-                        f"log tail of {self.log_path(name)}:\n{self.log_tail(name)}"
+                    raise ProgramFailed(
+                        name,
+                        f"failed to start ({state})",
+                        self.log_path(name),
+                        self.log_tail(name),
                     )
             if set(states) == expected and all(s == "RUNNING" for s in states.values()):
                 return
@@ -386,6 +393,12 @@ class Stack:
         with self._rpc() as rpc:
             infos = rpc.supervisor.getAllProcessInfo()
         return {info["name"]: info["statename"] for info in infos}
+
+    def process_infos(self) -> list[dict[str, Any]]:
+        """supervisord's record of every program (name, statename, pid, exitstatus,
+        spawnerr...): what :class:`teleop.run.failure.ProgramWatch` judges."""
+        with self._rpc() as rpc:
+            return list(rpc.supervisor.getAllProcessInfo())
 
     def pid(self, name: str) -> int:
         """Pid of program ``name`` (0 when it is not running)."""

@@ -1,0 +1,127 @@
+"""A service that fails under the launcher: noticed within seconds, told in one block.
+
+The launcher polls supervisord's view of its programs (``getAllProcessInfo``) while it
+waits for the services to come alive and for the run to end. :class:`ProgramWatch`
+turns that into a verdict: a program in a failed state, or one whose pid changed (it
+died and supervisord restarted it: a crash that a single state poll would miss), has
+failed. :class:`ServiceFailed` then carries one block for the user: the service, what
+happened, the last lines of its log (the real exception), the log's path and, when the
+log shows a known cause, a hint (:func:`hint_for`).
+
+Pure: the process infos and log text come in as values, so a unit test drives it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+# supervisord states of a program that has stopped for good or is between restarts.
+FAILED_STATES = frozenset({"BACKOFF", "FATAL", "EXITED", "STOPPED", "UNKNOWN"})
+# Lines of the service's log the block quotes (its traceback, usually).
+TAIL_LINES = 15
+
+# Known causes: (text the log holds, hint). First match wins.
+HINTS: tuple[tuple[str, str], ...] = (
+    (
+        "Unable to create POSIX shm segment",
+        "a shared-memory pool exceeds the locked-memory limit (ulimit -l): raise the "
+        "limit, lower bus.shm_pool_bytes, or run with --set bus.shm=false",
+    ),
+    (
+        "Address already in use",
+        "a port the run listens on is taken (another stack or program): stop it, or "
+        "pick another port (bus.endpoint)",
+    ),
+    (
+        "Can not create a new TCP listener",
+        "a port the run listens on is taken (another stack or program): stop it, or "
+        "pick another port (bus.endpoint)",
+    ),
+    (
+        "Failed to find Rerun Viewer executable",
+        "the native Rerun viewer (`rerun`) is not on PATH: install the project's "
+        "environment (make venv) or run without --spawn",
+    ),
+)
+
+
+def hint_for(log_text: str) -> str:
+    """The hint for the first known cause found in ``log_text``; empty when none."""
+    for needle, hint in HINTS:
+        if needle in log_text:
+            return hint
+    return ""
+
+
+def last_lines(text: str, count: int = TAIL_LINES) -> str:
+    """The last ``count`` non-empty lines of ``text``."""
+    lines = [line for line in text.splitlines() if line.strip()]
+    return "\n".join(lines[-count:])
+
+
+class ServiceFailed(RuntimeError):
+    """A service of the run died, crash-looped or never came alive; ``str()`` is the
+    block shown to the user."""
+
+    def __init__(self, service: str, what: str, log_path: Path, log_text: str) -> None:
+        self.service = service
+        self.what = what
+        self.log_path = log_path
+        self.tail = last_lines(log_text)
+        self.hint = hint_for(log_text)
+        super().__init__(self.block())
+
+    def block(self) -> str:
+        rule = "-" * 72
+        lines = [f"service {self.service} {self.what}", rule]
+        lines += [f"  {line}" for line in (self.tail or "(its log is empty)").splitlines()]
+        lines += [rule, f"log:  {self.log_path}"]
+        if self.hint:
+            lines.append(f"hint: {self.hint}")
+        return "\n".join(lines)
+
+
+@dataclass
+class ProgramWatch:
+    """Tells from successive supervisord process infos whether a program has failed.
+
+    ``log_of(name)`` gives a program's log path and ``read(path)`` its text (both
+    injected: the stack knows where logs are, a test passes strings).
+    """
+
+    log_of: Callable[[str], Path]
+    read: Callable[[Path], str]
+    _pids: dict[str, int] = field(default_factory=dict)
+
+    def check(self, infos: list[Mapping[str, Any]]) -> None:
+        """Raise :class:`ServiceFailed` for the first program that failed since the last
+        call: a failed state, or a new pid (restarted after dying)."""
+        for info in infos:
+            name, state, pid = str(info["name"]), str(info["statename"]), int(info["pid"])
+            what = ""
+            if state in FAILED_STATES:
+                what = _failed_state(state, info)
+            elif pid and self._pids.get(name, pid) != pid:
+                what = "died and was restarted (crash loop)"
+            if pid:
+                self._pids[name] = pid
+            if what:
+                path = self.log_of(name)
+                raise ServiceFailed(name, what, path, self.read(path))
+
+
+def _failed_state(state: str, info: Mapping[str, Any]) -> str:
+    exit_status = info.get("exitstatus")
+    spawn_error = str(info.get("spawnerr") or "")
+    if spawn_error:
+        return f"could not be started ({state}: {spawn_error})"
+    if state == "BACKOFF":
+        return "exited during start-up and is being restarted (BACKOFF)"
+    if state == "FATAL":
+        return "kept exiting during start-up; supervisord gave up (FATAL)"
+    if exit_status is not None and state == "EXITED":
+        return f"exited with code {exit_status}"
+    return f"stopped ({state})"
