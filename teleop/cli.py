@@ -293,6 +293,9 @@ def _run(args: argparse.Namespace) -> int:
             "--spawn, --web, --report and --without need the services run (drop --inprocess)"
         )
     config = load_config(args.config, overrides)
+    if args.summary_json is not None:
+        # A failed run must not leave the previous run's summary looking like its own.
+        args.summary_json.unlink(missing_ok=True)
     web = None
     if args.web:
         from teleop.viz.viewer import serve_web
@@ -489,7 +492,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"teleop: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except ServiceFailed as exc:
-        print(f"teleop: the run failed:\n{exc.block()}", file=sys.stderr)
+        if not exc.reported:
+            print(f"teleop: the run failed:\n{exc.block()}", file=sys.stderr)
         return EXIT_FAILED
     except RuntimeError as exc:  # the stack's and the runner's errors: the message says why
         if type(exc).__module__.partition(".")[0] != "teleop":

@@ -8,7 +8,8 @@ failed. :class:`ServiceFailed` then carries one block for the user: the service,
 happened, the last lines of its log (the real exception), the log's path and, when the
 log shows a known cause, a hint (:func:`hint_for`).
 
-Pure: the process infos and log text come in as values, so a unit test drives it.
+Pure but for :func:`program_log_text`: the process infos and log text come in as
+values, so a unit test drives it.
 """
 
 from __future__ import annotations
@@ -62,6 +63,23 @@ def last_lines(text: str, count: int = TAIL_LINES) -> str:
     return "\n".join(lines[-count:])
 
 
+def program_log_text(log_path: Path, supervisord_log: Path) -> str:
+    """A program's log; when it is empty (killed before it wrote anything), the lines
+    of supervisord's own log about the program instead (how it ended)."""
+    try:
+        text = log_path.read_text(errors="replace")
+    except OSError as exc:
+        text = f"(no log: {exc})"
+    if text.strip():
+        return text
+    name = f"'{log_path.stem}'"
+    try:
+        lines = supervisord_log.read_text(errors="replace").splitlines()
+    except OSError:
+        return text
+    return "\n".join(f"supervisord: {line}" for line in lines if name in line)
+
+
 class ServiceFailed(RuntimeError):
     """A service of the run died, crash-looped or never came alive; ``str()`` is the
     block shown to the user."""
@@ -72,6 +90,7 @@ class ServiceFailed(RuntimeError):
         self.log_path = log_path
         self.tail = last_lines(log_text)
         self.hint = hint_for(log_text)
+        self.reported = False  # the block was shown already (the launcher's announce)
         super().__init__(self.block())
 
     def block(self) -> str:
@@ -105,7 +124,9 @@ class ProgramWatch:
             if state in FAILED_STATES:
                 what = _failed_state(state, info)
             elif pid and self._pids.get(name, pid) != pid:
-                what = "died and was restarted (crash loop)"
+                code = info.get("exitstatus")
+                died = f"exited with code {code}" if code and code > 0 else "died"
+                what = f"{died} and was restarted (crash loop)"
             if pid:
                 self._pids[name] = pid
             if what:
@@ -116,12 +137,11 @@ class ProgramWatch:
 def _failed_state(state: str, info: Mapping[str, Any]) -> str:
     exit_status = info.get("exitstatus")
     spawn_error = str(info.get("spawnerr") or "")
-    if spawn_error:
+    if state in ("EXITED", "BACKOFF") and exit_status is not None and not info.get("pid"):
+        restart = " (supervisord restarts it: a crash loop)" if state == "BACKOFF" else ""
+        return f"exited with code {exit_status}{restart}"
+    if spawn_error and not spawn_error.startswith("Bad exit code"):
         return f"could not be started ({state}: {spawn_error})"
-    if state == "BACKOFF":
-        return "exited during start-up and is being restarted (BACKOFF)"
     if state == "FATAL":
         return "kept exiting during start-up; supervisord gave up (FATAL)"
-    if exit_status is not None and state == "EXITED":
-        return f"exited with code {exit_status}"
     return f"stopped ({state})"

@@ -56,12 +56,13 @@ from teleop.core.rundir import (
     AUTH_DIR,
     LOG_DIR,
     RECORDING_FILE,
+    SUPERVISOR_LOG_FILE,
     clear_run_results,
     idle_poll_status_path,
     summary_path,
 )
 from teleop.run.experiments import PROGRESS_FRACTION, ProgressFn
-from teleop.run.failure import ProgramWatch, ServiceFailed
+from teleop.run.failure import ProgramWatch, ServiceFailed, program_log_text
 from teleop.run.idle_poll import POLLING, read_status
 from teleop.run.outside import (
     DEFAULT_WITHOUT_TIMEOUT_S,
@@ -430,15 +431,21 @@ def run_on_services(
         wall_start = time.perf_counter()
         with Stack(run_dir, programs) as stack:
             check = _failure_check(stack)
-            _wait_alive(session, topics, services, stack, check)
             try:
-                wait_for_outside(
-                    session, topics, outside, without_timeout_s, announce,
-                    still_running=check,
-                )  # fmt: skip
-            except OutsideMissing as exc:
-                raise RunError(str(exc)) from None
-            _wait_finished(finished, tool, config, deadline_s, stack, progress, run_dir, check)
+                _wait_alive(session, topics, services, stack, check)
+                try:
+                    wait_for_outside(
+                        session, topics, outside, without_timeout_s, announce,
+                        still_running=check,
+                    )  # fmt: skip
+                except OutsideMissing as exc:
+                    raise RunError(str(exc)) from None
+                _wait_finished(finished, tool, config, deadline_s, stack, progress, run_dir, check)
+            except ServiceFailed as exc:
+                # Said now, not after the stop (which can take seconds more).
+                announce(f"teleop: the run failed:\n{exc.block()}\nstopping the services...")
+                exc.reported = True
+                raise
         wall_s = time.perf_counter() - wall_start
     finally:
         close_session(session, *reversed(entities))
@@ -609,10 +616,7 @@ def _failure_check(stack: Stack) -> Callable[[], None]:
 
 
 def _read_log(path: Path) -> str:
-    try:
-        return path.read_text(errors="replace")
-    except OSError as exc:
-        return f"(no log: {exc})"
+    return program_log_text(path, path.parent.parent / SUPERVISOR_LOG_FILE)
 
 
 def _wait_alive(

@@ -41,7 +41,7 @@ from teleop.core.rundir import (
     SUPERVISOR_SOCKET_FILE,
     program_log_path,
 )
-from teleop.run.failure import ServiceFailed
+from teleop.run.failure import ServiceFailed, program_log_text
 
 # Seconds supervisord waits after the stop signal (SIGINT) before SIGKILLing a program's group.
 # A clean stop takes well under a second, but a recorder finishing its .rrd on a starved
@@ -338,12 +338,10 @@ class Stack:
                 states = self.status()
             for name, state in states.items():
                 if state in _FAILED_STATES:
-                    raise ProgramFailed(
-                        name,
-                        f"failed to start ({state})",
-                        self.log_path(name),
-                        self.log_tail(name),
-                    )
+                    path = self.log_path(name)
+                    supervisord_log = self.run_dir / SUPERVISOR_LOG_FILE
+                    text = program_log_text(path, supervisord_log)
+                    raise ProgramFailed(name, f"failed to start ({state})", path, text)
             if set(states) == expected and all(s == "RUNNING" for s in states.values()):
                 return
             if time.monotonic() >= deadline:
