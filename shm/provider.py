@@ -25,6 +25,7 @@ socket path when not even the minimum fits) and the session's own transport pool
 from __future__ import annotations
 
 import json
+import logging
 import re
 import resource
 import threading
@@ -38,6 +39,10 @@ from zenoh.shm import BlockOn, GarbageCollect, ShmProvider
 # default message_size_threshold: below it a socket write is cheaper than SHM bookkeeping.
 SHM_THRESHOLD_BYTES = 3072
 
+# Locked memory a Zenoh session with shared memory needs at start (its SHM metadata,
+# seen: about 1.3 MiB); below it the session panics at open, so configure_session turns
+# shared memory off instead, bytes.
+SESSION_SHM_LOCKED_BYTES = 1536 * 1024
 # Locked memory of a process that receives from a pool, besides the pool itself: its
 # session and Zenoh's fixed SHM mappings (seen: about 3.9 MiB in the recorder), bytes.
 RECEIVER_LOCKED_BYTES = 4 * 1024 * 1024
@@ -54,6 +59,7 @@ POOL_GRANULE_BYTES = 64 * 1024
 CAP_IPC_LOCK_BIT = 14
 _PROC_STATUS = Path("/proc/self/status")
 
+logger = logging.getLogger(__name__)
 _lock = threading.Lock()
 _providers: dict[int, ShmProvider] = {}
 
@@ -150,10 +156,8 @@ def open_provider(
     if pool_bytes < minimum_bytes:
         reason = (
             f"RLIMIT_MEMLOCK (ulimit -l) {limit} B leaves room for a pool of {budget} B, "
-            f"below the "
-            f"{minimum_bytes} B needed: socket path (raise the limit, or run with "
-            "--set bus.shm=false: the low-latency transport cannot carry large payloads "
-            "without a pool)"
+            f"below the {minimum_bytes} B needed: socket path (raise the limit for "
+            "shared memory)"
         )
         pool_bytes = 0
     else:
@@ -193,7 +197,23 @@ def configure_session(conf: zenoh.Config, *, enabled: bool, lowlatency: bool) ->
     large payload is put without a provider) shrunk to fit the locked-memory limit.
     """
     key = "transport/shared_memory"
+    budget = memlock_budget_bytes()
+    if enabled and budget is not None and budget < SESSION_SHM_LOCKED_BYTES:
+        # Every process of a run is the same user's, under the same limit: all of them
+        # turn it off alike, so the peers still agree on the transport.
+        logger.warning(
+            "shared memory off: RLIMIT_MEMLOCK (ulimit -l) %s B leaves %d B to lock, a "
+            "session needs about %d B; payloads go over the socket",
+            memlock_limit_bytes(),
+            budget,
+            SESSION_SHM_LOCKED_BYTES,
+        )
+        enabled = False
     conf.insert_json5(f"{key}/enabled", json.dumps(enabled))
+    if not enabled:
+        # "init" (local.json5) creates Zenoh's SHM metadata segment at open even with
+        # shared memory off, and panics if it cannot lock it.
+        conf.insert_json5(f"{key}/mode", json.dumps("lazy"))
     lowlatency = enabled and lowlatency
     conf.insert_json5("transport/unicast/lowlatency", json.dumps(lowlatency))
     conf.insert_json5("transport/unicast/qos/enabled", json.dumps(not lowlatency))
