@@ -18,6 +18,7 @@ shorthands for the matching ``--set``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -123,7 +124,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--duration", type=float, help="simulated seconds (run.duration_s)")
     run.add_argument("--seed", type=int, help="random seed (run.seed)")
-    run.add_argument("--summary-json", type=Path, help="also write the summary to this file")
+    run.add_argument(
+        "--summary-json",
+        type=Path,
+        help="write the full summary (JSON) here (default: <run-dir>/summary.json)",
+    )
+    run.add_argument(
+        "--json", action="store_true", help="print the full summary (JSON) instead of the short one"
+    )
     run.add_argument("--rrd", type=Path, help="Rerun recording to write (services runs)")
     run.add_argument(
         "--run-dir",
@@ -267,12 +275,28 @@ def _overrides(args: argparse.Namespace) -> list[str]:
     return overrides
 
 
-def _emit_summary(summary: dict[str, object], path: Path | None) -> None:
+def _emit_summary(summary: dict[str, object], path: Path, as_json: bool) -> None:
+    """The full summary to ``path``; on stdout the short one for a person (or, with
+    ``as_json``, the full JSON)."""
+    from teleop.run.progress import human_summary
+
     text = json.dumps(summary, indent=2, sort_keys=False)
-    print(text)
+    if as_json:
+        print(text)
+    else:
+        print("\n".join(human_summary(summary, str(path))))
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(text + "\n")
+
+
+def _print_line(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def _summary_path(args: argparse.Namespace) -> Path:
+    summary_json: Path | None = args.summary_json
+    return summary_json if summary_json is not None else args.run_dir / "summary.json"
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -293,9 +317,8 @@ def _run(args: argparse.Namespace) -> int:
             "--spawn, --web, --report and --without need the services run (drop --inprocess)"
         )
     config = load_config(args.config, overrides)
-    if args.summary_json is not None:
-        # A failed run must not leave the previous run's summary looking like its own.
-        args.summary_json.unlink(missing_ok=True)
+    # A failed run must not leave the previous run's summary looking like its own.
+    _summary_path(args).unlink(missing_ok=True)
     web = None
     if args.web:
         from teleop.viz.viewer import serve_web
@@ -321,13 +344,13 @@ def _run_and_report(
 ) -> int:
     from teleop.run import experiments
 
-    progress = None if args.quiet else experiments.print_progress
     where = "in process" if args.inprocess else f"on services, {config.run.mode}"
-    print(
-        f"{args.scenario} {where}: {config.run.duration_s:g} s simulated, seed {config.run.seed}",
-        file=sys.stderr,
-    )
+    length = f"{config.run.duration_s:g} s simulated"
+    if args.scenario == "grasp":
+        length = f"until the operator is done (at most {config.run.duration_s:g} s simulated)"
+    print(f"{args.scenario} {where}, seed {config.run.seed}: {length}", file=sys.stderr)
     if args.inprocess:
+        progress = None if args.quiet else experiments.print_progress
         summary = experiments.run_path_following_inprocess(config, progress=progress)
     else:
         from teleop.run.stack import RunError, run_on_services
@@ -339,14 +362,14 @@ def _run_and_report(
                 args.config,
                 overrides,
                 args.run_dir,
-                progress,
+                None if args.quiet else _print_line,
                 without=args.without,
                 without_timeout_s=args.without_timeout,
             )
         except RunError as exc:
             print(f"teleop: {exc}", file=sys.stderr)
             return EXIT_FAILED
-    _emit_summary(summary, args.summary_json)
+    _emit_summary(summary, _summary_path(args), args.json)
     if args.report and summary.get("rrd"):
         from teleop.viz.report import write_report
 
@@ -354,7 +377,9 @@ def _run_and_report(
         print(f"report: {report.summary}", file=sys.stderr)
     if web is not None:
         print(f"web viewer: {web.url} (Ctrl-C to stop)", file=sys.stderr, flush=True)
-        web.wait()
+        # This Ctrl-C ends the viewer, not the run: the exit code stays the run's.
+        with contextlib.suppress(KeyboardInterrupt):
+            web.wait()
     if summary.get("success") is False:
         print("teleop: the task did not succeed", file=sys.stderr)
         return EXIT_FAILED

@@ -61,7 +61,7 @@ from teleop.core.rundir import (
     idle_poll_status_path,
     summary_path,
 )
-from teleop.run.experiments import PROGRESS_FRACTION, ProgressFn
+from teleop.devices.operator import Scenario
 from teleop.run.failure import ProgramWatch, ServiceFailed, program_log_text
 from teleop.run.idle_poll import POLLING, read_status
 from teleop.run.outside import (
@@ -72,8 +72,9 @@ from teleop.run.outside import (
     wait_for_outside,
     write_outside_config,
 )
+from teleop.run.progress import RunProgress
 from teleop.run.supervise import Program, Stack, StackError
-from teleop.run.verdict import machine_section, realtime_health
+from teleop.run.verdict import machine_section, realtime_health, refused_privileges
 
 # The operator's eye view renders in a process of its own (see services/eyeview.py for
 # why not a thread in the plant); it joins the stack of any scenario when eyeview.enabled.
@@ -347,7 +348,7 @@ def run_on_services(
     config_file: Path | None,
     overrides: Sequence[str],
     run_dir: Path,
-    progress: ProgressFn | None = None,
+    progress: Callable[[str], None] | None = None,
     *,
     without: Sequence[str] = (),
     without_timeout_s: float = DEFAULT_WITHOUT_TIMEOUT_S,
@@ -390,9 +391,17 @@ def run_on_services(
     task_done: list[float] = []  # the operator's TASK_DONE value (1: success), if any
     tool = Latest()
 
+    phases: tuple[str, ...] = ()
+    if config.run.scenario == "grasp":
+        scenario = Scenario.load(config.operator.scenario_path, config.robot.object_bodies)
+        phases = tuple(phase.name for phase in scenario.phases)
+    tracker = RunProgress(config.run.duration_s, phases)
+
     def on_event(rec: np.ndarray, rx_ns: int) -> None:
         if int(rec["event"]) == Event.FINISHED:
             finished.set()
+        elif int(rec["event"]) == Event.PHASE:
+            tracker.on_phase(int(rec["value"]), int(rec["sim_time_ns"]) * 1e-9)
         elif int(rec["event"]) == Event.TASK_DONE:
             task_done.append(float(rec["value"]))
 
@@ -440,7 +449,7 @@ def run_on_services(
                     )  # fmt: skip
                 except OutsideMissing as exc:
                     raise RunError(str(exc)) from None
-                _wait_finished(finished, tool, config, deadline_s, stack, progress, run_dir, check)
+                _wait_finished(finished, tool, tracker, deadline_s, stack, progress, run_dir, check)
             except ServiceFailed as exc:
                 # Said now, not after the stop (which can take seconds more).
                 announce(f"teleop: the run failed:\n{exc.block()}\nstopping the services...")
@@ -475,6 +484,7 @@ def run_on_services(
             }
         )
     idle_poll = idle_poll_report(polled_cpus, run_dir)
+    machine = machine_section(summaries, polled_cpus, idle_poll)
     health = realtime_health(
         config.run.mode,
         overrun_fraction=plant.get("overrun_fraction", 0.0),
@@ -504,7 +514,8 @@ def run_on_services(
             "final_state_sha256": plant.get("final_state_sha256"),
             "stack_wall_s": wall_s,
             **idle_poll,
-            "machine": machine_section(summaries, polled_cpus, idle_poll),
+            "machine": machine,
+            "refused_privileges": refused_privileges(machine),
             "eye_view": _eye_view_summary(summaries),
             "rrd": summaries.get("recorder", {}).get("rrd_path"),
             "run_dir": str(run_dir),
@@ -559,18 +570,19 @@ def _grasp_summary(summaries: dict[str, dict[str, Any]], task_done: list[float])
 def _wait_finished(
     finished: threading.Event,
     tool: Latest,
-    config: Config,
+    tracker: RunProgress,
     deadline_s: float,
     stack: Stack,
-    progress: ProgressFn | None,
+    progress: Callable[[str], None] | None,
     run_dir: Path,
     check: Callable[[], None],
 ) -> None:
     """Wait until the plant has finished: its FINISHED event, or its summary on file
     saying so (written as it finishes: an event lost on a starved machine does not hang
-    the run). Reports progress from the scene stream meanwhile."""
+    the run). Reports progress meanwhile: sim time from the tool pose stream, the task's
+    phase from the operator's events (``tracker``)."""
     start = time.monotonic()
-    next_report = PROGRESS_FRACTION
+    sim_s = 0.0
     while not finished.wait(timeout=0.5) and not _plant_finished(run_dir):
         if time.monotonic() - start > deadline_s:
             raise RunError(f"run did not finish within {deadline_s:g} s: {stack.status()}")
@@ -578,12 +590,12 @@ def _wait_finished(
         latest = tool.get()
         if progress is not None and latest is not None:
             sim_s = int(latest[0]["sim_time_ns"]) * 1e-9
-            fraction = sim_s / config.run.duration_s
-            if fraction >= next_report:
-                progress(fraction, sim_s)
-                next_report = (int(fraction / PROGRESS_FRACTION) + 1) * PROGRESS_FRACTION
-    if progress is not None:
-        progress(1.0, config.run.duration_s)
+            line = tracker.due(sim_s)
+            if line is not None:
+                progress(line)
+    latest = tool.get()
+    if progress is not None and latest is not None:
+        progress(tracker.line(int(latest[0]["sim_time_ns"]) * 1e-9) + "   finished")
 
 
 def _plant_finished(run_dir: Path) -> bool:

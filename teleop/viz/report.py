@@ -172,7 +172,7 @@ def _fig_control_error(sim: Mapping[str, rrd.Series], report: Report, t0: float)
     ax.grid(True, alpha=0.3)
     ax.legend(loc="upper right", fontsize=8)
     n = min(len(s) for s in squares)
-    report.metrics["velocity_error_rms_m_s"] = float(
+    report.metrics["status_velocity_error_rms_m_s"] = float(
         np.sqrt(np.mean(np.sum([s[:n] for s in squares], axis=0)))
     )
     _save(fig, report.out_dir / "fig13_control_error.png", report)
@@ -189,7 +189,7 @@ def _fig_forces(sim: Mapping[str, rrd.Series], report: Report, t0: float) -> Non
         color = FORCE_COLORS.get(component, (0.5, 0.5, 0.5))
         label = "device (total rendered)" if component == "device" else component
         ax.plot(series.t_s - t0, series.values, color=color, linewidth=1.0, label=label)
-        report.metrics[f"max_{component}_force_n"] = float(series.values.max())
+        report.metrics[f"max_{component}_feedback_force_n"] = float(series.values.max())
     ax.set_xlabel("time (s)")
     ax.set_ylabel("|F| (N)")
     ax.set_title("Force feedback: components and the force rendered on the device")
@@ -346,17 +346,21 @@ def _summary_text(path: Path, report: Report, events: Sequence[str], stats: dict
             f"max {m['path_error_max_mm']:.4f} mm",
             "",
         ]
-    if "velocity_error_rms_m_s" in m:
+    if "status_velocity_error_rms_m_s" in m:
+        # Named apart from the run summary's figures: these come from the recording (the
+        # controller's 100 Hz status, the forces fed back), not the services' own counts
+        # (velocity_tracking_rms_m_s: every 1 kHz cycle; max_contact_force_n: the plant's
+        # contact force on the gripper).
         lines += [
             "## Teleoperation (paper experiment 2)",
             "",
-            f"- velocity control error (v_ref - v), rms over the run: "
-            f"{m['velocity_error_rms_m_s']:.4f} m/s",
+            "- status_velocity_error_rms_m_s (v_ref - v in the recorded 100 Hz status, "
+            f"whole recording): {m['status_velocity_error_rms_m_s']:.4f} m/s",
         ]
         for component in r.FEEDBACK_COMPONENTS:
-            key = f"max_{component}_force_n"
+            key = f"max_{component}_feedback_force_n"
             if key in m:
-                lines.append(f"- max {component} force: {m[key]:.3f} N")
+                lines.append(f"- {key} (fed back to the operator): {m[key]:.3f} N")
         lines.append("")
     if m.get("latency"):
         lines += ["## Latency per hop", "", "| hop | p50 (ms) | p99 (ms) | samples |"]

@@ -46,14 +46,26 @@ def test_inprocess_run_writes_the_summary(tmp_path):
     out = tmp_path / "out.json"
     result = teleop(
         "run", "path-following", "--inprocess", "--duration", "3", "--seed", "1",
-        "--set", "run.settle_s=1", "--summary-json", str(out),
+        "--set", "run.settle_s=1", "--summary-json", str(out), "--json",
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     summary = json.loads(out.read_text())
     assert SUMMARY_KEYS <= summary.keys()
     assert summary["steps"] == 3000 and summary["compensation"] is True
-    assert json.loads(result.stdout) == summary
+    assert json.loads(result.stdout) == summary  # --json: the full summary on stdout
     assert "100%" in result.stderr  # progress is shown
+
+
+def test_without_json_the_summary_is_short_and_the_file_full(tmp_path):
+    result = teleop(
+        "run", "path-following", "--inprocess", "--duration", "2", "--set", "run.settle_s=1",
+        "--run-dir", str(tmp_path),
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    assert lines[0].startswith("path-following") and len(lines) <= 15
+    assert f"  full summary       {tmp_path / 'summary.json'}" in lines
+    assert SUMMARY_KEYS <= json.loads((tmp_path / "summary.json").read_text()).keys()
 
 
 def test_bad_override_exits_2_with_the_key_named():

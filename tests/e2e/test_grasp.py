@@ -192,7 +192,7 @@ def test_report_writes_the_paper_figures(obstacle_run, tmp_path):
         assert figure.read_bytes().startswith(b"\x89PNG") and figure.stat().st_size > 10_000
     text = report.summary.read_text()
     assert all(name in text for name in names)
-    assert report.metrics["max_weight_force_n"] == pytest.approx(
+    assert report.metrics["max_weight_feedback_force_n"] == pytest.approx(
         summary["held_weight_n"], rel=WEIGHT_TOLERANCE
     )
     assert report.metrics["ghost_poses"] >= 2

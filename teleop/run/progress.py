@@ -1,0 +1,134 @@
+"""What a services run prints while it runs, and the short summary at its end.
+
+:class:`RunProgress` turns what the launcher sees (sim time from the tool pose, the
+operator's PHASE events) into a progress line: the task as it is (phase, sim time, task
+time), not a fraction of a fixed duration (a grasp ends when the operator is done, long
+before ``run.duration_s``). :func:`human_summary` turns the merged summary into a dozen
+lines for a person; the full JSON goes to a file. Both are pure.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+# A progress line at least every this many seconds of sim time, and at each new phase.
+PROGRESS_PERIOD_S = 5.0
+
+
+@dataclass
+class RunProgress:
+    """Progress of one run: ``phase_names`` are the scenario's phases in order (empty:
+    a run without an operator, such as path following, over ``duration_s``)."""
+
+    duration_s: float
+    phase_names: Sequence[str] = ()
+    phase: int = -1  # index of the current phase; -1: none begun yet
+    task_start_s: float | None = None  # sim time of the first phase
+    _next_s: float = field(default=0.0, repr=False)
+    _shown_phase: int = field(default=-1, repr=False)
+
+    def on_phase(self, index: int, sim_s: float) -> None:
+        """The operator began phase ``index`` at ``sim_s``."""
+        if self.task_start_s is None:
+            self.task_start_s = sim_s
+        self.phase = index
+
+    def line(self, sim_s: float) -> str:
+        """The progress line at ``sim_s``."""
+        if not self.phase_names:
+            share = sim_s / self.duration_s if self.duration_s > 0 else 0.0
+            return f"  sim {sim_s:6.1f} s of {self.duration_s:g} s ({share:4.0%})"
+        text = f"  sim {sim_s:6.1f} s"
+        if self.task_start_s is None:
+            return f"{text}   task not started"
+        name = self.phase_names[self.phase] if 0 <= self.phase < len(self.phase_names) else "?"
+        task_s = sim_s - self.task_start_s
+        return (
+            f"{text}   task {task_s:5.1f} s   phase {self.phase + 1}/{len(self.phase_names)} {name}"
+        )
+
+    def due(self, sim_s: float) -> str | None:
+        """The line to print now (a new phase began, or PROGRESS_PERIOD_S of sim time
+        passed since the last one), else None."""
+        if sim_s < self._next_s and self.phase == self._shown_phase:
+            return None
+        self._next_s = (sim_s // PROGRESS_PERIOD_S + 1) * PROGRESS_PERIOD_S
+        self._shown_phase = self.phase
+        return self.line(sim_s)
+
+
+def _mm(value_m: float | None) -> float | None:
+    return None if value_m is None else value_m * 1000.0
+
+
+def _num(value: Any, fmt: str, unit: str = "") -> str:
+    if value is None:
+        return "n/a"
+    return f"{value:{fmt}}{unit}"
+
+
+def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[str]:
+    """About a dozen lines for a person: outcome, task time, errors, forces, timing,
+    privileges refused, where the recording, logs and full summary are."""
+    lines = []
+    scenario, mode = summary.get("scenario"), summary.get("mode")
+    verdict = summary.get("realtime_verdict", "clean")
+    if scenario == "grasp":
+        outcome = "success: the cube is in the bin" if summary.get("success") else "FAILED"
+        lines.append(f"{scenario} ({mode}): {outcome}")
+        lines.append(
+            f"  task time          {_num(summary.get('duration_s'), '.1f', ' s')}"
+            f"   phases {_phases_reached(summary.get('phases'))}"
+        )
+        lines.append(
+            f"  velocity tracking  {_num(summary.get('velocity_tracking_rms_m_s'), '.4f')} m/s RMS"
+        )
+        lines.append(
+            f"  forces             contact max "
+            f"{_num(summary.get('max_contact_force_n'), '.2f', ' N')}, device max "
+            f"{_num(summary.get('max_device_force_n'), '.2f', ' N')}, held weight "
+            f"{_num(summary.get('held_weight_n'), '.2f', ' N')}"
+        )
+        lines.append(
+            "  obstacle clearance "
+            f"{_num(summary.get('obstacle_min_clearance_m'), '.3f', ' m')} (min)"
+        )
+    else:
+        lines.append(f"{scenario} ({mode}): {summary.get('duration_s')} s simulated")
+        lines.append(
+            f"  path error         RMS {_num(_mm(summary.get('path_error_rms_m')), '.3f', ' mm')}, "
+            f"max {_num(_mm(summary.get('path_error_max_m')), '.3f', ' mm')} "
+            f"(after {summary.get('settle_s')} s)"
+        )
+        lines.append(f"  manipulability     min {_num(summary.get('min_manipulability'), '.3f')}")
+    timing = f"  timing             realtime factor {_num(summary.get('realtime_factor'), '.3f')}"
+    if "overrun_fraction" in summary:  # a services run
+        timing += (
+            f", overruns {_num(summary.get('overrun_fraction'), '.2%')}, watchdog brakes "
+            f"{summary.get('stale_commands')}, dropped {summary.get('dropped_messages')}"
+        )
+    lines.append(timing)
+    if "realtime_verdict" in summary:  # a services run judged itself
+        lines.append(f"  real time          {verdict}")
+    lines += [f"    - {problem}" for problem in summary.get("realtime_problems", [])]
+    refused = summary.get("refused_privileges") or []
+    if refused:
+        lines.append("  privileges refused (README, Privileges):")
+        lines += [f"    - {line}" for line in refused]
+    if summary.get("rrd"):
+        lines.append(f"  recording          {summary['rrd']}")
+    if summary.get("run_dir"):
+        lines.append(f"  logs               {summary['run_dir']}/logs")
+    if summary_path:
+        lines.append(f"  full summary       {summary_path}")
+    return lines
+
+
+def _phases_reached(phases: Any) -> str:
+    """How many phases the operator began, and the last one's name."""
+    if not isinstance(phases, list) or not phases:
+        return "none begun"
+    last = phases[-1].get("name", "?") if isinstance(phases[-1], Mapping) else "?"
+    return f"{len(phases)} begun, the last: {last}"

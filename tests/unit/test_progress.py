@@ -1,0 +1,55 @@
+"""Progress lines and the short end-of-run summary (pure)."""
+
+from __future__ import annotations
+
+from teleop.run.progress import PROGRESS_PERIOD_S, RunProgress, human_summary
+
+PHASES = ("approach", "open", "descend")
+
+
+def test_a_task_shows_its_phase_and_task_time_not_a_fraction_of_the_duration():
+    progress = RunProgress(60.0, PHASES)
+    assert progress.line(0.1).endswith("task not started")
+    progress.on_phase(0, 0.2)
+    progress.on_phase(1, 4.3)
+    line = progress.line(5.3)
+    assert "sim    5.3 s" in line and "task   5.1 s" in line and "phase 2/3 open" in line
+    assert "%" not in line
+
+
+def test_a_line_comes_at_each_new_phase_and_every_period_of_sim_time():
+    progress = RunProgress(60.0, PHASES)
+    progress.on_phase(0, 0.0)
+    assert progress.due(0.0) is not None
+    assert progress.due(1.0) is None
+    progress.on_phase(1, 1.5)
+    assert "open" in (progress.due(1.5) or "")
+    assert progress.due(2.0) is None
+    assert progress.due(PROGRESS_PERIOD_S) is not None
+
+
+def test_a_run_without_an_operator_shows_its_share_of_the_duration():
+    assert "50%)" in RunProgress(10.0).line(5.0)
+
+
+def test_the_short_summary_says_the_outcome_the_verdict_and_where_the_files_are():
+    summary = {
+        "scenario": "grasp",
+        "mode": "realtime",
+        "success": True,
+        "duration_s": 19.8,
+        "phases": [{"phase": 0, "name": "approach"}, {"phase": 1, "name": "open"}],
+        "max_contact_force_n": 2.04,
+        "realtime_verdict": "degraded",
+        "realtime_problems": ["the watchdog braked 7 time(s)"],
+        "refused_privileges": ["SCHED_FIFO refused for plant (EPERM)"],
+        "rrd": "/r/recording.rrd",
+        "run_dir": "/r",
+    }
+    lines = human_summary(summary, "/r/summary.json")
+    text = "\n".join(lines)
+    assert lines[0] == "grasp (realtime): success: the cube is in the bin"
+    assert "19.8 s" in text and "2 begun, the last: open" in text and "2.04 N" in text
+    assert "real time          degraded" in text and "braked 7" in text
+    assert "SCHED_FIFO refused" in text and "/r/summary.json" in text
+    assert len(lines) <= 16
