@@ -30,7 +30,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
@@ -87,6 +87,9 @@ LATENCY_SCENARIO_FILE = "latency.toml"
 MIN_RATIO_BASE_US = 1.0
 # Histogram bins of the figure and the recording (log-spaced, 10 us .. 1 s).
 FIGURE_BINS_US = np.logspace(1, 6, 151)
+# The PNG's histograms: bins per decade, and the factor the axis extends past the data.
+FIGURE_BINS_PER_DECADE = 30
+FIGURE_MARGIN = 1.2
 
 
 @dataclass(frozen=True)
@@ -771,6 +774,22 @@ def write_json(report: dict[str, Any], path: Path) -> None:
     path.write_text(json.dumps(report, indent=2) + "\n")
 
 
+def fitted_bins_us(raw: Mapping[str, np.ndarray]) -> np.ndarray:
+    """Log-spaced histogram bins (us) from just below the smallest to just above the
+    largest sample of ``raw`` (ns arrays), FIGURE_BINS_PER_DECADE per decade: the axis
+    fits the data instead of FIGURE_BINS_US's fixed 10 us - 1 s."""
+    values = [v for v in raw.values() if v.size]
+    if not values:
+        return FIGURE_BINS_US
+    low_us = min(float(v.min()) for v in values) / NS_PER_US / FIGURE_MARGIN
+    high_us = max(float(v.max()) for v in values) / NS_PER_US * FIGURE_MARGIN
+    low_us = max(low_us, 1e-3)
+    decades = max(np.log10(high_us / low_us), 0.1)
+    return np.logspace(
+        np.log10(low_us), np.log10(high_us), round(decades * FIGURE_BINS_PER_DECADE) + 1
+    )
+
+
 def write_png(report: dict[str, Any], raw: dict[str, np.ndarray], path: Path) -> None:
     """Round-trip histograms (stack and baselines), per-hop p50/p99 against the floor,
     and the payload sweep, in one figure."""
@@ -781,10 +800,12 @@ def write_png(report: dict[str, Any], raw: dict[str, np.ndarray], path: Path) ->
 
     fig, axes = plt.subplots(1, 3, figsize=(18, 5.5))
     ax = axes[0]
+    bins_us = fitted_bins_us(raw)
     for name, values_ns in raw.items():
         if values_ns.size:
-            ax.hist(values_ns / NS_PER_US, bins=FIGURE_BINS_US, histtype="step", label=name)
+            ax.hist(values_ns / NS_PER_US, bins=bins_us, histtype="step", label=name)
     ax.set_xscale("log")
+    ax.set_xlim(bins_us[0], bins_us[-1])
     ax.set_yscale("log")
     ax.set_xlabel("round trip, haptic sample -> force rendered (us)")
     ax.set_ylabel("samples")
@@ -809,8 +830,9 @@ def write_png(report: dict[str, Any], raw: dict[str, np.ndarray], path: Path) ->
     ax.set_yscale("symlog", linthresh=10)
     ax.set_xticks(x, names, rotation=45, ha="right")
     ax.set_ylabel("us")
-    ax.set_title("Per hop: stack vs transport floor")
-    ax.legend()
+    ax.set_title("Per hop: stack vs transport floor", pad=28)
+    # Above the bars, not over them.
+    ax.legend(loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=4, fontsize=8, frameon=False)
 
     ax = axes[2]
     sweep = report.get("payload_sweep", [])

@@ -27,6 +27,7 @@ matplotlib.use("Agg")  # files only, never a window
 import matplotlib.pyplot as plt  # noqa: E402  (after the backend choice)
 import numpy as np  # noqa: E402
 
+from teleop.bus.messages import Stage  # noqa: E402
 from teleop.core.rundir import REPORT_SUMMARY_FILE, report_dir  # noqa: E402
 from teleop.viz import entities as r  # noqa: E402
 from teleop.viz import rrd  # noqa: E402
@@ -35,7 +36,8 @@ from teleop.viz.scene3d import ENTITY_GHOSTS, GHOST_SKELETON  # noqa: E402
 DPI = 130  # PNG resolution (dots per inch)
 FIG_SIZE_WIDE_IN = (8.0, 4.0)  # one time-series panel (inches)
 FIG_SIZE_AXES_IN = (8.0, 6.5)  # three stacked per-axis panels
-FIG_SIZE_3D_IN = (7.5, 6.5)
+FIG_SIZE_TIMING_IN = (10.0, 7.5)  # rates over hops, with room for the hop names
+FIG_SIZE_3D_IN = (9.0, 6.5)
 # Path error is measured after the arm has converged (the run's settle time, default 10 s).
 DEFAULT_SETTLE_S = 10.0
 M_TO_MM = 1e3
@@ -45,6 +47,9 @@ AXIS_COLORS = {"x": "tab:red", "y": "tab:green", "z": "tab:blue"}
 FORCE_COLORS = {name: tuple(c / 255 for c in rgb) for name, rgb in r.FORCE_ARROW_COLORS.items()}
 LATENCY_PERCENTILES = (50.0, 99.0)
 FIG7_MAX_POSES = 8  # ghost poses drawn in the stroboscopic figure (more would clutter it)
+# A ghost pose is drawn only if its tool tip is this far from every pose drawn before
+# (m): an arm that waits (dwell, lockstep pauses) would stack identical poses.
+FIG7_MIN_TIP_SPACING_M = 0.04
 
 
 @dataclass
@@ -203,18 +208,20 @@ def _fig_timing(rec: rrd.Recording, report: Report) -> None:
     source = rec.scalars(r.TIMELINE_SOURCE)
     rates = {e: s for e, s in source.items() if e.startswith(r.ENTITY_RATES + "/")}
     hops: dict[str, np.ndarray] = {}
-    for entity in rec.entities:
+    for entity in sorted(rec.entities):
         if entity.startswith(r.ENTITY_LATENCY + "/"):
-            stream = entity.removeprefix(r.ENTITY_LATENCY + "/")
             _, values, names = rec.multi_series(entity, r.TIMELINE_SOURCE)
             for j, name in enumerate(names):
                 column = values[:, j]
                 column = column[~np.isnan(column)]
-                if column.size:
-                    hops[f"{stream}/{name}"] = column
+                # A record carries the stamps of the records it answers, so the same hop
+                # shows in several streams (the same loops): each hop once, from the
+                # stream that saw it most often.
+                if column.size > hops.get(name, np.empty(0)).size:
+                    hops[name] = column
     if not rates and not hops:
         return
-    fig, (ax_rate, ax_hop) = plt.subplots(2, 1, figsize=FIG_SIZE_AXES_IN)
+    fig, (ax_rate, ax_hop) = plt.subplots(2, 1, figsize=FIG_SIZE_TIMING_IN)
     t0 = min((s.t_ns[0] for s in rates.values()), default=0) * 1e-9
     for entity, series in sorted(rates.items()):
         ax_rate.plot(series.t_s - t0, series.values, linewidth=0.9, label=entity.split("/")[-1])
@@ -223,14 +230,15 @@ def _fig_timing(rec: rrd.Recording, report: Report) -> None:
     ax_rate.set_ylabel("rate (Hz)")
     ax_rate.set_title("Loop rates (records per second of the producer's clock)")
     ax_rate.grid(True, which="both", alpha=0.3)
-    ax_rate.legend(loc="lower right", fontsize=7, ncol=3)
+    # Beside the axes, not over them: the rates span the whole plot.
+    ax_rate.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     latency: dict[str, dict[str, float]] = {}
-    names = list(hops)
+    # In the loop's order (the first stage's index), the first hop at the top.
+    names = sorted(hops, key=_hop_order, reverse=True)
     if names:
         data = [hops[n] for n in names]
         ax_hop.boxplot(data, orientation="horizontal", showfliers=False, whis=(1, 99))
-        labels = [n.replace("/", "\n") for n in names]
-        ax_hop.set_yticks(range(1, len(names) + 1), labels, fontsize=6)
+        ax_hop.set_yticks(range(1, len(names) + 1), [_hop_label(n) for n in names], fontsize=8)
         ax_hop.set_xlabel("latency (ms), whiskers at p1 and p99")
         ax_hop.set_title("Latency per hop (header trace stamps)")
         ax_hop.grid(True, axis="x", alpha=0.3)
@@ -246,6 +254,19 @@ def _fig_timing(rec: rrd.Recording, report: Report) -> None:
         e.split("/")[-1]: float(np.median(s.values)) for e, s in sorted(rates.items())
     }
     _save(fig, report.out_dir / "fig_timing.png", report)
+
+
+def _hop_order(hop: str) -> tuple[int, int]:
+    """Sort key of a hop named ``<STAGE>_to_<STAGE>`` (teleop.bus.messages.Stage)."""
+    first, _, last = hop.partition("_to_")
+    return (Stage[first].value if first in Stage.__members__ else len(Stage),
+            Stage[last].value if last in Stage.__members__ else len(Stage))  # fmt: skip
+
+
+def _hop_label(hop: str) -> str:
+    """``HAPTIC_SAMPLE_to_CONTROLLER_RX`` -> ``haptic sample -> controller rx``."""
+    first, _, last = hop.partition("_to_")
+    return f"{first.replace('_', ' ').lower()} -> {last.replace('_', ' ').lower()}"
 
 
 def _first_strip(value: Any) -> np.ndarray | None:
@@ -266,6 +287,21 @@ def _equal_axes(ax: Any, points: np.ndarray) -> None:
     ax.set_box_aspect((1.0, 1.0, 1.0))
 
 
+def _spread_poses(poses: Sequence[tuple[float, np.ndarray]]) -> list[int]:
+    """Indices of at most FIG7_MAX_POSES poses, spread over the run, each with its tool
+    tip (the strip's last point) at least FIG7_MIN_TIP_SPACING_M from those before."""
+    candidates = np.unique(np.linspace(0, len(poses) - 1, 4 * FIG7_MAX_POSES).round())
+    picked: list[int] = []
+    for index in candidates.astype(int):
+        tip = poses[index][1][-1]
+        if all(np.linalg.norm(tip - poses[j][1][-1]) >= FIG7_MIN_TIP_SPACING_M for j in picked):
+            picked.append(int(index))
+    if len(picked) > FIG7_MAX_POSES:
+        keep = np.unique(np.linspace(0, len(picked) - 1, FIG7_MAX_POSES).round()).astype(int)
+        picked = [picked[k] for k in keep]
+    return picked
+
+
 def _fig_stroboscopic(rec: rrd.Recording, report: Report) -> None:
     """Fig. 7: ghost poses of the arm (links through the joints), the tool's path and the
     desired path; at most FIG7_MAX_POSES poses, evenly spread over the run."""
@@ -280,15 +316,18 @@ def _fig_stroboscopic(rec: rrd.Recording, report: Report) -> None:
         times = data[entity].get(r.TIMELINE_SIM) or [0]
         if strip is not None:
             poses.append((times[0] * 1e-9, strip))
-    picked = np.unique(np.linspace(0, len(poses) - 1, min(FIG7_MAX_POSES, len(poses))).round())
+    picked = _spread_poses(poses)
     fig = plt.figure(figsize=FIG_SIZE_3D_IN)
     ax = fig.add_subplot(projection="3d")
+    # Orthographic: links of equal length look equal wherever they are in the box.
+    ax.set_proj_type("ortho")
     shades = np.linspace(0.75, 0.05, len(picked))
     drawn = []
-    for shade, index in zip(shades, picked.astype(int), strict=True):
+    for shade, index in zip(shades, picked, strict=True):
         t_s, strip = poses[index]
-        ax.plot(*strip.T, color=str(shade), linewidth=2.5, marker="o", markersize=3)
-        ax.text(*strip[-1], f" {t_s:.0f} s", color=str(shade), fontsize=7)
+        # Times in the legend, not beside the poses: labels at the tool tips collide.
+        label = f"arm at {t_s:.1f} s"
+        ax.plot(*strip.T, color=str(shade), linewidth=2.5, marker="o", markersize=3, label=label)
         drawn.append(strip)
     desired = rec.column(r.ENTITY_DESIRED_PATH, "LineStrips3D:strips")
     strip = _first_strip(desired.get(r.ENTITY_DESIRED_PATH, []))
@@ -308,7 +347,7 @@ def _fig_stroboscopic(rec: rrd.Recording, report: Report) -> None:
     ax.set_zlabel("z (m)")
     ax.set_title(f"Fig. 7: stroboscopic motion of the arm ({len(picked)} poses, light = early)")
     ax.view_init(elev=22.0, azim=-65.0)
-    ax.legend(loc="upper left", fontsize=8)
+    ax.legend(loc="center left", bbox_to_anchor=(1.02, 0.5), fontsize=8)
     report.metrics["ghost_poses"] = len(poses)
     _save(fig, report.out_dir / "fig7_stroboscopic.png", report)
 

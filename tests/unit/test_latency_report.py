@@ -160,3 +160,12 @@ def test_variant_rounds_rotate_so_every_variant_runs_in_every_position():
     for position in range(3):
         assert sorted(order[position] for order in orders) == sorted(names)
     assert round_order(names, 3) == names
+
+
+def test_the_histogram_axis_fits_the_data_not_a_fixed_range():
+    from teleop.bench.latency import fitted_bins_us
+
+    raw = {"stack": np.array([200_000, 2_000_000]), "empty": np.array([], dtype=np.int64)}
+    bins = fitted_bins_us(raw)
+    assert 100 < bins[0] < 200 and 2000 < bins[-1] < 4000  # 200 us .. 2 ms, with margins
+    assert np.all(np.diff(np.log10(bins)) > 0)
