@@ -436,9 +436,14 @@ def _view(args: argparse.Namespace) -> int:
 
 def _report(args: argparse.Namespace) -> int:
     from teleop.viz.report import write_report
+    from teleop.viz.rrd import NotARecording
 
     settle_s = args.settle_s if args.settle_s is not None else load_config().run.settle_s
-    report = write_report(args.rrd, args.out, settle_s=settle_s)
+    try:
+        report = write_report(args.rrd, args.out, settle_s=settle_s)
+    except NotARecording as exc:
+        print(f"teleop: {exc}", file=sys.stderr)
+        return EXIT_USAGE
     for figure in report.figures:
         print(figure)
     print(report.summary)

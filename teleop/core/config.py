@@ -12,11 +12,13 @@ a TOML literal is taken as a string.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
+import re
 import tomllib
 import types
 import typing
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -35,6 +37,12 @@ class ConfigError(ValueError):
 
 class ModelError(ValueError):
     """The model file does not contain what the configuration names."""
+
+
+# How close a misspelt key must be to a real one to be suggested (difflib ratio, 0-1).
+SUGGESTION_CUTOFF = 0.6
+# First characters of a --set value meant as a TOML literal (list, table, string).
+TOML_OPENERS = ("[", "{", '"', "'")
 
 
 def _require(ok: bool, message: str) -> None:
@@ -694,8 +702,11 @@ def _fields(cls: type, table: Mapping[str, Any], prefix: str) -> dict[str, Any]:
     hints = typing.get_type_hints(cls)
     fields = dataclasses.fields(cls)
     where = prefix or "config"
-    unknown = sorted(set(table) - {f.name for f in fields})
-    _require(not unknown, f"{where}: unknown key(s) {', '.join(unknown)}")
+    names = [f.name for f in fields]
+    unknown = sorted(set(table) - set(names))
+    _require(
+        not unknown, f"{where}: unknown key(s) {', '.join(map(_with_suggestion(names), unknown))}"
+    )
     missing = [
         f.name
         for f in fields
@@ -710,8 +721,42 @@ def _fields(cls: type, table: Mapping[str, Any], prefix: str) -> dict[str, Any]:
     }
 
 
+def _with_suggestion(names: Sequence[str]) -> Callable[[str], str]:
+    """``key`` -> ``key (did you mean X?)`` when one of ``names`` is close to it."""
+
+    def suggest(key: str) -> str:
+        close = difflib.get_close_matches(key, names, n=1, cutoff=SUGGESTION_CUTOFF)
+        return f"{key} (did you mean {close[0]}?)" if close else key
+
+    return suggest
+
+
+# A value shown in an error message: scalars and short lists, not whole sections.
+_SHOWN_VALUE_TYPES = (bool, int, float, str, tuple)
+
+
+def _with_value(message: str, kwargs: Mapping[str, Any]) -> str:
+    """Append the offending value to a range error that starts with the field's dotted
+    name (``run.duration_s > 0`` -> ``... (got -3.0)``), when it was given."""
+    match = re.match(r"([A-Za-z_][\w.]*)", message)
+    if match is None or "got " in message:
+        return message
+    name = match.group(1).rsplit(".", 1)[-1]
+    value = kwargs.get(name, _MISSING)
+    if value is _MISSING or not isinstance(value, _SHOWN_VALUE_TYPES):
+        return message
+    return f"{message} (got {value!r})"
+
+
+_MISSING = object()
+
+
 def _build(cls: type, table: Mapping[str, Any], prefix: str) -> Any:
-    return cls(**_fields(cls, table, prefix))
+    kwargs = _fields(cls, table, prefix)
+    try:
+        return cls(**kwargs)
+    except ConfigError as exc:
+        raise ConfigError(_with_value(str(exc), kwargs)) from None
 
 
 def build(cls: type[_T], table: Mapping[str, Any], prefix: str) -> _T:
@@ -725,16 +770,22 @@ def build(cls: type[_T], table: Mapping[str, Any], prefix: str) -> _T:
     try:
         return cls(**kwargs)
     except ConfigError as exc:
-        raise ConfigError(f"{prefix}: {exc}") from exc
+        raise ConfigError(f"{prefix}: {_with_value(str(exc), kwargs)}") from exc
 
 
 def _parse_override(text: str) -> tuple[list[str], Any]:
     key, sep, raw = text.partition("=")
     _require(bool(sep) and bool(key.strip()), f"--set {text!r}: expected dotted.key=value")
+    raw = raw.strip()
     try:
-        value = tomllib.loads(f"v = {raw.strip()}")["v"]
-    except tomllib.TOMLDecodeError:
-        value = raw.strip()
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError as exc:
+        if raw[:1] in TOML_OPENERS:  # meant as a TOML literal: say what is wrong with it
+            raise ConfigError(
+                f"--set {key.strip()}={raw}: not valid TOML ({exc}); e.g. [0.1, 0.0, 0.3], "
+                '"text", true'
+            ) from None
+        value = raw  # a bare word: taken as a string
     return key.strip().split("."), value
 
 

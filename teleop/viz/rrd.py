@@ -40,12 +40,21 @@ def _as_int_ns(column: pa.Array) -> pa.Array:
     return column
 
 
+class NotARecording(ValueError):
+    """The file is missing or is not a Rerun recording (.rrd); the message says which."""
+
+
 class Recording:
     """Every chunk of a ``.rrd`` file's recording, grouped by entity (no leading '/')."""
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        reader = RrdReader(self.path)
+        if not self.path.is_file():
+            raise NotARecording(f"no recording {self.path}")
+        try:
+            reader = RrdReader(self.path)
+        except RuntimeError as exc:  # Rerun's reader: not an .rrd, or a damaged one
+            raise NotARecording(f"{self.path} is not a readable Rerun recording: {exc}") from None
         self.has_blueprint = bool(reader.blueprints)
         self.batches: dict[str, list[pa.RecordBatch]] = defaultdict(list)
         # collect() compacts the recorder's many small chunks (one per entity and flush)

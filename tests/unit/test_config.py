@@ -52,3 +52,22 @@ def test_bad_values_are_refused_with_the_key_named(override, message):
 def test_missing_file_is_a_config_error(tmp_path):
     with pytest.raises(ConfigError, match="not found"):
         load_config(tmp_path / "nope.toml")
+
+
+def test_a_misspelt_key_gets_a_suggestion():
+    with pytest.raises(ConfigError, match=r"duraton_s \(did you mean duration_s\?\)"):
+        load_config(None, ["run.duraton_s=3"])
+    with pytest.raises(ConfigError, match=r"runn \(did you mean run\?\)"):
+        load_config(None, ["runn.seed=3"])
+
+
+def test_a_range_error_shows_the_value_given():
+    with pytest.raises(ConfigError, match=r"run.duration_s > 0 \(got -3.0\)"):
+        load_config(None, ["run.duration_s=-3"])
+
+
+def test_a_malformed_toml_literal_is_reported_as_such():
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(None, ["path.center_m=[0.1, 0.0"])
+    # A bare word is still a string.
+    assert load_config(None, ["bus.zenoh_config=local.json5"]).bus.zenoh_config == "local.json5"
