@@ -170,11 +170,11 @@ class Inbound:
 
     The checks every realtime receiver makes, in this order: the record's send stamp
     (taken at ``tx_stage`` on this host's monotonic clock) is not in this host's future
-    (``future_stamp``: rejected) and not older than ``shed_age_ns`` (else it is shed: the
-    receiver is behind); then its seq is in order (:class:`SeqCheck`: gaps counted as
-    lost, older ones as reordered, jumps beyond the window rejected, a restarted producer
-    taken up). A rejected record never moves the seq check, so a stale or mis-stamped
-    record cannot lock out the real producer. What is shed (here or by the caller, e.g.
+    (``future_stamp``: rejected, the seq check untouched); its seq is in order
+    (:class:`SeqCheck`: gaps counted as lost, older ones as reordered, jumps beyond the
+    window rejected, a restarted producer taken up); and it is not older than
+    ``shed_age_ns`` (else it is shed: the receiver is behind; it did arrive, so the next
+    record is no gap). What is shed (here or by the caller, e.g.
     superseded by a newer record) has the HAPTIC_SAMPLE stamp of its loop logged, for the
     latency report's count of loops that never closed. The first rejection of each
     reason is logged. Not thread-safe: the owner calls it under its own lock.
@@ -199,7 +199,7 @@ class Inbound:
         self._logged: set[str] = set()
 
     def accept(self, rec: np.ndarray, now_ns: int, *, shed: bool = True) -> bool:
-        """True if ``rec`` is to be used: in order, not stamped in the future and (with
+        """True if ``rec`` is to be used: not stamped in the future, in order and (with
         ``shed``) not older than the shed age at ``now_ns``. A stale record is counted in
         ``shed`` and logged."""
         stamp_ns = int(rec["trace_ns"][self.tx_stage])
@@ -207,10 +207,12 @@ class Inbound:
             self.future_stamps += 1
             self._log_once("future_stamp", stamp_ns - now_ns)
             return False
-        if shed and now_ns - stamp_ns > self.shed_age_ns:
-            self.drop(rec)
+        if not self.accept_seq(int(rec["seq"])):
             return False
-        return self.accept_seq(int(rec["seq"]))
+        if shed and now_ns - stamp_ns > self.shed_age_ns:
+            self.drop(rec)  # arrived, in order, too late: shed, not lost
+            return False
+        return True
 
     def accept_seq(self, seq: int) -> bool:
         """The sequence check alone (:class:`SeqCheck`), its first rejection of each kind
