@@ -72,8 +72,12 @@ class Credentials:
     def generate(cls, name: str) -> Credentials:
         if not name or not set(name) <= _NAME_ALPHABET:
             raise ValueError(f"participant name {name!r}: lower-case letters, digits, _ and -")
-        zid = format(secrets.randbits(127) | 1 << 127, "032x")
-        return cls(name, secrets.token_hex(16), zid)
+        return cls(name, secrets.token_hex(16), new_zid())
+
+
+def new_zid() -> str:
+    """A random Zenoh id: 32 hex digits, the first not 0 (Zenoh refuses leading zeros)."""
+    return format(secrets.randbits(127) | 1 << 127, "032x")
 
 
 def rights(participant: str) -> tuple[list[str], list[str]]:

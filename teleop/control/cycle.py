@@ -105,13 +105,18 @@ class ControllerCore:
         self._run_start_ns = -1
         self.cycles = 0
         self.skipped_states = 0
+        self.commands_resent = 0  # last commands sent again on a re-sent state (lockstep)
         self.runs = 0
         self.compute_ns_total = 0
 
     # -- inputs ----------------------------------------------------------------------------
     def on_state(self, rec: np.ndarray, rx_ns: int) -> None:
         """A PLANT_STATE of this arm arrived at ``rx_ns``: a new run starts over, a state
-        already answered (a re-send) is ignored, the others go to the task."""
+        already answered (a re-send) is ignored, the others go to the task.
+
+        A re-send of the newest state means the plant (lockstep) has waited a second for
+        an answer: the last command is sent again, byte for byte, in case it was lost on
+        the way (the plant drops it as a duplicate if it was not)."""
         with self._lock:
             seq = int(rec["seq"])
             if seq == 0 and int(rec["t_source_ns"]) != self._run_start_ns:
@@ -119,6 +124,9 @@ class ControllerCore:
                 self.reset()  # forget the task state
                 self.runs += 1
             elif seq <= self._last_seq:
+                if seq == self._last_seq and self.cycles > 0:
+                    self.commands_resent += 1
+                    self.outputs.put("joint_command", self._command)
                 return  # a re-sent state this controller has already answered
             elif self._last_seq >= 0 and seq > self._last_seq + 1:
                 self.skipped_states += seq - self._last_seq - 1
@@ -163,6 +171,7 @@ class ControllerCore:
         return {
             "cycles": self.cycles,
             "skipped_states": self.skipped_states,
+            "commands_resent": self.commands_resent,
             "runs": self.runs,
             "compute_mean_us": mean_compute_us,
         }

@@ -26,7 +26,6 @@ import argparse
 import json
 import os
 import re
-import secrets
 import subprocess
 import sys
 import threading
@@ -39,6 +38,7 @@ import numpy as np
 
 from teleop.bus import graph
 from teleop.bus import messages as m
+from teleop.bus.access import new_zid
 from teleop.bus.session import Publisher, close_session, open_session, subscribe
 from teleop.bus.topics import Topics
 from teleop.core.config import load_config
@@ -95,7 +95,7 @@ def endpoints(run_dir: Path) -> tuple[str, list[str]]:
 def stolen(run_dir: Path, service: str, out: Path) -> Path:
     """``service``'s credentials under another Zenoh id (a thief's own session)."""
     content = json.loads((run_dir / "auth" / f"{service}.json").read_text())
-    content["zid"] = format(secrets.randbits(127) | 1 << 127, "032x")
+    content["zid"] = new_zid()
     out.write_text(json.dumps(content))
     return out
 

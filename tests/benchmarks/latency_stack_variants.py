@@ -35,6 +35,8 @@ VARIANTS: dict[str, dict] = {
     "idle_poll_off": {"overrides": ["cpu.idle_poll=false"]},
     "old_timing": {"overrides": list(latency.OLD_TIMING)},
     "shm_off": {"overrides": list(latency.SHM_OFF)},
+    "tls": {"overrides": ["bus.tls=true"]},  # every link mutual TLS
+    "tls_shm_off": {"overrides": ["bus.tls=true", *latency.SHM_OFF]},  # TLS carries it all
     "runtime_1_thread": {"env": {"ZENOH_RUNTIME": ONE_THREAD_RUNTIME}},
     "lowlatency_off": {"overrides": ["bus.lowlatency=false"]},
     "observers_on_cpu0": {"overrides": ["cpu.recorder=[0]", "cpu.eyeview=[0]"]},

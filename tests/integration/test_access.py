@@ -9,44 +9,17 @@ same links at the same time.
 from __future__ import annotations
 
 import dataclasses
-import socket
 import stat
-import threading
-
-import numpy as np
 
 from teleop.bus import session as bus
 from teleop.bus.access import PASSWORDS_FILE, write_run_credentials
 from teleop.bus.messages import HAPTIC_STATE, JOINT_COMMAND, PLANT_STATE, DropCounter
 from teleop.bus.topics import Topics
 from teleop.core.config import BusConfig
+from tests.integration.receiving import TIMEOUT_S, Seen, free_endpoint
 
 ROBOT = "testarm"
-TIMEOUT_S = 10.0
 RECORDS = 300  # per sender: enough for any link to carry some if it is up
-
-
-def free_endpoint() -> str:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
-
-
-class Seen:
-    """Records received on one subscription, by seq."""
-
-    def __init__(self) -> None:
-        self.seqs: list[int] = []
-        self.cond = threading.Condition()
-
-    def __call__(self, rec: np.ndarray, rx_ns: int) -> None:
-        with self.cond:
-            self.seqs.append(int(rec["seq"]))
-            self.cond.notify_all()
-
-    def wait(self, count: int) -> bool:
-        with self.cond:
-            return self.cond.wait_for(lambda: len(self.seqs) >= count, TIMEOUT_S)
 
 
 def test_only_the_graphs_producers_reach_a_stream_and_strangers_cannot_link(tmp_path):

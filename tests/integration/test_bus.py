@@ -11,7 +11,6 @@ from __future__ import annotations
 import dataclasses
 import multiprocessing as mp
 import queue
-import socket
 import threading
 import time
 from collections.abc import Callable
@@ -26,6 +25,7 @@ from teleop.bus import session as bus
 from teleop.bus.topics import Topics
 from teleop.core.config import BusConfig, load_config
 from teleop.run.stack import peer_mesh
+from tests.integration.receiving import free_endpoint
 
 TIMEOUT_S = 10.0  # generous bound on any single wait; passing runs take well under 1 s
 ROBOT = "testarm"
@@ -34,14 +34,6 @@ SMALL_BYTES = 64
 RAW_KEY = f"teleop/{ROBOT}/test/raw"  # a test-only stream, not part of the registry
 
 SPAWN = mp.get_context("spawn")
-
-
-def free_endpoint() -> str:
-    """A loopback TCP endpoint on a port the OS just reported free."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    return f"tcp/127.0.0.1:{port}"
 
 
 def _bus(endpoint: str, shm: bool = True) -> BusConfig:

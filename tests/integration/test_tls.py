@@ -9,12 +9,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import socket
-import threading
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from teleop.bus import session as bus
@@ -22,34 +19,11 @@ from teleop.bus.access import write_run_credentials
 from teleop.bus.messages import HAPTIC_STATE, JOINT_COMMAND, PLANT_STATE, DropCounter
 from teleop.bus.topics import Topics
 from teleop.core.config import BusConfig, ConfigError
+from tests.integration.receiving import TIMEOUT_S, Seen, free_endpoint
 
 ROBOT = "testarm"
-TIMEOUT_S = 10.0
 RECORDS = 300  # per sender: enough for any link to carry some if it is up
 PARTICIPANTS = ["plant", "controller", "haptic"]
-
-
-def free_endpoint(scheme: str = "tls") -> str:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return f"{scheme}/127.0.0.1:{s.getsockname()[1]}"
-
-
-class Seen:
-    """Records received on one subscription, by seq."""
-
-    def __init__(self) -> None:
-        self.seqs: list[int] = []
-        self.cond = threading.Condition()
-
-    def __call__(self, rec: np.ndarray, rx_ns: int) -> None:
-        with self.cond:
-            self.seqs.append(int(rec["seq"]))
-            self.cond.notify_all()
-
-    def wait(self, count: int) -> bool:
-        with self.cond:
-            return self.cond.wait_for(lambda: len(self.seqs) >= count, TIMEOUT_S)
 
 
 def edit_credentials(path: Path, edit: Callable[[dict], None]) -> None:
@@ -65,8 +39,8 @@ class Run:
 
     def __init__(self, files: dict[str, Path]) -> None:
         self.topics = Topics(ROBOT)
-        endpoint = free_endpoint()
-        own = {"controller": free_endpoint(), "haptic": free_endpoint()}
+        endpoint = free_endpoint("tls")
+        own = {"controller": free_endpoint("tls"), "haptic": free_endpoint("tls")}
 
         def config(name: str) -> BusConfig:
             return dataclasses.replace(

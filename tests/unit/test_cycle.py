@@ -122,10 +122,14 @@ def test_realtime_inputs_too_old_or_out_of_order_are_dropped_and_counted():
 def test_the_path_cycle_answers_each_state_once_and_restarts_on_a_new_run():
     cycle, sent, clock, config = make(PathCycle, 'run.mode="lockstep"')
     now = clock.now_ns()
-    for seq in (0, 1, 1, 3):  # a re-send of 1, and state 2 never seen
+    for seq in (0, 1, 1, 0, 3):  # re-sends of 1 and 0, and state 2 never seen
         cycle.on_state(state(config, seq, now), now)
     commands = [rec for s, rec in sent.log if s == "joint_command"]
-    assert [int(c["state_seq"]) for c in commands] == [0, 1, 3]
+    # The re-send of the newest state (the plant waited for an answer) gets the last
+    # command again, same seq; an older one gets nothing.
+    assert [int(c["state_seq"]) for c in commands] == [0, 1, 1, 3]
+    assert [int(c["seq"]) for c in commands] == [1, 2, 2, 3]
+    assert cycle.commands_resent == 1
     assert cycle.skipped_states == 1 and cycle.runs == 1
     assert "control_status" in sent.streams()  # step 0 is a status step
     cycle.on_state(state(config, 0, now, start_ns=2), now)  # state 0 of a new run
