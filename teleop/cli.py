@@ -9,6 +9,8 @@
     teleop run grasp --web | --spawn (watch the run in the web / native Rerun viewer)
     teleop view out.rrd [--web]      (open a saved recording)
     teleop report out.rrd            (the paper's figures as PNG, and a markdown summary)
+    teleop sweep path-following --paths 50 --seed 0   (random reachable tasks, success rate)
+    teleop sweep grasp --scenes 50 --seed 0
 
 Every command reads the typed config (``--config``, default ``deploy/teleop.toml``)
 and applies ``--set dotted.key=value`` overrides; flags such as ``--duration`` are
@@ -37,6 +39,7 @@ if TYPE_CHECKING:
 DEFAULT_RUN_DIR = Path("runs") / "latest"
 DEFAULT_UP_DIR = Path("runs") / "up"
 DEFAULT_LATENCY_DIR = Path("runs") / "latency"
+DEFAULT_SWEEP_DIR = Path("runs") / "sweep"
 
 # How long `--without` waits for the services left out (s); teleop.run.outside's default
 # (not imported from there: this module stays light until a command runs).
@@ -232,6 +235,54 @@ def build_parser() -> argparse.ArgumentParser:
         help="path error statistics start this many seconds into the run "
         "(default: run.settle_s of the config)",
     )
+
+    sweep = commands.add_parser(
+        "sweep",
+        help="run many random reachable tasks and report the success rate",
+        description=(
+            "Draw random tasks that the arm can reach (inverse kinematics within the joint "
+            "limits, away from singularities, clear of the table and the bin), run them on "
+            "every core and judge each: path following (in process) succeeds with path "
+            "error RMS <= 1 mm and max <= 3 mm after settling, path_progress >= 0.95 and "
+            "no unintended contact; grasp (lockstep services) with the cube in the bin, "
+            "no unintended contact and device force <= 8 N. A figure the build does not "
+            "report makes its criterion 'unavailable' and the task not a success. Writes "
+            "sweep.json (every task's figures and command line, success rate, failures by "
+            "reason) and sweep.md (a table) into --out. Exit code 0 when every task "
+            "succeeded, 1 otherwise."
+        ),
+    )
+    sweep.add_argument("kind", choices=("path-following", "grasp"), help="what to sweep")
+    sweep.add_argument(
+        "--paths", type=int, default=None, help="number of random paths (path-following)"
+    )
+    sweep.add_argument("--scenes", type=int, default=None, help="number of random scenes (grasp)")
+    sweep.add_argument(
+        "--seed", type=int, default=0, help="seed of the task generator (default: 0)"
+    )
+    sweep.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="worker processes (default: one per core)",
+    )
+    sweep.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help=f"report directory (default: {DEFAULT_SWEEP_DIR}/KIND)",
+    )
+    sweep.add_argument(
+        "--list",
+        action="store_true",
+        help="print the tasks' command lines and stop (nothing runs)",
+    )
+    sweep.add_argument(
+        "--keep-recordings",
+        action="store_true",
+        help="grasp: keep each run's Rerun recording (about 50 MB each)",
+    )
+    _add_config_arguments(sweep)
 
     up = commands.add_parser(
         "up",
@@ -450,6 +501,46 @@ def _report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _sweep(args: argparse.Namespace) -> int:
+    from teleop.run import sweep
+
+    count_flag = "--paths" if args.kind == "path-following" else "--scenes"
+    other = args.scenes if args.kind == "path-following" else args.paths
+    count = args.paths if args.kind == "path-following" else args.scenes
+    if other is not None:
+        raise ConfigError(f"sweep {args.kind}: the number of tasks is {count_flag}")
+    if count is None or count < 1:
+        raise ConfigError(f"sweep {args.kind}: {count_flag} N (N >= 1) is required")
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError("--workers must be >= 1")
+    config_file = str(args.config) if args.config is not None else None
+    load_config(config_file, args.overrides)  # bad --set values fail here, exit 2
+    if args.list:
+        generated = sweep.generate(args.kind, count, args.seed, config_file, args.overrides)
+        for task in generated.tasks:
+            print(task.command(args.overrides, config_file))
+        return 0
+    out = args.out if args.out is not None else DEFAULT_SWEEP_DIR / args.kind
+    report = sweep.run_sweep(
+        args.kind,
+        count,
+        args.seed,
+        out,
+        config_file=config_file,
+        overrides=args.overrides,
+        workers=args.workers,
+        keep_recordings=args.keep_recordings,
+    )
+    rate = report["success_rate"]
+    print(f"{args.kind}: {report['successes']}/{report['tasks']} succeeded ({rate:.0%})")
+    if report["failures_by_reason"]:
+        print(f"  failures by reason: {report['failures_by_reason']}")
+    if report["criteria_unavailable"]:
+        print(f"  not measured by this build: {', '.join(report['criteria_unavailable'])}")
+    print(f"  report: {out / sweep.REPORT_MARKDOWN}, {out / sweep.REPORT_JSON}")
+    return 0 if report["successes"] == report["tasks"] else EXIT_FAILED
+
+
 def _up(args: argparse.Namespace) -> int:
     from teleop.run.stack import RunError, start_detached
 
@@ -509,6 +600,7 @@ def main(argv: list[str] | None = None) -> int:
             "latency": _latency,
             "view": _view,
             "report": _report,
+            "sweep": _sweep,
             "up": _up,
             "status": _status,
             "down": _down,

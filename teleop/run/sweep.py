@@ -1,0 +1,456 @@
+"""``teleop sweep``: many random reachable tasks, run on every core, judged and tabled.
+
+A sweep draws its tasks with :mod:`teleop.run.tasks` (seeded: the same seed gives the
+same tasks), runs each in a worker process (``workers``, one per core by default) and
+judges it against fixed criteria:
+
+- path following (in process, as ``teleop run path-following --inprocess``): path error
+  RMS <= 1 mm and max <= 3 mm after settling, ``path_progress`` >= 0.95, no unintended
+  contact (``arm_contacts`` == 0);
+- grasp (a lockstep services run, as ``teleop run grasp --mode lockstep``): the cube in
+  the bin, no unintended contact, device force <= 8 N.
+
+A criterion whose figure the run does not report is *unavailable*, never passed: a task
+succeeds only when every criterion was measured and met. Every failure carries its
+reasons (the failed criteria, the operator's failure reason, the run's events, or the
+error that stopped the run). A line per finished task goes to stderr while it runs; the
+report is a JSON file (every task's figures, its command line, the success rate, the
+failures by reason, the clearance distribution) and a markdown table.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import sys
+import time
+import traceback
+from collections import Counter
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from teleop.core.config import load_config
+from teleop.core.rundir import RECORDING_FILE
+from teleop.run.tasks import (
+    Generated,
+    GraspTask,
+    PathTask,
+    random_grasp_tasks,
+    random_path_tasks,
+)
+
+KINDS = ("path-following", "grasp")
+# Success criteria (issue 18): path following.
+MAX_PATH_ERROR_RMS_M = 1e-3
+MAX_PATH_ERROR_M = 3e-3
+MIN_PATH_PROGRESS = 0.95
+# Grasp: the largest force rendered on the handle (N), the device's peak.
+MAX_DEVICE_FORCE_N = 8.0
+# Report files in the output directory.
+REPORT_JSON = "sweep.json"
+REPORT_MARKDOWN = "sweep.md"
+# Percentiles of the clearance distribution in the report.
+CLEARANCE_PERCENTILES = (0, 5, 25, 50, 75, 100)
+
+PASS, FAIL, UNAVAILABLE = "pass", "fail", "unavailable"
+
+
+@dataclass(frozen=True)
+class Criterion:
+    """One success criterion of one task: ``status`` pass, fail or unavailable."""
+
+    name: str
+    status: str
+    detail: str
+
+
+def _figure(summary: Mapping[str, Any], key: str) -> float | None:
+    value = summary.get(key)
+    return None if value is None else float(value)
+
+
+def _at_most(summary: Mapping[str, Any], key: str, bound: float, unit: str, scale: float,
+             name: str) -> Criterion:  # fmt: skip
+    value = _figure(summary, key)
+    if value is None:
+        return Criterion(name, UNAVAILABLE, f"{key} not reported")
+    shown = f"{value * scale:.3g} {unit}"
+    if value <= bound:
+        return Criterion(name, PASS, shown)
+    return Criterion(name, FAIL, f"{name}: {shown} > {bound * scale:g} {unit}")
+
+
+def _no_contact(summary: Mapping[str, Any]) -> Criterion:
+    contacts = summary.get("arm_contacts")
+    if contacts is None:
+        return Criterion("no unintended contact", UNAVAILABLE, "arm_contacts not reported")
+    if int(contacts) == 0:
+        return Criterion("no unintended contact", PASS, "0 steps")
+    return Criterion(
+        "no unintended contact", FAIL, f"unintended contact: {int(contacts)} steps in contact"
+    )
+
+
+def judge_path(summary: Mapping[str, Any]) -> list[Criterion]:
+    """The path-following criteria on a run's summary."""
+    progress = _figure(summary, "path_progress")
+    if progress is None:
+        progress_c = Criterion("path progress", UNAVAILABLE, "path_progress not reported")
+    elif progress >= MIN_PATH_PROGRESS:
+        progress_c = Criterion("path progress", PASS, f"{progress:.3f}")
+    else:
+        progress_c = Criterion(
+            "path progress", FAIL, f"path progress {progress:.3f} < {MIN_PATH_PROGRESS:g}"
+        )
+    return [
+        _at_most(summary, "path_error_rms_m", MAX_PATH_ERROR_RMS_M, "mm", 1e3, "path error RMS"),
+        _at_most(summary, "path_error_max_m", MAX_PATH_ERROR_M, "mm", 1e3, "path error max"),
+        progress_c,
+        _no_contact(summary),
+    ]
+
+
+def judge_grasp(summary: Mapping[str, Any]) -> list[Criterion]:
+    """The grasp criteria on a run's summary."""
+    in_bin = summary.get("object_in_box")
+    if in_bin is None:
+        bin_c = Criterion("cube in the bin", UNAVAILABLE, "object_in_box not reported")
+    elif in_bin:
+        bin_c = Criterion("cube in the bin", PASS, "yes")
+    else:
+        bin_c = Criterion("cube in the bin", FAIL, "the cube is not in the bin")
+    return [
+        bin_c,
+        _no_contact(summary),
+        _at_most(summary, "max_device_force_n", MAX_DEVICE_FORCE_N, "N", 1.0, "device force"),
+    ]
+
+
+def event_reasons(summary: Mapping[str, Any]) -> list[str]:
+    """What the run itself said went wrong: the operator's failure reason and the run's
+    events (stall, unintended contact, singularity, out of reach), when it reports them."""
+    reasons = []
+    operator = summary.get("services", {}).get("operator", {}) if "services" in summary else {}
+    failure = operator.get("failure") if isinstance(operator, Mapping) else None
+    if failure:
+        reasons.append(f"operator: {failure}")
+    for event in summary.get("events") or ():
+        if isinstance(event, Mapping):
+            name = event.get("event") or event.get("kind") or event.get("name")
+            at = event.get("sim_time_s")
+            reasons.append(f"event {name}" + (f" at {float(at):.1f} s" if at is not None else ""))
+        else:
+            reasons.append(f"event {event}")
+    return reasons
+
+
+# --- Running one task (in a worker) ---------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Job:
+    """What a worker needs to run one task: picklable, no models."""
+
+    kind: str
+    task: PathTask | GraspTask
+    config_file: str | None
+    overrides: tuple[str, ...]  # the sweep's own --set values, before the task's
+    run_dir: str
+    keep_recordings: bool = False  # grasp: keep each run's Rerun recording
+
+
+def run_job(job: Job) -> dict[str, Any]:
+    """Run one task and judge it; never raises (an error is the task's failure reason)."""
+    start = time.perf_counter()
+    record: dict[str, Any] = {
+        "index": job.task.index,
+        "params": job.task.params(),
+        "seed": job.task.seed,
+        "command": job.task.command(job.overrides, job.config_file),
+    }
+    try:
+        summary = _run(job)
+    except Exception as exc:  # the task failed to run: that is its result
+        record.update(
+            success=False,
+            criteria=[],
+            reasons=[f"error: {type(exc).__name__}: {exc}"],
+            error=traceback.format_exc(limit=5),
+            wall_s=time.perf_counter() - start,
+        )
+        return record
+    criteria = judge_path(summary) if job.kind == "path-following" else judge_grasp(summary)
+    failed = [c.detail for c in criteria if c.status == FAIL]
+    unavailable = [c.name for c in criteria if c.status == UNAVAILABLE]
+    events = event_reasons(summary)
+    success = not failed and not unavailable
+    reasons = [*failed, *events] if not success else []
+    if not success and not failed and not events:
+        reasons = [f"unmeasured: {', '.join(unavailable)}"]
+    record.update(
+        success=success,
+        criteria=[c.__dict__ for c in criteria],
+        reasons=reasons,
+        figures={key: summary.get(key) for key in _FIGURES[job.kind] if key in summary},
+        wall_s=time.perf_counter() - start,
+    )
+    return record
+
+
+# Figures kept per task in the report.
+_FIGURES = {
+    "path-following": (
+        "path_error_rms_m",
+        "path_error_max_m",
+        "path_progress",
+        "stalled_s",
+        "min_clearance_m",
+        "arm_contacts",
+        "min_manipulability",
+        "commands_clamped",
+        "realtime_factor",
+        "final_state_sha256",
+    ),
+    "grasp": (
+        "success",
+        "object_in_box",
+        "duration_s",
+        "max_device_force_n",
+        "max_contact_force_n",
+        "min_clearance_m",
+        "arm_contacts",
+        "obstacle_min_clearance_m",
+        "max_obstacle_force_n",
+        "phases",
+        "final_state_sha256",
+    ),
+}
+
+
+def _run(job: Job) -> dict[str, Any]:
+    overrides = [*job.overrides, *job.task.overrides()]
+    if job.kind == "path-following":
+        from teleop.run.experiments import run_path_following_inprocess
+
+        config = load_config(job.config_file, [*overrides, 'run.scenario="path-following"'])
+        return run_path_following_inprocess(config, progress=None)
+    from teleop.run.stack import run_on_services
+
+    overrides = [*overrides, 'run.scenario="grasp"', 'run.mode="lockstep"']
+    config = load_config(job.config_file, overrides)
+    run_dir = Path(job.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    summary = run_on_services(config, job.config_file, overrides, run_dir, None)
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    if not job.keep_recordings:  # tens of MB each; the summary and the logs stay
+        Path(str(summary.get("rrd") or run_dir / RECORDING_FILE)).unlink(missing_ok=True)
+    return summary
+
+
+# --- The sweep ------------------------------------------------------------------------------
+
+
+def default_workers() -> int:
+    """One worker per core this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def generate(kind: str, count: int, seed: int, config_file: str | None,
+             overrides: Sequence[str]) -> Generated:  # fmt: skip
+    """The sweep's tasks (see :mod:`teleop.run.tasks`)."""
+    config = load_config(config_file, list(overrides))
+    if kind == "path-following":
+        return random_path_tasks(config, count, seed)
+    return random_grasp_tasks(config, count, seed)
+
+
+ProgressFn = Callable[[str], None]
+
+
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def progress_line(done: int, total: int, record: Mapping[str, Any], elapsed_s: float) -> str:
+    """One line per finished task: count, outcome, first reason, time left."""
+    eta_s = elapsed_s / done * (total - done)
+    outcome = "ok" if record["success"] else "FAILED: " + "; ".join(record["reasons"][:2])
+    width = len(str(total))
+    return (
+        f"[{done:{width}d}/{total}] task {record['index']:{width}d} {outcome}"
+        f"   ({elapsed_s:.0f} s, about {eta_s:.0f} s left)"
+    )
+
+
+def run_sweep(
+    kind: str,
+    count: int,
+    seed: int,
+    out_dir: Path,
+    *,
+    config_file: str | None = None,
+    overrides: Sequence[str] = (),
+    workers: int | None = None,
+    keep_recordings: bool = False,
+    progress: ProgressFn | None = _stderr,
+) -> dict[str, Any]:
+    """Generate ``count`` tasks of ``kind`` from ``seed``, run them on ``workers``
+    processes, write ``sweep.json`` and ``sweep.md`` into ``out_dir``; returns the report."""
+    if kind not in KINDS:
+        raise ValueError(f"sweep kind {kind!r}: one of {', '.join(KINDS)}")
+    workers = workers or default_workers()
+    generated = generate(kind, count, seed, config_file, overrides)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    jobs = [
+        Job(
+            kind,
+            task,
+            config_file,
+            tuple(overrides),
+            str(out_dir / f"task{task.index:03d}"),
+            keep_recordings,
+        )  # fmt: skip
+        for task in generated.tasks
+    ]
+    if progress is not None:
+        progress(f"sweep {kind}: {len(jobs)} reachable tasks of {generated.candidates} drawn "
+                 f"(seed {seed}), {workers} worker(s); reports in {out_dir}")  # fmt: skip
+        for job in jobs:
+            progress(f"  task {job.task.index}: {job.task.command(job.overrides, config_file)}")
+    start = time.perf_counter()
+    records: list[dict[str, Any]] = []
+    # spawn: each worker builds its own models; nothing of this process's state leaks in.
+    with multiprocessing.get_context("spawn").Pool(workers) as pool:
+        for record in pool.imap_unordered(run_job, jobs):
+            records.append(record)
+            if progress is not None:
+                elapsed = time.perf_counter() - start
+                progress(progress_line(len(records), len(jobs), record, elapsed))
+    records.sort(key=lambda r: r["index"])
+    report = make_report(kind, seed, workers, generated, records, time.perf_counter() - start)
+    report["overrides"] = list(overrides)
+    (out_dir / REPORT_JSON).write_text(json.dumps(report, indent=2) + "\n")
+    (out_dir / REPORT_MARKDOWN).write_text(markdown(report))
+    return report
+
+
+def _distribution(values: Sequence[float]) -> dict[str, float] | None:
+    if not values:
+        return None
+    return {f"p{p}": float(np.percentile(values, p)) for p in CLEARANCE_PERCENTILES}
+
+
+def make_report(kind: str, seed: int, workers: int, generated: Generated,
+                records: list[dict[str, Any]], wall_s: float) -> dict[str, Any]:  # fmt: skip
+    """Per-task records plus the success rate, failures by reason, the distribution of
+    the minimum clearance and what the generator rejected."""
+    successes = sum(bool(r["success"]) for r in records)
+    by_reason: Counter[str] = Counter()
+    for r in records:
+        for reason in r["reasons"]:
+            by_reason[reason.split(":")[0]] += 1
+    clearances = [
+        float(r["figures"]["min_clearance_m"])
+        for r in records
+        if r.get("figures", {}).get("min_clearance_m") is not None
+    ]
+    unavailable = sorted(
+        {c["name"] for r in records for c in r["criteria"] if c["status"] == UNAVAILABLE}
+    )
+    return {
+        "kind": kind,
+        "seed": seed,
+        "tasks": len(records),
+        "workers": workers,
+        "successes": successes,
+        "success_rate": successes / len(records) if records else None,
+        # Tasks that failed no measured criterion and reported no failure event.
+        "passed_measured": sum(
+            1
+            for r in records
+            if r["criteria"]
+            and not any(c["status"] == FAIL for c in r["criteria"])
+            and not any(not reason.startswith("unmeasured") for reason in r["reasons"])
+        ),
+        "criteria_unavailable": unavailable,
+        "failures_by_reason": dict(by_reason.most_common()),
+        "silent_failures": sum(1 for r in records if not r["success"] and not r["reasons"]),
+        "min_clearance_m": _distribution(clearances),
+        "generator": {
+            "candidates": generated.candidates,
+            "rejected": dict(generated.rejected.most_common()),
+        },
+        "wall_s": wall_s,
+        "results": records,
+    }
+
+
+def _mm(value: Any) -> str:
+    return "-" if value is None else f"{float(value) * 1e3:.3f}"
+
+
+def _num(value: Any, fmt: str) -> str:
+    return "-" if value is None else format(float(value), fmt)
+
+
+def markdown(report: Mapping[str, Any]) -> str:
+    """The report as a markdown page: the totals, then one row per task."""
+    rate = report["success_rate"]
+    lines = [
+        f"# Sweep: {report['kind']}, {report['tasks']} tasks, seed {report['seed']}",
+        "",
+        f"- success: {report['successes']} / {report['tasks']}"
+        + (f" ({rate:.0%})" if rate is not None else ""),
+        f"- failures by reason: {report['failures_by_reason'] or 'none'}",
+        f"- criteria not measured by this build: {report['criteria_unavailable'] or 'none'}"
+        + (
+            f" (tasks passing every measured one: {report['passed_measured']})"
+            if report["criteria_unavailable"]
+            else ""
+        ),
+        f"- min clearance (m), percentiles: {report['min_clearance_m'] or 'not reported'}",
+        f"- generator: {report['generator']['candidates']} candidates drawn, rejected "
+        f"{report['generator']['rejected'] or 'none'}",
+        f"- wall time {report['wall_s']:.0f} s on {report['workers']} worker(s)",
+        "",
+    ]
+    if report["kind"] == "path-following":
+        lines += [
+            "| task | centre (m) | radius (m) | speed (m/s) | RMS (mm) | max (mm) | progress "
+            "| clearance (mm) | contacts | ok | reasons |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        ]
+        for r in report["results"]:
+            p, f = r["params"], r.get("figures", {})
+            lines.append(
+                f"| {r['index']} | {p['center_m']} | {p['radius_m']} | {p['path_speed_m_s']} "
+                f"| {_mm(f.get('path_error_rms_m'))} | {_mm(f.get('path_error_max_m'))} "
+                f"| {_num(f.get('path_progress'), '.3f')} | {_mm(f.get('min_clearance_m'))} "
+                f"| {f.get('arm_contacts', '-')} | {'yes' if r['success'] else 'no'} "
+                f"| {'; '.join(r['reasons'])} |"
+            )
+    else:
+        lines += [
+            "| task | cube (m) | bin (m) | obstacle (m) | in the way | time (s) | device (N) "
+            "| clearance (mm) | contacts | ok | reasons |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        ]
+        for r in report["results"]:
+            p, f = r["params"], r.get("figures", {})
+            lines.append(
+                f"| {r['index']} | {p['cube_p_m'][:2]} | {p['bin_p_m'][:2]} "
+                f"| {p['obstacle_p_m']} r {p['obstacle_radius_m']} "
+                f"| {'yes' if p['obstacle_in_the_way'] else 'no'} "
+                f"| {_num(f.get('duration_s'), '.1f')} "
+                f"| {_num(f.get('max_device_force_n'), '.2f')} "
+                f"| {_mm(f.get('min_clearance_m'))} | {f.get('arm_contacts', '-')} "
+                f"| {'yes' if r['success'] else 'no'} | {'; '.join(r['reasons'])} |"
+            )
+    lines += ["", "Run one task again by hand:", ""]
+    lines += [f"    {r['command']}" for r in report["results"]]
+    return "\n".join(lines) + "\n"

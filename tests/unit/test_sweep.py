@@ -1,0 +1,169 @@
+"""The sweep's task generator (seeded, reachable) and its judging of run summaries."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from teleop.core.config import Config, PathConfig, load_config
+from teleop.run import sweep, tasks
+from teleop.run.tasks import GraspTask, ReachabilityChecker, Unreachable
+
+
+@pytest.fixture(scope="module")
+def checker() -> ReachabilityChecker:
+    return ReachabilityChecker(load_config())
+
+
+def test_path_tasks_are_the_same_for_the_same_seed(config: Config) -> None:
+    first = tasks.random_path_tasks(config, 3, seed=5)
+    again = tasks.random_path_tasks(config, 3, seed=5)
+    other = tasks.random_path_tasks(config, 3, seed=6)
+    assert first.tasks == again.tasks
+    assert first.candidates == again.candidates
+    assert first.tasks != other.tasks
+
+
+def test_grasp_tasks_are_the_same_for_the_same_seed(config: Config) -> None:
+    first = tasks.random_grasp_tasks(config, 4, seed=2)
+    assert first.tasks == tasks.random_grasp_tasks(config, 4, seed=2).tasks
+    assert first.tasks != tasks.random_grasp_tasks(config, 4, seed=3).tasks
+
+
+def test_a_task_is_its_overrides(config: Config) -> None:
+    """What a sweep runs is what the printed command runs: the task's --set values load
+    into the config with the task's numbers."""
+    path = tasks.random_path_tasks(config, 1, seed=1).tasks[0]
+    loaded = load_config(None, path.overrides())
+    assert loaded.path.center_m == pytest.approx(path.center_m)
+    assert loaded.path.radius_m == pytest.approx(path.radius_m)
+    assert loaded.control.path_speed_m_s == pytest.approx(path.path_speed_m_s)
+    assert loaded.run.duration_s == pytest.approx(path.duration_s)
+    assert "--inprocess" in path.command() and "path.center_m" in path.command()
+    scene = tasks.random_grasp_tasks(config, 1, seed=1).tasks[0]
+    loaded = load_config(None, scene.overrides())
+    assert loaded.scene.cube_p_m == pytest.approx(scene.cube_p_m)
+    assert loaded.scene.bin_p_m == pytest.approx(scene.bin_p_m)
+    assert loaded.scene.obstacle_p_m[0] == pytest.approx(scene.obstacle_p_m)
+    assert "--mode lockstep" in scene.command()
+
+
+def test_generated_paths_are_reachable_and_follow_the_ranges(
+    config: Config, checker: ReachabilityChecker
+) -> None:
+    generated = tasks.random_path_tasks(config, 4, seed=11)
+    for task in generated.tasks:
+        assert tasks.PATH_RADIUS_M[0] <= task.radius_m <= tasks.PATH_RADIUS_M[1]
+        assert tasks.PATH_SPEED_M_S[0] <= task.path_speed_m_s <= tasks.PATH_SPEED_M_S[1]
+        assert task.duration_s >= config.run.settle_s + tasks.MIN_MEASURED_S
+        path = PathConfig(
+            center_m=task.center_m, radius_m=task.radius_m, z_amplitude_m=task.z_amplitude_m
+        )
+        tasks.check_path(checker, path)  # raises if not reachable
+    # The generator does reject: some draws of these ranges are out of reach.
+    assert generated.candidates > len(generated.tasks)
+    assert sum(generated.rejected.values()) == generated.candidates - len(generated.tasks)
+
+
+def test_the_default_path_is_reachable(config: Config, checker: ReachabilityChecker) -> None:
+    tasks.check_path(checker, config.path)
+
+
+@pytest.mark.parametrize(
+    ("path", "kind"),
+    [
+        (PathConfig(center_m=(1.2, 0.0, 0.3), radius_m=0.1), "out of reach"),
+        (
+            PathConfig(center_m=(0.45, 0.0, 0.0), radius_m=0.1, z_amplitude_m=0.0),
+            "too close to the scene",
+        ),  # fmt: skip
+    ],
+)
+def test_unreachable_paths_are_rejected(
+    checker: ReachabilityChecker, path: PathConfig, kind: str
+) -> None:
+    with pytest.raises(Unreachable) as caught:
+        tasks.check_path(checker, path)
+    assert caught.value.kind == kind
+
+
+def _scene(cube=(0.45, -0.25, 0.025), bin_=(0.35, 0.35, 0.0), obstacle=(0.55, 0.1, 0.15)):
+    return GraspTask(0, 0, cube, bin_, obstacle, 0.05, False)
+
+
+def test_the_default_scene_is_reachable(checker: ReachabilityChecker) -> None:
+    tasks.check_grasp(checker, _scene())
+
+
+@pytest.mark.parametrize(
+    ("scene", "kind"),
+    [
+        (_scene(cube=(1.1, 0.0, 0.025)), "out of reach"),
+        (_scene(obstacle=(0.45, -0.25, 0.15)), "target within the obstacle's influence"),
+    ],
+)
+def test_unreachable_scenes_are_rejected(
+    checker: ReachabilityChecker, scene: GraspTask, kind: str
+) -> None:
+    with pytest.raises(Unreachable) as caught:
+        tasks.check_grasp(checker, scene)
+    assert caught.value.kind == kind
+
+
+def test_inverse_kinematics_reaches_the_pose_it_returns(checker: ReachabilityChecker) -> None:
+    _, home_r = checker.tool_pose(checker.home_q_rad)
+    target = np.array([0.5, -0.1, 0.1])
+    q = checker.solve(checker.home_q_rad, target, home_r)
+    assert q is not None
+    p, r = checker.tool_pose(q)
+    assert np.linalg.norm(p - target) <= tasks.IK_POSITION_TOLERANCE_M
+    assert np.allclose(r, home_r, atol=1e-3)
+
+
+def _statuses(criteria: list[sweep.Criterion]) -> dict[str, str]:
+    return {c.name: c.status for c in criteria}
+
+
+def test_missing_figures_are_unavailable_never_passed() -> None:
+    judged = _statuses(sweep.judge_path({"path_error_rms_m": 2e-4, "path_error_max_m": 5e-4}))
+    assert judged == {
+        "path error RMS": sweep.PASS,
+        "path error max": sweep.PASS,
+        "path progress": sweep.UNAVAILABLE,
+        "no unintended contact": sweep.UNAVAILABLE,
+    }
+
+
+def test_path_criteria_fail_with_their_reason() -> None:
+    summary = {
+        "path_error_rms_m": 1.2e-3,
+        "path_error_max_m": 2e-3,
+        "path_progress": 0.5,
+        "arm_contacts": 40,
+    }
+    criteria = sweep.judge_path(summary)
+    failed = [c.detail for c in criteria if c.status == sweep.FAIL]
+    assert failed == [
+        "path error RMS: 1.2 mm > 1 mm",
+        "path progress 0.500 < 0.95",
+        "unintended contact: 40 steps in contact",
+    ]
+    ok = {"path_error_rms_m": 1e-5, "path_error_max_m": 2e-5, "path_progress": 0.99,
+          "arm_contacts": 0}  # fmt: skip
+    assert all(c.status == sweep.PASS for c in sweep.judge_path(ok))
+
+
+def test_grasp_criteria_and_the_operators_reason() -> None:
+    summary = {
+        "object_in_box": False,
+        "arm_contacts": 0,
+        "max_device_force_n": 9.0,
+        "services": {"operator": {"failure": "timeout in carry"}},
+    }
+    judged = _statuses(sweep.judge_grasp(summary))
+    assert judged == {
+        "cube in the bin": sweep.FAIL,
+        "no unintended contact": sweep.PASS,
+        "device force": sweep.FAIL,
+    }
+    assert sweep.event_reasons(summary) == ["operator: timeout in carry"]
