@@ -105,7 +105,7 @@ STREAMS: tuple[Stream, ...] = (
            note="STARTED, FINISHED, WATCHDOG_BRAKE, WATCHDOG_RESUME, GRASP, RELEASE"),
     Stream("operator_events", "events/operator", RUN_EVENT, ("operator",),
            ("plant", "recorder", "launcher"), "on change", periodic=False,
-           note="PHASE, TASK_DONE (the plant ends the run at its `step`)", scenarios=TELEOP),
+           note="PHASE, OUT_OF_REACH, TASK_DONE (the plant ends the run at its `step`)", scenarios=TELEOP),
     Stream("haptic_state", "haptic/state", HAPTIC_STATE, ("haptic",), ("controller",),
            "1 kHz, one per device period", scenarios=TELEOP),
     Stream("haptic_state_batch", "haptic/state/batch", HAPTIC_STATE, ("haptic",),
@@ -150,6 +150,7 @@ EVENT_STREAM: Mapping[Event, str] = {
     Event.RELEASE: "plant_events",
     Event.PHASE: "operator_events",
     Event.TASK_DONE: "operator_events",
+    Event.OUT_OF_REACH: "operator_events",
 }
 
 

@@ -141,6 +141,7 @@ class Event(enum.IntEnum):
     PHASE = 7  # operator: a task phase began (value: phase index in the scenario)
     TASK_DONE = 8  # operator: task over (value: 1 success, 0 gave up); the plant finishes
     #               the run at tick ``step`` (a tick still ahead, so lockstep stays exact)
+    OUT_OF_REACH = 9  # operator: the tool stopped short of where it headed (value: m left)
 
 
 class Reason(enum.StrEnum):
@@ -777,6 +778,9 @@ EVENT_MEANINGS: Mapping[Event, tuple[str, str]] = {  # (sent by, meaning and val
     Event.PHASE: ("operator", "a task phase began; value: its index in the scenario file"),
     Event.TASK_DONE: ("operator", "the task is over (value: 1 success, 0 gave up); the "
                       "plant ends the run at tick `step`, still ahead"),
+    Event.OUT_OF_REACH: ("operator", "the tool stopped short of the phase's target or "
+                         "waypoint though the operator pushed toward it (out of reach, or "
+                         "blocked): the operator gives up; value: the distance left (m)"),
 }  # fmt: skip
 FLAG_MEANINGS: Mapping[Flag, str] = {
     Flag.BRAKING: "PLANT_STATE: the command watchdog brakes; the drives hold the arm where "

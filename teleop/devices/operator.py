@@ -78,6 +78,7 @@ from teleop.core.config import (
     read_toml,
 )
 from teleop.core.ticks import expected_valid_from, is_sample_tick, last_sample_tick
+from teleop.devices.routing import KeepOut, SceneKnowledge, plan_route, route_length_m
 
 logger = logging.getLogger(__name__)
 
@@ -100,6 +101,21 @@ DRIFT_LIMIT_FRACTION = 0.5
 # Below this tool speed (m/s) the hand eases to the centre instead of hovering at the
 # deadband edge, where a sign change of the error would flip it by twice the deadband.
 MIN_SPEED_M_S = 5e-4
+# A waypoint of a route counts as passed once the tool is this close (m): about the
+# distance the tool covers at the operator's cruise speed within the reaction delay.
+WAYPOINT_PASS_M = 0.04
+# Stopped short: over this long (s) the tool closed less than STALL_PROGRESS_FRACTION of
+# the distance the operator's intended speed would have covered, and that distance was at
+# least STALL_MIN_EXPECTED_M. A person pushing toward a target that does not come closer
+# gives up and says why, instead of pushing until the phase times out.
+STALL_WINDOW_S = 3.0
+STALL_PROGRESS_FRACTION = 0.1
+STALL_MIN_EXPECTED_M = 0.03
+# ... and it is still this far (m) from its aim: closer, it is there give or take a sag
+# (a held object's weight on the handle), not stopped short.
+STALL_MIN_DISTANCE_M = 0.025
+# Stopped short within this distance (m) of a keep-out volume: blocked by it.
+BLOCKED_NEAR_M = 0.02
 
 # --- Scenario vocabulary -----------------------------------------------------------------
 
@@ -528,8 +544,11 @@ class ScriptedOperator:
         teleop_cfg: TeleopConfig,
         haptic_cfg: HapticConfig,
         timestep_s: float,
+        scene: SceneKnowledge | None = None,
     ) -> None:
         self.scenario = scenario
+        # What the operator sees of the scene's fixed geometry (None: nothing to avoid).
+        self.scene = scene if scene is not None else SceneKnowledge()
         self.operator_cfg = operator_cfg
         self.teleop = teleop_cfg
         self.haptic = haptic_cfg
@@ -559,6 +578,12 @@ class ScriptedOperator:
         self._phase_start = 0
         self._dwell_start: int | None = None
         self._target_m = np.zeros(3)
+        self.route_m: list[np.ndarray] = []  # waypoints still ahead of the target
+        self.routes: list[dict[str, Any]] = []  # every route planned (phase, waypoints)
+        self._timeout_s = 0.0  # this phase's timeout, a detour's travel time added
+        self._stall: list[tuple[int, float, float]] = []  # (tick, distance, intended speed)
+        # Events the operator has to announce (Event, value), taken by OperatorLoop.
+        self.events: list[tuple[Event, float]] = []
         self._hand_m = np.zeros(3)  # low-passed handle target, device frame
         self._last_tick: int | None = None
         self.drift_m_s = np.zeros(3)  # estimated tool drift, world frame
@@ -575,6 +600,32 @@ class ScriptedOperator:
         self._phase_start = tick
         self._dwell_start = None
         self.phase_start_ticks.append(tick)
+        self._stall = []
+        self._timeout_s = phase.timeout_s
+        volumes = self.keep_outs(seen, phase)
+        self.route_m = plan_route(seen.tool_p_m, self._target_m, volumes)
+        if self.route_m:
+            # A detour takes longer: its extra length at the operator's cruise speed.
+            direct_m = float(np.linalg.norm(self._target_m - seen.tool_p_m))
+            extra_m = route_length_m(seen.tool_p_m, self.route_m, self._target_m) - direct_m
+            self._timeout_s += extra_m / self.speed_cap_m_s
+            self.routes.append(
+                {
+                    "phase": phase.name,
+                    "waypoints_m": [np.round(w, 4).tolist() for w in self.route_m],
+                    "extra_m": round(extra_m, 4),
+                }
+            )
+
+    def keep_outs(self, seen: Observation, phase: Phase) -> list[KeepOut]:
+        """The volumes the tool keeps out of in ``phase``, the bin where it was seen."""
+        bin_p = seen.objects_p_m.get("bin")
+        return self.scene.keep_outs(bin_p, holding=phase.carrying)
+
+    @property
+    def aim_m(self) -> np.ndarray:
+        """Where the tool heads now: the next waypoint, else the phase's target."""
+        return self.route_m[0] if self.route_m else self._target_m
 
     def _finish(self, tick: int, success: bool, why: str = "") -> None:
         self.done = True
@@ -600,7 +651,14 @@ class ScriptedOperator:
             if np.linalg.norm(held - seen.tool_p_m) > self.scenario.carry_tolerance_m:
                 self._finish(tick, False, f"lost the {self.scenario.held_object} in {phase.name}")
                 return
-        if np.linalg.norm(self._target_m - seen.tool_p_m) <= phase.tolerance_m:
+        if self.route_m and np.linalg.norm(self.route_m[0] - seen.tool_p_m) <= WAYPOINT_PASS_M:
+            self.route_m.pop(0)
+            self._stall = []
+        if self._stopped_short(tick, seen, phase):
+            return
+        if self.route_m:
+            self._dwell_start = None
+        elif np.linalg.norm(self._target_m - seen.tool_p_m) <= phase.tolerance_m:
             if self._dwell_start is None:
                 self._dwell_start = tick
             if self._elapsed_s(tick, self._dwell_start) >= phase.dwell_s - 1e-12:
@@ -611,13 +669,60 @@ class ScriptedOperator:
                 return
         else:
             self._dwell_start = None
-        if self._elapsed_s(tick, self._phase_start) > phase.timeout_s:
+        if self._elapsed_s(tick, self._phase_start) > self._timeout_s:
             self._finish(tick, False, f"timeout in {phase.name}")
+
+    def _intended_speed_m_s(self, distance_m: float) -> float:
+        """The speed (m/s) the operator means the tool to move at, ``distance_m`` from its
+        aim: cruising toward a waypoint, slowing down on the phase's target."""
+        if self.route_m:
+            return self.speed_cap_m_s
+        return min(self.speed_cap_m_s, self.gain_per_s * distance_m)
+
+    def _stopped_short(self, tick: int, seen: Observation, phase: Phase) -> bool:
+        """Give up (True) when the tool has stopped short of its aim (see STALL_WINDOW_S):
+        blocked by a volume it is up against, else out of reach. Announces OUT_OF_REACH."""
+        distance_m = float(np.linalg.norm(self.aim_m - seen.tool_p_m))
+        self._stall.append((tick, distance_m, self._intended_speed_m_s(distance_m)))
+        first_tick = self._stall[0][0]
+        if self._elapsed_s(tick, first_tick) < STALL_WINDOW_S:
+            return False
+        while self._elapsed_s(tick, self._stall[1][0]) >= STALL_WINDOW_S:
+            self._stall.pop(0)
+        expected_m = sum(
+            a[2] * self._elapsed_s(b[0], a[0]) for a, b in zip(self._stall, self._stall[1:])
+        )
+        closed_m = self._stall[0][1] - distance_m
+        if (
+            distance_m < STALL_MIN_DISTANCE_M
+            or expected_m < STALL_MIN_EXPECTED_M
+            or closed_m >= STALL_PROGRESS_FRACTION * expected_m
+        ):
+            return False
+        blocking = [
+            v.name
+            for v in self.keep_outs(seen, phase)
+            if v.radius_m > 0
+            and float(np.linalg.norm(seen.tool_p_m - v.low_m)) < v.radius_m + BLOCKED_NEAR_M
+        ]
+        where = "a waypoint" if self.route_m else "the target"
+        if blocking:
+            why = f"blocked by {blocking[0]} in {phase.name}"
+        else:
+            why = f"{where} out of reach in {phase.name}"
+        self.events.append((Event.OUT_OF_REACH, distance_m))
+        self._finish(tick, False, f"{why} (stopped {distance_m * 1e3:.0f} mm short)")
+        return True
 
     # -- the hand --------------------------------------------------------------------------
     def _wanted_velocity(self, seen: Observation) -> np.ndarray:
-        """k (target - tool) - drift, capped at the operator's speed (world, m/s)."""
-        v = self.gain_per_s * (self._target_m - seen.tool_p_m) - self.drift_m_s
+        """k (target - tool) - drift, capped at the operator's speed (world, m/s); toward
+        a waypoint, the operator's cruise speed (a waypoint is passed, not stopped at)."""
+        error = self.aim_m - seen.tool_p_m
+        if self.route_m:
+            distance_m = float(np.linalg.norm(error))
+            error = error * (self.speed_cap_m_s / (self.gain_per_s * max(distance_m, 1e-9)))
+        v = self.gain_per_s * error - self.drift_m_s
         speed = float(np.linalg.norm(v))
         if speed > self.speed_cap_m_s:
             v *= self.speed_cap_m_s / speed
@@ -742,7 +847,13 @@ class OperatorLoop:
     """
 
     def __init__(
-        self, config: Config, scenario: Scenario, outputs: OperatorOutputs, *, lockstep: bool
+        self,
+        config: Config,
+        scenario: Scenario,
+        outputs: OperatorOutputs,
+        *,
+        lockstep: bool,
+        scene: SceneKnowledge | None = None,
     ) -> None:
         self.timestep_s = config.plant.timestep_s
         self.rate_hz = config.operator.decision_rate_hz
@@ -759,7 +870,12 @@ class OperatorLoop:
         self.scenario = scenario
         self.outputs = outputs
         self.operator = ScriptedOperator(
-            scenario, config.operator, config.teleop, config.haptic, self.timestep_s
+            scenario,
+            config.operator,
+            config.teleop,
+            config.haptic,
+            self.timestep_s,
+            scene=scene if scene is not None else SceneKnowledge.from_config(config),
         )
         self.buffer = ObservationBuffer(
             config.robot.object_bodies, self.delay_ticks, config.hmd.head_yaw_rad
@@ -833,6 +949,9 @@ class OperatorLoop:
                 }
             )
             self.outputs.event(Event.PHASE, s, s, float(command.phase))
+        for event, value in self.operator.events:
+            self.outputs.event(event, s, s, value)
+        self.operator.events.clear()
         if command.done and not self._done_reported:
             self._done_reported = True
             finish_tick = m + TASK_DONE_AHEAD_TICKS
@@ -856,6 +975,7 @@ class OperatorLoop:
             "task_done": op.done,
             "success": op.success if op.done else None,
             "failure": op.failure,
+            "routes": op.routes,
             "task_duration_s": duration_s,
             "gain_per_s": op.gain_per_s,
             "decisions": self.decisions,

@@ -77,6 +77,8 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
     verdict = summary.get("realtime_verdict", "clean")
     if scenario == "grasp":
         outcome = "success: the cube is in the bin" if summary.get("success") else "FAILED"
+        if not summary.get("success") and summary.get("failure"):
+            outcome += f": {summary['failure']}"
         lines.append(f"{scenario} ({mode}): {outcome}")
         lines.append(
             f"  task time          {_num(summary.get('duration_s'), '.1f', ' s')}"

@@ -564,6 +564,7 @@ def _grasp_summary(summaries: dict[str, dict[str, Any]], task_done: list[float])
         "max_obstacle_force_n": controller.get("max_obstacle_force_n"),
         "held_weight_n": controller.get("held_weight_n"),
         "phases": operator.get("phases"),
+        "failure": operator.get("failure") or None,  # the operator's reason for giving up
     }
 
 

@@ -136,7 +136,9 @@ def event_reasons(summary: Mapping[str, Any]) -> list[str]:
     events (stall, unintended contact, singularity, out of reach), when it reports them."""
     reasons = []
     operator = summary.get("services", {}).get("operator", {}) if "services" in summary else {}
-    failure = operator.get("failure") if isinstance(operator, Mapping) else None
+    failure = summary.get("failure") or (
+        operator.get("failure") if isinstance(operator, Mapping) else None
+    )
     if failure:
         reasons.append(f"operator: {failure}")
     for event in summary.get("events") or ():

@@ -171,6 +171,7 @@ EVENT_LEVELS: Mapping[Event, str] = {
     Event.RELEASE: LEVEL_INFO,
     Event.PHASE: LEVEL_INFO,
     Event.TASK_DONE: LEVEL_INFO,
+    Event.OUT_OF_REACH: LEVEL_WARN,
 }
 # TASK_DONE's value: 1 success, 0 the operator gave up.
 TASK_OUTCOMES: Mapping[bool, str] = {True: "success", False: "gave up"}

@@ -11,6 +11,7 @@ import pytest
 
 from teleop.bus.messages import Button, Event
 from teleop.core.config import DEPLOY_DIR, ConfigError, load_config
+from teleop.devices.routing import SceneKnowledge
 from teleop.devices.operator import (
     HandCommand,
     ObservationBuffer,
@@ -234,10 +235,21 @@ class IntegratorWorld:
     closed; ``sag_m_s`` is a downward drift while holding (the cube's weight on the handle).
     """
 
-    def __init__(self, scenario: Scenario, *, extra_lag_ticks: int = 0, sag_m_s: float = 0.0):
+    def __init__(
+        self,
+        scenario: Scenario,
+        *,
+        extra_lag_ticks: int = 0,
+        sag_m_s: float = 0.0,
+        scene: SceneKnowledge | None = None,
+        reach_m: float = math.inf,
+    ):
         cfg = load_config()
         self.cfg = cfg
-        self.operator = ScriptedOperator(scenario, cfg.operator, cfg.teleop, cfg.haptic, TIMESTEP_S)
+        self.operator = ScriptedOperator(
+            scenario, cfg.operator, cfg.teleop, cfg.haptic, TIMESTEP_S, scene=scene
+        )
+        self.reach_m = reach_m  # the tool never gets farther than this from the origin
         delay = round(cfg.operator.reaction_delay_s / TIMESTEP_S)
         self.buffer = ObservationBuffer(("cube", "bin"), delay, cfg.hmd.head_yaw_rad)
         self.period = round(1.0 / (cfg.operator.decision_rate_hz * TIMESTEP_S))
@@ -276,6 +288,8 @@ class IntegratorWorld:
             if held is not None:
                 v = v + np.array([0.0, 0.0, -self.sag_m_s])
             self.tool = self.tool + v * TIMESTEP_S
+            if np.linalg.norm(self.tool) > self.reach_m:  # the arm at full stretch
+                self.tool *= self.reach_m / np.linalg.norm(self.tool)
             if held is not None:
                 self.cube = self.tool + held
             self.trace.append((tick, self.operator.phase, self.tool.copy(), np.linalg.norm(v)))
@@ -326,6 +340,51 @@ def test_timeout_ends_the_task_without_success():
     assert operator.done and not operator.success
     assert "timeout in approach" in operator.failure
     assert operator.done_tick * TIMESTEP_S == pytest.approx(0.2 + 1.0, abs=0.02)
+
+
+# An obstacle on the straight carry from over the cube to over the bin (the default
+# scene's lift and carry targets), and what the operator knows of it.
+IN_THE_WAY_M = (0.40, 0.05, 0.19)
+IN_THE_WAY_RADIUS_M = 0.05
+
+
+def in_the_way_scene() -> SceneKnowledge:
+    influence_m = load_config().teleop.obstacle_influence_m
+    return SceneKnowledge(obstacles=((IN_THE_WAY_M, IN_THE_WAY_RADIUS_M),), influence_m=influence_m)
+
+
+def _min_distance_to_obstacle_m(world: IntegratorWorld) -> float:
+    tool = np.array([p for _, _, p, _ in world.trace])
+    return float(np.linalg.norm(tool - np.array(IN_THE_WAY_M), axis=1).min())
+
+
+def test_operator_routes_over_an_obstacle_in_the_way():
+    """Seeing the obstacle, the operator goes over it and keeps the tool out of its
+    influence; blind to it (the operator before routing), the carry cuts right through."""
+    scenario = Scenario.load(GRASP_FILE)
+    influence_m = load_config().teleop.obstacle_influence_m
+    seeing = IntegratorWorld(scenario, scene=in_the_way_scene())
+    operator = seeing.run(scenario.max_task_s + 1.0)
+    assert operator.done and operator.success, operator.failure
+    assert [r["phase"] for r in operator.routes] == ["carry"]
+    assert _min_distance_to_obstacle_m(seeing) > IN_THE_WAY_RADIUS_M + influence_m
+    blind = IntegratorWorld(scenario)
+    blind.run(scenario.max_task_s + 1.0)
+    assert _min_distance_to_obstacle_m(blind) < IN_THE_WAY_RADIUS_M
+
+
+def test_a_target_out_of_reach_is_said_so_before_the_phase_times_out():
+    """The tool stops at the arm's reach short of the approach target: the operator gives
+    up with the reason and an OUT_OF_REACH event, well before the 15 s timeout."""
+    scenario = Scenario.load(GRASP_FILE)
+    approach = np.linalg.norm(CUBE_M + np.array(scenario.phases[0].target.offset_m))
+    world = IntegratorWorld(scenario, reach_m=float(approach) - 0.1)
+    operator = world.run(scenario.max_task_s + 1.0)
+    assert operator.done and not operator.success
+    assert operator.failure.startswith("the target out of reach in approach"), operator.failure
+    assert [e for e, _ in operator.events] == [Event.OUT_OF_REACH]
+    assert operator.events[0][1] == pytest.approx(0.1, abs=0.02)  # the distance left (m)
+    assert operator.done_tick * TIMESTEP_S < 0.2 + scenario.phases[0].timeout_s / 2
 
 
 def test_observation_buffer_returns_what_was_seen_a_delay_ago():
