@@ -56,6 +56,7 @@ the held object in a ``carrying`` phase.
 from __future__ import annotations
 
 import bisect
+import itertools
 import logging
 import math
 import threading
@@ -690,7 +691,7 @@ class ScriptedOperator:
         while self._elapsed_s(tick, self._stall[1][0]) >= STALL_WINDOW_S:
             self._stall.pop(0)
         expected_m = sum(
-            a[2] * self._elapsed_s(b[0], a[0]) for a, b in zip(self._stall, self._stall[1:])
+            a[2] * self._elapsed_s(b[0], a[0]) for a, b in itertools.pairwise(self._stall)
         )
         closed_m = self._stall[0][1] - distance_m
         if (

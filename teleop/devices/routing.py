@@ -19,6 +19,7 @@ Frames and units: world frame (z up, origin at the arm base), metres.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -161,7 +162,7 @@ class SceneKnowledge:
 
 
 def _clear(points: Sequence[np.ndarray], volumes: Sequence[KeepOut]) -> bool:
-    return not any(v.meets(a, b) for a, b in zip(points, points[1:]) for v in volumes)
+    return not any(v.meets(a, b) for a, b in itertools.pairwise(points) for v in volumes)
 
 
 def _over(start: np.ndarray, target: np.ndarray, blocking: Sequence[KeepOut],
@@ -177,7 +178,7 @@ def _over(start: np.ndarray, target: np.ndarray, blocking: Sequence[KeepOut],
         if target[2] < z_m:
             waypoints.append(np.array([target[0], target[1], z_m]))
         points = [start, *waypoints, target]
-        met = [v for v in volumes for a, b in zip(points, points[1:]) if v.meets(a, b)]
+        met = [v for v in volumes for a, b in itertools.pairwise(points) if v.meets(a, b)]
         if not met:
             return waypoints
         z_m = max(z_m, *(v.top_m + OVER_MARGIN_M for v in met))
@@ -228,4 +229,4 @@ def route_length_m(start_m: np.ndarray, waypoints: Sequence[np.ndarray],
                    target_m: np.ndarray) -> float:  # fmt: skip
     """Length (m) of the polyline start -> waypoints -> target."""
     points = [np.asarray(start_m), *waypoints, np.asarray(target_m)]
-    return float(sum(np.linalg.norm(b - a) for a, b in zip(points, points[1:])))
+    return float(sum(np.linalg.norm(b - a) for a, b in itertools.pairwise(points)))

@@ -11,7 +11,6 @@ import pytest
 
 from teleop.bus.messages import Button, Event
 from teleop.core.config import DEPLOY_DIR, ConfigError, load_config
-from teleop.devices.routing import SceneKnowledge
 from teleop.devices.operator import (
     HandCommand,
     ObservationBuffer,
@@ -25,6 +24,7 @@ from teleop.devices.operator import (
     hand_offset_for_velocity,
     rot_z,
 )
+from teleop.devices.routing import SceneKnowledge
 
 TIMESTEP_S = 0.001
 GRASP_FILE = DEPLOY_DIR / "scenarios" / "grasp.toml"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -12,7 +14,7 @@ from teleop.devices.routing import KeepOut, SceneKnowledge, plan_route
 
 def _clear(start, waypoints, target, volumes) -> bool:
     points = [np.asarray(start), *waypoints, np.asarray(target)]
-    return not any(v.meets(a, b) for a, b in zip(points, points[1:]) for v in volumes)
+    return not any(v.meets(a, b) for a, b in itertools.pairwise(points) for v in volumes)
 
 
 def test_a_clear_move_needs_no_waypoint():
