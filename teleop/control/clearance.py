@@ -138,6 +138,8 @@ class ClearanceModel:
             raise ModelError(f"{robot.scene_path}: arm joints {robot.arm_joints} not all found")
         self._qpos_index = [int(model.jnt_qposadr[j]) for j in joints]
         fingers = finger_bodies(model, robot)
+        finger_joint = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, robot.gripper_joints[0])
+        self.open_m = float(model.jnt_range[finger_joint][1])  # each finger's slide, open
         self._finger_qpos_index = [
             int(model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, n)])
             for n in robot.gripper_joints
@@ -338,7 +340,9 @@ def approach_row(arm: ArmModel, pair: ClearancePair) -> np.ndarray:
 def _point_row(arm: ArmModel, frame: int, world_p_m: np.ndarray, world_n: np.ndarray) -> np.ndarray:
     """n^T of the velocity of the point ``world_p_m`` rigidly attached to ``frame``:
     n^T Jv - (n x r)^T Jw with r from the frame's origin to the point."""
-    jacobian = pin.getFrameJacobian(arm.model, arm.data, frame, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
+    jacobian = pin.getFrameJacobian(
+        arm.model, arm.data, frame, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+    )
     origin = pin.updateFramePlacement(arm.model, arm.data, frame).translation
     r = world_p_m - origin
     n = world_n

@@ -198,8 +198,14 @@ class ControlConfig:
     velocity_gain_per_s: float = 50.0
     # Joint speed limit applied to every reference sent to the plant.
     max_joint_speed_rad_s: float = math.pi
-    # Damping of the pseudo-inverse near singularities (m).
+    # Damping of the pseudo-inverse (m). Near singularities it grows smoothly (Nakamura's
+    # variable damping) to singular_damping_m as the manipulability falls below
+    # singular_manipulability, so the arm slows down instead of swinging through.
     damping_m: float = 1e-4
+    singular_manipulability: float = 0.02
+    singular_damping_m: float = 0.04
+    # A manipulability below this is a singularity crossing: a run event (SINGULARITY).
+    singularity_event_manipulability: float = 0.005
     # Rate of CONTROL_STATUS (plots, recorder); the control cycle itself runs per state.
     status_rate_hz: float = 100.0
 
@@ -215,6 +221,12 @@ class ControlConfig:
         _require(self.speed_error_gain_per_m >= 0, "control.speed_error_gain_per_m >= 0")
         _require(self.null_space_gain >= 0, "control.null_space_gain >= 0")
         _require(self.damping_m >= 0, "control.damping_m >= 0")
+        _require(self.singular_manipulability > 0, "control.singular_manipulability > 0")
+        _require(self.singular_damping_m >= 0, "control.singular_damping_m >= 0")
+        _require(
+            self.singularity_event_manipulability >= 0,
+            "control.singularity_event_manipulability >= 0",
+        )
         _require(self.status_rate_hz > 0, "control.status_rate_hz > 0")
 
 
@@ -257,18 +269,13 @@ class ClearanceConfig:
     # approach to a limit stopped at the limit.
     joint_limit_margin_rad: float = 0.3
     joint_limit_gain_per_s: float = 2.0
-    # Singularities (path following): the damping of the pseudo-inverse grows smoothly from
-    # control.damping_m to singular_damping_m as the manipulability falls below this.
-    singular_manipulability: float = 0.02
-    singular_damping_m: float = 0.04
     # Run events and verdict: a stall is this long without progress (s) while the path
     # advances less than stall_progress of what the commanded speed would cover.
     stall_window_s: float = 0.5
     stall_progress: float = 0.2
 
     def __post_init__(self) -> None:
-        for name in ("influence_m", "approach_speed_m_s", "stall_window_s",
-                     "singular_manipulability"):  # fmt: skip
+        for name in ("influence_m", "approach_speed_m_s", "stall_window_s"):
             _require(getattr(self, name) > 0, f"clearance.{name} > 0")
         for near, far in (("stop_m", "slowdown_m"), ("finger_stop_m", "finger_slowdown_m"),
                           ("self_stop_m", "self_slowdown_m")):  # fmt: skip
@@ -278,7 +285,7 @@ class ClearanceConfig:
                 f"clearance: 0 <= {near} < {far} <= influence_m",
             )
         for name in ("null_space_gain_per_s", "joint_limit_margin_rad",
-                     "joint_limit_gain_per_s", "singular_damping_m"):  # fmt: skip
+                     "joint_limit_gain_per_s"):  # fmt: skip
             _require(getattr(self, name) >= 0, f"clearance.{name} >= 0")
         _require(0 < self.stall_progress < 1, "clearance.stall_progress in (0, 1)")
 
