@@ -515,11 +515,12 @@ class PathMetrics:
     """Accumulates the path-following figures of merit.
 
     After the settling time: the path error, and ``path_progress``, the arc length of the
-    path followed over the arc length the commanded speed covers in the same time. Over
-    the whole run: ``stalled_s``, the time in windows of ``clearance.stall_window_s``
+    path followed over the arc length the nominal speed v_P covers in the same time.
+    Over the whole run: ``stalled_s``, the time in windows of ``clearance.stall_window_s``
     during which the path advanced less than ``clearance.stall_progress`` of what the
-    speed commanded along it (v_P / (1 + k |h~|)) covers (a STALL event when a stall begins; value: the path error, m),
-    and the clearance, contacts and singularity crossings (:class:`MotionSafety`).
+    speed commanded along it (v_P / (1 + k |h~|)) covers (a STALL event when a stall
+    begins; value: the path error, m), and the clearance, contacts and singularity
+    crossings (:class:`MotionSafety`).
     """
 
     def __init__(
