@@ -81,8 +81,9 @@ class ClearancePair:
 
 @dataclass(frozen=True)
 class Clearance:
-    """One cycle's clearance: the pairs within ``influence_m`` and the smallest distance
-    of each kind (``influence_m`` when none is closer)."""
+    """One cycle's clearance: the pairs within their kind's slowdown distance (the ones
+    the control law acts on) and the smallest distance of each kind over every pair
+    within ``influence_m`` (``influence_m`` when none is closer)."""
 
     pairs: tuple[ClearancePair, ...]
     min_scene_m: float
@@ -137,6 +138,10 @@ class ClearanceModel:
         if min(joints) < 0:
             raise ModelError(f"{robot.scene_path}: arm joints {robot.arm_joints} not all found")
         self._qpos_index = [int(model.jnt_qposadr[j]) for j in joints]
+        contiguous = self._qpos_index == list(range(self._qpos_index[0], self._qpos_index[-1] + 1))
+        self._qpos_at = (
+            slice(self._qpos_index[0], self._qpos_index[-1] + 1) if contiguous else self._qpos_index
+        )
         fingers = finger_bodies(model, robot)
         finger_joint = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, robot.gripper_joints[0])
         self.open_m = float(model.jnt_range[finger_joint][1])  # each finger's slide, open
@@ -179,9 +184,12 @@ class ClearanceModel:
         # The broad phase's index arrays and squared reach (cutoff + bounding radii).
         cutoff = self.config.influence_m
         self._arm_index = np.array(scene_arm_geoms, dtype=int)
+        self._scene_arm_list = scene_arm_geoms
+        self._slowdown_m = [thresholds_m(self.config, kind)[1] for kind in PairKind]
         self._scene_reach_sq = ((cutoff + model.geom_rbound[self._arm_index]) ** 2)[:, None]
         self._self_a = np.array([a for a, _ in self.self_pairs], dtype=int)
         self._self_b = np.array([b for _, b in self.self_pairs], dtype=int)
+        self._self_a_list, self._self_b_list = self._self_a.tolist(), self._self_b.tolist()
         self._self_reach_sq = (
             cutoff + model.geom_rbound[self._self_a] + model.geom_rbound[self._self_b]
         ) ** 2
@@ -235,11 +243,11 @@ class ClearanceModel:
         return [pair for pair in candidates if pair in near]
 
     def measure(self, q_rad: np.ndarray, gripper_opening_m: float) -> Clearance:
-        """The pairs within ``influence_m`` at joint positions ``q_rad`` (n,) and the
-        finger opening (m, each finger's slide), with their closest points."""
+        """The clearance at joint positions ``q_rad`` (n,) and the finger opening (m,
+        each finger's slide)."""
         model, data, cfg = self.model, self.data, self.config
         cutoff = cfg.influence_m
-        data.qpos[self._qpos_index] = q_rad
+        data.qpos[self._qpos_at] = q_rad
         data.qpos[self._finger_qpos_index] = gripper_opening_m
         mujoco.mj_kinematics(model, data)
         # Broad phase: each arm geom's bounding sphere against each scene geom's world box
@@ -250,23 +258,34 @@ class ClearanceModel:
         np.maximum(gap, 0.0, out=gap)
         near = np.einsum("ijk,ijk->ij", gap, gap) < self._scene_reach_sq
         arm_index, scene_index = np.nonzero(near)
+        # Narrow phase: every distance counts for the minima; a pair becomes a
+        # ClearancePair (points, direction: what the law needs) only inside its kind's
+        # slowdown distance, where the law acts on it.
         pairs: list[ClearancePair] = []
-        mins = {PairKind.SCENE: cutoff, PairKind.FINGER: cutoff, PairKind.SELF: cutoff}
+        mins = [cutoff, cutoff, cutoff]  # by PairKind
+        slowdown, fromto, query = self._slowdown_m, self._fromto, mujoco.mj_geomDistance
+        arm_geoms, kinds, scene_geoms = self._scene_arm_list, self._scene_kinds, self.scene_geoms
         for i, j in zip(arm_index.tolist(), scene_index.tolist(), strict=True):
-            kind = self._scene_kinds[i]
-            pair = self._pair(kind, int(self._arm_index[i]), self.scene_geoms[j], cutoff)
-            if pair is not None:
-                pairs.append(pair)
-                mins[kind] = min(mins[kind], pair.distance_m)
+            kind, arm_geom, other = kinds[i], arm_geoms[i], scene_geoms[j]
+            distance = query(model, data, arm_geom, other, cutoff, fromto)
+            if distance < mins[kind]:
+                mins[kind] = distance
+            if distance < slowdown[kind]:
+                pairs.append(self._pair(kind, arm_geom, other, distance))
+        self.queries += len(arm_index)
         if self.self_pairs:
             a, b = self._self_a, self._self_b
             gap = data.geom_xpos[a] - data.geom_xpos[b]
-            near = np.einsum("ij,ij->i", gap, gap) < self._self_reach_sq
-            for k in np.flatnonzero(near).tolist():
-                pair = self._pair(PairKind.SELF, int(a[k]), int(b[k]), cutoff)
-                if pair is not None:
-                    pairs.append(pair)
-                    mins[PairKind.SELF] = min(mins[PairKind.SELF], pair.distance_m)
+            near_self = np.flatnonzero(np.einsum("ij,ij->i", gap, gap) < self._self_reach_sq)
+            kind = PairKind.SELF
+            for k in near_self.tolist():
+                arm_geom, other = self._self_a_list[k], self._self_b_list[k]
+                distance = query(model, data, arm_geom, other, cutoff, fromto)
+                if distance < mins[kind]:
+                    mins[kind] = distance
+                if distance < slowdown[kind]:
+                    pairs.append(self._pair(kind, arm_geom, other, distance))
+            self.queries += len(near_self)
         return Clearance(
             pairs=tuple(pairs),
             min_scene_m=mins[PairKind.SCENE],
@@ -275,14 +294,10 @@ class ClearanceModel:
         )
 
     def _pair(
-        self, kind: PairKind, arm_geom: int, other_geom: int, cutoff: float
-    ) -> ClearancePair | None:
-        """The narrow phase of one pair; None when it is farther than ``cutoff``."""
-        model, data, fromto = self.model, self.data, self._fromto
-        self.queries += 1
-        distance = mujoco.mj_geomDistance(model, data, arm_geom, other_geom, cutoff, fromto)
-        if distance >= cutoff:
-            return None
+        self, kind: PairKind, arm_geom: int, other_geom: int, distance: float
+    ) -> ClearancePair:
+        """The pair whose ``mj_geomDistance`` just wrote its witness points to ``_fromto``."""
+        data, fromto = self.data, self._fromto
         p_arm, p_other = fromto[:3].copy(), fromto[3:].copy()
         # fromto runs from the arm geom to the other; overlapping, the witness points
         # cross over, so the sign of the distance orients the direction.
