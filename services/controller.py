@@ -36,7 +36,7 @@ class ControllerService(Service):
         session, topics, drops = self.session, self.topics, self.drops
         self.arm = build_arm_model(self.config.robot)
         teleoperated = self.config.run.scenario == "grasp"
-        outputs = ["joint_command"]
+        outputs = ["joint_command", "controller_events"]
         outputs += ["force_feedback", "teleop_status"] if teleoperated else ["control_status"]
         self.publishers = {name: self.keep(Publisher.for_stream(session, topics, name))
                            for name in outputs}  # fmt: skip

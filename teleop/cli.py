@@ -433,6 +433,8 @@ def _run_and_report(
             web.wait()
     if summary.get("success") is False:
         print("teleop: the task did not succeed", file=sys.stderr)
+        for problem in summary.get("motion_problems") or []:
+            print(f"  {problem}", file=sys.stderr)
         return EXIT_FAILED
     if summary.get("realtime_verdict") == LOST:
         print("teleop: the run lost real time (see realtime_problems)", file=sys.stderr)

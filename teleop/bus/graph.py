@@ -107,6 +107,9 @@ STREAMS: tuple[Stream, ...] = (
            ("plant", "recorder", "launcher"), "on change", periodic=False,
            note="PHASE, OUT_OF_REACH, TASK_DONE (the plant ends the run at its `step`)",
            scenarios=TELEOP),
+    Stream("controller_events", "events/controller", RUN_EVENT, ("controller",),
+           ("recorder", "launcher"), "on change", periodic=False,
+           note="STALL, CONTACT, SINGULARITY: the motion is not safe or not progressing"),
     Stream("haptic_state", "haptic/state", HAPTIC_STATE, ("haptic",), ("controller",),
            "1 kHz, one per device period", scenarios=TELEOP),
     Stream("haptic_state_batch", "haptic/state/batch", HAPTIC_STATE, ("haptic",),
@@ -151,6 +154,9 @@ EVENT_STREAM: Mapping[Event, str] = {
     Event.RELEASE: "plant_events",
     Event.PHASE: "operator_events",
     Event.TASK_DONE: "operator_events",
+    Event.STALL: "controller_events",
+    Event.CONTACT: "controller_events",
+    Event.SINGULARITY: "controller_events",
     Event.OUT_OF_REACH: "operator_events",
 }
 

@@ -141,7 +141,10 @@ class Event(enum.IntEnum):
     PHASE = 7  # operator: a task phase began (value: phase index in the scenario)
     TASK_DONE = 8  # operator: task over (value: 1 success, 0 gave up); the plant finishes
     #               the run at tick ``step`` (a tick still ahead, so lockstep stays exact)
-    OUT_OF_REACH = 9  # operator: the tool stopped short of where it headed (value: m left)
+    STALL = 9  # controller: the tool stopped progressing along the path (value: error, m)
+    CONTACT = 10  # controller: the arm touches the scene or itself (value: clearance, m)
+    SINGULARITY = 11  # controller: the manipulability fell below the event threshold
+    OUT_OF_REACH = 12  # operator: the tool stopped short of where it headed (value: m left)
 
 
 class Reason(enum.StrEnum):
@@ -778,6 +781,12 @@ EVENT_MEANINGS: Mapping[Event, tuple[str, str]] = {  # (sent by, meaning and val
     Event.PHASE: ("operator", "a task phase began; value: its index in the scenario file"),
     Event.TASK_DONE: ("operator", "the task is over (value: 1 success, 0 gave up); the "
                       "plant ends the run at tick `step`, still ahead"),
+    Event.STALL: ("controller", "path following: the tool stopped progressing along the "
+                  "path while commanded (`clearance.stall_window_s`); value: path error (m)"),
+    Event.CONTACT: ("controller", "an arm or gripper link touches the scene or another "
+                    "link (grasped objects excluded); value: the clearance (m, <= 0)"),
+    Event.SINGULARITY: ("controller", "the manipulability fell below "
+                        "`control.singularity_event_manipulability`; value: the manipulability"),
     Event.OUT_OF_REACH: ("operator", "the tool stopped short of the phase's target or "
                          "waypoint though the operator pushed toward it (out of reach, or "
                          "blocked): the operator gives up; value: the distance left (m)"),

@@ -32,6 +32,7 @@ class Topics:
     control_status: str = field(init=False)
     plant_events: str = field(init=False)
     operator_events: str = field(init=False)
+    controller_events: str = field(init=False)
     haptic_state: str = field(init=False)
     haptic_state_batch: str = field(init=False)
     hand_input: str = field(init=False)

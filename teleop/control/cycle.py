@@ -40,12 +40,14 @@ from teleop.bus.messages import (
     FORCE_FEEDBACK,
     JOINT_COMMAND,
     N_STAGES,
+    RUN_EVENT,
     TELEOP_STATUS,
     Button,
     Stage,
 )
 from teleop.bus.session import Latest
 from teleop.bus.stamps import Inbound, StampLog
+from teleop.control.clearance import ClearanceModel
 from teleop.control.feedback import (
     FeedbackComponents,
     check_stability,
@@ -53,7 +55,12 @@ from teleop.control.feedback import (
     feedback_components,
 )
 from teleop.control.kinematics import ArmModel
-from teleop.control.path import ControlOutput, PathFollowingController, PathMetrics
+from teleop.control.path import (
+    ControlOutput,
+    MotionEvent,
+    PathFollowingController,
+    PathMetrics,
+)
 from teleop.control.teleop import (
     JointStateTerms,
     TeleopController,
@@ -108,6 +115,8 @@ class ControllerCore:
         self.commands_resent = 0  # last commands sent again on a re-sent state (lockstep)
         self.runs = 0
         self.compute_ns_total = 0
+        self._event = RUN_EVENT.new()
+        self.events_sent: list[dict[str, Any]] = []
 
     # -- inputs ----------------------------------------------------------------------------
     def on_state(self, rec: np.ndarray, rx_ns: int) -> None:
@@ -166,6 +175,22 @@ class ControllerCore:
         cmd["t_source_ns"] = now_ns
         self.outputs.put("joint_command", cmd)
 
+    def send_events(self, events: list[MotionEvent], step: int) -> None:
+        """Publish the run events the metrics saw (``controller_events``) and keep them
+        for the summary."""
+        for event in events:
+            rec = self._event
+            rec["seq"] += 1
+            rec["t_source_ns"] = self.clock.now_ns()
+            rec["sim_time_ns"] = round(event.sim_time_s * 1e9)
+            rec["step"] = step
+            rec["event"] = event.event
+            rec["value"] = event.value
+            self.outputs.put("controller_events", rec)
+            self.events_sent.append(
+                {"event": event.event.name, "sim_time_s": event.sim_time_s, "value": event.value}
+            )
+
     def summary(self) -> dict[str, Any]:
         mean_compute_us = self.compute_ns_total / self.cycles / 1e3 if self.cycles else None
         return {
@@ -174,6 +199,7 @@ class ControllerCore:
             "commands_resent": self.commands_resent,
             "runs": self.runs,
             "compute_mean_us": mean_compute_us,
+            "events": self.events_sent,
         }
 
 
@@ -185,25 +211,34 @@ class PathCycle(ControllerCore):
     ) -> None:
         super().__init__(config, arm, outputs, clock)
         self.controller = PathFollowingController(
-            arm, config.control, config.path, period_s=self.timestep_s
+            arm,
+            config.control,
+            config.path,
+            period_s=self.timestep_s,
+            clearance=ClearanceModel(config, arm),
         )
-        self.metrics = PathMetrics(settle_s=config.run.settle_s)
+        self.metrics = PathMetrics.for_config(config)
         self._status = CONTROL_STATUS.new()
 
     def reset(self) -> None:
         self.controller.reset()
-        self.metrics = PathMetrics(settle_s=self.config.run.settle_s)
+        self.metrics = PathMetrics.for_config(self.config)
+        self.events_sent = []
 
     def handle_state(self, state: np.ndarray, rx_ns: int) -> None:
         n = self.arm.n_joints
         t0 = self.clock.now_ns()
-        output = self.controller.update(state["q_rad"][:n], state["qd_rad_s"][:n])
+        output = self.controller.update(
+            state["q_rad"][:n], state["qd_rad_s"][:n], float(state["gripper_opening_m"])
+        )
         self.compute_ns_total += self.clock.now_ns() - t0
         trace = state["trace_ns"].copy()
         trace[Stage.CONTROLLER_RX] = rx_ns  # path following: the state is the input
         self.send_command(state, output.qd_ref_rad_s, GRIPPER_OPEN, trace)
         sim_time_ns = int(state["sim_time_ns"])
         self.metrics.add(sim_time_ns * 1e-9, output)
+        if self.metrics.events:
+            self.send_events(self.metrics.take_events(), int(state["step"]))
         if int(state["step"]) % self.status_every_steps == 0:
             self._send_status(output, sim_time_ns)
 
@@ -225,6 +260,9 @@ class PathCycle(ControllerCore):
     def summary(self) -> dict[str, Any]:
         return {
             **self.metrics.summary(),
+            "clearance_queries": self.controller.clearance.queries
+            if self.controller.clearance is not None
+            else None,
             "settle_s": self.metrics.settle_s,
             "compensation": self.config.control.compensation,
             **super().summary(),

@@ -1,10 +1,16 @@
 """Control laws of the paper's family: path following and dynamic compensation.
 
 Kinematic controller (position task, redundant arm):
-    q'_c = J# (v_hd + K e0 tanh(h~ / e0)) + (I - J# J) L grad w(q)
+    q'_c = J# (v_hd + K e0 tanh(h~ / e0)) + (I - J# J) (L grad w(q) + g_clear + g_limits)
 with h~ = P(s*) - h the error to the closest path point P(s*), v_hd the desired
-velocity along the path's tangent with speed v_P / (1 + k |h~|), J# the (damped)
-pseudo-inverse of the 3xN position Jacobian and w the manipulability.
+velocity along the path's tangent with speed v_P / (1 + k |h~|), J# the damped
+pseudo-inverse of the 3xN position Jacobian (its damping grows smoothly near
+singularities, Nakamura's variable damping) and w the manipulability. With a
+:class:`teleop.control.clearance.ClearanceModel` and ``clearance.avoid`` the null space
+also pushes links away from what is near (g_clear) and joints away from their limits
+(g_limits), and the command is then held to the approach speed each close pair allows
+(:func:`hold_clearance`): the tool leaves the path rather than the arm touching the
+table, the bin or itself, and the run's metrics show the stall.
 
 Dynamic compensation turns the commanded joint velocities q'_c into references for
 the arm's velocity loops, q'_ref, using the model M q'' + C q' + g = q'_ref with
@@ -18,10 +24,19 @@ from __future__ import annotations
 import math
 import operator
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from teleop.bus.messages import Event
+from teleop.control.clearance import (
+    Clearance,
+    ClearanceModel,
+    allowed_approach_m_s,
+    approach_row,
+    thresholds_m,
+)
 from teleop.control.kinematics import (
     ArmModel,
     manipulability_and_gradient,
@@ -29,12 +44,21 @@ from teleop.control.kinematics import (
     symmetric_3x3_inverse,
     tool_position_and_jacobian,
 )
-from teleop.core.config import ControlConfig, PathConfig
+from teleop.core.config import ClearanceConfig, Config, ControlConfig, PathConfig
 
 # Closest-point search: samples per path period for the first, global search, and
 # Newton iterations for the local refinement that follows the point along the path.
 GLOBAL_SEARCH_SAMPLES = 720
 NEWTON_ITERATIONS = 3
+# Damping (m/rad) of the one-row pseudo-inverses that push a link away or cap its
+# approach: a point the joints barely move gets a bounded joint motion.
+ROW_DAMPING_M_PER_RAD = 0.01
+# Passes over the close pairs when holding their approach speeds (each pass projects the
+# command onto each violated cap in turn; two or three settle the usual one to three pairs).
+HOLD_PASSES = 3
+# Joint limits at or beyond this magnitude (rad) mean "no limit" (a joint that turns a
+# full turn each way).
+CONTINUOUS_LIMIT_RAD = 2.0 * math.pi - 1e-3
 
 
 class DesiredPath:
@@ -114,6 +138,10 @@ class ControlOutput:
     path_error_m: float  # |h~|
     manipulability: float
     path_s: float
+    path_arc_m: float = 0.0  # signed arc length of P(s) followed since the start
+    path_speed_m_s: float = 0.0  # speed commanded along the path, v_P / (1 + k |h~|)
+    clearance: Clearance | None = None  # the cycle's clearance (None: not measured)
+    held_pairs: int = 0  # close pairs whose approach speed the command was held to
 
 
 def limit_speed(qd_rad_s: np.ndarray, max_rad_s: np.ndarray | float) -> np.ndarray:
@@ -183,38 +211,155 @@ def velocity_reference(
     ]
 
 
+def singular_damping_sq(control: ControlConfig, manipulability: float) -> float:
+    """lambda^2 (m^2) of the damped pseudo-inverse: damping_m^2, plus up to
+    singular_damping_m^2 as the manipulability w falls below singular_manipulability w0,
+    smoothly: (1 - (w / w0)^2) singular_damping_m^2 (zero slope at w0 as a function of
+    w^2, so the command does not jump as the arm enters the zone)."""
+    base = control.damping_m * control.damping_m
+    ratio = manipulability / control.singular_manipulability
+    if ratio >= 1.0:
+        return base
+    return base + (1.0 - ratio * ratio) * control.singular_damping_m**2
+
+
+def limited_joints(arm: ArmModel) -> list[tuple[int, float, float]]:
+    """(joint index, lower, upper) of the arm's joints with a finite range (rad)."""
+    lower = arm.model.lowerPositionLimit.tolist()
+    upper = arm.model.upperPositionLimit.tolist()
+    return [
+        (k, lo, hi)
+        for k, (lo, hi) in enumerate(zip(lower, upper, strict=True))
+        if not (lo <= -CONTINUOUS_LIMIT_RAD and hi >= CONTINUOUS_LIMIT_RAD)
+    ]
+
+
+def joint_limit_push(
+    q_rad: np.ndarray, limits: list[tuple[int, float, float]], config: ClearanceConfig
+) -> np.ndarray:
+    """Null-space joint rates (n,) in rad/s pushing each joint out of the margin at its
+    limits: gain * (depth into the margin)."""
+    push = np.zeros(len(q_rad))
+    margin, gain = config.joint_limit_margin_rad, config.joint_limit_gain_per_s
+    for k, lower, upper in limits:
+        q = float(q_rad[k])
+        if q > upper - margin:
+            push[k] = -gain * (q - (upper - margin))
+        elif q < lower + margin:
+            push[k] = gain * ((lower + margin) - q)
+    return push
+
+
+def clearance_push(
+    rows: list[tuple[float, np.ndarray]], config: ClearanceConfig
+) -> np.ndarray | None:
+    """Null-space joint rates pushing every close link away: each pair's distance grows at
+    gain * (slowdown - d) m/s through the minimum-norm motion j^T / (j j^T + damping^2).
+    ``rows``: (depth into the pair's slowdown zone in m, approach row j (n,))."""
+    push = None
+    for depth_m, row in rows:
+        away = (
+            config.null_space_gain_per_s * depth_m / (float(row @ row) + ROW_DAMPING_M_PER_RAD**2)
+        )
+        push = away * row if push is None else push + away * row
+    return push
+
+
+def hold_clearance(
+    qd_rad_s: np.ndarray, caps: list[tuple[float, np.ndarray]]
+) -> tuple[np.ndarray, int]:
+    """The command changed as little as possible so that no close pair approaches faster
+    than its cap: j q' >= -cap for each (cap in m/s, approach row j). Returns the command
+    and how many pairs needed it.
+
+    Projections onto each violated half-space in turn (HOLD_PASSES sweeps): the motion
+    along the pair's normal is cut, the rest of the motion (along the obstacle) is kept.
+    """
+    held: set[int] = set()
+    for _ in range(HOLD_PASSES):
+        changed = False
+        for index, (cap, row) in enumerate(caps):
+            rate = float(row @ qd_rad_s)
+            if rate < -cap:
+                qd_rad_s = (
+                    qd_rad_s + ((-cap - rate) / (float(row @ row) + ROW_DAMPING_M_PER_RAD**2)) * row
+                )
+                held.add(index)
+                changed = True
+        if not changed:
+            break
+    return qd_rad_s, len(held)
+
+
+def joint_limit_hold(
+    q_rad: np.ndarray,
+    qd_rad_s: np.ndarray,
+    limits: list[tuple[int, float, float]],
+    config: ClearanceConfig,
+) -> np.ndarray:
+    """Each joint's rate toward a limit scaled by its distance to it over the margin (1
+    outside the margin, 0 at the limit); rates away from the limit are kept."""
+    margin = config.joint_limit_margin_rad
+    out = qd_rad_s
+    for k, lower, upper in limits:
+        q, rate = float(q_rad[k]), float(qd_rad_s[k])
+        room = upper - q if rate > 0 else q - lower
+        if rate != 0.0 and room < margin:
+            if out is qd_rad_s:
+                out = qd_rad_s.copy()
+            out[k] = rate * max(room, 0.0) / margin
+    return out
+
+
 class PathFollowingController:
     """Experiment 1: follow the desired path with no time law, maximising manipulability.
 
-    Holds only what must persist between cycles: the tracked path parameter and the
-    previous kinematic command (to differentiate it for the compensation).
+    Holds only what must persist between cycles: the tracked path parameter, the arc
+    length followed and the previous kinematic command (to differentiate it for the
+    compensation). ``clearance``: measures the arm's clearance every cycle (and, with
+    ``clearance.avoid``, keeps it); None: neither.
     """
 
     def __init__(
-        self, arm: ArmModel, control: ControlConfig, path: PathConfig, period_s: float
+        self,
+        arm: ArmModel,
+        control: ControlConfig,
+        path: PathConfig,
+        period_s: float,
+        clearance: ClearanceModel | None = None,
     ) -> None:
         self.arm = arm
         self.control = control
         self.path = DesiredPath(path)
         self.period_s = period_s
+        self.clearance = clearance
         self.max_speed_rad_s = np.minimum(control.max_joint_speed_rad_s, arm.servo.max_speed_rad_s)
-        self._damping_matrix = control.damping_m**2 * np.eye(3)
+        self._identity3 = np.eye(3)
+        self._limits = limited_joints(arm)
         self._s: float | None = None
+        self._arc_m = 0.0
         self._previous_qd_c: list[float] | None = None
 
     def reset(self) -> None:
         self._s = None
+        self._arc_m = 0.0
         self._previous_qd_c = None
 
-    def update(self, q_rad: np.ndarray, qd_rad_s: np.ndarray) -> ControlOutput:
-        """One control cycle from the measured joint state."""
+    def update(
+        self, q_rad: np.ndarray, qd_rad_s: np.ndarray, gripper_opening_m: float | None = None
+    ) -> ControlOutput:
+        """One control cycle from the measured joint state (``gripper_opening_m``: each
+        finger's slide, for the clearance; None: fully open)."""
         ctl = self.control
         tool_p, jacobian = tool_position_and_jacobian(self.arm, q_rad)
         jv = jacobian[:3]
         if self._s is None:
             self._s = self.path.closest_global(tool_p)
         else:
+            previous_s = self._s
             self._s = self.path.closest_local(tool_p, self._s)
+            tangent_mid, _ = self.path.derivatives(0.5 * (previous_s + self._s))
+            self._arc_m += (self._s - previous_s) * math.sqrt(float(tangent_mid @ tangent_mid))
         desired_p = self.path.point(self._s)
         error = desired_p - tool_p
         error_norm = math.sqrt(float(error @ error))
@@ -224,15 +369,29 @@ class PathFollowingController:
         e0 = ctl.position_saturation_m
         v_task = v_desired + ctl.position_gain_per_s * e0 * np.tanh(error / e0)
 
-        # J# v + (I - J# J) g with J# = J^T A^-1, A = J J^T + damping^2 I, in one solve:
-        # J^T A^-1 (v - J g) + g, where g = L grad w is the null-space objective.
+        # J# v + (I - J# J) g with J# = J^T A^-1, A = J J^T + lambda^2 I, in one solve:
+        # J^T A^-1 (v - J g) + g, where g is the null-space objective.
         w, w_gradient = manipulability_and_gradient(jacobian)
         g = ctl.null_space_gain * w_gradient
-        inverse, det = symmetric_3x3_inverse(jv @ jv.T + self._damping_matrix)
+        clearance, caps = None, []
+        if self.clearance is not None:
+            clearance = self.clearance.measure(
+                q_rad, self.clearance.open_m if gripper_opening_m is None else gripper_opening_m
+            )
+            if self.clearance.config.avoid:
+                g, caps = self._avoidance(q_rad, clearance, g)
+        inverse, det = symmetric_3x3_inverse(
+            jv @ jv.T + singular_damping_sq(ctl, w) * self._identity3
+        )
         if det > 0.0:
             qd_c = jv.T @ (inverse @ (v_task - jv @ g)) + g
         else:  # undamped at an exact singularity: the least-squares solution
             qd_c = np.linalg.pinv(jv) @ (v_task - jv @ g) + g
+        held = 0
+        if caps:
+            qd_c, held = hold_clearance(qd_c, caps)
+        if self.clearance is not None and self.clearance.config.avoid and self._limits:
+            qd_c = joint_limit_hold(q_rad, qd_c, self._limits, self.clearance.config)
         qd_c = limit_speed(qd_c, self.max_speed_rad_s)
 
         compensation = compensation_terms(self.arm, q_rad, qd_rad_s) if ctl.compensation else None
@@ -248,32 +407,230 @@ class PathFollowingController:
             path_error_m=error_norm,
             manipulability=w,
             path_s=self._s,
+            path_arc_m=self._arc_m,
+            path_speed_m_s=speed,
+            clearance=clearance,
+            held_pairs=held,
         )
 
+    def _avoidance(
+        self, q_rad: np.ndarray, clearance: Clearance, g: np.ndarray
+    ) -> tuple[np.ndarray, list[tuple[float, np.ndarray]]]:
+        """The null-space objective with the clearance and joint-limit pushes added, and
+        the approach caps (cap m/s, row) of the pairs inside their slowdown distance.
+        Reads the joint Jacobians at ``q_rad`` that the tool Jacobian left in arm.data."""
+        config = self.clearance.config if self.clearance is not None else None
+        assert config is not None
+        pushes, caps = [], []
+        for pair in clearance.pairs:
+            _, slowdown = thresholds_m(config, pair.kind)
+            if pair.distance_m >= slowdown:
+                continue
+            row = approach_row(self.arm, pair)
+            pushes.append((slowdown - pair.distance_m, row))
+            caps.append((allowed_approach_m_s(config, pair.kind, pair.distance_m), row))
+        push = clearance_push(pushes, config)
+        if push is not None:
+            g = g + push
+        if self._limits:
+            g = g + joint_limit_push(q_rad, self._limits, config)
+        return g, caps
 
-@dataclass
+
+@dataclass(frozen=True)
+class MotionEvent:
+    """A run event the metrics saw (sent as a RUN_EVENT by the controller service)."""
+
+    event: Event
+    sim_time_s: float
+    value: float
+
+
+class MotionSafety:
+    """What both tasks report about safe motion, from each cycle's clearance and
+    manipulability: the smallest clearance of each kind, the cycles in unintended
+    contact, the singularity crossings, and the events of their beginnings (CONTACT,
+    SINGULARITY; value: the distance in m, the manipulability)."""
+
+    def __init__(self, singularity_manipulability: float) -> None:
+        self.singularity_manipulability = singularity_manipulability
+        self.min_scene_m = math.inf
+        self.min_finger_m = math.inf
+        self.min_self_m = math.inf
+        self.contact_cycles = 0
+        self.singularity_crossings = 0
+        self.events: list[MotionEvent] = []
+        self._in_contact = False
+        self._singular = False
+
+    def add(
+        self, sim_time_s: float, clearance: Clearance | None, manipulability: float | None
+    ) -> None:
+        if clearance is not None:
+            self.min_scene_m = min(self.min_scene_m, clearance.min_scene_m)
+            self.min_finger_m = min(self.min_finger_m, clearance.min_finger_m)
+            self.min_self_m = min(self.min_self_m, clearance.min_self_m)
+            contact = clearance.in_contact
+            if contact:
+                self.contact_cycles += 1
+                if not self._in_contact:
+                    self.events.append(MotionEvent(Event.CONTACT, sim_time_s, clearance.min_m))
+            self._in_contact = contact
+        if manipulability is not None:
+            singular = manipulability < self.singularity_manipulability
+            if singular and not self._singular:
+                self.singularity_crossings += 1
+                self.events.append(MotionEvent(Event.SINGULARITY, sim_time_s, manipulability))
+            self._singular = singular
+
+    def take_events(self) -> list[MotionEvent]:
+        """The events seen since the last call (oldest first)."""
+        events, self.events = self.events, []
+        return events
+
+    def summary(self) -> dict[str, Any]:
+        measured = math.isfinite(self.min_scene_m)
+        overall = min(self.min_scene_m, self.min_finger_m, self.min_self_m)
+        return {
+            "min_clearance_m": overall if measured else None,
+            "min_clearance_scene_m": self.min_scene_m if measured else None,
+            "min_clearance_finger_m": self.min_finger_m if measured else None,
+            "min_clearance_self_m": self.min_self_m if measured else None,
+            "arm_contacts": self.contact_cycles if measured else None,
+            "singularity_crossings": self.singularity_crossings,
+        }
+
+    def problems(self) -> list[str]:
+        """One line per reason the motion was not safe (empty: none)."""
+        if not self.contact_cycles:
+            return []
+        overall = min(self.min_scene_m, self.min_finger_m, self.min_self_m)
+        return [
+            f"unintended contact in {self.contact_cycles} control cycle(s) "
+            f"(min clearance {overall * 1e3:.1f} mm)"
+        ]
+
+
 class PathMetrics:
-    """Accumulates the path-following figures of merit, after the settling time."""
+    """Accumulates the path-following figures of merit.
 
-    settle_s: float
-    errors_m: list[float] = field(default_factory=list)
-    min_manipulability: float = float("inf")
+    After the settling time: the path error, and ``path_progress``, the arc length of the
+    path followed over the arc length the nominal speed v_P covers in the same time.
+    Over the whole run: ``stalled_s``, the time in windows of ``clearance.stall_window_s``
+    during which the path advanced less than ``clearance.stall_progress`` of what the
+    speed commanded along it (v_P / (1 + k |h~|)) covers (a STALL event when a stall
+    begins; value: the path error, m), and the clearance, contacts and singularity
+    crossings (:class:`MotionSafety`).
+    """
+
+    def __init__(
+        self,
+        settle_s: float,
+        path_speed_m_s: float = 0.0,
+        clearance: ClearanceConfig | None = None,
+        singularity_manipulability: float = 0.0,
+    ) -> None:
+        self.settle_s = settle_s
+        self.path_speed_m_s = path_speed_m_s
+        stall = clearance if clearance is not None else ClearanceConfig()
+        self.stall_window_s = stall.stall_window_s
+        self.stall_progress = stall.stall_progress
+        self.errors_m: list[float] = []
+        self.min_manipulability = float("inf")
+        self.safety = MotionSafety(singularity_manipulability)
+        self.stalled_s = 0.0
+        self.stalls = 0
+        self._settled: tuple[float, float] | None = None  # (sim time, arc) at settling
+        self._last: tuple[float, float] | None = None  # (sim time, arc) of the newest cycle
+        # (sim time, arc) at the window's start, and the arc the commanded speed covered since
+        self._window: tuple[float, float] | None = None
+        self._window_expected_m = 0.0
+        self._stalled = False
+        self._previous_s = 0.0
+
+    @classmethod
+    def for_config(cls, config: Config) -> PathMetrics:
+        return cls(
+            settle_s=config.run.settle_s,
+            path_speed_m_s=config.control.path_speed_m_s,
+            clearance=config.clearance,
+            singularity_manipulability=config.control.singularity_event_manipulability,
+        )
+
+    @property
+    def events(self) -> list[MotionEvent]:
+        return self.safety.events
+
+    def take_events(self) -> list[MotionEvent]:
+        return self.safety.take_events()
 
     def add(self, sim_time_s: float, output: ControlOutput) -> None:
         self.min_manipulability = min(self.min_manipulability, output.manipulability)
         if sim_time_s >= self.settle_s:
             self.errors_m.append(output.path_error_m)
+            if self._settled is None:
+                self._settled = (sim_time_s, output.path_arc_m)
+        self._last = (sim_time_s, output.path_arc_m)
+        self.safety.add(sim_time_s, output.clearance, output.manipulability)
+        if self.path_speed_m_s > 0:
+            self._check_stall(sim_time_s, output)
 
-    def summary(self) -> dict[str, float | None]:
-        if not self.errors_m:
-            return {
-                "path_error_rms_m": None,
-                "path_error_max_m": None,
-                "min_manipulability": self.min_manipulability,
-            }
-        errors = np.asarray(self.errors_m)
+    def _check_stall(self, sim_time_s: float, output: ControlOutput) -> None:
+        if self._window is None:
+            self._window = (sim_time_s, output.path_arc_m)
+            self._previous_s = sim_time_s
+            return
+        self._window_expected_m += output.path_speed_m_s * (sim_time_s - self._previous_s)
+        self._previous_s = sim_time_s
+        start_s, start_arc = self._window
+        elapsed = sim_time_s - start_s
+        if elapsed < self.stall_window_s:
+            return
+        expected, self._window_expected_m = self._window_expected_m, 0.0
+        stalled = output.path_arc_m - start_arc < self.stall_progress * expected
+        if stalled:
+            self.stalled_s += elapsed
+            if not self._stalled:
+                self.stalls += 1
+                self.safety.events.append(MotionEvent(Event.STALL, sim_time_s, output.path_error_m))
+        self._stalled = stalled
+        self._window = (sim_time_s, output.path_arc_m)
+
+    def path_progress(self) -> float | None:
+        if self._settled is None or self._last is None or self.path_speed_m_s <= 0:
+            return None
+        (t0, arc0), (t1, arc1) = self._settled, self._last
+        if t1 <= t0:
+            return None
+        return (arc1 - arc0) / (self.path_speed_m_s * (t1 - t0))
+
+    def problems(self) -> list[str]:
+        """One line per reason the run is not good (empty: none)."""
+        problems = []
+        if self.stalled_s > 0:
+            progress = self.path_progress()
+            shown = f", path_progress {progress:.2f}" if progress is not None else ""
+            problems.append(
+                f"the tool stalled {self.stalled_s:.1f} s in {self.stalls} stall(s){shown}"
+            )
+        return problems + self.safety.problems()
+
+    def summary(self) -> dict[str, Any]:
+        figures: dict[str, Any] = {
+            "path_error_rms_m": None,
+            "path_error_max_m": None,
+            "min_manipulability": self.min_manipulability,
+        }
+        if self.errors_m:
+            errors = np.asarray(self.errors_m)
+            figures["path_error_rms_m"] = float(np.sqrt(np.mean(errors**2)))
+            figures["path_error_max_m"] = float(errors.max())
+            figures["min_manipulability"] = float(self.min_manipulability)
         return {
-            "path_error_rms_m": float(np.sqrt(np.mean(errors**2))),
-            "path_error_max_m": float(errors.max()),
-            "min_manipulability": float(self.min_manipulability),
+            **figures,
+            "path_progress": self.path_progress(),
+            "stalled_s": self.stalled_s,
+            "stalls": self.stalls,
+            **self.safety.summary(),
+            "motion_problems": self.problems(),
         }

@@ -198,8 +198,14 @@ class ControlConfig:
     velocity_gain_per_s: float = 50.0
     # Joint speed limit applied to every reference sent to the plant.
     max_joint_speed_rad_s: float = math.pi
-    # Damping of the pseudo-inverse near singularities (m).
+    # Damping of the pseudo-inverse (m). Near singularities it grows smoothly (Nakamura's
+    # variable damping) to singular_damping_m as the manipulability falls below
+    # singular_manipulability, so the arm slows down instead of swinging through.
     damping_m: float = 1e-4
+    singular_manipulability: float = 0.02
+    singular_damping_m: float = 0.04
+    # A manipulability below this is a singularity crossing: a run event (SINGULARITY).
+    singularity_event_manipulability: float = 0.005
     # Rate of CONTROL_STATUS (plots, recorder); the control cycle itself runs per state.
     status_rate_hz: float = 100.0
 
@@ -215,7 +221,73 @@ class ControlConfig:
         _require(self.speed_error_gain_per_m >= 0, "control.speed_error_gain_per_m >= 0")
         _require(self.null_space_gain >= 0, "control.null_space_gain >= 0")
         _require(self.damping_m >= 0, "control.damping_m >= 0")
+        _require(self.singular_manipulability > 0, "control.singular_manipulability > 0")
+        _require(self.singular_damping_m >= 0, "control.singular_damping_m >= 0")
+        _require(
+            self.singularity_event_manipulability >= 0,
+            "control.singularity_event_manipulability >= 0",
+        )
         _require(self.status_rate_hz > 0, "control.status_rate_hz > 0")
+
+
+@dataclass(frozen=True)
+class ClearanceConfig:
+    """Clearance of the arm and gripper from the scene and from themselves, every control
+    cycle, and how both control laws keep it (teleop/control/clearance.py,
+    docs/clearance.md).
+
+    Distances are MuJoCo's (``mj_geomDistance``) between the arm's collision geoms and
+    every static collision geom of the scene file (table, floor, base, bin), and between
+    arm links two or more joints apart that can come within ``self_slowdown_m`` of each
+    other somewhere in the joint range. The free objects (the cube) are not obstacles:
+    the fingers are meant to touch them. Below ``slowdown_m`` the speed at which a link
+    approaches what is near falls linearly, to zero at ``stop_m`` (the margin kept); the
+    fingers and pairs within the arm have their own, smaller pair of thresholds. Inside
+    ``influence_m`` the link is also pushed away in the null space of the tool task.
+    """
+
+    # false: the unguarded law (no avoidance); clearance is still measured and reported.
+    avoid: bool = True
+    # Pairs closer than this (m) are computed, avoided in the null space and reported;
+    # farther ones count as this far (min_clearance_m is capped here).
+    influence_m: float = 0.08
+    # Arm and gripper vs the scene (m): approach slowed below the first, stopped at the second.
+    slowdown_m: float = 0.05
+    stop_m: float = 0.02
+    # The fingers vs the scene (m): a top grasp puts the fingertips 5 mm above the table.
+    finger_slowdown_m: float = 0.012
+    finger_stop_m: float = 0.002
+    # Links of the arm vs each other (m).
+    self_slowdown_m: float = 0.025
+    self_stop_m: float = 0.008
+    # Largest approach speed allowed at the slowdown distance (m/s); it falls linearly
+    # to 0 at the stop distance.
+    approach_speed_m_s: float = 0.25
+    # Null space: a link inside influence_m is pushed away at gain * (influence - d) m/s.
+    null_space_gain_per_s: float = 4.0
+    # Joint limits: pushed back in the null space within this margin (rad), and the
+    # approach to a limit stopped at the limit.
+    joint_limit_margin_rad: float = 0.3
+    joint_limit_gain_per_s: float = 2.0
+    # Run events and verdict: a stall is this long without progress (s) while the path
+    # advances less than stall_progress of what the commanded speed would cover.
+    stall_window_s: float = 0.5
+    stall_progress: float = 0.2
+
+    def __post_init__(self) -> None:
+        for name in ("influence_m", "approach_speed_m_s", "stall_window_s"):
+            _require(getattr(self, name) > 0, f"clearance.{name} > 0")
+        for near, far in (("stop_m", "slowdown_m"), ("finger_stop_m", "finger_slowdown_m"),
+                          ("self_stop_m", "self_slowdown_m")):  # fmt: skip
+            stop, slow = getattr(self, near), getattr(self, far)
+            _require(
+                0 <= stop < slow <= self.influence_m,
+                f"clearance: 0 <= {near} < {far} <= influence_m",
+            )
+        for name in ("null_space_gain_per_s", "joint_limit_margin_rad",
+                     "joint_limit_gain_per_s"):  # fmt: skip
+            _require(getattr(self, name) >= 0, f"clearance.{name} >= 0")
+        _require(0 < self.stall_progress < 1, "clearance.stall_progress in (0, 1)")
 
 
 @dataclass(frozen=True)
@@ -646,6 +718,7 @@ class Config:
     plant: PlantConfig = field(default_factory=PlantConfig)
     path: PathConfig = field(default_factory=PathConfig)
     control: ControlConfig = field(default_factory=ControlConfig)
+    clearance: ClearanceConfig = field(default_factory=ClearanceConfig)
     scene: SceneConfig = field(default_factory=SceneConfig)
     haptic: HapticConfig = field(default_factory=HapticConfig)
     hmd: HmdConfig = field(default_factory=HmdConfig)

@@ -14,6 +14,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from teleop.control.clearance import ClearanceModel
 from teleop.control.kinematics import build_arm_model
 from teleop.control.path import PathFollowingController, PathMetrics
 from teleop.core.config import Config
@@ -38,9 +39,13 @@ def run_path_following_inprocess(
     plant.reset(initial_configuration(config))
     arm = build_arm_model(config.robot)
     controller = PathFollowingController(
-        arm, config.control, config.path, period_s=config.plant.timestep_s
+        arm,
+        config.control,
+        config.path,
+        period_s=config.plant.timestep_s,
+        clearance=ClearanceModel(config, arm),
     )
-    metrics = PathMetrics(settle_s=config.run.settle_s)
+    metrics = PathMetrics.for_config(config)
     steps = round(config.run.duration_s / config.plant.timestep_s)
     report_every = max(1, int(steps * PROGRESS_FRACTION))
     wall_start = time.perf_counter()
@@ -49,7 +54,7 @@ def run_path_following_inprocess(
     in_flight: collections.deque[np.ndarray] = collections.deque()
     for k in range(steps):
         sample = plant.sample()
-        output = controller.update(sample.q_rad, sample.qd_rad_s)
+        output = controller.update(sample.q_rad, sample.qd_rad_s, sample.gripper_opening_m)
         metrics.add(sample.sim_time_ns * 1e-9, output)
         in_flight.append(output.qd_ref_rad_s.copy())
         if k < delay:
@@ -61,7 +66,8 @@ def run_path_following_inprocess(
     # The final state is measured too, as the controller service does with the last
     # state the plant publishes (its command, like those still in flight, is never applied).
     final = plant.sample()
-    metrics.add(final.sim_time_ns * 1e-9, controller.update(final.q_rad, final.qd_rad_s))
+    last = controller.update(final.q_rad, final.qd_rad_s, final.gripper_opening_m)
+    metrics.add(final.sim_time_ns * 1e-9, last)
     wall_s = time.perf_counter() - wall_start
     return {
         "scenario": "path-following",
@@ -71,6 +77,11 @@ def run_path_following_inprocess(
         "settle_s": config.run.settle_s,
         "compensation": config.control.compensation,
         **metrics.summary(),
+        "success": not metrics.problems(),
+        "events": [
+            {"event": e.event.name, "sim_time_s": e.sim_time_s, "value": e.value}
+            for e in metrics.events
+        ],
         "steps": steps,
         "commands_clamped": plant.clamped_steps,
         "wall_s": wall_s,

@@ -481,6 +481,10 @@ def run_on_services(
                 "path_error_rms_m": controller.get("path_error_rms_m"),
                 "path_error_max_m": controller.get("path_error_max_m"),
                 "min_manipulability": controller.get("min_manipulability"),
+                **{key: controller.get(key) for key in PATH_MOTION_KEYS},
+                # A run that stalls or collides is not a good run (teleop.control.path).
+                "success": not controller.get("motion_problems"),
+                "motion_problems": controller.get("motion_problems", []),
             }
         )
     idle_poll = idle_poll_report(polled_cpus, run_dir)
@@ -525,6 +529,30 @@ def run_on_services(
     return summary
 
 
+# The controller's figures of safe motion a path-following summary carries.
+PATH_MOTION_KEYS = (
+    "path_progress",
+    "stalled_s",
+    "min_clearance_m",
+    "min_clearance_scene_m",
+    "min_clearance_self_m",
+    "min_clearance_finger_m",
+    "arm_contacts",
+    "singularity_crossings",
+    "events",
+)
+# The same in teleoperation (no path: no progress, no stall).
+TELEOP_MOTION_KEYS = (
+    "min_clearance_m",
+    "min_clearance_scene_m",
+    "min_clearance_self_m",
+    "min_clearance_finger_m",
+    "arm_contacts",
+    "singularity_crossings",
+    "events",
+)
+
+
 def _eye_view_summary(summaries: dict[str, dict[str, Any]]) -> dict[str, Any] | None:
     """Frames rendered and received (over SHM), render time, CPU shares, latency."""
     eyeview = summaries.get(EYEVIEW)
@@ -551,8 +579,11 @@ def _grasp_summary(summaries: dict[str, dict[str, Any]], task_done: list[float])
     haptic, operator = summaries.get("haptic", {}), summaries.get("operator")
     said_success = operator.get("success") if operator is not None else task_done[-1:] == [1.0]
     operator = operator or {}
+    problems = controller.get("motion_problems", [])
     return {
-        "success": bool(said_success) and bool(plant.get("object_in_box")),
+        "success": bool(said_success) and bool(plant.get("object_in_box")) and not problems,
+        "motion_problems": problems,
+        **{key: controller.get(key) for key in TELEOP_MOTION_KEYS},
         "object_in_box": plant.get("object_in_box"),
         "duration_s": operator.get("task_duration_s"),
         "max_device_force_n": haptic.get("max_rendered_force_n"),

@@ -171,6 +171,9 @@ EVENT_LEVELS: Mapping[Event, str] = {
     Event.RELEASE: LEVEL_INFO,
     Event.PHASE: LEVEL_INFO,
     Event.TASK_DONE: LEVEL_INFO,
+    Event.STALL: LEVEL_WARN,
+    Event.CONTACT: LEVEL_WARN,
+    Event.SINGULARITY: LEVEL_WARN,
     Event.OUT_OF_REACH: LEVEL_WARN,
 }
 # TASK_DONE's value: 1 success, 0 the operator gave up.
@@ -395,6 +398,7 @@ class RecordingWriter:
             "control_status": self._write_control_status,
             "plant_events": self._write_events,
             "operator_events": self._write_events,
+            "controller_events": self._write_events,
             "haptic_state": self._write_haptic_state,
             "hand_input": self._write_hand_input,
             "force_feedback": self._write_force_feedback,

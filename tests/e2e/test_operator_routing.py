@@ -1,0 +1,50 @@
+"""Issue 18's grasp scenes that the scripted operator used to fail, on the whole stack.
+
+- An obstacle right on the straight carry from the cube to the bin: the operator that
+  went straight pushed against its repulsion (device force at the 8 N peak, the fingers
+  squeezing the cube at 15-25 N, the obstacle's influence entered); the operator that
+  sees it goes over and never enters the influence zone.
+- A cube out of the arm's reach: the operator used to push until the phase timed out
+  (15 s); now it says so, with an OUT_OF_REACH event and a failure reason, in seconds.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from teleop.core.config import load_config
+from teleop.viz import entities as ent
+from teleop.viz.rrd import read_rrd
+from tests.e2e.test_grasp import grasp
+
+# On the straight move from over the default cube (0.45, -0.25) to over the default bin
+# (0.35, 0.35) at carry height.
+IN_THE_WAY = ("--set", "scene.obstacle_p_m=[[0.40, 0.05, 0.19]]",
+              "--set", "scene.obstacle_radius_m=[0.05]")  # fmt: skip
+IN_THE_WAY_RADIUS_M = 0.05
+# A device force the operator never needs to hold against on a clear route (N): the
+# cube's weight through the force scale is about 1 N.
+CLEAR_ROUTE_FORCE_N = 3.0
+# Beyond the arm's reach (about 0.9 m with the tool pointing down).
+OUT_OF_REACH = ("--set", "scene.cube_p_m=[1.0, 0.0, 0.025]")
+
+
+def test_the_operator_carries_over_an_obstacle_in_the_way(tmp_path: Path) -> None:
+    summary = grasp(tmp_path, "way", "--mode", "lockstep", "--seed", "0", *IN_THE_WAY)
+    assert summary["success"], summary.get("failure")
+    influence_m = load_config().teleop.obstacle_influence_m
+    assert summary["obstacle_min_clearance_m"] > influence_m  # never felt its repulsion
+    assert summary["max_device_force_n"] < CLEAR_ROUTE_FORCE_N
+    assert summary["max_obstacle_force_n"] == 0.0
+    routes = summary["services"]["operator"]["routes"]
+    assert "carry" in [r["phase"] for r in routes]
+
+
+def test_a_cube_out_of_reach_is_reported_not_timed_out(tmp_path: Path) -> None:
+    summary = grasp(tmp_path, "far", "--mode", "lockstep", "--seed", "0", *OUT_OF_REACH)
+    assert not summary["success"]
+    assert "out of reach in approach" in summary["failure"]
+    approach_timeout_s = 15.0  # deploy/scenarios/grasp.toml
+    assert summary["duration_s"] < approach_timeout_s
+    events = read_rrd(summary["rrd"])[ent.ENTITY_EVENTS]["TextLog:text"]
+    assert any("OUT_OF_REACH" in text[0] for text in events)
