@@ -392,6 +392,12 @@ def make_report(kind: str, seed: int, workers: int, generated: Generated,
     }
 
 
+def _percentiles_mm(distribution: Mapping[str, float] | None) -> str:
+    if not distribution:
+        return "not reported"
+    return ", ".join(f"{k} {v * 1e3:.1f}" for k, v in distribution.items())
+
+
 def _mm(value: Any) -> str:
     return "-" if value is None else f"{float(value) * 1e3:.3f}"
 
@@ -415,7 +421,7 @@ def markdown(report: Mapping[str, Any]) -> str:
             if report["criteria_unavailable"]
             else ""
         ),
-        f"- min clearance (m), percentiles: {report['min_clearance_m'] or 'not reported'}",
+        f"- min clearance (mm), percentiles: {_percentiles_mm(report['min_clearance_m'])}",
         f"- generator: {report['generator']['candidates']} candidates drawn, rejected "
         f"{report['generator']['rejected'] or 'none'}",
         f"- wall time {report['wall_s']:.0f} s on {report['workers']} worker(s)",
