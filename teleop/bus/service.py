@@ -355,4 +355,8 @@ def service_main(service_class: type[Service], argv: list[str] | None = None) ->
         logger.exception("%s failed", service_class.name)
         return EXIT_FAILED
     logger.info("stopped")
+    # The stop signal may come twice (the launcher and supervisord both send it); what
+    # comes after this is the interpreter's exit.
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, signal.SIG_IGN)
     return 0
