@@ -398,7 +398,7 @@ def run_on_services(
     tracker = RunProgress(config.run.duration_s, phases)
 
     def on_event(rec: np.ndarray, rx_ns: int) -> None:
-        if int(rec["event"]) == Event.FINISHED:
+        if int(rec["event"]) in (Event.FINISHED, Event.ABORTED):
             finished.set()
         elif int(rec["event"]) == Event.PHASE:
             tracker.on_phase(int(rec["value"]), int(rec["sim_time_ns"]) * 1e-9)
@@ -472,6 +472,8 @@ def run_on_services(
     }
     if config.run.scenario == "grasp":
         summary.update(_grasp_summary(summaries, task_done))
+        if plant.get("aborted"):  # whatever the world looks like, the run did not go on
+            summary["success"] = False
     else:
         summary.update(
             {
@@ -508,6 +510,9 @@ def run_on_services(
             "commands_clamped": plant.get("commands_clamped"),
             "command_stream": plant.get("command_stream"),
             "stale_commands": plant.get("stale_commands"),
+            # The plant ended the run on a failure (its reason), and its restarts.
+            "failure": plant.get("failure"),
+            "plant_resumes": plant.get("resumes", []),
             "dropped_messages": dropped,
             "unlinked_peers": unlinked,
             "skipped_states": controller.get("skipped_states"),
@@ -599,10 +604,12 @@ def _wait_finished(
 
 
 def _plant_finished(run_dir: Path) -> bool:
-    """True when the plant's summary is on file and says the run finished."""
+    """True when the plant's summary is on file and says the run finished (or ended on
+    a failure: aborted)."""
     path = summary_path(run_dir, "plant")
     try:
-        return bool(json.loads(path.read_text()).get("finished"))
+        summary = json.loads(path.read_text())
+        return bool(summary.get("finished") or summary.get("aborted"))
     except (OSError, ValueError):
         return False
 
@@ -683,6 +690,7 @@ def start_detached(
     """
     run_dir = run_dir.absolute()
     refuse_if_running(run_dir)
+    clear_run_results(run_dir)  # a previous stack's checkpoint must not be resumed
     endpoint = endpoint or loopback_endpoint(config.bus.tls)
     if config.bus.tls and not endpoint.startswith("tls/"):
         raise RunError(f"bus.tls: the endpoint must be tls/HOST:PORT, not {endpoint}")

@@ -66,6 +66,7 @@ from teleop.bus.messages import (
 from teleop.control.path import DesiredPath
 from teleop.control.teleop import view_to_world
 from teleop.core.config import Config, ModelError
+from teleop.sim.stepping import Abort
 from teleop.viz.blueprint import build_blueprint
 from teleop.viz.entities import (
     APPLICATION_ID,
@@ -171,9 +172,16 @@ EVENT_LEVELS: Mapping[Event, str] = {
     Event.RELEASE: LEVEL_INFO,
     Event.PHASE: LEVEL_INFO,
     Event.TASK_DONE: LEVEL_INFO,
+    Event.RESUMED: LEVEL_WARN,
+    Event.ABORTED: LEVEL_WARN,
 }
 # TASK_DONE's value: 1 success, 0 the operator gave up.
 TASK_OUTCOMES: Mapping[bool, str] = {True: "success", False: "gave up"}
+# ABORTED's value (teleop.sim.stepping.Abort), in words.
+ABORT_REASONS: Mapping[int, str] = {
+    Abort.RESUME_FAILED: "the restarted plant could not resume its checkpoint",
+    Abort.LOCKSTEP_TIMEOUT: "lockstep got no answer within plant.lockstep_timeout_s",
+}
 
 # The record streams the recorder takes (teleop.bus.graph: it is among their consumers;
 # image frames come on a subscription of their own), in the graph's order.
@@ -221,6 +229,10 @@ def event_text(event: int, step: int, value: float) -> str:
         return f"{name} {round(value)} at step {step}"
     if event == Event.TASK_DONE:
         return f"{name} ({TASK_OUTCOMES[bool(value)]}) at step {step}"
+    if event == Event.RESUMED:
+        return f"{name} at step {step}: the plant restarted, {round(value)} steps of physics lost"
+    if event == Event.ABORTED:
+        return f"{name} at step {step}: {ABORT_REASONS.get(round(value), f'reason {value:g}')}"
     text = f"{name} at step {step}"
     return f"{text} (value {value:g})" if value else text
 
