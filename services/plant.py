@@ -110,6 +110,8 @@ class PlantService(Service):
         if self.options.run_dir is not None and loop is not None:
             with loop.cond:
                 loop.command_in.save(shed_path(self.options.run_dir, self.name))
+            if loop.store is not None:
+                loop.store.close()  # the newest checkpoint on file, its writer joined
         super().close()
 
     def summary(self) -> dict[str, Any]:

@@ -353,8 +353,12 @@ def run_on_services(
     without: Sequence[str] = (),
     without_timeout_s: float = DEFAULT_WITHOUT_TIMEOUT_S,
     announce: Callable[[str], None] = _stderr,
+    restarts_expected: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Run ``config.run.scenario`` on the supervised services; return the merged summary.
+
+    ``restarts_expected``: services that will be killed on purpose (a test of their
+    recovery): their restarts do not fail the run.
 
     ``without``: services left out; ``announce`` tells the user how to join each (its
     Zenoh config is in the run directory), then the run waits up to
@@ -439,7 +443,7 @@ def run_on_services(
         deadline_s = config.run.duration_s * factor + RUN_TIMEOUT_SLACK_S
         wall_start = time.perf_counter()
         with Stack(run_dir, programs) as stack:
-            check = _failure_check(stack)
+            check = _failure_check(stack, restarts_expected)
             try:
                 _wait_alive(session, topics, services, stack, check)
                 try:
@@ -627,10 +631,11 @@ def refuse_if_running(run_dir: Path) -> None:
     )
 
 
-def _failure_check(stack: Stack) -> Callable[[], None]:
+def _failure_check(stack: Stack, restarts_expected: Sequence[str] = ()) -> Callable[[], None]:
     """A check that raises :class:`ServiceFailed` (the failure block) as soon as a
-    program of ``stack`` has died, crash-looped or stopped (teleop.run.failure)."""
-    watch = ProgramWatch(stack.log_path, _read_log)
+    program of ``stack`` has died, crash-looped or stopped (teleop.run.failure), but for
+    the restarts of ``restarts_expected``."""
+    watch = ProgramWatch(stack.log_path, _read_log, frozenset(restarts_expected))
     return lambda: watch.check(stack.process_infos())
 
 

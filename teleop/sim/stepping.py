@@ -315,27 +315,31 @@ class ArrivalCounts:
 
 @dataclass
 class CheckpointCost:
-    """What the checkpoints cost the plant: writes, bytes, time inside the step."""
+    """What taking the checkpoints costs the plant's steps (the writes are a thread's)."""
 
-    writes: int = 0
-    bytes_per_write: int = 0
-    write_us: list[float] = field(default_factory=list)  # the newest writes' durations
+    taken: int = 0
+    step_us: list[float] = field(default_factory=list)  # the newest ones
 
-    def add(self, size_bytes: int, duration_ns: int) -> None:
-        self.writes += 1
-        self.bytes_per_write = size_bytes
-        self.write_us.append(duration_ns / 1e3)
-        del self.write_us[:-CHECKPOINT_COST_SAMPLES]
+    def add(self, duration_ns: int) -> None:
+        self.taken += 1
+        self.step_us.append(duration_ns / 1e3)
+        del self.step_us[:-CHECKPOINT_COST_SAMPLES]
 
-    def summary(self, steps: int) -> dict[str, Any]:
-        """Writes, bytes per write, write time p50 / max (us) and per step (us)."""
-        times = np.array(self.write_us) if self.write_us else np.zeros(1)
+    def summary(self, steps: int, store: CheckpointStore | None) -> dict[str, Any]:
+        """Checkpoints taken and written, bytes, the time each took from its step and
+        the writer's time per write (p50 / max, us), the step time per step (us)."""
+        taken = np.array(self.step_us) if self.step_us else np.zeros(1)
+        written = np.array(store.write_us) if store is not None and store.write_us else np.zeros(1)
         return {
-            "writes": self.writes,
-            "bytes_per_write": self.bytes_per_write,
-            "write_us_p50": round(float(np.median(times)), 1),
-            "write_us_max": round(float(times.max()), 1),
-            "us_per_step": round(float(times.mean()) * self.writes / max(steps, 1), 3),
+            "taken": self.taken,
+            "written": store.writes if store is not None else 0,
+            "failed_writes": store.failed_writes if store is not None else 0,
+            "bytes_per_write": store.bytes_per_write if store is not None else 0,
+            "step_us_p50": round(float(np.median(taken)), 1),
+            "step_us_max": round(float(taken.max()), 1),
+            "step_us_per_step": round(float(taken.mean()) * self.taken / max(steps, 1), 3),
+            "write_us_p50": round(float(np.median(written)), 1),
+            "write_us_max": round(float(written.max()), 1),
         }
 
 
@@ -589,7 +593,7 @@ class PlantLoop:
                 "finish_tick": -1 if self.finish_tick is None else self.finish_tick,
                 "finished": self.finished,
                 "gripper_cmd": plant.gripper_cmd,
-                "held_body": self._held_body,
+                "held_body": int(self._held_body),
                 "run_start_ns": self._run_start_ns,
                 "counts": {
                     "commands_received": self.commands_received,
@@ -606,14 +610,11 @@ class PlantLoop:
         )
 
     def save_checkpoint(self, now_ns: int) -> None:
-        """Write :meth:`snapshot` to the store, timing the write (checkpoint_cost)."""
+        """Hand :meth:`snapshot` to the store's writer, timing what it costs the step."""
         assert self.store is not None
-        start_ns = time.perf_counter_ns()  # the write's own cost, whatever the loop's clock
-        written = self.store.bytes_written
-        self.store.save(self.snapshot(now_ns))
-        self.checkpoint_cost.add(
-            self.store.bytes_written - written, time.perf_counter_ns() - start_ns
-        )
+        start_ns = time.perf_counter_ns()  # its own cost, whatever the loop's clock
+        self.store.submit(self.snapshot(now_ns))
+        self.checkpoint_cost.add(time.perf_counter_ns() - start_ns)
 
     def resume(self, snapshot: Snapshot, previous: Progress | None, steps: int | None) -> None:
         """Go on with the run of ``snapshot`` after a restart.
@@ -1061,7 +1062,7 @@ class PlantLoop:
             "aborted": self.aborted,
             "failure": self.failure,
             "resumes": self.resumes,
-            "checkpoint": self.checkpoint_cost.summary(self.plant.step_count),
+            "checkpoint": self.checkpoint_cost.summary(self.plant.step_count, self.store),
         }
         if self.grid is not None:
             steps = max(self.plant.step_count, 1)

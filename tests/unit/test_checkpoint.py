@@ -64,12 +64,15 @@ class Incarnation:
         self.stop.set()
         self.thread.join(timeout=30)
         assert not self.thread.is_alive()
+        assert self.loop.store is not None
+        self.loop.store.close()  # its newest checkpoint on file (a kill may lose it)
 
 
 def test_a_snapshot_survives_the_file_and_refuses_damage(tmp_path):
     store = store_in(tmp_path)
-    snapshot = Snapshot("m" * 64, 7, 123, np.arange(5.0), np.ones(6), {"x": 1})
-    store.save(snapshot)
+    snapshot = Snapshot("m" * 64, 7, 123, np.arange(5.0), np.ones(6), {"x": np.int64(1)})
+    store.submit(snapshot)
+    store.close()  # written by its thread, which is joined
     back = store.load("m" * 64)
     assert (back.step, back.t_ns, back.loop) == (7, 123, {"x": 1})
     assert np.array_equal(back.mujoco_state, np.arange(5.0))
@@ -123,7 +126,7 @@ def test_a_restarted_plant_resumes_its_run_where_the_stream_stopped(tmp_path):
     first.kill()  # stopped, as if killed: the next incarnation finds its files
     states = {int(r["seq"]): r for r in first.out.records["plant_state"]}
     last = max(states)
-    assert last == 35 and first.loop.checkpoint_cost.writes == 4  # steps 0, 10, 20, 30
+    assert last == 35 and first.loop.checkpoint_cost.taken == 4  # steps 0, 10, 20, 30
 
     second = Incarnation(tmp_path, 200)
     second.answer_until(60, command_seq)
