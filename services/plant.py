@@ -26,7 +26,7 @@ from teleop.bus.messages import (
 from teleop.bus.service import Service, service_main
 from teleop.bus.session import BatchPublisher, Publisher, subscribe, subscribe_events
 from teleop.core.clock import MonotonicClock
-from teleop.core.rundir import PLANT_CHECKPOINT_FILE, PLANT_PROGRESS_FILE, shed_path
+from teleop.core.rundir import PLANT_CHECKPOINT_FILE, shed_path
 from teleop.sim.checkpoint import CheckpointStore
 from teleop.sim.stepping import PlantLoop
 
@@ -53,8 +53,7 @@ class PlantService(Service):
         )
         store = None
         if self.options.run_dir is not None:  # checkpoints, and a restart resumes from them
-            run_dir = self.options.run_dir
-            store = CheckpointStore(run_dir / PLANT_CHECKPOINT_FILE, run_dir / PLANT_PROGRESS_FILE)
+            store = CheckpointStore(self.options.run_dir / PLANT_CHECKPOINT_FILE)
         self.loop = PlantLoop(self.config, self, MonotonicClock(), store)
         self.keep(subscribe_events(session, topics, "operator_events", self._on_event, self.drops))
         self.keep(
@@ -110,8 +109,6 @@ class PlantService(Service):
         if self.options.run_dir is not None and loop is not None:
             with loop.cond:
                 loop.command_in.save(shed_path(self.options.run_dir, self.name))
-            if loop.store is not None:
-                loop.store.close()  # the newest checkpoint on file, its writer joined
         super().close()
 
     def summary(self) -> dict[str, Any]:

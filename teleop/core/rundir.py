@@ -15,9 +15,8 @@ SUMMARY_SUFFIX = ".summary.json"
 # The recorder's Rerun recording when recorder.rrd_path is empty.
 RECORDING_FILE = "recording.rrd"
 # The plant's checkpoint and per-step progress mark (teleop.sim.checkpoint): a restarted
-# plant resumes from them, so a new run must not find the previous run's.
+# plant resumes from it, so a new run must not find the previous run's.
 PLANT_CHECKPOINT_FILE = "plant.checkpoint"
-PLANT_PROGRESS_FILE = "plant.progress"
 # supervisord's own files (teleop.run.supervise): its config, control socket, pid file,
 # log, console output (config errors), and the directory of the programs' logs.
 SUPERVISOR_CONF_FILE = "supervisord.conf"
@@ -57,7 +56,6 @@ _RUN_RESULT_GLOBS = (
     HAPTIC_SAMPLES_FILE,
     RECORDING_FILE,
     PLANT_CHECKPOINT_FILE,
-    PLANT_PROGRESS_FILE,
     SUPERVISOR_LOG_FILE,
     SUPERVISOR_CONSOLE_FILE,
     WEB_VIEWER_LOG_FILE,

@@ -1,38 +1,34 @@
 """The plant's checkpoint: what a restarted plant needs to go on with the same run.
 
-Two files in the run directory, both written by the plant service and read back by its
-next incarnation (a fresh run directory has neither: the launcher clears them):
+One file in the run directory, ``plant.checkpoint``, written by the plant service and read
+back by its next incarnation (a fresh run directory has none: the launcher clears it).
+It is memory-mapped: a header of int64 slots and two snapshot slots.
 
-- ``plant.checkpoint`` (:class:`Snapshot`), every ``plant.checkpoint_s`` of sim time:
-  MuJoCo's full integration state (``mj_getState`` with ``mjSTATE_INTEGRATION``: time,
-  positions, velocities, actuator activations, the constraint solver's warm start,
-  controls, applied forces; about 1.2 KB for the shipped scene) plus what the plant's
-  loop carries across steps (step number, the operator's task-done tick, the brake's
-  hold, the counters of the summary). Taken and encoded in the step (a few us), written
-  by a thread of its own: a write and rename costs 0.5 ms and up to 15 ms on ext4 (it
-  flushes the data of a file renamed over another), far more than a step may spend.
-  Written atomically (a temporary file, then ``os.replace``), so a reader sees the
-  previous checkpoint or the new one, never half.
-- ``plant.progress`` (:class:`ProgressMark`), updated every step: a few integers in a
-  memory-mapped file (the newest state sent, when, the newest command accepted, the
-  task-done tick). A store into a shared file mapping costs no system call and survives
-  the process (the kernel keeps the page), so the next incarnation knows exactly where
-  the stream stopped: its states continue the same ``seq`` without a gap, and it knows
-  how many steps of physics after the checkpoint were lost.
+- The header's progress mark is updated every step: the newest state sent and when, the
+  newest command accepted, the operator's task-done tick. A store into a shared file
+  mapping costs no system call and outlives the process (the kernel keeps the page), so
+  the next incarnation knows exactly where the stream stopped: its states continue the
+  same ``seq`` without a gap, and it knows how many steps of physics it lost.
+- Every ``plant.checkpoint_s`` of sim time a :class:`Snapshot`: MuJoCo's full
+  integration state (``mj_getState`` with ``mjSTATE_INTEGRATION``: time, positions,
+  velocities, activations, the solver's warm start, controls, applied forces; about
+  1.2 KB for the shipped scene) plus what the plant's loop carries across steps (the
+  brake's hold, the task-done tick, the summary's counters), about 1.9 KB in all. It is
+  copied into the slot not in use, then the header names that slot: a process that dies
+  mid-copy leaves the previous snapshot whole (a CRC guards the rest). A copy costs a few
+  microseconds; a file write and rename (``os.replace``) cost 0.5 ms and up to 15 ms on
+  ext4 (renaming over a file flushes its data), more than a 1 ms step may spend.
 
-Neither file is synced to disk: they guard against the plant process dying, not the
-machine (a machine that dies ends the run anyway).
+Nothing is synced to disk: this guards against the plant process dying, not the machine
+(a machine that dies ends the run anyway).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import logging
 import mmap
 import os
-import threading
-import time
 import zlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -41,24 +37,26 @@ from typing import Any
 import mujoco
 import numpy as np
 
-logger = logging.getLogger(__name__)
-
-# The checkpoint file's first bytes and format version: another file, or another layout,
-# is refused with a reason rather than misread.
+# A snapshot's first bytes and format version: another layout is refused with a reason.
 MAGIC = b"TELEOPCK"
 FORMAT_VERSION = 1
 # MuJoCo's state components a checkpoint holds: everything integration depends on.
 STATE_SPEC = mujoco.mjtState.mjSTATE_INTEGRATION
-# The progress mark's slots (int64 each) and their meaning.
-PROGRESS_VERSION = 1
-# Checkpoint writes whose duration the store keeps (the newest ones).
-WRITE_TIMES_KEPT = 1000
-PROGRESS_SLOTS = 5
+# The file: header slots (int64), then two snapshot slots of SLOT_BYTES each.
+FILE_VERSION = 1
+SLOT_BYTES = 1 << 16  # a snapshot is ~2 KB; a 7-DOF or richer scene still fits
 SLOT_VERSION = 0
 SLOT_STATE_SEQ = 1  # newest PLANT_STATE seq sent (== its step); -1: none
 SLOT_STATE_NS = 2  # when it was sent (host monotonic clock, ns)
 SLOT_COMMAND_SEQ = 3  # newest JOINT_COMMAND seq accepted; -1: none
 SLOT_FINISH_TICK = 4  # the operator's TASK_DONE tick; -1: none
+SLOT_ACTIVE = 5  # the snapshot slot that holds the newest whole snapshot; -1: none
+SLOT_LENGTH = 6  # SLOT_LENGTH + i: bytes of snapshot slot i
+HEADER_SLOTS = 8
+HEADER_BYTES = HEADER_SLOTS * 8
+FILE_BYTES = HEADER_BYTES + 2 * SLOT_BYTES
+# A fresh header: no state, no command, no task-done tick, no snapshot.
+FRESH_HEADER = (FILE_VERSION, -1, 0, -1, -1, -1, 0, 0)
 
 
 class CheckpointError(RuntimeError):
@@ -161,7 +159,7 @@ class Snapshot:
 
 @dataclass(frozen=True)
 class Progress:
-    """Where the plant's previous incarnation stopped (:class:`ProgressMark`)."""
+    """Where the plant's previous incarnation stopped (the file's progress mark)."""
 
     state_seq: int = -1
     state_ns: int = 0
@@ -172,143 +170,75 @@ class Progress:
         return asdict(self)
 
 
-class ProgressMark:
-    """A few int64 slots in a memory-mapped file (see the module's docstring).
+class CheckpointStore:
+    """``plant.checkpoint`` (see the module's docstring), memory-mapped.
 
-    :attr:`slots` is a numpy view of the mapping: ``slots[SLOT_STATE_SEQ] = seq`` is the
-    whole cost of an update. ``path=None``: the slots live in memory only (tests, runs
-    without a run directory). The mapping lasts as long as the process (a callback may
-    still hold a view of it while the service closes).
+    :attr:`marks` is a numpy view of the header: ``marks[SLOT_STATE_SEQ] = seq`` is the
+    whole cost of a progress update. ``path=None``: everything lives in memory only
+    (tests, runs without a run directory). The mapping lasts as long as the process (a
+    Zenoh callback may still hold a view of it while the service closes).
     """
 
     def __init__(self, path: Path | None) -> None:
         self.path = path
-        self._map: mmap.mmap | None = None
+        self.found = False  # a previous incarnation's file was there (a restart)
+        self.writes = 0
+        self.bytes_per_write = 0
         if path is None:
-            self.slots = np.zeros(PROGRESS_SLOTS, dtype=np.int64)
+            self._buffer: mmap.mmap | bytearray = bytearray(FILE_BYTES)
         else:
-            size = PROGRESS_SLOTS * 8
+            self.found = path.exists()
             fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
             try:
-                os.ftruncate(fd, size)
-                self._map = mmap.mmap(fd, size)
+                if os.fstat(fd).st_size != FILE_BYTES:
+                    os.ftruncate(fd, FILE_BYTES)  # a damaged file's header is checked below
+                self._buffer = mmap.mmap(fd, FILE_BYTES)
             finally:
                 os.close(fd)
-            self.slots = np.frombuffer(self._map, dtype=np.int64)
-        self.slots[:] = [PROGRESS_VERSION, -1, 0, -1, -1]
+        self.marks = np.frombuffer(self._buffer, dtype=np.int64, count=HEADER_SLOTS)
+        if not self.found:
+            self.marks[:] = FRESH_HEADER
 
-    @staticmethod
-    def read(path: Path) -> Progress | None:
-        """What a previous incarnation left in ``path`` (None: no usable mark)."""
-        try:
-            raw = Path(path).read_bytes()
-        except OSError:
-            return None
-        if len(raw) != PROGRESS_SLOTS * 8:
-            return None
-        slots = np.frombuffer(raw, dtype=np.int64)
-        if slots[SLOT_VERSION] != PROGRESS_VERSION:
-            return None
+    def progress(self) -> Progress:
+        """The progress mark as it is on file (the previous incarnation's, on a restart)."""
+        m = self.marks
         return Progress(
-            state_seq=int(slots[SLOT_STATE_SEQ]),
-            state_ns=int(slots[SLOT_STATE_NS]),
-            command_seq=int(slots[SLOT_COMMAND_SEQ]),
-            finish_tick=int(slots[SLOT_FINISH_TICK]),
+            state_seq=int(m[SLOT_STATE_SEQ]),
+            state_ns=int(m[SLOT_STATE_NS]),
+            command_seq=int(m[SLOT_COMMAND_SEQ]),
+            finish_tick=int(m[SLOT_FINISH_TICK]),
         )
 
-
-class CheckpointStore:
-    """The checkpoint and progress files of one plant, and the thread that writes the
-    checkpoints (:meth:`submit`; :meth:`close` writes the last one and joins it)."""
-
-    def __init__(self, checkpoint_path: Path, progress_path: Path) -> None:
-        self.checkpoint_path = Path(checkpoint_path)
-        self.progress_path = Path(progress_path)
-        self.writes = 0
-        self.failed_writes = 0
-        self.bytes_per_write = 0
-        self.write_us: list[float] = []  # the newest writes' durations
-        self._cond = threading.Condition()
-        self._pending: bytes | None = None
-        self._closed = False
-        self._thread: threading.Thread | None = None
-
-    def exists(self) -> bool:
-        """Whether a previous incarnation of this run left a checkpoint."""
-        return self.checkpoint_path.exists()
-
-    def submit(self, snapshot: Snapshot) -> None:
-        """Encode ``snapshot`` now and have the writer thread write it (a newer one
-        replaces one still waiting)."""
-        data = snapshot.encode()
-        with self._cond:
-            if self._closed:
-                return
-            if self._thread is None:
-                self._thread = threading.Thread(
-                    target=self._write_loop, name="checkpoint-writer", daemon=True
-                )
-                self._thread.start()
-            self._pending = data
-            self._cond.notify()
-
-    def _write_loop(self) -> None:
-        while True:
-            with self._cond:
-                self._cond.wait_for(lambda: self._pending is not None or self._closed)
-                data, self._pending = self._pending, None
-            if data is not None:
-                self.save(data)
-            elif self._closed:
-                return
-
-    def save(self, data: bytes) -> None:
-        """Write an encoded snapshot atomically (tmp file, then rename over the old one);
-        a failure is logged (first one) and counted, the next write tries again."""
-        start_ns = time.perf_counter_ns()
-        tmp = self.checkpoint_path.with_name(self.checkpoint_path.name + ".tmp")
-        try:
-            with open(tmp, "wb") as f:
-                f.write(data)
-            os.replace(tmp, self.checkpoint_path)
-        except OSError as exc:
-            self.failed_writes += 1
-            if self.failed_writes == 1:
-                logger.error("cannot write the checkpoint %s: %s", self.checkpoint_path, exc)
-            return
-        self.writes += 1
-        self.bytes_per_write = len(data)
-        self.write_us.append((time.perf_counter_ns() - start_ns) / 1e3)
-        del self.write_us[:-WRITE_TIMES_KEPT]
-
-    def close(self) -> None:
-        """Write what is pending, stop the writer thread. Safe to call twice."""
-        with self._cond:
-            self._closed = True
-            self._cond.notify()
-            thread = self._thread
-        if thread is not None:
-            thread.join()
-
-    def load(self, expected_model_id: str) -> Snapshot:
-        """The checkpoint on file, if it belongs to ``expected_model_id``; else
-        :class:`CheckpointError` with the reason."""
-        try:
-            data = self.checkpoint_path.read_bytes()
-        except OSError as exc:
-            raise CheckpointError(f"cannot read {self.checkpoint_path}: {exc}") from None
-        snapshot = Snapshot.decode(data)
+    def load(self, expected_model_id: str) -> Snapshot | None:
+        """The newest whole snapshot (None: none was taken), if it belongs to
+        ``expected_model_id``; else :class:`CheckpointError` with the reason."""
+        m = self.marks
+        if int(m[SLOT_VERSION]) != FILE_VERSION:
+            raise CheckpointError(f"{self.path}: not a checkpoint file of version {FILE_VERSION}")
+        active = int(m[SLOT_ACTIVE])
+        if active < 0:
+            return None
+        if active > 1 or not 0 < int(m[SLOT_LENGTH + active]) <= SLOT_BYTES:
+            raise CheckpointError(f"{self.path}: damaged header")
+        start = HEADER_BYTES + active * SLOT_BYTES
+        length = int(m[SLOT_LENGTH + active])
+        snapshot = Snapshot.decode(bytes(self._buffer[start : start + length]))
         if snapshot.model_id != expected_model_id:
             raise CheckpointError(
-                f"{self.checkpoint_path} was written for another model "
+                f"{self.path} was written for another model "
                 f"({snapshot.model_id[:12]}, this one is {expected_model_id[:12]})"
             )
         return snapshot
 
-    def progress(self) -> Progress | None:
-        """The previous incarnation's progress mark (None: none usable)."""
-        return ProgressMark.read(self.progress_path)
-
-    def open_progress(self) -> ProgressMark:
-        """This incarnation's progress mark (read :meth:`progress` first: this resets it)."""
-        return ProgressMark(self.progress_path)
+    def save(self, snapshot: Snapshot) -> None:
+        """Copy ``snapshot`` into the slot not in use, then name it in the header."""
+        data = snapshot.encode()
+        if len(data) > SLOT_BYTES:
+            raise CheckpointError(f"a snapshot of {len(data)} bytes exceeds {SLOT_BYTES}")
+        slot = 1 - max(int(self.marks[SLOT_ACTIVE]), 0)
+        start = HEADER_BYTES + slot * SLOT_BYTES
+        self._buffer[start : start + len(data)] = data
+        self.marks[SLOT_LENGTH + slot] = len(data)
+        self.marks[SLOT_ACTIVE] = slot  # the one store that makes it the checkpoint
+        self.writes += 1
+        self.bytes_per_write = len(data)

@@ -47,6 +47,7 @@ from teleop.bus.stamps import Inbound
 from teleop.core.clock import NS_PER_S, Clock, LoopTimer
 from teleop.core.config import LOCKSTEP_RESEND_S, Config
 from teleop.sim.checkpoint import (
+    FRESH_HEADER,
     SLOT_COMMAND_SEQ,
     SLOT_FINISH_TICK,
     SLOT_STATE_NS,
@@ -54,7 +55,6 @@ from teleop.sim.checkpoint import (
     CheckpointError,
     CheckpointStore,
     Progress,
-    ProgressMark,
     Snapshot,
     model_id,
 )
@@ -315,9 +315,10 @@ class ArrivalCounts:
 
 @dataclass
 class CheckpointCost:
-    """What taking the checkpoints costs the plant's steps (the writes are a thread's)."""
+    """What the checkpoints cost the plant's steps."""
 
     taken: int = 0
+    failed: int = 0
     step_us: list[float] = field(default_factory=list)  # the newest ones
 
     def add(self, duration_ns: int) -> None:
@@ -326,20 +327,16 @@ class CheckpointCost:
         del self.step_us[:-CHECKPOINT_COST_SAMPLES]
 
     def summary(self, steps: int, store: CheckpointStore | None) -> dict[str, Any]:
-        """Checkpoints taken and written, bytes, the time each took from its step and
-        the writer's time per write (p50 / max, us), the step time per step (us)."""
-        taken = np.array(self.step_us) if self.step_us else np.zeros(1)
-        written = np.array(store.write_us) if store is not None and store.write_us else np.zeros(1)
+        """Checkpoints taken (and failed), bytes each, the time each took from its step
+        (p50 / max, us) and that time spread over every step (us)."""
+        times = np.array(self.step_us) if self.step_us else np.zeros(1)
         return {
             "taken": self.taken,
-            "written": store.writes if store is not None else 0,
-            "failed_writes": store.failed_writes if store is not None else 0,
-            "bytes_per_write": store.bytes_per_write if store is not None else 0,
-            "step_us_p50": round(float(np.median(taken)), 1),
-            "step_us_max": round(float(taken.max()), 1),
-            "step_us_per_step": round(float(taken.mean()) * self.taken / max(steps, 1), 3),
-            "write_us_p50": round(float(np.median(written)), 1),
-            "write_us_max": round(float(written.max()), 1),
+            "failed": self.failed,
+            "bytes_per_checkpoint": store.bytes_per_write if store is not None else 0,
+            "us_p50": round(float(np.median(times)), 1),
+            "us_max": round(float(times.max()), 1),
+            "us_per_step": round(float(times.mean()) * self.taken / max(steps, 1), 3),
         }
 
 
@@ -432,9 +429,9 @@ class PlantLoop:
         self._last_step_ns = 0  # lockstep: when the plant last stepped (the wait's bound)
         self._lockstep_timeout_ns = round(plant_cfg.lockstep_timeout_s * NS_PER_S)
         self._arrival_running = False
-        # Checkpoints and the progress mark (teleop.sim.checkpoint); in memory without a store.
+        # Checkpoints and the progress marks (teleop.sim.checkpoint); in memory without a store.
         self.store = store
-        self.progress = ProgressMark(None)
+        self.marks = store.marks if store is not None else np.array(FRESH_HEADER, dtype=np.int64)
         self.checkpoint_every_steps = 0
         if store is not None and plant_cfg.checkpoint_s > 0:
             period_steps = round(plant_cfg.checkpoint_s / plant_cfg.timestep_s)
@@ -487,13 +484,13 @@ class PlantLoop:
             # waits for its answer however long it takes).
             if not self.command_in.accept(rec, now_ns, shed=self._arrival_running):
                 return False
-            self.progress.slots[SLOT_COMMAND_SEQ] = int(rec["seq"])
+            self.marks[SLOT_COMMAND_SEQ] = int(rec["seq"])
             return True
 
     def on_task_done(self, step: int) -> None:
         """The operator's TASK_DONE: the run ends at tick ``step``."""
         self.finish_tick = step
-        self.progress.slots[SLOT_FINISH_TICK] = step
+        self.marks[SLOT_FINISH_TICK] = step
         logger.info("task done: the run ends at tick %d", step)
 
     def should_step(self) -> bool:
@@ -537,23 +534,22 @@ class PlantLoop:
         A restart that cannot resume aborts the run (never a silent fresh start)."""
         snapshot: Snapshot | None = None
         previous: Progress | None = None
-        if self.store is not None:
+        if self.store is not None and self.store.found:  # a previous incarnation's file
             previous = self.store.progress()
-            if self.store.exists():
-                try:
-                    snapshot = self.store.load(self.model_id)
-                except CheckpointError as exc:
-                    self.abort(Abort.RESUME_FAILED, f"restarted, cannot resume: {exc}")
-                    return False
-            elif previous is not None and previous.state_seq >= 0:
+            try:
+                snapshot = self.store.load(self.model_id)
+            except CheckpointError as exc:
+                self.abort(Abort.RESUME_FAILED, f"restarted, cannot resume: {exc}")
+                return False
+            if snapshot is None and previous.state_seq >= 0:
                 self.abort(
                     Abort.RESUME_FAILED,
-                    f"restarted after state {previous.state_seq} with no checkpoint to resume "
-                    "from (plant.checkpoint_s = 0?)",
+                    f"restarted after state {previous.state_seq} with no checkpoint to "
+                    "resume from (plant.checkpoint_s = 0?)",
                 )
                 return False
-            self.progress = self.store.open_progress()
-        if snapshot is None:
+        if snapshot is None:  # a fresh run (or a restart before the first state)
+            self.marks[:] = FRESH_HEADER
             self.begin_run(steps)
             self.publish_event(Event.STARTED)
             return False
@@ -610,10 +606,17 @@ class PlantLoop:
         )
 
     def save_checkpoint(self, now_ns: int) -> None:
-        """Hand :meth:`snapshot` to the store's writer, timing what it costs the step."""
+        """Put :meth:`snapshot` in the store, timing what it costs the step; a failure is
+        logged (the first) and counted, and the run goes on."""
         assert self.store is not None
         start_ns = time.perf_counter_ns()  # its own cost, whatever the loop's clock
-        self.store.submit(self.snapshot(now_ns))
+        try:
+            self.store.save(self.snapshot(now_ns))
+        except CheckpointError as exc:
+            self.checkpoint_cost.failed += 1
+            if self.checkpoint_cost.failed == 1:
+                logger.error("checkpoint not taken: %s", exc)
+            return
         self.checkpoint_cost.add(time.perf_counter_ns() - start_ns)
 
     def resume(self, snapshot: Snapshot, previous: Progress | None, steps: int | None) -> None:
@@ -638,7 +641,7 @@ class PlantLoop:
         self._steps = steps
         finish = max(int(loop["finish_tick"]), previous.finish_tick if previous else -1)
         self.finish_tick = finish if finish >= 0 else None
-        self.progress.slots[SLOT_FINISH_TICK] = finish
+        self.marks[SLOT_FINISH_TICK] = finish
         self.finished = bool(loop["finished"])
         self._held_body = int(loop["held_body"])
         self._state["held_body"] = self._held_body
@@ -950,9 +953,9 @@ class PlantLoop:
         rec["trace_ns"][Stage.PLANT_STATE_TX] = now_ns
         self._put("plant_state", rec)
         self.watchdog.state_sent(self.state_seq, now_ns)
-        progress = self.progress.slots
-        progress[SLOT_STATE_SEQ] = self.state_seq
-        progress[SLOT_STATE_NS] = now_ns
+        marks = self.marks
+        marks[SLOT_STATE_SEQ] = self.state_seq
+        marks[SLOT_STATE_NS] = now_ns
         if self.checkpoint_every_steps and sample.step % self.checkpoint_every_steps == 0:
             self.save_checkpoint(now_ns)
         if grasp_event is not None:

@@ -11,7 +11,16 @@ import pytest
 from teleop.bus.messages import JOINT_COMMAND, Event, Stage
 from teleop.core.clock import FakeClock
 from teleop.core.config import load_config
-from teleop.sim.checkpoint import CheckpointError, CheckpointStore, ProgressMark, Snapshot
+from teleop.sim.checkpoint import (
+    HEADER_BYTES,
+    SLOT_ACTIVE,
+    SLOT_BYTES,
+    SLOT_LENGTH,
+    SLOT_STATE_SEQ,
+    CheckpointError,
+    CheckpointStore,
+    Snapshot,
+)
 from teleop.sim.plant import Plant, initial_configuration
 from teleop.sim.stepping import Abort, PlantLoop
 
@@ -21,7 +30,7 @@ LOCKSTEP = ('run.mode="lockstep"', "plant.checkpoint_s=0.01")  # a checkpoint ev
 
 
 def store_in(tmp_path: Path) -> CheckpointStore:
-    return CheckpointStore(tmp_path / "plant.checkpoint", tmp_path / "plant.progress")
+    return CheckpointStore(tmp_path / "plant.checkpoint")
 
 
 def answer(seq: int, state_seq: int, now_ns: int, qd: float) -> np.ndarray:
@@ -64,42 +73,33 @@ class Incarnation:
         self.stop.set()
         self.thread.join(timeout=30)
         assert not self.thread.is_alive()
-        assert self.loop.store is not None
-        self.loop.store.close()  # its newest checkpoint on file (a kill may lose it)
 
 
 def test_a_snapshot_survives_the_file_and_refuses_damage(tmp_path):
     store = store_in(tmp_path)
-    snapshot = Snapshot("m" * 64, 7, 123, np.arange(5.0), np.ones(6), {"x": np.int64(1)})
-    store.submit(snapshot)
-    store.close()  # written by its thread, which is joined
-    back = store.load("m" * 64)
-    assert (back.step, back.t_ns, back.loop) == (7, 123, {"x": 1})
+    assert not store.found and store.load("m" * 64) is None  # a fresh file: no snapshot
+    for step in (7, 8):  # the second goes to the other slot
+        store.save(Snapshot("m" * 64, step, 123, np.arange(5.0), np.ones(6), {"x": np.int64(1)}))
+    store.marks[SLOT_STATE_SEQ] = 41
+    del store  # the process's mapping gone: the file keeps what was stored
+    again = store_in(tmp_path)
+    back = again.load("m" * 64)
+    assert again.found and again.progress().state_seq == 41
+    assert back is not None and (back.step, back.t_ns, back.loop) == (8, 123, {"x": 1})
     assert np.array_equal(back.mujoco_state, np.arange(5.0))
     assert np.array_equal(back.hold_q_rad, np.ones(6))
     with pytest.raises(CheckpointError, match="another model"):
-        store.load("n" * 64)
-    data = bytearray(store.checkpoint_path.read_bytes())
-    data[-1] ^= 0xFF
-    store.checkpoint_path.write_bytes(bytes(data))
+        again.load("n" * 64)
+    assert again.path is not None
+    active = int(again.marks[SLOT_ACTIVE])
+    end = HEADER_BYTES + active * SLOT_BYTES + int(again.marks[SLOT_LENGTH + active])
+    data = bytearray(again.path.read_bytes())
+    data[end - 1] ^= 0xFF  # the last byte of the newest snapshot's body
+    again.path.write_bytes(bytes(data))
     with pytest.raises(CheckpointError, match="damaged"):
-        store.load("m" * 64)
+        store_in(tmp_path).load("m" * 64)
     with pytest.raises(CheckpointError, match="not a plant checkpoint"):
         Snapshot.decode(b"something else")
-
-
-def test_the_progress_mark_outlives_its_writer(tmp_path):
-    mark = ProgressMark(tmp_path / "p")
-    mark.slots[1:] = [41, 5_000, 9, 77]
-    del mark  # the process's mapping gone: the file keeps what was stored
-    progress = ProgressMark.read(tmp_path / "p")
-    assert progress is not None and progress.as_dict() == {
-        "state_seq": 41,
-        "state_ns": 5_000,
-        "command_seq": 9,
-        "finish_tick": 77,
-    }
-    assert ProgressMark.read(tmp_path / "missing") is None
 
 
 def test_a_restored_plant_takes_the_very_same_next_steps():
@@ -149,7 +149,7 @@ def test_a_restarted_plant_resumes_its_run_where_the_stream_stopped(tmp_path):
 
 
 def test_a_restart_that_cannot_resume_aborts_the_run(tmp_path):
-    store_in(tmp_path).checkpoint_path.write_bytes(b"garbage")
+    (tmp_path / "plant.checkpoint").write_bytes(b"garbage")
     plant = Incarnation(tmp_path, 200)
     plant.thread.join(timeout=30)
     assert plant.loop.aborted and not plant.loop.finished
