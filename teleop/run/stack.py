@@ -468,7 +468,17 @@ def run_on_services(
     unlinked = {n: s["unlinked_peers"] for n, s in summaries.items() if s.get("unlinked_peers")}
     # An outside service wrote no summary: its figures are None, the stack's are there.
     plant, controller = summaries.get("plant", {}), summaries.get("controller", {})
-    dropped = sum(s.get("dropped_messages", 0) for s in summaries.values()) + drops.total
+    # Restarted services: their earlier processes' drops count too.
+    dropped = drops.total + sum(
+        incarnation.get("dropped_messages", 0)
+        for s in summaries.values()
+        for incarnation in (s, *s.get("earlier_incarnations", []))
+    )
+    restarted = {
+        name: len(s["earlier_incarnations"])
+        for name, s in summaries.items()
+        if s.get("earlier_incarnations")
+    }
     summary: dict[str, Any] = {
         "scenario": config.run.scenario,
         "mode": config.run.mode,
@@ -517,6 +527,8 @@ def run_on_services(
             # The plant ended the run on a failure (its reason), and its restarts.
             "failure": plant.get("failure"),
             "plant_resumes": plant.get("resumes", []),
+            # Services whose earlier processes wrote a summary (restarted after it).
+            "restarted_services": restarted,
             "dropped_messages": dropped,
             "unlinked_peers": unlinked,
             "skipped_states": controller.get("skipped_states"),
