@@ -141,10 +141,13 @@ class Event(enum.IntEnum):
     PHASE = 7  # operator: a task phase began (value: phase index in the scenario)
     TASK_DONE = 8  # operator: task over (value: 1 success, 0 gave up); the plant finishes
     #               the run at tick ``step`` (a tick still ahead, so lockstep stays exact)
-    STALL = 9  # controller: the tool stopped progressing along the path (value: error, m)
-    CONTACT = 10  # controller: the arm touches the scene or itself (value: clearance, m)
-    SINGULARITY = 11  # controller: the manipulability fell below the event threshold
-    OUT_OF_REACH = 12  # operator: the tool stopped short of where it headed (value: m left)
+    RESUMED = 9  # a restarted plant goes on from its checkpoint (value: steps of physics
+    #             lost, between the checkpoint and the last state sent before the restart)
+    ABORTED = 10  # the plant ended the run on a failure (value: teleop.sim.stepping.Abort)
+    STALL = 11  # controller: the tool stopped progressing along the path (value: error, m)
+    CONTACT = 12  # controller: the arm touches the scene or itself (value: clearance, m)
+    SINGULARITY = 13  # controller: the manipulability fell below the event threshold
+    OUT_OF_REACH = 14  # operator: the tool stopped short of where it headed (value: m left)
 
 
 class Reason(enum.StrEnum):
@@ -781,6 +784,12 @@ EVENT_MEANINGS: Mapping[Event, tuple[str, str]] = {  # (sent by, meaning and val
     Event.PHASE: ("operator", "a task phase began; value: its index in the scenario file"),
     Event.TASK_DONE: ("operator", "the task is over (value: 1 success, 0 gave up); the "
                       "plant ends the run at tick `step`, still ahead"),
+    Event.RESUMED: ("plant", "the plant restarted and goes on from its checkpoint: its "
+                    "states continue the same seq and sim time, the arm and objects as "
+                    "checkpointed; value: steps of physics lost (since the checkpoint)"),
+    Event.ABORTED: ("plant", "the plant ended the run on a failure, no more states; value: "
+                    "1 its checkpoint could not be resumed, 2 lockstep got no answer "
+                    "within `plant.lockstep_timeout_s`"),
     Event.STALL: ("controller", "path following: the tool stopped progressing along the "
                   "path while commanded (`clearance.stall_window_s`); value: path error (m)"),
     Event.CONTACT: ("controller", "an arm or gripper link touches the scene or another "

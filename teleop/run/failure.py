@@ -21,6 +21,9 @@ from typing import Any
 
 # supervisord states of a program that has stopped for good or is between restarts.
 FAILED_STATES = frozenset({"BACKOFF", "FATAL", "EXITED", "STOPPED", "UNKNOWN"})
+# Of those, the states a program passes through on its way back after dying: not a
+# failure for a program whose restart is expected (ProgramWatch.restarts_expected).
+RESTARTING_STATES = frozenset({"BACKOFF", "EXITED"})
 # Lines of the service's log the block quotes (its traceback, usually).
 TAIL_LINES = 15
 
@@ -109,10 +112,13 @@ class ProgramWatch:
 
     ``log_of(name)`` gives a program's log path and ``read(path)`` its text (both
     injected: the stack knows where logs are, a test passes strings).
+    ``restarts_expected``: programs killed on purpose (a test of their restart), whose
+    new pid and passage through EXITED or BACKOFF are no failure (FATAL still is).
     """
 
     log_of: Callable[[str], Path]
     read: Callable[[Path], str]
+    restarts_expected: frozenset[str] = frozenset()
     _pids: dict[str, int] = field(default_factory=dict)
 
     def check(self, infos: list[Mapping[str, Any]]) -> None:
@@ -121,9 +127,12 @@ class ProgramWatch:
         for info in infos:
             name, state, pid = str(info["name"]), str(info["statename"]), int(info["pid"])
             what = ""
-            if state in FAILED_STATES:
+            expected = name in self.restarts_expected
+            if expected and state in RESTARTING_STATES:
+                pass
+            elif state in FAILED_STATES:
                 what = _failed_state(state, info)
-            elif pid and self._pids.get(name, pid) != pid:
+            elif pid and self._pids.get(name, pid) != pid and not expected:
                 code = info.get("exitstatus")
                 died = f"exited with code {code}" if code and code > 0 else "died"
                 what = f"{died} and was restarted (crash loop)"

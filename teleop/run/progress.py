@@ -77,8 +77,8 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
     verdict = summary.get("realtime_verdict", "clean")
     if scenario == "grasp":
         outcome = "success: the cube is in the bin" if summary.get("success") else "FAILED"
-        if not summary.get("success") and summary.get("failure"):
-            outcome += f": {summary['failure']}"
+        if not summary.get("success") and summary.get("operator_failure"):
+            outcome += f": {summary['operator_failure']}"
         lines.append(f"{scenario} ({mode}): {outcome}")
         lines.append(
             f"  task time          {_num(summary.get('duration_s'), '.1f', ' s')}"
@@ -112,6 +112,13 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
             f"{summary.get('stale_commands')}, dropped {summary.get('dropped_messages')}"
         )
     lines.append(timing)
+    if summary.get("failure"):
+        lines.append(f"  ABORTED            {summary['failure']}")
+    for resume in summary.get("plant_resumes") or []:
+        lines.append(
+            f"  plant restarted    resumed at {resume['sim_time_s']:.3f} s sim time, "
+            f"{resume['steps_lost']} steps lost, {_num(resume['wall_gap_s'], '.2f', ' s')} gap"
+        )
     if "realtime_verdict" in summary:  # a services run judged itself
         lines.append(f"  real time          {verdict}")
     lines += [f"    - {problem}" for problem in summary.get("realtime_problems", [])]

@@ -353,8 +353,12 @@ def run_on_services(
     without: Sequence[str] = (),
     without_timeout_s: float = DEFAULT_WITHOUT_TIMEOUT_S,
     announce: Callable[[str], None] = _stderr,
+    restarts_expected: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Run ``config.run.scenario`` on the supervised services; return the merged summary.
+
+    ``restarts_expected``: services that will be killed on purpose (a test of their
+    recovery): their restarts do not fail the run.
 
     ``without``: services left out; ``announce`` tells the user how to join each (its
     Zenoh config is in the run directory), then the run waits up to
@@ -398,7 +402,7 @@ def run_on_services(
     tracker = RunProgress(config.run.duration_s, phases)
 
     def on_event(rec: np.ndarray, rx_ns: int) -> None:
-        if int(rec["event"]) == Event.FINISHED:
+        if int(rec["event"]) in (Event.FINISHED, Event.ABORTED):
             finished.set()
         elif int(rec["event"]) == Event.PHASE:
             tracker.on_phase(int(rec["value"]), int(rec["sim_time_ns"]) * 1e-9)
@@ -439,7 +443,7 @@ def run_on_services(
         deadline_s = config.run.duration_s * factor + RUN_TIMEOUT_SLACK_S
         wall_start = time.perf_counter()
         with Stack(run_dir, programs) as stack:
-            check = _failure_check(stack)
+            check = _failure_check(stack, restarts_expected)
             try:
                 _wait_alive(session, topics, services, stack, check)
                 try:
@@ -464,7 +468,17 @@ def run_on_services(
     unlinked = {n: s["unlinked_peers"] for n, s in summaries.items() if s.get("unlinked_peers")}
     # An outside service wrote no summary: its figures are None, the stack's are there.
     plant, controller = summaries.get("plant", {}), summaries.get("controller", {})
-    dropped = sum(s.get("dropped_messages", 0) for s in summaries.values()) + drops.total
+    # Restarted services: their earlier processes' drops count too.
+    dropped = drops.total + sum(
+        incarnation.get("dropped_messages", 0)
+        for s in summaries.values()
+        for incarnation in (s, *s.get("earlier_incarnations", []))
+    )
+    restarted = {
+        name: len(s["earlier_incarnations"])
+        for name, s in summaries.items()
+        if s.get("earlier_incarnations")
+    }
     summary: dict[str, Any] = {
         "scenario": config.run.scenario,
         "mode": config.run.mode,
@@ -472,6 +486,8 @@ def run_on_services(
     }
     if config.run.scenario == "grasp":
         summary.update(_grasp_summary(summaries, task_done))
+        if plant.get("aborted"):  # whatever the world looks like, the run did not go on
+            summary["success"] = False
     else:
         summary.update(
             {
@@ -512,6 +528,11 @@ def run_on_services(
             "commands_clamped": plant.get("commands_clamped"),
             "command_stream": plant.get("command_stream"),
             "stale_commands": plant.get("stale_commands"),
+            # The plant ended the run on a failure (its reason), and its restarts.
+            "failure": plant.get("failure"),
+            "plant_resumes": plant.get("resumes", []),
+            # Services whose earlier processes wrote a summary (restarted after it).
+            "restarted_services": restarted,
             "dropped_messages": dropped,
             "unlinked_peers": unlinked,
             "skipped_states": controller.get("skipped_states"),
@@ -595,7 +616,7 @@ def _grasp_summary(summaries: dict[str, dict[str, Any]], task_done: list[float])
         "max_obstacle_force_n": controller.get("max_obstacle_force_n"),
         "held_weight_n": controller.get("held_weight_n"),
         "phases": operator.get("phases"),
-        "failure": operator.get("failure") or None,  # the operator's reason for giving up
+        "operator_failure": operator.get("failure") or None,  # why the operator gave up
     }
 
 
@@ -631,10 +652,12 @@ def _wait_finished(
 
 
 def _plant_finished(run_dir: Path) -> bool:
-    """True when the plant's summary is on file and says the run finished."""
+    """True when the plant's summary is on file and says the run finished (or ended on
+    a failure: aborted)."""
     path = summary_path(run_dir, "plant")
     try:
-        return bool(json.loads(path.read_text()).get("finished"))
+        summary = json.loads(path.read_text())
+        return bool(summary.get("finished") or summary.get("aborted"))
     except (OSError, ValueError):
         return False
 
@@ -652,10 +675,11 @@ def refuse_if_running(run_dir: Path) -> None:
     )
 
 
-def _failure_check(stack: Stack) -> Callable[[], None]:
+def _failure_check(stack: Stack, restarts_expected: Sequence[str] = ()) -> Callable[[], None]:
     """A check that raises :class:`ServiceFailed` (the failure block) as soon as a
-    program of ``stack`` has died, crash-looped or stopped (teleop.run.failure)."""
-    watch = ProgramWatch(stack.log_path, _read_log)
+    program of ``stack`` has died, crash-looped or stopped (teleop.run.failure), but for
+    the restarts of ``restarts_expected``."""
+    watch = ProgramWatch(stack.log_path, _read_log, frozenset(restarts_expected))
     return lambda: watch.check(stack.process_infos())
 
 
@@ -715,6 +739,7 @@ def start_detached(
     """
     run_dir = run_dir.absolute()
     refuse_if_running(run_dir)
+    clear_run_results(run_dir)  # a previous stack's checkpoint must not be resumed
     endpoint = endpoint or loopback_endpoint(config.bus.tls)
     if config.bus.tls and not endpoint.startswith("tls/"):
         raise RunError(f"bus.tls: the endpoint must be tls/HOST:PORT, not {endpoint}")

@@ -135,8 +135,10 @@ def event_reasons(summary: Mapping[str, Any]) -> list[str]:
     """What the run itself said went wrong: the operator's failure reason and the run's
     events (stall, unintended contact, singularity, out of reach), when it reports them."""
     reasons = []
+    if summary.get("failure"):  # the plant ended the run (teleop.sim.stepping.Abort)
+        reasons.append(f"plant: {summary['failure']}")
     operator = summary.get("services", {}).get("operator", {}) if "services" in summary else {}
-    failure = summary.get("failure") or (
+    failure = summary.get("operator_failure") or (
         operator.get("failure") if isinstance(operator, Mapping) else None
     )
     if failure:
@@ -326,18 +328,27 @@ def run_sweep(
             progress(f"  task {job.task.index}: {job.task.command(job.overrides, config_file)}")
     start = time.perf_counter()
     records: list[dict[str, Any]] = []
+    interrupted = False
     # spawn: each worker builds its own models; nothing of this process's state leaks in.
     with multiprocessing.get_context("spawn").Pool(workers) as pool:
-        for record in pool.imap_unordered(run_job, jobs):
-            records.append(record)
-            if progress is not None:
-                elapsed = time.perf_counter() - start
-                progress(progress_line(len(records), len(jobs), record, elapsed))
+        try:
+            for record in pool.imap_unordered(run_job, jobs):
+                records.append(record)
+                if progress is not None:
+                    elapsed = time.perf_counter() - start
+                    progress(progress_line(len(records), len(jobs), record, elapsed))
+        except KeyboardInterrupt:  # Ctrl-C: report the tasks finished so far, then stop
+            interrupted = True
+            pool.terminate()
     records.sort(key=lambda r: r["index"])
     report = make_report(kind, seed, workers, generated, records, time.perf_counter() - start)
     report["overrides"] = list(overrides)
+    report["interrupted"] = interrupted
+    report["tasks_drawn"] = len(jobs)
     (out_dir / REPORT_JSON).write_text(json.dumps(report, indent=2) + "\n")
     (out_dir / REPORT_MARKDOWN).write_text(markdown(report))
+    if interrupted:
+        raise KeyboardInterrupt
     return report
 
 
@@ -412,6 +423,11 @@ def markdown(report: Mapping[str, Any]) -> str:
     lines = [
         f"# Sweep: {report['kind']}, {report['tasks']} tasks, seed {report['seed']}",
         "",
+        *(
+            [f"Interrupted: {report['tasks']} of {report['tasks_drawn']} tasks finished.", ""]
+            if report.get("interrupted")
+            else []
+        ),
         f"- success: {report['successes']} / {report['tasks']}"
         + (f" ({rate:.0%})" if rate is not None else ""),
         f"- failures by reason: {report['failures_by_reason'] or 'none'}",

@@ -31,7 +31,7 @@ OUT_OF_REACH = ("--set", "scene.cube_p_m=[1.0, 0.0, 0.025]")
 
 def test_the_operator_carries_over_an_obstacle_in_the_way(tmp_path: Path) -> None:
     summary = grasp(tmp_path, "way", "--mode", "lockstep", "--seed", "0", *IN_THE_WAY)
-    assert summary["success"], summary.get("failure")
+    assert summary["success"], summary.get("operator_failure")
     influence_m = load_config().teleop.obstacle_influence_m
     assert summary["obstacle_min_clearance_m"] > influence_m  # never felt its repulsion
     assert summary["max_device_force_n"] < CLEAR_ROUTE_FORCE_N
@@ -43,7 +43,7 @@ def test_the_operator_carries_over_an_obstacle_in_the_way(tmp_path: Path) -> Non
 def test_a_cube_out_of_reach_is_reported_not_timed_out(tmp_path: Path) -> None:
     summary = grasp(tmp_path, "far", "--mode", "lockstep", "--seed", "0", *OUT_OF_REACH)
     assert not summary["success"]
-    assert "out of reach in approach" in summary["failure"]
+    assert "out of reach in approach" in summary["operator_failure"]
     approach_timeout_s = 15.0  # deploy/scenarios/grasp.toml
     assert summary["duration_s"] < approach_timeout_s
     events = read_rrd(summary["rrd"])[ent.ENTITY_EVENTS]["TextLog:text"]
