@@ -51,6 +51,14 @@ a lift target must not follow the cube it lifts) or the tool's position at phase
 phase is complete once the observed tool stays within its tolerance for its dwell time; a
 phase timeout or the task time limit ends the task with success False, and so does losing
 the held object in a ``carrying`` phase.
+
+Like a person, the operator sees what is in the way: at phase start a move whose straight
+line would enter a virtual obstacle's influence or cross the bin's walls gets waypoints
+over (or around) them (:mod:`teleop.devices.routing`), passed at cruising speed, the
+phase's timeout lengthened by the detour. And it notices when the tool no longer comes
+closer though it pushes toward it (``STALL_WINDOW_S``): it gives up at once with an
+OUT_OF_REACH event and the reason (out of reach, or blocked by an obstacle) instead of
+pushing until the phase times out.
 """
 
 from __future__ import annotations
@@ -845,6 +853,9 @@ class OperatorLoop:
     A new run (a TOOL_POSE at tick 0, or :meth:`on_started` for the plant's STARTED
     event) resets the operator; a tick not newer than the last one is a plant re-send and
     is ignored.
+
+    ``scene``: what the operator knows of the scene's fixed geometry (default: read from
+    the config's scene file and ``scene.*`` placements, as the plant places them).
     """
 
     def __init__(
