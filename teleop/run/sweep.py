@@ -358,6 +358,17 @@ def _distribution(values: Sequence[float]) -> dict[str, float] | None:
     return {f"p{p}": float(np.percentile(values, p)) for p in CLEARANCE_PERCENTILES}
 
 
+def reason_kind(reason: str) -> str:
+    """A failure reason without its numbers, for counting: ``path error RMS``,
+    ``event STALL``, ``operator: timeout in carry``, ``operator: the target out of reach
+    in descend``."""
+    if reason.startswith("event "):
+        return " ".join(reason.split()[:2])
+    if reason.startswith(("operator: ", "plant: ")):
+        return reason.split(" (")[0]
+    return reason.split(":")[0]
+
+
 def make_report(kind: str, seed: int, workers: int, generated: Generated,
                 records: list[dict[str, Any]], wall_s: float) -> dict[str, Any]:  # fmt: skip
     """Per-task records plus the success rate, failures by reason, the distribution of
@@ -366,7 +377,7 @@ def make_report(kind: str, seed: int, workers: int, generated: Generated,
     by_reason: Counter[str] = Counter()
     for r in records:
         for reason in r["reasons"]:
-            by_reason[reason.split(":")[0]] += 1
+            by_reason[reason_kind(reason)] += 1
     clearances = [
         float(r["figures"]["min_clearance_m"])
         for r in records

@@ -167,3 +167,12 @@ def test_grasp_criteria_and_the_operators_reason() -> None:
         "device force": sweep.FAIL,
     }
     assert sweep.event_reasons(summary) == ["operator: timeout in carry"]
+
+
+def test_failures_are_counted_by_kind_without_their_numbers() -> None:
+    assert sweep.reason_kind("event STALL at 0.5 s") == "event STALL"
+    assert sweep.reason_kind("path error RMS: 2.71 mm > 1 mm") == "path error RMS"
+    assert (
+        sweep.reason_kind("operator: the target out of reach in descend (stopped 120 mm short)")
+        == "operator: the target out of reach in descend"
+    )
