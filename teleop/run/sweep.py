@@ -8,7 +8,8 @@ judges it against fixed criteria:
   RMS <= 1 mm and max <= 3 mm after settling, ``path_progress`` >= 0.95, no unintended
   contact (``arm_contacts`` == 0);
 - grasp (a lockstep services run, as ``teleop run grasp --mode lockstep``): the cube in
-  the bin, no unintended contact, device force <= 8 N.
+  the bin, no unintended contact, device force below the device's 8 N peak (it
+  saturates there: a run that reached it asked for more).
 
 A criterion whose figure the run does not report is *unavailable*, never passed: a task
 succeeds only when every criterion was measured and met. Every failure carries its
@@ -49,8 +50,10 @@ KINDS = ("path-following", "grasp")
 MAX_PATH_ERROR_RMS_M = 1e-3
 MAX_PATH_ERROR_M = 3e-3
 MIN_PATH_PROGRESS = 0.95
-# Grasp: the largest force rendered on the handle (N), the device's peak.
+# Grasp: the largest force rendered on the handle (N), the device's peak. The device
+# saturates there, so a run that reached it (within SATURATED_N) asked for more: it fails.
 MAX_DEVICE_FORCE_N = 8.0
+SATURATED_N = 0.01
 # Report files in the output directory.
 REPORT_JSON = "sweep.json"
 REPORT_MARKDOWN = "sweep.md"
@@ -124,11 +127,16 @@ def judge_grasp(summary: Mapping[str, Any]) -> list[Criterion]:
         bin_c = Criterion("cube in the bin", PASS, "yes")
     else:
         bin_c = Criterion("cube in the bin", FAIL, "the cube is not in the bin")
-    return [
-        bin_c,
-        _no_contact(summary),
-        _at_most(summary, "max_device_force_n", MAX_DEVICE_FORCE_N, "N", 1.0, "device force"),
-    ]
+    force = _figure(summary, "max_device_force_n")
+    if force is None:
+        force_c = Criterion("device force", UNAVAILABLE, "max_device_force_n not reported")
+    elif force < MAX_DEVICE_FORCE_N - SATURATED_N:
+        force_c = Criterion("device force", PASS, f"{force:.3g} N")
+    else:
+        force_c = Criterion(
+            "device force", FAIL, f"device force at its {MAX_DEVICE_FORCE_N:g} N peak (saturated)"
+        )
+    return [bin_c, _no_contact(summary), force_c]
 
 
 def event_reasons(summary: Mapping[str, Any]) -> list[str]:
