@@ -3,6 +3,7 @@
 from shm.provider import (
     SHM_THRESHOLD_BYTES,
     PoolReport,
+    ShmProvider,
     configure_session,
     get_provider,
     memlock_budget_bytes,
@@ -15,6 +16,7 @@ from shm.provider import (
 __all__ = [
     "SHM_THRESHOLD_BYTES",
     "PoolReport",
+    "ShmProvider",
     "configure_session",
     "get_provider",
     "memlock_budget_bytes",

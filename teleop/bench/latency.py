@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from teleop.bench.relay import RELAYS, FloorOrigin
+from teleop.bench.relay import RELAYS, FloorOrigin, floor_provider
 from teleop.bus.messages import EYE_VIEW, PLANT_STATE, Stage
 from teleop.bus.service import fifo_scheduling
 from teleop.bus.session import close_session, open_session, wait_alive
@@ -482,7 +482,7 @@ def run_floor(
         session = open_session(bus, listen=True)
         origin: FloorOrigin | None = None
         try:
-            origin = FloorOrigin(session, topics, bus.shm_pool_bytes if bus.shm else None)
+            origin = FloorOrigin(session, topics, floor_provider(bus))
             with Stack(run_dir, programs):
                 wait_alive(session, topics, [r.name for r in RELAYS], ALIVE_TIMEOUT_S)
                 seq = origin.back_to_back(

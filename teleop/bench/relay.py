@@ -20,6 +20,7 @@ completed traces.
 
 from __future__ import annotations
 
+import logging
 import struct
 import sys
 import threading
@@ -37,6 +38,7 @@ from teleop.bus.service import Service, service_main
 from teleop.bus.stamps import StampLog
 from teleop.bus.topics import ROOT, Topics
 from teleop.core.clock import LoopTimer, MonotonicClock
+from teleop.core.config import BusConfig
 
 # Payload prefix: seq (u8) and the trace stamps (i8 each), same indices as the header's.
 SEQ_FORMAT = struct.Struct("<Q")
@@ -44,6 +46,12 @@ STAMP_FORMAT = struct.Struct("<q")
 TRACE_OFFSET = SEQ_FORMAT.size
 FLOOR_PREFIX_BYTES = TRACE_OFFSET + N_STAGES * STAMP_FORMAT.size
 # Legs of the chain, in loop order (each a key of floor_key).
+# The largest payload the floor sends (its sweep's 1 MiB): the least SHM pool it takes;
+# below that, the socket path (bytes).
+FLOOR_MAX_PAYLOAD_BYTES = 1 << 20
+
+logger = logging.getLogger(__name__)
+
 LEG_HAPTIC = "haptic"
 LEG_COMMAND = "command"
 LEG_STATE = "state"
@@ -83,11 +91,23 @@ class Route:
     tx_stage: Stage
 
 
+def floor_provider(bus: BusConfig) -> shm.ShmProvider | None:
+    """The floor's SHM provider: the stack's pool, or a smaller one within the
+    locked-memory limit as the services take (shm.open_provider); None: shared memory
+    is off, or not even :data:`FLOOR_MAX_PAYLOAD_BYTES` fits (the socket path, logged)."""
+    if not bus.shm:
+        return None
+    provider, report = shm.open_provider(bus.shm_pool_bytes, FLOOR_MAX_PAYLOAD_BYTES)
+    if report.reason:
+        logger.warning("shared memory: %s", report.reason)
+    return provider
+
+
 class RawPublisher:
     """A publisher of raw bytes with the QoS of :class:`teleop.bus.session.Publisher` (state and
     commands: express, real-time priority, blocking, reliable); SHM at the threshold."""
 
-    def __init__(self, session: zenoh.Session, key: str, shm_pool_bytes: int | None) -> None:
+    def __init__(self, session: zenoh.Session, key: str, provider: shm.ShmProvider | None) -> None:
         self._pub = session.declare_publisher(
             key,
             congestion_control=zenoh.CongestionControl.BLOCK,
@@ -95,7 +115,7 @@ class RawPublisher:
             express=True,
             reliability=zenoh.Reliability.RELIABLE,
         )
-        self._shm = shm.get_provider(shm_pool_bytes) if shm_pool_bytes else None
+        self._shm = provider
 
     def put(self, data: bytes | bytearray) -> None:
         shm.put_by_size(self._pub, data, self._shm)
@@ -115,13 +135,10 @@ class RelayService(Service):
         bus = self.config.bus
         self.forwarded = 0
         self._lock = threading.Lock()
+        provider = floor_provider(bus)
         for route in self.ROUTES:
             out = self.keep(
-                RawPublisher(
-                    self.session,
-                    floor_key(self.topics.robot_id, route.out_leg),
-                    bus.shm_pool_bytes if bus.shm else None,
-                )
+                RawPublisher(self.session, floor_key(self.topics.robot_id, route.out_leg), provider)
             )
             self.keep(
                 subscribe_raw(
@@ -194,8 +211,10 @@ class FloorOrigin:
     ``trace_log`` (stamps by Stage; FEEDBACK_RX = FEEDBACK_RENDERED = arrival).
     """
 
-    def __init__(self, session: zenoh.Session, topics: Topics, shm_pool_bytes: int | None) -> None:
-        self._pub = RawPublisher(session, floor_key(topics.robot_id, LEG_HAPTIC), shm_pool_bytes)
+    def __init__(
+        self, session: zenoh.Session, topics: Topics, provider: shm.ShmProvider | None
+    ) -> None:
+        self._pub = RawPublisher(session, floor_key(topics.robot_id, LEG_HAPTIC), provider)
         self._cond = threading.Condition()
         self._last_seq = -1
         self.trace_log = StampLog(N_STAGES)

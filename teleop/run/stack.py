@@ -84,7 +84,9 @@ IDLE_POLL = "idle_poll"
 # Start order (supervisord priority: lower first) of the bus services, from the graph;
 # they still wait on liveliness.
 PRIORITY = {spec.name: spec.start_priority for spec in graph.SERVICES}
-IDLE_POLL_PRIORITY = 1  # before every service, and stopped after them
+# Before every service, and stopped after them, like the recorder (the producers are told
+# to stop at once: teleop.run.supervise.STOP_AT_ONCE_MIN_PRIORITY).
+IDLE_POLL_PRIORITY = 1
 # Environment of every service: no telemetry, headless rendering, unbuffered logs.
 SERVICE_ENVIRONMENT = {
     # This environment's executables first (the `rerun` viewer that recorder.spawn

@@ -52,6 +52,11 @@ DEFAULT_START_TIMEOUT_S = 15.0
 # Default time for stop(): supervisord's own graceful stop must fit (STOP_WAIT_S per program
 # group, run in parallel by priority) before we fall back to signalling it ourselves, s.
 DEFAULT_STOP_TIMEOUT_S = STOP_WAIT_S + 5.0
+# Programs at or above this supervisord priority (the services that produce: plant,
+# controller, devices, operator, eye view) are all told to stop at once; those below it
+# (the recorder, the idle pollers) in supervisord's order once the others are gone, so
+# the recorder still takes what the producers sent last.
+STOP_AT_ONCE_MIN_PRIORITY = 20
 # Time after SIGTERM to supervisord's process group before SIGKILL, s.
 KILL_GRACE_S = 2.0
 # Poll interval while waiting for start-up or shutdown (not a control loop), s.
@@ -189,6 +194,7 @@ class _StopSnapshot:
 
     supervisord_pid: int | None
     program_pgids: list[int]
+    stop_at_once_pgids: list[int]  # see STOP_AT_ONCE_MIN_PRIORITY
 
 
 class Stack:
@@ -455,10 +461,10 @@ class Stack:
             with contextlib.suppress(OSError, xmlrpc.client.Error, http.client.HTTPException):
                 with self._rpc() as rpc:
                     rpc.supervisor.shutdown()
-            # supervisord stops the programs one priority at a time, and a process takes a
-            # second or more to exit on a starved machine: in series that outlasts the
-            # timeout. Shutting down, it restarts nothing, so every program is told at once.
-            for pgid in snapshot.program_pgids:
+            # supervisord stops the programs one at a time, and a process takes a second
+            # or more to exit on a starved machine: in series that outlasts the timeout.
+            # Shutting down, it restarts nothing, so the producers are told at once.
+            for pgid in snapshot.stop_at_once_pgids:
                 with contextlib.suppress(ProcessLookupError):
                     os.killpg(pgid, signal.SIGINT)
             pid = snapshot.supervisord_pid
@@ -477,10 +483,13 @@ class Stack:
     def _snapshot(self) -> _StopSnapshot:
         pid = self.supervisord_pid
         pgids: list[int] = []
+        at_once: list[int] = []
         if pid is not None:
             with contextlib.suppress(OSError, xmlrpc.client.Error, http.client.HTTPException):
                 with self._rpc() as rpc:
                     infos = rpc.supervisor.getAllProcessInfo()
+                    configs = rpc.supervisor.getAllConfigInfo()
+                priority = {str(c["name"]): int(c["process_prio"]) for c in configs}
                 for info in infos:
                     program_pid = int(info["pid"])
                     # supervisord makes each program the leader of its own process group;
@@ -488,7 +497,9 @@ class Stack:
                     with contextlib.suppress(ProcessLookupError):
                         if program_pid and os.getpgid(program_pid) == program_pid:
                             pgids.append(program_pid)
-        return _StopSnapshot(supervisord_pid=pid, program_pgids=pgids)
+                            if priority.get(str(info["name"]), 0) >= STOP_AT_ONCE_MIN_PRIORITY:
+                                at_once.append(program_pid)
+        return _StopSnapshot(supervisord_pid=pid, program_pgids=pgids, stop_at_once_pgids=at_once)
 
     def _wait_gone(self, pid: int, timeout_s: float) -> bool:
         """Wait until ``pid`` has exited (reaped or zombie); True if it did within the time."""

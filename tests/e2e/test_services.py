@@ -165,12 +165,16 @@ class Observer:
             self.events.append((int(rec["event"]), int(rec["step"])))
             self.event_arrived.notify_all()
 
-    def wait_event(self, event: Event, count: int = 1) -> None:
+    def count(self, event: Event) -> int:
         with self.event_arrived:
-            ok = self.event_arrived.wait_for(
-                lambda: sum(e == event for e, _ in self.events) >= count, EVENT_TIMEOUT_S
-            )
-        assert ok, f"no {event.name} event; events so far: {self.events}"
+            return sum(e == event for e, _ in self.events)
+
+    def wait_event(self, event: Event, count: int = 1) -> int:
+        """Wait for the ``count``-th ``event``; the plant step it carries."""
+        with self.event_arrived:
+            ok = self.event_arrived.wait_for(lambda: self.count(event) >= count, EVENT_TIMEOUT_S)
+            assert ok, f"no {event.name} event; events so far: {self.events}"
+            return [step for e, step in self.events if e == event][count - 1]
 
     def state_after(self, seq: int) -> np.ndarray:
         got = self.states.wait_newer(seq, EVENT_TIMEOUT_S)
@@ -215,19 +219,21 @@ def realtime_pair(tmp_path):
 def test_watchdog_brakes_and_holds_on_a_frozen_controller_then_resumes(realtime_pair):
     stack, tester, config, _ = realtime_pair
     tester.state_after(500)  # half a second of normal running
+    # A loaded machine may have braked (and resumed) already: the freeze's brake is the next.
+    brakes, resumes = tester.count(Event.WATCHDOG_BRAKE), tester.count(Event.WATCHDOG_RESUME)
     os.kill(stack.pid("controller"), signal.SIGSTOP)
     try:
-        tester.wait_event(Event.WATCHDOG_BRAKE)
-        braking_start = tester.state_after(int(tester.states.get()[0]["seq"]) + 50)
+        brake_step = tester.wait_event(Event.WATCHDOG_BRAKE, brakes + 1)
+        braking_start = tester.state_after(brake_step + 50)
         held = tester.state_after(int(braking_start["seq"]) + 500)  # 0.5 s later
     finally:
         os.kill(stack.pid("controller"), signal.SIGCONT)
     n = len(config.robot.arm_joints)
+    assert int(braking_start["flags"]) & 1 and int(held["flags"]) & 1  # BRAKING on both
     drift_rad = np.abs(held["q_rad"][:n] - braking_start["q_rad"][:n]).max()
     assert drift_rad < 1e-3, f"the arm drifted {drift_rad} rad while braked"
     assert np.abs(held["qd_rad_s"][:n]).max() < 1e-2
-    assert int(held["flags"]) & 1  # BRAKING flag on the state stream
-    tester.wait_event(Event.WATCHDOG_RESUME)
+    tester.wait_event(Event.WATCHDOG_RESUME, resumes + 1)
 
 
 def test_plant_drops_bad_commands_counts_them_and_keeps_running(realtime_pair, tmp_path):

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from shm.provider import SHM_THRESHOLD_BYTES, get_provider, took_shm_path
+from shm.provider import SHM_THRESHOLD_BYTES, get_provider, memlock_budget_bytes, took_shm_path
 from teleop.bus import messages as m
 from teleop.bus import session as bus
 from teleop.bus.topics import Topics
@@ -291,6 +291,10 @@ def test_wait_alive_names_missing_services():
 @pytest.mark.parametrize("shm", [True, False], ids=["shm", "noshm"])
 def test_payload_path_shm_above_threshold_inline_below(shm: bool):
     assert SMALL_BYTES < SHM_THRESHOLD_BYTES <= BIG_BYTES
+    if memlock_budget_bytes() is not None:
+        # An ordinary user: this process's sessions have used up its locked memory, so its
+        # sessions go over the socket (the eye view's e2e run covers SHM within the limit).
+        pytest.skip("needs an unbounded locked-memory limit (root or CAP_IPC_LOCK)")
     endpoint = free_endpoint()
     topics = Topics(ROBOT)
     config = _bus(endpoint, shm=shm)

@@ -1,0 +1,13 @@
+"""Which programs a stopping stack tells at once and which it stops after them."""
+
+from __future__ import annotations
+
+from teleop.run.stack import IDLE_POLL_PRIORITY, PRIORITY
+from teleop.run.supervise import STOP_AT_ONCE_MIN_PRIORITY
+
+
+def test_the_recorder_and_the_pollers_stop_after_every_producer():
+    producers = {name: p for name, p in PRIORITY.items() if name != "recorder"}
+    assert min(producers.values()) >= STOP_AT_ONCE_MIN_PRIORITY
+    assert PRIORITY["recorder"] < STOP_AT_ONCE_MIN_PRIORITY
+    assert IDLE_POLL_PRIORITY < PRIORITY["recorder"]
