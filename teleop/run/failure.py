@@ -75,12 +75,15 @@ def program_log_text(log_path: Path, supervisord_log: Path) -> str:
         text = f"(no log: {exc})"
     if text.strip():
         return text
-    name = f"'{log_path.stem}'"
+    # supervisord names a program quoted ("spawned: 'plant' with pid 1") or not
+    # ("exited: plant (terminated by SIGKILL; not expected)").
+    names = (f"'{log_path.stem}'", f": {log_path.stem} (")
     try:
         lines = supervisord_log.read_text(errors="replace").splitlines()
     except OSError:
         return text
-    return "\n".join(f"supervisord: {line}" for line in lines if name in line)
+    about = [line for line in lines if any(name in line for name in names)]
+    return "\n".join(f"supervisord: {line}" for line in about)
 
 
 class ServiceFailed(RuntimeError):

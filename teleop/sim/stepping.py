@@ -213,18 +213,21 @@ class Watchdog:
 
     Judged on the plant's own clock and its own state numbering, never on a sender's
     stamps: a command answering state k is fresh while k is the newest state the plant
-    sent, or while state k + 1 (the first the sender has not answered) went out at most
-    ``limit_ns`` ago. So a silent or stuck controller is braked ``limit_ns`` after it
-    could have answered, and a plant that stalls itself does not brake on its own delay.
+    sent, or while state k + 1 (the first the sender has not answered) went out less than
+    ``limit_ns - period_ns`` ago: at the steady pace, less than ``limit_ns`` after state
+    k. A command answering k arrives after k went out, so the plant brakes within
+    ``limit_ns`` of the last fresh command (the first step at or past the limit brakes),
+    and a plant that stalls itself does not brake on its own delay (k + 1 goes out late).
     A step with a stale command (or none yet) brakes; the first stale step after fresh
     ones announces WATCHDOG_BRAKE with the answered state's age (s), the first fresh one
     after braking WATCHDOG_RESUME.
     """
 
-    def __init__(self, limit_ns: int, history: int = STATE_HISTORY) -> None:
-        if limit_ns <= 0:
-            raise ValueError(f"limit_ns must be > 0, got {limit_ns}")
+    def __init__(self, limit_ns: int, period_ns: int, history: int = STATE_HISTORY) -> None:
+        if not 0 < period_ns < limit_ns:
+            raise ValueError(f"need 0 < period_ns < limit_ns, got {period_ns}, {limit_ns}")
         self.limit_ns = limit_ns
+        self.period_ns = period_ns
         self.braking = False
         self.brakes = 0  # times it started braking on a stale command
         self.stale_steps = 0  # steps braked on a stale command (not before the first one)
@@ -250,18 +253,21 @@ class Watchdog:
 
     def overdue_ns(self, answered_seq: int, now_ns: int) -> int:
         """How long the sender of a command answering ``answered_seq`` has had a newer
-        state without answering it (0: it answers the newest)."""
+        state without answering it, plus the period it had to answer the one it did
+        (0: it answers the newest)."""
         if answered_seq >= self.newest_seq:
             return 0
         sent_ns = self.sent_ns(answered_seq + 1)
-        return now_ns - sent_ns if sent_ns is not None else np.iinfo(np.int64).max
+        if sent_ns is None:
+            return np.iinfo(np.int64).max
+        return now_ns - sent_ns + self.period_ns
 
     def judge(self, command: np.ndarray | None, now_ns: int) -> Judgement:
         """Apply ``command`` at the step about to be taken at ``now_ns``, or brake?"""
         if command is None:
             return Judgement(False)
         answered = int(command["state_seq"])
-        if self.overdue_ns(answered, now_ns) <= self.limit_ns:
+        if self.overdue_ns(answered, now_ns) < self.limit_ns:
             if self.braking:
                 self.braking = False
                 return Judgement(True, Event.WATCHDOG_RESUME)
@@ -382,7 +388,7 @@ class PlantLoop:
         # Realtime: the control-free half of the next step while the command is on its way.
         # Not in lockstep: there the state's send would wait behind it.
         self.prepare_ahead = not self.lockstep
-        self.watchdog = Watchdog(round(plant_cfg.watchdog_s * NS_PER_S))
+        self.watchdog = Watchdog(round(plant_cfg.watchdog_s * NS_PER_S), self.period_ns)
         # Step k applies the command answering state k - delay_steps (PlantConfig).
         self.delay_steps = plant_cfg.lockstep_delay_steps
         self.proximity = ObstacleProximity(self.plant.model, self.plant.data, config.robot)
