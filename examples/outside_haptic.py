@@ -23,10 +23,10 @@ import numpy as np
 import zenoh
 
 # -- the wire format (docs/protocol.md, "Records") --------------------------------------
-VERSION = 4
+VERSION = 5
 HEADER = struct.Struct("<HHIQq10q")  # version, kind, flags, seq, t_source_ns, trace_ns[10]
 HAPTIC_STATE, HAND_INPUT, FORCE_FEEDBACK, RUN_EVENT = 8, 9, 10, 7  # kinds
-HAND_INPUT_SIZE, FORCE_FEEDBACK_SIZE, RUN_EVENT_SIZE = 137, 240, 130
+HAND_INPUT_SIZE, FORCE_FEEDBACK_SIZE, RUN_EVENT_SIZE = 137, 288, 130
 STATE_BODY = struct.Struct("<qQq9dB")  # sim_time_ns, tick, device_deadline_ns, p, v, f, buttons
 STALE, FINISHED = 2, 2  # HAPTIC_STATE flag: an old force fades out; RUN_EVENT code
 BATCH_RECORDS = 10  # the recorder's batched copy: this many records per message

@@ -40,8 +40,8 @@ logger = logging.getLogger(__name__)
 # OBSTACLE_PROXIMITY folded into the plant's state record, JOINT_STATE renamed PLANT_STATE
 # with the same kind value and on key state/plant: one plant record per step; 4:
 # device_deadline_ns in HAPTIC_STATE and JOINT_COMMAND, the plant's steps on the haptic
-# device's clock).
-PROTOCOL_VERSION = 4
+# device's clock; 5: FORCE_FEEDBACK carries the scene's and the arm's own limits' push-back).
+PROTOCOL_VERSION = 5
 MAX_JOINTS = 8  # joint arrays are padded with zeros to this length; n_joints says how many count
 MAX_OBJECTS = 8  # object pose arrays are padded to this length; n_objects says how many count
 N_STAGES = 10  # length of the header's trace_ns array (one slot per Stage)
@@ -602,6 +602,8 @@ FORCE_FEEDBACK = Schema(
         Field("world_f_weight_n", "f8", (3,), **_FORCE, doc="held object's weight, world frame"),
         Field("world_f_obstacle_n", "f8", (3,), **_FORCE, doc="virtual obstacle repulsion"),
         Field("device_f_workspace_n", "f8", (3,), **_FORCE, doc="workspace spring, device frame"),
+        Field("world_f_scene_n", "f8", (3,), **_FORCE, doc="push-back of table, bin, static geoms"),
+        Field("world_f_limits_n", "f8", (3,), **_FORCE, doc="push-back of joint limits, own links"),
     ],
 )
 

@@ -58,6 +58,7 @@ from teleop.control.kinematics import ArmModel
 from teleop.control.path import (
     ControlOutput,
     MotionEvent,
+    MotionSafety,
     PathFollowingController,
     PathMetrics,
 )
@@ -293,6 +294,7 @@ class BilateralCycle(ControllerCore):
             config.control,
             period_s=self.timestep_s,
             mj_body_names=body_names(mj_model),
+            clearance=ClearanceModel(config, arm),
         )
         self.hmd_lead_ticks = round(config.hmd.prediction_s / self.timestep_s)
         self.stale_ticks = round(config.haptic.stale_feedback_s / self.timestep_s)
@@ -330,12 +332,17 @@ class BilateralCycle(ControllerCore):
         self.held_count = 0
         self.no_input_cycles = 0
         self.missing_head_poses = 0
+        self.max_scene_force_n = 0.0
+        self.max_limits_force_n = 0.0
+        self.clearance_held_cycles = 0
+        self.safety = MotionSafety(self.config.control.singularity_event_manipulability)
 
     def reset(self) -> None:
         self.controller.reset()
         self.barrier.reset()
         self._prepared = (-1, None, None)
         self._reset_metrics()
+        self.events_sent = []
 
     # -- inputs ----------------------------------------------------------------------------
     def on_haptic(self, rec: np.ndarray, rx_ns: int) -> None:
@@ -448,8 +455,11 @@ class BilateralCycle(ControllerCore):
         handle_d_m = np.array(haptic["device_p_m"]) if haptic is not None else np.zeros(3)
         yaw_rad = self._head_yaw_rad(tick)
         obstacle = ProximitySample.from_state(state)
+        # The scene's and the limits' push-back of the newest state prepared (the previous
+        # one): measuring this state's clearance first would delay the feedback by it.
+        _, previous_terms, _ = self._prepared
         components, device_f_n, held_mass = self._feedback_force(
-            state, obstacle, handle_d_m, yaw_rad
+            state, obstacle, handle_d_m, yaw_rad, previous_terms
         )
         self.compute_ns_total += self.clock.now_ns() - t0
         self._send_feedback(tick, state, components, device_f_n, state["trace_ns"])
@@ -457,11 +467,11 @@ class BilateralCycle(ControllerCore):
             self._measure(self._last_output, components, device_f_n, held_mass)
         # Off the loop's critical path: the next handle sample will be answered on this
         # state; its joint-state half of the control law can run now.
-        n = self.arm.n_joints
         t0 = self.clock.now_ns()
-        terms = self.controller.prepare(state["q_rad"][:n], state["qd_rad_s"][:n])
+        terms = self._prepare(state)
         self._prepared = (tick, terms, obstacle)
         self.compute_ns_total += self.clock.now_ns() - t0
+        self._watch(state, terms)
 
     # -- the control law and the feedback --------------------------------------------------
     def _control(
@@ -497,8 +507,23 @@ class BilateralCycle(ControllerCore):
             gripper_cmd,
             clutch,
             terms=terms,
+            gripper_opening_m=float(state["gripper_opening_m"]),
         )
         return output, gripper_cmd, handle_d_m, yaw_rad
+
+    def _prepare(self, state: np.ndarray) -> JointStateTerms:
+        """The joint-state half of the control law (clearance included) at ``state``."""
+        n = self.arm.n_joints
+        return self.controller.prepare(
+            state["q_rad"][:n], state["qd_rad_s"][:n], float(state["gripper_opening_m"])
+        )
+
+    def _watch(self, state: np.ndarray, terms: JointStateTerms) -> None:
+        """The state's clearance and manipulability into the run's safety figures, and
+        the events they begin (CONTACT, SINGULARITY) out on ``controller_events``."""
+        self.safety.add(int(state["sim_time_ns"]) * 1e-9, terms.clearance, terms.manipulability)
+        if self.safety.events:
+            self.send_events(self.safety.take_events(), int(state["step"]))
 
     def _feedback_force(
         self,
@@ -506,14 +531,22 @@ class BilateralCycle(ControllerCore):
         obstacle: ProximitySample | None,
         handle_d_m: np.ndarray,
         yaw_rad: float,
+        terms: JointStateTerms | None,
     ) -> tuple[FeedbackComponents, np.ndarray, float]:
         """Force feedback components, the device force (N, device frame) and the held mass,
-        from the contact in ``state`` (PLANT_STATE)."""
+        from the contact in ``state`` (PLANT_STATE) and the push-back of the scene and the
+        arm's limits in ``terms`` (None: none)."""
         config = self.config
         world_f_gripper_n = np.array(state["world_f_contact_n"])
         held_mass_kg = float(state["held_mass_kg"])
         components = feedback_components(
-            world_f_gripper_n, held_mass_kg, obstacle, handle_d_m, config.teleop
+            world_f_gripper_n,
+            held_mass_kg,
+            obstacle,
+            handle_d_m,
+            config.teleop,
+            terms.world_f_scene_n if terms is not None else None,
+            terms.world_f_limits_n if terms is not None else None,
         )
         device_f_n = device_force(components, yaw_rad, config.teleop, config.haptic)
         return components, device_f_n, held_mass_kg
@@ -545,9 +578,12 @@ class BilateralCycle(ControllerCore):
         if haptic is None:
             self.no_input_cycles += 1
         obstacle = ProximitySample.from_state(state)
-        output, gripper_cmd, handle_d_m, yaw_rad = self._control(tick, state, haptic, obstacle)
+        terms = self._prepare(state)
+        output, gripper_cmd, handle_d_m, yaw_rad = self._control(
+            tick, state, haptic, obstacle, terms
+        )
         components, device_f_n, held_mass = self._feedback_force(
-            state, obstacle, handle_d_m, yaw_rad
+            state, obstacle, handle_d_m, yaw_rad, terms
         )
         self.compute_ns_total += self.clock.now_ns() - t0
 
@@ -557,6 +593,7 @@ class BilateralCycle(ControllerCore):
         self._send_feedback(tick, state, components, device_f_n, trace)
         self.send_command(state, output.qd_ref_rad_s, gripper_cmd, trace)
         self._measure(output, components, device_f_n, held_mass)
+        self._watch(state, terms)
         if tick % self.status_every_steps == 0:
             self._send_status(tick, state, output, held_mass > 0)
 
@@ -579,6 +616,8 @@ class BilateralCycle(ControllerCore):
         rec["world_f_weight_n"] = components.world_weight_f_n
         rec["world_f_obstacle_n"] = components.world_obstacle_f_n
         rec["device_f_workspace_n"] = components.device_workspace_f_n
+        rec["world_f_scene_n"] = components.world_scene_f_n
+        rec["world_f_limits_n"] = components.world_limits_f_n
         rec["trace_ns"][:] = trace
         now_ns = self.clock.now_ns()
         rec["trace_ns"][Stage.FEEDBACK_TX] = now_ns
@@ -599,6 +638,12 @@ class BilateralCycle(ControllerCore):
         self.tracking_count += 1
         obstacle_n = math.hypot(*components.world_obstacle_f_n.tolist())
         self.max_obstacle_force_n = max(self.max_obstacle_force_n, obstacle_n)
+        scene_n = math.hypot(*components.world_scene_f_n.tolist())
+        self.max_scene_force_n = max(self.max_scene_force_n, scene_n)
+        limits_n = math.hypot(*components.world_limits_f_n.tolist())
+        self.max_limits_force_n = max(self.max_limits_force_n, limits_n)
+        if output.held_pairs:
+            self.clearance_held_cycles += 1
         self.max_device_force_n = max(self.max_device_force_n, math.hypot(*device_f_n.tolist()))
         if held_mass > 0:
             self.held_weight_sum_n += math.hypot(*components.world_weight_f_n.tolist())
@@ -631,6 +676,14 @@ class BilateralCycle(ControllerCore):
         return {
             "velocity_tracking_rms_m_s": rms,
             "max_obstacle_force_n": self.max_obstacle_force_n,
+            "max_scene_force_n": self.max_scene_force_n,
+            "max_limits_force_n": self.max_limits_force_n,
+            "clearance_held_cycles": self.clearance_held_cycles,
+            **self.safety.summary(),
+            "motion_problems": self.safety.problems(),
+            "clearance_queries": self.controller.clearance.queries
+            if self.controller.clearance is not None
+            else None,
             "max_device_force_command_n": self.max_device_force_n,
             "held_weight_n": held,
             "held_cycles": self.held_count,

@@ -16,6 +16,12 @@ operator should feel as if holding the tool.
   influence distance d0, n pointing from the obstacle to the arm.
 - workspace: a spring in the device frame that pulls the handle back inside a sphere
   of radius ``workspace_free_m`` (device-side only, not a robot force).
+- scene: the table, the bin and the other static geoms of the scene file, within their
+  slowdown distance of an arm link (:mod:`teleop.control.clearance`): a spring per pair,
+  along the tool motion that opens the pair (computed by the control law, which knows
+  the arm's Jacobians: :meth:`teleop.control.teleop.TeleopController.prepare`).
+- limits: the arm's own limits, the same way: joints near their limits and links of
+  the arm near each other.
 
 :func:`device_force` turns them into the force the haptic device renders, and
 :func:`check_stability` keeps the rendered stiffness within Colgate's passivity bound.
@@ -43,11 +49,19 @@ class FeedbackComponents:
     world_weight_f_n: np.ndarray  # (3,)
     world_obstacle_f_n: np.ndarray  # (3,)
     device_workspace_f_n: np.ndarray  # (3,) device frame, rendered unscaled
+    world_scene_f_n: np.ndarray  # (3,) table, bin, static geoms near the arm
+    world_limits_f_n: np.ndarray  # (3,) joint limits, the arm's links near each other
 
     @property
     def world_robot_f_n(self) -> np.ndarray:
         """Sum of the robot-side components (world frame, N), before force scaling."""
-        return self.world_contact_f_n + self.world_weight_f_n + self.world_obstacle_f_n
+        return (
+            self.world_contact_f_n
+            + self.world_weight_f_n
+            + self.world_obstacle_f_n
+            + self.world_scene_f_n
+            + self.world_limits_f_n
+        )
 
 
 def weight_force(mass_kg: float) -> np.ndarray:
@@ -93,12 +107,16 @@ def feedback_components(
     obstacle: ProximitySample | None,
     device_d_m: np.ndarray,
     cfg: TeleopConfig,
+    world_scene_f_n: np.ndarray | None = None,
+    world_limits_f_n: np.ndarray | None = None,
 ) -> FeedbackComponents:
-    """All four components from what the controller receives each cycle.
+    """All the components from what the controller receives each cycle.
 
     ``world_f_gripper_n`` is the plant's total contact force on the gripper (N, world),
     ``held_mass`` the held object's mass (kg, 0 when nothing is held), ``device_d_m`` the
-    handle offset from the device centre (m, device frame).
+    handle offset from the device centre (m, device frame); ``world_scene_f_n`` and
+    ``world_limits_f_n`` the control law's push-back of the scene and of the arm's own
+    limits (N, world; None: zero).
     """
     weight = weight_force(held_mass)
     return FeedbackComponents(
@@ -106,6 +124,8 @@ def feedback_components(
         world_weight_f_n=weight,
         world_obstacle_f_n=obstacle_force(obstacle, cfg),
         device_workspace_f_n=workspace_force(device_d_m, cfg),
+        world_scene_f_n=np.zeros(3) if world_scene_f_n is None else world_scene_f_n,
+        world_limits_f_n=np.zeros(3) if world_limits_f_n is None else world_limits_f_n,
     )
 
 
@@ -147,12 +167,13 @@ class StabilityMargin:
     k_workspace_n_per_m: float  # spring on the handle
     k_obstacle_tool_n_per_m: float  # obstacle_stiffness * force_scale, per m of tool motion
     k_obstacle_handle_n_per_m: float  # the same seen at the handle through rate control
+    k_scene_tool_n_per_m: float = 0.0  # scene_stiffness * force_scale, per m of tool motion
 
     @property
     def k_rendered_n_per_m(self) -> float:
-        """Worst case: both springs on the same axis, the larger obstacle stiffness."""
+        """Worst case: both springs on the same axis, the stiffest robot-side one."""
         return self.k_workspace_n_per_m + max(
-            self.k_obstacle_tool_n_per_m, self.k_obstacle_handle_n_per_m
+            self.k_obstacle_tool_n_per_m, self.k_obstacle_handle_n_per_m, self.k_scene_tool_n_per_m
         )
 
 
@@ -172,8 +193,12 @@ def check_stability(
       at ``obstacle_avoid_gain (d0 - d)``: with the handle held at offset x the tool settles
       where gain_rate x = avoid_gain depth, so the handle feels
       ``obstacle_stiffness * force_scale * rate_gain / avoid_gain`` N/m (45 N/m by default).
+    - scene spring (table, bin, the arm's own links): ``scene_stiffness * force_scale`` N
+      per m of tool motion (75 N/m by default); the approach cap stops the tool at the
+      stop distance whatever the handle's offset, so it renders no more at the handle.
 
-    Both may act on the same axis, so their sum is checked against K_max.
+    The workspace spring and the stiffest robot-side one may act on the same axis, so
+    their sum is checked against K_max.
     """
     if timestep_s <= 0:
         raise ValueError("plant.timestep_s must be > 0 for the stability bound")
@@ -188,13 +213,14 @@ def check_stability(
         k_workspace_n_per_m=teleop_cfg.workspace_stiffness_n_per_m,
         k_obstacle_tool_n_per_m=k_obstacle_tool,
         k_obstacle_handle_n_per_m=k_obstacle_handle,
+        k_scene_tool_n_per_m=teleop_cfg.scene_stiffness_n_per_m * teleop_cfg.force_scale,
     )
     if not margin.k_rendered_n_per_m < margin.k_max_n_per_m:
         raise ValueError(
             f"haptic rendering unstable: rendered stiffness {margin.k_rendered_n_per_m:.1f} N/m "
-            f"(workspace {margin.k_workspace_n_per_m:.1f} + obstacle "
-            f"max({k_obstacle_tool:.1f}, {k_obstacle_handle:.1f})) must be below Colgate's "
-            f"K_max = 2 b / T = 2 * {haptic_cfg.damping_n_s_per_m} / {timestep_s} = "
+            f"(workspace {margin.k_workspace_n_per_m:.1f} + max(obstacle {k_obstacle_tool:.1f}, "
+            f"{k_obstacle_handle:.1f}, scene {margin.k_scene_tool_n_per_m:.1f})) must be below "
+            f"Colgate's K_max = 2 b / T = 2 * {haptic_cfg.damping_n_s_per_m} / {timestep_s} = "
             f"{margin.k_max_n_per_m:.1f} N/m"
         )
     return margin

@@ -13,9 +13,16 @@ references for a 6D task: the linear velocity the operator asks for, and an
 orientation hold (the 6-DOF arm is redundant for position only; without the hold the
 wrist wanders and a top grasp becomes impossible). A small position hold keeps the tool
 from drifting when the operator commands nothing. Virtual obstacles push the closest
-arm point away. Then, like MoveIt Servo, the motion is slowed down near singularities
-and joint limits and capped in tool speed, and dynamic compensation (shared with path
-following) turns the kinematic command into references for the velocity loops.
+arm point away. With a :class:`teleop.control.clearance.ClearanceModel` the arm also
+keeps clear of the table, the bin and itself: links inside their slowdown distance and
+joints near their limits are pushed away in the null space of the 6D task (one dimension
+on the 7-DOF arm, none on the 6-DOF one), the speed at which each close pair closes in is
+capped to stop at its stop distance (:func:`teleop.control.path.hold_clearance`, the same
+rule as path following), and the operator feels both as separate feedback components
+(``world_scene_f_n``, ``world_limits_f_n``). Then, like MoveIt Servo, the motion is
+slowed down near singularities and joint limits and capped in tool speed, and dynamic
+compensation (shared with path following) turns the kinematic command into references
+for the velocity loops.
 
 Cost: the law runs once per haptic sample (1 kHz) on the bilateral loop's critical path.
 At these sizes (3- and 6-vectors, 3x3 and 6x6 matrices) a numpy call's overhead
@@ -24,10 +31,11 @@ between the Pinocchio calls and calls LAPACK directly for the two factorisations
 (tests/benchmarks/teleop_control_cost.py measures it against the numpy form).
 The part that depends only on the joint state (tool pose and Jacobian, the least
 squares' matrix, condition number, measured tool velocity, the dynamic compensation's
-terms) is :meth:`TeleopController.prepare`: the plant state arrives before the handle
-sample, so a caller can run it ahead and pass its :class:`JointStateTerms` to
-``update``, which is then left with products of floats (the handle-dependent half
-runs no numpy, LAPACK or Pinocchio call away from obstacles and singularities).
+terms, the clearance and everything derived from it) is :meth:`TeleopController.prepare`:
+the plant state arrives before the handle sample, so a caller can run it ahead and pass
+its :class:`JointStateTerms` to ``update``, which is then left with products of floats
+(the handle-dependent half runs no numpy, LAPACK or Pinocchio call away from obstacles,
+close pairs and singularities).
 """
 
 from __future__ import annotations
@@ -44,8 +52,22 @@ import numpy as np
 import pinocchio as pin
 from scipy.linalg import lapack
 
+from teleop.control.clearance import (
+    Clearance,
+    ClearanceModel,
+    PairKind,
+    allowed_approach_m_s,
+    approach_row,
+    thresholds_m,
+)
 from teleop.control.kinematics import ArmModel, tool_jacobian, tool_pose_and_jacobian
-from teleop.control.path import CompensationTerms, compensation_terms, velocity_reference
+from teleop.control.path import (
+    CompensationTerms,
+    clearance_push,
+    compensation_terms,
+    hold_clearance,
+    velocity_reference,
+)
 from teleop.core.config import ControlConfig, TeleopConfig
 from teleop.sim.proximity import ProximitySample
 
@@ -80,6 +102,9 @@ TASK_DIMENSION = 6
 # Joint limits at or beyond this magnitude (rad) mean "no limit": a joint that can turn a
 # full turn each way (the shoulder pan, UR-style wrists) is treated as continuous.
 CONTINUOUS_LIMIT_RAD = 2.0 * math.pi - 1e-3
+# A close pair or joint whose motion the operator's tool velocity barely drives (m/s per
+# m/s, rad/s per m/s) gives no felt direction: no push-back from it.
+MIN_FEEDBACK_DIRECTION = 1e-6
 
 
 def view_to_world(yaw_rad: float) -> np.ndarray:
@@ -149,15 +174,24 @@ def position_condition_number(jacobian_position: np.ndarray) -> float:
 
 def _condition_number_of_gram(gram: np.ndarray) -> float:
     """sqrt(l_max / l_min) of a Gram matrix J J^T (inf if singular): the condition number
-    of J. LAPACK's dsyevd directly, as np.linalg.eigvalsh does, without its argument
-    checks and error-state handling."""
+    of J."""
+    return _condition_and_manipulability(gram)[0]
+
+
+def _condition_and_manipulability(gram: np.ndarray) -> tuple[float, float]:
+    """The condition number sqrt(l_max / l_min) of J (inf if singular) and Yoshikawa's
+    manipulability sqrt(det(J J^T)), from the eigenvalues of its Gram matrix J J^T.
+    LAPACK's dsyevd directly, as np.linalg.eigvalsh does, without its argument checks and
+    error-state handling."""
     eigenvalues, _, info = lapack.dsyevd(gram, compute_v=0, lower=1)
     if info != 0:
         raise np.linalg.LinAlgError(f"dsyevd failed (info {info})")
-    smallest, *_, largest = eigenvalues.tolist()
+    values = eigenvalues.tolist()
+    smallest, largest = values[0], values[-1]
+    manipulability = math.sqrt(max(math.prod(values), 0.0))
     if smallest <= 0.0:
-        return math.inf
-    return math.sqrt(largest / smallest)
+        return math.inf, manipulability
+    return math.sqrt(largest / smallest), manipulability
 
 
 def singularity_scale(cond: float, cfg: TeleopConfig) -> float:
@@ -334,6 +368,7 @@ class TeleopOutput(NamedTuple):
     orientation_error_rad: float  # angle between held and actual tool orientation
     obstacle_active: bool  # the avoidance term acted this cycle
     gripper_cmd: float  # opening fraction in [0, 1], passed through
+    held_pairs: int = 0  # close pairs whose approach speed the command was held to
 
 
 @dataclass(frozen=True)
@@ -370,6 +405,17 @@ class JointStateTerms:
     held_r: np.ndarray | None = None
     # The dynamic compensation's terms (None: control.compensation is off).
     compensation: CompensationTerms | None = None
+    manipulability: float = 0.0  # sqrt(det(Jv Jv^T)) of the position Jacobian (m^3)
+    # The arm's clearance at this joint state (None: not measured), and with
+    # ``clearance.avoid`` what the law and the feedback make of it:
+    clearance: Clearance | None = None
+    # (cap m/s, approach row (n,)) of each pair inside its slowdown distance
+    clearance_caps: tuple[tuple[float, np.ndarray], ...] = ()
+    # (I - J# J) of the pushes away from close pairs and joint limits (n,), rad/s
+    null_push_rad_s: list[float] | None = None
+    # The push-back felt on the handle (3,), N, world frame (None: zero)
+    world_f_scene_n: np.ndarray | None = None  # table, bin, static geoms
+    world_f_limits_n: np.ndarray | None = None  # joint limits, the arm's links
 
 
 class TeleopController:
@@ -380,7 +426,9 @@ class TeleopController:
     (for the compensation's acceleration). ``mj_body_names`` (MuJoCo body names indexed
     by body id, :func:`teleop.sim.proximity.body_names`) maps a :class:`ProximitySample`'s
     ``arm_body`` to the Pinocchio frame of the same name; without it obstacles are
-    ignored (and counted in ``unmapped_obstacle_samples``).
+    ignored (and counted in ``unmapped_obstacle_samples``). ``clearance``: measures the
+    arm's clearance in every :meth:`prepare` (and, with ``clearance.avoid``, keeps it and
+    renders it); None: neither.
     """
 
     def __init__(
@@ -390,11 +438,13 @@ class TeleopController:
         control_cfg: ControlConfig,
         period_s: float,
         mj_body_names: Sequence[str] = (),
+        clearance: ClearanceModel | None = None,
     ) -> None:
         self.arm = arm
         self.teleop = teleop_cfg
         self.control = control_cfg
         self.period_s = period_s
+        self.clearance = clearance
         self.max_speed_rad_s = np.minimum(
             control_cfg.max_joint_speed_rad_s, arm.servo.max_speed_rad_s
         )
@@ -440,12 +490,15 @@ class TeleopController:
         self._previous_nominal = None
         self._previous_tool_speed = 0.0
 
-    def prepare(self, q_rad: np.ndarray, qd_rad_s: np.ndarray) -> JointStateTerms:
+    def prepare(
+        self, q_rad: np.ndarray, qd_rad_s: np.ndarray, gripper_opening_m: float | None = None
+    ) -> JointStateTerms:
         """The terms of :meth:`update` that depend only on the joint state and the model.
 
         The plant state is known before the handle sample that completes the cycle: this
         half (tool pose and Jacobian, Gram matrix and its damped Cholesky factor,
-        condition number, measured tool velocity) can run off the critical path, and
+        condition number, measured tool velocity, the clearance at ``q_rad`` and
+        ``gripper_opening_m``, each finger's slide, None: open) can run off the critical path, and
         ``update(..., terms=...)`` does the rest. It changes nothing of the controller's
         state (held pose, previous commands, counters): call it any number of times, for
         any state, and use the result later. It reads the held orientation, once there is
@@ -472,11 +525,16 @@ class TeleopController:
             factor = _damped_gram_factor(jacobian.T @ jacobian, damping)
             task_to_qd = _damped_gram_factor_solve(factor, jacobian.T)
         jv = jacobian[:3]
-        cond = _condition_number_of_gram(jjt[:3, :3])
+        cond, manipulability = _condition_and_manipulability(jjt[:3, :3])
         v_tool = jv @ qd_rad_s
         held_r = self._r_des  # held from the first update on: its error is ready too
         rotation_error = None if held_r is None else pin.log3(held_r @ tool_r.T)
-        for array in (tool_p, tool_r, v_tool, rotation_error):
+        clearance, caps, null_push, f_scene, f_limits = None, (), None, None, None
+        if self.clearance is not None:  # reads the joint Jacobians left in arm.data
+            clearance, caps, null_push, f_scene, f_limits = self._clearance_terms(
+                arm, q_rad, gripper_opening_m, jacobian, task_to_qd
+            )
+        for array in (tool_p, tool_r, v_tool, rotation_error, f_scene, f_limits):
             if array is not None:
                 array.flags.writeable = False
         return JointStateTerms(
@@ -492,7 +550,89 @@ class TeleopController:
             world_rotation_error=rotation_error,
             held_r=held_r,
             compensation=compensation,
+            manipulability=manipulability,
+            clearance=clearance,
+            clearance_caps=caps,
+            null_push_rad_s=null_push,
+            world_f_scene_n=f_scene,
+            world_f_limits_n=f_limits,
         )
+
+    def _clearance_terms(
+        self,
+        arm: ArmModel,
+        q_rad: np.ndarray,
+        gripper_opening_m: float | None,
+        jacobian: np.ndarray,
+        task_to_qd: np.ndarray,
+    ) -> tuple[
+        Clearance,
+        tuple[tuple[float, np.ndarray], ...],
+        list[float] | None,
+        np.ndarray | None,
+        np.ndarray | None,
+    ]:
+        """The clearance at ``q_rad``, and with ``clearance.avoid``: the approach caps of
+        the close pairs, the null-space push away from them and from the joint limits, and
+        the push-back of the scene and of the arm's own limits felt on the handle.
+
+        A pair inside its slowdown distance by ``depth`` m with approach row j (d' = j q')
+        is felt as ``scene_stiffness * depth`` N along u = (j T)^T / |j T|, T the
+        least squares' columns from the tool's linear velocity to joint rates: the tool
+        motion the law turns into the fastest opening of the pair. A joint inside the
+        limit margin by ``depth`` rad the same way, with ``joint_limit_stiffness`` and the
+        tool motion that moves it away from its limit (its row of T). ``arm.data`` holds
+        the joint Jacobians at ``q_rad``.
+        """
+        model = self.clearance
+        assert model is not None
+        config = model.config
+        opening = model.open_m if gripper_opening_m is None else gripper_opening_m
+        clearance = model.measure(q_rad, opening)
+        if not config.avoid:
+            return clearance, (), None, None, None
+        linear_to_qd = task_to_qd[:, :3]  # (n, 3): tool linear velocity -> joint rates
+        pushes, caps = [], []
+        f_scene, f_limits = np.zeros(3), np.zeros(3)
+        k_scene = self.teleop.scene_stiffness_n_per_m
+        for pair in clearance.pairs:
+            _, slowdown = thresholds_m(config, pair.kind)
+            depth = slowdown - pair.distance_m
+            if depth <= 0.0:
+                continue
+            row = approach_row(arm, pair)
+            pushes.append((depth, row))
+            caps.append((allowed_approach_m_s(config, pair.kind, pair.distance_m), row))
+            direction = row @ linear_to_qd  # (3,): opening speed per unit tool velocity
+            norm = _norm(direction)
+            if norm > MIN_FEEDBACK_DIRECTION:
+                force = (k_scene * depth / norm) * direction
+                if pair.kind == PairKind.SELF:
+                    f_limits += force
+                else:
+                    f_scene += force
+        push = clearance_push(pushes, config)
+        margin = config.joint_limit_margin_rad
+        k_limit = self.teleop.joint_limit_stiffness_n_per_rad
+        q = q_rad.tolist()
+        for joint, lower, upper in self._limited_joints:
+            if q[joint] > upper - margin:
+                depth, away = q[joint] - (upper - margin), -1.0
+            elif q[joint] < lower + margin:
+                depth, away = (lower + margin) - q[joint], 1.0
+            else:
+                continue
+            if push is None:
+                push = np.zeros(len(q))
+            push[joint] += config.joint_limit_gain_per_s * depth * away
+            direction = away * linear_to_qd[joint]  # tool motion that moves it away
+            norm = _norm(direction)
+            if norm > MIN_FEEDBACK_DIRECTION:
+                f_limits += (k_limit * depth / norm) * direction
+        null_push = None
+        if push is not None:  # (I - J# J) g: what the 6D task leaves free
+            null_push = (push - task_to_qd @ (jacobian @ push)).tolist()
+        return clearance, tuple(caps), null_push, f_scene, f_limits
 
     def update(
         self,
@@ -503,12 +643,13 @@ class TeleopController:
         gripper_cmd: float,
         clutch: bool = False,
         terms: JointStateTerms | None = None,
+        gripper_opening_m: float | None = None,
     ) -> TeleopOutput:
         """One control cycle from the measured joint state and the operator's reference.
 
-        ``terms``: :meth:`prepare` of this same (q_rad, qd_rad_s), computed ahead (the
-        caller guarantees they match; nothing checks it); None computes them here. The
-        outputs are the same bit for bit either way.
+        ``terms``: :meth:`prepare` of this same (q_rad, qd_rad_s, gripper_opening_m),
+        computed ahead (the caller guarantees they match; nothing checks it); None
+        computes them here. The outputs are the same bit for bit either way.
 
         3-vectors are unpacked into floats and joint vectors kept as float lists between
         the Pinocchio and LAPACK calls (see the module docstring for why).
@@ -517,7 +658,7 @@ class TeleopController:
         # obstacle term reads them); terms from earlier may have been followed by others.
         arm_at_q = None
         if terms is None:
-            terms = self.prepare(q_rad, qd_rad_s)
+            terms = self.prepare(q_rad, qd_rad_s, gripper_opening_m)
             arm_at_q = self._prepare_arm
         tcfg, dt = self.teleop, self.period_s
         tool_r = terms.world_r_tool
@@ -550,6 +691,8 @@ class TeleopController:
         obstacle_active = False
         if obstacle is not None and obstacle.distance_m < tcfg.obstacle_influence_m:
             qd_c, obstacle_active = self._avoid(qd_c, obstacle, q_rad, arm_at_q)
+        if terms.null_push_rad_s is not None:
+            qd_c = list(map(operator.add, qd_c, terms.null_push_rad_s))
 
         cond = terms.cond
         scale = 1.0
@@ -560,6 +703,12 @@ class TeleopController:
         joint_limit_factor = min(limit_factors)
         if joint_limit_factor < 1.0:
             qd_c = list(map(operator.mul, qd_c, limit_factors))
+        # Last of the changes that turn the command: the speed caps below scale it as a
+        # whole, which keeps every close pair's approach within its cap.
+        held = 0
+        if terms.clearance_caps:
+            held_qd, held = hold_clearance(np.array(qd_c), list(terms.clearance_caps))
+            qd_c = held_qd.tolist()
         # The drives track with a small lag; when the tool moved faster than it was told
         # last cycle, command that much less so the MEASURED speed respects the cap.
         overshoot = terms.measured_tool_speed_m_s - self._previous_tool_speed
@@ -590,6 +739,7 @@ class TeleopController:
             orientation_error_rad=math.hypot(rx, ry, rz),
             obstacle_active=obstacle_active,
             gripper_cmd=min(max(float(gripper_cmd), 0.0), 1.0),
+            held_pairs=held,
         )
 
     def _avoid(

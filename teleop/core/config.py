@@ -458,6 +458,13 @@ class TeleopConfig:
     obstacle_influence_m: float = 0.08
     obstacle_stiffness_n_per_m: float = 60.0
     obstacle_avoid_gain_per_s: float = 4.0
+    # The table, the bin and the arm's own links (clearance.*): a spring felt per m a pair
+    # is inside its slowdown distance, along the tool motion that opens the pair
+    # (clearance.slowdown_m - clearance.stop_m = 0.03 m gives 4.5 N at the stop distance).
+    scene_stiffness_n_per_m: float = 150.0
+    # Joint limits: a spring felt per rad a joint is inside clearance.joint_limit_margin_rad,
+    # along the tool motion that moves it away from the limit.
+    joint_limit_stiffness_n_per_rad: float = 10.0
     # Workspace spring of the handle (device frame): pulls it back beyond this radius.
     workspace_free_m: float = 0.04
     workspace_stiffness_n_per_m: float = 300.0
@@ -476,6 +483,10 @@ class TeleopConfig:
             "teleop: singularity_stop_cond > singularity_slowdown_cond > 1",
         )
         _require(self.force_scale >= 0, "teleop.force_scale >= 0")
+        _require(self.scene_stiffness_n_per_m >= 0, "teleop.scene_stiffness_n_per_m >= 0")
+        _require(
+            self.joint_limit_stiffness_n_per_rad >= 0, "teleop.joint_limit_stiffness_n_per_rad >= 0"
+        )
 
 
 @dataclass(frozen=True)

@@ -60,6 +60,10 @@ ENTITY_FEEDBACK_CONTACT_F = "feedback/contact_n"  # + /x, /y, /z, Scalars (world
 ENTITY_FEEDBACK_WEIGHT_F = "feedback/weight_n"  # + /x, /y, /z, Scalars (world frame)
 ENTITY_FEEDBACK_OBSTACLE_F = "feedback/obstacle_n"  # + /x, /y, /z, Scalars (world frame)
 ENTITY_FEEDBACK_WORKSPACE_F = "feedback/workspace_n"  # + /x, /y, /z, Scalars (device frame)
+# The table, the bin and other static geoms near the arm; joint limits and the arm's links
+# near each other (world frame).
+ENTITY_FEEDBACK_SCENE_F = "feedback/scene_n"  # + /x, /y, /z, Scalars
+ENTITY_FEEDBACK_LIMITS_F = "feedback/limits_n"  # + /x, /y, /z, Scalars
 ENTITY_FEEDBACK_NORM = "feedback/norm_n"  # + /<component>, Scalars, |force| (N)
 ENTITY_FORCES = "world/forces"  # + /<component>, Arrows3D at the tool, once per flush
 # Head-mounted display (HEAD_POSE), world frame.
@@ -116,6 +120,8 @@ FEEDBACK_COMPONENTS: Mapping[str, tuple[str, str]] = {
     "weight": ("world_f_weight_n", ENTITY_FEEDBACK_WEIGHT_F),
     "obstacle": ("world_f_obstacle_n", ENTITY_FEEDBACK_OBSTACLE_F),
     "workspace": ("device_f_workspace_n", ENTITY_FEEDBACK_WORKSPACE_F),
+    "scene": ("world_f_scene_n", ENTITY_FEEDBACK_SCENE_F),
+    "limits": ("world_f_limits_n", ENTITY_FEEDBACK_LIMITS_F),
 }
 
 
@@ -134,5 +140,7 @@ FORCE_ARROW_COLORS: Mapping[str, tuple[int, int, int]] = {
     "contact": (230, 60, 60),
     "weight": (60, 120, 230),
     "obstacle": (240, 160, 30),
+    "scene": (60, 170, 90),
+    "limits": (120, 120, 120),
     "device": (170, 70, 200),  # the total force rendered on the handle, turned into the world
 }

@@ -142,7 +142,7 @@ def test_workspace_spring_pulls_the_handle_back_beyond_the_free_radius():
 
 
 def components(world_f, device_ws=ZERO) -> FeedbackComponents:
-    return FeedbackComponents(np.asarray(world_f, dtype=float), ZERO, ZERO, device_ws)
+    return FeedbackComponents(np.asarray(world_f, dtype=float), ZERO, ZERO, device_ws, ZERO, ZERO)
 
 
 def test_device_force_rotates_into_the_view_and_scales():
@@ -185,7 +185,9 @@ def test_stability_defaults_pass_and_stiff_springs_are_rejected():
     cfg = load_config()
     margin = check_stability(cfg.teleop, cfg.haptic, cfg.plant.timestep_s)
     assert margin.k_max_n_per_m == pytest.approx(2 * 3.0 / 0.001)
-    assert margin.k_rendered_n_per_m == pytest.approx(300.0 + 45.0)
+    # The workspace spring and the stiffest robot-side one: the scene's 150 N/m x 0.5
+    # (the obstacle's: 60 x 0.5 per m of tool motion, 45 N/m at the handle).
+    assert margin.k_rendered_n_per_m == pytest.approx(300.0 + 75.0)
     stiff = TeleopConfig(workspace_stiffness_n_per_m=7000.0)
     with pytest.raises(ValueError, match=r"K_max = 2 b / T"):
         check_stability(stiff, cfg.haptic, cfg.plant.timestep_s)
