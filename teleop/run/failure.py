@@ -14,6 +14,7 @@ values, so a unit test drives it.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -114,14 +115,31 @@ class ProgramWatch:
     log_of: Callable[[str], Path]
     read: Callable[[Path], str]
     _pids: dict[str, int] = field(default_factory=dict)
+    # Restarts announced by expect_restart and not yet seen, by program.
+    _expected: dict[str, int] = field(default_factory=dict)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def expect_restart(self, name: str) -> None:
+        """Program ``name`` is about to be killed on purpose (an injected fault): its
+        death and one restart are not a failure; a second restart still is. Thread-safe."""
+        with self._lock:
+            self._expected[name] = self._expected.get(name, 0) + 1
 
     def check(self, infos: list[Mapping[str, Any]]) -> None:
         """Raise :class:`ServiceFailed` for the first program that failed since the last
-        call: a failed state, or a new pid (restarted after dying)."""
+        call: a failed state, or a new pid (restarted after dying), unless announced by
+        :meth:`expect_restart` (then EXITED, between death and restart, passes too)."""
         for info in infos:
             name, state, pid = str(info["name"]), str(info["statename"]), int(info["pid"])
             what = ""
-            if state in FAILED_STATES:
+            with self._lock:
+                expected = self._expected.get(name, 0)
+            if expected and state == "EXITED":
+                continue  # killed on purpose, about to be restarted
+            if expected and pid and self._pids.get(name, pid) != pid:
+                with self._lock:
+                    self._expected[name] -= 1
+            elif state in FAILED_STATES:
                 what = _failed_state(state, info)
             elif pid and self._pids.get(name, pid) != pid:
                 code = info.get("exitstatus")

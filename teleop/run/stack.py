@@ -39,7 +39,7 @@ import zenoh
 
 from teleop.bus import graph
 from teleop.bus.access import LAUNCHER, OBSERVER, write_run_credentials
-from teleop.bus.messages import TOOL_POSE, DropCounter, Event
+from teleop.bus.messages import PLANT_STATE, TOOL_POSE, DropCounter, Event
 from teleop.bus.session import (
     Latest,
     ServicesMissing,
@@ -51,6 +51,7 @@ from teleop.bus.session import (
     wait_alive,
 )
 from teleop.bus.topics import Topics
+from teleop.control.kinematics import build_arm_model, tool_jacobian
 from teleop.core.config import BusConfig, Config, load_config
 from teleop.core.rundir import (
     AUTH_DIR,
@@ -63,6 +64,17 @@ from teleop.core.rundir import (
 )
 from teleop.devices.operator import Scenario
 from teleop.run.failure import ProgramWatch, ServiceFailed, program_log_text
+from teleop.run.faults import (
+    FaultInjector,
+    FaultSpec,
+    InjectorHooks,
+    StateLog,
+    fault_report,
+    parse_faults,
+    resumed_index,
+    stage_stamps,
+    world_reset,
+)
 from teleop.run.idle_poll import POLLING, read_status
 from teleop.run.outside import (
     DEFAULT_WITHOUT_TIMEOUT_S,
@@ -353,6 +365,8 @@ def run_on_services(
     without: Sequence[str] = (),
     without_timeout_s: float = DEFAULT_WITHOUT_TIMEOUT_S,
     announce: Callable[[str], None] = _stderr,
+    kills: Sequence[str] = (),
+    freezes: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Run ``config.run.scenario`` on the supervised services; return the merged summary.
 
@@ -361,10 +375,15 @@ def run_on_services(
     ``without_timeout_s`` for their ready tokens (RunError after that). Their summaries
     are missing: the run's summary takes what the stack measured and lists them under
     ``outside``.
+
+    ``kills`` / ``freezes``: faults to inject, ``SERVICE@T`` / ``SERVICE@T:SECONDS``
+    (teleop.run.faults; a bad one raises FaultSpecError before anything starts); the
+    summary's ``faults`` says what followed each.
     """
     stack_services = scenario_services(config)
     outside = check_without(stack_services, without)
     services = tuple(name for name in stack_services if name not in outside)
+    fault_specs = parse_faults(kills, freezes, services, config.run.duration_s)
     run_dir = run_dir.absolute()
     run_dir.mkdir(parents=True, exist_ok=True)
     refuse_if_running(run_dir)
@@ -406,9 +425,12 @@ def run_on_services(
             task_done.append(float(rec["value"]))
 
     polled_cpus = idle_poll_cpus(config)
+    faults = _FaultRun(config, fault_specs) if fault_specs else None
     session = open_session(bus, listen=True)
     entities: list[Any] = []
     try:
+        if faults is not None:
+            entities += faults.subscribe(session, topics, drops)
         entities.append(subscribe_events(session, topics, "plant_events", on_event, drops))
         if config.run.scenario == "grasp":  # the operator's TASK_DONE (success or not)
             entities.append(subscribe_events(session, topics, "operator_events", on_event, drops))
@@ -439,7 +461,10 @@ def run_on_services(
         deadline_s = config.run.duration_s * factor + RUN_TIMEOUT_SLACK_S
         wall_start = time.perf_counter()
         with Stack(run_dir, programs) as stack:
-            check = _failure_check(stack)
+            watch = ProgramWatch(stack.log_path, _read_log)
+            check = _failure_check(stack, watch)
+            if faults is not None:
+                check = faults.start(stack, watch, check)
             try:
                 _wait_alive(session, topics, services, stack, check)
                 try:
@@ -455,6 +480,9 @@ def run_on_services(
                 announce(f"teleop: the run failed:\n{exc.block()}\nstopping the services...")
                 exc.reported = True
                 raise
+            finally:
+                if faults is not None:
+                    faults.close()  # nothing left frozen when the stack stops
         wall_s = time.perf_counter() - wall_start
     finally:
         close_session(session, *reversed(entities))
@@ -485,12 +513,14 @@ def run_on_services(
         )
     idle_poll = idle_poll_report(polled_cpus, run_dir)
     machine = machine_section(summaries, polled_cpus, idle_poll)
+    # The brakes an injected fault caused are the fault's, not a loss of real time.
+    fault_braked = faults.braked_states() if faults is not None else 0
     health = realtime_health(
         config.run.mode,
         overrun_fraction=plant.get("overrun_fraction", 0.0),
         realtime_factor=plant.get("realtime_factor") or 0.0,
-        watchdog_brakes=plant.get("stale_commands", 0),
-        braked_steps=plant.get("stale_steps", 0),
+        watchdog_brakes=plant.get("stale_commands", 0) - (faults.brakes() if faults else 0),
+        braked_steps=max(0, plant.get("stale_steps", 0) - fault_braked),
         steps=plant.get("steps", 0),
         dropped_messages=dropped,
         unlinked_peers=unlinked,
@@ -517,6 +547,7 @@ def run_on_services(
             "machine": machine,
             "refused_privileges": refused_privileges(machine),
             "eye_view": _eye_view_summary(summaries),
+            "faults": faults.report(summary.get("success")) if faults is not None else [],
             "rrd": summaries.get("recorder", {}).get("rrd_path"),
             "run_dir": str(run_dir),
             "services": summaries,
@@ -620,11 +651,132 @@ def refuse_if_running(run_dir: Path) -> None:
     )
 
 
-def _failure_check(stack: Stack) -> Callable[[], None]:
+def _failure_check(stack: Stack, watch: ProgramWatch | None = None) -> Callable[[], None]:
     """A check that raises :class:`ServiceFailed` (the failure block) as soon as a
-    program of ``stack`` has died, crash-looped or stopped (teleop.run.failure)."""
-    watch = ProgramWatch(stack.log_path, _read_log)
+    program of ``stack`` has died, crash-looped or stopped (teleop.run.failure);
+    ``watch``: the one to use (the fault injector tells it the restarts to expect)."""
+    if watch is None:
+        watch = ProgramWatch(stack.log_path, _read_log)
     return lambda: watch.check(stack.process_infos())
+
+
+class _FaultRun:
+    """The bus side of fault injection in a run (teleop.run.faults): the plant's states
+    recorded and fed to the injector, ready tokens watched for restarts, the run failed
+    when a killed plant starts the world over, and the summary's ``faults``."""
+
+    def __init__(self, config: Config, specs: Sequence[FaultSpec]) -> None:
+        self.specs = specs
+        self.arm = build_arm_model(config.robot)  # tool speed from joint state
+        self.states = StateLog(self.arm.n_joints)
+        self.injector: FaultInjector | None = None
+        self._pending: list[tuple[str, int]] = []  # ready tokens seen before start()
+
+    def subscribe(self, session: zenoh.Session, topics: Topics, drops: DropCounter) -> list[Any]:
+        """The plant's states (the observers' batched copy) and every ready token."""
+
+        def on_state(rec: np.ndarray, rx_ns: int) -> None:
+            self.states.add(rec)
+            if self.injector is not None:
+                self.injector.on_state(int(rec["sim_time_ns"]), int(rec["step"]))
+
+        def on_token(sample: zenoh.Sample) -> None:
+            if sample.kind != zenoh.SampleKind.PUT:
+                return
+            name, now_ns = topics.service_of(str(sample.key_expr)), time.monotonic_ns()
+            if self.injector is not None:
+                self.injector.on_ready(name, now_ns)
+
+        states = subscribe(
+            session, topics.plant_state_batch, PLANT_STATE, on_state, drops, batched=True
+        )
+        tokens = session.liveliness().declare_subscriber(topics.ready_all, on_token)
+        return [states, tokens]
+
+    def start(
+        self, stack: Stack, watch: ProgramWatch, check: Callable[[], None]
+    ) -> Callable[[], None]:
+        """Start injecting into ``stack``; the run's check, extended by the plant's."""
+        hooks = InjectorHooks(
+            signal_service=lambda name, signum: stack.signal_program(name, signum, group=True),
+            expect_restart=watch.expect_restart,
+            now_ns=time.monotonic_ns,
+        )
+        self.injector = FaultInjector(self.specs, hooks)
+        self.injector.start()
+
+        def checked() -> None:
+            check()
+            self.check_world()
+
+        return checked
+
+    def check_world(self) -> None:
+        """Raise RunError when a killed plant came back with the run started over."""
+        assert self.injector is not None
+        arrays = self.states.arrays()
+        for record in self.injector.records:
+            if record.inject_ns and world_reset(record, arrays):
+                raise RunError(
+                    f"the plant was killed at sim {record.t_s:.3f} s (step {record.step}) "
+                    "and its new incarnation started the run over from step 0: the world "
+                    "was reset, so the run cannot go on (the plant did not resume from a "
+                    "checkpoint)"
+                )
+
+    def close(self) -> None:
+        if self.injector is not None:
+            self.injector.close()
+
+    def _speed_at(self, arrays: dict[str, np.ndarray]) -> Callable[[int], float]:
+        def speed_at(i: int) -> float:
+            jacobian = tool_jacobian(self.arm, arrays["q_rad"][i])
+            return float(np.linalg.norm(jacobian[:3] @ arrays["qd_rad_s"][i]))
+
+        return speed_at
+
+    def report(self, success: bool | None) -> list[dict[str, Any]]:
+        """The summary's ``faults``: one object per fault (teleop.run.faults)."""
+        if self.injector is None:
+            return [{"service": s.service, "kind": s.kind, "error": "not injected"}
+                    for s in self.specs]  # fmt: skip
+        arrays = self.states.arrays()
+        speed_at = self._speed_at(arrays)
+        return [fault_report(r, arrays, speed_at, success) for r in self.injector.records]
+
+    def _windows(self) -> list[tuple[int, int]]:
+        """Per injected fault, (injected, resumed or the record's end), host ns."""
+        if self.injector is None:
+            return []
+        arrays = self.states.arrays()
+        end_ns = int(arrays["t_ns"][-1]) if len(arrays["t_ns"]) else 0
+        windows = []
+        for record in self.injector.records:
+            if not record.inject_ns:
+                continue
+            stamps = stage_stamps(arrays, record.spec.service)
+            resumed = None
+            if record.back_ns:
+                resumed = resumed_index(arrays["t_ns"], stamps, arrays["braking"], record.back_ns)
+            stop_ns = int(arrays["t_ns"][resumed]) if resumed is not None else end_ns
+            windows.append((record.inject_ns, stop_ns))
+        return windows
+
+    def braked_states(self) -> int:
+        """Plant states braked between an injection and the resumption it caused."""
+        arrays = self.states.arrays()
+        t_ns, braking = arrays["t_ns"], arrays["braking"]
+        inside = np.zeros(len(t_ns), bool)
+        for start_ns, stop_ns in self._windows():
+            inside |= (t_ns >= start_ns) & (t_ns <= stop_ns)
+        return int(np.count_nonzero(inside & braking))
+
+    def brakes(self) -> int:
+        """Brakes (runs of braked states) that began inside a fault's window."""
+        arrays = self.states.arrays()
+        t_ns, braking = arrays["t_ns"], arrays["braking"]
+        onsets = np.flatnonzero(braking & ~np.concatenate(([False], braking[:-1])))
+        return sum(1 for i in onsets if any(a <= t_ns[i] <= b for a, b in self._windows()))
 
 
 def _read_log(path: Path) -> str:

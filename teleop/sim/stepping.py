@@ -610,6 +610,12 @@ class PlantLoop:
                 with self.lock:
                     if self.plant.step_count == last_step:
                         self.republish_pending()
+                        # The controller went silent for a whole re-send period: if it was
+                        # restarted, its commands number afresh and it answers each state
+                        # once, too few for the sequence check to take it up by itself.
+                        # The next command answering the pending state is taken as is.
+                        with self._admit_lock:
+                            self.command_in.restart()
                     last_step = self.plant.step_count
         finally:
             with self.lock:

@@ -1,0 +1,414 @@
+"""Fault injection: ``teleop run SCENARIO --kill SERVICE@T --freeze SERVICE@T:SECONDS``.
+
+A fault is injected into a service of the run when the plant's simulation time reaches
+``T`` seconds (read from the plant's state stream): a kill is SIGKILL to the service's
+process group (supervisord restarts it, the failure watch expects that one restart), a
+freeze is SIGSTOP, then SIGCONT ``SECONDS`` of wall-clock time later. What followed is
+measured from the plant's state stream, on the host's monotonic clock (every process of a
+run stamps with it), from the instant of injection:
+
+- ``brake_ms``: until the tool moves slower than :data:`BRAKE_SPEED_M_S` (the plant's
+  watchdog holds the arm when commands stop); 0 when it was already still, None when it
+  did not get that slow within the record (a service off the command path: the arm was
+  never stopped).
+- ``restart_s``: a kill: until the new incarnation's ready token (it sees every peer);
+  None for a freeze, or if it never came.
+- ``resumed_s``: until the first state whose applied command was made after the service
+  was back (ready again, or thawed), through it: for the haptic device a command made
+  from one of its new samples, for the controller and the plant a command the
+  controller sent after that instant; services off the command path (HMD, operator,
+  recorder, eye view) resume when they are back.
+
+This module holds the parsing (pure), the measurements (pure functions of recorded
+arrays) and :class:`FaultInjector`, the thread that injects on time through injected
+callables (the launcher passes the stack's signal and the bus's view).
+"""
+
+from __future__ import annotations
+
+import difflib
+import logging
+import math
+import re
+import signal
+import threading
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from teleop.bus.messages import Flag, Stage
+from teleop.core.config import ConfigError
+
+logger = logging.getLogger(__name__)
+
+KILL = "kill"
+FREEZE = "freeze"
+# The tool counts as braked (held still) below this speed (m/s): 1 mm/s.
+BRAKE_SPEED_M_S = 1.0e-3
+# The stage stamp of a plant state that shows a command made through the faulted
+# service after it came back; services not listed are off the command path.
+RESUME_STAGE = {
+    "haptic": Stage.HAPTIC_SAMPLE,
+    "controller": Stage.CONTROLLER_TX,
+    "plant": Stage.CONTROLLER_TX,
+}
+# How close a misspelt service name must be to a real one to be suggested (difflib, 0-1).
+SUGGESTION_CUTOFF = 0.5
+# Longest freeze accepted (s): longer is a stopped service, not a freeze.
+MAX_FREEZE_S = 3600.0
+# How often the injector looks at the clock while a thaw is due (s; not a control loop).
+THAW_POLL_S = 0.005
+NS_PER_S = 1_000_000_000
+NS_PER_MS = 1_000_000
+
+_NUMBER = r"[0-9]+(?:\.[0-9]*)?|\.[0-9]+"
+_KILL_RE = re.compile(rf"(?P<service>[^@\s]+)@(?P<at>{_NUMBER})")
+_FREEZE_RE = re.compile(rf"(?P<service>[^@\s]+)@(?P<at>{_NUMBER}):(?P<seconds>{_NUMBER})")
+
+
+class FaultSpecError(ConfigError):
+    """A --kill or --freeze argument that cannot be used; the message says why."""
+
+
+@dataclass(frozen=True)
+class FaultSpec:
+    """One fault to inject: ``kind`` (kill or freeze) into ``service`` once the plant's
+    sim time reaches ``at_s``; a freeze lasts ``freeze_s`` seconds of wall-clock time."""
+
+    service: str
+    kind: str
+    at_s: float
+    freeze_s: float = 0.0
+
+    def text(self) -> str:
+        """The argument that asks for it, e.g. ``--freeze controller@5:1``."""
+        tail = f":{self.freeze_s:g}" if self.kind == FREEZE else ""
+        return f"--{self.kind} {self.service}@{self.at_s:g}{tail}"
+
+
+def parse_fault(text: str, kind: str, services: Sequence[str]) -> FaultSpec:
+    """One ``--kill SERVICE@T`` or ``--freeze SERVICE@T:SECONDS`` argument; ``services``:
+    those the stack runs (a fault needs a process of the stack to go to)."""
+    pattern, syntax = (
+        (_KILL_RE, "SERVICE@T (T: sim seconds, e.g. controller@5)")
+        if kind == KILL
+        else (_FREEZE_RE, "SERVICE@T:SECONDS (e.g. controller@5:1)")
+    )
+    match = pattern.fullmatch(text.strip())
+    if match is None:
+        raise FaultSpecError(f"--{kind} {text!r}: expected {syntax}")
+    service = match["service"]
+    if service not in services:
+        close = difflib.get_close_matches(service, services, n=1, cutoff=SUGGESTION_CUTOFF)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        raise FaultSpecError(
+            f"--{kind} {text!r}: no service {service!r} in this stack{hint}; "
+            f"it runs {', '.join(services)}"
+        )
+    at_s = float(match["at"])
+    freeze_s = float(match["seconds"]) if kind == FREEZE else 0.0
+    if kind == FREEZE and not 0.0 < freeze_s <= MAX_FREEZE_S:
+        raise FaultSpecError(
+            f"--{kind} {text!r}: the freeze must last more than 0 and at most "
+            f"{MAX_FREEZE_S:g} s, not {freeze_s:g}"
+        )
+    return FaultSpec(service, kind, at_s, freeze_s)
+
+
+def parse_faults(
+    kills: Iterable[str],
+    freezes: Iterable[str],
+    services: Sequence[str],
+    duration_s: float,
+) -> list[FaultSpec]:
+    """Every --kill and --freeze of a run, in the order they are due; a fault due after
+    the run's end (``duration_s`` of sim time) is refused."""
+    faults = [parse_fault(text, KILL, services) for text in kills]
+    faults += [parse_fault(text, FREEZE, services) for text in freezes]
+    for fault in faults:
+        if fault.at_s >= duration_s:
+            raise FaultSpecError(
+                f"{fault.text()}: due at {fault.at_s:g} s, but the run ends at "
+                f"{duration_s:g} s of sim time (--duration)"
+            )
+    return sorted(faults, key=lambda f: f.at_s)
+
+
+# -- what happened, measured from the state stream -----------------------------------------
+
+
+@dataclass
+class FaultRecord:
+    """One fault as injected: when (host monotonic ns, and the plant's sim time), and when
+    the service was back (``back_ns``: its new incarnation ready, or thawed; 0: not yet)."""
+
+    spec: FaultSpec
+    t_s: float = math.nan  # sim time of the newest plant state at the injection
+    step: int = -1  # its plant step
+    inject_ns: int = 0
+    ready_ns: int = 0  # kill: the new incarnation's ready token
+    thaw_ns: int = 0  # freeze: SIGCONT
+    error: str = ""  # the injection failed (e.g. the service was not running)
+
+    @property
+    def back_ns(self) -> int:
+        return self.ready_ns if self.spec.kind == KILL else self.thaw_ns
+
+
+class StateLog:
+    """The plant states of a run, the fields the fault measurements need, in arrays that
+    grow by doubling. ``add`` is called from the bus callback, the reads after the run
+    (or under the caller's lock)."""
+
+    def __init__(self, n_joints: int, capacity: int = 4096) -> None:
+        self.n_joints = n_joints
+        self.size = 0
+        self._lock = threading.Lock()
+        self._arrays = self._allocate(capacity)
+
+    def _allocate(self, capacity: int) -> dict[str, np.ndarray]:
+        n = self.n_joints
+        return {
+            "t_ns": np.zeros(capacity, np.int64),  # the state's t_source_ns
+            "sim_time_ns": np.zeros(capacity, np.int64),
+            "step": np.zeros(capacity, np.int64),
+            "braking": np.zeros(capacity, bool),
+            "controller_tx_ns": np.zeros(capacity, np.int64),
+            "haptic_sample_ns": np.zeros(capacity, np.int64),
+            "q_rad": np.zeros((capacity, n)),
+            "qd_rad_s": np.zeros((capacity, n)),
+        }
+
+    def add(self, rec: np.ndarray) -> None:
+        """Append one PLANT_STATE record."""
+        with self._lock:
+            if self.size == len(self._arrays["t_ns"]):
+                grown = self._allocate(2 * self.size)
+                for name, array in self._arrays.items():
+                    grown[name][: self.size] = array
+                self._arrays = grown
+            i, n, a = self.size, self.n_joints, self._arrays
+            a["t_ns"][i] = rec["t_source_ns"]
+            a["sim_time_ns"][i] = rec["sim_time_ns"]
+            a["step"][i] = rec["step"]
+            a["braking"][i] = bool(int(rec["flags"]) & Flag.BRAKING)
+            trace = rec["trace_ns"]
+            a["controller_tx_ns"][i] = trace[Stage.CONTROLLER_TX]
+            a["haptic_sample_ns"][i] = trace[Stage.HAPTIC_SAMPLE]
+            a["q_rad"][i] = rec["q_rad"][:n]
+            a["qd_rad_s"][i] = rec["qd_rad_s"][:n]
+            self.size += 1
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Views of the recorded states, in arrival order."""
+        with self._lock:
+            return {name: array[: self.size] for name, array in self._arrays.items()}
+
+
+def stage_stamps(arrays: dict[str, np.ndarray], service: str) -> np.ndarray | None:
+    """The stamp that shows, per state, when the applied command went through
+    ``service`` (None: the service is off the command path)."""
+    stage = RESUME_STAGE.get(service)
+    if stage is None:
+        return None
+    return arrays["haptic_sample_ns" if stage == Stage.HAPTIC_SAMPLE else "controller_tx_ns"]
+
+
+def brake_index(
+    t_ns: np.ndarray, speed_at: Callable[[int], float], inject_ns: int, end_ns: int
+) -> int | None:
+    """Index of the first state stamped at or after ``inject_ns`` (and before
+    ``end_ns``) whose tool speed ``speed_at(i)`` (m/s) is below :data:`BRAKE_SPEED_M_S`;
+    None if none. ``t_ns`` in arrival order, which is stamp order for one incarnation."""
+    start = int(np.searchsorted(t_ns, inject_ns, side="left"))
+    for i in range(start, len(t_ns)):
+        if t_ns[i] >= end_ns:
+            return None
+        if speed_at(i) < BRAKE_SPEED_M_S:
+            return i
+    return None
+
+
+def resumed_index(
+    t_ns: np.ndarray, stamps: np.ndarray | None, braking: np.ndarray, back_ns: int
+) -> int | None:
+    """Index of the first state from ``back_ns`` on that applies a command made after
+    ``back_ns`` through the faulted service (``stamps``: :func:`stage_stamps`; None: any
+    state from then on counts) and is not braking; None if none."""
+    after = t_ns >= back_ns
+    if stamps is not None:
+        after &= stamps >= back_ns
+    hits = np.flatnonzero(after & ~braking)
+    return int(hits[0]) if len(hits) else None
+
+
+def fault_report(
+    record: FaultRecord,
+    arrays: dict[str, np.ndarray],
+    speed_at: Callable[[int], float],
+    success: bool | None,
+    end_ns: int | None = None,
+) -> dict[str, Any]:
+    """The summary's object for one fault: what was injected, when, and what followed
+    (see the module's docstring). ``speed_at(i)``: tool speed of state ``i`` (m/s);
+    ``end_ns``: the brake is looked for before this instant (default: the service back,
+    or the record's end)."""
+    spec = record.spec
+    out: dict[str, Any] = {
+        "service": spec.service,
+        "kind": spec.kind,
+        "t_s": None if math.isnan(record.t_s) else round(record.t_s, 4),
+        "freeze_s": spec.freeze_s if spec.kind == FREEZE else None,
+        "brake_ms": None,
+        "restart_s": None,
+        "resumed_s": None,
+        "success": success,
+    }
+    if record.error:
+        out["error"] = record.error
+        return out
+    t_ns = arrays["t_ns"]
+    back_ns = record.back_ns
+    if end_ns is None:
+        end_ns = back_ns if back_ns else np.iinfo(np.int64).max
+    brake = brake_index(t_ns, speed_at, record.inject_ns, end_ns)
+    if brake is not None:
+        out["brake_ms"] = round(max(0, int(t_ns[brake]) - record.inject_ns) / NS_PER_MS, 2)
+    if spec.kind == KILL and record.ready_ns:
+        out["restart_s"] = round((record.ready_ns - record.inject_ns) / NS_PER_S, 4)
+    if back_ns:
+        stamps = stage_stamps(arrays, spec.service)
+        if stamps is None:
+            out["resumed_s"] = round((back_ns - record.inject_ns) / NS_PER_S, 4)
+        else:
+            resumed = resumed_index(t_ns, stamps, arrays["braking"], back_ns)
+            if resumed is not None:
+                out["resumed_s"] = round((int(t_ns[resumed]) - record.inject_ns) / NS_PER_S, 4)
+    return out
+
+
+def world_reset(record: FaultRecord, arrays: dict[str, np.ndarray]) -> bool:
+    """Whether the plant's first state after ``record`` (a plant kill) starts the run over
+    from step 0 (the world reset) although the kill came later in the run."""
+    if record.spec.service != "plant" or record.spec.kind != KILL or record.step <= 0:
+        return False
+    t_ns = arrays["t_ns"]
+    first = int(np.searchsorted(t_ns, record.inject_ns, side="right"))
+    return first < len(t_ns) and int(arrays["step"][first]) == 0
+
+
+# -- the injector ------------------------------------------------------------------------
+
+
+@dataclass
+class InjectorHooks:
+    """What the injector acts through: ``signal_service(name, signum)`` signals a service's
+    process group; ``expect_restart(name)`` tells the failure watch a restart follows;
+    ``now_ns()`` the host's monotonic clock."""
+
+    signal_service: Callable[[str, int], None]
+    expect_restart: Callable[[str], None]
+    now_ns: Callable[[], int]
+
+
+@dataclass
+class FaultInjector:
+    """Injects ``faults`` (sorted by ``at_s``) on time, in a thread of its own.
+
+    The bus adapter feeds it: :meth:`on_state` with every plant state's sim time and step,
+    :meth:`on_ready` with every ready token that appears. :meth:`close` thaws any service
+    still frozen (a run that ends first must not leave one stopped) and ends the thread.
+    """
+
+    faults: Sequence[FaultSpec]
+    hooks: InjectorHooks
+    records: list[FaultRecord] = field(init=False)
+    _cond: threading.Condition = field(init=False, default_factory=threading.Condition)
+    _sim_s: float = field(init=False, default=-math.inf)
+    _step: int = field(init=False, default=-1)
+    _next_due_s: float = field(init=False, default=math.inf)  # sim time of the next fault
+    _closed: bool = field(init=False, default=False)
+    _thread: threading.Thread | None = field(init=False, default=None)
+
+    def __post_init__(self) -> None:
+        self.records = [FaultRecord(spec) for spec in self.faults]
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="fault-injector", daemon=True)
+        self._thread.start()
+
+    def on_state(self, sim_time_ns: int, step: int) -> None:
+        """A plant state was published (sim time, step): faults due now are injected."""
+        with self._cond:
+            self._sim_s = sim_time_ns / NS_PER_S
+            self._step = step
+            if self._sim_s >= self._next_due_s:  # else the thread has nothing to do yet
+                self._cond.notify_all()
+
+    def on_ready(self, service: str, t_ns: int) -> None:
+        """``service``'s ready token appeared at ``t_ns``: a killed one is back."""
+        with self._cond:
+            for record in self.records:
+                if (
+                    record.spec.service == service
+                    and record.spec.kind == KILL
+                    and record.inject_ns
+                    and not record.ready_ns
+                    and t_ns > record.inject_ns
+                ):
+                    record.ready_ns = t_ns
+
+    def _run(self) -> None:
+        pending = list(self.records)
+        thaws: list[FaultRecord] = []
+        with self._cond:
+            while not self._closed and (pending or thaws):
+                now_ns = self.hooks.now_ns()
+                for record in [r for r in thaws if self._thaw_due_ns(r) <= now_ns]:
+                    thaws.remove(record)
+                    self._signal(record, signal.SIGCONT)
+                    record.thaw_ns = self.hooks.now_ns()
+                while pending and self._sim_s >= pending[0].spec.at_s:
+                    record = pending.pop(0)
+                    self._inject(record)
+                    if record.spec.kind == FREEZE and not record.error:
+                        thaws.append(record)
+                self._next_due_s = pending[0].spec.at_s if pending else math.inf
+                timeout_s = None
+                if thaws:
+                    due_ns = min(self._thaw_due_ns(r) for r in thaws)
+                    timeout_s = min(THAW_POLL_S, max(0, due_ns - self.hooks.now_ns()) / NS_PER_S)
+                self._cond.wait(timeout_s)
+            for record in thaws:  # closed while frozen
+                self._signal(record, signal.SIGCONT)
+                record.thaw_ns = self.hooks.now_ns()
+
+    def _thaw_due_ns(self, record: FaultRecord) -> int:
+        return record.inject_ns + round(record.spec.freeze_s * NS_PER_S)
+
+    def _inject(self, record: FaultRecord) -> None:
+        spec = record.spec
+        record.t_s, record.step = self._sim_s, self._step
+        if spec.kind == KILL:
+            self.hooks.expect_restart(spec.service)
+        record.inject_ns = self.hooks.now_ns()
+        self._signal(record, signal.SIGKILL if spec.kind == KILL else signal.SIGSTOP)
+        logger.warning("injected %s at sim %.3f s", spec.text(), record.t_s)
+
+    def _signal(self, record: FaultRecord, signum: int) -> None:
+        try:
+            self.hooks.signal_service(record.spec.service, signum)
+        except Exception as exc:  # the stack's errors: the service may be gone
+            record.error = record.error or f"{signal.Signals(signum).name} failed: {exc}"
+            logger.error("%s: %s", record.spec.text(), record.error)
+
+    def close(self) -> None:
+        """Thaw what is frozen and end the thread; safe to call twice."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
