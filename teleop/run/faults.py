@@ -147,6 +147,7 @@ class FaultRecord:
     spec: FaultSpec
     t_s: float = math.nan  # sim time of the newest plant state at the injection
     step: int = -1  # its plant step
+    pid: int = 0  # the process (group) signalled
     inject_ns: int = 0
     ready_ns: int = 0  # kill: the new incarnation's ready token
     thaw_ns: int = 0  # freeze: SIGCONT
@@ -304,11 +305,14 @@ def world_reset(record: FaultRecord, arrays: dict[str, np.ndarray]) -> bool:
 
 @dataclass
 class InjectorHooks:
-    """What the injector acts through: ``signal_service(name, signum)`` signals a service's
-    process group; ``expect_restart(name)`` tells the failure watch a restart follows;
-    ``now_ns()`` the host's monotonic clock."""
+    """What the injector acts through: ``pid_of(name)`` the pid of a service's process,
+    the leader of its process group (looked up before the fault's instant: asking the
+    supervisor takes milliseconds); ``signal_group(pid, signum)`` signals that group;
+    ``expect_restart(name)`` tells the failure watch a restart follows; ``now_ns()`` the
+    host's monotonic clock."""
 
-    signal_service: Callable[[str, int], None]
+    pid_of: Callable[[str], int]
+    signal_group: Callable[[int, int], None]
     expect_restart: Callable[[str], None]
     now_ns: Callable[[], int]
 
@@ -373,7 +377,7 @@ class FaultInjector:
                 while pending and self._sim_s >= pending[0].spec.at_s:
                     record = pending.pop(0)
                     self._inject(record)
-                    if record.spec.kind == FREEZE and not record.error:
+                    if record.spec.kind == FREEZE and record.inject_ns:
                         thaws.append(record)
                 self._next_due_s = pending[0].spec.at_s if pending else math.inf
                 timeout_s = None
@@ -390,6 +394,15 @@ class FaultInjector:
 
     def _inject(self, record: FaultRecord) -> None:
         spec = record.spec
+        try:
+            record.pid = self.hooks.pid_of(spec.service)
+        except Exception as exc:  # the stack's errors: the service may be gone
+            record.error = f"no process to signal: {exc}"
+        if not record.pid and not record.error:
+            record.error = "no process to signal: the service is not running"
+        if record.error:
+            logger.error("%s: %s", spec.text(), record.error)
+            return
         record.t_s, record.step = self._sim_s, self._step
         if spec.kind == KILL:
             self.hooks.expect_restart(spec.service)
@@ -399,8 +412,8 @@ class FaultInjector:
 
     def _signal(self, record: FaultRecord, signum: int) -> None:
         try:
-            self.hooks.signal_service(record.spec.service, signum)
-        except Exception as exc:  # the stack's errors: the service may be gone
+            self.hooks.signal_group(record.pid, signum)
+        except OSError as exc:
             record.error = record.error or f"{signal.Signals(signum).name} failed: {exc}"
             logger.error("%s: %s", record.spec.text(), record.error)
 

@@ -698,7 +698,8 @@ class _FaultRun:
     ) -> Callable[[], None]:
         """Start injecting into ``stack``; the run's check, extended by the plant's."""
         hooks = InjectorHooks(
-            signal_service=lambda name, signum: stack.signal_program(name, signum, group=True),
+            pid_of=stack.pid,
+            signal_group=os.killpg,
             expect_restart=watch.expect_restart,
             now_ns=time.monotonic_ns,
         )

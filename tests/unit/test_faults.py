@@ -171,12 +171,16 @@ def test_the_injector_kills_and_freezes_on_sim_time_and_thaws_on_close():
     clock = FakeClock()
     done = threading.Event()
 
-    def signal_service(name: str, signum: int) -> None:
-        sent.append((name, signum))
+    pids = {"controller": 10, "haptic": 20}
+    names = {pid: name for name, pid in pids.items()}
+
+    def signal_group(pid: int, signum: int) -> None:
+        sent.append((names[pid], signum))
         done.set()
 
     faults = [FaultSpec("controller", KILL, 1.0), FaultSpec("haptic", FREEZE, 2.0, 3600.0)]
-    injector = FaultInjector(faults, InjectorHooks(signal_service, expected.append, clock.now_ns))
+    hooks = InjectorHooks(pids.__getitem__, signal_group, expected.append, clock.now_ns)
+    injector = FaultInjector(faults, hooks)
     injector.start()
     try:
         injector.on_state(int(0.5 * S), 500)
@@ -195,6 +199,23 @@ def test_the_injector_kills_and_freezes_on_sim_time_and_thaws_on_close():
     kill, freeze = injector.records
     assert (kill.t_s, kill.step, kill.inject_ns, kill.ready_ns) == (1.0, 1000, 7 * S, 8 * S)
     assert freeze.t_s == pytest.approx(2.001) and freeze.thaw_ns == 7 * S
+
+
+def test_a_fault_on_a_service_that_is_not_running_is_reported_not_injected():
+    asked = threading.Event()
+
+    def pid_of(name: str) -> int:
+        asked.set()
+        return 0  # supervisord's pid of a program that is not running
+
+    hooks = InjectorHooks(pid_of, lambda pid, signum: None, lambda name: None, int)
+    injector = FaultInjector([FaultSpec("hmd", KILL, 0.0)], hooks)
+    injector.start()
+    injector.on_state(0, 0)
+    assert asked.wait(5)
+    injector.close()
+    (record,) = injector.records
+    assert record.error.startswith("no process") and record.inject_ns == 0
 
 
 # -- the failure watch ---------------------------------------------------------------------
