@@ -791,15 +791,17 @@ def _wait_alive(
     stack: Stack,
     check: Callable[[], None],
 ) -> None:
-    """Wait up to ALIVE_TIMEOUT_S for every service's liveliness token, checking the
-    programs meanwhile (one that dies fails the run at once, not after the time-out).
-    A service still not alive then has hung in its start-up: it is killed (it may not
-    answer the stop signal) and :class:`ServiceFailed` names it with its log."""
+    """Wait up to ALIVE_TIMEOUT_S for every service's ready token (it has its session,
+    its subscribers and its links to its peers: supervisord's RUNNING only says the
+    process lived a second), checking the programs meanwhile (one that dies or
+    crash-loops fails the run at once, not after the time-out). A service still not
+    ready then has hung in its start-up: it is killed (it may not answer the stop
+    signal) and :class:`ServiceFailed` names it with its log."""
     deadline = time.monotonic() + ALIVE_TIMEOUT_S
     while True:
         check()
         try:
-            wait_alive(session, topics, services, ALIVE_POLL_S)
+            wait_alive(session, topics, services, ALIVE_POLL_S, ready=True)
             return
         except ServicesMissing as exc:
             if time.monotonic() < deadline:
@@ -811,6 +813,17 @@ def _wait_alive(
             raise ServiceFailed(
                 name, f"did not come alive within {ALIVE_TIMEOUT_S:g} s", path, _read_log(path)
             ) from None
+
+
+def _listen_endpoints(mesh: Mapping[str, Sequence[str]], names: Sequence[str]) -> list[str]:
+    """The endpoints ``names`` listen on in a :func:`peer_mesh` (its overrides say)."""
+    prefix = "bus.peer_listen_endpoint="
+    return [
+        json.loads(override.removeprefix(prefix))
+        for name in names
+        for override in mesh[name]
+        if override.startswith(prefix)
+    ]
 
 
 def start_detached(
@@ -866,43 +879,49 @@ def start_detached(
     )  # fmt: skip
     stack = Stack(run_dir, programs)
     stack.start(detach=True)
-    if outside:
-        for text, _ in joins:
-            announce(text)
-        observer = credentials[OBSERVER] if credentials is not None else None
-        _await_outside_detached(stack, config, endpoint, [bus for _, bus in joins], outside,
-                                without_timeout_s, announce, observer)  # fmt: skip
+    for text, _ in joins:
+        announce(text)
+    observer = credentials[OBSERVER] if credentials is not None else None
+    peers = _listen_endpoints(mesh, [name for name in services if name != "plant"])
+    peers += [bus.peer_listen_endpoint for _, bus in joins]
+    _await_ready_detached(stack, config, endpoint, peers, services, outside,
+                          without_timeout_s, announce, observer)  # fmt: skip
     return stack.status(), endpoint
 
 
-def _await_outside_detached(
+def _await_ready_detached(
     stack: Stack,
     config: Config,
     endpoint: str,
-    outside_buses: Sequence[BusConfig],
+    peers: Sequence[str],
+    services: Sequence[str],
     outside: Sequence[str],
     timeout_s: float,
     announce: Callable[[str], None],
     observer: Path | None,
 ) -> None:
-    """``teleop up``: wait for the outside services' ready tokens over links of this
-    process's own to each (peers do not forward tokens), with the run's ``observer``
-    credentials (None: an open bus); stop the stack if they do not come. ``endpoint``:
-    the run's listener's."""
+    """``teleop up``: wait for every service's ready token (the stack's, then the outside
+    ones' for up to ``timeout_s``) over links of this process's own to each (``peers``:
+    their endpoints besides the listener's ``endpoint``; peers do not forward tokens),
+    with the run's ``observer`` credentials (None: an open bus), watching the programs
+    meanwhile. On a failure (a service that dies, crash-loops, hangs in start-up or does
+    not come) the stack is stopped and the error raised: ServiceFailed with the
+    service's log, or RunError."""
     watcher = replace(
         config.bus,
         endpoint=endpoint,
         gossip=False,
         peer_listen_endpoint="",
-        peer_connect_endpoints=tuple(bus.peer_listen_endpoint for bus in outside_buses),
+        peer_connect_endpoints=tuple(peers),
         credentials_file=str(observer) if observer is not None else "",
     )
-    session = open_session(watcher, listen=False)
+    topics = Topics(config.robot.robot_id)
+    session = None
     try:
-        wait_for_outside(
-            session, Topics(config.robot.robot_id), outside, timeout_s, announce,
-            still_running=_failure_check(stack),
-        )  # fmt: skip
+        session = open_session(watcher, listen=False)
+        check = _failure_check(stack)
+        _wait_alive(session, topics, services, stack, check)
+        wait_for_outside(session, topics, outside, timeout_s, announce, still_running=check)
     except (OutsideMissing, RunError) as exc:
         stack.stop()
         raise RunError(f"{exc}; stopped the stack") from None
