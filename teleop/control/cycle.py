@@ -258,6 +258,9 @@ class BilateralCycle(ControllerCore):
         )
         self.hmd_lead_ticks = round(config.hmd.prediction_s / self.timestep_s)
         self.stale_ticks = round(config.haptic.stale_feedback_s / self.timestep_s)
+        # Realtime: a newest plant state older than this on the clock means the plant went
+        # silent; a command answering it would only be braked on (plant.watchdog_s).
+        self.state_silent_ns = round(config.plant.watchdog_s * 1e9)
         self._feedback = FORCE_FEEDBACK.new()
         self.feedback_count = 0  # FORCE_FEEDBACK records sent (their seq)
         self._status = TELEOP_STATUS.new()
@@ -292,6 +295,7 @@ class BilateralCycle(ControllerCore):
         self.held_count = 0
         self.no_input_cycles = 0
         self.missing_head_poses = 0
+        self.plant_silent_samples = 0
 
     def reset(self) -> None:
         self.controller.reset()
@@ -379,6 +383,9 @@ class BilateralCycle(ControllerCore):
         state = latest_state[0]
         tick = int(state["seq"])
         t0 = self.clock.now_ns()
+        if t0 - int(state["trace_ns"][Stage.PLANT_STATE_TX]) > self.state_silent_ns:
+            self.plant_silent_samples += 1  # the plant went silent: command no motion
+            return
         prepared_seq, terms, obstacle = self._prepared
         if prepared_seq != tick:  # not prepared for this state: all of it here
             terms, obstacle = None, ProximitySample.from_state(state)
@@ -411,7 +418,7 @@ class BilateralCycle(ControllerCore):
         yaw_rad = self._head_yaw_rad(tick)
         obstacle = ProximitySample.from_state(state)
         components, device_f_n, held_mass = self._feedback_force(
-            state, obstacle, handle_d_m, yaw_rad
+            state, obstacle, handle_d_m, yaw_rad, live=haptic is not None
         )
         self.compute_ns_total += self.clock.now_ns() - t0
         self._send_feedback(tick, state, components, device_f_n, state["trace_ns"])
@@ -468,15 +475,20 @@ class BilateralCycle(ControllerCore):
         obstacle: ProximitySample | None,
         handle_d_m: np.ndarray,
         yaw_rad: float,
+        live: bool = True,
     ) -> tuple[FeedbackComponents, np.ndarray, float]:
         """Force feedback components, the device force (N, device frame) and the held mass,
-        from the contact in ``state`` (PLANT_STATE)."""
+        from the contact in ``state`` (PLANT_STATE). Not ``live`` (the handle went silent,
+        or none yet): the components are still reported, the device force is zero (a
+        handle that comes back must not be pushed by forces it did not feel build up)."""
         config = self.config
         world_f_gripper_n = np.array(state["world_f_contact_n"])
         held_mass_kg = float(state["held_mass_kg"])
         components = feedback_components(
             world_f_gripper_n, held_mass_kg, obstacle, handle_d_m, config.teleop
         )
+        if not live:
+            return components, np.zeros(3), held_mass_kg
         device_f_n = device_force(components, yaw_rad, config.teleop, config.haptic)
         return components, device_f_n, held_mass_kg
 
@@ -509,7 +521,7 @@ class BilateralCycle(ControllerCore):
         obstacle = ProximitySample.from_state(state)
         output, gripper_cmd, handle_d_m, yaw_rad = self._control(tick, state, haptic, obstacle)
         components, device_f_n, held_mass = self._feedback_force(
-            state, obstacle, handle_d_m, yaw_rad
+            state, obstacle, handle_d_m, yaw_rad, live=haptic is not None
         )
         self.compute_ns_total += self.clock.now_ns() - t0
 
@@ -597,6 +609,7 @@ class BilateralCycle(ControllerCore):
             "held_weight_n": held,
             "held_cycles": self.held_count,
             "no_input_cycles": self.no_input_cycles,
+            "plant_silent_samples": self.plant_silent_samples,
             "missing_head_poses": self.missing_head_poses,
             "barrier_dropped": self.barrier.dropped,
             "haptic_lost": self.haptic_in.seq.lost,
