@@ -262,6 +262,7 @@ def fault_report(
         "kind": spec.kind,
         "t_s": None if math.isnan(record.t_s) else round(record.t_s, 4),
         "freeze_s": spec.freeze_s if spec.kind == FREEZE else None,
+        "frozen_s": None,
         "brake_ms": None,
         "restart_s": None,
         "resumed_s": None,
@@ -271,6 +272,11 @@ def fault_report(
         out["error"] = record.error
         return out
     t_ns = arrays["t_ns"]
+    before = int(np.searchsorted(t_ns, record.inject_ns, side="right")) - 1
+    if before >= 0:  # the plant's sim time at the instant of injection
+        out["t_s"] = round(int(arrays["sim_time_ns"][before]) / NS_PER_S, 4)
+    if spec.kind == FREEZE and record.thaw_ns:
+        out["frozen_s"] = round((record.thaw_ns - record.inject_ns) / NS_PER_S, 4)
     back_ns = record.back_ns
     if end_ns is None:
         end_ns = back_ns if back_ns else np.iinfo(np.int64).max
@@ -322,17 +328,25 @@ class FaultInjector:
     """Injects ``faults`` (sorted by ``at_s``) on time, in a thread of its own.
 
     The bus adapter feeds it: :meth:`on_state` with every plant state's sim time and step,
-    :meth:`on_ready` with every ready token that appears. :meth:`close` thaws any service
-    still frozen (a run that ends first must not leave one stopped) and ends the thread.
+    :meth:`on_started` with the plant's STARTED stamp, :meth:`on_ready` with every ready
+    token that appears. :meth:`close` thaws any service still frozen (a run that ends
+    first must not leave one stopped) and ends the thread.
+
+    ``realtime``: sim time keeps wall-clock time, so a fault is due ``at_s`` after the
+    plant's start on the host's clock: on time even when this process, a normally
+    scheduled one beside realtime services, gets the state stream late. Lockstep: due on
+    the first state at or past ``at_s`` (the sim waits for its slowest peer).
     """
 
     faults: Sequence[FaultSpec]
     hooks: InjectorHooks
+    realtime: bool = False
     records: list[FaultRecord] = field(init=False)
     _cond: threading.Condition = field(init=False, default_factory=threading.Condition)
     _sim_s: float = field(init=False, default=-math.inf)
     _step: int = field(init=False, default=-1)
     _next_due_s: float = field(init=False, default=math.inf)  # sim time of the next fault
+    _started_ns: int = field(init=False, default=0)  # the plant's STARTED (realtime)
     _closed: bool = field(init=False, default=False)
     _thread: threading.Thread | None = field(init=False, default=None)
 
@@ -348,8 +362,24 @@ class FaultInjector:
         with self._cond:
             self._sim_s = sim_time_ns / NS_PER_S
             self._step = step
-            if self._sim_s >= self._next_due_s:  # else the thread has nothing to do yet
+            if not self.realtime and self._sim_s >= self._next_due_s:  # else nothing to do
                 self._cond.notify_all()
+
+    def on_started(self, t_ns: int) -> None:
+        """The plant began the run at ``t_ns`` (its STARTED event's stamp; the first only:
+        a restarted plant's does not move the faults)."""
+        with self._cond:
+            if not self._started_ns:
+                self._started_ns = t_ns
+                self._cond.notify_all()
+
+    def _due(self, spec: FaultSpec) -> bool:
+        if not self.realtime:
+            return self._sim_s >= spec.at_s
+        return bool(self._started_ns) and self.hooks.now_ns() >= self._due_ns(spec)
+
+    def _due_ns(self, spec: FaultSpec) -> int:
+        return self._started_ns + round(spec.at_s * NS_PER_S)
 
     def on_ready(self, service: str, t_ns: int) -> None:
         """``service``'s ready token appeared at ``t_ns``: a killed one is back."""
@@ -374,16 +404,18 @@ class FaultInjector:
                     thaws.remove(record)
                     self._signal(record, signal.SIGCONT)
                     record.thaw_ns = self.hooks.now_ns()
-                while pending and self._sim_s >= pending[0].spec.at_s:
+                while pending and self._due(pending[0].spec):
                     record = pending.pop(0)
                     self._inject(record)
                     if record.spec.kind == FREEZE and record.inject_ns:
                         thaws.append(record)
                 self._next_due_s = pending[0].spec.at_s if pending else math.inf
+                due = [self._thaw_due_ns(r) for r in thaws]
+                if self.realtime and pending and self._started_ns:
+                    due.append(self._due_ns(pending[0].spec))
                 timeout_s = None
-                if thaws:
-                    due_ns = min(self._thaw_due_ns(r) for r in thaws)
-                    timeout_s = min(THAW_POLL_S, max(0, due_ns - self.hooks.now_ns()) / NS_PER_S)
+                if due:
+                    timeout_s = min(THAW_POLL_S, max(0, min(due) - self.hooks.now_ns()) / NS_PER_S)
                 self._cond.wait(timeout_s)
             for record in thaws:  # closed while frozen
                 self._signal(record, signal.SIGCONT)

@@ -417,6 +417,8 @@ def run_on_services(
     tracker = RunProgress(config.run.duration_s, phases)
 
     def on_event(rec: np.ndarray, rx_ns: int) -> None:
+        if int(rec["event"]) == Event.STARTED and faults is not None:
+            faults.on_started(int(rec["t_source_ns"]))
         if int(rec["event"]) == Event.FINISHED:
             finished.set()
         elif int(rec["event"]) == Event.PHASE:
@@ -487,7 +489,14 @@ def run_on_services(
     finally:
         close_session(session, *reversed(entities))
 
-    summaries = {name: _read_summary(run_dir, name) for name in services}
+    # A service killed on purpose may have been stopped while its new incarnation was
+    # still starting (it writes its summary at close): the run's figures go without it.
+    killed = {spec.service for spec in fault_specs if spec.kind == "kill"}
+    summaries = {
+        name: _read_summary(run_dir, name)
+        for name in services
+        if name not in killed or summary_path(run_dir, name).exists()
+    }
     # A pair of peers that never linked: what one sent the other is lost (Service.become_ready).
     unlinked = {n: s["unlinked_peers"] for n, s in summaries.items() if s.get("unlinked_peers")}
     # An outside service wrote no summary: its figures are None, the stack's are there.
@@ -529,6 +538,7 @@ def run_on_services(
         {
             **health.as_dict(),
             "outside": list(outside),
+            "summaries_missing": [name for name in services if name not in summaries],
             "steps": plant.get("steps"),
             "wall_s": plant.get("wall_s"),
             "realtime_factor": plant.get("realtime_factor"),
@@ -667,10 +677,11 @@ class _FaultRun:
 
     def __init__(self, config: Config, specs: Sequence[FaultSpec]) -> None:
         self.specs = specs
+        self.realtime = config.run.mode == "realtime"
         self.arm = build_arm_model(config.robot)  # tool speed from joint state
         self.states = StateLog(self.arm.n_joints)
         self.injector: FaultInjector | None = None
-        self._pending: list[tuple[str, int]] = []  # ready tokens seen before start()
+        self._started_ns = 0  # the plant's STARTED stamp, if it came before start()
 
     def subscribe(self, session: zenoh.Session, topics: Topics, drops: DropCounter) -> list[Any]:
         """The plant's states (the observers' batched copy) and every ready token."""
@@ -703,7 +714,9 @@ class _FaultRun:
             expect_restart=watch.expect_restart,
             now_ns=time.monotonic_ns,
         )
-        self.injector = FaultInjector(self.specs, hooks)
+        self.injector = FaultInjector(self.specs, hooks, realtime=self.realtime)
+        if self._started_ns:
+            self.injector.on_started(self._started_ns)
         self.injector.start()
 
         def checked() -> None:
@@ -724,6 +737,12 @@ class _FaultRun:
                     "was reset, so the run cannot go on (the plant did not resume from a "
                     "checkpoint)"
                 )
+
+    def on_started(self, t_ns: int) -> None:
+        """The plant's STARTED event (stamped ``t_ns``): realtime faults are due from it."""
+        self._started_ns = self._started_ns or t_ns
+        if self.injector is not None:
+            self.injector.on_started(t_ns)
 
     def close(self) -> None:
         if self.injector is not None:

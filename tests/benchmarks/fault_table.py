@@ -23,9 +23,10 @@ from pathlib import Path
 
 SERVICES = ("plant", "controller", "haptic", "hmd", "operator", "recorder", "eyeview")
 KINDS = ("kill", "freeze")
-# Sim time of the fault (s): the realtime grasp with seed 0 lifts the cube at about 20 s
-# and releases it at about 29 s, so 22 s is mid-grasp, the cube in the air.
-DEFAULT_AT_S = 22.0
+# Sim time of the fault (s): the realtime grasp with seed 0 closes the gripper at about
+# 9 s, lifts the cube until about 13 s, carries it and releases it at about 18.5 s, so
+# 12 s is mid-grasp, the cube in the air.
+DEFAULT_AT_S = 12.0
 DEFAULT_FREEZE_S = 1.0
 # One run's bound (s): start-up, the task (about 31 s) and the stop, on a loaded machine.
 RUN_TIMEOUT_S = 600

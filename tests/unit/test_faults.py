@@ -115,14 +115,18 @@ def test_a_killed_controller_brake_restart_and_resume_are_measured_from_the_stat
 
 
 def test_a_frozen_haptic_device_resumes_with_its_first_new_sample():
-    rows = [{"t": t * MS, "sample": min(t, 100) * MS, "speed": 0.0} for t in range(90, 300)]
-    rows += [{"t": t * MS, "sample": (t - 5) * MS, "speed": 0.02} for t in range(300, 320)]
+    rows = [{"t": t * MS, "step": t, "sample": min(t, 100) * MS, "speed": 0.0}
+            for t in range(90, 300)]  # fmt: skip
+    rows += [{"t": t * MS, "step": t, "sample": (t - 5) * MS, "speed": 0.02}
+             for t in range(300, 320)]  # fmt: skip
     arrays = _log(rows)
     record = FaultRecord(FaultSpec("haptic", FREEZE, 1.0, 0.15), t_s=1.0, inject_ns=100 * MS,
                          thaw_ns=250 * MS)  # fmt: skip
     report = fault_report(record, arrays, _speed(arrays), success=False)
     assert report["brake_ms"] == 0.0  # already still when frozen
     assert report["restart_s"] is None  # a freeze has no restart
+    assert report["t_s"] == 0.1  # the plant's sim time at the injection, from its states
+    assert report["frozen_s"] == pytest.approx(0.15)
     # the first state after the thaw carrying a sample taken after it: at 300 ms (sample 295)
     assert report["resumed_s"] == pytest.approx(0.2)
 
@@ -199,6 +203,25 @@ def test_the_injector_kills_and_freezes_on_sim_time_and_thaws_on_close():
     kill, freeze = injector.records
     assert (kill.t_s, kill.step, kill.inject_ns, kill.ready_ns) == (1.0, 1000, 7 * S, 8 * S)
     assert freeze.t_s == pytest.approx(2.001) and freeze.thaw_ns == 7 * S
+
+
+def test_in_realtime_a_fault_is_due_on_the_clock_from_the_plants_start():
+    """Realtime: due ``at_s`` after the plant's STARTED stamp, whether or not this process
+    has received the states of that instant yet."""
+    clock, done = FakeClock(), threading.Event()
+    hooks = InjectorHooks(lambda name: 10, lambda pid, signum: done.set(), lambda n: None,
+                          clock.now_ns)  # fmt: skip
+    injector = FaultInjector([FaultSpec("controller", KILL, 1.0)], hooks, realtime=True)
+    injector.start()
+    try:
+        injector.on_started(5 * S)
+        clock.t_ns = 5 * S + S // 2
+        assert not done.wait(0.05)
+        clock.t_ns = 6 * S  # no state came: the clock alone makes it due
+        assert done.wait(5)
+    finally:
+        injector.close()
+    assert injector.records[0].inject_ns == 6 * S
 
 
 def test_a_fault_on_a_service_that_is_not_running_is_reported_not_injected():
