@@ -26,7 +26,8 @@ from teleop.bus.messages import (
 from teleop.bus.service import Service, service_main
 from teleop.bus.session import BatchPublisher, Publisher, subscribe, subscribe_events
 from teleop.core.clock import MonotonicClock
-from teleop.core.rundir import shed_path
+from teleop.core.rundir import PLANT_CHECKPOINT_FILE, shed_path
+from teleop.sim.checkpoint import CheckpointStore
 from teleop.sim.stepping import PlantLoop
 
 logger = logging.getLogger(__name__)
@@ -50,7 +51,10 @@ class PlantService(Service):
                 session, topics, "plant_state_batch", self.config.bus.observer_batch_records
             )
         )
-        self.loop = PlantLoop(self.config, self, MonotonicClock())
+        store = None
+        if self.options.run_dir is not None:  # checkpoints, and a restart resumes from them
+            store = CheckpointStore(self.options.run_dir / PLANT_CHECKPOINT_FILE)
+        self.loop = PlantLoop(self.config, self, MonotonicClock(), store)
         self.keep(subscribe_events(session, topics, "operator_events", self._on_event, self.drops))
         self.keep(
             subscribe(session, topics.joint_command, JOINT_COMMAND, self._on_command, self.drops)
@@ -92,8 +96,9 @@ class PlantService(Service):
         if not self.options.continuous:
             steps = round(self.config.run.duration_s / self.config.plant.timestep_s)
         self.loop.run(stop, steps)
-        if self.loop.finished:
-            logger.info("run finished: %s", self.summary())
+        if self.loop.finished or self.loop.aborted:
+            ended = "finished" if self.loop.finished else "aborted"
+            logger.info("run %s: %s", ended, self.summary())
             # The run's end on file as well as on the bus: the runner ends the run on
             # either, so a FINISHED event lost on a starved machine cannot hang it.
             self.write_summary()

@@ -21,7 +21,7 @@ from teleop.bus.messages import EYE_VIEW, RUN_EVENT
 from teleop.bus.service import Service, ServiceOptions, service_main
 from teleop.bus.session import subscribe, subscribe_events, subscribe_frames
 from teleop.core.config import Config, ConfigError
-from teleop.core.rundir import RECORDING_FILE
+from teleop.core.rundir import RECORDER_SEGMENTS_FILE, RECORDING_FILE
 from teleop.viz.recording import (
     BATCHED_STREAMS,
     BUFFER_CAPACITY_RECORDS,
@@ -29,6 +29,7 @@ from teleop.viz.recording import (
     LEVEL_WARN,
     STREAM_SCHEMAS,
     RecordingWriter,
+    claim_segment,
 )
 
 logger = logging.getLogger(__name__)
@@ -48,8 +49,11 @@ class RecorderService(Service):
         buffer_capacity: int = BUFFER_CAPACITY_RECORDS,
     ) -> None:
         super().__init__(config, options)
+        run_dir = self.options.run_dir
+        ledger = run_dir / RECORDER_SEGMENTS_FILE if run_dir is not None else None
+        segment = claim_segment(self._resolve_rrd_path(), ledger)
         self.writer = self.writer_class(
-            config, self._resolve_rrd_path(), self.drops, buffer_capacity=buffer_capacity
+            config, segment.path, self.drops, buffer_capacity=buffer_capacity, segment=segment
         )
         self._subscribers: list[Any] = []
         self._recording_closed = False

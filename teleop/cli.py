@@ -402,6 +402,9 @@ def _run_and_report(
         # This Ctrl-C ends the viewer, not the run: the exit code stays the run's.
         with contextlib.suppress(KeyboardInterrupt):
             web.wait()
+    if summary.get("failure"):
+        print(f"teleop: the plant ended the run: {summary['failure']}", file=sys.stderr)
+        return EXIT_FAILED
     if summary.get("success") is False:
         print("teleop: the task did not succeed", file=sys.stderr)
         return EXIT_FAILED

@@ -102,7 +102,8 @@ STREAMS: tuple[Stream, ...] = (
     Stream("plant_events", "events/plant", RUN_EVENT, ("plant",),
            ("operator", "recorder", "launcher", "controller", "haptic"), "on change",
            periodic=False,
-           note="STARTED, FINISHED, WATCHDOG_BRAKE, WATCHDOG_RESUME, GRASP, RELEASE"),
+           note="STARTED, FINISHED, WATCHDOG_BRAKE, WATCHDOG_RESUME, GRASP, RELEASE, "
+           "RESUMED, ABORTED"),
     Stream("operator_events", "events/operator", RUN_EVENT, ("operator",),
            ("plant", "recorder", "launcher"), "on change", periodic=False,
            note="PHASE, TASK_DONE (the plant ends the run at its `step`)", scenarios=TELEOP),
@@ -148,6 +149,8 @@ EVENT_STREAM: Mapping[Event, str] = {
     Event.WATCHDOG_RESUME: "plant_events",
     Event.GRASP: "plant_events",
     Event.RELEASE: "plant_events",
+    Event.RESUMED: "plant_events",
+    Event.ABORTED: "plant_events",
     Event.PHASE: "operator_events",
     Event.TASK_DONE: "operator_events",
 }

@@ -141,6 +141,9 @@ class Event(enum.IntEnum):
     PHASE = 7  # operator: a task phase began (value: phase index in the scenario)
     TASK_DONE = 8  # operator: task over (value: 1 success, 0 gave up); the plant finishes
     #               the run at tick ``step`` (a tick still ahead, so lockstep stays exact)
+    RESUMED = 9  # a restarted plant goes on from its checkpoint (value: steps of physics
+    #             lost, between the checkpoint and the last state sent before the restart)
+    ABORTED = 10  # the plant ended the run on a failure (value: teleop.sim.stepping.Abort)
 
 
 class Reason(enum.StrEnum):
@@ -777,6 +780,12 @@ EVENT_MEANINGS: Mapping[Event, tuple[str, str]] = {  # (sent by, meaning and val
     Event.PHASE: ("operator", "a task phase began; value: its index in the scenario file"),
     Event.TASK_DONE: ("operator", "the task is over (value: 1 success, 0 gave up); the "
                       "plant ends the run at tick `step`, still ahead"),
+    Event.RESUMED: ("plant", "the plant restarted and goes on from its checkpoint: its "
+                    "states continue the same seq and sim time, the arm and objects as "
+                    "checkpointed; value: steps of physics lost (since the checkpoint)"),
+    Event.ABORTED: ("plant", "the plant ended the run on a failure, no more states; value: "
+                    "1 its checkpoint could not be resumed, 2 lockstep got no answer "
+                    "within `plant.lockstep_timeout_s`"),
 }  # fmt: skip
 FLAG_MEANINGS: Mapping[Flag, str] = {
     Flag.BRAKING: "PLANT_STATE: the command watchdog brakes; the drives hold the arm where "

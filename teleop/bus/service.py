@@ -219,13 +219,33 @@ class Service:
         return missing
 
     def write_summary(self) -> None:
+        """``<run_dir>/<name>.summary.json``, atomically: this process's summary, and
+        under ``earlier_incarnations`` those of the processes of this service that wrote
+        one before it in this run (a restarted service: nothing it counted is lost)."""
         if self.options.run_dir is None:
             return
         path = summary_path(self.options.run_dir, self.name)
         path.parent.mkdir(parents=True, exist_ok=True)
+        summary = {**self.summary(), "pid": os.getpid()}
+        earlier = earlier_incarnations(path, os.getpid())
+        if earlier:
+            summary["earlier_incarnations"] = earlier
         tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(self.summary(), indent=2) + "\n")
+        tmp.write_text(json.dumps(summary, indent=2) + "\n")
         os.replace(tmp, path)
+
+
+def earlier_incarnations(path: Path, pid: int) -> list[dict[str, Any]]:
+    """The summaries in ``path`` written by processes other than ``pid`` (oldest first):
+    the file's own earlier incarnations, and the file itself if another process wrote it."""
+    try:
+        previous = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return []
+    earlier = list(previous.pop("earlier_incarnations", []))
+    if previous.get("pid") != pid:
+        earlier.append(previous)
+    return earlier
 
 
 # A privilege's outcome in Service.privileges when it was not asked for.
@@ -355,4 +375,8 @@ def service_main(service_class: type[Service], argv: list[str] | None = None) ->
         logger.exception("%s failed", service_class.name)
         return EXIT_FAILED
     logger.info("stopped")
+    # The stop signal may come twice (the launcher and supervisord both send it); what
+    # comes after this is the interpreter's exit.
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, signal.SIG_IGN)
     return 0

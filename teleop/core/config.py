@@ -116,6 +116,8 @@ class RobotConfig:
 
 # More states in flight than this gains nothing (two stages: plant and controller).
 MAX_LOCKSTEP_DELAY_STEPS = 4
+# Lockstep: the plant re-sends a state left unanswered this long (s).
+LOCKSTEP_RESEND_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -147,9 +149,21 @@ class PlantConfig:
     # time on two states in flight (tests/benchmarks/lockstep_speed.py). 0: each step
     # waits for the answer to its own state, so plant and controller take turns.
     lockstep_delay_steps: int = 1
+    # The plant checkpoints its whole state (MuJoCo's, its loop's) to the run directory
+    # every this much sim time; a restarted plant goes on from the newest checkpoint
+    # (teleop/sim/checkpoint.py). 0: no checkpoints (a restarted plant fails the run).
+    checkpoint_s: float = 0.1
+    # Lockstep: a pending state left unanswered this long (wall clock) ends the run with
+    # an ABORTED event instead of waiting for ever. Above a controller's restart time.
+    lockstep_timeout_s: float = 15.0
 
     def __post_init__(self) -> None:
         _require(0 < self.timestep_s <= 0.01, "plant.timestep_s in (0, 0.01]")
+        _require(self.checkpoint_s >= 0, "plant.checkpoint_s >= 0")
+        _require(
+            self.lockstep_timeout_s > LOCKSTEP_RESEND_S,
+            f"plant.lockstep_timeout_s > {LOCKSTEP_RESEND_S} (the lockstep re-send period)",
+        )
         _require(
             0 <= self.lockstep_delay_steps <= MAX_LOCKSTEP_DELAY_STEPS,
             f"plant.lockstep_delay_steps in [0, {MAX_LOCKSTEP_DELAY_STEPS}]",

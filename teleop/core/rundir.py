@@ -14,6 +14,12 @@ from pathlib import Path
 SUMMARY_SUFFIX = ".summary.json"
 # The recorder's Rerun recording when recorder.rrd_path is empty.
 RECORDING_FILE = "recording.rrd"
+# A restarted recorder never overwrites: it writes the next segment (segment_path), and
+# this ledger in the run directory lists the run's segments and its Rerun recording id.
+RECORDER_SEGMENTS_FILE = "recorder.segments.json"
+# The plant's checkpoint and per-step progress mark (teleop.sim.checkpoint): a restarted
+# plant resumes from it, so a new run must not find the previous run's.
+PLANT_CHECKPOINT_FILE = "plant.checkpoint"
 # supervisord's own files (teleop.run.supervise): its config, control socket, pid file,
 # log, console output (config errors), and the directory of the programs' logs.
 SUPERVISOR_CONF_FILE = "supervisord.conf"
@@ -52,6 +58,9 @@ _RUN_RESULT_GLOBS = (
     HAPTIC_TRACE_FILE,
     HAPTIC_SAMPLES_FILE,
     RECORDING_FILE,
+    "recording.*.rrd",  # its later segments (segment_path)
+    RECORDER_SEGMENTS_FILE,
+    PLANT_CHECKPOINT_FILE,
     SUPERVISOR_LOG_FILE,
     SUPERVISOR_CONSOLE_FILE,
     WEB_VIEWER_LOG_FILE,
@@ -73,6 +82,24 @@ def clear_run_results(run_dir: Path) -> list[Path]:
                 path.unlink()
                 removed.append(path)
     return removed
+
+
+def segment_path(rrd_path: Path, index: int) -> Path:
+    """Segment ``index`` of the recording ``rrd_path``: the path itself for the first
+    (0), ``<stem>.<index>.rrd`` beside it for those of restarted recorders."""
+    rrd_path = Path(rrd_path)
+    if index == 0:
+        return rrd_path
+    return rrd_path.with_name(f"{rrd_path.stem}.{index}{rrd_path.suffix}")
+
+
+def segment_paths(rrd_path: Path) -> list[Path]:
+    """The segments of the recording ``rrd_path`` on disk, in order (the first one and
+    each next one while it exists)."""
+    paths = []
+    while (path := segment_path(rrd_path, len(paths))).is_file():
+        paths.append(path)
+    return paths
 
 
 def shed_path(run_dir: Path, service: str) -> Path:

@@ -22,6 +22,9 @@ from typing import Any
 
 # supervisord states of a program that has stopped for good or is between restarts.
 FAILED_STATES = frozenset({"BACKOFF", "FATAL", "EXITED", "STOPPED", "UNKNOWN"})
+# Of those, the states a program passes through on its way back after dying: not a
+# failure for a program whose restart is expected (ProgramWatch.restarts_expected).
+RESTARTING_STATES = frozenset({"BACKOFF", "EXITED"})
 # Lines of the service's log the block quotes (its traceback, usually).
 TAIL_LINES = 15
 
@@ -73,12 +76,15 @@ def program_log_text(log_path: Path, supervisord_log: Path) -> str:
         text = f"(no log: {exc})"
     if text.strip():
         return text
-    name = f"'{log_path.stem}'"
+    # supervisord names a program quoted ("spawned: 'plant' with pid 1") or not
+    # ("exited: plant (terminated by SIGKILL; not expected)").
+    names = (f"'{log_path.stem}'", f": {log_path.stem} (")
     try:
         lines = supervisord_log.read_text(errors="replace").splitlines()
     except OSError:
         return text
-    return "\n".join(f"supervisord: {line}" for line in lines if name in line)
+    about = [line for line in lines if any(name in line for name in names)]
+    return "\n".join(f"supervisord: {line}" for line in about)
 
 
 class ServiceFailed(RuntimeError):
@@ -110,10 +116,14 @@ class ProgramWatch:
 
     ``log_of(name)`` gives a program's log path and ``read(path)`` its text (both
     injected: the stack knows where logs are, a test passes strings).
+    ``restarts_expected``: programs killed on purpose (a test of their restart), whose
+    new pid and passage through EXITED or BACKOFF are no failure (FATAL still is);
+    :meth:`expect_restart` announces one such restart at a time (an injected fault).
     """
 
     log_of: Callable[[str], Path]
     read: Callable[[Path], str]
+    restarts_expected: frozenset[str] = frozenset()
     _pids: dict[str, int] = field(default_factory=dict)
     # Restarts announced by expect_restart and not yet seen, by program.
     _expected: dict[str, int] = field(default_factory=dict)
@@ -127,21 +137,21 @@ class ProgramWatch:
 
     def check(self, infos: list[Mapping[str, Any]]) -> None:
         """Raise :class:`ServiceFailed` for the first program that failed since the last
-        call: a failed state, or a new pid (restarted after dying), unless announced by
-        :meth:`expect_restart` (then EXITED, between death and restart, passes too)."""
+        call: a failed state, or a new pid (restarted after dying), unless expected."""
         for info in infos:
             name, state, pid = str(info["name"]), str(info["statename"]), int(info["pid"])
             what = ""
             with self._lock:
-                expected = self._expected.get(name, 0)
-            if expected and state == "EXITED":
-                continue  # killed on purpose, about to be restarted
-            if expected and pid and self._pids.get(name, pid) != pid:
-                with self._lock:
-                    self._expected[name] -= 1
+                counted = self._expected.get(name, 0)
+            expected = name in self.restarts_expected or counted > 0
+            if expected and state in RESTARTING_STATES:
+                pass
             elif state in FAILED_STATES:
                 what = _failed_state(state, info)
-            elif pid and self._pids.get(name, pid) != pid:
+            elif pid and self._pids.get(name, pid) != pid and counted:
+                with self._lock:
+                    self._expected[name] -= 1  # the announced restart came
+            elif pid and self._pids.get(name, pid) != pid and not expected:
                 code = info.get("exitstatus")
                 died = f"exited with code {code}" if code and code > 0 else "died"
                 what = f"{died} and was restarted (crash loop)"

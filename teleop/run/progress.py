@@ -110,6 +110,13 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
             f"{summary.get('stale_commands')}, dropped {summary.get('dropped_messages')}"
         )
     lines.append(timing)
+    if summary.get("failure"):
+        lines.append(f"  ABORTED            {summary['failure']}")
+    for resume in summary.get("plant_resumes") or []:
+        lines.append(
+            f"  plant restarted    resumed at {resume['sim_time_s']:.3f} s sim time, "
+            f"{resume['steps_lost']} steps lost, {_num(resume['wall_gap_s'], '.2f', ' s')} gap"
+        )
     if "realtime_verdict" in summary:  # a services run judged itself
         lines.append(f"  real time          {verdict}")
     lines += [f"    - {problem}" for problem in summary.get("realtime_problems", [])]

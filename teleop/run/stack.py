@@ -365,10 +365,14 @@ def run_on_services(
     without: Sequence[str] = (),
     without_timeout_s: float = DEFAULT_WITHOUT_TIMEOUT_S,
     announce: Callable[[str], None] = _stderr,
+    restarts_expected: Sequence[str] = (),
     kills: Sequence[str] = (),
     freezes: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Run ``config.run.scenario`` on the supervised services; return the merged summary.
+
+    ``restarts_expected``: services that will be killed on purpose (a test of their
+    recovery): their restarts do not fail the run.
 
     ``without``: services left out; ``announce`` tells the user how to join each (its
     Zenoh config is in the run directory), then the run waits up to
@@ -419,7 +423,7 @@ def run_on_services(
     def on_event(rec: np.ndarray, rx_ns: int) -> None:
         if int(rec["event"]) == Event.STARTED and faults is not None:
             faults.on_started(int(rec["t_source_ns"]))
-        if int(rec["event"]) == Event.FINISHED:
+        if int(rec["event"]) in (Event.FINISHED, Event.ABORTED):
             finished.set()
         elif int(rec["event"]) == Event.PHASE:
             tracker.on_phase(int(rec["value"]), int(rec["sim_time_ns"]) * 1e-9)
@@ -463,7 +467,7 @@ def run_on_services(
         deadline_s = config.run.duration_s * factor + RUN_TIMEOUT_SLACK_S
         wall_start = time.perf_counter()
         with Stack(run_dir, programs) as stack:
-            watch = ProgramWatch(stack.log_path, _read_log)
+            watch = ProgramWatch(stack.log_path, _read_log, frozenset(restarts_expected))
             check = _failure_check(stack, watch)
             if faults is not None:
                 check = faults.start(stack, watch, check)
@@ -501,7 +505,17 @@ def run_on_services(
     unlinked = {n: s["unlinked_peers"] for n, s in summaries.items() if s.get("unlinked_peers")}
     # An outside service wrote no summary: its figures are None, the stack's are there.
     plant, controller = summaries.get("plant", {}), summaries.get("controller", {})
-    dropped = sum(s.get("dropped_messages", 0) for s in summaries.values()) + drops.total
+    # Restarted services: their earlier processes' drops count too.
+    dropped = drops.total + sum(
+        incarnation.get("dropped_messages", 0)
+        for s in summaries.values()
+        for incarnation in (s, *s.get("earlier_incarnations", []))
+    )
+    restarted = {
+        name: len(s["earlier_incarnations"])
+        for name, s in summaries.items()
+        if s.get("earlier_incarnations")
+    }
     summary: dict[str, Any] = {
         "scenario": config.run.scenario,
         "mode": config.run.mode,
@@ -509,6 +523,8 @@ def run_on_services(
     }
     if config.run.scenario == "grasp":
         summary.update(_grasp_summary(summaries, task_done))
+        if plant.get("aborted"):  # whatever the world looks like, the run did not go on
+            summary["success"] = False
     else:
         summary.update(
             {
@@ -548,6 +564,11 @@ def run_on_services(
             "commands_clamped": plant.get("commands_clamped"),
             "command_stream": plant.get("command_stream"),
             "stale_commands": plant.get("stale_commands"),
+            # The plant ended the run on a failure (its reason), and its restarts.
+            "failure": plant.get("failure"),
+            "plant_resumes": plant.get("resumes", []),
+            # Services whose earlier processes wrote a summary (restarted after it).
+            "restarted_services": restarted,
             "dropped_messages": dropped,
             "unlinked_peers": unlinked,
             "skipped_states": controller.get("skipped_states"),
@@ -640,10 +661,12 @@ def _wait_finished(
 
 
 def _plant_finished(run_dir: Path) -> bool:
-    """True when the plant's summary is on file and says the run finished."""
+    """True when the plant's summary is on file and says the run finished (or ended on
+    a failure: aborted)."""
     path = summary_path(run_dir, "plant")
     try:
-        return bool(json.loads(path.read_text()).get("finished"))
+        summary = json.loads(path.read_text())
+        return bool(summary.get("finished") or summary.get("aborted"))
     except (OSError, ValueError):
         return False
 
@@ -664,7 +687,7 @@ def refuse_if_running(run_dir: Path) -> None:
 def _failure_check(stack: Stack, watch: ProgramWatch | None = None) -> Callable[[], None]:
     """A check that raises :class:`ServiceFailed` (the failure block) as soon as a
     program of ``stack`` has died, crash-looped or stopped (teleop.run.failure);
-    ``watch``: the one to use (the fault injector tells it the restarts to expect)."""
+    ``watch``: the one to use (it may expect restarts: a test's or an injected kill's)."""
     if watch is None:
         watch = ProgramWatch(stack.log_path, _read_log)
     return lambda: watch.check(stack.process_infos())
@@ -868,6 +891,7 @@ def start_detached(
     """
     run_dir = run_dir.absolute()
     refuse_if_running(run_dir)
+    clear_run_results(run_dir)  # a previous stack's checkpoint must not be resumed
     endpoint = endpoint or loopback_endpoint(config.bus.tls)
     if config.bus.tls and not endpoint.startswith("tls/"):
         raise RunError(f"bus.tls: the endpoint must be tls/HOST:PORT, not {endpoint}")

@@ -17,6 +17,7 @@ import mujoco
 import numpy as np
 
 from teleop.core.config import Config, ModelError
+from teleop.sim.checkpoint import get_state, set_state
 from teleop.sim.proximity import apply_scene_overrides
 
 # Hold mode of the drives (the "brake"): stiffness of the position hold, per second.
@@ -142,6 +143,35 @@ class Plant:
         self.gripper_cmd = min(max(gripper_open, 0.0), 1.0)
         self.step_count = 0
         self._hold_q_rad = None
+
+    def integration_state(self) -> np.ndarray:
+        """MuJoCo's full integration state now (teleop.sim.checkpoint.get_state)."""
+        return get_state(self.model, self.data)
+
+    def restore(
+        self,
+        mujoco_state: np.ndarray,
+        step: int,
+        gripper_cmd: float,
+        hold_q_rad: np.ndarray | None = None,
+    ) -> None:
+        """Continue from a checkpoint: ``mujoco_state`` (:meth:`integration_state` of this
+        model), the step count at ``step`` (sim time ``step * timestep``), the gripper
+        command and the brake's hold (None: not braking) as they were. The next steps
+        are those the checkpointed plant would have taken (same state, same warm start)."""
+        set_state(self.model, self.data, mujoco_state)
+        self.data.time = step * self.model.opt.timestep
+        mujoco.mj_forward(self.model, self.data)  # poses and contacts for the next sample
+        self._step1_done = False
+        self._gripper_contacts = None
+        self.step_count = step
+        self.gripper_cmd = min(max(gripper_cmd, 0.0), 1.0)
+        self._hold_q_rad = None if hold_q_rad is None else np.array(hold_q_rad, dtype=float)
+
+    @property
+    def hold_q_rad(self) -> np.ndarray | None:
+        """Where the brake holds the arm (n,), rad; None when not braking."""
+        return self._hold_q_rad
 
     def _gripper_ctrl(self, gripper_cmd: float) -> float:
         low, high = self.gripper_range_m

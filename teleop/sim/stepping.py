@@ -30,10 +30,13 @@ OBJECT_POSES. On start, finish, grasp, release and watchdog changes: RUN_EVENT.
 from __future__ import annotations
 
 import collections
+import enum
+import functools
 import logging
 import math
 import threading
-from dataclasses import asdict, dataclass
+import time
+from dataclasses import asdict, dataclass, field
 from typing import Any, NamedTuple, Protocol
 
 import numpy as np
@@ -42,15 +45,33 @@ from teleop.bus.messages import OBJECT_POSES, PLANT_STATE, RUN_EVENT, TOOL_POSE,
 from teleop.bus.session import Latest
 from teleop.bus.stamps import Inbound
 from teleop.core.clock import NS_PER_S, Clock, LoopTimer
-from teleop.core.config import Config
+from teleop.core.config import LOCKSTEP_RESEND_S, Config
+from teleop.sim.checkpoint import (
+    FRESH_HEADER,
+    SLOT_COMMAND_SEQ,
+    SLOT_FINISH_TICK,
+    SLOT_STATE_NS,
+    SLOT_STATE_SEQ,
+    CheckpointError,
+    CheckpointStore,
+    Progress,
+    Snapshot,
+    model_id,
+)
 from teleop.sim.contact import finger_bodies, held_mass_kg, held_object
 from teleop.sim.plant import Plant, initial_configuration
 from teleop.sim.proximity import FAR_DISTANCE_M, ObstacleProximity, ProximitySample
 
 logger = logging.getLogger(__name__)
 
-# Lockstep: re-send the pending state if no command answers it within this time (s).
-LOCKSTEP_RESEND_S = 1.0
+
+class Abort(enum.IntEnum):
+    """Why the plant ended a run on a failure: the value of its ABORTED event."""
+
+    RESUME_FAILED = 1  # restarted, but its checkpoint could not be resumed
+    LOCKSTEP_TIMEOUT = 2  # lockstep: no answer to the pending state within the bound
+
+
 # Apply on arrival: a device period whose command has not come this many periods after
 # the period began is stepped without it (with the last command, or braking). A command
 # normally reaches the plant well within a period or two of its handle sample (see
@@ -125,6 +146,8 @@ class DeviceClockGrid:
 
 # Lockstep cycle breakdown: the newest cycles kept (a ring; 60 s of lockstep fits).
 CYCLE_STATS_CAPACITY = 1 << 16
+# Checkpoint writes whose duration the summary keeps (the newest ones).
+CHECKPOINT_COST_SAMPLES = 1000
 
 
 class LockstepCycleStats:
@@ -190,18 +213,21 @@ class Watchdog:
 
     Judged on the plant's own clock and its own state numbering, never on a sender's
     stamps: a command answering state k is fresh while k is the newest state the plant
-    sent, or while state k + 1 (the first the sender has not answered) went out at most
-    ``limit_ns`` ago. So a silent or stuck controller is braked ``limit_ns`` after it
-    could have answered, and a plant that stalls itself does not brake on its own delay.
+    sent, or while state k + 1 (the first the sender has not answered) went out less than
+    ``limit_ns - period_ns`` ago: at the steady pace, less than ``limit_ns`` after state
+    k. A command answering k arrives after k went out, so the plant brakes within
+    ``limit_ns`` of the last fresh command (the first step at or past the limit brakes),
+    and a plant that stalls itself does not brake on its own delay (k + 1 goes out late).
     A step with a stale command (or none yet) brakes; the first stale step after fresh
     ones announces WATCHDOG_BRAKE with the answered state's age (s), the first fresh one
     after braking WATCHDOG_RESUME.
     """
 
-    def __init__(self, limit_ns: int, history: int = STATE_HISTORY) -> None:
-        if limit_ns <= 0:
-            raise ValueError(f"limit_ns must be > 0, got {limit_ns}")
+    def __init__(self, limit_ns: int, period_ns: int, history: int = STATE_HISTORY) -> None:
+        if not 0 < period_ns < limit_ns:
+            raise ValueError(f"need 0 < period_ns < limit_ns, got {period_ns}, {limit_ns}")
         self.limit_ns = limit_ns
+        self.period_ns = period_ns
         self.braking = False
         self.brakes = 0  # times it started braking on a stale command
         self.stale_steps = 0  # steps braked on a stale command (not before the first one)
@@ -227,18 +253,21 @@ class Watchdog:
 
     def overdue_ns(self, answered_seq: int, now_ns: int) -> int:
         """How long the sender of a command answering ``answered_seq`` has had a newer
-        state without answering it (0: it answers the newest)."""
+        state without answering it, plus the period it had to answer the one it did
+        (0: it answers the newest)."""
         if answered_seq >= self.newest_seq:
             return 0
         sent_ns = self.sent_ns(answered_seq + 1)
-        return now_ns - sent_ns if sent_ns is not None else np.iinfo(np.int64).max
+        if sent_ns is None:
+            return np.iinfo(np.int64).max
+        return now_ns - sent_ns + self.period_ns
 
     def judge(self, command: np.ndarray | None, now_ns: int) -> Judgement:
         """Apply ``command`` at the step about to be taken at ``now_ns``, or brake?"""
         if command is None:
             return Judgement(False)
         answered = int(command["state_seq"])
-        if self.overdue_ns(answered, now_ns) <= self.limit_ns:
+        if self.overdue_ns(answered, now_ns) < self.limit_ns:
             if self.braking:
                 self.braking = False
                 return Judgement(True, Event.WATCHDOG_RESUME)
@@ -290,15 +319,53 @@ class ArrivalCounts:
     commands_stale: int = 0  # arrived too old to apply (the watchdog brakes instead)
 
 
+@dataclass
+class CheckpointCost:
+    """What the checkpoints cost the plant's steps."""
+
+    taken: int = 0
+    failed: int = 0
+    step_us: list[float] = field(default_factory=list)  # the newest ones
+
+    def add(self, duration_ns: int) -> None:
+        self.taken += 1
+        self.step_us.append(duration_ns / 1e3)
+        del self.step_us[:-CHECKPOINT_COST_SAMPLES]
+
+    def summary(self, steps: int, store: CheckpointStore | None) -> dict[str, Any]:
+        """Checkpoints taken (and failed), bytes each, the time each took from its step
+        (p50 / max, us) and that time spread over every step (us)."""
+        times = np.array(self.step_us) if self.step_us else np.zeros(1)
+        return {
+            "taken": self.taken,
+            "failed": self.failed,
+            "bytes_per_checkpoint": store.bytes_per_write if store is not None else 0,
+            "us_p50": round(float(np.median(times)), 1),
+            "us_max": round(float(times.max()), 1),
+            "us_per_step": round(float(times.mean()) * self.taken / max(steps, 1), 3),
+        }
+
+
 class PlantLoop:
     """The plant's stepping, pacing and publishing, driven by commands and a clock.
 
     Thread safety: the realtime tick pacing runs on the caller's thread only; the
     apply-on-arrival and lockstep pacings step from the command callback too, under
     ``cond`` / ``lock`` (held by :meth:`on_command` and the run loops).
+
+    With a ``store`` (teleop.sim.checkpoint) the loop checkpoints itself every
+    ``plant.checkpoint_s`` of sim time and marks its progress every step; a run that
+    finds a checkpoint there resumes from it (:meth:`resume`) instead of starting over,
+    or, if it cannot, ends at once with an ABORTED event (:attr:`failure` says why).
     """
 
-    def __init__(self, config: Config, outputs: PlantOutputs, clock: Clock) -> None:
+    def __init__(
+        self,
+        config: Config,
+        outputs: PlantOutputs,
+        clock: Clock,
+        store: CheckpointStore | None = None,
+    ) -> None:
         self.config = config
         self.outputs = outputs
         self.clock = clock
@@ -321,7 +388,7 @@ class PlantLoop:
         # Realtime: the control-free half of the next step while the command is on its way.
         # Not in lockstep: there the state's send would wait behind it.
         self.prepare_ahead = not self.lockstep
-        self.watchdog = Watchdog(round(plant_cfg.watchdog_s * NS_PER_S))
+        self.watchdog = Watchdog(round(plant_cfg.watchdog_s * NS_PER_S), self.period_ns)
         # Step k applies the command answering state k - delay_steps (PlantConfig).
         self.delay_steps = plant_cfg.lockstep_delay_steps
         self.proximity = ObstacleProximity(self.plant.model, self.plant.data, config.robot)
@@ -365,7 +432,26 @@ class PlantLoop:
         self._last_applied_seq = -1
         self._lockstep_running = False
         self._lockstep_done = threading.Event()
+        self._last_step_ns = 0  # lockstep: when the plant last stepped (the wait's bound)
+        self._lockstep_timeout_ns = round(plant_cfg.lockstep_timeout_s * NS_PER_S)
         self._arrival_running = False
+        # Checkpoints and the progress marks (teleop.sim.checkpoint); in memory without a store.
+        self.store = store
+        self.marks = store.marks if store is not None else np.array(FRESH_HEADER, dtype=np.int64)
+        self.checkpoint_every_steps = 0
+        if store is not None and plant_cfg.checkpoint_s > 0:
+            period_steps = round(plant_cfg.checkpoint_s / plant_cfg.timestep_s)
+            self.checkpoint_every_steps = max(1, period_steps)
+        self.checkpoint_cost = CheckpointCost()
+        self.resumes: list[dict[str, Any]] = []  # one per restart this run went through
+        self._run_start_ns = 0  # the run's start (host monotonic clock, across restarts)
+        self.aborted = False
+        self.failure: str | None = None  # why the run was aborted
+
+    @functools.cached_property
+    def model_id(self) -> str:
+        """The compiled model's hash: a checkpoint resumes only into the same model."""
+        return model_id(self.plant.model)
 
     # -- inputs --------------------------------------------------------------------------
     def on_command(self, rec: np.ndarray, rx_ns: int) -> None:
@@ -400,15 +486,17 @@ class PlantLoop:
                     )
                 return False
             now_ns = self.clock.now_ns()
-            if self._arrival_running:
-                return self.command_in.accept(rec, now_ns)
             # Tick and lockstep pacings: no shedding (the watchdog judges the age; lockstep
             # waits for its answer however long it takes).
-            return self.command_in.accept(rec, now_ns, shed=False)
+            if not self.command_in.accept(rec, now_ns, shed=self._arrival_running):
+                return False
+            self.marks[SLOT_COMMAND_SEQ] = int(rec["seq"])
+            return True
 
     def on_task_done(self, step: int) -> None:
         """The operator's TASK_DONE: the run ends at tick ``step``."""
         self.finish_tick = step
+        self.marks[SLOT_FINISH_TICK] = step
         logger.info("task done: the run ends at tick %d", step)
 
     def should_step(self) -> bool:
@@ -419,13 +507,18 @@ class PlantLoop:
 
     # -- the run -------------------------------------------------------------------------
     def run(self, stop: threading.Event, steps: int | None) -> None:
-        """One run of ``steps`` steps (None: until stopped) from the initial configuration;
-        ``finished`` says whether it ran to its end (not stopped)."""
-        self.begin_run(steps)
-        self.publish_event(Event.STARTED)
+        """One run of ``steps`` steps (None: until stopped) from the initial configuration,
+        or from the store's checkpoint if there is one (a restart: :meth:`resume`);
+        ``finished`` says whether it ran to its end (not stopped, not aborted)."""
+        resumed = self._start_or_resume(steps)
+        if self.aborted:
+            return
+        if self.finished:  # restarted after the end: the run stays over
+            self.publish_event(Event.FINISHED)
+            return
         start_ns = self.clock.now_ns()
         if self.lockstep:
-            self._start_lockstep()
+            self._start_lockstep(braking=resumed)
             self._run_lockstep(stop)
         else:
             self.publish_initial_state()
@@ -433,15 +526,53 @@ class PlantLoop:
                 self._run_on_arrival(stop)
             else:
                 self._run_realtime(stop)
-        self.wall_s = (self.clock.now_ns() - start_ns) / NS_PER_S
+        end_ns = self.clock.now_ns()
+        self.wall_s = (end_ns - (self._run_start_ns if resumed else start_ns)) / NS_PER_S
         self.outputs.flush()  # the observers get the run's last states now
-        if not stop.is_set():
+        if not stop.is_set() and not self.aborted:
             self.finished = True
             self.publish_event(Event.FINISHED)
+            if self.store is not None:
+                self.save_checkpoint(end_ns)  # a restart after the end finds it over
+
+    def _start_or_resume(self, steps: int | None) -> bool:
+        """Begin the run, or resume it from the store's checkpoint; whether it resumed.
+        A restart that cannot resume aborts the run (never a silent fresh start)."""
+        snapshot: Snapshot | None = None
+        previous: Progress | None = None
+        if self.store is not None and self.store.found:  # a previous incarnation's file
+            previous = self.store.progress()
+            try:
+                snapshot = self.store.load(self.model_id)
+            except CheckpointError as exc:
+                self.abort(Abort.RESUME_FAILED, f"restarted, cannot resume: {exc}")
+                return False
+            if snapshot is None and previous.state_seq >= 0:
+                self.abort(
+                    Abort.RESUME_FAILED,
+                    f"restarted after state {previous.state_seq} with no checkpoint to "
+                    "resume from (plant.checkpoint_s = 0?)",
+                )
+                return False
+        if snapshot is None:  # a fresh run (or a restart before the first state)
+            self.marks[:] = FRESH_HEADER
+            self.begin_run(steps)
+            self.publish_event(Event.STARTED)
+            return False
+        self.resume(snapshot, previous, steps)
+        return True
+
+    def abort(self, reason: Abort, text: str) -> None:
+        """End the run on a failure: no more steps, an ABORTED event, the reason kept."""
+        self.aborted = True
+        self.failure = text
+        logger.error("run aborted: %s", text)
+        self.publish_event(Event.ABORTED, float(reason))
 
     def begin_run(self, steps: int | None) -> None:
         """The plant back in the run's initial configuration, nothing held or pending."""
         self.plant.reset(initial_configuration(self.config))
+        self._run_start_ns = self.clock.now_ns()
         self._steps = steps
         self._closest = (-1, None)
         self.finish_tick = None
@@ -449,6 +580,111 @@ class PlantLoop:
         self._held_command = None
         self._last_applied_seq = -1
         self.watchdog.reset()
+
+    def snapshot(self, now_ns: int) -> Snapshot:
+        """Everything a restarted plant needs to go on from here (teleop.sim.checkpoint)."""
+        plant = self.plant
+        return Snapshot(
+            model_id=self.model_id,
+            step=plant.step_count,
+            t_ns=now_ns,
+            mujoco_state=plant.integration_state(),
+            hold_q_rad=plant.hold_q_rad,
+            loop={
+                "state_seq": self.state_seq,
+                "finish_tick": -1 if self.finish_tick is None else self.finish_tick,
+                "finished": self.finished,
+                "gripper_cmd": plant.gripper_cmd,
+                "held_body": int(self._held_body),
+                "run_start_ns": self._run_start_ns,
+                "counts": {
+                    "commands_received": self.commands_received,
+                    "commands_applied": self.commands_applied,
+                    "commands_future_state": self.commands_future_state,
+                    "unanswered_commands": self.unanswered_commands,
+                    "clamped_steps": plant.clamped_steps,
+                    "watchdog_brakes": self.watchdog.brakes,
+                    "stale_steps": self.watchdog.stale_steps,
+                },
+                "figures": asdict(self.figures),
+                "resumes": self.resumes,
+            },
+        )
+
+    def save_checkpoint(self, now_ns: int) -> None:
+        """Put :meth:`snapshot` in the store, timing what it costs the step; a failure is
+        logged (the first) and counted, and the run goes on."""
+        assert self.store is not None
+        start_ns = time.perf_counter_ns()  # its own cost, whatever the loop's clock
+        try:
+            self.store.save(self.snapshot(now_ns))
+        except CheckpointError as exc:
+            self.checkpoint_cost.failed += 1
+            if self.checkpoint_cost.failed == 1:
+                logger.error("checkpoint not taken: %s", exc)
+            return
+        self.checkpoint_cost.add(time.perf_counter_ns() - start_ns)
+
+    def resume(self, snapshot: Snapshot, previous: Progress | None, steps: int | None) -> None:
+        """Go on with the run of ``snapshot`` after a restart.
+
+        The physics is the checkpoint's (the arm, the gripper, the objects as they were
+        at its step); the stream goes on from where the previous incarnation stopped
+        (``previous``, its progress mark): the next state has the next ``seq``, its step
+        and sim time continue without a jump, so no receiver sees a restart or a gap.
+        The steps sent after the checkpoint are lost physics (the world is set back by
+        that much): the RESUMED event says how many.
+        """
+        loop = snapshot.loop
+        last_seq = max(int(loop["state_seq"]), previous.state_seq if previous else -1)
+        steps_lost = max(last_seq - snapshot.step, 0)
+        step = last_seq + 1  # the resumed state is published as the next one
+        self.plant.restore(
+            snapshot.mujoco_state, step, float(loop["gripper_cmd"]), snapshot.hold_q_rad
+        )
+        self.plant.clamped_steps = int(loop["counts"]["clamped_steps"])
+        self.state_seq = last_seq
+        self._steps = steps
+        finish = max(int(loop["finish_tick"]), previous.finish_tick if previous else -1)
+        self.finish_tick = finish if finish >= 0 else None
+        self.marks[SLOT_FINISH_TICK] = finish
+        self.finished = bool(loop["finished"])
+        self._held_body = int(loop["held_body"])
+        self._state["held_body"] = self._held_body
+        self._closest = (-1, None)
+        self._held_command = None
+        self._last_applied_seq = -1
+        counts = loop["counts"]
+        self.commands_received = int(counts["commands_received"])
+        self.commands_applied = int(counts["commands_applied"])
+        self.commands_future_state = int(counts["commands_future_state"])
+        self.unanswered_commands = int(counts["unanswered_commands"])
+        self.watchdog.brakes = int(counts["watchdog_brakes"])
+        self.watchdog.stale_steps = int(counts["stale_steps"])
+        self.watchdog.reset()
+        self.figures = PlantFigures(**loop["figures"])
+        if previous is not None and previous.command_seq >= 0:
+            self.command_in.seq.last_seq = previous.command_seq  # its commands go on too
+        self._run_start_ns = int(loop["run_start_ns"])
+        now_ns = self.clock.now_ns()
+        gap_ns = now_ns - previous.state_ns if previous and previous.state_ns else None
+        record = {
+            "step": step,
+            "sim_time_s": step * self.config.plant.timestep_s,
+            "checkpoint_step": snapshot.step,
+            "steps_lost": steps_lost,
+            "wall_gap_s": None if gap_ns is None else gap_ns / NS_PER_S,
+        }
+        self.resumes = [*loop["resumes"], record]
+        logger.warning(
+            "restarted: resuming the run at step %d from the checkpoint of step %d "
+            "(%d steps of physics lost, %s s since the last state sent)",
+            step,
+            snapshot.step,
+            steps_lost,
+            "?" if gap_ns is None else f"{gap_ns / NS_PER_S:.3f}",
+        )
+        self.publish_event(Event.RESUMED, float(steps_lost))
 
     def publish_initial_state(self) -> None:
         """Realtime: send the run's first state, the one the first command answers."""
@@ -582,9 +818,10 @@ class PlantLoop:
         self.grid.stepped()
 
     # -- lockstep ------------------------------------------------------------------------
-    def _start_lockstep(self) -> None:
-        """Publish state 0, then take the first ``lockstep_delay_steps`` steps, which no
-        command answers; the command callback may step from then on.
+    def _start_lockstep(self, *, braking: bool = False) -> None:
+        """Publish the first state, then take the first ``lockstep_delay_steps`` steps,
+        which no command answers (holding still; ``braking``: held by the brake, as after
+        a restart, where the arm may be moving); the command callback may step from then on.
 
         All under the lock, with the callback already enabled: an answer that comes back
         while these steps run waits for the lock instead of finding lockstep not started
@@ -597,29 +834,54 @@ class PlantLoop:
             for _ in range(self.delay_steps):
                 if not self.should_step():
                     break
-                self.plant.step_before_commands()
+                if braking:
+                    self.plant.step_braking()
+                else:
+                    self.plant.step_before_commands()
                 self._publish_state(None, 0, 0)
+            self._last_step_ns = self.clock.now_ns()
             if not self.should_step():
                 self._lockstep_done.set()  # the steps before commands were the whole run
 
     def _run_lockstep(self, stop: threading.Event) -> None:
-        """Let the command callback drive the steps; re-send the state if it goes unanswered."""
+        """Let the command callback drive the steps; re-send the state if it goes
+        unanswered, end the run if it stays so (:meth:`lockstep_waited`)."""
         try:
             last_step = -1
             while not stop.is_set() and not self._lockstep_done.wait(LOCKSTEP_RESEND_S):
-                with self.lock:
-                    if self.plant.step_count == last_step:
-                        self.republish_pending()
-                        # The controller went silent for a whole re-send period: if it was
-                        # restarted, its commands number afresh and it answers each state
-                        # once, too few for the sequence check to take it up by itself.
-                        # The next command answering the pending state is taken as is.
-                        with self._admit_lock:
-                            self.command_in.restart()
-                    last_step = self.plant.step_count
+                if not self.lockstep_waited(last_step):
+                    break
+                last_step = self.plant.step_count
         finally:
             with self.lock:
                 self._lockstep_running = False
+
+    def lockstep_waited(self, last_step: int) -> bool:
+        """Lockstep, every LOCKSTEP_RESEND_S without the run ending: if the plant has not
+        stepped since ``last_step``, re-send the pending state, or, once it has waited
+        ``plant.lockstep_timeout_s`` for the answer, abort the run (False)."""
+        with self.lock:
+            if self.plant.step_count != last_step:
+                return True
+            waited_ns = self.clock.now_ns() - self._last_step_ns
+            if waited_ns < self._lockstep_timeout_ns:
+                self.republish_pending()
+                # The controller went silent for a whole re-send period: if it was
+                # restarted, its commands number afresh and it answers each state once,
+                # too few for the sequence check to take it up by itself. The next
+                # command answering the pending state is taken as is.
+                with self._admit_lock:
+                    self.command_in.restart()
+                return True
+            self._lockstep_running = False  # a late answer steps nothing now
+            self._lockstep_done.set()  # the run thread's wait ends
+            self.abort(
+                Abort.LOCKSTEP_TIMEOUT,
+                f"lockstep: no answer to state {self.state_seq - self.delay_steps} for "
+                f"{waited_ns / NS_PER_S:.1f} s (plant.lockstep_timeout_s = "
+                f"{self.config.plant.lockstep_timeout_s:g}): the controller is gone or stuck",
+            )
+            return False
 
     def republish_pending(self) -> None:
         """Send the records of the states in flight again, byte for byte (same seq and
@@ -643,6 +905,7 @@ class PlantLoop:
                 self.unanswered_commands += 1
                 return
             applied_ns = self.clock.now_ns()
+            self._last_step_ns = applied_ns
             self.plant.step(
                 command["qd_ref_rad_s"][: self.plant.n_joints], float(command["gripper_cmd"])
             )
@@ -702,6 +965,11 @@ class PlantLoop:
         rec["trace_ns"][Stage.PLANT_STATE_TX] = now_ns
         self._put("plant_state", rec)
         self.watchdog.state_sent(self.state_seq, now_ns)
+        marks = self.marks
+        marks[SLOT_STATE_SEQ] = self.state_seq
+        marks[SLOT_STATE_NS] = now_ns
+        if self.checkpoint_every_steps and sample.step % self.checkpoint_every_steps == 0:
+            self.save_checkpoint(now_ns)
         if grasp_event is not None:
             self.publish_event(grasp_event, float(max(int(rec["held_body"]), 0)))
         if sample.step % self.scene_every_steps == 0:
@@ -806,6 +1074,10 @@ class PlantLoop:
             "tool_speed_max_m_s": figures.max_tool_speed_m_s,
             "object_in_box": self.plant.object_in_bin(),
             "rate_hz": self.plant.step_count / self.wall_s if self.wall_s > 0 else None,
+            "aborted": self.aborted,
+            "failure": self.failure,
+            "resumes": self.resumes,
+            "checkpoint": self.checkpoint_cost.summary(self.plant.step_count, self.store),
         }
         if self.grid is not None:
             steps = max(self.plant.step_count, 1)

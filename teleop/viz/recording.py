@@ -40,10 +40,13 @@ import io
 import json
 import logging
 import math
+import os
 import threading
 import time
+import uuid
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -66,6 +69,8 @@ from teleop.bus.messages import (
 from teleop.control.path import DesiredPath
 from teleop.control.teleop import view_to_world
 from teleop.core.config import Config, ModelError
+from teleop.core.rundir import segment_path
+from teleop.sim.stepping import Abort
 from teleop.viz.blueprint import build_blueprint
 from teleop.viz.entities import (
     APPLICATION_ID,
@@ -171,9 +176,16 @@ EVENT_LEVELS: Mapping[Event, str] = {
     Event.RELEASE: LEVEL_INFO,
     Event.PHASE: LEVEL_INFO,
     Event.TASK_DONE: LEVEL_INFO,
+    Event.RESUMED: LEVEL_WARN,
+    Event.ABORTED: LEVEL_WARN,
 }
 # TASK_DONE's value: 1 success, 0 the operator gave up.
 TASK_OUTCOMES: Mapping[bool, str] = {True: "success", False: "gave up"}
+# ABORTED's value (teleop.sim.stepping.Abort), in words.
+ABORT_REASONS: Mapping[int, str] = {
+    Abort.RESUME_FAILED: "the restarted plant could not resume its checkpoint",
+    Abort.LOCKSTEP_TIMEOUT: "lockstep got no answer within plant.lockstep_timeout_s",
+}
 
 # The record streams the recorder takes (teleop.bus.graph: it is among their consumers;
 # image frames come on a subscription of their own), in the graph's order.
@@ -221,8 +233,53 @@ def event_text(event: int, step: int, value: float) -> str:
         return f"{name} {round(value)} at step {step}"
     if event == Event.TASK_DONE:
         return f"{name} ({TASK_OUTCOMES[bool(value)]}) at step {step}"
+    if event == Event.RESUMED:
+        return f"{name} at step {step}: the plant restarted, {round(value)} steps of physics lost"
+    if event == Event.ABORTED:
+        return f"{name} at step {step}: {ABORT_REASONS.get(round(value), f'reason {value:g}')}"
     text = f"{name} at step {step}"
     return f"{text} (value {value:g})" if value else text
+
+
+@dataclass(frozen=True)
+class Segment:
+    """The part of a run's recording one recorder process writes: the first, or the
+    next one after a restart; every segment of a run has the run's Rerun recording id, so
+    a viewer given them all shows one recording."""
+
+    index: int
+    path: Path  # this segment's file
+    recording_id: str
+    recording_path: Path  # the recording's (its first segment's): what a reader opens
+
+
+def claim_segment(rrd_path: Path, ledger: Path | None) -> Segment:
+    """This recorder's segment of the recording ``rrd_path``, from the run's ``ledger``
+    (None: a recorder without a run directory, always the first segment).
+
+    No ledger yet: the run's first recorder; it takes ``rrd_path`` itself and removes
+    stale later segments beside it (of an earlier run). A ledger: a restarted recorder;
+    it takes the next segment, never an existing file. The ledger is updated atomically.
+    """
+    segments: list[str] = []
+    recording_id = uuid.uuid4().hex
+    if ledger is not None and ledger.exists():
+        known = json.loads(ledger.read_text())
+        segments, recording_id = list(known["segments"]), str(known["recording_id"])
+    else:
+        index = 1
+        while (stale := segment_path(rrd_path, index)).exists():
+            stale.unlink()
+            index += 1
+    index = len(segments)
+    segment = Segment(index, segment_path(rrd_path, index), recording_id, rrd_path)
+    if ledger is not None:
+        ledger.parent.mkdir(parents=True, exist_ok=True)
+        tmp = ledger.with_name(ledger.name + ".tmp")
+        text = {"recording_id": recording_id, "segments": [*segments, str(segment.path)]}
+        tmp.write_text(json.dumps(text, indent=2) + "\n")
+        os.replace(tmp, ledger)
+    return segment
 
 
 class StreamBuffer:
@@ -377,9 +434,11 @@ class RecordingWriter:
         drops: DropCounter,
         *,
         buffer_capacity: int = BUFFER_CAPACITY_RECORDS,
+        segment: Segment | None = None,
     ) -> None:
         self.config = config
-        self.rrd_path = rrd_path
+        self.segment = segment or Segment(0, rrd_path, uuid.uuid4().hex, rrd_path)
+        self.rrd_path = self.segment.path
         self.drops = drops
         self._cond = threading.Condition()
         self.buffers = {
@@ -434,6 +493,7 @@ class RecordingWriter:
         self._run_duration_ns = round(config.run.duration_s * 1e9)
         self._yaw_rad = 0.0  # newest predicted HMD yaw: device frame -> world (feedback)
         self._sim_time_ns = 0  # newest sim time seen, for events that carry none
+        self._segment_announced = True  # a later segment's start is in the event log
         self._rate_window_ns = round(rc.rate_window_s * 1e9)
         # Per stream: [window start ns, records counted]; and the newest record counted.
         self._rate_windows: dict[str, list[int]] = {}
@@ -450,11 +510,17 @@ class RecordingWriter:
     def open(self) -> None:
         """Open the recording: the file (and viewer), the blueprint, the static scene."""
         self._rec = self._open_recording()
+        # A later segment says so in the event log, at the sim time of its first states.
+        self._segment_announced = self.segment.index == 0
 
     def _open_recording(self) -> rr.RecordingStream:
         self.rrd_path.parent.mkdir(parents=True, exist_ok=True)
-        rec = rr.RecordingStream(APPLICATION_ID)
-        sinks: list[Any] = [rr.FileSink(self.rrd_path)]
+        rec = rr.RecordingStream(APPLICATION_ID, recording_id=self.segment.recording_id)
+        # No footer: a footer's manifest keeps every chunk's metadata in memory until the
+        # file closes, and the recorder's RSS grew with the file (about 1.3 MB/s of a
+        # realtime grasp); streamed without one it stays flat. The file is still a
+        # complete recording (rerun.chunk.RrdReader and the viewer read it in order).
+        sinks: list[Any] = [rr.FileSink(self.rrd_path, write_footer=False)]
         if self.config.recorder.spawn:
             rec.spawn(connect=False)
             sinks.append(rr.GrpcSink())
@@ -561,6 +627,13 @@ class RecordingWriter:
                 continue
             self._logged[name] += int(records.size)
             self._guarded(f"{name} timing", self._write_timing, name, records)
+        if not self._segment_announced and self._sim_time_ns > 0:
+            self._segment_announced = True
+            self.add_line(
+                LEVEL_WARN,
+                f"recorder restarted: segment {self.segment.index} ({self.rrd_path.name}) "
+                "begins; nothing was recorded since the previous segment's end",
+            )
         self._guarded("events", self._write_recorder_events)
         self._guarded("eye_view", self.eye_view.write, self._rec)
         elapsed_s = (time.monotonic_ns() - start_ns) * 1e-9
@@ -1041,7 +1114,8 @@ class RecordingWriter:
         wall_s = (time.monotonic_ns() - self._wall_start_ns) * 1e-9
         cpu_s = time.process_time() - self._cpu_start_s
         return {
-            "rrd_path": str(self.rrd_path),
+            "rrd_path": str(self.segment.recording_path),
+            "rrd_segment": self.segment.index,
             "samples_logged": dict(self._logged),
             "samples_received": received,
             "overflow_drops": overflow,

@@ -374,9 +374,31 @@ def _stats(rec: rrd.Recording) -> dict[str, Any]:
     return {}
 
 
-def _summary_text(path: Path, report: Report, events: Sequence[str], stats: dict) -> str:
+def _segments_text(rec: rrd.Recording) -> list[str]:
+    """report.md's section on a recording written in several segments (a recorder that
+    restarted): each file, the sim time it covers, and where the record has a gap."""
+    if len(rec.segments) < 2:
+        return []
+    lines = ["## Recording segments (the recorder restarted)", ""]
+    for segment in rec.segments:
+        span = "no timed data"
+        if segment.sim_start_ns is not None and segment.sim_end_ns is not None:
+            span = f"sim {segment.sim_start_ns * 1e-9:.3f} s to {segment.sim_end_ns * 1e-9:.3f} s"
+        lines.append(f"- {segment.path.name}: {span}")
+    for gap in rec.gaps():
+        lines.append(
+            f"- **gap**: nothing recorded from sim {gap.start_ns * 1e-9:.3f} s to "
+            f"{gap.end_ns * 1e-9:.3f} s ({(gap.end_ns - gap.start_ns) * 1e-9:.3f} s, "
+            f"after {gap.after.name})"
+        )
+    return [*lines, ""]
+
+
+def _summary_text(
+    path: Path, report: Report, events: Sequence[str], stats: dict, segments: Sequence[str] = ()
+) -> str:
     m = report.metrics
-    lines = [f"# Run report: {path.name}", ""]
+    lines = [f"# Run report: {path.name}", "", *segments]
     if "path_error_rms_mm" in m:
         lines += [
             "## Path following (paper experiment 1)",
@@ -455,7 +477,7 @@ def write_report(
     if r.norm_entity("device") in sim:
         _fig_forces(sim, report, t0)
     _fig_timing(rec, report)
-    summary = _summary_text(path, report, _events(rec), _stats(rec))
+    summary = _summary_text(path, report, _events(rec), _stats(rec), _segments_text(rec))
     report.summary = report.out_dir / REPORT_SUMMARY_FILE
     report.summary.write_text(summary)
     return report

@@ -1,9 +1,11 @@
 """Reading a recording (``.rrd``) back: for the report, the tests and tools.
 
-Uses Rerun's own chunk reader (``rerun.chunk.RrdReader``): no viewer, no server. The file
-is decoded once into Arrow record batches grouped by entity (:class:`Recording`); the
-helpers then pick columns from memory. Duration and timestamp time columns come back as
-int nanoseconds.
+Uses Rerun's own chunk reader (``rerun.chunk.RrdReader``): no viewer, no server. The file,
+and the later segments a restarted recorder wrote beside it (teleop.core.rundir
+``segment_path``), are decoded once into Arrow record batches grouped by entity
+(:class:`Recording`): one timeline, with the gaps between segments known
+(:meth:`Recording.gaps`). The helpers then pick columns from memory. Duration and
+timestamp time columns come back as int nanoseconds.
 """
 
 from __future__ import annotations
@@ -18,6 +20,9 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 from rerun.chunk import RrdReader
+
+from teleop.core.rundir import segment_paths
+from teleop.viz.entities import TIMELINE_SIM
 
 SCALARS_COLUMN = "Scalars:scalars"  # the value column of a Scalars archetype
 
@@ -44,23 +49,66 @@ class NotARecording(ValueError):
     """The file is missing or is not a Rerun recording (.rrd); the message says which."""
 
 
+@dataclass(frozen=True)
+class Segment:
+    """One file of a recording and the sim time it covers (ns; None: no sim time)."""
+
+    path: Path
+    sim_start_ns: int | None
+    sim_end_ns: int | None
+
+
+@dataclass(frozen=True)
+class Gap:
+    """Sim time between two segments that no segment covers (a recorder restart)."""
+
+    after: Path  # the segment that ends at start_ns
+    start_ns: int
+    end_ns: int
+
+
 class Recording:
-    """Every chunk of a ``.rrd`` file's recording, grouped by entity (no leading '/')."""
+    """Every chunk of a recording, all its segments, grouped by entity (no leading '/')."""
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         if not self.path.is_file():
             raise NotARecording(f"no recording {self.path}")
-        try:
-            reader = RrdReader(self.path)
-        except RuntimeError as exc:  # Rerun's reader: not an .rrd, or a damaged one
-            raise NotARecording(f"{self.path} is not a readable Rerun recording: {exc}") from None
-        self.has_blueprint = bool(reader.blueprints)
         self.batches: dict[str, list[pa.RecordBatch]] = defaultdict(list)
+        self.segments: list[Segment] = []
+        self.has_blueprint = False
+        for segment in segment_paths(self.path):
+            self._read_segment(segment)
+
+    def _read_segment(self, path: Path) -> None:
+        try:
+            reader = RrdReader(path)
+        except RuntimeError as exc:  # Rerun's reader: not an .rrd, or a damaged one
+            raise NotARecording(f"{path} is not a readable Rerun recording: {exc}") from None
+        self.has_blueprint = self.has_blueprint or bool(reader.blueprints)
+        start, end = None, None
         # collect() compacts the recorder's many small chunks (one per entity and flush)
         # into a few large ones: about 10x faster to read for a 20 s grasp.
         for chunk in reader.stream().collect().stream():
-            self.batches[chunk.entity_path.lstrip("/")].append(chunk.to_record_batch())
+            batch = chunk.to_record_batch()
+            self.batches[chunk.entity_path.lstrip("/")].append(batch)
+            if TIMELINE_SIM in batch.schema.names:
+                times = _as_int_ns(batch.column(TIMELINE_SIM))
+                low, high = pc.min(times).as_py(), pc.max(times).as_py()
+                if low is not None:
+                    start = low if start is None else min(start, low)
+                    end = high if end is None else max(end, high)
+        self.segments.append(Segment(path, start, end))
+
+    def gaps(self) -> list[Gap]:
+        """The sim time missing between consecutive segments (where a recorder was down;
+        segments that overlap leave none)."""
+        gaps = []
+        for before, after in zip(self.segments, self.segments[1:], strict=False):
+            end, start = before.sim_end_ns, after.sim_start_ns
+            if end is not None and start is not None and start > end:
+                gaps.append(Gap(before.path, end, start))
+        return gaps
 
     @property
     def entities(self) -> list[str]:

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import quote
 
+from teleop.core.rundir import segment_paths
+
 LOOPBACK = "127.0.0.1"
 # How long to wait for the web viewer's HTTP port to accept connections (s) ...
 SERVE_TIMEOUT_S = 30.0
@@ -151,8 +153,8 @@ def serve_web(
         "--server-memory-limit",
         SERVER_MEMORY_LIMIT,
     ]
-    if rrd_path is not None:
-        args.append(str(rrd_path))
+    if rrd_path is not None:  # with the segments of restarted recorders: one timeline
+        args += [str(path) for path in segment_paths(rrd_path)]
     log = open(log_path, "ab") if log_path is not None else subprocess.DEVNULL
     try:
         # A process group of its own, so that stop() reaches the native server too.
@@ -176,4 +178,5 @@ def open_native(rrd_path: Path) -> int:
     """Open ``rrd_path`` in the native viewer (needs a display); its exit code."""
     if not rrd_path.is_file():
         raise ViewerError(f"no recording {rrd_path}")
-    return subprocess.call([rerun_executable(), str(rrd_path)], stdin=subprocess.DEVNULL)
+    paths = [str(path) for path in segment_paths(rrd_path)]  # every segment, one timeline
+    return subprocess.call([rerun_executable(), *paths], stdin=subprocess.DEVNULL)

@@ -79,6 +79,10 @@ def service_config(name: str) -> Config:
     )
 
 
+# A shed age no stage of this replay reaches (ns).
+NEVER_SHED_NS = 3600 * 10**9
+
+
 class Loop:
     """The three loop services in one process, driven period by period through the
     callbacks their subscribers would run."""
@@ -91,6 +95,15 @@ class Loop:
         self.services: tuple[Service, ...] = (self.plant, self.controller, self.haptic)
         for service in self.services:
             service.open()
+        # Stages are driven one by one here, with a cache eviction between them that can
+        # outlast the realtime shed age: nothing may be shed as too old, every stage runs.
+        for inbound in (
+            self.plant.loop.command_in,
+            self.controller.core.haptic_in,
+            self.controller.core.state_in,
+            self.haptic.loop.feedback_in,
+        ):
+            inbound.shed_age_ns = NEVER_SHED_NS
         self.plant.loop.begin_run(None)
         self.plant.loop.begin_on_arrival()
         self.plant.loop._publish_state(None, 0, 0)  # state 0: the first sample is answered on it

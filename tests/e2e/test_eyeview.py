@@ -14,6 +14,7 @@ from PIL import Image
 
 from teleop.core.config import load_config
 from teleop.viz import entities as ent
+from tests.e2e.outcome import assert_ran
 from tests.integration.test_recorder import read_rrd
 
 RUN_TIMEOUT_S = 300
@@ -30,8 +31,9 @@ def _run(tmp_path: Path, name: str, *overrides: str) -> dict:
         ],
         capture_output=True, text=True, timeout=RUN_TIMEOUT_S, stdin=subprocess.DEVNULL,
     )  # fmt: skip
-    assert result.returncode == 0, result.stderr[-3000:]
-    return json.loads(out.read_text())
+    summary = json.loads(out.read_text()) if out.exists() else None
+    assert_ran(result.returncode, summary, result.stderr)
+    return summary
 
 
 def test_frames_reach_the_recorder_over_shared_memory_and_land_in_the_rrd(tmp_path):

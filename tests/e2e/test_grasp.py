@@ -23,6 +23,7 @@ from teleop.viz.blueprint import view_specs
 from teleop.viz.report import write_report
 from teleop.viz.rrd import Recording
 from teleop.viz.scene3d import ENTITY_GHOSTS, SceneModel
+from tests.e2e.outcome import assert_ran
 
 # Tolerance on the held weight the operator feels, as a fraction of m g.
 WEIGHT_TOLERANCE = 0.10
@@ -44,7 +45,10 @@ def grasp(tmp_path: Path, name: str, *args: str) -> dict:
     )  # fmt: skip
     assert out.exists(), result.stderr[-3000:]
     summary = json.loads(out.read_text())
-    assert result.returncode == (0 if summary["success"] else 1)
+    if summary["success"]:
+        assert_ran(result.returncode, summary, result.stderr)
+    else:
+        assert result.returncode == 1, result.stderr[-3000:]
     return summary
 
 

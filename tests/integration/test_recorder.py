@@ -27,10 +27,11 @@ from teleop.bus import messages as m
 from teleop.bus import session as bus
 from teleop.bus.service import ServiceOptions
 from teleop.core.config import Config, ConfigError, load_config
-from teleop.core.rundir import RECORDING_FILE, summary_path
+from teleop.core.rundir import RECORDER_SEGMENTS_FILE, RECORDING_FILE, summary_path
 from teleop.viz import entities as ent
 from teleop.viz import recording
-from teleop.viz.rrd import read_rrd
+from teleop.viz.report import write_report
+from teleop.viz.rrd import Recording, read_rrd
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")
 os.environ.setdefault("TELEMETRY_ENABLED", "false")
@@ -580,3 +581,37 @@ def test_rates_hops_and_seq_gaps_are_derived_from_the_records(rig_factory, tmp_p
     texts = [t[0] for t in data[ent.ENTITY_RECORDER_EVENTS]["TextLog:text"]]
     assert f"plant_state: {missing} record(s) missing (seq gaps)" in texts
     assert "service recorder joined the bus" in texts
+
+
+def test_a_restarted_recorder_writes_the_next_segment_and_the_reader_joins_them(tmp_path):
+    """Two recorder incarnations of one run: the second never overwrites the first, and
+    the reader (and the report) see one timeline with the gap between them marked."""
+    config = make_config("", free_endpoint())
+    options = ServiceOptions(run_dir=tmp_path)
+    spans = ((0, 40), (60, 100))  # records 40..59 fall while the recorder is down
+    paths = []
+    for first, last in spans:
+        service = r.RecorderService(config, options)
+        writer = service.writer
+        writer.open()
+        for i in range(first, last):
+            writer.buffers["plant_state"](build("plant_state", i), 0)
+        writer.close()  # a killed recorder flushed until its end: same files, less data
+        paths.append(service.rrd_path)
+    assert paths == [tmp_path / RECORDING_FILE, tmp_path / "recording.1.rrd"]
+    rec = Recording(tmp_path / RECORDING_FILE)
+    assert [s.path for s in rec.segments] == paths
+    (gap,) = rec.gaps()
+    assert (gap.start_ns, gap.end_ns) == (sim_ns(39), sim_ns(60))
+    q = rec.scalars(ent.TIMELINE_SIM)[ent.joint_entity(ent.ENTITY_JOINT_Q, JOINTS[0])]
+    assert len(q.t_ns) == 80  # both segments' samples, one series
+    texts = [t for rows in rec.column(ent.ENTITY_RECORDER_EVENTS, "TextLog:text").values()
+             for row in rows for t in row]  # fmt: skip
+    assert any("recorder restarted: segment 1" in t for t in texts)
+    report = write_report(tmp_path / RECORDING_FILE)
+    text = report.summary.read_text()
+    assert "recording.1.rrd" in text and f"from sim {sim_ns(39) * 1e-9:.3f} s" in text
+    # A new run (no ledger: the launcher clears it) starts over and drops stale segments.
+    (tmp_path / RECORDER_SEGMENTS_FILE).unlink()
+    assert r.RecorderService(config, options).rrd_path == paths[0]
+    assert not paths[1].exists()

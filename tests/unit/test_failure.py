@@ -6,7 +6,13 @@ from pathlib import Path
 
 import pytest
 
-from teleop.run.failure import ProgramWatch, ServiceFailed, hint_for, last_lines
+from teleop.run.failure import (
+    ProgramWatch,
+    ServiceFailed,
+    hint_for,
+    last_lines,
+    program_log_text,
+)
 
 SHM_LOG = """2026-11-25 10:28:57 eyeview INFO teleop.bus.service: pinned to CPU(s) [1]
 Traceback (most recent call last):
@@ -77,3 +83,21 @@ def test_an_exit_code_is_reported():
     watch = _watch({"plant": "SystemExit: 2\n"})
     with pytest.raises(ServiceFailed, match="exited with code 2"):
         watch.check([_info("plant", "EXITED", 0, exitstatus=2)])
+
+
+def test_an_empty_log_is_replaced_by_what_supervisord_said_about_the_program(tmp_path):
+    log = tmp_path / "logs" / "controller.log"
+    log.parent.mkdir()
+    log.write_text("")
+    supervisord_log = tmp_path / "supervisord.log"
+    supervisord_log.write_text(
+        "2026-11-25 11:49:13,354 INFO spawned: 'controller' with pid 30607\n"
+        "2026-11-25 11:49:13,360 INFO spawned: 'plant' with pid 30608\n"
+        "2026-11-25 11:49:13,774 WARN exited: controller (terminated by SIGKILL; not expected)\n"
+    )
+    text = program_log_text(log, supervisord_log)
+    assert text.splitlines() == [
+        "supervisord: 2026-11-25 11:49:13,354 INFO spawned: 'controller' with pid 30607",
+        "supervisord: 2026-11-25 11:49:13,774 WARN exited: controller (terminated by SIGKILL;"
+        " not expected)",
+    ]

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 
 from teleop.bench.relay import FLOOR_STAND_INS, RELAYS, PlantRelay
-from teleop.bus.service import Service, fifo_scheduling, pin_to_cpus
+from teleop.bus.service import Service, ServiceOptions, fifo_scheduling, pin_to_cpus
 from teleop.core.clock import FINE_SLEEP_MARGIN_NS, MonotonicClock
 from teleop.core.config import load_config
 
@@ -62,3 +63,23 @@ def test_the_floor_relays_run_where_the_services_they_stand_in_for_run():
     assert FLOOR_STAND_INS == {"relay_controller": "controller", "relay_plant": "plant"}
     assert {relay.name: relay.scheduling_as for relay in RELAYS} == FLOOR_STAND_INS
     assert PlantRelay.scheduling_as == "plant" and Service.scheduling_as == ""
+
+
+def test_a_restarted_services_summary_keeps_its_earlier_processes(tmp_path):
+    class Counting(Service):
+        name = "counting"
+        count = 0
+
+        def summary(self):
+            return {"count": self.count}
+
+    path = tmp_path / "counting.summary.json"
+    path.write_text(json.dumps({"count": 7, "pid": -1}))  # a process before this one
+    service = Counting(load_config(), ServiceOptions(run_dir=tmp_path))
+    service.count = 3
+    service.write_summary()
+    service.count = 4
+    service.write_summary()  # the same process again: replaces its own, keeps the earlier
+    written = json.loads(path.read_text())
+    assert written["count"] == 4 and written["pid"] == os.getpid()
+    assert written["earlier_incarnations"] == [{"count": 7, "pid": -1}]

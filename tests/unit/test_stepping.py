@@ -65,17 +65,19 @@ def make_loop(*overrides: str) -> tuple[PlantLoop, Recorded, FakeClock]:
 
 def test_watchdog_judges_on_the_plants_clock_and_state_numbering():
     ms = 1_000_000
-    dog = Watchdog(limit_ns=20 * ms)
+    dog = Watchdog(limit_ns=20 * ms, period_ns=ms)
     assert dog.judge(None, 0) == (False, None, 0.0)  # nothing yet: hold, no event
     for seq in range(101):  # states 0..100 sent 1 ms apart
         dog.state_sent(seq, seq * ms)
     cmd = command(1, state_seq=100, now_ns=0)
     assert dog.judge(cmd, 500 * ms).apply  # answers the newest state: fresh however late
     dog.state_sent(101, 101 * ms)
-    assert dog.judge(cmd, 121 * ms).apply  # state 101 out for 20 ms: still fresh
-    brake = dog.judge(cmd, 121 * ms + 1)
+    # The command answering state 100 came after 100 ms: the step at 120 ms, 20 ms after
+    # state 100, is the first that brakes.
+    assert dog.judge(cmd, 120 * ms - 1).apply
+    brake = dog.judge(cmd, 120 * ms)
     assert not brake.apply and brake.event is Event.WATCHDOG_BRAKE
-    assert brake.value == pytest.approx(0.021, abs=1e-6)  # the answered state's age (s)
+    assert brake.value == pytest.approx(0.020, abs=1e-6)  # the answered state's age (s)
     assert dog.judge(cmd, 122 * ms) == (False, None, 0.0)  # still braking: no second event
     resume = dog.judge(command(2, state_seq=101, now_ns=0), 122 * ms)
     assert resume.apply and resume.event is Event.WATCHDOG_RESUME
@@ -83,7 +85,9 @@ def test_watchdog_judges_on_the_plants_clock_and_state_numbering():
     # A state too old to remember (or never sent) is stale.
     assert not dog.judge(command(3, state_seq=0, now_ns=0), 122 * ms).apply
     with pytest.raises(ValueError):
-        Watchdog(0)
+        Watchdog(0, ms)
+    with pytest.raises(ValueError):
+        Watchdog(ms, ms)
 
 
 def test_device_clock_grid_steps_each_device_period_once():
@@ -114,13 +118,14 @@ def test_plant_tick_pacing_brakes_on_a_stale_command_and_resumes():
     loop.tick()  # no command yet: braking, no event
     assert out.records["plant_state"][-1]["flags"] == Flag.BRAKING and out.events() == []
     loop.on_command(command(1, state_seq=1, now_ns=clock.now_ns()), clock.now_ns())
-    for _ in range(limit_ms + 1):  # applied while state 2 is out for at most the limit
+    # Applied while state 1 (the one answered) went out less than the limit ago.
+    for _ in range(limit_ms - 1):
         clock.advance(PERIOD_NS)
         loop.tick()
     assert loop.commands_applied == 1 and out.events() == []
     assert out.records["plant_state"][-1]["flags"] == Flag.NONE
     clock.advance(PERIOD_NS)
-    loop.tick()  # the command now answers a state superseded more than the limit ago
+    loop.tick()  # the command now answers a state sent the limit ago
     assert out.events() == [Event.WATCHDOG_BRAKE]
     assert out.records["plant_state"][-1]["flags"] == Flag.BRAKING
     fresh = command(2, state_seq=loop.state_seq, now_ns=clock.now_ns())
