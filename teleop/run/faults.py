@@ -29,6 +29,7 @@ from __future__ import annotations
 import difflib
 import logging
 import math
+import os
 import re
 import signal
 import threading
@@ -309,6 +310,17 @@ def world_reset(record: FaultRecord, arrays: dict[str, np.ndarray]) -> bool:
 # -- the injector ------------------------------------------------------------------------
 
 
+def _group_exists(pgid: int) -> bool:
+    """Whether process group ``pgid`` still has a process (signal 0 probes, sends none)."""
+    try:
+        os.killpg(pgid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 @dataclass
 class InjectorHooks:
     """What the injector acts through: ``pid_of(name)`` the pid of a service's process,
@@ -404,6 +416,8 @@ class FaultInjector:
                     thaws.remove(record)
                     self._signal(record, signal.SIGCONT)
                     record.thaw_ns = self.hooks.now_ns()
+                if pending and not pending[0].pid:
+                    self._prefetch_pid(pending[0])
                 while pending and self._due(pending[0].spec):
                     record = pending.pop(0)
                     self._inject(record)
@@ -424,22 +438,39 @@ class FaultInjector:
     def _thaw_due_ns(self, record: FaultRecord) -> int:
         return record.inject_ns + round(record.spec.freeze_s * NS_PER_S)
 
+    def _prefetch_pid(self, record: FaultRecord) -> None:
+        """Look the next fault's pid up ahead of its instant, the lock released meanwhile
+        (asking a supervisor that shares a starved machine can take a good part of a
+        second, and the bus callbacks must not wait on it)."""
+        self._cond.release()
+        try:
+            pid = self.hooks.pid_of(record.spec.service)
+        except Exception:  # the stack's errors: looked up again at the instant
+            pid = 0
+        finally:
+            self._cond.acquire()
+        record.pid = pid
+
     def _inject(self, record: FaultRecord) -> None:
         spec = record.spec
-        try:
-            record.pid = self.hooks.pid_of(spec.service)
-        except Exception as exc:  # the stack's errors: the service may be gone
-            record.error = f"no process to signal: {exc}"
+        signum = signal.SIGKILL if spec.kind == KILL else signal.SIGSTOP
+        record.t_s, record.step = self._sim_s, self._step
+        if record.pid and not _group_exists(record.pid):
+            record.pid = 0  # looked up before a restart: that process is gone
+        if not record.pid:
+            try:
+                record.pid = self.hooks.pid_of(spec.service)
+            except Exception as exc:  # the stack's errors: the service may be gone
+                record.error = f"no process to signal: {exc}"
         if not record.pid and not record.error:
             record.error = "no process to signal: the service is not running"
         if record.error:
             logger.error("%s: %s", spec.text(), record.error)
             return
-        record.t_s, record.step = self._sim_s, self._step
         if spec.kind == KILL:
             self.hooks.expect_restart(spec.service)
         record.inject_ns = self.hooks.now_ns()
-        self._signal(record, signal.SIGKILL if spec.kind == KILL else signal.SIGSTOP)
+        self._signal(record, signum)
         logger.warning("injected %s at sim %.3f s", spec.text(), record.t_s)
 
     def _signal(self, record: FaultRecord, signum: int) -> None:

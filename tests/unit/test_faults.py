@@ -225,17 +225,17 @@ def test_in_realtime_a_fault_is_due_on_the_clock_from_the_plants_start():
 
 
 def test_a_fault_on_a_service_that_is_not_running_is_reported_not_injected():
-    asked = threading.Event()
+    asked = threading.Semaphore(0)
 
     def pid_of(name: str) -> int:
-        asked.set()
+        asked.release()
         return 0  # supervisord's pid of a program that is not running
 
     hooks = InjectorHooks(pid_of, lambda pid, signum: None, lambda name: None, int)
     injector = FaultInjector([FaultSpec("hmd", KILL, 0.0)], hooks)
     injector.start()
     injector.on_state(0, 0)
-    assert asked.wait(5)
+    assert asked.acquire(timeout=5) and asked.acquire(timeout=5)  # ahead, then at the instant
     injector.close()
     (record,) = injector.records
     assert record.error.startswith("no process") and record.inject_ns == 0
