@@ -9,8 +9,8 @@ run stamps with it), from the instant of injection:
 
 - ``brake_ms``: until the tool moves slower than :data:`BRAKE_SPEED_M_S` (the plant's
   watchdog holds the arm when commands stop); 0 when it was already still, None when it
-  did not get that slow within the record (a service off the command path: the arm was
-  never stopped).
+  did not get that slow before the service was back, and for a service off the command
+  path (the HMD, operator, recorder, eye view: the arm is not theirs to stop).
 - ``restart_s``: a kill: until the new incarnation's ready token (it sees every peer);
   None for a freeze, or if it never came.
 - ``resumed_s``: until the first state whose applied command was made after the service
@@ -281,7 +281,8 @@ def fault_report(
     back_ns = record.back_ns
     if end_ns is None:
         end_ns = back_ns if back_ns else np.iinfo(np.int64).max
-    brake = brake_index(t_ns, speed_at, record.inject_ns, end_ns)
+    on_path = spec.service in RESUME_STAGE  # off it, the arm is not the fault's to stop
+    brake = brake_index(t_ns, speed_at, record.inject_ns, end_ns) if on_path else None
     if brake is not None:
         out["brake_ms"] = round(max(0, int(t_ns[brake]) - record.inject_ns) / NS_PER_MS, 2)
     if spec.kind == KILL and record.ready_ns:
