@@ -156,6 +156,23 @@ def build_parser() -> argparse.ArgumentParser:
     _add_web_port_arguments(run)
     _add_without_arguments(run)
     run.add_argument(
+        "--kill",
+        action="append",
+        default=[],
+        metavar="SERVICE@T",
+        help="inject a fault: SIGKILL SERVICE when the plant's sim time reaches T seconds "
+        "(supervisord restarts it; repeatable). The summary's `faults` says how fast the "
+        "arm braked, the service came back and control resumed; see docs/faults.md",
+    )
+    run.add_argument(
+        "--freeze",
+        action="append",
+        default=[],
+        metavar="SERVICE@T:SECONDS",
+        help="inject a fault: SIGSTOP SERVICE at sim time T, SIGCONT SECONDS (wall clock) "
+        "later (repeatable)",
+    )
+    run.add_argument(
         "--report",
         action="store_true",
         help="after the run, write the figures and summary (see `teleop report`)",
@@ -364,9 +381,12 @@ def _run(args: argparse.Namespace) -> int:
             overrides.append(f'recorder.rrd_path="{args.rrd.absolute()}"')
         if args.spawn:
             overrides.append("recorder.spawn=true")
-    if args.inprocess and (args.spawn or args.web or args.report or args.without):
+    if args.inprocess and (
+        args.spawn or args.web or args.report or args.without or args.kill or args.freeze
+    ):
         raise ConfigError(
-            "--spawn, --web, --report and --without need the services run (drop --inprocess)"
+            "--spawn, --web, --report, --without, --kill and --freeze need the services "
+            "run (drop --inprocess)"
         )
     config = load_config(args.config, overrides)
     # A failed run must not leave the previous run's summary looking like its own.
@@ -417,6 +437,8 @@ def _run_and_report(
                 None if args.quiet else _print_line,
                 without=args.without,
                 without_timeout_s=args.without_timeout,
+                kills=args.kill,
+                freezes=args.freeze,
             )
         except RunError as exc:
             print(f"teleop: {exc}", file=sys.stderr)

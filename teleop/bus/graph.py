@@ -85,7 +85,7 @@ STREAMS: tuple[Stream, ...] = (
            "every `1 / plant.scene_rate_hz` (`interaction_step`); the haptic service "
            "takes it in lockstep only"),
     Stream("plant_state_batch", "state/plant/batch", PLANT_STATE, ("plant",),
-           ("recorder", "eyeview"), "1 kHz / `bus.observer_batch_records`",
+           ("recorder", "eyeview", "launcher"), "1 kHz / `bus.observer_batch_records`",
            qos=OBSERVER_QOS, batch_of="plant_state"),
     Stream("tool_pose", "state/tool_pose", TOOL_POSE, ("plant",),
            ("recorder", "operator", "hmd", "launcher"),

@@ -298,6 +298,9 @@ class BilateralCycle(ControllerCore):
         )
         self.hmd_lead_ticks = round(config.hmd.prediction_s / self.timestep_s)
         self.stale_ticks = round(config.haptic.stale_feedback_s / self.timestep_s)
+        # Realtime: a newest plant state older than this on the clock means the plant went
+        # silent; a command answering it would only be braked on (plant.watchdog_s).
+        self.state_silent_ns = round(config.plant.watchdog_s * 1e9)
         self._feedback = FORCE_FEEDBACK.new()
         self.feedback_count = 0  # FORCE_FEEDBACK records sent (their seq)
         self._status = TELEOP_STATUS.new()
@@ -336,6 +339,7 @@ class BilateralCycle(ControllerCore):
         self.max_limits_force_n = 0.0
         self.clearance_held_cycles = 0
         self.safety = MotionSafety(self.config.control.singularity_event_manipulability)
+        self.plant_silent_samples = 0
 
     def reset(self) -> None:
         self.controller.reset()
@@ -424,6 +428,9 @@ class BilateralCycle(ControllerCore):
         state = latest_state[0]
         tick = int(state["seq"])
         t0 = self.clock.now_ns()
+        if t0 - int(state["trace_ns"][Stage.PLANT_STATE_TX]) > self.state_silent_ns:
+            self.plant_silent_samples += 1  # the plant went silent: command no motion
+            return
         prepared_seq, terms, obstacle = self._prepared
         if prepared_seq != tick:  # not prepared for this state: all of it here
             terms, obstacle = None, ProximitySample.from_state(state)
@@ -459,7 +466,7 @@ class BilateralCycle(ControllerCore):
         # one): measuring this state's clearance first would delay the feedback by it.
         _, previous_terms, _ = self._prepared
         components, device_f_n, held_mass = self._feedback_force(
-            state, obstacle, handle_d_m, yaw_rad, previous_terms
+            state, obstacle, handle_d_m, yaw_rad, previous_terms, live=haptic is not None
         )
         self.compute_ns_total += self.clock.now_ns() - t0
         self._send_feedback(tick, state, components, device_f_n, state["trace_ns"])
@@ -532,10 +539,13 @@ class BilateralCycle(ControllerCore):
         handle_d_m: np.ndarray,
         yaw_rad: float,
         terms: JointStateTerms | None,
+        live: bool = True,
     ) -> tuple[FeedbackComponents, np.ndarray, float]:
         """Force feedback components, the device force (N, device frame) and the held mass,
         from the contact in ``state`` (PLANT_STATE) and the push-back of the scene and the
-        arm's limits in ``terms`` (None: none)."""
+        arm's limits in ``terms`` (None: none). Not ``live`` (the handle went silent, or
+        none yet): the components are still reported, the device force is zero (a handle
+        that comes back must not be pushed by forces it did not feel build up)."""
         config = self.config
         world_f_gripper_n = np.array(state["world_f_contact_n"])
         held_mass_kg = float(state["held_mass_kg"])
@@ -548,6 +558,8 @@ class BilateralCycle(ControllerCore):
             terms.world_f_scene_n if terms is not None else None,
             terms.world_f_limits_n if terms is not None else None,
         )
+        if not live:
+            return components, np.zeros(3), held_mass_kg
         device_f_n = device_force(components, yaw_rad, config.teleop, config.haptic)
         return components, device_f_n, held_mass_kg
 
@@ -583,7 +595,7 @@ class BilateralCycle(ControllerCore):
             tick, state, haptic, obstacle, terms
         )
         components, device_f_n, held_mass = self._feedback_force(
-            state, obstacle, handle_d_m, yaw_rad, terms
+            state, obstacle, handle_d_m, yaw_rad, terms, live=haptic is not None
         )
         self.compute_ns_total += self.clock.now_ns() - t0
 
@@ -688,6 +700,7 @@ class BilateralCycle(ControllerCore):
             "held_weight_n": held,
             "held_cycles": self.held_count,
             "no_input_cycles": self.no_input_cycles,
+            "plant_silent_samples": self.plant_silent_samples,
             "missing_head_poses": self.missing_head_poses,
             "barrier_dropped": self.barrier.dropped,
             "haptic_lost": self.haptic_in.seq.lost,

@@ -14,6 +14,7 @@ values, so a unit test drives it.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -116,25 +117,40 @@ class ProgramWatch:
     ``log_of(name)`` gives a program's log path and ``read(path)`` its text (both
     injected: the stack knows where logs are, a test passes strings).
     ``restarts_expected``: programs killed on purpose (a test of their restart), whose
-    new pid and passage through EXITED or BACKOFF are no failure (FATAL still is).
+    new pid and passage through EXITED or BACKOFF are no failure (FATAL still is);
+    :meth:`expect_restart` announces one such restart at a time (an injected fault).
     """
 
     log_of: Callable[[str], Path]
     read: Callable[[Path], str]
     restarts_expected: frozenset[str] = frozenset()
     _pids: dict[str, int] = field(default_factory=dict)
+    # Restarts announced by expect_restart and not yet seen, by program.
+    _expected: dict[str, int] = field(default_factory=dict)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def expect_restart(self, name: str) -> None:
+        """Program ``name`` is about to be killed on purpose (an injected fault): its
+        death and one restart are not a failure; a second restart still is. Thread-safe."""
+        with self._lock:
+            self._expected[name] = self._expected.get(name, 0) + 1
 
     def check(self, infos: list[Mapping[str, Any]]) -> None:
         """Raise :class:`ServiceFailed` for the first program that failed since the last
-        call: a failed state, or a new pid (restarted after dying)."""
+        call: a failed state, or a new pid (restarted after dying), unless expected."""
         for info in infos:
             name, state, pid = str(info["name"]), str(info["statename"]), int(info["pid"])
             what = ""
-            expected = name in self.restarts_expected
+            with self._lock:
+                counted = self._expected.get(name, 0)
+            expected = name in self.restarts_expected or counted > 0
             if expected and state in RESTARTING_STATES:
                 pass
             elif state in FAILED_STATES:
                 what = _failed_state(state, info)
+            elif pid and self._pids.get(name, pid) != pid and counted:
+                with self._lock:
+                    self._expected[name] -= 1  # the announced restart came
             elif pid and self._pids.get(name, pid) != pid and not expected:
                 code = info.get("exitstatus")
                 died = f"exited with code {code}" if code and code > 0 else "died"

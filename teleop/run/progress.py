@@ -122,6 +122,8 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
     if "realtime_verdict" in summary:  # a services run judged itself
         lines.append(f"  real time          {verdict}")
     lines += [f"    - {problem}" for problem in summary.get("realtime_problems", [])]
+    for fault in summary.get("faults") or []:
+        lines.append(f"  fault              {fault_line(fault)}")
     refused = summary.get("refused_privileges") or []
     if refused:
         lines.append("  privileges refused (README, Privileges):")
@@ -133,6 +135,18 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
     if summary_path:
         lines.append(f"  full summary       {summary_path}")
     return lines
+
+
+def fault_line(fault: Mapping[str, Any]) -> str:
+    """One injected fault and what followed (teleop.run.faults), for a person."""
+    what = f"{fault.get('kind')} {fault.get('service')} at {_num(fault.get('t_s'), '.2f', ' s')}"
+    if fault.get("error"):
+        return f"{what}: {fault['error']}"
+    return (
+        f"{what}: braked {_num(fault.get('brake_ms'), '.1f', ' ms')}, restarted "
+        f"{_num(fault.get('restart_s'), '.2f', ' s')}, resumed "
+        f"{_num(fault.get('resumed_s'), '.2f', ' s')} (from the fault)"
+    )
 
 
 def _phases_reached(phases: Any) -> str:

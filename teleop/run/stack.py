@@ -39,7 +39,7 @@ import zenoh
 
 from teleop.bus import graph
 from teleop.bus.access import LAUNCHER, OBSERVER, write_run_credentials
-from teleop.bus.messages import TOOL_POSE, DropCounter, Event
+from teleop.bus.messages import PLANT_STATE, TOOL_POSE, DropCounter, Event
 from teleop.bus.session import (
     Latest,
     ServicesMissing,
@@ -51,6 +51,7 @@ from teleop.bus.session import (
     wait_alive,
 )
 from teleop.bus.topics import Topics
+from teleop.control.kinematics import build_arm_model, tool_jacobian
 from teleop.core.config import BusConfig, Config, load_config
 from teleop.core.rundir import (
     AUTH_DIR,
@@ -63,6 +64,17 @@ from teleop.core.rundir import (
 )
 from teleop.devices.operator import Scenario
 from teleop.run.failure import ProgramWatch, ServiceFailed, program_log_text
+from teleop.run.faults import (
+    FaultInjector,
+    FaultSpec,
+    InjectorHooks,
+    StateLog,
+    fault_report,
+    parse_faults,
+    resumed_index,
+    stage_stamps,
+    world_reset,
+)
 from teleop.run.idle_poll import POLLING, read_status
 from teleop.run.outside import (
     DEFAULT_WITHOUT_TIMEOUT_S,
@@ -356,6 +368,8 @@ def run_on_services(
     without_timeout_s: float = DEFAULT_WITHOUT_TIMEOUT_S,
     announce: Callable[[str], None] = _stderr,
     restarts_expected: Sequence[str] = (),
+    kills: Sequence[str] = (),
+    freezes: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Run ``config.run.scenario`` on the supervised services; return the merged summary.
 
@@ -367,10 +381,15 @@ def run_on_services(
     ``without_timeout_s`` for their ready tokens (RunError after that). Their summaries
     are missing: the run's summary takes what the stack measured and lists them under
     ``outside``.
+
+    ``kills`` / ``freezes``: faults to inject, ``SERVICE@T`` / ``SERVICE@T:SECONDS``
+    (teleop.run.faults; a bad one raises FaultSpecError before anything starts); the
+    summary's ``faults`` says what followed each.
     """
     stack_services = scenario_services(config)
     outside = check_without(stack_services, without)
     services = tuple(name for name in stack_services if name not in outside)
+    fault_specs = parse_faults(kills, freezes, services, config.run.duration_s)
     run_dir = run_dir.absolute()
     run_dir.mkdir(parents=True, exist_ok=True)
     refuse_if_running(run_dir)
@@ -404,6 +423,8 @@ def run_on_services(
     tracker = RunProgress(config.run.duration_s, phases)
 
     def on_event(rec: np.ndarray, rx_ns: int) -> None:
+        if int(rec["event"]) == Event.STARTED and faults is not None:
+            faults.on_started(int(rec["t_source_ns"]))
         if int(rec["event"]) in (Event.FINISHED, Event.ABORTED):
             finished.set()
         elif int(rec["event"]) == Event.PHASE:
@@ -412,9 +433,12 @@ def run_on_services(
             task_done.append(float(rec["value"]))
 
     polled_cpus = idle_poll_cpus(config)
+    faults = _FaultRun(config, fault_specs) if fault_specs else None
     session = open_session(bus, listen=True)
     entities: list[Any] = []
     try:
+        if faults is not None:
+            entities += faults.subscribe(session, topics, drops)
         entities.append(subscribe_events(session, topics, "plant_events", on_event, drops))
         if config.run.scenario == "grasp":  # the operator's TASK_DONE (success or not)
             entities.append(subscribe_events(session, topics, "operator_events", on_event, drops))
@@ -445,7 +469,10 @@ def run_on_services(
         deadline_s = config.run.duration_s * factor + RUN_TIMEOUT_SLACK_S
         wall_start = time.perf_counter()
         with Stack(run_dir, programs) as stack:
-            check = _failure_check(stack, restarts_expected)
+            watch = ProgramWatch(stack.log_path, _read_log, frozenset(restarts_expected))
+            check = _failure_check(stack, watch)
+            if faults is not None:
+                check = faults.start(stack, watch, check)
             try:
                 _wait_alive(session, topics, services, stack, check)
                 try:
@@ -461,11 +488,21 @@ def run_on_services(
                 announce(f"teleop: the run failed:\n{exc.block()}\nstopping the services...")
                 exc.reported = True
                 raise
+            finally:
+                if faults is not None:
+                    faults.close()  # nothing left frozen when the stack stops
         wall_s = time.perf_counter() - wall_start
     finally:
         close_session(session, *reversed(entities))
 
-    summaries = {name: _read_summary(run_dir, name) for name in services}
+    # A service killed on purpose may have been stopped while its new incarnation was
+    # still starting (it writes its summary at close): the run's figures go without it.
+    killed = {spec.service for spec in fault_specs if spec.kind == "kill"}
+    summaries = {
+        name: _read_summary(run_dir, name)
+        for name in services
+        if name not in killed or summary_path(run_dir, name).exists()
+    }
     # A pair of peers that never linked: what one sent the other is lost (Service.become_ready).
     unlinked = {n: s["unlinked_peers"] for n, s in summaries.items() if s.get("unlinked_peers")}
     # An outside service wrote no summary: its figures are None, the stack's are there.
@@ -507,12 +544,14 @@ def run_on_services(
         )
     idle_poll = idle_poll_report(polled_cpus, run_dir)
     machine = machine_section(summaries, polled_cpus, idle_poll)
+    # The brakes an injected fault caused are the fault's, not a loss of real time.
+    fault_braked = faults.braked_states() if faults is not None else 0
     health = realtime_health(
         config.run.mode,
         overrun_fraction=plant.get("overrun_fraction", 0.0),
         realtime_factor=plant.get("realtime_factor") or 0.0,
-        watchdog_brakes=plant.get("stale_commands", 0),
-        braked_steps=plant.get("stale_steps", 0),
+        watchdog_brakes=plant.get("stale_commands", 0) - (faults.brakes() if faults else 0),
+        braked_steps=max(0, plant.get("stale_steps", 0) - fault_braked),
         steps=plant.get("steps", 0),
         dropped_messages=dropped,
         unlinked_peers=unlinked,
@@ -521,6 +560,7 @@ def run_on_services(
         {
             **health.as_dict(),
             "outside": list(outside),
+            "summaries_missing": [name for name in services if name not in summaries],
             "steps": plant.get("steps"),
             "wall_s": plant.get("wall_s"),
             "realtime_factor": plant.get("realtime_factor"),
@@ -544,6 +584,7 @@ def run_on_services(
             "machine": machine,
             "refused_privileges": refused_privileges(machine),
             "eye_view": _eye_view_summary(summaries),
+            "faults": faults.report(summary.get("success")) if faults is not None else [],
             "rrd": summaries.get("recorder", {}).get("rrd_path"),
             "run_dir": str(run_dir),
             "services": summaries,
@@ -677,12 +718,142 @@ def refuse_if_running(run_dir: Path) -> None:
     )
 
 
-def _failure_check(stack: Stack, restarts_expected: Sequence[str] = ()) -> Callable[[], None]:
+def _failure_check(stack: Stack, watch: ProgramWatch | None = None) -> Callable[[], None]:
     """A check that raises :class:`ServiceFailed` (the failure block) as soon as a
-    program of ``stack`` has died, crash-looped or stopped (teleop.run.failure), but for
-    the restarts of ``restarts_expected``."""
-    watch = ProgramWatch(stack.log_path, _read_log, frozenset(restarts_expected))
+    program of ``stack`` has died, crash-looped or stopped (teleop.run.failure);
+    ``watch``: the one to use (it may expect restarts: a test's or an injected kill's)."""
+    if watch is None:
+        watch = ProgramWatch(stack.log_path, _read_log)
     return lambda: watch.check(stack.process_infos())
+
+
+class _FaultRun:
+    """The bus side of fault injection in a run (teleop.run.faults): the plant's states
+    recorded and fed to the injector, ready tokens watched for restarts, the run failed
+    when a killed plant starts the world over, and the summary's ``faults``."""
+
+    def __init__(self, config: Config, specs: Sequence[FaultSpec]) -> None:
+        self.specs = specs
+        self.realtime = config.run.mode == "realtime"
+        self.arm = build_arm_model(config.robot)  # tool speed from joint state
+        self.states = StateLog(self.arm.n_joints)
+        self.injector: FaultInjector | None = None
+        self._started_ns = 0  # the plant's STARTED stamp, if it came before start()
+
+    def subscribe(self, session: zenoh.Session, topics: Topics, drops: DropCounter) -> list[Any]:
+        """The plant's states (the observers' batched copy) and every ready token."""
+
+        def on_state(rec: np.ndarray, rx_ns: int) -> None:
+            self.states.add(rec)
+            if self.injector is not None:
+                self.injector.on_state(int(rec["sim_time_ns"]), int(rec["step"]))
+
+        def on_token(sample: zenoh.Sample) -> None:
+            if sample.kind != zenoh.SampleKind.PUT:
+                return
+            name, now_ns = topics.service_of(str(sample.key_expr)), time.monotonic_ns()
+            if self.injector is not None:
+                self.injector.on_ready(name, now_ns)
+
+        states = subscribe(
+            session, topics.plant_state_batch, PLANT_STATE, on_state, drops, batched=True
+        )
+        tokens = session.liveliness().declare_subscriber(topics.ready_all, on_token)
+        return [states, tokens]
+
+    def start(
+        self, stack: Stack, watch: ProgramWatch, check: Callable[[], None]
+    ) -> Callable[[], None]:
+        """Start injecting into ``stack``; the run's check, extended by the plant's."""
+        hooks = InjectorHooks(
+            pid_of=stack.pid,
+            signal_group=os.killpg,
+            expect_restart=watch.expect_restart,
+            now_ns=time.monotonic_ns,
+        )
+        self.injector = FaultInjector(self.specs, hooks, realtime=self.realtime)
+        if self._started_ns:
+            self.injector.on_started(self._started_ns)
+        self.injector.start()
+
+        def checked() -> None:
+            check()
+            self.check_world()
+
+        return checked
+
+    def check_world(self) -> None:
+        """Raise RunError when a killed plant came back with the run started over."""
+        assert self.injector is not None
+        arrays = self.states.arrays()
+        for record in self.injector.records:
+            if record.inject_ns and world_reset(record, arrays):
+                raise RunError(
+                    f"the plant was killed at sim {record.t_s:.3f} s (step {record.step}) "
+                    "and its new incarnation started the run over from step 0: the world "
+                    "was reset, so the run cannot go on (the plant did not resume from a "
+                    "checkpoint)"
+                )
+
+    def on_started(self, t_ns: int) -> None:
+        """The plant's STARTED event (stamped ``t_ns``): realtime faults are due from it."""
+        self._started_ns = self._started_ns or t_ns
+        if self.injector is not None:
+            self.injector.on_started(t_ns)
+
+    def close(self) -> None:
+        if self.injector is not None:
+            self.injector.close()
+
+    def _speed_at(self, arrays: dict[str, np.ndarray]) -> Callable[[int], float]:
+        def speed_at(i: int) -> float:
+            jacobian = tool_jacobian(self.arm, arrays["q_rad"][i])
+            return float(np.linalg.norm(jacobian[:3] @ arrays["qd_rad_s"][i]))
+
+        return speed_at
+
+    def report(self, success: bool | None) -> list[dict[str, Any]]:
+        """The summary's ``faults``: one object per fault (teleop.run.faults)."""
+        if self.injector is None:
+            return [{"service": s.service, "kind": s.kind, "error": "not injected"}
+                    for s in self.specs]  # fmt: skip
+        arrays = self.states.arrays()
+        speed_at = self._speed_at(arrays)
+        return [fault_report(r, arrays, speed_at, success) for r in self.injector.records]
+
+    def _windows(self) -> list[tuple[int, int]]:
+        """Per injected fault, (injected, resumed or the record's end), host ns."""
+        if self.injector is None:
+            return []
+        arrays = self.states.arrays()
+        end_ns = int(arrays["t_ns"][-1]) if len(arrays["t_ns"]) else 0
+        windows = []
+        for record in self.injector.records:
+            if not record.inject_ns:
+                continue
+            stamps = stage_stamps(arrays, record.spec.service)
+            resumed = None
+            if record.back_ns:
+                resumed = resumed_index(arrays["t_ns"], stamps, arrays["braking"], record.back_ns)
+            stop_ns = int(arrays["t_ns"][resumed]) if resumed is not None else end_ns
+            windows.append((record.inject_ns, stop_ns))
+        return windows
+
+    def braked_states(self) -> int:
+        """Plant states braked between an injection and the resumption it caused."""
+        arrays = self.states.arrays()
+        t_ns, braking = arrays["t_ns"], arrays["braking"]
+        inside = np.zeros(len(t_ns), bool)
+        for start_ns, stop_ns in self._windows():
+            inside |= (t_ns >= start_ns) & (t_ns <= stop_ns)
+        return int(np.count_nonzero(inside & braking))
+
+    def brakes(self) -> int:
+        """Brakes (runs of braked states) that began inside a fault's window."""
+        arrays = self.states.arrays()
+        t_ns, braking = arrays["t_ns"], arrays["braking"]
+        onsets = np.flatnonzero(braking & ~np.concatenate(([False], braking[:-1])))
+        return sum(1 for i in onsets if any(a <= t_ns[i] <= b for a, b in self._windows()))
 
 
 def _read_log(path: Path) -> str:
@@ -696,15 +867,17 @@ def _wait_alive(
     stack: Stack,
     check: Callable[[], None],
 ) -> None:
-    """Wait up to ALIVE_TIMEOUT_S for every service's liveliness token, checking the
-    programs meanwhile (one that dies fails the run at once, not after the time-out).
-    A service still not alive then has hung in its start-up: it is killed (it may not
-    answer the stop signal) and :class:`ServiceFailed` names it with its log."""
+    """Wait up to ALIVE_TIMEOUT_S for every service's ready token (it has its session,
+    its subscribers and its links to its peers: supervisord's RUNNING only says the
+    process lived a second), checking the programs meanwhile (one that dies or
+    crash-loops fails the run at once, not after the time-out). A service still not
+    ready then has hung in its start-up: it is killed (it may not answer the stop
+    signal) and :class:`ServiceFailed` names it with its log."""
     deadline = time.monotonic() + ALIVE_TIMEOUT_S
     while True:
         check()
         try:
-            wait_alive(session, topics, services, ALIVE_POLL_S)
+            wait_alive(session, topics, services, ALIVE_POLL_S, ready=True)
             return
         except ServicesMissing as exc:
             if time.monotonic() < deadline:
@@ -716,6 +889,17 @@ def _wait_alive(
             raise ServiceFailed(
                 name, f"did not come alive within {ALIVE_TIMEOUT_S:g} s", path, _read_log(path)
             ) from None
+
+
+def _listen_endpoints(mesh: Mapping[str, Sequence[str]], names: Sequence[str]) -> list[str]:
+    """The endpoints ``names`` listen on in a :func:`peer_mesh` (its overrides say)."""
+    prefix = "bus.peer_listen_endpoint="
+    return [
+        json.loads(override.removeprefix(prefix))
+        for name in names
+        for override in mesh[name]
+        if override.startswith(prefix)
+    ]
 
 
 def start_detached(
@@ -772,43 +956,49 @@ def start_detached(
     )  # fmt: skip
     stack = Stack(run_dir, programs)
     stack.start(detach=True)
-    if outside:
-        for text, _ in joins:
-            announce(text)
-        observer = credentials[OBSERVER] if credentials is not None else None
-        _await_outside_detached(stack, config, endpoint, [bus for _, bus in joins], outside,
-                                without_timeout_s, announce, observer)  # fmt: skip
+    for text, _ in joins:
+        announce(text)
+    observer = credentials[OBSERVER] if credentials is not None else None
+    peers = _listen_endpoints(mesh, [name for name in services if name != "plant"])
+    peers += [bus.peer_listen_endpoint for _, bus in joins]
+    _await_ready_detached(stack, config, endpoint, peers, services, outside,
+                          without_timeout_s, announce, observer)  # fmt: skip
     return stack.status(), endpoint
 
 
-def _await_outside_detached(
+def _await_ready_detached(
     stack: Stack,
     config: Config,
     endpoint: str,
-    outside_buses: Sequence[BusConfig],
+    peers: Sequence[str],
+    services: Sequence[str],
     outside: Sequence[str],
     timeout_s: float,
     announce: Callable[[str], None],
     observer: Path | None,
 ) -> None:
-    """``teleop up``: wait for the outside services' ready tokens over links of this
-    process's own to each (peers do not forward tokens), with the run's ``observer``
-    credentials (None: an open bus); stop the stack if they do not come. ``endpoint``:
-    the run's listener's."""
+    """``teleop up``: wait for every service's ready token (the stack's, then the outside
+    ones' for up to ``timeout_s``) over links of this process's own to each (``peers``:
+    their endpoints besides the listener's ``endpoint``; peers do not forward tokens),
+    with the run's ``observer`` credentials (None: an open bus), watching the programs
+    meanwhile. On a failure (a service that dies, crash-loops, hangs in start-up or does
+    not come) the stack is stopped and the error raised: ServiceFailed with the
+    service's log, or RunError."""
     watcher = replace(
         config.bus,
         endpoint=endpoint,
         gossip=False,
         peer_listen_endpoint="",
-        peer_connect_endpoints=tuple(bus.peer_listen_endpoint for bus in outside_buses),
+        peer_connect_endpoints=tuple(peers),
         credentials_file=str(observer) if observer is not None else "",
     )
-    session = open_session(watcher, listen=False)
+    topics = Topics(config.robot.robot_id)
+    session = None
     try:
-        wait_for_outside(
-            session, Topics(config.robot.robot_id), outside, timeout_s, announce,
-            still_running=_failure_check(stack),
-        )  # fmt: skip
+        session = open_session(watcher, listen=False)
+        check = _failure_check(stack)
+        _wait_alive(session, topics, services, stack, check)
+        wait_for_outside(session, topics, outside, timeout_s, announce, still_running=check)
     except (OutsideMissing, RunError) as exc:
         stack.stop()
         raise RunError(f"{exc}; stopped the stack") from None

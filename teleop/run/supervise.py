@@ -409,12 +409,17 @@ class Stack:
         with self._rpc() as rpc:
             return int(rpc.supervisor.getProcessInfo(name)["pid"])
 
-    def signal_program(self, name: str, signum: int) -> None:
-        """Send ``signum`` to the main process of program ``name`` (tests: simulate a crash)."""
+    def signal_program(self, name: str, signum: int, *, group: bool = False) -> None:
+        """Send ``signum`` to the main process of program ``name``, or with ``group`` to
+        its whole process group (supervisord makes each program a group leader): a
+        crash, a freeze (SIGSTOP) or a thaw (SIGCONT) of everything the program runs."""
         pid = self.pid(name)
         if pid == 0:
             raise StackError(f"program {name!r} is not running")
-        os.kill(pid, signum)
+        if group and os.getpgid(pid) == pid:
+            os.killpg(pid, signum)
+        else:
+            os.kill(pid, signum)
 
     def stop_program(self, name: str) -> None:
         """Stop one program and wait until it is down; autorestart does not bring it back."""

@@ -866,6 +866,12 @@ class PlantLoop:
             waited_ns = self.clock.now_ns() - self._last_step_ns
             if waited_ns < self._lockstep_timeout_ns:
                 self.republish_pending()
+                # The controller went silent for a whole re-send period: if it was
+                # restarted, its commands number afresh and it answers each state once,
+                # too few for the sequence check to take it up by itself. The next
+                # command answering the pending state is taken as is.
+                with self._admit_lock:
+                    self.command_in.restart()
                 return True
             self._lockstep_running = False  # a late answer steps nothing now
             self._lockstep_done.set()  # the run thread's wait ends

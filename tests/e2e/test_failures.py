@@ -7,13 +7,17 @@ the previous run's results did not survive the failed one.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+import pytest
 
 from teleop.run.supervise import Stack, StackError
 
@@ -89,3 +93,36 @@ def test_a_service_killed_during_the_run_fails_it_at_once(tmp_path):
     assert "service controller failed to start" in err or "service controller died" in err
     assert "did not come alive" not in err
     assert Path(run_dir / "logs" / "controller.log").as_posix() in err
+
+
+def test_up_fails_naming_a_service_that_dies_in_start_up_and_leaves_nothing_running(tmp_path):
+    """`teleop up` waits for every service's ready token, not supervisord's one-second
+    start check: a recorder that fails while opening (after its imports, well past that
+    second on this machine) is named with its exception, and the stack is stopped."""
+    run_dir = tmp_path / "up"
+    proc = _teleop(
+        "up", "--run-dir", str(run_dir), "--set", 'recorder.rrd_path="/proc/no-such-dir/x.rrd"'
+    )
+    _, err = proc.communicate(timeout=HANG_S)
+    try:
+        assert proc.returncode == EXIT_FAILED, err
+        assert "service recorder" in err and "FileNotFoundError" in err, err
+        assert f"log:  {run_dir / 'logs' / 'recorder.log'}" in err
+        assert "Traceback" not in err.split("teleop: the run failed:")[0]
+        with pytest.raises(StackError):
+            Stack.attach(run_dir)  # nothing left running
+    finally:
+        with contextlib.suppress(StackError):
+            Stack.attach(run_dir).stop()  # a failed test leaves no stack behind
+
+
+def test_up_on_a_port_in_use_is_one_line_naming_the_port(tmp_path):
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        endpoint = f"tcp/127.0.0.1:{taken.getsockname()[1]}"
+        proc = _teleop("up", "--run-dir", str(tmp_path / "up"), "--endpoint", endpoint)
+        _, err = proc.communicate(timeout=HANG_S)
+    assert proc.returncode == EXIT_FAILED
+    assert err.count("\n") == 1 and f"bus endpoint {endpoint} is in use" in err, err
+    assert "teleop down" in err

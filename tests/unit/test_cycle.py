@@ -334,3 +334,42 @@ def test_the_path_cycle_converges_on_the_in_process_plant_like_the_in_process_ru
     for key in ("path_error_rms_m", "path_error_max_m", "min_manipulability"):
         assert summary[key] == reference[key]
     assert loop.plant.state_sha256() == reference["final_state_sha256"]
+
+
+def test_a_silent_handle_zeroes_the_rendered_force_even_in_contact():
+    """The handle went silent: whatever the plant feels (here a held cube's weight and a
+    contact), the device is sent zero force, the components are still reported."""
+    cycle, sent, clock, config = make(BilateralCycle, REALTIME, GRASP)
+    now = clock.now_ns()
+    loaded = state(config, 0, now)
+    loaded["world_f_contact_n"] = (0.0, 0.0, -3.0)
+    loaded["held_mass_kg"] = 0.2
+    cycle.on_haptic(handle(1, 0, now), now)
+    cycle.on_state(loaded, now)  # the handle is fresh: contact and weight render
+    assert np.linalg.norm(sent.last("force_feedback")["device_f_n"]) > 0.5
+    silent = loaded.copy()
+    silent["seq"] = silent["step"] = cycle.stale_ticks + 1
+    cycle.on_state(silent, now)
+    feedback = sent.last("force_feedback")
+    assert np.array_equal(feedback["device_f_n"], np.zeros(3))
+    assert np.linalg.norm(feedback["world_f_contact_n"]) > 0  # still reported
+
+
+def test_a_silent_plant_stops_the_commands():
+    """Handle samples keep coming but the newest plant state is older than the plant's
+    watchdog: the controller commands nothing (the plant holds the arm), and commands
+    again on the first fresh state."""
+    cycle, sent, clock, config = make(BilateralCycle, REALTIME, GRASP)
+    now = clock.now_ns()
+    cycle.on_state(state(config, 0, now), now)
+    cycle.on_haptic(handle(1, 0, now), now)
+    assert sent.streams().count("joint_command") == 1
+    clock.advance(round(config.plant.watchdog_s * 1e9) + 1_000_000)
+    for seq in (2, 3, 4):  # fresh samples, a silent plant
+        now = clock.now_ns()
+        cycle.on_haptic(handle(seq, 0, now), now)
+    assert sent.streams().count("joint_command") == 1
+    assert cycle.summary()["plant_silent_samples"] == 3
+    cycle.on_state(state(config, 1, now), now)
+    cycle.on_haptic(handle(5, 1, now), now)
+    assert sent.streams().count("joint_command") == 2

@@ -1,0 +1,82 @@
+"""Injected faults (`teleop run --kill / --freeze`): the run rides through them and its
+summary says what followed each. Killed and frozen in lockstep, where the sim waits for
+the controller and the outcome does not depend on how busy the machine is; one freeze
+in realtime, where the plant's watchdog must hold the arm meanwhile."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+# A run that neither fails nor finishes within this long is a hang (s).
+HANG_S = 600
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_REALTIME_LOST = 0, 1, 2, 3
+STEPS_PER_S = 1000  # plant.timestep_s = 1 ms
+
+
+def _teleop(run_dir: Path, *args: str) -> tuple[int, str, dict]:
+    proc = subprocess.run(
+        [sys.executable, "-m", "teleop.cli", "run", "path-following", "--run-dir",
+         str(run_dir), "--quiet", *args],
+        capture_output=True, text=True, timeout=HANG_S, stdin=subprocess.DEVNULL,
+    )  # fmt: skip
+    path = run_dir / "summary.json"
+    summary = json.loads(path.read_text()) if path.exists() else {}
+    return proc.returncode, proc.stderr, summary
+
+
+def test_a_controller_killed_then_frozen_in_lockstep_comes_back_and_the_run_completes(tmp_path):
+    duration_s = 6.0
+    code, err, summary = _teleop(
+        tmp_path / "run", "--mode", "lockstep", "--duration", str(duration_s),
+        "--kill", "controller@1.5", "--freeze", "controller@4:1",
+    )  # fmt: skip
+    assert code == EXIT_OK, err
+    assert "service controller died" not in err  # the injected kill is no failure
+    assert summary["steps"] == duration_s * STEPS_PER_S  # the whole run, no reset
+    kill, freeze = summary["faults"]
+    assert (kill["service"], kill["kind"], freeze["kind"]) == ("controller", "kill", "freeze")
+    assert 1.5 <= kill["t_s"] < 4.0 and 4.0 <= freeze["t_s"] < duration_s
+    # The new controller was ready, and its commands were applied after that.
+    assert kill["restart_s"] is not None and kill["resumed_s"] is not None
+    assert kill["resumed_s"] >= kill["restart_s"]
+    # Frozen 1 s of wall-clock time: nothing it made can be applied before the thaw.
+    assert freeze["restart_s"] is None and freeze["resumed_s"] >= freeze["freeze_s"] == 1.0
+
+
+def test_a_killed_plant_never_passes_for_a_clean_run(tmp_path):
+    """Killed mid-run, the plant either resumes where it was (sim time continues to the
+    end of the run) or the run fails saying the world was reset; never a success that
+    hides a run started over."""
+    code, err, summary = _teleop(
+        tmp_path / "run", "--mode", "lockstep", "--duration", "4", "--kill", "plant@2"
+    )
+    if code == EXIT_FAILED:
+        assert "started the run over from step 0" in err, err
+        assert not summary  # no summary of a run that did not complete
+    else:
+        assert code == EXIT_OK, err
+        (fault,) = summary["faults"]
+        assert fault["resumed_s"] is not None and summary["steps"] == 4 * STEPS_PER_S
+
+
+def test_a_controller_frozen_in_realtime_is_braked_on_and_resumes_after_the_thaw(tmp_path):
+    code, err, summary = _teleop(
+        tmp_path / "run", "--mode", "realtime", "--duration", "5", "--freeze",
+        "controller@2:0.5",
+    )  # fmt: skip
+    # A busy machine may lose real time elsewhere in the run (exit 3): the fault's own
+    # brakes are not counted against it.
+    assert code in (EXIT_OK, EXIT_REALTIME_LOST), err
+    (fault,) = summary["faults"]
+    assert fault["brake_ms"] is not None  # the arm was held while the controller was frozen
+    assert fault["resumed_s"] >= 0.5
+
+
+def test_a_fault_on_an_unknown_service_is_a_usage_error_before_anything_starts(tmp_path):
+    code, err, _ = _teleop(tmp_path / "run", "--mode", "lockstep", "--kill", "controler@1")
+    assert code == EXIT_USAGE
+    assert "did you mean controller?" in err and "Traceback" not in err
+    assert not (tmp_path / "run" / "logs").exists()
