@@ -327,8 +327,14 @@ class PathFollowingController:
         path: PathConfig,
         period_s: float,
         clearance: ClearanceModel | None = None,
+        tool_speed_limit_m_s: float = math.inf,
     ) -> None:
         self.arm = arm
+        # The plant's own tool speed limit (``plant.tool_speed_limit_m_s``): a command
+        # above it is scaled down by the plant, and the velocity loops then track a
+        # different direction than the one the clearance was held on. Commanding within
+        # it keeps the plant's scaling a no-op.
+        self.tool_speed_limit_m_s = tool_speed_limit_m_s
         self.control = control
         self.path = DesiredPath(path)
         self.period_s = period_s
@@ -393,12 +399,20 @@ class PathFollowingController:
         if self.clearance is not None and self.clearance.config.avoid and self._limits:
             qd_c = joint_limit_hold(q_rad, qd_c, self._limits, self.clearance.config)
         qd_c = limit_speed(qd_c, self.max_speed_rad_s)
+        tool_speed_m_s = math.sqrt(float(np.sum((jv @ qd_c) ** 2)))
+        if tool_speed_m_s > self.tool_speed_limit_m_s:  # scaled down whole: caps still hold
+            qd_c = qd_c * (self.tool_speed_limit_m_s / tool_speed_m_s)
 
         compensation = compensation_terms(self.arm, q_rad, qd_rad_s) if ctl.compensation else None
         qd_ref = np.array(
             velocity_reference(ctl, compensation, qd_c.tolist(), self._previous_qd_c, self.period_s)
         )
         self._previous_qd_c = qd_c.tolist()
+        if caps:
+            # The compensation adds the velocity loops' dynamics to q'_c: the reference
+            # the plant applies must keep the caps too, or a fast arm braking on q'_c
+            # still closes in through q'_ref (the measured rate lags q'_c).
+            qd_ref, _ = hold_clearance(qd_ref, caps)
         return ControlOutput(
             qd_ref_rad_s=limit_speed(qd_ref, self.max_speed_rad_s),
             qd_c_rad_s=qd_c,
@@ -517,10 +531,12 @@ class PathMetrics:
     After the settling time: the path error, and ``path_progress``, the arc length of the
     path followed over the arc length the nominal speed v_P covers in the same time.
     Over the whole run: ``stalled_s``, the time in windows of ``clearance.stall_window_s``
-    during which the path advanced less than ``clearance.stall_progress`` of what the
-    speed commanded along it (v_P / (1 + k |h~|)) covers (a STALL event when a stall
-    begins; value: the path error, m), and the clearance, contacts and singularity
-    crossings (:class:`MotionSafety`).
+    during which the tool made less progress than ``clearance.stall_progress`` of what the
+    speed commanded along the path (v_P / (1 + k |h~|)) covers, progress being the arc
+    followed plus the fall of the path error (on the way in from far, the tool closes in
+    on the path while the closest point barely moves); a STALL event when a stall begins
+    (value: the path error, m), and the clearance, contacts and singularity crossings
+    (:class:`MotionSafety`).
     """
 
     def __init__(
@@ -542,8 +558,9 @@ class PathMetrics:
         self.stalls = 0
         self._settled: tuple[float, float] | None = None  # (sim time, arc) at settling
         self._last: tuple[float, float] | None = None  # (sim time, arc) of the newest cycle
-        # (sim time, arc) at the window's start, and the arc the commanded speed covered since
-        self._window: tuple[float, float] | None = None
+        # (sim time, arc, path error) at the window's start, and the arc the commanded
+        # speed covered since
+        self._window: tuple[float, float, float] | None = None
         self._window_expected_m = 0.0
         self._stalled = False
         self._previous_s = 0.0
@@ -577,24 +594,26 @@ class PathMetrics:
 
     def _check_stall(self, sim_time_s: float, output: ControlOutput) -> None:
         if self._window is None:
-            self._window = (sim_time_s, output.path_arc_m)
+            self._window = (sim_time_s, output.path_arc_m, output.path_error_m)
             self._previous_s = sim_time_s
             return
         self._window_expected_m += output.path_speed_m_s * (sim_time_s - self._previous_s)
         self._previous_s = sim_time_s
-        start_s, start_arc = self._window
+        start_s, start_arc, start_error_m = self._window
         elapsed = sim_time_s - start_s
         if elapsed < self.stall_window_s:
             return
         expected, self._window_expected_m = self._window_expected_m, 0.0
-        stalled = output.path_arc_m - start_arc < self.stall_progress * expected
+        closed_in_m = max(start_error_m - output.path_error_m, 0.0)
+        progress_m = output.path_arc_m - start_arc + closed_in_m
+        stalled = progress_m < self.stall_progress * expected
         if stalled:
             self.stalled_s += elapsed
             if not self._stalled:
                 self.stalls += 1
                 self.safety.events.append(MotionEvent(Event.STALL, sim_time_s, output.path_error_m))
         self._stalled = stalled
-        self._window = (sim_time_s, output.path_arc_m)
+        self._window = (sim_time_s, output.path_arc_m, output.path_error_m)
 
     def path_progress(self) -> float | None:
         if self._settled is None or self._last is None or self.path_speed_m_s <= 0:

@@ -41,7 +41,12 @@ def run(variant: str, duration_s: float) -> float:
     arm = build_arm_model(config.robot)
     clearance = None if variant == "none" else ClearanceModel(config, arm)
     controller = PathFollowingController(
-        arm, config.control, config.path, config.plant.timestep_s, clearance=clearance
+        arm,
+        config.control,
+        config.path,
+        config.plant.timestep_s,
+        clearance=clearance,
+        tool_speed_limit_m_s=config.plant.tool_speed_limit_m_s,
     )
     steps = round(duration_s / config.plant.timestep_s)
     start = time.process_time()
