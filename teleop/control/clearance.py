@@ -110,6 +110,21 @@ def thresholds_m(config: ClearanceConfig, kind: PairKind) -> tuple[float, float]
     return config.stop_m, config.slowdown_m
 
 
+def push_depth_m(config: ClearanceConfig, kind: PairKind, distance_m: float) -> float:
+    """How deep (m) a pair counts as inside its slowdown zone for the null-space push:
+    quadratic from the slowdown distance to the stop distance, then the depth itself.
+
+    The push's rate is then zero with a zero slope where a pair enters the zone, so a
+    link crossing into it does not step the null-space motion (a step the velocity loops
+    track with a lag, which shows as a path error); at the stop distance it is as strong
+    as the linear depth."""
+    stop, slowdown = thresholds_m(config, kind)
+    depth = slowdown - distance_m
+    if depth <= 0.0:
+        return 0.0
+    return depth * min(depth / (slowdown - stop), 1.0)
+
+
 def allowed_approach_m_s(config: ClearanceConfig, kind: PairKind, distance_m: float) -> float:
     """Largest speed (m/s) at which a pair may close in: ``approach_speed_m_s`` at the
     slowdown distance and beyond, falling linearly to 0 at the stop distance."""

@@ -35,6 +35,7 @@ from teleop.control.clearance import (
     ClearanceModel,
     allowed_approach_m_s,
     approach_row,
+    push_depth_m,
     thresholds_m,
 )
 from teleop.control.kinematics import (
@@ -254,8 +255,9 @@ def clearance_push(
     rows: list[tuple[float, np.ndarray]], config: ClearanceConfig
 ) -> np.ndarray | None:
     """Null-space joint rates pushing every close link away: each pair's distance grows at
-    gain * (slowdown - d) m/s through the minimum-norm motion j^T / (j j^T + damping^2).
-    ``rows``: (depth into the pair's slowdown zone in m, approach row j (n,))."""
+    gain * depth m/s through the minimum-norm motion j^T / (j j^T + damping^2).
+    ``rows``: (the pair's depth into its slowdown zone as :func:`push_depth_m` shapes it,
+    in m; approach row j (n,))."""
     push = None
     for depth_m, row in rows:
         away = (
@@ -441,7 +443,7 @@ class PathFollowingController:
             if pair.distance_m >= slowdown:
                 continue
             row = approach_row(self.arm, pair)
-            pushes.append((slowdown - pair.distance_m, row))
+            pushes.append((push_depth_m(config, pair.kind, pair.distance_m), row))
             caps.append((allowed_approach_m_s(config, pair.kind, pair.distance_m), row))
         push = clearance_push(pushes, config)
         if push is not None:

@@ -58,6 +58,7 @@ from teleop.control.clearance import (
     PairKind,
     allowed_approach_m_s,
     approach_row,
+    push_depth_m,
     thresholds_m,
 )
 from teleop.control.kinematics import ArmModel, tool_jacobian, tool_pose_and_jacobian
@@ -601,7 +602,7 @@ class TeleopController:
             if depth <= 0.0:
                 continue
             row = approach_row(arm, pair)
-            pushes.append((depth, row))
+            pushes.append((push_depth_m(config, pair.kind, pair.distance_m), row))
             caps.append((allowed_approach_m_s(config, pair.kind, pair.distance_m), row))
             direction = row @ linear_to_qd  # (3,): opening speed per unit tool velocity
             norm = _norm(direction)

@@ -272,8 +272,8 @@ class ClearanceConfig:
     finger_slowdown_m: float = 0.012
     finger_stop_m: float = 0.002
     # Links of the arm vs each other (m).
-    self_slowdown_m: float = 0.025
-    self_stop_m: float = 0.008
+    self_slowdown_m: float = 0.015
+    self_stop_m: float = 0.005
     # Largest approach speed allowed at the slowdown distance (m/s); it falls linearly
     # to 0 at the stop distance.
     approach_speed_m_s: float = 0.25

@@ -18,6 +18,7 @@ from teleop.control.clearance import (
     PairKind,
     allowed_approach_m_s,
     approach_row,
+    push_depth_m,
 )
 from teleop.control.kinematics import build_arm_model, tool_position_and_jacobian
 from teleop.core.config import load_config
@@ -28,6 +29,17 @@ from teleop.run.experiments import run_path_following_inprocess
 SWING_PATH = ["path.center_m=[0.35, 0.0, 0.3]", "path.radius_m=0.4"]
 # The unguarded law's first contact on SWING_PATH comes at about 18.8 s.
 SWING_RUN = ["run.duration_s=21", "run.settle_s=5", *SWING_PATH]
+# A path behind and left of the base, 0.6 m from the home pose's tool: on the way in the
+# tool is commanded past the plant's tool speed limit and the gripper swings at the
+# shoulder (the velocity loops lag the held command); 3 s covers the way in.
+FAST_WAY_IN_RUN = [
+    "path.center_m=[-0.067, -0.439, 0.206]",
+    "path.radius_m=0.143",
+    "path.z_amplitude_m=0.047",
+    "control.path_speed_m_s=0.105",
+    "run.duration_s=3",
+    "run.settle_s=2",
+]
 # A path mostly beyond the arm's reach (about 0.85 m): the tool must stall, and say so.
 UNREACHABLE_PATH = ["path.center_m=[0.95, 0.0, 0.3]", "path.radius_m=0.3"]
 # Distances agree with MuJoCo's to rounding (m); rows with finite differences (m/s).
@@ -96,6 +108,28 @@ def test_the_allowed_approach_speed_falls_to_zero_at_the_stop_distance():
     assert allowed_approach_m_s(config, PairKind.SCENE, -0.01) == 0.0
     half = allowed_approach_m_s(config, PairKind.SCENE, 0.5 * (stop + slow))
     assert half == pytest.approx(0.5 * config.approach_speed_m_s)
+
+
+def test_the_null_space_push_enters_without_a_step_and_is_linear_from_the_stop_distance():
+    config = load_config().clearance
+    stop, slow = config.stop_m, config.slowdown_m
+    assert push_depth_m(config, PairKind.SCENE, slow + 0.01) == 0.0
+    assert push_depth_m(config, PairKind.SCENE, slow) == 0.0
+    # Zero slope at the slowdown distance: 1 um inside, the depth is ~1e-12 m, not 1e-6.
+    assert push_depth_m(config, PairKind.SCENE, slow - 1e-6) < 1e-10
+    assert push_depth_m(config, PairKind.SCENE, stop) == pytest.approx(slow - stop)
+    assert push_depth_m(config, PairKind.SCENE, stop - 0.004) == pytest.approx(slow - stop + 0.004)
+
+
+def test_a_fast_way_in_keeps_the_margins_and_is_not_a_stall():
+    """The tool is 0.6 m from the path: the command is cut to the plant's tool speed
+    limit, and the velocity reference keeps the caps (the compensation would otherwise
+    carry the gripper on into the shoulder); the tool closing in is progress."""
+    config = load_config(None, FAST_WAY_IN_RUN)
+    summary = run_path_following_inprocess(config, progress=None)
+    assert summary["arm_contacts"] == 0, summary["events"]
+    assert summary["min_clearance_self_m"] >= config.clearance.self_stop_m - MARGIN_TOLERANCE_M
+    assert summary["stalls"] == 0, summary["events"]
 
 
 def test_unguarded_law_collides_where_the_guarded_one_keeps_its_margins():
