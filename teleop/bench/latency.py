@@ -864,7 +864,9 @@ def write_png(report: dict[str, Any], raw: dict[str, np.ndarray], path: Path) ->
             p99 = [sweep[i][key].get("p99") or math.nan for i in order]
             xs = [sizes[i] for i in order]
             line = ax.plot(xs, p50, marker="o", label=f"{label} p50")[0]
-            ax.plot(xs, p99, marker="x", linestyle="--", color=line.get_color(), label="p99")
+            ax.plot(
+                xs, p99, marker="x", linestyle="--", color=line.get_color(), label=f"{label} p99"
+            )
         ax.axvline(EYE_VIEW_FRAME_BYTES, color="grey", linewidth=0.8)
         ax.set_xscale("log")
         ax.set_yscale("log")
