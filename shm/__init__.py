@@ -1,6 +1,7 @@
 """Shared-memory transport helpers (see :mod:`shm.provider`)."""
 
 from shm.provider import (
+    POOL_GRANULE_BYTES,
     SHM_THRESHOLD_BYTES,
     PoolReport,
     ShmProvider,
@@ -14,6 +15,7 @@ from shm.provider import (
 )
 
 __all__ = [
+    "POOL_GRANULE_BYTES",
     "SHM_THRESHOLD_BYTES",
     "PoolReport",
     "ShmProvider",

@@ -19,7 +19,9 @@ is silently not received; and with the low-latency transport a large put that fi
 pool is lost without an error. So every pool here is sized within the limit, for the
 receivers as well: the provider's pool (:func:`open_provider`, which falls back to the
 socket path when not even the minimum fits) and the session's own transport pool
-(:func:`configure_session`).
+(:func:`configure_session`). A process that maps several pools (its own and its
+peers', as a relay of the transport floor does) must fit all of them: the budget is
+then shared (``pools_per_process``).
 """
 
 from __future__ import annotations
@@ -124,41 +126,54 @@ def memlock_limit_bytes() -> int | None:
     return None if soft == resource.RLIM_INFINITY else soft
 
 
-def shared_pool_budget_bytes() -> int | None:
+def shared_pool_budget_bytes(pools_per_process: int = 1) -> int | None:
     """The largest pool this process can lock and a receiver under the same limit can
-    map (the run's processes are one user's: same limit); None when nothing bounds it."""
+    map (the run's processes are one user's: same limit), when each process holds or
+    maps up to ``pools_per_process`` pools of that size; None when nothing bounds it."""
+    if pools_per_process < 1:
+        raise ValueError(f"pools_per_process must be >= 1, got {pools_per_process}")
     own = memlock_budget_bytes()
     limit = memlock_limit_bytes()
     if own is None or limit is None:
         return None
     receiver = int(max(0, limit - RECEIVER_LOCKED_BYTES) * RECEIVER_POOL_SHARE)
-    return min(own, receiver)
+    return min(own, receiver) // pools_per_process
 
 
 def open_provider(
-    requested_bytes: int, minimum_bytes: int
+    requested_bytes: int, minimum_bytes: int, *, pools_per_process: int = 1
 ) -> tuple[ShmProvider | None, PoolReport]:
     """The process's provider with a pool of ``requested_bytes``, or less to fit the
     locked-memory limit (never less than ``minimum_bytes``); without one (even the
     minimum does not fit, or Zenoh refuses the segment) None: the caller publishes over
-    the socket. The report says which, and why."""
-    budget = shared_pool_budget_bytes()
+    the socket. ``pools_per_process``: pools of this size one process of the run holds
+    or maps at once (see :func:`shared_pool_budget_bytes`). The report says which, and
+    why."""
+    budget = shared_pool_budget_bytes(pools_per_process)
     pool_bytes = fit_pool_bytes(requested_bytes, budget)
     limit = memlock_limit_bytes()
+    shared = f" (in this process and its receivers, {pools_per_process} pools each)"
+    if pools_per_process == 1:
+        shared = " (in this process and its receivers)"
     reason = ""
     if pool_bytes < requested_bytes:
         reason = (
-            f"RLIMIT_MEMLOCK (ulimit -l) {limit} B leaves room for a pool of {budget} B "
-            f"(in this process and its receivers): pool of {pool_bytes} B instead of "
-            f"{requested_bytes} B"
+            f"RLIMIT_MEMLOCK (ulimit -l) {limit} B leaves room for a pool of {budget} B"
+            f"{shared}: pool of {pool_bytes} B instead of {requested_bytes} B"
         )
     provider = None
     if pool_bytes < minimum_bytes:
-        reason = (
-            f"RLIMIT_MEMLOCK (ulimit -l) {limit} B leaves room for a pool of {budget} B, "
-            f"below the {minimum_bytes} B needed: socket path (raise the limit for "
-            "shared memory)"
-        )
+        if pool_bytes < requested_bytes:
+            reason = (
+                f"RLIMIT_MEMLOCK (ulimit -l) {limit} B leaves room for a pool of {budget} B"
+                f"{shared}, below the {minimum_bytes} B needed: socket path (raise the "
+                "limit for shared memory)"
+            )
+        else:
+            reason = (
+                f"a pool of {requested_bytes} B (bus.shm_pool_bytes) is below the "
+                f"{minimum_bytes} B needed: socket path"
+            )
         pool_bytes = 0
     else:
         try:

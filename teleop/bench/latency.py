@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from teleop.bench.relay import RELAYS, FloorOrigin, floor_provider
+from teleop.bench.relay import RELAYS, FloorOrigin, floor_provider, unmeasurable_reason
 from teleop.bus.messages import EYE_VIEW, PLANT_STATE, Stage
 from teleop.bus.service import fifo_scheduling
 from teleop.bus.session import close_session, open_session, wait_alive
@@ -451,7 +451,10 @@ def run_floor(
     """The bare relay chain under supervisord: paced, back to back, then the sweep.
 
     Each relay runs on the CPUs and under the scheduling of the service whose place it
-    takes (:data:`teleop.bench.relay.FLOOR_STAND_INS`).
+    takes (:data:`teleop.bench.relay.FLOOR_STAND_INS`). Every process of the chain holds
+    an SHM pool of the size the origin's came out with (within the locked-memory limit);
+    a sweep size the pools cannot carry is not sent, and its entry says why
+    (``not_measured``).
     """
     run_dir = run_dir.absolute()
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -460,20 +463,6 @@ def run_floor(
     relay_overrides = [*overrides, f'bus.endpoint="{endpoint}"']
     bus = replace(config.bus, endpoint=endpoint, gossip=False)  # the mesh's listener
     topics = Topics(config.robot.robot_id)
-    mesh = peer_mesh([relay.name for relay in RELAYS], listener=None)  # as the stack links
-    programs = []
-    for relay in RELAYS:
-        command = service_command(
-            relay.name,
-            run_dir,
-            config_file,
-            [*relay_overrides, *mesh[relay.name]],
-            module=("teleop.bench.relay", relay.name),
-        )
-        programs.append(
-            Program(name=relay.name, command=command, environment=dict(SERVICE_ENVIRONMENT))
-        )
-    programs += idle_poll_programs(idle_poll_cpus(config), run_dir)  # idles as the stack does
     period_ns = round(config.plant.timestep_s * NS_PER_S)
     payload_bytes = PLANT_STATE.size  # the loop's largest record
     # The origin plays the haptic service: same scheduling (its Zenoh threads too).
@@ -482,7 +471,11 @@ def run_floor(
         session = open_session(bus, listen=True)
         origin: FloorOrigin | None = None
         try:
-            origin = FloorOrigin(session, topics, floor_provider(bus))
+            provider, pool = floor_provider(bus)
+            if pool is not None and pool.pool_bytes:
+                relay_overrides.append(f"bus.shm_pool_bytes={pool.pool_bytes}")
+            origin = FloorOrigin(session, topics, provider)
+            programs = _floor_programs(config, config_file, relay_overrides, run_dir)
             with Stack(run_dir, programs):
                 wait_alive(session, topics, [r.name for r in RELAYS], ALIVE_TIMEOUT_S)
                 seq = origin.back_to_back(
@@ -500,6 +493,10 @@ def run_floor(
                 b2b_traces = origin.trace_log.rows.copy()
                 sweep: dict[int, dict[str, Any]] = {}
                 for size in sweep_sizes:
+                    why = unmeasurable_reason(size, bus, pool)
+                    if why:
+                        sweep[size] = {**stats_us(np.zeros(0)), "not_measured": why}
+                        continue
                     origin.reset()
                     seq = origin.back_to_back(
                         FLOOR_WARMUP_COUNT // 5, size, seq, RETURN_TIMEOUT_S, SWEEP_BUDGET_S
@@ -519,6 +516,27 @@ def run_floor(
     paced["received"] = received
     back_to_back = stats_us(hop_ns(complete_loops(b2b_traces), ROUND_TRIP))
     return FloorRun(label, paced, back_to_back, sweep, (paced_traces,), sent, received)
+
+
+def _floor_programs(
+    config: Config, config_file: Path | None, relay_overrides: Sequence[str], run_dir: Path
+) -> list[Program]:
+    """The floor's supervisord programs: the relays, linked by an explicit mesh as the
+    stack's services are, and the idle pollers the stack runs."""
+    mesh = peer_mesh([relay.name for relay in RELAYS], listener=None)
+    programs = []
+    for relay in RELAYS:
+        command = service_command(
+            relay.name,
+            run_dir,
+            config_file,
+            [*relay_overrides, *mesh[relay.name]],
+            module=("teleop.bench.relay", relay.name),
+        )
+        programs.append(
+            Program(name=relay.name, command=command, environment=dict(SERVICE_ENVIRONMENT))
+        )
+    return programs + idle_poll_programs(idle_poll_cpus(config), run_dir)
 
 
 # -- the report ---------------------------------------------------------------------------
@@ -590,6 +608,8 @@ def conclusions(report: dict[str, Any]) -> list[str]:
                 f"{what}: SHM is {verdict} than TCP loopback (p50 {shm_p50:.0f} vs "
                 f"{tcp_p50:.0f} us, {row['tcp_over_shm_p50']:.2f}x)"
             )
+        elif row["shm_us"].get("not_measured"):
+            out.append(f"{what}: not measured over SHM ({row['shm_us']['not_measured']})")
         else:  # a side where no payload of this size came back at all
             missing = [side for side, p50 in (("SHM", shm_p50), ("TCP", tcp_p50)) if p50 is None]
             out.append(f"{what}: no payload came back over {' or '.join(missing)}")
@@ -844,7 +864,9 @@ def write_png(report: dict[str, Any], raw: dict[str, np.ndarray], path: Path) ->
             p99 = [sweep[i][key].get("p99") or math.nan for i in order]
             xs = [sizes[i] for i in order]
             line = ax.plot(xs, p50, marker="o", label=f"{label} p50")[0]
-            ax.plot(xs, p99, marker="x", linestyle="--", color=line.get_color(), label="p99")
+            ax.plot(
+                xs, p99, marker="x", linestyle="--", color=line.get_color(), label=f"{label} p99"
+            )
         ax.axvline(EYE_VIEW_FRAME_BYTES, color="grey", linewidth=0.8)
         ax.set_xscale("log")
         ax.set_yscale("log")

@@ -45,13 +45,18 @@ SEQ_FORMAT = struct.Struct("<Q")
 STAMP_FORMAT = struct.Struct("<q")
 TRACE_OFFSET = SEQ_FORMAT.size
 FLOOR_PREFIX_BYTES = TRACE_OFFSET + N_STAGES * STAMP_FORMAT.size
-# Legs of the chain, in loop order (each a key of floor_key).
-# The largest payload the floor sends (its sweep's 1 MiB): the least SHM pool it takes;
-# below that, the socket path (bytes).
-FLOOR_MAX_PAYLOAD_BYTES = 1 << 20
+# SHM pools one process of the chain holds or maps at once: relay_controller has its
+# own and maps the origin's (haptic leg) and relay_plant's (state leg). Every pool of the
+# chain is sized for that, within the locked-memory limit (shm.open_provider).
+FLOOR_POOLS_PER_PROCESS = 3
+# Payloads one pool must hold at once for a size to be measured: relay_controller's pool
+# carries a command and a feedback payload, and a buffer is free again only once its
+# receiver has copied it out.
+FLOOR_PAYLOADS_PER_POOL = 2
 
 logger = logging.getLogger(__name__)
 
+# Legs of the chain, in loop order (each a key of floor_key).
 LEG_HAPTIC = "haptic"
 LEG_COMMAND = "command"
 LEG_STATE = "state"
@@ -91,16 +96,40 @@ class Route:
     tx_stage: Stage
 
 
-def floor_provider(bus: BusConfig) -> shm.ShmProvider | None:
-    """The floor's SHM provider: the stack's pool, or a smaller one within the
-    locked-memory limit as the services take (shm.open_provider); None: shared memory
-    is off, or not even :data:`FLOOR_MAX_PAYLOAD_BYTES` fits (the socket path, logged)."""
+def floor_provider(bus: BusConfig) -> tuple[shm.ShmProvider | None, shm.PoolReport | None]:
+    """The floor's SHM provider and how its pool came out: the stack's pool size, or a
+    smaller one that fits the locked-memory limit :data:`FLOOR_POOLS_PER_PROCESS` times
+    (shm.open_provider, reason logged); (None, None) when shared memory is off. The
+    launcher (teleop.bench.latency.run_floor) gives the relays the pool size its own
+    provider came out with, so that every process of the chain holds the same."""
     if not bus.shm:
-        return None
-    provider, report = shm.open_provider(bus.shm_pool_bytes, FLOOR_MAX_PAYLOAD_BYTES)
+        return None, None
+    provider, report = shm.open_provider(
+        bus.shm_pool_bytes, shm.POOL_GRANULE_BYTES, pools_per_process=FLOOR_POOLS_PER_PROCESS
+    )
     if report.reason:
         logger.warning("shared memory: %s", report.reason)
-    return provider
+    return provider, report
+
+
+def unmeasurable_reason(size_bytes: int, bus: BusConfig, pool: shm.PoolReport | None) -> str:
+    """Why the floor chain cannot carry payloads of ``size_bytes`` (empty: it can).
+
+    Over the socket (shared memory off) and inline (below the SHM threshold) any size
+    goes. At or above the threshold, with shared memory on, a payload must go through a
+    pool holding :data:`FLOOR_PAYLOADS_PER_POOL` of them: with the low-latency transport a
+    put that finds no room is lost without an error, so such a size is not sent at all.
+    """
+    if not bus.shm or size_bytes < shm.SHM_THRESHOLD_BYTES:
+        return ""
+    pool_bytes = pool.pool_bytes if pool is not None else 0
+    if pool_bytes >= FLOOR_PAYLOADS_PER_POOL * size_bytes:
+        return ""
+    why = f": {pool.reason}" if pool is not None and pool.reason else ""
+    return (
+        f"the floor's SHM pool of {pool_bytes} B holds fewer than "
+        f"{FLOOR_PAYLOADS_PER_POOL} payloads of {size_bytes} B{why}"
+    )
 
 
 class RawPublisher:
@@ -135,7 +164,7 @@ class RelayService(Service):
         bus = self.config.bus
         self.forwarded = 0
         self._lock = threading.Lock()
-        provider = floor_provider(bus)
+        provider, _ = floor_provider(bus)
         for route in self.ROUTES:
             out = self.keep(
                 RawPublisher(self.session, floor_key(self.topics.robot_id, route.out_leg), provider)

@@ -70,6 +70,19 @@ def cpu_cgroup_root(mountinfo: str) -> tuple[Path, int] | None:
     return (v2, 2) if v2 is not None else None
 
 
+def idle_cgroup_writable() -> bool:
+    """Whether this process may set up the pollers' idle cgroup (:func:`join_idle_cgroup`):
+    write access to the group's files when it exists, else to the hierarchy's root. Root
+    may; an ordinary user may not (its stacks report every CPU as not polled)."""
+    found = cpu_cgroup_root(MOUNTINFO.read_text())
+    if found is None:
+        return False
+    group = found[0] / IDLE_CGROUP_NAME
+    if group.is_dir():
+        return all(os.access(group / name, os.W_OK) for name in ("cpu.idle", "cgroup.procs"))
+    return os.access(found[0], os.W_OK)
+
+
 def join_idle_cgroup() -> Path:
     """Move this process into the pollers' CPU cgroup, created with ``cpu.idle = 1``;
     return its directory. Raises :class:`IdlePollUnavailable` when it cannot."""

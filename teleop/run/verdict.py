@@ -8,8 +8,9 @@ test checks them without a stack:
   memory within the locked-memory limit): a run as an ordinary user degrades, and the
   summary says where.
 - :func:`realtime_health`: whether a realtime run kept real time (loop overruns,
-  watchdog brakes, lost messages, realtime factor), judged against fixed bounds, so a
-  run on a starved machine is flagged instead of reported as a clean success.
+  watchdog brakes, realtime factor), judged against fixed bounds, so a run on a starved
+  machine is flagged instead of reported as a clean success; and whether any of its
+  data is missing (bad records dropped, services that never linked).
 """
 
 from __future__ import annotations
@@ -24,9 +25,10 @@ from typing import Any
 GRANTED = "granted"
 NOT_REQUESTED = "not requested"
 
-# A realtime run's verdict (realtime_health): "clean" when it kept real time, "degraded"
-# when it lost some but stayed within the bounds below (a warning, exit code 0), "lost"
-# when it went past one of them (exit code teleop.cli.EXIT_REALTIME_LOST). The 2-core
+# A run's verdict (realtime_health): "clean" when it kept real time and lost no data,
+# "degraded" when it lost some real time but stayed within the bounds below, or some of
+# its data is missing (a warning, exit code 0), "lost" when its loop went past one of
+# the bounds (exit code teleop.cli.EXIT_REALTIME_LOST). The 2-core
 # target, quiet and with SCHED_FIFO, overruns about 0.02 % of its deadlines and never
 # brakes; as an ordinary user (no SCHED_FIFO) it brakes a few times for a few ms each.
 CLEAN, DEGRADED, LOST = "clean", "degraded", "lost"
@@ -126,9 +128,14 @@ def realtime_health(
     dropped_messages: int,
     unlinked_peers: Mapping[str, Any],
 ) -> Health:
-    """Judge whether a run kept real time (the bounds above). A lockstep run has no real
-    time to keep: there only bad records (DEGRADED) and services that never linked
-    (LOST: what they sent each other is gone) count."""
+    """Judge whether a run kept real time (the bounds above) and got all of its data.
+
+    Bad records dropped and services that never linked (``unlinked_peers``: service ->
+    the peers it never saw; what they would have sent each other is missing) make a run
+    DEGRADED, never LOST: the loop's timing is judged by the plant's own figures, which a
+    missing peer (say the recorder) does not touch, and a peer the loop itself needs
+    shows there (a plant without its controller brakes). A lockstep run has no real time
+    to keep: only the missing data counts."""
     lost: list[str] = []
     degraded: list[str] = []
     if mode == "realtime":
@@ -154,6 +161,13 @@ def realtime_health(
     if dropped_messages:
         degraded.append(f"{dropped_messages} message(s) dropped as bad records")
     if unlinked_peers:
-        lost.append(f"services never linked: {dict(unlinked_peers)}")
+        pairs = "; ".join(
+            f"{name} never saw {', '.join(map(str, peers))}"
+            for name, peers in unlinked_peers.items()
+        )
+        degraded.append(
+            f"services never linked ({pairs}): what they would have sent each other is "
+            "missing from the run"
+        )
     verdict = LOST if lost else DEGRADED if degraded else CLEAN
     return Health(verdict=verdict, problems=tuple(lost + degraded))

@@ -224,7 +224,17 @@ def _fig_timing(rec: rrd.Recording, report: Report) -> None:
     fig, (ax_rate, ax_hop) = plt.subplots(2, 1, figsize=FIG_SIZE_TIMING_IN)
     t0 = min((s.t_ns[0] for s in rates.values()), default=0) * 1e-9
     for entity, series in sorted(rates.items()):
-        ax_rate.plot(series.t_s - t0, series.values, linewidth=0.9, label=entity.split("/")[-1])
+        # A rate is logged when its window closes and holds over the window before it:
+        # steps, not slopes (a recorder that stalled shows one long flat window).
+        ax_rate.plot(
+            series.t_s - t0,
+            series.values,
+            drawstyle="steps-pre",
+            marker=".",
+            markersize=3,
+            linewidth=0.9,
+            label=entity.split("/")[-1],
+        )
     ax_rate.set_yscale("log")
     ax_rate.set_xlabel("wall time (s)")
     ax_rate.set_ylabel("rate (Hz)")

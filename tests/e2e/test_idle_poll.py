@@ -14,7 +14,13 @@ import pytest
 
 from teleop.core.config import load_config
 from teleop.core.rundir import idle_poll_status_path
-from teleop.run.idle_poll import IDLE_CGROUP_NAME, POLLING, cpu_cgroup_root, read_status
+from teleop.run.idle_poll import (
+    IDLE_CGROUP_NAME,
+    POLLING,
+    cpu_cgroup_root,
+    idle_cgroup_writable,
+    read_status,
+)
 from teleop.run.stack import (
     IDLE_POLL_PRIORITY,
     PRIORITY,
@@ -29,15 +35,8 @@ POLL_S = 0.02
 POLLER = [sys.executable, "-m", "services.idle_poll"]
 
 
-def _idle_cgroup_writable() -> bool:
-    """Whether this user may set up the pollers' idle cgroup (root may; an ordinary user
-    gets no poller at all: its stacks report the CPUs as not polled)."""
-    found = cpu_cgroup_root(Path("/proc/self/mountinfo").read_text())
-    return found is not None and os.access(found[0], os.W_OK)
-
-
 needs_idle_cgroup = pytest.mark.skipif(
-    not _idle_cgroup_writable(),
+    not idle_cgroup_writable(),
     reason="the idle cgroup needs write access to the CPU cgroup (root): no poller runs",
 )
 

@@ -19,9 +19,11 @@ import pytest
 from teleop.bench import latency
 from teleop.bench.relay import FLOOR_STAND_INS
 from teleop.bus.messages import Stage
+from teleop.bus.service import fifo_scheduling
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import load_config
 from teleop.core.rundir import HAPTIC_SAMPLES_FILE, HAPTIC_TRACE_FILE
+from teleop.run.idle_poll import NOT_POLLED, idle_cgroup_writable
 from tests.unit.test_latency_report import assert_matches_reference
 
 # The stack run: 10 s measured after the 1 s warm-up.
@@ -109,12 +111,17 @@ def test_floor_chain_returns_every_payload_with_the_loop_stamps(floor_run):
 
 def test_floor_relays_run_on_the_cpus_of_the_services_they_stand_in_for(floor_run, floor_dir):
     cpu = load_config(None, []).cpu
+    # SCHED_FIFO as this user gets it (root, CAP_SYS_NICE) or is refused it (nobody).
+    with fifo_scheduling(cpu.fifo_priority) as outcome:
+        granted = outcome.startswith("granted")
+    fifo = f"SCHED_FIFO priority {cpu.fifo_priority}"
     for relay, service in FLOOR_STAND_INS.items():
         wanted = sorted(set(cpu.for_service(service, "realtime")) & os.sched_getaffinity(0))
         log = (floor_dir / "logs" / f"{relay}.log").read_text()
         if wanted:
             assert f"pinned to CPU(s) {wanted}" in log, relay
-        assert f"SCHED_FIFO priority {cpu.fifo_priority}" in log, relay
+        assert (f"{fifo}\n" in log) == granted, relay
+        assert (f"{fifo} refused" in log) == (not granted), relay
 
 
 def test_a_floor_bracketing_the_stack_counts_both_halves(floor_run, stack_run):
@@ -152,8 +159,18 @@ def test_report_files(stack_run, floor_run, tmp_path):
     assert f"transport hops {transport_us:.0f} us" in split
     assert f"compute and wait stages {work_us:.0f} us" in split
     assert f"controller_command {hops['controller_command']['p50']:.0f}" in split
-    # The stack and the floor ran with their idle CPUs polling (the default).
-    assert report["machine"]["idle_poll_cpus"] == sorted(os.sched_getaffinity(0))
+    # The stack ran with its idle CPUs polling (the default) when this user may set up
+    # the pollers' idle cgroup; without that privilege (an ordinary user) every CPU is
+    # reported as halting, with its poller's reason, in the machine section and the
+    # conclusions.
+    machine, cpus = report["machine"], sorted(os.sched_getaffinity(0))
+    if idle_cgroup_writable():
+        assert machine["idle_poll_cpus"] == cpus and not machine["idle_poll_failed"]
+    else:
+        assert machine["idle_poll_cpus"] == [] and sorted(machine["idle_poll_failed"]) == cpus
+        for cpu, why in machine["idle_poll_failed"].items():
+            assert why.startswith(NOT_POLLED), why
+            assert f"idle CPU {cpu} halts, its poller says: {why}" in report["conclusions"]
     latency.write_json(report, tmp_path / "out.json")
     latency.write_png(report, raw, tmp_path / "out.png")
     latency.log_to_rerun(report, raw, tmp_path / "out.rrd")

@@ -169,3 +169,37 @@ def test_the_histogram_axis_fits_the_data_not_a_fixed_range():
     bins = fitted_bins_us(raw)
     assert 100 < bins[0] < 200 and 2000 < bins[-1] < 4000  # 200 us .. 2 ms, with margins
     assert np.all(np.diff(np.log10(bins)) > 0)
+
+
+def test_the_floor_sends_only_sizes_its_pools_carry_and_says_why_not_the_others():
+    from shm import PoolReport
+    from teleop.bench.relay import FLOOR_PAYLOADS_PER_POOL, unmeasurable_reason
+    from teleop.core.config import BusConfig
+
+    bus = BusConfig()
+    why = "RLIMIT_MEMLOCK (ulimit -l) 8388608 B leaves room for a pool of 699050 B"
+    pool = PoolReport(16 << 20, 640 * 1024, 8 << 20, True, why)
+    assert unmeasurable_reason(64, bus, pool) == ""  # inline, below the SHM threshold
+    assert unmeasurable_reason(65536, bus, pool) == ""
+    reason = unmeasurable_reason(1 << 20, bus, pool)
+    assert f"holds fewer than {FLOOR_PAYLOADS_PER_POOL} payloads of 1048576 B" in reason
+    assert why in reason
+    # Shared memory off: the socket carries any size; on without a pool, none that
+    # needs the SHM path (the low-latency transport would lose it without an error).
+    assert unmeasurable_reason(1 << 20, BusConfig(shm=False), None) == ""
+    assert "pool of 0 B" in unmeasurable_reason(65536, bus, None)
+    report = {
+        "round_trip_us": {"p50": None},
+        "floor_us": {"p50": None},
+        "overhead": {"round_trip": {}},
+        "lost": {"haptic": 0, "command": 0, "feedback": 0},
+        "reordered": {},
+        "chain": {"missing": 0, "samples": 0},
+        "shed": {},
+        "machine": {"idle_poll_cpus": [0]},
+        "payload_sweep": [
+            {"bytes": 1 << 20, "shm_us": {"count": 0, "p50": None, "not_measured": reason},
+             "tcp_us": {"p50": 900.0}, "tcp_over_shm_p50": None, "shm_faster": False},
+        ],
+    }  # fmt: skip
+    assert f"1048576 B: not measured over SHM ({reason})" in latency.conclusions(report)

@@ -43,9 +43,31 @@ def test_cap_ipc_lock_or_an_infinite_limit_means_no_bound(monkeypatch, cap_eff):
     assert provider.memlock_budget_bytes() is None
 
 
+def test_a_process_mapping_several_pools_gets_a_share_of_the_budget(monkeypatch):
+    limit = 8 << 20
+    monkeypatch.setattr(resource, "getrlimit", lambda which: (limit, limit))
+    monkeypatch.setattr(provider, "_status_field", {"CapEff": "0", "VmLck": "1300"}.get)
+    one = provider.shared_pool_budget_bytes()
+    three = provider.shared_pool_budget_bytes(3)
+    assert one is not None and three == one // 3
+    # Three pools of that size, and a receiver's own locked memory, fit the limit.
+    assert 3 * three + provider.RECEIVER_LOCKED_BYTES <= limit
+    with pytest.raises(ValueError):
+        provider.shared_pool_budget_bytes(0)
+
+
 def test_a_pool_too_small_for_the_minimum_falls_back_to_the_socket_path(monkeypatch):
-    monkeypatch.setattr(provider, "shared_pool_budget_bytes", lambda: 512 * 1024)
+    monkeypatch.setattr(provider, "shared_pool_budget_bytes", lambda pools=1: 512 * 1024)
     monkeypatch.setattr(provider, "memlock_limit_bytes", lambda: 8 << 20)
     pool, report = provider.open_provider(16 << 20, 1 << 20)
     assert pool is None and report.path == "socket" and report.pool_bytes == 0
     assert "ulimit -l" in report.reason and "socket path" in report.reason
+
+
+def test_a_requested_pool_below_the_minimum_is_named_as_the_cause_not_the_limit(monkeypatch):
+    monkeypatch.setattr(provider, "shared_pool_budget_bytes", lambda pools=1: 2 << 20)
+    monkeypatch.setattr(provider, "memlock_limit_bytes", lambda: 8 << 20)
+    pool, report = provider.open_provider(256 * 1024, 1 << 20)
+    assert pool is None and report.pool_bytes == 0
+    assert "ulimit -l" not in report.reason
+    assert "bus.shm_pool_bytes" in report.reason and "socket path" in report.reason

@@ -48,11 +48,24 @@ def test_a_starved_run_is_lost_with_every_bound_it_missed():
     assert any("0.700 x real time" in p for p in health.problems)
 
 
-def test_lockstep_has_no_real_time_to_lose_but_unlinked_services_lose_data():
+def test_lockstep_has_no_real_time_to_lose():
     slow = {**QUIET, "overrun_fraction": 0.5, "realtime_factor": 0.1}
     assert realtime_health("lockstep", **slow).verdict == CLEAN
-    unlinked = {**QUIET, "unlinked_peers": {"plant": ["recorder"]}}
-    assert realtime_health("lockstep", **unlinked).verdict == LOST
+
+
+def test_services_that_never_linked_degrade_a_run_as_missing_data_not_lost_real_time():
+    unlinked = {**QUIET, "unlinked_peers": {"plant": ["recorder"], "hmd": ["recorder"]}}
+    for mode in ("lockstep", "realtime"):
+        health = realtime_health(mode, **unlinked)
+        assert health.verdict == DEGRADED
+        (problem,) = health.problems
+        assert "plant never saw recorder; hmd never saw recorder" in problem
+        assert "missing from the run" in problem
+    # With a loop that lost real time as well, the verdict is the loop's.
+    starved = {**unlinked, "realtime_factor": 0.7}
+    health = realtime_health("realtime", **starved)
+    assert health.verdict == LOST and len(health.problems) == 2
+    assert "x real time" in health.problems[0]
 
 
 def test_the_machine_section_says_which_privileges_were_granted_and_refused():
