@@ -107,6 +107,11 @@ class ControllerCore:
         )
         self._command = JOINT_COMMAND.new()
         self._lock = threading.Lock()  # the state gate: callbacks of several Zenoh threads
+        # Held while a record of the last cycle is filled and sent, and while it is sent
+        # again (:meth:`resend_last`, from another callback): a re-send never goes out
+        # half-filled (a new seq with the old state_seq would be admitted by the plant
+        # and make the real answer look like a duplicate).
+        self._out_lock = threading.Lock()
         self._last_seq = -1
         # t_source_ns of this run's state 0: a state 0 with the same stamp is the plant
         # re-sending it (byte for byte), not a new run.
@@ -125,8 +130,8 @@ class ControllerCore:
         already answered (a re-send) is ignored, the others go to the task.
 
         A re-send of the newest state means the plant (lockstep) has waited a second for
-        an answer: the last command is sent again, byte for byte, in case it was lost on
-        the way (the plant drops it as a duplicate if it was not)."""
+        an answer: what the last cycle sent goes out again, byte for byte, in case it was
+        lost on the way (:meth:`resend_last`; a receiver that has it drops the copy)."""
         with self._lock:
             seq = int(rec["seq"])
             if seq == 0 and int(rec["t_source_ns"]) != self._run_start_ns:
@@ -136,8 +141,8 @@ class ControllerCore:
             elif seq <= self._last_seq:
                 if seq == self._last_seq and self.cycles > 0:
                     self.commands_resent += 1
-                    self.outputs.put("joint_command", self._command)
-                return  # a re-sent state this controller has already answered
+                    self.resend_last()
+                return  # a re-sent state this controller has already received
             elif self._last_seq >= 0 and seq > self._last_seq + 1:
                 self.skipped_states += seq - self._last_seq - 1
             self._last_seq = seq
@@ -145,6 +150,11 @@ class ControllerCore:
 
     def handle_state(self, state: np.ndarray, rx_ns: int) -> None:
         raise NotImplementedError
+
+    def resend_last(self) -> None:
+        """Send the last JOINT_COMMAND again, unchanged (same seq)."""
+        with self._out_lock:
+            self.outputs.put("joint_command", self._command)
 
     def reset(self) -> None:
         """A new run: the task forgets its state."""
@@ -162,19 +172,20 @@ class ControllerCore:
         """Send the joint velocity references that answer ``state`` (and, in realtime
         teleoperation, the handle sample of the device period ``device_deadline_ns``)."""
         n = self.arm.n_joints
-        self.cycles += 1
-        cmd = self._command
-        cmd["seq"] = self.cycles
-        cmd["state_seq"] = state["seq"]
-        cmd["device_deadline_ns"] = device_deadline_ns
-        cmd["n_joints"] = n
-        cmd["qd_ref_rad_s"][:n] = qd_ref_rad_s
-        cmd["gripper_cmd"] = gripper_cmd
-        cmd["trace_ns"][:] = trace
-        now_ns = self.clock.now_ns()
-        cmd["trace_ns"][Stage.CONTROLLER_TX] = now_ns
-        cmd["t_source_ns"] = now_ns
-        self.outputs.put("joint_command", cmd)
+        with self._out_lock:
+            self.cycles += 1
+            cmd = self._command
+            cmd["seq"] = self.cycles
+            cmd["state_seq"] = state["seq"]
+            cmd["device_deadline_ns"] = device_deadline_ns
+            cmd["n_joints"] = n
+            cmd["qd_ref_rad_s"][:n] = qd_ref_rad_s
+            cmd["gripper_cmd"] = gripper_cmd
+            cmd["trace_ns"][:] = trace
+            now_ns = self.clock.now_ns()
+            cmd["trace_ns"][Stage.CONTROLLER_TX] = now_ns
+            cmd["t_source_ns"] = now_ns
+            self.outputs.put("joint_command", cmd)
 
     def send_events(self, events: list[MotionEvent], step: int) -> None:
         """Publish the run events the metrics saw (``controller_events``) and keep them
@@ -620,22 +631,35 @@ class BilateralCycle(ControllerCore):
         trace: np.ndarray,
     ) -> None:
         rec = self._feedback
-        self.feedback_count += 1  # a Python int: += on a record field is far slower
-        rec["seq"] = self.feedback_count
-        rec["tick"] = tick
-        rec["sim_time_ns"] = state["sim_time_ns"]
-        rec["device_f_n"] = device_f_n
-        rec["world_f_contact_n"] = components.world_contact_f_n
-        rec["world_f_weight_n"] = components.world_weight_f_n
-        rec["world_f_obstacle_n"] = components.world_obstacle_f_n
-        rec["device_f_workspace_n"] = components.device_workspace_f_n
-        rec["world_f_scene_n"] = components.world_scene_f_n
-        rec["world_f_limits_n"] = components.world_limits_f_n
-        rec["trace_ns"][:] = trace
-        now_ns = self.clock.now_ns()
-        rec["trace_ns"][Stage.FEEDBACK_TX] = now_ns
-        rec["t_source_ns"] = now_ns
-        self.outputs.put("force_feedback", rec)
+        with self._out_lock:
+            self.feedback_count += 1  # a Python int: += on a record field is far slower
+            rec["seq"] = self.feedback_count
+            rec["tick"] = tick
+            rec["sim_time_ns"] = state["sim_time_ns"]
+            rec["device_f_n"] = device_f_n
+            rec["world_f_contact_n"] = components.world_contact_f_n
+            rec["world_f_weight_n"] = components.world_weight_f_n
+            rec["world_f_obstacle_n"] = components.world_obstacle_f_n
+            rec["device_f_workspace_n"] = components.device_workspace_f_n
+            rec["world_f_scene_n"] = components.world_scene_f_n
+            rec["world_f_limits_n"] = components.world_limits_f_n
+            rec["trace_ns"][:] = trace
+            now_ns = self.clock.now_ns()
+            rec["trace_ns"][Stage.FEEDBACK_TX] = now_ns
+            rec["t_source_ns"] = now_ns
+            self.outputs.put("force_feedback", rec)
+
+    def resend_last(self) -> None:
+        """Lockstep: send the last cycle's FORCE_FEEDBACK and JOINT_COMMAND again,
+        unchanged. The plant re-sends its states when no answer came for a second; the
+        answer may be missing because the haptic device never got the feedback of the
+        tick before (lost with a link that dropped, e.g. a process stalled past the
+        Zenoh lease), and then it never sends the handle sample this controller's next
+        tick waits for: only the feedback's re-send unblocks the loop."""
+        if self.lockstep and self.feedback_count > 0:
+            with self._out_lock:
+                self.outputs.put("force_feedback", self._feedback)
+        super().resend_last()
 
     def _measure(
         self,

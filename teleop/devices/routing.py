@@ -131,6 +131,12 @@ class SceneKnowledge:
         places them (the plant's own model and overrides)."""
         model = mujoco.MjModel.from_xml_path(str(config.robot.scene_path))
         apply_scene_overrides(model, config.scene, config.robot)
+        return cls.from_model(model, config)
+
+    @classmethod
+    def from_model(cls, model: mujoco.MjModel, config: Config) -> SceneKnowledge:
+        """Read the obstacles and the bin from ``model``, a compiled scene whose objects
+        are already placed (e.g. by :func:`apply_scene_overrides`)."""
         obstacles = tuple(
             (tuple(float(v) for v in model.geom_pos[g]), float(model.geom_rbound[g]))
             for g in obstacle_geoms(model, config.robot.obstacle_prefix)

@@ -89,11 +89,15 @@ def program_log_text(log_path: Path, supervisord_log: Path) -> str:
 
 class ServiceFailed(RuntimeError):
     """A service of the run died, crash-looped or never came alive; ``str()`` is the
-    block shown to the user."""
+    block shown to the user. ``startup``: it failed before the run began (its stack never
+    came up: the run did not start, so it has no outcome)."""
 
-    def __init__(self, service: str, what: str, log_path: Path, log_text: str) -> None:
+    def __init__(
+        self, service: str, what: str, log_path: Path, log_text: str, *, startup: bool = False
+    ) -> None:
         self.service = service
         self.what = what
+        self.startup = startup
         self.log_path = log_path
         self.tail = last_lines(log_text)
         self.hint = hint_for(log_text)

@@ -887,7 +887,11 @@ def _wait_alive(
                 stack.signal_program(name, signal.SIGKILL)
             path = stack.log_path(name)
             raise ServiceFailed(
-                name, f"did not come alive within {ALIVE_TIMEOUT_S:g} s", path, _read_log(path)
+                name,
+                f"did not come alive within {ALIVE_TIMEOUT_S:g} s",
+                path,
+                _read_log(path),
+                startup=True,
             ) from None
 
 

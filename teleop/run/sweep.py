@@ -57,6 +57,8 @@ SATURATED_N = 0.01
 # Report files in the output directory.
 REPORT_JSON = "sweep.json"
 REPORT_MARKDOWN = "sweep.md"
+# A grasp run whose services did not all come up is started again this many times.
+STARTUP_RETRIES = 2
 # Percentiles of the clearance distribution in the report.
 CLEARANCE_PERCENTILES = (0, 5, 25, 50, 75, 100)
 
@@ -186,7 +188,7 @@ def run_job(job: Job) -> dict[str, Any]:
         "command": job.task.command(job.overrides, job.config_file),
     }
     try:
-        summary = _run(job)
+        summary = _run_started(job, record)
     except Exception as exc:  # the task failed to run: that is its result
         record.update(
             success=False,
@@ -242,6 +244,24 @@ _FIGURES = {
         "final_state_sha256",
     ),
 }
+
+
+def _run_started(job: Job, record: dict[str, Any]) -> dict[str, Any]:
+    """:func:`_run`, again (at most STARTUP_RETRIES times) when its stack did not come
+    up: a service that was not ready within the launcher's time-out (a machine loaded
+    by other work) means the task never ran, which is no outcome of the task. The
+    retries are counted in the record (``startup_retries``)."""
+    from teleop.run.failure import ServiceFailed
+
+    retries = 0
+    while True:
+        try:
+            return _run(job)
+        except ServiceFailed as exc:
+            if not exc.startup or retries == STARTUP_RETRIES:
+                raise
+            retries += 1
+            record["startup_retries"] = retries
 
 
 def _run(job: Job) -> dict[str, Any]:

@@ -18,10 +18,14 @@ point so the arm stays on one branch) that is
   ``MAX_JOINT_STEP_RAD``: a jump means the arm would have to swap configurations).
 
 Path following checks the way from the start pose to the path and one whole period of
-the path. A grasp scene checks the operator's targets (over the cube, at the cube, lifted,
-over the bin) with the tool pointing down, and the straight moves between them; the
-virtual obstacle (non-colliding) is kept away from those targets, not from the moves:
-routing around it is the operator's job.
+the path. A grasp scene checks the moves the scripted operator makes, with the tool
+pointing down: each phase of its scenario (``operator.scenario_file``) from the target
+before to the phase's target, along the route the operator plans around what it sees
+(:func:`teleop.devices.routing.plan_route`: over or beside a virtual obstacle, over
+the bin's walls). The virtual obstacle (non-colliding) is kept away from every target,
+and the arm's links (the gripper's are the route's business) stay out of its influence
+along the whole way: there the controller pushes the arm away, and the operator, who
+steers the tool, would find it held back without knowing why.
 
 Frames and units: world frame (z up, origin at the arm base on the table top), metres,
 radians, seconds.
@@ -29,6 +33,7 @@ radians, seconds.
 
 from __future__ import annotations
 
+import itertools
 import math
 import shlex
 from collections import Counter
@@ -52,6 +57,8 @@ from teleop.control.teleop import (
     position_condition_number,
 )
 from teleop.core.config import Config, PathConfig, SceneConfig
+from teleop.devices.operator import TOOL_ANCHOR, Scenario
+from teleop.devices.routing import SceneKnowledge, plan_route
 from teleop.sim.proximity import apply_scene_overrides, arm_collision_geoms, obstacle_geoms
 
 # --- Reachability -------------------------------------------------------------------------
@@ -105,19 +112,19 @@ BIN_Z_M = 0.0
 BIN_HALF_M = 0.1
 # Free space between the cube and the bin's outer wall (m): room for the fingers.
 CUBE_BIN_GAP_M = 0.06
-# The operator's targets, as offsets from the cube / the bin (m): the scenario's
-# (deploy/scenarios/grasp.toml) approach, descend, lift and carry phases.
-APPROACH_OFFSET_M = (0.0, 0.0, 0.12)
-GRASP_OFFSET_M = (0.0, 0.0, 0.0)
-LIFT_OFFSET_M = (0.0, 0.0, 0.15)
-CARRY_OFFSET_M = (0.0, 0.0, 0.20)
+# The gripper may come closer to the table than CLEARANCE_MARGIN_M on moves that start or
+# end within this distance (m) of the cube's centre: a top grasp puts the fingertips 5 mm
+# above the table.
+GRASP_ZONE_M = 0.05
 # Obstacle sphere radius (m) and where a free one may be: distance, azimuth, centre height.
 OBSTACLE_RADIUS_M = (0.03, 0.06)
 OBSTACLE_DISTANCE_M = (0.2, 0.8)
 OBSTACLE_HEIGHT_M = (0.05, 0.45)
-# Share of scenes whose obstacle is placed in the way of the carry (on the straight move
-# from the lift point to the point over the bin), the hard case for the operator.
-OBSTACLE_IN_THE_WAY_SHARE = 0.5
+# Every this many scenes, one has its obstacle placed in the way of the carry (on the
+# straight move from the lift point to the point over the bin), the hard case for the
+# operator; its draws are repeated until one is reachable (they are rejected more often
+# than the others, so a share per draw would leave fewer of them among the tasks).
+OBSTACLE_IN_THE_WAY_EVERY = 2
 # Sideways and vertical scatter of an in-the-way obstacle around that move's midpoint (m).
 OBSTACLE_IN_THE_WAY_SCATTER_M = 0.03
 # The obstacle's surface stays this far beyond the controller's influence distance from
@@ -191,8 +198,11 @@ class ReachabilityChecker:
             and int(model.geom_bodyid[g]) not in (cube, base)
             and g not in obstacle_geoms(model, robot.obstacle_prefix)
         ]
+        self.obstacle_geoms = obstacle_geoms(model, robot.obstacle_prefix)
         self._fromto = np.zeros(6)
         self.home_q_rad = np.array(robot.home_q_rad, dtype=float)
+        # The task the scripted operator plays (grasp scenes walk its moves).
+        self.scenario = Scenario.load(self.config.operator.scenario_path, robot.object_bodies)
 
     def _in_subtree(self, body: int, root: int) -> bool:
         while body > 0:
@@ -251,6 +261,21 @@ class ReachabilityChecker:
                                                         self._fromto))  # fmt: skip
         return best
 
+    def obstacle_clearance_m(self, q_rad: np.ndarray, reach_m: float) -> float:
+        """Smallest distance (m) between the arm's links, the gripper left out, and the
+        virtual obstacles, up to ``reach_m``."""
+        data = self.mj_data
+        data.qpos[self.qpos_index] = q_rad
+        mujoco.mj_kinematics(self.mj_model, data)
+        best = reach_m
+        for a in self.arm_geoms:
+            if a in self.gripper_geoms:
+                continue
+            for o in self.obstacle_geoms:
+                best = min(best, mujoco.mj_geomDistance(self.mj_model, data, a, o, best,
+                                                        self._fromto))  # fmt: skip
+        return best
+
     def check_point(
         self,
         q_rad: np.ndarray,
@@ -260,9 +285,12 @@ class ReachabilityChecker:
         min_manipulability: float = 0.0,
         max_condition: float = math.inf,
         gripper_clear: bool = True,
+        obstacle_reach_m: float = 0.0,
     ) -> None:
-        """Raise :class:`Unreachable` when ``q_rad`` breaks a limit, a singularity bound
-        or the clearance margin (``where`` names the point in the message)."""
+        """Raise :class:`Unreachable` when ``q_rad`` breaks a limit, a singularity bound,
+        the clearance margin or (``obstacle_reach_m`` > 0) puts an arm link, the gripper
+        left out, within that distance of a virtual obstacle (``where`` names the point
+        in the message)."""
         low = self.lower_rad + limit_margin_rad
         high = self.upper_rad - limit_margin_rad
         if np.any((q_rad < low) | (q_rad > high)):
@@ -277,6 +305,12 @@ class ReachabilityChecker:
         clearance = self.clearance_m(q_rad, gripper=gripper_clear)
         if clearance < CLEARANCE_MARGIN_M:
             raise Unreachable("too close to the scene", where, f" ({clearance * 1e3:.0f} mm)")
+        if obstacle_reach_m > 0:
+            distance_m = self.obstacle_clearance_m(q_rad, obstacle_reach_m)
+            if distance_m < obstacle_reach_m:
+                raise Unreachable(
+                    "arm within the obstacle's influence", where, f" ({distance_m * 1e3:.0f} mm)"
+                )
 
     def follow(
         self,
@@ -499,21 +533,56 @@ def table_extent_m(checker: ReachabilityChecker) -> tuple[np.ndarray, np.ndarray
     return centre - half, centre + half
 
 
-def grasp_targets(cube_p_m: np.ndarray, bin_p_m: np.ndarray) -> dict[str, np.ndarray]:
-    """The operator's targets in a scene (world, m): approach, grasp, lift, carry."""
-    cube, bin_ = np.asarray(cube_p_m, dtype=float), np.asarray(bin_p_m, dtype=float)
-    return {
-        "approach": cube + APPROACH_OFFSET_M,
-        "grasp": cube + GRASP_OFFSET_M,
-        "lift": cube + LIFT_OFFSET_M,
-        "carry": bin_ + CARRY_OFFSET_M,
-    }
+@dataclass(frozen=True)
+class Move:
+    """One phase of the operator's task as the tool travels it (world, m): from the end of
+    the move before, through the route's waypoints, to the phase's target."""
+
+    phase: str
+    points_m: tuple[np.ndarray, ...]  # start, waypoints..., target
+    holding: bool  # the phase carries the held object
+
+
+def operator_moves(scenario: Scenario, knowledge: SceneKnowledge, start_p_m: np.ndarray,
+                   objects_p_m: dict[str, np.ndarray]) -> list[Move]:  # fmt: skip
+    """The moves of ``scenario`` from ``start_p_m``, the objects where they lie, planned as
+    the operator plans them (:class:`teleop.devices.operator.ScriptedOperator`): each
+    phase's target is its anchor (an object as it lies when the phase starts, or the tool)
+    plus its offset, reached along :func:`plan_route` around the keep-out volumes of that
+    phase. Phases that do not move the tool are left out."""
+    tool = np.asarray(start_p_m, dtype=float)
+    bin_p = objects_p_m.get("bin")
+    moves = []
+    for phase in scenario.phases:
+        anchor = phase.target.relative_to
+        origin = tool if anchor == TOOL_ANCHOR else np.asarray(objects_p_m[anchor], dtype=float)
+        target = origin + np.array(phase.target.offset_m)
+        if float(np.linalg.norm(target - tool)) <= phase.tolerance_m:
+            continue
+        volumes = knowledge.keep_outs(bin_p, holding=phase.carrying)
+        route = plan_route(tool, target, volumes)
+        moves.append(Move(phase.name, (tool, *route, target), phase.carrying))
+        tool = target
+    return moves
+
+
+def carry_move(checker: ReachabilityChecker, cube_p_m: np.ndarray,
+               bin_p_m: np.ndarray) -> tuple[np.ndarray, ...]:  # fmt: skip
+    """The straight carry of the operator's task with nothing in the way: (start, end) of
+    its longest move that holds the object (world, m)."""
+    home_p, _ = checker.tool_pose(checker.home_q_rad)
+    moves = operator_moves(checker.scenario, SceneKnowledge(), home_p,
+                           {"cube": cube_p_m, "bin": bin_p_m})  # fmt: skip
+    carrying = [m for m in moves if m.holding] or moves
+    longest = max(carrying, key=lambda m: float(np.linalg.norm(m.points_m[-1] - m.points_m[0])))
+    return longest.points_m
 
 
 def check_grasp(checker: ReachabilityChecker, task: GraspTask) -> None:
-    """Raise :class:`Unreachable` unless the arm, tool pointing down, reaches every
-    target of the scene from its home pose along straight moves, and the obstacle keeps
-    clear of the targets and of the arm's start pose."""
+    """Raise :class:`Unreachable` unless the arm, tool pointing down, makes every move of
+    the operator's task from its home pose (:func:`operator_moves`), its links out of the
+    obstacle's influence, and the obstacle keeps clear of the targets and of the arm's
+    start pose."""
     config = checker.config
     scene = SceneConfig(
         cube_p_m=task.cube_p_m,
@@ -522,28 +591,29 @@ def check_grasp(checker: ReachabilityChecker, task: GraspTask) -> None:
         obstacle_radius_m=(task.obstacle_radius_m,),
     )
     checker.set_scene(scene)
-    targets = grasp_targets(np.array(task.cube_p_m), np.array(task.bin_p_m))
+    knowledge = SceneKnowledge.from_model(checker.mj_model, config)
+    cube = np.array(task.cube_p_m)
+    home_p, home_r = checker.tool_pose(checker.home_q_rad)
+    moves = operator_moves(checker.scenario, knowledge, home_p,
+                           {"cube": cube, "bin": np.array(task.bin_p_m)})  # fmt: skip
     reach = config.teleop.obstacle_influence_m + OBSTACLE_TARGET_GAP_M + task.obstacle_radius_m
     obstacle = np.array(task.obstacle_p_m)
-    for name, point in targets.items():
-        if float(np.linalg.norm(point - obstacle)) < reach:
-            raise Unreachable("target within the obstacle's influence", name)
-    home_p, home_r = checker.tool_pose(checker.home_q_rad)
+    for move in moves:
+        if float(np.linalg.norm(move.points_m[-1] - obstacle)) < reach:
+            raise Unreachable("target within the obstacle's influence", move.phase)
     world_r = approach_down_orientation(home_r)
     bounds = {
         "limit_margin_rad": config.teleop.joint_limit_margin_rad,
         "max_condition": config.teleop.singularity_slowdown_cond,
+        "obstacle_reach_m": config.teleop.obstacle_influence_m,
     }
     q = checker.follow(checker.home_q_rad, [home_p], "start", world_r, **bounds)
-    moves = (
-        ("to approach", home_p, targets["approach"], True),
-        ("descend", targets["approach"], targets["grasp"], False),
-        ("lift", targets["grasp"], targets["lift"], False),
-        ("carry", targets["lift"], targets["carry"], True),
-    )
-    for name, start, end, gripper_clear in moves:
-        q = checker.follow(q, segment(start, end), name, world_r, **bounds,
-                           gripper_clear=gripper_clear)  # fmt: skip
+    for move in moves:
+        for k, (start, end) in enumerate(itertools.pairwise(move.points_m)):
+            at_cube = min(np.linalg.norm(start - cube), np.linalg.norm(end - cube)) < GRASP_ZONE_M
+            where = move.phase if len(move.points_m) == 2 else f"{move.phase} leg {k}"
+            q = checker.follow(q, segment(start, end), where, world_r, **bounds,
+                               gripper_clear=not at_cube)  # fmt: skip
 
 
 def random_grasp_tasks(config: Config, count: int, seed: int) -> Generated:
@@ -560,11 +630,13 @@ def random_grasp_tasks(config: Config, count: int, seed: int) -> Generated:
         out.candidates += 1
         cube_xy = _table_point(rng, OBJECT_DISTANCE_M, OBJECT_AZIMUTH_RAD)
         bin_xy = _table_point(rng, OBJECT_DISTANCE_M, OBJECT_AZIMUTH_RAD)
-        in_the_way = bool(rng.uniform() < OBSTACLE_IN_THE_WAY_SHARE)
+        in_the_way = len(out.tasks) % OBSTACLE_IN_THE_WAY_EVERY == OBSTACLE_IN_THE_WAY_EVERY - 1
         radius = round(float(rng.uniform(*OBSTACLE_RADIUS_M)), 3)
         if in_the_way:
-            targets = grasp_targets(np.array([*cube_xy, CUBE_Z_M]), np.array([*bin_xy, BIN_Z_M]))
-            middle = (targets["lift"] + targets["carry"]) / 2
+            carry = carry_move(
+                checker, np.array([*cube_xy, CUBE_Z_M]), np.array([*bin_xy, BIN_Z_M])
+            )
+            middle = (carry[0] + carry[-1]) / 2
             obstacle = middle + rng.uniform(-1, 1, 3) * OBSTACLE_IN_THE_WAY_SCATTER_M
         else:
             obstacle = np.array(

@@ -14,6 +14,8 @@ from teleop.control.cycle import BilateralCycle, PathCycle
 from teleop.control.kinematics import build_arm_model, tool_position_and_jacobian
 from teleop.core.clock import FakeClock
 from teleop.core.config import load_config
+from teleop.devices.haptic import EmulatedDevice
+from teleop.devices.haptic_loop import HapticLoop
 from teleop.run.experiments import run_path_following_inprocess
 from teleop.sim.stepping import PlantLoop
 
@@ -134,6 +136,71 @@ def test_the_path_cycle_answers_each_state_once_and_restarts_on_a_new_run():
     assert "control_status" in sent.streams()  # step 0 is a status step
     cycle.on_state(state(config, 0, now, start_ns=2), now)  # state 0 of a new run
     assert cycle.runs == 2 and cycle.summary()["cycles"] == 4
+
+
+class DeviceSent:
+    """HapticOutputs that queue the handle samples for the test to deliver."""
+
+    def __init__(self) -> None:
+        self.samples: collections.deque[np.ndarray] = collections.deque()
+
+    def sample(self, rec: np.ndarray) -> None:
+        self.samples.append(rec.copy())
+
+    def resend(self, rec: np.ndarray) -> None:
+        self.samples.append(rec.copy())
+
+
+def test_a_lost_feedback_is_sent_again_when_the_plant_re_sends_its_states():
+    """Lockstep, controller and haptic device joined: the feedback of tick 2 is lost on
+    the way (a link that dropped). The device then never steps tick 3, so the controller
+    never answers state 3 and the plant waits. Its re-send of the states in flight (3
+    and 4) makes the controller send its last cycle's records again, the feedback too:
+    the device steps, and state 3 gets its answer."""
+    cycle, sent, clock, config = make(BilateralCycle, LOCKSTEP, GRASP)
+    device = DeviceSent()
+    loop = HapticLoop(
+        config,
+        EmulatedDevice(config.haptic, config.plant.timestep_s),
+        device,
+        clock,
+        lockstep=True,
+    )
+    lost_tick = 2
+    lost: list[np.ndarray] = []  # the feedback records lost on the way
+    delivered = 0  # records of `sent.log` already handed on
+
+    def pump() -> None:
+        nonlocal delivered
+        while device.samples or delivered < len(sent.log):
+            while device.samples:
+                cycle.on_haptic(device.samples.popleft(), clock.now_ns())
+            for stream, rec in sent.log[delivered:]:
+                delivered += 1
+                if stream != "force_feedback":
+                    continue
+                if int(rec["tick"]) == lost_tick and not lost:
+                    lost.append(rec)  # its first copy only
+                    continue
+                loop.on_feedback(rec, clock.now_ns())
+
+    def answered() -> list[int]:
+        return [int(rec["state_seq"]) for s, rec in sent.log if s == "joint_command"]
+
+    def publish(seq: int) -> None:  # the plant's state, to both
+        rec = state(config, seq, clock.now_ns())
+        cycle.on_state(rec, clock.now_ns())
+        loop.on_state(rec.copy())
+        pump()
+
+    for seq in range(lost_tick + 3):  # states 0..4: the answer to 2 lets the plant send 4
+        publish(seq)
+    assert len(lost) == 1
+    assert max(answered()) == lost_tick  # state 3 waits for the device's tick 3
+    for seq in (lost_tick + 1, lost_tick + 2):  # a second without an answer: re-sent
+        publish(seq)
+    assert cycle.commands_resent == 1
+    assert lost_tick + 1 in answered()
 
 
 @pytest.mark.parametrize("cycle_class", [PathCycle, BilateralCycle])

@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from teleop.core.config import Config, PathConfig, load_config
+from teleop.core.config import Config, PathConfig, SceneConfig, load_config
+from teleop.devices.routing import SceneKnowledge
 from teleop.run import sweep, tasks
+from teleop.run.failure import ServiceFailed
 from teleop.run.tasks import GraspTask, ReachabilityChecker, Unreachable
 
 
@@ -110,6 +112,51 @@ def test_unreachable_scenes_are_rejected(
     assert caught.value.kind == kind
 
 
+def test_the_operators_route_is_what_is_checked(checker: ReachabilityChecker) -> None:
+    """An obstacle right on the carry: the operator routes the tool over it, and that
+    route is what the generator walks. Here the straight carry passes below the arm,
+    but on the route over, the forearm sweeps through the obstacle, where the
+    controller would push the arm back (the operator, who steers the tool, would be
+    held off without knowing why): not a reachable task."""
+    scene = GraspTask(0, 0, (-0.116, 0.506, 0.025), (0.508, -0.446, 0.0), (0.219, 0.03, 0.178),
+                      0.056, True)  # fmt: skip
+    checker.set_scene(
+        SceneConfig(
+            cube_p_m=scene.cube_p_m,
+            bin_p_m=scene.bin_p_m,
+            obstacle_p_m=(scene.obstacle_p_m,),
+            obstacle_radius_m=(scene.obstacle_radius_m,),
+        )
+    )
+    knowledge = SceneKnowledge.from_model(checker.mj_model, checker.config)
+    home_p, _ = checker.tool_pose(checker.home_q_rad)
+    objects = {"cube": np.array(scene.cube_p_m), "bin": np.array(scene.bin_p_m)}
+    moves = {m.phase: m for m in tasks.operator_moves(checker.scenario, knowledge, home_p, objects)}
+    assert list(moves) == ["approach", "descend", "lift", "carry", "retreat"]
+    carry = moves["carry"].points_m
+    assert len(carry) == 4 and carry[1][2] > scene.obstacle_p_m[2] + 0.1  # up, over, down
+    with pytest.raises(Unreachable) as caught:
+        tasks.check_grasp(checker, scene)
+    assert caught.value.kind == "arm within the obstacle's influence"
+    assert "carry leg 1" in str(caught.value)
+
+
+def test_a_far_cube_under_an_obstacle_holds_the_arm_back(checker: ReachabilityChecker) -> None:
+    """The tool's way to a cube near the edge of the reach stays clear of the obstacle,
+    the arm's links pass through its influence: rejected (the operator, steering the tool,
+    stopped 194 mm short of it, and said "out of reach")."""
+    scene = GraspTask(0, 0, (0.7, -0.053, 0.025), (0.158, 0.343, 0.0), (0.511, -0.112, 0.422),
+                      0.038, False)  # fmt: skip
+    with pytest.raises(Unreachable) as caught:
+        tasks.check_grasp(checker, scene)
+    assert caught.value.kind == "arm within the obstacle's influence"
+
+
+def test_every_other_scene_has_its_obstacle_in_the_way(config: Config) -> None:
+    generated = tasks.random_grasp_tasks(config, 6, seed=0)
+    assert [t.obstacle_in_the_way for t in generated.tasks] == [False, True] * 3
+
+
 def test_inverse_kinematics_reaches_the_pose_it_returns(checker: ReachabilityChecker) -> None:
     _, home_r = checker.tool_pose(checker.home_q_rad)
     target = np.array([0.5, -0.1, 0.1])
@@ -178,3 +225,27 @@ def test_failures_are_counted_by_kind_without_their_numbers() -> None:
         sweep.reason_kind("operator: the target out of reach in descend (stopped 120 mm short)")
         == "operator: the target out of reach in descend"
     )
+
+
+@pytest.mark.parametrize(("startup", "runs", "success"), [(True, 2, True), (False, 1, False)])
+def test_a_stack_that_did_not_come_up_is_started_again(
+    tmp_path, monkeypatch: pytest.MonkeyPatch, startup: bool, runs: int, success: bool
+) -> None:
+    """A grasp run whose services were not ready in time never ran: the task is started
+    again (and the retry counted); a service that failed once the run was under way is
+    the task's result."""
+    calls = []
+    done = {"object_in_box": True, "arm_contacts": 0, "max_device_force_n": 1.0}
+
+    def run(job: sweep.Job) -> dict:
+        calls.append(job)
+        if len(calls) == 1:
+            raise ServiceFailed("controller", "failed", tmp_path / "controller.log", "",
+                                startup=startup)  # fmt: skip
+        return done
+
+    monkeypatch.setattr(sweep, "_run", run)
+    task = GraspTask(0, 0, (0.45, -0.25, 0.025), (0.35, 0.35, 0.0), (0.55, 0.1, 0.15), 0.05, False)
+    record = sweep.run_job(sweep.Job("grasp", task, None, (), str(tmp_path)))
+    assert len(calls) == runs and record["success"] is success
+    assert record.get("startup_retries", 0) == (1 if startup else 0)
