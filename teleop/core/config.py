@@ -344,6 +344,12 @@ class HapticConfig:
     # The operator's hand, a spring-damper pulling the handle to the hand's target.
     hand_stiffness_n_per_m: float = 200.0
     hand_damping_n_s_per_m: float = 8.0
+    # A hand input this far (s of sim time) behind the tick it is used at, with no newer
+    # one, is a hand that stopped moving (its operator was starved, frozen or is being
+    # restarted): the emulated hand eases the handle back to the centre, so the rate
+    # control holds the tool still, and keeps the buttons it held, so a held object is
+    # not dropped. A live operator sends each input ahead of the tick it applies from.
+    hand_input_stale_s: float = 0.1
 
     def __post_init__(self) -> None:
         for name in (
@@ -355,6 +361,7 @@ class HapticConfig:
             "kf_accel_noise_m_s2",
             "stale_feedback_s",
             "fade_s",
+            "hand_input_stale_s",
         ):
             _require(getattr(self, name) > 0, f"haptic.{name} > 0")
 
