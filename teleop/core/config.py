@@ -557,6 +557,13 @@ class CpuConfig:
     fifo_priority: int = 40
     # Which processes get it: the loop services.
     fifo_services: tuple[str, ...] = ("plant", "controller", "haptic")
+    # Realtime runs, with fifo_priority set: SCHED_FIFO priority of the services that feed
+    # the loops from outside (the operator's hand, 100 decisions a second of light work):
+    # below the loops, which preempt them, above every normally scheduled process, so a
+    # recorder or eye view restarting (seconds of imports), or any other program, cannot
+    # make the hand late. Must be below fifo_priority.
+    fifo_feeder_priority: int = 20
+    fifo_feeder_services: tuple[str, ...] = ("operator",)
     # Realtime runs: one spinner per CPU (teleop/run/idle_poll.py: SCHED_IDLE in a CPU
     # cgroup marked idle) so the idle CPUs poll instead of halting. On a KVM guest a
     # halted vCPU leaves its host core (cold caches, a hypervisor exit on every wake-up);
@@ -574,6 +581,14 @@ class CpuConfig:
         for name in names:
             _require(all(c >= 0 for c in getattr(self, name)), f"cpu.{name}: CPU numbers >= 0")
         _require(0 <= self.fifo_priority <= 99, "cpu.fifo_priority in [0, 99]")
+        _require(
+            0 <= self.fifo_feeder_priority <= 99,
+            "cpu.fifo_feeder_priority in [0, 99]",
+        )
+        _require(
+            not self.fifo_priority or self.fifo_feeder_priority < self.fifo_priority,
+            "cpu.fifo_feeder_priority below cpu.fifo_priority (the loops preempt the feeders)",
+        )
 
     def for_service(self, service: str, mode: str) -> tuple[int, ...]:
         """The CPUs of ``service`` in timing ``mode`` (empty: the kernel's choice)."""
@@ -586,10 +601,15 @@ class CpuConfig:
         return self.idle_poll and mode == "realtime"
 
     def fifo_priority_for(self, service: str, mode: str) -> int:
-        """SCHED_FIFO priority of ``service`` in timing ``mode``; 0: normal scheduling."""
-        if mode != "realtime" or service not in self.fifo_services:
+        """SCHED_FIFO priority of ``service`` in timing ``mode``; 0: normal scheduling.
+        The feeders get theirs only while the loops have one (never above them)."""
+        if mode != "realtime" or not self.fifo_priority:
             return 0
-        return self.fifo_priority
+        if service in self.fifo_services:
+            return self.fifo_priority
+        if service in self.fifo_feeder_services:
+            return self.fifo_feeder_priority
+        return 0
 
 
 @dataclass(frozen=True)

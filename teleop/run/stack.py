@@ -40,6 +40,7 @@ import zenoh
 from teleop.bus import graph
 from teleop.bus.access import LAUNCHER, OBSERVER, write_run_credentials
 from teleop.bus.messages import PLANT_STATE, TOOL_POSE, DropCounter, Event
+from teleop.bus.service import read_summary
 from teleop.bus.session import (
     Latest,
     ServicesMissing,
@@ -225,11 +226,13 @@ def service_programs(
     credentials: Mapping[str, Path] | None = None,
     mesh: dict[str, list[str]] | None = None,
     tls: bool = False,
+    nice: Mapping[str, int] | None = None,
 ) -> list[Program]:
     """The supervisord programs of ``services``, each given the same config and
     overrides, then its place in the run's ``mesh`` (default: a :func:`peer_mesh` of
     ``services``, over TLS endpoints with ``tls``; with outside services, one that
-    includes them too) and its ``credentials`` file, if any (:func:`run_credentials`)."""
+    includes them too) and its ``credentials`` file, if any (:func:`run_credentials`);
+    ``nice``: the niceness a service's process starts at (:func:`service_nice`)."""
     programs = []
     if mesh is None:
         mesh = peer_mesh(services, listener, tls=tls)
@@ -253,9 +256,18 @@ def service_programs(
                 command=command,
                 priority=PRIORITY[name],
                 environment=dict(SERVICE_ENVIRONMENT),
+                nice=(nice or {}).get(name, 0),
             )
         )
     return programs
+
+
+def service_nice(config: Config) -> dict[str, int]:
+    """The services that run below the control path, and their niceness: the recorder and
+    the eye view. From the process's start: a restarted one spends seconds importing and
+    loading before its own code could lower itself, and at the normal priority that
+    would take the CPU the operator and the HMD need then."""
+    return {"recorder": config.recorder.nice, EYEVIEW: config.eyeview.nice}
 
 
 def run_credentials(
@@ -315,10 +327,11 @@ def idle_poll_report(cpus: Sequence[int], run_dir: Path) -> dict[str, Any]:
 
 
 def _read_summary(run_dir: Path, service: str) -> dict[str, Any]:
-    path = summary_path(run_dir, service)
-    if not path.exists():
+    summary = read_summary(run_dir, service)
+    if summary is None:
+        path = summary_path(run_dir, service)
         raise RunError(f"{service} wrote no summary ({path}); see {run_dir / LOG_DIR}")
-    return json.loads(path.read_text())
+    return summary
 
 
 def _stderr(line: str) -> None:
@@ -457,6 +470,7 @@ def run_on_services(
             continuous=False,
             credentials=credentials,
             mesh=mesh,
+            nice=service_nice(config),
         ) + idle_poll_programs(polled_cpus, run_dir)
         for text, _ in prepare_outside(
             config_file, run_overrides, run_dir, stack_services, outside, mesh, plant_awaits,
@@ -495,13 +509,15 @@ def run_on_services(
     finally:
         close_session(session, *reversed(entities))
 
-    # A service killed on purpose may have been stopped while its new incarnation was
-    # still starting (it writes its summary at close): the run's figures go without it.
+    # A service killed on purpose whose new incarnation was stopped while still starting
+    # has only its killed process's running summary, or none if that one was killed
+    # before its first (teleop.bus.service): the run's figures then go without it.
     killed = {spec.service for spec in fault_specs if spec.kind == "kill"}
+    read = {name: read_summary(run_dir, name) for name in services}
     summaries = {
-        name: _read_summary(run_dir, name)
-        for name in services
-        if name not in killed or summary_path(run_dir, name).exists()
+        name: summary if summary is not None else _read_summary(run_dir, name)
+        for name, summary in read.items()
+        if summary is not None or name not in killed
     }
     # A pair of peers that never linked: what one sent the other is lost (Service.become_ready).
     unlinked = {n: s["unlinked_peers"] for n, s in summaries.items() if s.get("unlinked_peers")}
@@ -949,6 +965,7 @@ def start_detached(
         continuous=True,
         credentials=credentials,
         mesh=mesh,
+        nice=service_nice(config),
     ) + idle_poll_programs(idle_poll_cpus(config), run_dir)
     joins = prepare_outside(
         config_file, run_overrides, run_dir, stack_services, outside, mesh, plant_awaits,
