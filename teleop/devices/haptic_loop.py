@@ -398,10 +398,11 @@ class HapticLoop:
             if not self._hand_stale:
                 self.hand_holds += 1
                 logger.info(
-                    "hand input of tick %d is stale at tick %d: the hand centres the "
-                    "handle and keeps its buttons",
+                    "hand input of tick %d is stale at tick %d (newest input: tick %s): "
+                    "the hand centres the handle and keeps its buttons",
                     int(hand["valid_from_tick"]),  # type: ignore[index]
                     tick,
+                    self.hand_inputs.newest_tick(),
                 )
         self._hand_stale = hand_stale
         sample = self.device.next_sample(held)

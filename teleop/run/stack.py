@@ -64,6 +64,7 @@ from teleop.core.rundir import (
     summary_path,
 )
 from teleop.devices.operator import Scenario
+from teleop.run import niced
 from teleop.run.failure import ProgramWatch, ServiceFailed, program_log_text
 from teleop.run.faults import (
     FaultInjector,
@@ -232,7 +233,8 @@ def service_programs(
     overrides, then its place in the run's ``mesh`` (default: a :func:`peer_mesh` of
     ``services``, over TLS endpoints with ``tls``; with outside services, one that
     includes them too) and its ``credentials`` file, if any (:func:`run_credentials`);
-    ``nice``: the niceness a service's process starts at (:func:`service_nice`)."""
+    ``nice``: the niceness a service's restarts start at (:func:`service_nice`,
+    teleop.run.niced)."""
     programs = []
     if mesh is None:
         mesh = peer_mesh(services, listener, tls=tls)
@@ -250,13 +252,14 @@ def service_programs(
             command += ["--peers", ",".join(peers)]
         if continuous:
             command.append("--continuous")
+        if (nice or {}).get(name):
+            command = niced.command(nice[name], run_dir, name, command)  # type: ignore[index]
         programs.append(
             Program(
                 name=name,
                 command=command,
                 priority=PRIORITY[name],
                 environment=dict(SERVICE_ENVIRONMENT),
-                nice=(nice or {}).get(name, 0),
             )
         )
     return programs
@@ -264,9 +267,8 @@ def service_programs(
 
 def service_nice(config: Config) -> dict[str, int]:
     """The services that run below the control path, and their niceness: the recorder and
-    the eye view. From the process's start: a restarted one spends seconds importing and
-    loading before its own code could lower itself, and at the normal priority that
-    would take the CPU the operator and the HMD need then."""
+    the eye view. A restart of one starts at it (teleop.run.niced): seconds of imports
+    and loading, beside a running control loop, before its own code lowers itself."""
     return {"recorder": config.recorder.nice, EYEVIEW: config.eyeview.nice}
 
 

@@ -17,7 +17,6 @@ import http.client
 import os
 import re
 import shlex
-import shutil
 import signal
 import socket
 import subprocess
@@ -70,8 +69,6 @@ LOG_TAIL_BYTES = 4_000
 UNIX_SOCKET_PATH_MAX_BYTES = 107
 # Default startsecs: a program must stay up this long to count as started (supervisord's), s.
 DEFAULT_STARTSECS = 1
-# Niceness range a program may be given (Linux: 19 is the lowest priority).
-MAX_NICE = 19
 
 
 _PROGRAM_NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
@@ -107,10 +104,7 @@ class Program:
     ``command`` is an argv list (no shell). ``priority``: lower starts first and stops last;
     supervisord does not wait for RUNNING between priorities, so services still wait for
     their peers on the bus. ``startsecs``: seconds the process must stay up to count as
-    started (0 makes a process that exits at once look RUNNING for a moment). ``nice``:
-    the process's niceness from its first instruction (``nice -n``; supervisord has no
-    setting for it), so a restart's imports and model loading already run below the
-    normally scheduled processes (0: the supervisor's own).
+    started (0 makes a process that exits at once look RUNNING for a moment).
     """
 
     name: str
@@ -119,7 +113,6 @@ class Program:
     environment: dict[str, str] = field(default_factory=dict)
     autorestart: bool = True
     startsecs: int = DEFAULT_STARTSECS
-    nice: int = 0
 
     def __post_init__(self) -> None:
         if not _PROGRAM_NAME_RE.fullmatch(self.name):
@@ -128,15 +121,6 @@ class Program:
             raise ValueError(f"program {self.name!r} has an empty command")
         if self.startsecs < 0:
             raise ValueError(f"program {self.name!r}: startsecs must be >= 0")
-        if not 0 <= self.nice <= MAX_NICE:
-            raise ValueError(f"program {self.name!r}: nice must be in [0, {MAX_NICE}]")
-
-    @property
-    def argv(self) -> list[str]:
-        """The command as supervisord runs it: behind ``nice -n`` when ``nice`` is set."""
-        if not self.nice:
-            return list(self.command)
-        return [shutil.which("nice") or "nice", "-n", str(self.nice), *self.command]
         for key in self.environment:
             if not _ENV_KEY_RE.fullmatch(key):
                 raise ValueError(f"program {self.name!r}: bad environment variable name {key!r}")
@@ -286,7 +270,7 @@ class Stack:
             lines += [
                 "",
                 f"[program:{program.name}]",
-                f"command={_command_value(program.argv, what + ' command')}",
+                f"command={_command_value(program.command, what + ' command')}",
                 f"priority={program.priority}",
                 "autostart=true",
                 f"autorestart={'true' if program.autorestart else 'false'}",
