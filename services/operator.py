@@ -96,22 +96,34 @@ class OperatorService(Service):
 
     # -- the run thread --------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
-        """Hand arrivals to the loop in order until stopped."""
+        """Hand arrivals to the loop in order until stopped. Realtime: poses queued
+        behind a newer one are skipped (a late operator catches up by skipping, never by
+        a burst of late hand inputs: OperatorLoop.on_arrival ``catch_up``); lockstep
+        decides every one (the haptic device waits for each)."""
         while not stop.is_set():
             try:
-                item = self._arrivals.get(timeout=STOP_POLL_S)
+                items = [self._arrivals.get(timeout=STOP_POLL_S)]
             except queue.Empty:
                 continue
-            if item == _NEW_RUN:
-                self.loop.on_started()
-            else:
+            while not self.loop.lockstep:
+                try:
+                    items.append(self._arrivals.get_nowait())
+                except queue.Empty:
+                    break
+            for i, item in enumerate(items):
+                if item == _NEW_RUN:
+                    self.loop.on_started()
+                    continue
                 assert isinstance(item, tuple)
+                newer = any(isinstance(later, tuple) for later in items[i + 1 :])
+                if newer:
+                    continue  # a newer pose is queued behind it
                 tick, sampled_ns = item
                 self._lateness_ns[self._poses_decided % LATENESS_SAMPLES] = (
                     time.monotonic_ns() - sampled_ns
                 )
                 self._poses_decided += 1
-                self.loop.on_arrival(tick)
+                self.loop.on_arrival(tick, catch_up=len(items) > 1)
 
     # -- OperatorOutputs: the loop's decisions onto the bus --------------------------------
     def hand(self, valid_from_tick: int, command: HandCommand) -> None:

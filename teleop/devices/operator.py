@@ -651,6 +651,10 @@ class ScriptedOperator:
         self.drift_limit_m_s = DRIFT_LIMIT_FRACTION * self.speed_cap_m_s
         # A hand command decided at tick s moves the tool from about s + this (ticks).
         self._apply_lag_ticks = round(UNMODELLED_LAG_S / timestep_s)
+        # Decisions further apart than this (ticks): the device centred the handle
+        # meanwhile (haptic.hand_input_stale_s), the hand starts over from there.
+        self._hand_hold_ticks = round(haptic_cfg.hand_input_stale_s / timestep_s)
+        self.hand_holds = 0  # gaps in the decisions that long (a late operator caught up)
         # Expected-velocity history kept for the drift estimate (ticks).
         self._history_ticks = round(operator_cfg.reaction_delay_s / timestep_s) + 2 * (
             self._apply_lag_ticks + 1
@@ -901,9 +905,24 @@ class ScriptedOperator:
         self._last_tick = tick
         return self._hand_m.copy()
 
+    def _after_hold(self, tick: int) -> None:
+        """No decision for longer than the device keeps a hand input (a late operator
+        catching up by skipping): the handle was centred meanwhile and the tool held
+        still. The hand starts from the centre, the drift estimate forgets the held
+        stretch (its commands were never applied: no drift to learn from it) and the
+        stall window starts over (the tool was not pushed)."""
+        self.hand_holds += 1
+        self._hand_m = np.zeros(3)
+        self._last_tick = tick
+        self._prev_seen = None
+        self._expected = []
+        self._stall = []
+
     def decide(self, tick: int, observed: Observation | None) -> HandCommand:
         """The hand command from decision tick ``tick`` on, given what was seen
         ``reaction_delay_s`` earlier (None: nothing seen yet, the hand stays at rest)."""
+        if self._last_tick is not None and tick - self._last_tick > self._hand_hold_ticks:
+            self._after_hold(tick)
         if observed is not None and not self.done:
             self._update_drift(observed)
             self._update_phase(tick, observed)
@@ -1034,6 +1053,7 @@ class OperatorLoop:
         self.duplicate_poses = 0  # TOOL_POSE re-sends (same tick) ignored
         self._joined_tick: int | None = None  # first TOOL_POSE tick of a run joined late
         self.withheld_inputs = 0  # joined: decisions made before anything was seen
+        self.skipped_decisions = 0  # realtime: sample ticks a late operator skipped
         self.phase_times: list[dict[str, Any]] = []
 
     def hmd_seen(self) -> None:
@@ -1056,8 +1076,12 @@ class OperatorLoop:
         self.runs += 1
         logger.info("new run: operator reset")
 
-    def on_arrival(self, m: int) -> None:
-        """The TOOL_POSE of tick ``m`` is in the buffer: decide every sample tick up to it."""
+    def on_arrival(self, m: int, catch_up: bool = False) -> None:
+        """The TOOL_POSE of tick ``m`` is in the buffer: decide every sample tick up to it.
+
+        ``catch_up`` (realtime, a late operator whose caller skipped the poses queued
+        before this one): decide only the newest sample tick, never a burst of decisions
+        whose hand inputs would all be late (see ScriptedOperator._after_hold)."""
         if m == 0 and self._last_tick != 0:
             self._new_run()
         elif self._last_tick is not None and m <= self._last_tick:
@@ -1069,6 +1093,12 @@ class OperatorLoop:
                 self._joined_tick = m
                 self.operator.joining = True
                 logger.info("joined a run under way at tick %d (a restart)", m)
+        elif catch_up:
+            first = max(self._last_tick + 1, last_sample_tick(m, self.rate_hz, self.timestep_s))
+            self.skipped_decisions += sum(
+                is_sample_tick(s, self.rate_hz, self.timestep_s)
+                for s in range(self._last_tick + 1, first)
+            )
         else:
             first = self._last_tick + 1
         self._last_tick = m
@@ -1139,4 +1169,6 @@ class OperatorLoop:
             "runs": self.runs,
             "resumed": op.resumed,  # a restarted operator: where it took the task up
             "withheld_inputs": self.withheld_inputs,
+            "skipped_decisions": self.skipped_decisions,
+            "hand_holds": op.hand_holds,
         }

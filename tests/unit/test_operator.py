@@ -276,13 +276,18 @@ class IntegratorWorld:
         return 0.25 * math.sin(2 * math.pi * tick * TIMESTEP_S / 7.0) + 0.3
 
     def run(
-        self, max_s: float, kill_in: tuple[str, float, float] | None = None
+        self,
+        max_s: float,
+        kill_in: tuple[str, float, float] | None = None,
+        restart: bool = True,
     ) -> ScriptedOperator:
         """Play until done or ``max_s``. ``kill_in`` = (phase name, s into it, outage s):
         the operator is killed that long into that phase and a new one (a restart, with
-        nothing seen yet) joins after the outage. Meanwhile no hand input comes: the
-        hand holds its last one until it is ``haptic.hand_input_stale_s`` old, then
-        centres the handle keeping its buttons (the haptic device's rule)."""
+        nothing seen yet) joins after the outage; ``restart`` False: the same operator
+        was only starved and decides again after the outage, from the newest look.
+        Meanwhile no hand input comes: the hand holds its last one until it is
+        ``haptic.hand_input_stale_s`` old, then centres the handle keeping its buttons
+        (the haptic device's rule)."""
         pending: dict[int, tuple[np.ndarray, Button]] = {}
         hand, buttons = np.zeros(3), Button.NONE
         held: np.ndarray | None = None
@@ -303,12 +308,14 @@ class IntegratorWorld:
                         back_tick = tick + round(outage_s / TIMESTEP_S)
             if not alive and tick == back_tick:
                 alive = True
-                self.operator, self.buffer = self.new_operator(), self.new_buffer()
-                self.operator.joining = True
-            if alive and tick % self.period == 0:
+                if restart:
+                    self.operator, self.buffer = self.new_operator(), self.new_buffer()
+                    self.operator.joining = True
+            if tick % self.period == 0 and (alive or not restart):  # a starved one sees
                 self.buffer.add_tool(tick, self.tool)
                 self.buffer.add_objects(tick, np.array([self.cube, BIN_M]))
                 self.buffer.add_head(tick, self.yaw(tick))
+            if alive and tick % self.period == 0:
                 command = self.operator.decide(tick, self.buffer.observe(tick))
                 if not (self.operator.joining and command.phase < 0):  # else withheld
                     pending[tick + self.lag] = (command.target_p_m, command.buttons)
@@ -593,3 +600,34 @@ def test_the_operator_loop_joining_a_run_sends_nothing_until_it_has_seen_the_wor
     assert outputs.events[0] == (int(Event.PHASE), first_sent, first_sent, float(lift))
     assert all(c.buttons & Button.GRIPPER_CLOSE for c in outputs.hands.values())
     assert all(c.target_p_m[2] > 0 for c in list(outputs.hands.values())[5:])  # going up
+
+
+@pytest.mark.parametrize("phase", ["descend", "lift", "carry"])
+def test_an_operator_starved_for_seconds_catches_up_and_the_task_succeeds(phase):
+    """A late operator (starved: no decision for 3 s of sim ticks, the device centring
+    the handle meanwhile) decides again from the newest look: it knows its hand was held
+    (no drift learnt from commands never applied, no stall counted: taking the still tool
+    for blocked, it would give up) and goes on."""
+    scenario = Scenario.load(GRASP_FILE)
+    world = IntegratorWorld(scenario)
+    operator = world.run(scenario.max_task_s + 1.0, kill_in=(phase, 0.5, 3.0), restart=False)
+    assert operator.done and operator.success, operator.failure
+    assert operator.hand_holds == 1 and operator.resumed is None
+    (drop,) = world.drops
+    assert np.linalg.norm(drop[:2] - BIN_M[:2]) < 0.03
+
+
+def test_a_late_operator_loop_catches_up_by_skipping_not_by_a_burst():
+    """Realtime, poses queued behind a newer one: the loop decides the newest sample tick
+    only (one hand input, not a burst of late ones) and counts the ticks it skipped."""
+    config = load_config(None, ['run.mode="realtime"'])
+    outputs = Outputs()
+    loop = OperatorLoop(config, Scenario.load(GRASP_FILE), outputs, lockstep=False)
+    for tick in range(0, 1001, 10):
+        loop.buffer.add_objects(tick, np.array([CUBE_M, BIN_M]))
+        loop.buffer.add_tool(tick, HOME_TOOL_M)
+    loop.on_arrival(0)
+    loop.on_arrival(1000, catch_up=True)  # 99 poses in between were skipped
+    lead = loop.lead_ticks
+    assert sorted(outputs.hands) == [0 + lead, 1000 + lead]
+    assert loop.summary()["skipped_decisions"] == 99
