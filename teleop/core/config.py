@@ -555,15 +555,12 @@ class CpuConfig:
     # controller run flat out and would starve the recorder. Needs CAP_SYS_NICE (root
     # has it); without it a warning says so and the service runs normally scheduled.
     fifo_priority: int = 40
-    # Which processes get it: the loop services.
-    fifo_services: tuple[str, ...] = ("plant", "controller", "haptic")
-    # Realtime runs, with fifo_priority set: SCHED_FIFO priority of the services that feed
-    # the loops from outside (the operator's hand, 100 decisions a second of light work):
-    # below the loops, which preempt them, above every normally scheduled process, so a
-    # recorder or eye view restarting (seconds of imports), or any other program, cannot
-    # make the hand late. Must be below fifo_priority.
-    fifo_feeder_priority: int = 20
-    fifo_feeder_services: tuple[str, ...] = ("operator",)
+    # Which processes get it: the loop services, and the operator that feeds them (its
+    # hand; 100 light decisions a second). Normally scheduled, or below the loops, the
+    # operator waits behind them, and on 2 cores they can keep both busy: its hand
+    # inputs then come late (haptic.hand_input_stale_s), and a recorder or eye view
+    # restarting (seconds of imports) takes the CPU it needs.
+    fifo_services: tuple[str, ...] = ("plant", "controller", "haptic", "operator")
     # Realtime runs: one spinner per CPU (teleop/run/idle_poll.py: SCHED_IDLE in a CPU
     # cgroup marked idle) so the idle CPUs poll instead of halting. On a KVM guest a
     # halted vCPU leaves its host core (cold caches, a hypervisor exit on every wake-up);
@@ -581,14 +578,6 @@ class CpuConfig:
         for name in names:
             _require(all(c >= 0 for c in getattr(self, name)), f"cpu.{name}: CPU numbers >= 0")
         _require(0 <= self.fifo_priority <= 99, "cpu.fifo_priority in [0, 99]")
-        _require(
-            0 <= self.fifo_feeder_priority <= 99,
-            "cpu.fifo_feeder_priority in [0, 99]",
-        )
-        _require(
-            not self.fifo_priority or self.fifo_feeder_priority < self.fifo_priority,
-            "cpu.fifo_feeder_priority below cpu.fifo_priority (the loops preempt the feeders)",
-        )
 
     def for_service(self, service: str, mode: str) -> tuple[int, ...]:
         """The CPUs of ``service`` in timing ``mode`` (empty: the kernel's choice)."""
@@ -601,15 +590,10 @@ class CpuConfig:
         return self.idle_poll and mode == "realtime"
 
     def fifo_priority_for(self, service: str, mode: str) -> int:
-        """SCHED_FIFO priority of ``service`` in timing ``mode``; 0: normal scheduling.
-        The feeders get theirs only while the loops have one (never above them)."""
-        if mode != "realtime" or not self.fifo_priority:
+        """SCHED_FIFO priority of ``service`` in timing ``mode``; 0: normal scheduling."""
+        if mode != "realtime" or service not in self.fifo_services:
             return 0
-        if service in self.fifo_services:
-            return self.fifo_priority
-        if service in self.fifo_feeder_services:
-            return self.fifo_feeder_priority
-        return 0
+        return self.fifo_priority
 
 
 @dataclass(frozen=True)
