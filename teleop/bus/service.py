@@ -483,6 +483,11 @@ def service_main(service_class: type[Service], argv: list[str] | None = None) ->
     scheduled_as = service_class.scheduling_as or service_class.name
     pinning = pin_to_cpus(config.cpu.for_service(scheduled_as, config.run.mode))
     fifo_priority = config.cpu.fifo_priority_for(scheduled_as, config.run.mode)
+    if not fifo_priority and os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR):
+        # A restart that did its imports under the restart priority
+        # (teleop.run.restart_priority): this service's own scheduling from here, before
+        # it starts a thread (Zenoh's would keep the realtime policy for good).
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     stop = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:

@@ -561,6 +561,13 @@ class CpuConfig:
     # inputs then come late (haptic.hand_input_stale_s), and a recorder or eye view
     # restarting (seconds of imports) takes the CPU it needs.
     fifo_services: tuple[str, ...] = ("plant", "controller", "haptic", "operator")
+    # A restart of one of fifo_services (killed, crashed) runs its start-up (imports,
+    # model loading: seconds of CPU) under SCHED_FIFO at this priority, in both timing
+    # modes: below the loops, above every normally scheduled process. Realtime loops
+    # leave a small share of 2 cores to everything else, and a normally scheduled
+    # restart shares it with whatever else runs on the host (teleop.run.restart_priority).
+    # 0: restarts start normally scheduled. Must be below fifo_priority when that is set.
+    restart_fifo_priority: int = 1
     # Realtime runs: one spinner per CPU (teleop/run/idle_poll.py: SCHED_IDLE in a CPU
     # cgroup marked idle) so the idle CPUs poll instead of halting. On a KVM guest a
     # halted vCPU leaves its host core (cold caches, a hypervisor exit on every wake-up);
@@ -578,6 +585,11 @@ class CpuConfig:
         for name in names:
             _require(all(c >= 0 for c in getattr(self, name)), f"cpu.{name}: CPU numbers >= 0")
         _require(0 <= self.fifo_priority <= 99, "cpu.fifo_priority in [0, 99]")
+        _require(
+            0 <= self.restart_fifo_priority <= 99
+            and (not self.fifo_priority or self.restart_fifo_priority < self.fifo_priority),
+            "cpu.restart_fifo_priority in [0, 99] and below cpu.fifo_priority",
+        )
 
     def for_service(self, service: str, mode: str) -> tuple[int, ...]:
         """The CPUs of ``service`` in timing ``mode`` (empty: the kernel's choice)."""

@@ -64,7 +64,7 @@ from teleop.core.rundir import (
     summary_path,
 )
 from teleop.devices.operator import Scenario
-from teleop.run import niced
+from teleop.run import restart_priority
 from teleop.run.failure import ProgramWatch, ServiceFailed, program_log_text
 from teleop.run.faults import (
     FaultInjector,
@@ -227,14 +227,13 @@ def service_programs(
     credentials: Mapping[str, Path] | None = None,
     mesh: dict[str, list[str]] | None = None,
     tls: bool = False,
-    nice: Mapping[str, int] | None = None,
+    restarts: Mapping[str, dict[str, int]] | None = None,
 ) -> list[Program]:
     """The supervisord programs of ``services``, each given the same config and
     overrides, then its place in the run's ``mesh`` (default: a :func:`peer_mesh` of
     ``services``, over TLS endpoints with ``tls``; with outside services, one that
     includes them too) and its ``credentials`` file, if any (:func:`run_credentials`);
-    ``nice``: the niceness a service's restarts start at (:func:`service_nice`,
-    teleop.run.niced)."""
+    ``restarts``: how a service's restarts start (:func:`restart_priorities`)."""
     programs = []
     if mesh is None:
         mesh = peer_mesh(services, listener, tls=tls)
@@ -252,8 +251,8 @@ def service_programs(
             command += ["--peers", ",".join(peers)]
         if continuous:
             command.append("--continuous")
-        if (nice or {}).get(name):
-            command = niced.command(nice[name], run_dir, name, command)  # type: ignore[index]
+        if restarts and restarts.get(name):
+            command = restart_priority.command(run_dir, name, command, **restarts[name])
         programs.append(
             Program(
                 name=name,
@@ -265,11 +264,17 @@ def service_programs(
     return programs
 
 
-def service_nice(config: Config) -> dict[str, int]:
-    """The services that run below the control path, and their niceness: the recorder and
-    the eye view. A restart of one starts at it (teleop.run.niced): seconds of imports
-    and loading, beside a running control loop, before its own code lowers itself."""
-    return {"recorder": config.recorder.nice, EYEVIEW: config.eyeview.nice}
+def restart_priorities(config: Config) -> dict[str, dict[str, int]]:
+    """How each service's restarts start (teleop.run.restart_priority): the recorder and
+    the eye view at their ``nice``, below the control path; the control path's services
+    (``cpu.fifo_services``) under SCHED_FIFO ``cpu.restart_fifo_priority``, below the
+    loops. Seconds of imports and loading, beside a loop that runs on, before their own
+    code chooses. First starts are left alone."""
+    restarts = {"recorder": {"nice": config.recorder.nice}, EYEVIEW: {"nice": config.eyeview.nice}}
+    if config.cpu.restart_fifo_priority:
+        for name in config.cpu.fifo_services:
+            restarts[name] = {"fifo": config.cpu.restart_fifo_priority}
+    return restarts
 
 
 def run_credentials(
@@ -472,7 +477,7 @@ def run_on_services(
             continuous=False,
             credentials=credentials,
             mesh=mesh,
-            nice=service_nice(config),
+            restarts=restart_priorities(config),
         ) + idle_poll_programs(polled_cpus, run_dir)
         for text, _ in prepare_outside(
             config_file, run_overrides, run_dir, stack_services, outside, mesh, plant_awaits,
@@ -967,7 +972,7 @@ def start_detached(
         continuous=True,
         credentials=credentials,
         mesh=mesh,
-        nice=service_nice(config),
+        restarts=restart_priorities(config),
     ) + idle_poll_programs(idle_poll_cpus(config), run_dir)
     joins = prepare_outside(
         config_file, run_overrides, run_dir, stack_services, outside, mesh, plant_awaits,
