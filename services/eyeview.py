@@ -45,7 +45,7 @@ from teleop.bus.messages import (
     Kind,
     Reason,
 )
-from teleop.bus.service import Service, service_main
+from teleop.bus.service import Service, lower_priority_to, service_main
 from teleop.bus.session import Latest, Publisher, open_session, subscribe
 from teleop.core.clock import NS_PER_S, LoopTimer, MonotonicClock
 from teleop.core.config import ConfigError
@@ -76,8 +76,8 @@ def lower_priority(nice: int, idle: bool) -> None:
     """
     if idle:
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-    elif nice:
-        os.nice(nice)
+    else:
+        lower_priority_to(nice)
 
 
 class EyeViewService(Service):

@@ -30,6 +30,8 @@ from teleop.devices.operator import HandCommand, OperatorLoop, Scenario
 HMD_SERVICE = "hmd"  # liveliness name of the HMD service
 
 _NEW_RUN = "new_run"  # queue item: the plant's STARTED event
+# How many pose-to-decision delays the summary's percentiles take (the newest ones).
+LATENESS_SAMPLES = 1 << 15
 
 
 class OperatorService(Service):
@@ -48,8 +50,13 @@ class OperatorService(Service):
         )
         self._hand = HAND_INPUT.new()
         self._event = RUN_EVENT.new()
-        # Tool-pose ticks and new-run markers, in arrival order, for the run thread.
-        self._arrivals: queue.SimpleQueue[int | str] = queue.SimpleQueue()
+        # Tool poses (tick, the plant's sample stamp) and new-run markers, in arrival
+        # order, for the run thread.
+        self._arrivals: queue.SimpleQueue[tuple[int, int] | str] = queue.SimpleQueue()
+        # From a pose's sample on the plant to this operator's decisions on it (ns): how
+        # late the hand is on top of its reaction delay (realtime; a starved operator).
+        self._lateness_ns = np.zeros(LATENESS_SAMPLES, dtype=np.int64)
+        self._poses_decided = 0
         topics, drops = self.topics, self.drops
         self.keep(subscribe(self.session, topics.tool_pose, TOOL_POSE, self._on_tool, drops))
         self.keep(subscribe(self.session, topics.objects, OBJECT_POSES, self._on_objects, drops))
@@ -69,7 +76,7 @@ class OperatorService(Service):
     def _on_tool(self, rec: np.ndarray, rx_ns: int) -> None:
         tick = self._tick_of(rec)
         self.loop.buffer.add_tool(tick, rec["world_p_tool_m"])
-        self._arrivals.put(tick)
+        self._arrivals.put((tick, int(rec["t_source_ns"])))
 
     def _on_objects(self, rec: np.ndarray, rx_ns: int) -> None:
         n = int(rec["n_objects"])
@@ -89,17 +96,34 @@ class OperatorService(Service):
 
     # -- the run thread --------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
-        """Hand arrivals to the loop in order until stopped."""
+        """Hand arrivals to the loop in order until stopped. Realtime: poses queued
+        behind a newer one are skipped (a late operator catches up by skipping, never by
+        a burst of late hand inputs: OperatorLoop.on_arrival ``catch_up``); lockstep
+        decides every one (the haptic device waits for each)."""
         while not stop.is_set():
             try:
-                item = self._arrivals.get(timeout=STOP_POLL_S)
+                items = [self._arrivals.get(timeout=STOP_POLL_S)]
             except queue.Empty:
                 continue
-            if item == _NEW_RUN:
-                self.loop.on_started()
-            else:
-                assert isinstance(item, int)
-                self.loop.on_arrival(item)
+            while not self.loop.lockstep:
+                try:
+                    items.append(self._arrivals.get_nowait())
+                except queue.Empty:
+                    break
+            for i, item in enumerate(items):
+                if item == _NEW_RUN:
+                    self.loop.on_started()
+                    continue
+                assert isinstance(item, tuple)
+                newer = any(isinstance(later, tuple) for later in items[i + 1 :])
+                if newer:
+                    continue  # a newer pose is queued behind it
+                tick, sampled_ns = item
+                self._lateness_ns[self._poses_decided % LATENESS_SAMPLES] = (
+                    time.monotonic_ns() - sampled_ns
+                )
+                self._poses_decided += 1
+                self.loop.on_arrival(tick, catch_up=len(items) > 1)
 
     # -- OperatorOutputs: the loop's decisions onto the bus --------------------------------
     def hand(self, valid_from_tick: int, command: HandCommand) -> None:
@@ -122,7 +146,12 @@ class OperatorService(Service):
         self.events_pub.put(rec)
 
     def summary(self) -> dict[str, Any]:
-        return {**super().summary(), **self.loop.summary()}
+        lateness_ms = self._lateness_ns[: min(self._poses_decided, LATENESS_SAMPLES)] / 1e6
+        late: dict[str, Any] = {}
+        if len(lateness_ms):
+            p50, p99 = np.percentile(lateness_ms, [50, 99])
+            late = {"p50": round(p50, 3), "p99": round(p99, 3), "max": round(lateness_ms.max(), 3)}
+        return {**super().summary(), **self.loop.summary(), "pose_to_decision_ms": late}
 
 
 if __name__ == "__main__":

@@ -9,7 +9,6 @@ log), and flushes the writer every ``recorder.flush_period_s``.
 from __future__ import annotations
 
 import logging
-import os
 import sys
 import threading
 from pathlib import Path
@@ -18,7 +17,7 @@ from typing import Any, ClassVar
 import zenoh
 
 from teleop.bus.messages import EYE_VIEW, RUN_EVENT
-from teleop.bus.service import Service, ServiceOptions, service_main
+from teleop.bus.service import Service, ServiceOptions, lower_priority_to, service_main
 from teleop.bus.session import subscribe, subscribe_events, subscribe_frames
 from teleop.core.config import Config, ConfigError
 from teleop.core.rundir import RECORDER_SEGMENTS_FILE, RECORDING_FILE
@@ -78,8 +77,7 @@ class RecorderService(Service):
         far is closed again (``__exit__`` does not run when ``__enter__`` raises).
         """
         try:
-            if self.config.recorder.nice:
-                os.nice(self.config.recorder.nice)
+            lower_priority_to(self.config.recorder.nice)
             super().open()
             assert self.session is not None
             session, topics, drops, writer = self.session, self.topics, self.drops, self.writer

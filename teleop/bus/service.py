@@ -4,7 +4,11 @@ A service module in ``services/`` is three lines: it hands its class to
 :func:`service_main`, which parses the common command line, loads the typed config,
 turns SIGINT/SIGTERM into a stop event, and runs ``open -> run(stop) -> close``.
 ``close`` is safe to call twice and writes the service's summary to
-``<run_dir>/<name>.summary.json`` (atomically), which ``teleop run`` collects.
+``<run_dir>/<name>.summary.json`` (atomically), which ``teleop run`` collects
+(:func:`read_summary`). Meanwhile the process writes its summary so far every
+``SUMMARY_PERIOD_S`` to a file of its own (``<name>.<pid>.incarnation.json``), so the
+counts of a process killed with SIGKILL, which never closes, are not lost: the next
+summary written at close, or the launcher, takes them in as an earlier incarnation.
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ from teleop.bus.session import (
 )
 from teleop.bus.topics import Topics
 from teleop.core.config import Config, ConfigError, ModelError, load_config
-from teleop.core.rundir import summary_path
+from teleop.core.rundir import incarnation_path, incarnation_paths, summary_path
 
 logger = logging.getLogger(__name__)
 
@@ -54,6 +58,8 @@ PEER_LINK_WAIT_S = 15.0
 EXIT_CONFIG = 2
 # Exit code of a service that failed on an unexpected error (its traceback is logged).
 EXIT_FAILED = 1
+# A running service writes its summary so far this often (s): what a SIGKILL can lose.
+SUMMARY_PERIOD_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -88,6 +94,13 @@ class Service:
         self.session: zenoh.Session | None = None
         self._entities: list[Any] = []
         self._closed = False
+        self._summary_stop = threading.Event()
+        self._summary_thread: threading.Thread | None = None
+        self.running_summaries = 0  # summaries so far written while running
+        self.running_summary_failures = 0  # of which summary() raised (skipped)
+        # CPU time (ms) the costliest one took, the first apart: about how long it held
+        # the GIL the service's own threads need.
+        self.running_summary_cpu_max_ms = 0.0
         self.unlinked_peers: list[str] = []  # peers never seen (become_ready gave up)
         # Realtime privileges asked for and whether the kernel granted them (service_main
         # fills it in): {"sched_fifo": ..., "cpu_pinning": ...}, each "granted ...",
@@ -129,6 +142,8 @@ class Service:
             "cpu_s": time.process_time(),
             "unlinked_peers": self.unlinked_peers,
             "privileges": self.privileges,
+            "running_summaries": self.running_summaries,
+            "running_summary_cpu_max_ms": round(self.running_summary_cpu_max_ms, 3),
         }
 
     def close(self) -> None:
@@ -136,6 +151,7 @@ class Service:
             return
         self._closed = True
         try:
+            self._stop_running_summaries()
             self.write_summary()
         finally:
             close_session(self.session, *reversed(self._entities))
@@ -220,32 +236,147 @@ class Service:
 
     def write_summary(self) -> None:
         """``<run_dir>/<name>.summary.json``, atomically: this process's summary, and
-        under ``earlier_incarnations`` those of the processes of this service that wrote
-        one before it in this run (a restarted service: nothing it counted is lost)."""
+        under ``earlier_incarnations`` those of the processes of this service that came
+        before it in this run: the ones that closed (the file's) and the ones killed
+        before they could (their running summaries, whose files are then removed). A
+        restarted service: nothing it counted is lost, but what a killed process counted
+        after its last running summary."""
         if self.options.run_dir is None:
             return
-        path = summary_path(self.options.run_dir, self.name)
+        run_dir, pid = self.options.run_dir, os.getpid()
+        path = summary_path(run_dir, self.name)
         path.parent.mkdir(parents=True, exist_ok=True)
-        summary = {**self.summary(), "pid": os.getpid()}
-        earlier = earlier_incarnations(path, os.getpid())
+        summary = {**self.summary(), "pid": pid}
+        running = incarnation_paths(run_dir, self.name)
+        earlier = earlier_incarnations(path, pid, running)
         if earlier:
             summary["earlier_incarnations"] = earlier
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(summary, indent=2) + "\n")
-        os.replace(tmp, path)
+        _write_json(path, summary)
+        for taken_in in running:
+            taken_in.unlink(missing_ok=True)
+
+    # -- running summaries -------------------------------------------------------------
+    def start_running_summaries(self, period_s: float = SUMMARY_PERIOD_S) -> None:
+        """Write the summary so far every ``period_s`` from a thread of its own, until
+        close (no run directory: nothing to do)."""
+        if self.options.run_dir is None or self._summary_thread is not None:
+            return
+        self._summary_thread = threading.Thread(
+            target=self._running_summaries, args=(period_s,), name="summary", daemon=True
+        )
+        self._summary_thread.start()
+
+    def _running_summaries(self, period_s: float) -> None:
+        # The first at once: it pays the one-off costs (imports, caches: tens of ms of
+        # the GIL) while the service starts, before any loop of the run does.
+        self.write_running_summary()
+        while not self._summary_stop.wait(period_s):
+            self.write_running_summary()
+
+    def _stop_running_summaries(self) -> None:
+        self._summary_stop.set()
+        if self._summary_thread is not None:
+            self._summary_thread.join()
+
+    def write_running_summary(self) -> None:
+        """This process's summary so far to its incarnation file, atomically. The
+        counters are read while the service's threads go on: one that changes mid-read
+        (summary() raises) skips this period, logged once."""
+        if self.options.run_dir is None:
+            return
+        pid = os.getpid()
+        start_ns = time.thread_time_ns()
+        try:
+            summary = {**self.summary(), "pid": pid, "running": True}
+        except Exception:
+            self.running_summary_failures += 1
+            if self.running_summary_failures == 1:
+                logger.warning("running summary skipped (read mid-change)", exc_info=True)
+            return
+        try:
+            _write_json(incarnation_path(self.options.run_dir, self.name, pid), summary)
+        except OSError as exc:
+            logger.warning("running summary not written: %s", exc)
+            return
+        self.running_summaries += 1
+        cpu_ms = (time.thread_time_ns() - start_ns) / 1e6
+        if self.running_summaries > 1:  # the first one pays one-off imports and caches
+            self.running_summary_cpu_max_ms = max(self.running_summary_cpu_max_ms, cpu_ms)
 
 
-def earlier_incarnations(path: Path, pid: int) -> list[dict[str, Any]]:
-    """The summaries in ``path`` written by processes other than ``pid`` (oldest first):
-    the file's own earlier incarnations, and the file itself if another process wrote it."""
+def _write_json(path: Path, content: dict[str, Any]) -> None:
+    """``content`` as JSON into ``path``, atomically (a reader sees the old or the new)."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(content, indent=2) + "\n")
+    os.replace(tmp, path)
+
+
+def _read_json(path: Path) -> dict[str, Any] | None:
     try:
-        previous = json.loads(path.read_text())
+        content = json.loads(path.read_text())
     except (OSError, ValueError):
-        return []
-    earlier = list(previous.pop("earlier_incarnations", []))
-    if previous.get("pid") != pid:
-        earlier.append(previous)
-    return earlier
+        return None
+    return content if isinstance(content, dict) else None
+
+
+def earlier_incarnations(
+    path: Path, pid: int, running: list[Path] | None = None
+) -> list[dict[str, Any]]:
+    """The summaries of the processes of a service other than ``pid``, oldest first: those
+    in its summary file ``path`` (the file's own earlier incarnations, and the file itself
+    if another process wrote it), then the running summaries ``running`` (oldest write
+    first) of processes not among them (killed before they closed)."""
+    earlier: list[dict[str, Any]] = []
+    previous = _read_json(path)
+    if previous is not None:
+        earlier = list(previous.pop("earlier_incarnations", []))
+        if previous.get("pid") != pid:
+            earlier.append(previous)
+    return _taken_in(earlier, {pid}, running or [])
+
+
+def _taken_in(
+    earlier: list[dict[str, Any]], pids: set[Any], running: list[Path]
+) -> list[dict[str, Any]]:
+    """``earlier`` and, after it, the running summaries of processes neither in it nor in
+    ``pids``."""
+    known = {incarnation.get("pid") for incarnation in earlier} | pids
+    out = list(earlier)
+    for running_path in running:
+        incarnation = _read_json(running_path)
+        if incarnation is not None and incarnation.get("pid") not in known:
+            out.append(incarnation)
+            known.add(incarnation.get("pid"))
+    return out
+
+
+def read_summary(run_dir: Path, service: str) -> dict[str, Any] | None:
+    """What the processes of ``service`` reported in this run: the summary the last one
+    wrote at close, with every earlier process's (killed ones' running summaries
+    included) under ``earlier_incarnations``; if none closed (the last was killed, or
+    stopped while starting), the newest running summary (``"running": true``), the others
+    earlier. None: no process of it wrote anything."""
+    running = incarnation_paths(run_dir, service)
+    top = _read_json(summary_path(run_dir, service))
+    if top is None:
+        readable = [(path, _read_json(path)) for path in running]
+        readable = [(path, content) for path, content in readable if content is not None]
+        if not readable:
+            return None
+        newest_path, top = readable[-1]
+        running = [path for path in running if path != newest_path]
+    earlier = _taken_in(list(top.pop("earlier_incarnations", [])), {top.get("pid")}, running)
+    if earlier:
+        top["earlier_incarnations"] = earlier
+    return top
+
+
+def lower_priority_to(nice: int) -> None:
+    """Run this thread (and the threads it starts later) at niceness ``nice`` at least:
+    lowered to it if it runs above it, left alone if it already runs at or below it (a
+    launcher may start the process niced; ``os.nice`` would add the two up)."""
+    if nice > os.getpriority(os.PRIO_PROCESS, 0):
+        os.setpriority(os.PRIO_PROCESS, 0, nice)
 
 
 # A privilege's outcome in Service.privileges when it was not asked for.
@@ -352,6 +483,11 @@ def service_main(service_class: type[Service], argv: list[str] | None = None) ->
     scheduled_as = service_class.scheduling_as or service_class.name
     pinning = pin_to_cpus(config.cpu.for_service(scheduled_as, config.run.mode))
     fifo_priority = config.cpu.fifo_priority_for(scheduled_as, config.run.mode)
+    if not fifo_priority and os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR):
+        # A restart that did its imports under the restart priority
+        # (teleop.run.restart_priority): this service's own scheduling from here, before
+        # it starts a thread (Zenoh's would keep the realtime policy for good).
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     stop = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
@@ -363,6 +499,7 @@ def service_main(service_class: type[Service], argv: list[str] | None = None) ->
     try:
         with fifo_scheduling(fifo_priority) as fifo, service_class(config, options) as service:
             service.privileges.update(sched_fifo=fifo, cpu_pinning=pinning)
+            service.start_running_summaries()
             if service.become_ready(stop):
                 logger.info("running (robot %s)", config.robot.robot_id)
                 service.run(stop)

@@ -344,6 +344,12 @@ class HapticConfig:
     # The operator's hand, a spring-damper pulling the handle to the hand's target.
     hand_stiffness_n_per_m: float = 200.0
     hand_damping_n_s_per_m: float = 8.0
+    # A hand input this far (s of sim time) behind the tick it is used at, with no newer
+    # one, is a hand that stopped moving (its operator was starved, frozen or is being
+    # restarted): the emulated hand eases the handle back to the centre, so the rate
+    # control holds the tool still, and keeps the buttons it held, so a held object is
+    # not dropped. A live operator sends each input ahead of the tick it applies from.
+    hand_input_stale_s: float = 0.1
 
     def __post_init__(self) -> None:
         for name in (
@@ -355,6 +361,7 @@ class HapticConfig:
             "kf_accel_noise_m_s2",
             "stale_feedback_s",
             "fade_s",
+            "hand_input_stale_s",
         ):
             _require(getattr(self, name) > 0, f"haptic.{name} > 0")
 
@@ -548,8 +555,19 @@ class CpuConfig:
     # controller run flat out and would starve the recorder. Needs CAP_SYS_NICE (root
     # has it); without it a warning says so and the service runs normally scheduled.
     fifo_priority: int = 40
-    # Which processes get it: the loop services.
-    fifo_services: tuple[str, ...] = ("plant", "controller", "haptic")
+    # Which processes get it: the loop services, and the operator that feeds them (its
+    # hand; 100 light decisions a second). Normally scheduled, or below the loops, the
+    # operator waits behind them, and on 2 cores they can keep both busy: its hand
+    # inputs then come late (haptic.hand_input_stale_s), and a recorder or eye view
+    # restarting (seconds of imports) takes the CPU it needs.
+    fifo_services: tuple[str, ...] = ("plant", "controller", "haptic", "operator")
+    # A restart of one of fifo_services (killed, crashed) runs its start-up (imports,
+    # model loading: seconds of CPU) under SCHED_FIFO at this priority, in both timing
+    # modes: below the loops, above every normally scheduled process. Realtime loops
+    # leave a small share of 2 cores to everything else, and a normally scheduled
+    # restart shares it with whatever else runs on the host (teleop.run.restart_priority).
+    # 0: restarts start normally scheduled. Must be below fifo_priority when that is set.
+    restart_fifo_priority: int = 1
     # Realtime runs: one spinner per CPU (teleop/run/idle_poll.py: SCHED_IDLE in a CPU
     # cgroup marked idle) so the idle CPUs poll instead of halting. On a KVM guest a
     # halted vCPU leaves its host core (cold caches, a hypervisor exit on every wake-up);
@@ -567,6 +585,11 @@ class CpuConfig:
         for name in names:
             _require(all(c >= 0 for c in getattr(self, name)), f"cpu.{name}: CPU numbers >= 0")
         _require(0 <= self.fifo_priority <= 99, "cpu.fifo_priority in [0, 99]")
+        _require(
+            0 <= self.restart_fifo_priority <= 99
+            and (not self.fifo_priority or self.restart_fifo_priority < self.fifo_priority),
+            "cpu.restart_fifo_priority in [0, 99] and below cpu.fifo_priority",
+        )
 
     def for_service(self, service: str, mode: str) -> tuple[int, ...]:
         """The CPUs of ``service`` in timing ``mode`` (empty: the kernel's choice)."""

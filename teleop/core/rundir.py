@@ -12,6 +12,11 @@ from pathlib import Path
 # Every service's summary, written atomically when it closes (teleop.bus.service), read
 # and merged by the launcher (teleop.run.stack).
 SUMMARY_SUFFIX = ".summary.json"
+# While it runs, each process of a service also writes its summary so far every few
+# seconds to a file of its own, ``<service>.<pid>.incarnation.json``: a process killed
+# with SIGKILL writes no summary at close, and its counts would be lost with it. The
+# next summary written at close takes them in (and removes the file).
+INCARNATION_SUFFIX = ".incarnation.json"
 # The recorder's Rerun recording when recorder.rrd_path is empty.
 RECORDING_FILE = "recording.rrd"
 # A restarted recorder never overwrites: it writes the next segment (segment_path), and
@@ -53,6 +58,7 @@ SHED_FILE_SUFFIX = ".shed.npy"
 # saying success, a log of another run) survives a run that fails: clear_run_results.
 _RUN_RESULT_GLOBS = (
     f"*{SUMMARY_SUFFIX}",
+    f"*{INCARNATION_SUFFIX}",
     f"*{SHED_FILE_SUFFIX}",
     "*.status",
     HAPTIC_TRACE_FILE,
@@ -110,6 +116,24 @@ def shed_path(run_dir: Path, service: str) -> Path:
 def summary_path(run_dir: Path, service: str) -> Path:
     """Where ``service`` writes its summary when it closes."""
     return Path(run_dir) / f"{service}{SUMMARY_SUFFIX}"
+
+
+def incarnation_path(run_dir: Path, service: str, pid: int) -> Path:
+    """Where process ``pid`` of ``service`` writes its summary so far while it runs."""
+    return Path(run_dir) / f"{service}.{pid}{INCARNATION_SUFFIX}"
+
+
+def incarnation_paths(run_dir: Path, service: str) -> list[Path]:
+    """Every process's running summary of ``service`` in ``run_dir``, oldest write first."""
+    written: list[tuple[int, Path]] = []
+    for path in Path(run_dir).glob(f"{service}.*{INCARNATION_SUFFIX}"):
+        if not path.name[len(service) + 1 : -len(INCARNATION_SUFFIX)].isdigit():
+            continue
+        try:
+            written.append((path.stat().st_mtime_ns, path))
+        except FileNotFoundError:  # taken in and removed meanwhile
+            continue
+    return [path for _, path in sorted(written)]
 
 
 def program_log_path(run_dir: Path, program: str) -> Path:

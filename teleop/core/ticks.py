@@ -76,6 +76,11 @@ class TickedInputs:
             self._cond.wait_for(lambda: valid_from_tick in self._records, timeout_s)
             return self._records.get(valid_from_tick)
 
+    def newest_tick(self) -> int | None:
+        """The largest valid_from_tick stored (None: none)."""
+        with self._cond:
+            return self._ticks[-1] if self._ticks else None
+
     def latest_at(self, tick: int) -> np.ndarray | None:
         """The record with the largest valid_from_tick <= ``tick`` (realtime use)."""
         with self._cond:

@@ -23,7 +23,14 @@ adapter around it.
   all in; the input that completes the set does the step (no thread hand-off). A hand
   input still missing after ``HAND_INPUT_WAIT_S`` means there is no operator:
   :meth:`HapticLoop.run_lockstep` logs once and goes on without waiting for hand inputs
-  until one arrives.
+  until one arrives. One that never comes because an input for a later tick came first
+  (a restarted operator starts where the world is, not where its predecessor stopped)
+  is not waited for.
+
+In both modes a hand input more than ``haptic.hand_input_stale_s`` of sim time behind the
+tick (no newer one came: the operator starved, frozen or restarting) is a hand that
+stopped moving: it centres the handle (the tool holds still) and keeps the buttons it
+held (:func:`held_hand`). Sim time, so a stalled plant never makes the hand stale.
 
 Lockstep: a PLANT_STATE seq 0 with a new ``t_source_ns`` (or as the first state) starts
 a new run: the device is reset and every stored input is forgotten. A state with a seq
@@ -83,6 +90,23 @@ def hand_input(rec: np.ndarray | None) -> HandInput | None:
     return HandInput(rec["target_p_m"], Button(int(rec["buttons"])))
 
 
+def held_hand(rec: np.ndarray | None, tick: int, stale_ticks: int) -> tuple[HandInput | None, bool]:
+    """What the hand does at ``tick`` given the newest HAND_INPUT that applies there
+    (None: none yet, no hand), and whether that input is stale.
+
+    An input more than ``stale_ticks`` behind ``tick`` is a hand that stopped moving (its
+    operator starved, frozen or restarting): the hand pulls the handle to the centre, so
+    the rate control holds the tool still, and keeps holding the buttons it held, so an
+    object in the gripper stays there (``haptic.hand_input_stale_s``). Ticks are sim time:
+    a stalled plant stalls the ticks, so a hand is never stale for that.
+    """
+    if rec is None:
+        return None, False
+    if tick - int(rec["valid_from_tick"]) > stale_ticks:
+        return HandInput(np.zeros(3), Button(int(rec["buttons"]))), True
+    return hand_input(rec), False
+
+
 class HapticLoop:
     """The haptic service minus the bus: see the module docstring for both timing modes.
 
@@ -108,6 +132,7 @@ class HapticLoop:
         self.period_ns = round(self.period_s * NS_PER_S)
         self.hand_rate_hz = config.operator.decision_rate_hz
         self.lead_ticks = round(1.0 / (self.hand_rate_hz * self.period_s))
+        self.hand_stale_ticks = round(config.haptic.hand_input_stale_s / self.period_s)
         self.max_feedback_n = OVERSIZED_FEEDBACK_FACTOR * config.haptic.peak_force_n
         self.render_on_arrival = config.haptic.render_on_arrival
         self.hold = FeedbackHold(config.haptic.stale_feedback_s, config.haptic.fade_s)
@@ -131,6 +156,9 @@ class HapticLoop:
         self.runs = 0
         self.lockstep_waits = 0
         self.missing_hand_inputs = 0
+        self.hand_holds = 0  # times the hand input went stale (the hand centred the handle)
+        self.hand_held_steps = 0  # steps taken with a stale hand input
+        self._hand_stale = False
         self.oversized_feedback = 0
         self.republished_states = 0
         self.max_force_n = 0.0
@@ -238,6 +266,7 @@ class HapticLoop:
         self._hand_blocked_since_ns = None
         self._operator_absent = False
         self._last_missing_valid_from = None
+        self._hand_stale = False
         self.runs += 1
 
     # -- lockstep ----------------------------------------------------------------------
@@ -249,7 +278,10 @@ class HapticLoop:
         rec = self.hand_inputs.wait_for(valid_from, 0.0)
         if rec is not None:
             return rec, False
-        if not self._operator_absent:
+        newest = self.hand_inputs.newest_tick()
+        # An input for a later tick came first: this one will never come (one operator
+        # sends in order; a restarted one starts after the last of its predecessor's).
+        if not self._operator_absent and (newest is None or newest < valid_from):
             return None, True
         if valid_from != self._last_missing_valid_from:
             self._last_missing_valid_from = valid_from
@@ -360,7 +392,20 @@ class HapticLoop:
             self._pending_trace[Stage.FEEDBACK_RENDERED] = self.clock.now_ns()
             self.trace_log.append(self._pending_trace)
             self._pending_trace = None
-        sample = self.device.next_sample(hand_input(hand))
+        held, hand_stale = held_hand(hand, tick, self.hand_stale_ticks)
+        if hand_stale:
+            self.hand_held_steps += 1
+            if not self._hand_stale:
+                self.hand_holds += 1
+                logger.info(
+                    "hand input of tick %d is stale at tick %d (newest input: tick %s): "
+                    "the hand centres the handle and keeps its buttons",
+                    int(hand["valid_from_tick"]),  # type: ignore[index]
+                    tick,
+                    self.hand_inputs.newest_tick(),
+                )
+        self._hand_stale = hand_stale
+        sample = self.device.next_sample(held)
         sample_ns = self.clock.now_ns()
         self.steps += 1
         rec = self.record
@@ -403,6 +448,8 @@ class HapticLoop:
             "max_abs_position_m": self.max_abs_position_m,
             "lockstep_waits": self.lockstep_waits,
             "missing_hand_inputs": self.missing_hand_inputs,
+            "hand_holds": self.hand_holds,
+            "hand_held_steps": self.hand_held_steps,
             "oversized_feedback": self.oversized_feedback,
             "republished_states": self.republished_states,
             "feedback_lost": self.feedback_in.seq.lost,

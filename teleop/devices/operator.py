@@ -88,6 +88,7 @@ from teleop.core.config import (
 )
 from teleop.core.ticks import expected_valid_from, is_sample_tick, last_sample_tick
 from teleop.devices.routing import KeepOut, SceneKnowledge, plan_route, route_length_m
+from teleop.sim.proximity import BIN_BODY
 
 logger = logging.getLogger(__name__)
 
@@ -125,6 +126,10 @@ STALL_MIN_EXPECTED_M = 0.03
 STALL_MIN_DISTANCE_M = 0.025
 # Stopped short within this distance (m) of a keep-out volume: blocked by it.
 BLOCKED_NEAR_M = 0.02
+# A restarted operator takes the held object for lifted (in the gripper, off the table)
+# once its origin is this far (m) above where the scene rests it: more than the object
+# settles or rocks on the table or the bin's floor, less than any lift.
+LIFTED_M = 0.02
 
 # --- Scenario vocabulary -----------------------------------------------------------------
 
@@ -525,6 +530,83 @@ class ObservationBuffer:
             return self._cond.wait_for(lambda: self._ready(seen, head_valid_from), timeout_s)
 
 
+# --- Taking a task up where the world is ------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Resumption:
+    """Where a restarted operator takes the task up: the phase, the anchors its target
+    uses instead of the objects' observed positions (name -> world position, m) and why,
+    in a few words (for the log and the summary)."""
+
+    phase: int
+    anchors: Mapping[str, np.ndarray]
+    why: str
+
+
+def resume_phase(scenario: Scenario, seen: Observation, scene: SceneKnowledge) -> Resumption:
+    """The phase of ``scenario`` an operator that joins a run under way (restarted) takes
+    the task up at, from one look at the world (``seen``), instead of its first phase:
+    the phases are read through their ``carrying`` and ``gripper`` flags, so any
+    pick-and-place scenario of that shape resumes the same way.
+
+    - The held object in the gripper (within ``carry_tolerance_m`` of the tool) and lifted
+      (``LIFTED_M`` above its rest height, ``scene.rest_z_m``): the first carrying phase
+      not yet reached; a target anchored on the held object itself (a lift, which moves
+      with it) is taken from where it rests below its current position and counts as
+      reached by its height. All reached: the phase after the last carrying one (release).
+    - Else, the object lies in the bin (``scene.in_bin``) and a phase follows the last
+      carrying one: that phase (release, then what follows).
+    - Else, the tool at the object's grasp point (the target of the phase before the
+      first closing one, within the closing phase's tolerance): the closing phase.
+    - Else the first phase: the object is where it can be picked up from the start.
+    """
+    phases = scenario.phases
+    carrying = [i for i, p in enumerate(phases) if p.carrying]
+    if not carrying:
+        return Resumption(0, {}, "no carrying phase: from the start")
+    first_c, last_c = carrying[0], carrying[-1]
+    held = scenario.held_object
+    obj = np.asarray(seen.objects_p_m[held], dtype=np.float64)
+    tool = np.asarray(seen.tool_p_m, dtype=np.float64)
+    attached = float(np.linalg.norm(obj - tool)) <= scenario.carry_tolerance_m
+    rest_z = scene.rest_z_m.get(held)
+    lifted = rest_z is not None and float(obj[2]) > rest_z + LIFTED_M
+
+    def anchor_of(index: int, anchors: Mapping[str, np.ndarray]) -> np.ndarray:
+        name = phases[index].target.relative_to
+        if name == TOOL_ANCHOR:
+            return tool
+        return anchors.get(name, np.asarray(seen.objects_p_m[name], dtype=np.float64))
+
+    if attached and lifted:
+        assert rest_z is not None
+        anchors = {held: np.array([obj[0], obj[1], rest_z])}
+        for i in carrying:
+            phase = phases[i]
+            target = anchor_of(i, anchors) + np.array(phase.target.offset_m)
+            if phase.target.relative_to == held:
+                reached = float(tool[2]) >= float(target[2]) - phase.tolerance_m
+            else:
+                reached = float(np.linalg.norm(target - tool)) <= phase.tolerance_m
+            if not reached:
+                return Resumption(i, anchors, f"{held} in the gripper, lifted")
+        after = min(last_c + 1, len(phases) - 1)
+        return Resumption(after, anchors, f"{held} in the gripper, carried to its place")
+    if last_c + 1 < len(phases) and scene.in_bin(obj, seen.objects_p_m.get(BIN_BODY)):
+        return Resumption(last_c + 1, {}, f"{held} in the bin")
+    closing = next((i for i in range(first_c) if phases[i].gripper_closed), None)
+    if closing is not None and closing > 0:
+        before = phases[closing - 1]
+        grasp_point = anchor_of(closing - 1, {}) + np.array(before.target.offset_m)
+        if (
+            before.target.relative_to == held
+            and float(np.linalg.norm(grasp_point - tool)) <= phases[closing].tolerance_m
+        ):
+            return Resumption(closing, {}, f"tool at the {held}'s grasp point")
+    return Resumption(0, {}, f"{held} not in hand: from the start")
+
+
 # --- The operator ------------------------------------------------------------------------
 
 
@@ -569,6 +651,10 @@ class ScriptedOperator:
         self.drift_limit_m_s = DRIFT_LIMIT_FRACTION * self.speed_cap_m_s
         # A hand command decided at tick s moves the tool from about s + this (ticks).
         self._apply_lag_ticks = round(UNMODELLED_LAG_S / timestep_s)
+        # Decisions further apart than this (ticks): the device centred the handle
+        # meanwhile (haptic.hand_input_stale_s), the hand starts over from there.
+        self._hand_hold_ticks = round(haptic_cfg.hand_input_stale_s / timestep_s)
+        self.hand_holds = 0  # gaps in the decisions that long (a late operator caught up)
         # Expected-velocity history kept for the drift estimate (ticks).
         self._history_ticks = round(operator_cfg.reaction_delay_s / timestep_s) + 2 * (
             self._apply_lag_ticks + 1
@@ -598,12 +684,29 @@ class ScriptedOperator:
         self.drift_m_s = np.zeros(3)  # estimated tool drift, world frame
         self._prev_seen: tuple[int, np.ndarray] | None = None  # (tick, tool position)
         self._expected: list[tuple[int, np.ndarray]] = []  # (tick in effect, world v)
+        # Joined a run under way (a restarted operator): the first look takes the task up
+        # where the world is (resume_phase) instead of at phase 0; what it decided.
+        self.joining = False
+        self.resumed: dict[str, Any] | None = None
 
     # -- phase logic -----------------------------------------------------------------------
-    def _start_phase(self, index: int, tick: int, seen: Observation) -> None:
+    def _start_phase(
+        self,
+        index: int,
+        tick: int,
+        seen: Observation,
+        anchors: Mapping[str, np.ndarray] | None = None,
+    ) -> None:
+        """Begin phase ``index``: its target from the anchor as seen now (or as given in
+        ``anchors``), its route, its timeout."""
         phase = self.scenario.phases[index]
         anchor = phase.target.relative_to
-        origin = seen.tool_p_m if anchor == TOOL_ANCHOR else seen.objects_p_m[anchor]
+        if anchors and anchor in anchors:
+            origin = anchors[anchor]
+        elif anchor == TOOL_ANCHOR:
+            origin = seen.tool_p_m
+        else:
+            origin = seen.objects_p_m[anchor]
         self._target_m = np.asarray(origin, dtype=np.float64) + np.array(phase.target.offset_m)
         self.phase = index
         self._phase_start = tick
@@ -645,11 +748,37 @@ class ScriptedOperator:
     def _elapsed_s(self, tick: int, since: int) -> float:
         return (tick - since) * self.timestep_s
 
+    def _resume(self, tick: int, seen: Observation) -> None:
+        """Take the task up where the world is (see :func:`resume_phase`). The task began
+        when the run's first operator first looked, one reaction delay into the run:
+        ``max_task_s`` bounds the whole task, the restart included."""
+        resumption = resume_phase(self.scenario, seen, self.scene)
+        delay_ticks = round(self.operator_cfg.reaction_delay_s / self.timestep_s)
+        self.task_start_tick = min(tick, delay_ticks)
+        self._start_phase(resumption.phase, tick, seen, resumption.anchors)
+        name = self.scenario.phases[resumption.phase].name
+        self.resumed = {
+            "sim_time_s": tick * self.timestep_s,
+            "phase": resumption.phase,
+            "name": name,
+            "why": resumption.why,
+        }
+        logger.info(
+            "joined a run under way at %.2f s: taking the task up at phase %d (%s): %s",
+            tick * self.timestep_s,
+            resumption.phase,
+            name,
+            resumption.why,
+        )
+
     def _update_phase(self, tick: int, seen: Observation) -> None:
         """Advance, complete or give up, from this observation."""
         if self.phase < 0:
-            self.task_start_tick = tick
-            self._start_phase(0, tick, seen)
+            if self.joining:
+                self._resume(tick, seen)
+            else:
+                self.task_start_tick = tick
+                self._start_phase(0, tick, seen)
         assert self.task_start_tick is not None
         if self._elapsed_s(tick, self.task_start_tick) > self.scenario.max_task_s:
             self._finish(tick, False, "task time limit")
@@ -776,9 +905,24 @@ class ScriptedOperator:
         self._last_tick = tick
         return self._hand_m.copy()
 
+    def _after_hold(self, tick: int) -> None:
+        """No decision for longer than the device keeps a hand input (a late operator
+        catching up by skipping): the handle was centred meanwhile and the tool held
+        still. The hand starts from the centre, the drift estimate forgets the held
+        stretch (its commands were never applied: no drift to learn from it) and the
+        stall window starts over (the tool was not pushed)."""
+        self.hand_holds += 1
+        self._hand_m = np.zeros(3)
+        self._last_tick = tick
+        self._prev_seen = None
+        self._expected = []
+        self._stall = []
+
     def decide(self, tick: int, observed: Observation | None) -> HandCommand:
         """The hand command from decision tick ``tick`` on, given what was seen
         ``reaction_delay_s`` earlier (None: nothing seen yet, the hand stays at rest)."""
+        if self._last_tick is not None and tick - self._last_tick > self._hand_hold_ticks:
+            self._after_hold(tick)
         if observed is not None and not self.done:
             self._update_drift(observed)
             self._update_phase(tick, observed)
@@ -854,6 +998,13 @@ class OperatorLoop:
     event) resets the operator; a tick not newer than the last one is a plant re-send and
     is ignored.
 
+    An operator whose first TOOL_POSE is past tick 0 joined a run under way (it was
+    restarted): its first look takes the task up where the world is
+    (:func:`resume_phase`), and until it has seen anything (one reaction delay) it sends
+    no hand input: the haptic device holds the handle still with its predecessor's
+    buttons meanwhile (``haptic.hand_input_stale_s``), where a guess would open the
+    gripper. Lockstep decisions do not wait for observations older than its first pose.
+
     ``scene``: what the operator knows of the scene's fixed geometry (default: read from
     the config's scene file and ``scene.*`` placements, as the plant places them).
     """
@@ -900,6 +1051,9 @@ class OperatorLoop:
         self.decisions = 0
         self.late_observations = 0  # lockstep waits that timed out
         self.duplicate_poses = 0  # TOOL_POSE re-sends (same tick) ignored
+        self._joined_tick: int | None = None  # first TOOL_POSE tick of a run joined late
+        self.withheld_inputs = 0  # joined: decisions made before anything was seen
+        self.skipped_decisions = 0  # realtime: sample ticks a late operator skipped
         self.phase_times: list[dict[str, Any]] = []
 
     def hmd_seen(self) -> None:
@@ -914,6 +1068,7 @@ class OperatorLoop:
 
     def _new_run(self) -> None:
         self.operator.reset()
+        self._joined_tick = None
         self._last_tick = None
         self._phase_reported = -1
         self._done_reported = False
@@ -921,8 +1076,12 @@ class OperatorLoop:
         self.runs += 1
         logger.info("new run: operator reset")
 
-    def on_arrival(self, m: int) -> None:
-        """The TOOL_POSE of tick ``m`` is in the buffer: decide every sample tick up to it."""
+    def on_arrival(self, m: int, catch_up: bool = False) -> None:
+        """The TOOL_POSE of tick ``m`` is in the buffer: decide every sample tick up to it.
+
+        ``catch_up`` (realtime, a late operator whose caller skipped the poses queued
+        before this one): decide only the newest sample tick, never a burst of decisions
+        whose hand inputs would all be late (see ScriptedOperator._after_hold)."""
         if m == 0 and self._last_tick != 0:
             self._new_run()
         elif self._last_tick is not None and m <= self._last_tick:
@@ -930,6 +1089,16 @@ class OperatorLoop:
             return
         if self._last_tick is None:
             first = last_sample_tick(m, self.rate_hz, self.timestep_s)
+            if m > 0 and self.operator.phase < 0 and not self.operator.done:
+                self._joined_tick = m
+                self.operator.joining = True
+                logger.info("joined a run under way at tick %d (a restart)", m)
+        elif catch_up:
+            first = max(self._last_tick + 1, last_sample_tick(m, self.rate_hz, self.timestep_s))
+            self.skipped_decisions += sum(
+                is_sample_tick(s, self.rate_hz, self.timestep_s)
+                for s in range(self._last_tick + 1, first)
+            )
         else:
             first = self._last_tick + 1
         self._last_tick = m
@@ -939,8 +1108,9 @@ class OperatorLoop:
 
     def _decide(self, s: int, m: int) -> None:
         """One decision at sample tick ``s`` (triggered by the TOOL_POSE of tick ``m``)."""
-        if self.lockstep:
-            seen = s - self.delay_ticks
+        seen = s - self.delay_ticks
+        unseen = self._joined_tick is not None and seen < self._joined_tick
+        if self.lockstep and not unseen:
             head_from = None
             if self._hmd_present.is_set() and seen >= 0:
                 head_from = expected_valid_from(
@@ -950,6 +1120,9 @@ class OperatorLoop:
                 self.late_observations += 1
         command = self.operator.decide(s, self.buffer.observe(s))
         self.decisions += 1
+        if unseen and command.phase < 0:
+            self.withheld_inputs += 1  # nothing of this run seen yet: no hand to give
+            return
         self.outputs.hand(s + self.lead_ticks, command)
         if command.phase != self._phase_reported and command.phase >= 0:
             self._phase_reported = command.phase
@@ -994,4 +1167,8 @@ class OperatorLoop:
             "late_observations": self.late_observations,
             "duplicate_poses": self.duplicate_poses,
             "runs": self.runs,
+            "resumed": op.resumed,  # a restarted operator: where it took the task up
+            "withheld_inputs": self.withheld_inputs,
+            "skipped_decisions": self.skipped_decisions,
+            "hand_holds": op.hand_holds,
         }

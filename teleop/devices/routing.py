@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 
 import mujoco
 import numpy as np
@@ -117,13 +117,16 @@ class SceneKnowledge:
 
     ``obstacles``: the virtual obstacles' (centre (3,), radius) in m; ``bin_low_m`` and
     ``bin_high_m``: the bin's bounding box relative to its origin (None: no bin known);
-    ``influence_m``: the controller's obstacle influence distance.
+    ``influence_m``: the controller's obstacle influence distance; ``rest_z_m``: the
+    height (world z, m) of each movable object's origin where the scene places it, at
+    rest (name -> z; an object not listed: unknown).
     """
 
     obstacles: tuple[tuple[tuple[float, float, float], float], ...] = ()
     bin_low_m: tuple[float, float, float] | None = None
     bin_high_m: tuple[float, float, float] | None = None
     influence_m: float = 0.0
+    rest_z_m: Mapping[str, float] = field(default_factory=dict)
 
     @classmethod
     def from_config(cls, config: Config) -> SceneKnowledge:
@@ -148,7 +151,22 @@ class SceneKnowledge:
             centres, half = model.geom_pos[geoms], model.geom_size[geoms]  # boxes, body frame
             low = tuple(float(v) for v in (centres - half).min(axis=0))
             high = tuple(float(v) for v in (centres + half).max(axis=0))
-        return cls(obstacles, low, high, config.teleop.obstacle_influence_m)
+        rest_z = {}
+        for name in config.robot.object_bodies:
+            body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
+            if body >= 0:
+                rest_z[name] = float(model.body_pos[body][2])
+        return cls(obstacles, low, high, config.teleop.obstacle_influence_m, rest_z)
+
+    def in_bin(self, p_m: np.ndarray, bin_p_m: np.ndarray | None) -> bool:
+        """Whether point ``p_m`` lies within the bin's walls seen from above (the bin's
+        origin at ``bin_p_m``; False when no bin is known or seen)."""
+        if bin_p_m is None or self.bin_low_m is None or self.bin_high_m is None:
+            return False
+        low = np.asarray(bin_p_m)[:2] + np.asarray(self.bin_low_m)[:2]
+        high = np.asarray(bin_p_m)[:2] + np.asarray(self.bin_high_m)[:2]
+        xy = np.asarray(p_m)[:2]
+        return bool(np.all(xy > low) and np.all(xy < high))
 
     def keep_outs(self, bin_p_m: np.ndarray | None, holding: bool) -> list[KeepOut]:
         """The volumes the tool point keeps out of, with the bin at ``bin_p_m`` (its

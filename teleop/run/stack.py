@@ -40,6 +40,7 @@ import zenoh
 from teleop.bus import graph
 from teleop.bus.access import LAUNCHER, OBSERVER, write_run_credentials
 from teleop.bus.messages import PLANT_STATE, TOOL_POSE, DropCounter, Event
+from teleop.bus.service import read_summary
 from teleop.bus.session import (
     Latest,
     ServicesMissing,
@@ -63,6 +64,7 @@ from teleop.core.rundir import (
     summary_path,
 )
 from teleop.devices.operator import Scenario
+from teleop.run import restart_priority
 from teleop.run.failure import ProgramWatch, ServiceFailed, program_log_text
 from teleop.run.faults import (
     FaultInjector,
@@ -225,11 +227,13 @@ def service_programs(
     credentials: Mapping[str, Path] | None = None,
     mesh: dict[str, list[str]] | None = None,
     tls: bool = False,
+    restarts: Mapping[str, dict[str, int]] | None = None,
 ) -> list[Program]:
     """The supervisord programs of ``services``, each given the same config and
     overrides, then its place in the run's ``mesh`` (default: a :func:`peer_mesh` of
     ``services``, over TLS endpoints with ``tls``; with outside services, one that
-    includes them too) and its ``credentials`` file, if any (:func:`run_credentials`)."""
+    includes them too) and its ``credentials`` file, if any (:func:`run_credentials`);
+    ``restarts``: how a service's restarts start (:func:`restart_priorities`)."""
     programs = []
     if mesh is None:
         mesh = peer_mesh(services, listener, tls=tls)
@@ -247,6 +251,8 @@ def service_programs(
             command += ["--peers", ",".join(peers)]
         if continuous:
             command.append("--continuous")
+        if restarts and restarts.get(name):
+            command = restart_priority.command(run_dir, name, command, **restarts[name])
         programs.append(
             Program(
                 name=name,
@@ -256,6 +262,19 @@ def service_programs(
             )
         )
     return programs
+
+
+def restart_priorities(config: Config) -> dict[str, dict[str, int]]:
+    """How each service's restarts start (teleop.run.restart_priority): the recorder and
+    the eye view at their ``nice``, below the control path; the control path's services
+    (``cpu.fifo_services``) under SCHED_FIFO ``cpu.restart_fifo_priority``, below the
+    loops. Seconds of imports and loading, beside a loop that runs on, before their own
+    code chooses. First starts are left alone."""
+    restarts = {"recorder": {"nice": config.recorder.nice}, EYEVIEW: {"nice": config.eyeview.nice}}
+    if config.cpu.restart_fifo_priority:
+        for name in config.cpu.fifo_services:
+            restarts[name] = {"fifo": config.cpu.restart_fifo_priority}
+    return restarts
 
 
 def run_credentials(
@@ -315,10 +334,11 @@ def idle_poll_report(cpus: Sequence[int], run_dir: Path) -> dict[str, Any]:
 
 
 def _read_summary(run_dir: Path, service: str) -> dict[str, Any]:
-    path = summary_path(run_dir, service)
-    if not path.exists():
+    summary = read_summary(run_dir, service)
+    if summary is None:
+        path = summary_path(run_dir, service)
         raise RunError(f"{service} wrote no summary ({path}); see {run_dir / LOG_DIR}")
-    return json.loads(path.read_text())
+    return summary
 
 
 def _stderr(line: str) -> None:
@@ -457,6 +477,7 @@ def run_on_services(
             continuous=False,
             credentials=credentials,
             mesh=mesh,
+            restarts=restart_priorities(config),
         ) + idle_poll_programs(polled_cpus, run_dir)
         for text, _ in prepare_outside(
             config_file, run_overrides, run_dir, stack_services, outside, mesh, plant_awaits,
@@ -495,13 +516,15 @@ def run_on_services(
     finally:
         close_session(session, *reversed(entities))
 
-    # A service killed on purpose may have been stopped while its new incarnation was
-    # still starting (it writes its summary at close): the run's figures go without it.
+    # A service killed on purpose whose new incarnation was stopped while still starting
+    # has only its killed process's running summary, or none if that one was killed
+    # before its first (teleop.bus.service): the run's figures then go without it.
     killed = {spec.service for spec in fault_specs if spec.kind == "kill"}
+    read = {name: read_summary(run_dir, name) for name in services}
     summaries = {
-        name: _read_summary(run_dir, name)
-        for name in services
-        if name not in killed or summary_path(run_dir, name).exists()
+        name: summary if summary is not None else _read_summary(run_dir, name)
+        for name, summary in read.items()
+        if summary is not None or name not in killed
     }
     # A pair of peers that never linked: what one sent the other is lost (Service.become_ready).
     unlinked = {n: s["unlinked_peers"] for n, s in summaries.items() if s.get("unlinked_peers")}
@@ -953,6 +976,7 @@ def start_detached(
         continuous=True,
         credentials=credentials,
         mesh=mesh,
+        restarts=restart_priorities(config),
     ) + idle_poll_programs(idle_poll_cpus(config), run_dir)
     joins = prepare_outside(
         config_file, run_overrides, run_dir, stack_services, outside, mesh, plant_awaits,

@@ -44,6 +44,10 @@ def test_a_controller_killed_then_frozen_in_lockstep_comes_back_and_the_run_comp
     assert kill["resumed_s"] >= kill["restart_s"]
     # Frozen 1 s of wall-clock time: nothing it made can be applied before the thaw.
     assert freeze["restart_s"] is None and freeze["resumed_s"] >= freeze["freeze_s"] == 1.0
+    # The killed controller's counts are in the summary (its running summary, taken in).
+    assert summary["restarted_services"] == {"controller": 1}
+    (killed,) = summary["services"]["controller"]["earlier_incarnations"]
+    assert killed["running"] and killed["pid"] != summary["services"]["controller"]["pid"]
 
 
 def test_a_killed_plant_never_passes_for_a_clean_run(tmp_path):

@@ -1,7 +1,9 @@
-"""Recovery end to end: a service killed mid-task under supervisord, the run goes on.
+"""Recovery end to end: services killed mid-task under supervisord, the run goes on.
 
 The kills run in lockstep, so the test is deterministic however busy the machine: the
-plant waits for every answer, and a restart only stretches the wall time.
+plant waits for every answer, and a restart only stretches the wall time. One stack for
+two kills: the plant (resumes from its checkpoint) and, later, the operator (takes the
+task up where the world is).
 """
 
 from __future__ import annotations
@@ -20,22 +22,33 @@ from teleop.viz.rrd import Recording
 HOLDING_PHASES = ("lift", "carry")
 
 
-def test_a_plant_killed_mid_grasp_resumes_from_its_checkpoint(tmp_path: Path):
+def test_a_plant_then_an_operator_killed_mid_grasp_both_take_the_task_up(tmp_path: Path):
     run_dir = tmp_path / "run"
     overrides = ['run.scenario="grasp"', 'run.mode="lockstep"', "run.seed=0"]
     config = load_config(None, overrides)
-    killed: list[str] = []
+    killed: dict[str, str] = {}
 
     def progress(line: str) -> None:  # the launcher's progress lines name the phase
-        if not killed and any(f" {phase}" in line for phase in HOLDING_PHASES):
+        if "plant" not in killed and any(f" {phase}" in line for phase in HOLDING_PHASES):
             Stack.attach(run_dir).signal_program("plant", signal.SIGKILL)
-            killed.append(line)
+            killed["plant"] = line
+        elif "plant" in killed and "operator" not in killed and line.endswith(" carry"):
+            Stack.attach(run_dir).signal_program("operator", signal.SIGKILL)
+            killed["operator"] = line
 
     summary = run_on_services(
-        config, None, overrides, run_dir, progress, restarts_expected=("plant",)
+        config, None, overrides, run_dir, progress, restarts_expected=("plant", "operator")
     )
-    assert killed, "the run never reached a holding phase"
+    assert killed.keys() == {"plant", "operator"}, f"killed only {killed}"
     assert summary["success"] and summary["object_in_box"] and summary["failure"] is None
+    # The new operator took the task up where the world was: the cube in the gripper,
+    # lifted, not yet over the bin (no start over: the cube was never dropped).
+    operator = summary["services"]["operator"]
+    assert operator["resumed"]["name"] == "carry", operator["resumed"]
+    # Both killed processes' counts are in the run's summary (their running summaries).
+    assert summary["restarted_services"] == {"plant": 1, "operator": 1}
+    (killed_operator,) = operator["earlier_incarnations"]
+    assert killed_operator["running"] and killed_operator["decisions"] > 0
     (resume,) = summary["plant_resumes"]
     # Lost: the steps since the newest checkpoint on file (its writer may be one behind).
     period_steps = round(config.plant.checkpoint_s / config.plant.timestep_s)

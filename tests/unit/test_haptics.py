@@ -300,6 +300,60 @@ def test_lockstep_goes_on_without_an_operator_after_the_hand_wait():
     assert len(sent.samples) == lead + 2  # no more waiting
 
 
+def test_lockstep_does_not_wait_for_a_hand_input_a_later_one_overtook():
+    """A restarted operator's first input is for a later tick than the one the device
+    waits for: that one will never come, the tick steps at once with the hand input in
+    effect (its predecessor's), without the hand wait."""
+    loop, sent, _ = make_loop(lockstep=True)
+    lead = loop.lead_ticks
+    target_m = np.array([0.0, 0.02, 0.0])
+    for k in range(3 * lead + 1):
+        loop.on_state(plant_state(k))
+        if k == 0:  # the run has begun: the old operator's last input
+            loop.on_hand(hand(lead, target_m))
+        if k >= 1:
+            loop.on_feedback(feedback(k, k - 1, 0.0), 0)
+    assert len(sent.samples) == 2 * lead  # tick 2 lead waits for its hand input
+    loop.on_hand(hand(3 * lead, -target_m))  # the new operator's first: a later tick
+    assert len(sent.samples) == 3 * lead + 1  # stepped through, no wait
+    assert loop.missing_hand_inputs == 1
+
+
+def test_a_stale_hand_input_centres_the_handle_and_keeps_the_buttons():
+    """Realtime: no new hand input for haptic.hand_input_stale_s of sim ticks (the
+    operator starved or restarting): the hand centres the handle, the tool holds still,
+    and the gripper button stays pressed. A plant that stalls does not advance the ticks:
+    wall time alone never makes the hand stale."""
+    loop, sent, clock = make_loop(lockstep=False)
+    stale_ticks = round(loop.config.haptic.hand_input_stale_s / loop.period_s)
+    target_m = np.array([0.03, 0.0, 0.0])
+    loop.on_hand(hand(100, target_m))
+
+    seq = iter(range(1, 10**6))
+
+    def run(first_tick: int, ticks: int, advance_ticks: bool = True) -> np.ndarray:
+        for k in range(first_tick, first_tick + ticks):
+            tick = k if advance_ticks else first_tick
+            rec = feedback(next(seq), tick, 0.0, tx_ns=clock.now_ns())
+            loop.on_feedback(rec, clock.now_ns())
+            loop.step_realtime(deadline_ns=clock.now_ns())
+            clock.advance(NS_PER_MS)
+        return sent.samples[-1]
+
+    held = run(100, stale_ticks + 1)  # within the limit: the hand pulls the handle out
+    assert held["device_p_m"][0] > 0.02 and loop.hand_holds == 0
+    stalled = run(100 + stale_ticks, 3 * stale_ticks, advance_ticks=False)  # a frozen plant
+    assert stalled["device_p_m"][0] == pytest.approx(0.03, abs=1e-3) and loop.hand_holds == 0
+    centred = run(100 + stale_ticks + 1, 3 * stale_ticks)
+    assert abs(centred["device_p_m"][0]) < 1e-3  # back at the centre: no rate command
+    assert centred["buttons"] == Button.GRIPPER_CLOSE
+    assert loop.hand_holds == 1 and loop.summary()["hand_held_steps"] == 3 * stale_ticks
+    resumed_tick = 100 + 4 * stale_ticks + 1
+    loop.on_hand(hand(resumed_tick, target_m))  # the operator is back
+    back = run(resumed_tick, stale_ticks + 1)
+    assert back["device_p_m"][0] > 0.02 and loop.hand_holds == 1
+
+
 def test_realtime_renders_feedback_on_arrival_and_checks_its_order_and_age():
     loop, sent, clock = make_loop(lockstep=False)
     force_n = np.array([0.0, 0.5, 0.0])

@@ -13,6 +13,7 @@ from teleop.bus.messages import Button, Event
 from teleop.core.config import DEPLOY_DIR, ConfigError, load_config
 from teleop.devices.operator import (
     HandCommand,
+    Observation,
     ObservationBuffer,
     OperatorLoop,
     Phase,
@@ -22,6 +23,7 @@ from teleop.devices.operator import (
     Target,
     critical_gain_per_s,
     hand_offset_for_velocity,
+    resume_phase,
     rot_z,
 )
 from teleop.devices.routing import SceneKnowledge
@@ -246,44 +248,91 @@ class IntegratorWorld:
     ):
         cfg = load_config()
         self.cfg = cfg
-        self.operator = ScriptedOperator(
-            scenario, cfg.operator, cfg.teleop, cfg.haptic, TIMESTEP_S, scene=scene
-        )
+        self.scenario = scenario
+        self.scene = scene
+        self.operator = self.new_operator()
         self.reach_m = reach_m  # the tool never gets farther than this from the origin
-        delay = round(cfg.operator.reaction_delay_s / TIMESTEP_S)
-        self.buffer = ObservationBuffer(("cube", "bin"), delay, cfg.hmd.head_yaw_rad)
+        self.buffer = self.new_buffer()
         self.period = round(1.0 / (cfg.operator.decision_rate_hz * TIMESTEP_S))
         self.lag = self.period + extra_lag_ticks
         self.sag_m_s = sag_m_s
         self.tool = HOME_TOOL_M.copy()
         self.cube = CUBE_M.copy()
         self.trace: list[tuple[int, int, np.ndarray, float]] = []  # tick, phase, tool, speed
+        self.drops: list[np.ndarray] = []  # where the cube was when the gripper let it go
+
+    def new_operator(self) -> ScriptedOperator:
+        cfg = self.cfg
+        return ScriptedOperator(
+            self.scenario, cfg.operator, cfg.teleop, cfg.haptic, TIMESTEP_S, scene=self.scene
+        )
+
+    def new_buffer(self) -> ObservationBuffer:
+        delay = round(self.cfg.operator.reaction_delay_s / TIMESTEP_S)
+        return ObservationBuffer(("cube", "bin"), delay, self.cfg.hmd.head_yaw_rad)
 
     def yaw(self, tick: int) -> float:
         """The HMD's slow sway (rad): the operator sees it late, the controller now."""
         return 0.25 * math.sin(2 * math.pi * tick * TIMESTEP_S / 7.0) + 0.3
 
-    def run(self, max_s: float) -> ScriptedOperator:
+    def run(
+        self,
+        max_s: float,
+        kill_in: tuple[str, float, float] | None = None,
+        restart: bool = True,
+    ) -> ScriptedOperator:
+        """Play until done or ``max_s``. ``kill_in`` = (phase name, s into it, outage s):
+        the operator is killed that long into that phase and a new one (a restart, with
+        nothing seen yet) joins after the outage; ``restart`` False: the same operator
+        was only starved and decides again after the outage, from the newest look.
+        Meanwhile no hand input comes: the hand holds its last one until it is
+        ``haptic.hand_input_stale_s`` old, then centres the handle keeping its buttons
+        (the haptic device's rule)."""
         pending: dict[int, tuple[np.ndarray, Button]] = {}
         hand, buttons = np.zeros(3), Button.NONE
         held: np.ndarray | None = None
+        stale_ticks = round(self.cfg.haptic.hand_input_stale_s / TIMESTEP_S)
+        hand_from = 0  # tick the hand input in effect applied from
+        alive = True
+        phase_began: dict[int, int] = {}
+        back_tick = None
         for tick in range(round(max_s / TIMESTEP_S)):
-            if tick % self.period == 0:
+            if kill_in is not None and alive and back_tick is None:
+                phase = self.operator.phase
+                phase_began.setdefault(phase, tick)
+                name, into_s, outage_s = kill_in
+                if phase >= 0 and self.scenario.phases[phase].name == name:
+                    if tick - phase_began[phase] >= round(into_s / TIMESTEP_S):
+                        alive = False
+                        pending.clear()  # what it sent before dying was lost with it
+                        back_tick = tick + round(outage_s / TIMESTEP_S)
+            if not alive and tick == back_tick:
+                alive = True
+                if restart:
+                    self.operator, self.buffer = self.new_operator(), self.new_buffer()
+                    self.operator.joining = True
+            if tick % self.period == 0 and (alive or not restart):  # a starved one sees
                 self.buffer.add_tool(tick, self.tool)
                 self.buffer.add_objects(tick, np.array([self.cube, BIN_M]))
                 self.buffer.add_head(tick, self.yaw(tick))
+            if alive and tick % self.period == 0:
                 command = self.operator.decide(tick, self.buffer.observe(tick))
-                pending[tick + self.lag] = (command.target_p_m, command.buttons)
+                if not (self.operator.joining and command.phase < 0):  # else withheld
+                    pending[tick + self.lag] = (command.target_p_m, command.buttons)
                 if command.done:
                     return self.operator
             if tick in pending:
                 hand, buttons = pending.pop(tick)
+                hand_from = tick
+            elif tick - hand_from > stale_ticks:
+                hand = np.zeros(3)
             v = reference_tool_velocity(hand, self.yaw(tick), self.cfg.teleop)
             closed = bool(buttons & Button.GRIPPER_CLOSE)
             if closed and held is None and np.linalg.norm(self.cube - self.tool) < GRASP_RADIUS_M:
                 held = self.cube - self.tool
             elif not closed and held is not None:
                 held = None
+                self.drops.append(self.cube.copy())
                 self.cube = np.array([*self.cube[:2], BIN_M[2] + 0.035])  # drops onto the floor
             if held is not None:
                 v = v + np.array([0.0, 0.0, -self.sag_m_s])
@@ -452,3 +501,133 @@ def test_operator_loop_refuses_decisions_faster_than_the_scene():
     config = load_config(None, ["operator.decision_rate_hz=200"])
     with pytest.raises(ConfigError, match="decision_rate_hz"):
         OperatorLoop(config, Scenario.load(GRASP_FILE), Outputs(), lockstep=False)
+
+
+# --- a restarted operator takes the task up where the world is ----------------------------
+
+
+def restart_scene() -> SceneKnowledge:
+    """The default scene's bin and rest heights, without its obstacle (the integrator
+    world has none)."""
+    known = SceneKnowledge.from_config(load_config())
+    return SceneKnowledge(
+        bin_low_m=known.bin_low_m, bin_high_m=known.bin_high_m, rest_z_m=known.rest_z_m
+    )
+
+
+def _look(tool_m, cube_m) -> Observation:
+    objects = {"cube": np.array(cube_m, float), "bin": BIN_M}
+    return Observation(0, np.array(tool_m, float), objects, 0.0)
+
+
+LIFT_TARGET_Z_M = CUBE_M[2] + 0.15  # grasp.toml: lift = cube + 0.15 (from where it rests)
+OVER_BIN_M = BIN_M + [0.0, 0.0, 0.20]  # grasp.toml: carry = bin + 0.20
+
+
+@pytest.mark.parametrize(
+    ("tool_m", "cube_m", "expected"),
+    [
+        (HOME_TOOL_M, CUBE_M, "approach"),  # nothing done yet
+        (CUBE_M + [0, 0, 0.06], CUBE_M, "approach"),  # half way down: from the start
+        (CUBE_M + [0.004, 0, 0.002], CUBE_M, "close"),  # at the grasp point (open or closed)
+        (CUBE_M + [0, 0, 0.06], CUBE_M + [0, 0, 0.06], "lift"),  # lifted 6 of 15 cm
+        (CUBE_M + [0.1, 0.2, 0.16], CUBE_M + [0.1, 0.2, 0.16], "carry"),  # on the way
+        (OVER_BIN_M, OVER_BIN_M + [0, 0, -0.01], "release"),  # held over the bin
+        (OVER_BIN_M + [0, 0, 0.05], BIN_M + [0.03, -0.02, 0.035], "release"),  # in the bin
+        (HOME_TOOL_M, [0.3, -0.3, 0.025], "approach"),  # dropped on the table: again
+    ],
+    ids=["home", "descending", "grasp-point", "lifting", "carrying", "over-bin", "in-bin", "drop"],
+)
+def test_a_restarted_operator_takes_the_grasp_up_from_what_it_sees(tool_m, cube_m, expected):
+    scenario = Scenario.load(GRASP_FILE)
+    resumption = resume_phase(scenario, _look(tool_m, cube_m), restart_scene())
+    assert scenario.phases[resumption.phase].name == expected, resumption.why
+    if expected == "lift":  # the lift's height is counted from where the cube rests
+        target = resumption.anchors["cube"] + scenario.phases[resumption.phase].target.offset_m
+        assert target[2] == pytest.approx(LIFT_TARGET_Z_M)
+        assert target[:2] == pytest.approx(np.asarray(cube_m)[:2])
+
+
+def test_without_rest_heights_a_cube_at_the_tool_is_gripped_before_anything_else():
+    """Nothing known of where the cube rests, so no lift can be told: the tool at the
+    cube's centre closes the gripper (whether or not it was closed) and lifts from there."""
+    scenario = Scenario.load(GRASP_FILE)
+    lifted = CUBE_M + [0, 0, 0.06]
+    resumption = resume_phase(scenario, _look(lifted, lifted), SceneKnowledge())
+    assert scenario.phases[resumption.phase].name == "close"
+
+
+@pytest.mark.parametrize("phase", ["approach", "close", "lift", "carry", "release"])
+def test_an_operator_killed_mid_task_is_replaced_and_the_task_succeeds(phase):
+    """The closed loop on sim ticks (no wall clock anywhere): the operator dies half a
+    second into a phase, the hand holds, and a new operator joins 3 s later; it takes the
+    task up at the phase the world is in, and the cube ends in the bin."""
+    scenario = Scenario.load(GRASP_FILE)
+    world = IntegratorWorld(scenario, scene=restart_scene())
+    operator = world.run(scenario.max_task_s + 1.0, kill_in=(phase, 0.5, 3.0))
+    assert operator.resumed is not None and operator.resumed["name"] == phase
+    assert operator.done and operator.success, operator.failure
+    assert np.all(np.abs(world.cube[:2] - BIN_M[:2]) < 0.09 - 0.025)
+    # Let go once, over the bin: never dropped and picked up again.
+    (drop,) = world.drops
+    assert np.linalg.norm(drop[:2] - BIN_M[:2]) < 0.03
+    # The task's clock counts from the run's first look, the outage included.
+    assert operator.task_start_tick == round(world.cfg.operator.reaction_delay_s / TIMESTEP_S)
+
+
+def test_the_operator_loop_joining_a_run_sends_nothing_until_it_has_seen_the_world():
+    """A restarted operator's first pose is past tick 0: it withholds its hand for one
+    reaction delay (a guess would open the gripper), then takes the task up where the
+    world is (the cube lifted in the gripper: the lift) and says so with its PHASE."""
+    config = load_config(None, ['run.mode="lockstep"'])
+    outputs = Outputs()
+    loop = OperatorLoop(
+        config, Scenario.load(GRASP_FILE), outputs, lockstep=True, scene=restart_scene()
+    )
+    joined, last_tick = 8000, 8400
+    lifted = CUBE_M + [0.0, 0.0, 0.05]
+    for tick in range(joined, last_tick + 1, 10):
+        loop.buffer.add_objects(tick, np.array([lifted, BIN_M]))
+        loop.buffer.add_tool(tick, lifted)
+        loop.on_arrival(tick)
+    delay = loop.delay_ticks
+    first_sent = joined + delay
+    assert min(outputs.hands) == first_sent + loop.lead_ticks
+    summary = loop.summary()
+    assert summary["withheld_inputs"] == delay // 10
+    assert summary["resumed"]["name"] == "lift" and summary["late_observations"] == 0
+    lift = 4
+    assert outputs.events[0] == (int(Event.PHASE), first_sent, first_sent, float(lift))
+    assert all(c.buttons & Button.GRIPPER_CLOSE for c in outputs.hands.values())
+    assert all(c.target_p_m[2] > 0 for c in list(outputs.hands.values())[5:])  # going up
+
+
+@pytest.mark.parametrize("phase", ["descend", "lift", "carry"])
+def test_an_operator_starved_for_seconds_catches_up_and_the_task_succeeds(phase):
+    """A late operator (starved: no decision for 3 s of sim ticks, the device centring
+    the handle meanwhile) decides again from the newest look: it knows its hand was held
+    (no drift learnt from commands never applied, no stall counted: taking the still tool
+    for blocked, it would give up) and goes on."""
+    scenario = Scenario.load(GRASP_FILE)
+    world = IntegratorWorld(scenario)
+    operator = world.run(scenario.max_task_s + 1.0, kill_in=(phase, 0.5, 3.0), restart=False)
+    assert operator.done and operator.success, operator.failure
+    assert operator.hand_holds == 1 and operator.resumed is None
+    (drop,) = world.drops
+    assert np.linalg.norm(drop[:2] - BIN_M[:2]) < 0.03
+
+
+def test_a_late_operator_loop_catches_up_by_skipping_not_by_a_burst():
+    """Realtime, poses queued behind a newer one: the loop decides the newest sample tick
+    only (one hand input, not a burst of late ones) and counts the ticks it skipped."""
+    config = load_config(None, ['run.mode="realtime"'])
+    outputs = Outputs()
+    loop = OperatorLoop(config, Scenario.load(GRASP_FILE), outputs, lockstep=False)
+    for tick in range(0, 1001, 10):
+        loop.buffer.add_objects(tick, np.array([CUBE_M, BIN_M]))
+        loop.buffer.add_tool(tick, HOME_TOOL_M)
+    loop.on_arrival(0)
+    loop.on_arrival(1000, catch_up=True)  # 99 poses in between were skipped
+    lead = loop.lead_ticks
+    assert sorted(outputs.hands) == [0 + lead, 1000 + lead]
+    assert loop.summary()["skipped_decisions"] == 99

@@ -5,11 +5,19 @@ from __future__ import annotations
 import json
 import logging
 import os
+import threading
 
 from teleop.bench.relay import FLOOR_STAND_INS, RELAYS, PlantRelay
-from teleop.bus.service import Service, ServiceOptions, fifo_scheduling, pin_to_cpus
+from teleop.bus.service import (
+    Service,
+    ServiceOptions,
+    fifo_scheduling,
+    pin_to_cpus,
+    read_summary,
+)
 from teleop.core.clock import FINE_SLEEP_MARGIN_NS, MonotonicClock
 from teleop.core.config import load_config
+from teleop.core.rundir import clear_run_results, incarnation_path, incarnation_paths
 
 
 def test_pin_to_cpus_uses_existing_cpus_and_ignores_others(caplog):
@@ -49,14 +57,16 @@ def test_fifo_scheduling_applies_inside_the_block_and_restores_after(caplog):
 def test_fifo_priority_goes_to_the_loop_services_in_realtime_only():
     cpu = load_config(None, []).cpu
     assert cpu.fifo_priority > 0
-    for name in ("plant", "controller", "haptic"):
+    # The loops, and the operator whose hand feeds them (not behind them: they can keep
+    # both cores busy).
+    for name in ("plant", "controller", "haptic", "operator"):
         assert cpu.fifo_priority_for(name, "realtime") == cpu.fifo_priority
         assert cpu.fifo_priority_for(name, "lockstep") == 0
-    for name in ("recorder", "eyeview", "hmd", "operator"):
+    for name in ("recorder", "eyeview", "hmd"):
         assert cpu.fifo_priority_for(name, "realtime") == 0
-    assert (
-        load_config(None, ["cpu.fifo_priority=0"]).cpu.fifo_priority_for("plant", "realtime") == 0
-    )
+    no_fifo = load_config(None, ["cpu.fifo_priority=0"]).cpu
+    assert no_fifo.fifo_priority_for("plant", "realtime") == 0
+    assert no_fifo.fifo_priority_for("operator", "realtime") == 0
 
 
 def test_the_floor_relays_run_where_the_services_they_stand_in_for_run():
@@ -83,3 +93,54 @@ def test_a_restarted_services_summary_keeps_its_earlier_processes(tmp_path):
     written = json.loads(path.read_text())
     assert written["count"] == 4 and written["pid"] == os.getpid()
     assert written["earlier_incarnations"] == [{"count": 7, "pid": -1}]
+
+
+class Counting(Service):
+    name = "counting"
+    count = 0
+
+    def summary(self):
+        return {"count": self.count}
+
+
+def test_a_killed_process_counts_survive_in_its_running_summary(tmp_path):
+    """A process killed with SIGKILL never closes: what it wrote while running is taken
+    in by the next process's summary at close (and its file removed), oldest first."""
+    killed = Counting(load_config(), ServiceOptions(run_dir=tmp_path))
+    killed.count = 5
+    killed.write_running_summary()
+    # Stand in for that process having been another one: its file under another pid.
+    own = incarnation_path(tmp_path, "counting", os.getpid())
+    written = {**json.loads(own.read_text()), "pid": 123}
+    incarnation_path(tmp_path, "counting", 123).write_text(json.dumps(written))
+    own.unlink()
+    assert read_summary(tmp_path, "counting") == {"count": 5, "pid": 123, "running": True}
+    after = Counting(load_config(), ServiceOptions(run_dir=tmp_path))
+    after.count = 2
+    after.write_running_summary()  # the new one runs: the launcher sees both so far
+    seen = read_summary(tmp_path, "counting")
+    assert seen["count"] == 2 and seen["earlier_incarnations"][0]["count"] == 5
+    after.count = 3
+    after.close()  # at close: its summary, the killed one's taken in
+    written = read_summary(tmp_path, "counting")
+    assert written["count"] == 3 and "running" not in written
+    assert written["earlier_incarnations"] == [{"count": 5, "pid": 123, "running": True}]
+    assert incarnation_paths(tmp_path, "counting") == []
+    # A run in the same directory again starts without them.
+    incarnation_path(tmp_path, "counting", 7).write_text("{}")
+    assert incarnation_path(tmp_path, "counting", 7) in clear_run_results(tmp_path)
+
+
+def test_a_running_service_writes_its_summary_so_far_until_it_closes(tmp_path):
+    service = Counting(load_config(), ServiceOptions(run_dir=tmp_path))
+    service.count = 9
+    service.start_running_summaries(period_s=0.001)
+    path = incarnation_path(tmp_path, "counting", os.getpid())
+    for _ in range(10_000):  # event driven would need a hook in the thread: poll its file
+        if path.exists():
+            break
+        threading.Event().wait(0.001)
+    assert read_summary(tmp_path, "counting")["count"] == 9
+    service.close()  # joins the writer before the final summary: nothing left behind
+    assert not path.exists() and service.running_summaries >= 1
+    assert read_summary(tmp_path, "counting") == {"count": 9, "pid": os.getpid()}
