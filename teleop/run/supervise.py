@@ -48,7 +48,10 @@ from teleop.run.failure import ServiceFailed, program_log_text
 # 2-core machine can need several seconds, and a killed recorder writes no summary.
 STOP_WAIT_S = 15
 # Default time for start(): supervisord up plus every program RUNNING (startsecs included), s.
-DEFAULT_START_TIMEOUT_S = 15.0
+# A program that fails is seen at once (BACKOFF, FATAL, EXITED), so this bounds only a
+# supervisord too starved to spawn: on a 2-core machine at load 30 that took over 15 s.
+# The same bound as the services' ready tokens (the launcher's wait after this one).
+DEFAULT_START_TIMEOUT_S = 60.0
 # Default time for stop(): supervisord's own graceful stop must fit (STOP_WAIT_S per program
 # group, run in parallel by priority) before we fall back to signalling it ourselves, s.
 DEFAULT_STOP_TIMEOUT_S = STOP_WAIT_S + 5.0
