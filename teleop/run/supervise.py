@@ -96,6 +96,11 @@ class StackError(RuntimeError):
     """The stack could not be started, reached or stopped; the message says why."""
 
 
+class StartTimeout(StackError):
+    """Not every program of the stack was RUNNING within the start's time-out (none
+    failed: a machine too loaded to start them in time)."""
+
+
 class ProgramFailed(StackError, ServiceFailed):
     """A program of the stack failed to start: the failure block of teleop.run.failure."""
 
@@ -358,7 +363,7 @@ class Stack:
                 tails = "\n".join(
                     f"--- {n}:\n{self.log_tail(n)}" for n, s in pending.items() if s != "RUNNING"
                 )
-                raise StackError(
+                raise StartTimeout(
                     f"stack not RUNNING after {timeout_s} s: {pending}\n{tails}\n"
                     f"--- supervisord:\n{_tail(self.run_dir / SUPERVISOR_CONSOLE_FILE)}"
                 )

@@ -248,17 +248,19 @@ _FIGURES = {
 
 def _run_started(job: Job, record: dict[str, Any]) -> dict[str, Any]:
     """:func:`_run`, again (at most STARTUP_RETRIES times) when its stack did not come
-    up: a service that was not ready within the launcher's time-out (a machine loaded
-    by other work) means the task never ran, which is no outcome of the task. The
-    retries are counted in the record (``startup_retries``)."""
+    up: a program not RUNNING, or a service not ready, within the launcher's time-outs
+    (a machine loaded by other work) means the task never ran, which is no outcome of
+    the task. The retries are counted in the record (``startup_retries``)."""
     from teleop.run.failure import ServiceFailed
+    from teleop.run.supervise import StartTimeout
 
     retries = 0
     while True:
         try:
             return _run(job)
-        except ServiceFailed as exc:
-            if not exc.startup or retries == STARTUP_RETRIES:
+        except (ServiceFailed, StartTimeout) as exc:
+            startup = isinstance(exc, StartTimeout) or exc.startup
+            if not startup or retries == STARTUP_RETRIES:
                 raise
             retries += 1
             record["startup_retries"] = retries

@@ -9,6 +9,7 @@ from teleop.core.config import Config, PathConfig, SceneConfig, load_config
 from teleop.devices.routing import SceneKnowledge
 from teleop.run import sweep, tasks
 from teleop.run.failure import ServiceFailed
+from teleop.run.supervise import StartTimeout
 from teleop.run.tasks import GraspTask, ReachabilityChecker, Unreachable
 
 
@@ -227,25 +228,30 @@ def test_failures_are_counted_by_kind_without_their_numbers() -> None:
     )
 
 
-@pytest.mark.parametrize(("startup", "runs", "success"), [(True, 2, True), (False, 1, False)])
+@pytest.mark.parametrize(
+    ("failure", "runs", "success"),
+    [("not ready", 2, True), ("not running", 2, True), ("died", 1, False)],
+)
 def test_a_stack_that_did_not_come_up_is_started_again(
-    tmp_path, monkeypatch: pytest.MonkeyPatch, startup: bool, runs: int, success: bool
+    tmp_path, monkeypatch: pytest.MonkeyPatch, failure: str, runs: int, success: bool
 ) -> None:
-    """A grasp run whose services were not ready in time never ran: the task is started
-    again (and the retry counted); a service that failed once the run was under way is
-    the task's result."""
+    """A grasp run whose programs were not RUNNING or whose services were not ready in
+    time never ran: the task is started again (and the retry counted); a service that
+    failed once the run was under way is the task's result."""
     calls = []
     done = {"object_in_box": True, "arm_contacts": 0, "max_device_force_n": 1.0}
 
     def run(job: sweep.Job) -> dict:
         calls.append(job)
         if len(calls) == 1:
+            if failure == "not running":
+                raise StartTimeout("stack not RUNNING after 15 s")
             raise ServiceFailed("controller", "failed", tmp_path / "controller.log", "",
-                                startup=startup)  # fmt: skip
+                                startup=failure == "not ready")  # fmt: skip
         return done
 
     monkeypatch.setattr(sweep, "_run", run)
     task = GraspTask(0, 0, (0.45, -0.25, 0.025), (0.35, 0.35, 0.0), (0.55, 0.1, 0.15), 0.05, False)
     record = sweep.run_job(sweep.Job("grasp", task, None, (), str(tmp_path)))
     assert len(calls) == runs and record["success"] is success
-    assert record.get("startup_retries", 0) == (1 if startup else 0)
+    assert record.get("startup_retries", 0) == runs - 1
