@@ -206,17 +206,28 @@ class Plant:
 
     def limit(self, qd_ref_rad_s: np.ndarray) -> np.ndarray:
         """``qd_ref_rad_s`` within the robot's limits: each joint clipped to its drive's
-        range (the velocity actuator's ctrlrange), then all scaled down together (the
-        direction kept) so the tool point's commanded speed, MuJoCo's site Jacobian at the
-        state the step starts from times the references, is at most
-        ``plant.tool_speed_limit_m_s``. Counts the steps it cut (``clamped_steps``)."""
+        range (the velocity actuator's ctrlrange), then the motion it asks for scaled
+        down (the direction kept) so the tool point's commanded speed is at most
+        ``plant.tool_speed_limit_m_s``. Counts the steps it cut (``clamped_steps``).
+
+        A velocity servo's reference also carries the torque that holds the arm: its
+        drive settles where kv (q'_ref - q') = the bias forces (gravity, Coriolis), so
+        the joints move at q'_ref - bias / kv, and a reference with the paper's dynamic
+        compensation holds bias / kv on top of the motion it asks for (at full reach
+        with a held cube, as much as a 0.17 m/s tool speed). The speed limited is that of
+        the motion: MuJoCo's site Jacobian at the state the step starts from times
+        (q'_ref - qfrc_bias / kv); cutting the holding part too would let the arm sag
+        and bend the tool's path while it is commanded up."""
         qd = np.minimum(np.maximum(qd_ref_rad_s, self.ctrl_low), self.ctrl_high)
         clamped = not np.array_equal(qd, qd_ref_rad_s)
         self.prepare_step()  # positions-dependent data of the state the step starts from
         mujoco.mj_jacSite(self.model, self.data, self._jacp, None, self.tool_site)
-        speed_m_s = math.hypot(*(self._jacp[:, self.dof_index] @ qd).tolist())
+        hold = self.data.qfrc_bias[self.dof_index] / self.kv  # references that hold still
+        motion = qd - hold
+        speed_m_s = math.hypot(*(self._jacp[:, self.dof_index] @ motion).tolist())
         if speed_m_s > self.tool_speed_limit_m_s:
-            qd *= self.tool_speed_limit_m_s / speed_m_s
+            qd = hold + motion * (self.tool_speed_limit_m_s / speed_m_s)
+            qd = np.minimum(np.maximum(qd, self.ctrl_low), self.ctrl_high)
             clamped = True
         if clamped:
             self.clamped_steps += 1
