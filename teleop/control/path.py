@@ -539,6 +539,11 @@ class PathMetrics:
     on the path while the closest point barely moves); a STALL event when a stall begins
     (value: the path error, m), and the clearance, contacts and singularity crossings
     (:class:`MotionSafety`).
+
+    A gap between control cycles longer than ``command_gap_s`` (the plant's watchdog: it
+    braked, nothing commanded the tool) is not a stall: the window starts afresh after it.
+    A frozen or restarted controller is the fault's business (its brake and resume times),
+    not the motion's.
     """
 
     def __init__(
@@ -547,8 +552,10 @@ class PathMetrics:
         path_speed_m_s: float = 0.0,
         clearance: ClearanceConfig | None = None,
         singularity_manipulability: float = 0.0,
+        command_gap_s: float = math.inf,
     ) -> None:
         self.settle_s = settle_s
+        self.command_gap_s = command_gap_s
         self.path_speed_m_s = path_speed_m_s
         stall = clearance if clearance is not None else ClearanceConfig()
         self.stall_window_s = stall.stall_window_s
@@ -574,6 +581,7 @@ class PathMetrics:
             path_speed_m_s=config.control.path_speed_m_s,
             clearance=config.clearance,
             singularity_manipulability=config.control.singularity_event_manipulability,
+            command_gap_s=config.plant.watchdog_s,
         )
 
     @property
@@ -595,8 +603,12 @@ class PathMetrics:
             self._check_stall(sim_time_s, output)
 
     def _check_stall(self, sim_time_s: float, output: ControlOutput) -> None:
-        if self._window is None:
+        uncommanded = self._window is not None and (
+            sim_time_s - self._previous_s > self.command_gap_s
+        )
+        if self._window is None or uncommanded:
             self._window = (sim_time_s, output.path_arc_m, output.path_error_m)
+            self._window_expected_m = 0.0
             self._previous_s = sim_time_s
             return
         self._window_expected_m += output.path_speed_m_s * (sim_time_s - self._previous_s)

@@ -21,6 +21,7 @@ from teleop.control.clearance import (
     push_depth_m,
 )
 from teleop.control.kinematics import build_arm_model, tool_position_and_jacobian
+from teleop.control.path import ControlOutput, PathMetrics
 from teleop.core.config import load_config
 from teleop.run.experiments import run_path_following_inprocess
 
@@ -156,3 +157,34 @@ def test_a_path_out_of_reach_is_a_stall_and_not_a_good_run():
     assert "STALL" in {e["event"] for e in summary["events"]}
     assert summary["success"] is False
     assert any("stalled" in problem for problem in summary["motion_problems"])
+
+
+def _cycle(arc_m: float, speed_m_s: float = 0.1) -> ControlOutput:
+    zero = np.zeros(3)
+    return ControlOutput(
+        qd_ref_rad_s=np.zeros(6), qd_c_rad_s=np.zeros(6), tool_p_m=zero, desired_p_m=zero,
+        path_error_m=0.0, manipulability=0.05, path_s=0.0, path_arc_m=arc_m,
+        path_speed_m_s=speed_m_s,
+    )  # fmt: skip
+
+
+def test_a_gap_in_the_commands_is_not_a_stall_but_a_still_commanded_tool_is():
+    """A controller frozen for 0.5 s (the plant braked: nothing commanded the tool) is not a
+    stall once it resumes and the tool moves; the same half second of cycles that command
+    0.1 m/s while the tool stands still is one."""
+    period_s = 0.001
+    metrics = PathMetrics(settle_s=0.0, path_speed_m_s=0.1, command_gap_s=0.02)
+    arc_m, t_s = 0.0, 0.0
+    for k in range(1000):  # 1 s moving at the commanded speed
+        t_s, arc_m = k * period_s, k * period_s * 0.1
+        metrics.add(t_s, _cycle(arc_m))
+    t_s += 0.5  # frozen: no cycle for 0.5 s, the tool held where it was
+    for k in range(1000):  # resumed, moving again
+        metrics.add(t_s + k * period_s, _cycle(arc_m + k * period_s * 0.1))
+    assert metrics.stalled_s == 0 and metrics.stalls == 0 and not metrics.problems()
+
+    still = PathMetrics(settle_s=0.0, path_speed_m_s=0.1, command_gap_s=0.02)
+    for k in range(1600):  # commanded every cycle, never moving after 0.5 s
+        t_s = k * period_s
+        still.add(t_s, _cycle(min(t_s, 0.5) * 0.1))
+    assert still.stalls == 1 and still.stalled_s >= 0.99
