@@ -228,7 +228,6 @@ class PathCycle(ControllerCore):
             config.path,
             period_s=self.timestep_s,
             clearance=ClearanceModel(config, arm),
-            tool_speed_limit_m_s=config.plant.tool_speed_limit_m_s,
         )
         self.metrics = PathMetrics.for_config(config)
         self._status = CONTROL_STATUS.new()

@@ -329,14 +329,8 @@ class PathFollowingController:
         path: PathConfig,
         period_s: float,
         clearance: ClearanceModel | None = None,
-        tool_speed_limit_m_s: float = math.inf,
     ) -> None:
         self.arm = arm
-        # The plant's own tool speed limit (``plant.tool_speed_limit_m_s``): a command
-        # above it is scaled down by the plant, and the velocity loops then track a
-        # different direction than the one the clearance was held on. Commanding within
-        # it keeps the plant's scaling a no-op.
-        self.tool_speed_limit_m_s = tool_speed_limit_m_s
         self.control = control
         self.path = DesiredPath(path)
         self.period_s = period_s
@@ -401,9 +395,13 @@ class PathFollowingController:
         if self.clearance is not None and self.clearance.config.avoid and self._limits:
             qd_c = joint_limit_hold(q_rad, qd_c, self._limits, self.clearance.config)
         qd_c = limit_speed(qd_c, self.max_speed_rad_s)
-        tool_speed_m_s = math.sqrt(float(np.sum((jv @ qd_c) ** 2)))
-        if tool_speed_m_s > self.tool_speed_limit_m_s:  # scaled down whole: caps still hold
-            qd_c = qd_c * (self.tool_speed_limit_m_s / tool_speed_m_s)
+        # control.max_tool_speed_m_s, below the plant's limit: the plant's cut would make the
+        # velocity loops track another direction than the one the clearance was held on.
+        # Scaled down whole, the caps still hold.
+        tool_v_m_s = jv @ qd_c
+        tool_speed_m_s = math.sqrt(float(tool_v_m_s @ tool_v_m_s))
+        if tool_speed_m_s > ctl.max_tool_speed_m_s:
+            qd_c = qd_c * (ctl.max_tool_speed_m_s / tool_speed_m_s)
 
         compensation = compensation_terms(self.arm, q_rad, qd_rad_s) if ctl.compensation else None
         qd_ref = np.array(

@@ -129,8 +129,12 @@ class PlantConfig:
     # that was superseded more than this long ago, on the plant's own clock.
     watchdog_s: float = 0.020
     # The tool point's commanded speed is cut to this whatever a command asks (the plant
-    # owns the robot's limits; each joint is also held to its drive's range).
-    tool_speed_limit_m_s: float = 0.25
+    # owns the robot's limits; each joint is also held to its drive's range). A safety
+    # limit above the controllers' own caps (teleop.max_tool_speed_m_s,
+    # control.max_tool_speed_m_s): the cut scales a command's whole motion, orientation
+    # and clearance corrections included, so it must not act on a well-behaved command
+    # whose velocity loops lag a little behind it.
+    tool_speed_limit_m_s: float = 0.30
     # Rate of the scene streams (tool pose, object poses) and, outside teleoperation, of the
     # contact and proximity fields of the plant state (one per step; teleoperation: fresh
     # every step).
@@ -212,6 +216,10 @@ class ControlConfig:
     velocity_gain_per_s: float = 50.0
     # Joint speed limit applied to every reference sent to the plant.
     max_joint_speed_rad_s: float = math.pi
+    # The kinematic command's tool speed is scaled down (whole) to this, below the plant's
+    # safety limit (plant.tool_speed_limit_m_s), so the plant never cuts a command that
+    # kept its clearance caps (the cut would change the direction they were held on).
+    max_tool_speed_m_s: float = 0.25
     # Damping of the pseudo-inverse (m). Near singularities it grows smoothly (Nakamura's
     # variable damping) to singular_damping_m as the manipulability falls below
     # singular_manipulability, so the arm slows down instead of swinging through.
@@ -230,6 +238,7 @@ class ControlConfig:
             "position_saturation_m",
             "velocity_gain_per_s",
             "max_joint_speed_rad_s",
+            "max_tool_speed_m_s",
         ):
             _require(getattr(self, name) > 0, f"control.{name} > 0")
         _require(self.speed_error_gain_per_m >= 0, "control.speed_error_gain_per_m >= 0")

@@ -44,7 +44,6 @@ def run_path_following_inprocess(
         config.path,
         period_s=config.plant.timestep_s,
         clearance=ClearanceModel(config, arm),
-        tool_speed_limit_m_s=config.plant.tool_speed_limit_m_s,
     )
     metrics = PathMetrics.for_config(config)
     steps = round(config.run.duration_s / config.plant.timestep_s)

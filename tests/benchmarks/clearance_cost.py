@@ -46,7 +46,6 @@ def run(variant: str, duration_s: float) -> float:
         config.path,
         config.plant.timestep_s,
         clearance=clearance,
-        tool_speed_limit_m_s=config.plant.tool_speed_limit_m_s,
     )
     steps = round(duration_s / config.plant.timestep_s)
     start = time.process_time()
