@@ -134,6 +134,14 @@ def join_instructions(
             f"  then wait for  {topics.ready_all}  of: {', '.join(awaits)}  (before its work)"
         )
     lines += ["  streams:", *_stream_lines(service, topics, config.run.scenario)]
+    cpu = config.cpu
+    if config.run.mode == "realtime" and cpu.fifo_priority > 0 and service in cpu.fifo_services:
+        # The stack's loops hold both cores of a small machine under SCHED_FIFO: a loop
+        # scheduled normally runs only in what they leave, and its periods slip.
+        lines.append(
+            f"  realtime:      the stack's loops run SCHED_FIFO {cpu.fifo_priority}: run yours "
+            f"at it too (chrt -f {cpu.fifo_priority} python ...; needs CAP_SYS_NICE)"
+        )
     lines.append(f"  waiting up to {timeout_s:g} s for it (--without-timeout)")
     return "\n".join(lines)
 
