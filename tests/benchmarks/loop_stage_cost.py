@@ -104,6 +104,8 @@ class Loop:
             self.haptic.loop.feedback_in,
         ):
             inbound.shed_age_ns = NEVER_SHED_NS
+        # Nor may the controller take the plant for silent (it then commands no motion).
+        self.controller.core.state_silent_ns = NEVER_SHED_NS
         self.plant.loop.begin_run(None)
         self.plant.loop.begin_on_arrival()
         self.plant.loop._publish_state(None, 0, 0)  # state 0: the first sample is answered on it
@@ -132,7 +134,11 @@ class Loop:
             sample, time.monotonic_ns(), HAPTIC_STATE, controller.core.on_haptic, controller.drops
         )
         if controller.core.cycles == cycles:
-            raise RuntimeError("the controller did not answer the sample (shed)")
+            core = controller.core
+            raise RuntimeError(
+                "the controller did not answer the sample (shed, or the plant taken for "
+                f"silent: {core.plant_silent_samples} such samples)"
+            )
         command = controller.core._command.tobytes()
         between()
         deliver(command, time.monotonic_ns(), JOINT_COMMAND, plant._on_command, plant.drops)
