@@ -32,8 +32,10 @@ WEIGHT_TOLERANCE = 0.10
 # clean-clone CI run saw 1.3 % once; 3 % still catches a cap that is not enforced.
 SPEED_TOLERANCE_LOCKSTEP = 0.01
 SPEED_TOLERANCE_REALTIME = 0.03
-# An obstacle beside the carry path, below it: felt and avoided, never blocking.
-OBSTACLE = ("scene.obstacle_p_m=[[0.42, 0.05, 0.12]]", "scene.obstacle_radius_m=[0.04]")
+# An obstacle beside the default cube (0.45, -0.25): the descent to the cube passes inside
+# its influence (the operator routes around obstacles, but not away from its own target),
+# so its repulsion is felt on the handle, and the arm keeps clear (seed 2: 64 mm, 0.96 N).
+OBSTACLE = ("scene.obstacle_p_m=[[0.45, -0.15, 0.04]]", "scene.obstacle_radius_m=[0.03]")
 
 
 def grasp(tmp_path: Path, name: str, *args: str) -> dict:
