@@ -441,6 +441,8 @@ class BilateralCycle(ControllerCore):
         t0 = self.clock.now_ns()
         if t0 - int(state["trace_ns"][Stage.PLANT_STATE_TX]) > self.state_silent_ns:
             self.plant_silent_samples += 1  # the plant went silent: command no motion
+            with self._rt_lock:  # the sample goes unanswered: shed, not vanished
+                self._drop("haptic", (haptic, rx_ns))
             return
         prepared_seq, terms, obstacle = self._prepared
         if prepared_seq != tick:  # not prepared for this state: all of it here

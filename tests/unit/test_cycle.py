@@ -437,6 +437,7 @@ def test_a_silent_plant_stops_the_commands():
         cycle.on_haptic(handle(seq, 0, now), now)
     assert sent.streams().count("joint_command") == 1
     assert cycle.summary()["plant_silent_samples"] == 3
+    assert cycle.haptic_in.shed == 3  # unanswered on purpose: the latency count's shed
     cycle.on_state(state(config, 1, now), now)
     cycle.on_haptic(handle(5, 1, now), now)
     assert sent.streams().count("joint_command") == 2
