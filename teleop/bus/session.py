@@ -23,7 +23,7 @@ import numpy as np
 import zenoh
 from zenoh.shm import ShmProvider
 
-from shm.provider import configure_session, put_by_size, took_shm_path
+from shm.provider import SHM_THRESHOLD_BYTES, configure_session, put_by_size, took_shm_path
 from teleop.bus import graph
 from teleop.bus.access import TLS_CONFIG, zenoh_entries
 from teleop.bus.messages import DecodeError, DropCounter, Event, FrameSchema, Kind, Reason, Schema
@@ -320,6 +320,23 @@ def deliver(
         callback(rec, rx_ns)
 
 
+def batch_records(record_bytes: int, requested: int) -> int:
+    """Records per observer message: ``requested``, fewer if needed to keep a message
+    below :data:`SHM_THRESHOLD_BYTES` (never fewer than one).
+
+    Observer batches go over the socket: through Zenoh's implicit shared-memory transport
+    pool (what a put above the threshold takes without a provider of ours), a recorder
+    starved on a busy machine received some records of 4830 B plant-state batches zeroed
+    (version 0: 49 and 228 of about 2000 messages in two realtime grasps under a full
+    test suite's load), while the 2010 B and 2880 B batches of the same run arrived whole.
+    """
+    if record_bytes < 1 or requested < 1:
+        raise ValueError(
+            f"record_bytes and requested must be >= 1, got {record_bytes}, {requested}"
+        )
+    return max(1, min(requested, (SHM_THRESHOLD_BYTES - 1) // record_bytes))
+
+
 class BatchPublisher:
     """Observers' copy of a fast stream: records sent ``records_per_message`` at a time.
 
@@ -344,9 +361,11 @@ class BatchPublisher:
         cls, session: zenoh.Session, topics: Topics, name: str, records_per_message: int
     ) -> BatchPublisher:
         """The batched copy ``name`` of a stream (its ``batch_of`` in teleop.bus.graph)."""
-        if not graph.stream(name).batch_of:
+        stream = graph.stream(name)
+        if not stream.batch_of:
             raise ValueError(f"{name} is not a batched stream of the graph")
-        return cls(Publisher.for_stream(session, topics, name), records_per_message)
+        records = batch_records(stream.schema.size, records_per_message)
+        return cls(Publisher.for_stream(session, topics, name), records)
 
     def add(self, data: bytes) -> None:
         """Keep one encoded record; send the message once it is full."""

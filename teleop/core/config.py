@@ -671,9 +671,10 @@ class BusConfig:
     tls: bool = False
     # This process's credentials file (written by its launcher; empty: no authentication).
     credentials_file: str = ""
-    # Plant states per message on the observers' copy of the state stream (recorder, eye
-    # view; topics.plant_state_batch): one message instead of 10 saves the recorder ~9
-    # wake-ups per 10 ms at 1 kHz.
+    # Records per message on the observers' copies of the fast streams (recorder, eye
+    # view; topics.plant_state_batch, ...): one message instead of 10 saves the recorder ~9
+    # wake-ups per 10 ms at 1 kHz. Fewer when a message would reach the shared-memory
+    # threshold (teleop.bus.session.batch_records: 6 plant states of 483 B).
     observer_batch_records: int = 10
 
     def __post_init__(self) -> None:

@@ -355,6 +355,12 @@ def test_batch_publisher_delivers_every_record_in_order_and_drops_bad_batches():
             rec["seq"] = seq
             batch.add(m.PLANT_STATE.encode(rec))
         assert batch.records_per_message == 3
+        # The configured 10 would make 4830 B messages: cut to stay off the implicit SHM
+        # path (teleop.bus.session.batch_records).
+        assert bus.batch_records(m.PLANT_STATE.size, 10) == 6
+        assert bus.batch_records(m.PLANT_STATE.size, 2) == 2
+        assert bus.batch_records(10_000, 10) == 1
+        assert 6 * m.PLANT_STATE.size < SHM_THRESHOLD_BYTES <= 7 * m.PLANT_STATE.size
         batch.flush()  # the seventh record goes out alone
         assert done.wait(TIMEOUT_S)
         assert got == list(range(7))
