@@ -43,6 +43,7 @@ from teleop.bus.messages import (
     RUN_EVENT,
     TELEOP_STATUS,
     Button,
+    Flag,
     Stage,
 )
 from teleop.bus.session import Latest
@@ -80,6 +81,7 @@ GRIPPER_CLOSED = 0.0
 HEAD_POSE_WAIT_S = 1.0
 _CLUTCH = int(Button.CLUTCH)
 _GRIPPER_CLOSE = int(Button.GRIPPER_CLOSE)
+_BRAKING = int(Flag.BRAKING)
 
 
 class ControllerOutputs(Protocol):
@@ -248,7 +250,8 @@ class PathCycle(ControllerCore):
         trace[Stage.CONTROLLER_RX] = rx_ns  # path following: the state is the input
         self.send_command(state, output.qd_ref_rad_s, GRIPPER_OPEN, trace)
         sim_time_ns = int(state["sim_time_ns"])
-        self.metrics.add(sim_time_ns * 1e-9, output)
+        braked = bool(int(state["flags"]) & _BRAKING)
+        self.metrics.add(sim_time_ns * 1e-9, output, commanded=not braked)
         if self.metrics.events:
             self.send_events(self.metrics.take_events(), int(state["step"]))
         if int(state["step"]) % self.status_every_steps == 0:

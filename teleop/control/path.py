@@ -538,9 +538,9 @@ class PathMetrics:
     (value: the path error, m), and the clearance, contacts and singularity crossings
     (:class:`MotionSafety`).
 
-    A gap between control cycles longer than ``command_gap_s`` (the plant's watchdog: it
-    braked, nothing commanded the tool) is not a stall: the window starts afresh after it.
-    A frozen or restarted controller is the fault's business (its brake and resume times),
+    A cycle on a state the plant's watchdog braked in (``commanded=False``: no command
+    moved the tool) is not a stall: the window starts afresh at the next commanded one. A
+    frozen or restarted controller is the fault's business (its brake and resume times),
     not the motion's.
     """
 
@@ -550,10 +550,8 @@ class PathMetrics:
         path_speed_m_s: float = 0.0,
         clearance: ClearanceConfig | None = None,
         singularity_manipulability: float = 0.0,
-        command_gap_s: float = math.inf,
     ) -> None:
         self.settle_s = settle_s
-        self.command_gap_s = command_gap_s
         self.path_speed_m_s = path_speed_m_s
         stall = clearance if clearance is not None else ClearanceConfig()
         self.stall_window_s = stall.stall_window_s
@@ -579,7 +577,6 @@ class PathMetrics:
             path_speed_m_s=config.control.path_speed_m_s,
             clearance=config.clearance,
             singularity_manipulability=config.control.singularity_event_manipulability,
-            command_gap_s=config.plant.watchdog_s,
         )
 
     @property
@@ -589,7 +586,9 @@ class PathMetrics:
     def take_events(self) -> list[MotionEvent]:
         return self.safety.take_events()
 
-    def add(self, sim_time_s: float, output: ControlOutput) -> None:
+    def add(self, sim_time_s: float, output: ControlOutput, commanded: bool = True) -> None:
+        """One control cycle at ``sim_time_s``; ``commanded``: the state it answers was
+        moved by commands (not held by the plant's brake)."""
         self.min_manipulability = min(self.min_manipulability, output.manipulability)
         if sim_time_s >= self.settle_s:
             self.errors_m.append(output.path_error_m)
@@ -598,13 +597,13 @@ class PathMetrics:
         self._last = (sim_time_s, output.path_arc_m)
         self.safety.add(sim_time_s, output.clearance, output.manipulability)
         if self.path_speed_m_s > 0:
-            self._check_stall(sim_time_s, output)
+            if commanded:
+                self._check_stall(sim_time_s, output)
+            else:
+                self._window = None  # held, not commanded: a new window once commanded
 
     def _check_stall(self, sim_time_s: float, output: ControlOutput) -> None:
-        uncommanded = self._window is not None and (
-            sim_time_s - self._previous_s > self.command_gap_s
-        )
-        if self._window is None or uncommanded:
+        if self._window is None:
             self._window = (sim_time_s, output.path_arc_m, output.path_error_m)
             self._window_expected_m = 0.0
             self._previous_s = sim_time_s

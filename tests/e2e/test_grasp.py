@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -39,19 +40,37 @@ OBSTACLE = ("scene.obstacle_p_m=[[0.45, -0.15, 0.04]]", "scene.obstacle_radius_m
 
 
 def grasp(tmp_path: Path, name: str, *args: str) -> dict:
-    out = tmp_path / f"{name}.json"
-    result = subprocess.run(
-        [sys.executable, "-m", "teleop.cli", "run", "grasp", "--run-dir", str(tmp_path / name),
-         "--summary-json", str(out), "--quiet", *args],
-        capture_output=True, text=True, timeout=600, stdin=subprocess.DEVNULL,
-    )  # fmt: skip
-    assert out.exists(), result.stderr[-3000:]
-    summary = json.loads(out.read_text())
-    if summary["success"]:
-        assert_ran(result.returncode, summary, result.stderr)
-    else:
-        assert result.returncode == 1, result.stderr[-3000:]
-    return summary
+    """The summary of ``teleop run grasp ARGS`` in ``tmp_path/name``."""
+    return grasps(tmp_path, {name: args})[name]
+
+
+def grasps(tmp_path: Path, runs: dict[str, Sequence[str]]) -> dict[str, dict]:
+    """Several grasp runs at once (name: args), each in ``tmp_path/name``; their
+    summaries. Only for lockstep runs beside each other: their results do not depend on
+    the load, and a lockstep stack waits on its hops more than it computes, so two take
+    little longer than one."""
+    started = {}
+    for name, args in runs.items():
+        out = tmp_path / f"{name}.json"
+        command = [sys.executable, "-m", "teleop.cli", "run", "grasp", "--run-dir",
+                   str(tmp_path / name), "--summary-json", str(out), "--quiet", *args]  # fmt: skip
+        with (tmp_path / f"{name}.stderr").open("w") as stderr_file:  # no pipe to fill
+            started[name] = subprocess.Popen(
+                command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=stderr_file
+            )
+    summaries = {}
+    for name, process in started.items():
+        process.wait(timeout=600)
+        stderr = (tmp_path / f"{name}.stderr").read_text()
+        out = tmp_path / f"{name}.json"
+        assert out.exists(), stderr[-3000:]
+        summary = json.loads(out.read_text())
+        if summary["success"]:
+            assert_ran(process.returncode, summary, stderr)
+        else:
+            assert process.returncode == 1, stderr[-3000:]
+        summaries[name] = summary
+    return summaries
 
 
 def assert_physical(summary: dict, speed_tolerance: float = SPEED_TOLERANCE_LOCKSTEP) -> None:
@@ -73,8 +92,9 @@ def test_realtime_grasp_puts_the_cube_in_the_bin(tmp_path):
 
 
 def test_lockstep_grasp_is_deterministic(tmp_path):
-    first = grasp(tmp_path, "a", "--mode", "lockstep", "--seed", "4")
-    second = grasp(tmp_path, "b", "--mode", "lockstep", "--seed", "4")
+    args = ("--mode", "lockstep", "--seed", "4")
+    runs = grasps(tmp_path, {"a": args, "b": args})
+    first, second = runs["a"], runs["b"]
     assert first["success"] and second["success"]
     assert first["final_state_sha256"] == second["final_state_sha256"]
     assert first["duration_s"] == second["duration_s"]

@@ -10,12 +10,12 @@
 
 from __future__ import annotations
 
-from pathlib import Path
+import pytest
 
 from teleop.core.config import load_config
 from teleop.viz import entities as ent
 from teleop.viz.rrd import read_rrd
-from tests.e2e.test_grasp import grasp
+from tests.e2e.test_grasp import grasps
 
 # On the straight move from over the default cube (0.45, -0.25) to over the default bin
 # (0.35, 0.35) at carry height.
@@ -29,8 +29,16 @@ CLEAR_ROUTE_FORCE_N = 3.0
 OUT_OF_REACH = ("--set", "scene.cube_p_m=[1.0, 0.0, 0.025]")
 
 
-def test_the_operator_carries_over_an_obstacle_in_the_way(tmp_path: Path) -> None:
-    summary = grasp(tmp_path, "way", "--mode", "lockstep", "--seed", "0", *IN_THE_WAY)
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict]:
+    """Both scenes' lockstep grasps, run at once (the summaries by name)."""
+    lockstep = ("--mode", "lockstep", "--seed", "0")
+    scenes = {"way": (*lockstep, *IN_THE_WAY), "far": (*lockstep, *OUT_OF_REACH)}
+    return grasps(tmp_path_factory.mktemp("routing"), scenes)
+
+
+def test_the_operator_carries_over_an_obstacle_in_the_way(runs: dict[str, dict]) -> None:
+    summary = runs["way"]
     assert summary["success"], summary.get("operator_failure")
     influence_m = load_config().teleop.obstacle_influence_m
     assert summary["obstacle_min_clearance_m"] > influence_m  # never felt its repulsion
@@ -40,8 +48,8 @@ def test_the_operator_carries_over_an_obstacle_in_the_way(tmp_path: Path) -> Non
     assert "carry" in [r["phase"] for r in routes]
 
 
-def test_a_cube_out_of_reach_is_reported_not_timed_out(tmp_path: Path) -> None:
-    summary = grasp(tmp_path, "far", "--mode", "lockstep", "--seed", "0", *OUT_OF_REACH)
+def test_a_cube_out_of_reach_is_reported_not_timed_out(runs: dict[str, dict]) -> None:
+    summary = runs["far"]
     assert not summary["success"]
     assert "out of reach in approach" in summary["operator_failure"]
     approach_timeout_s = 15.0  # deploy/scenarios/grasp.toml

@@ -168,22 +168,21 @@ def _cycle(arc_m: float, speed_m_s: float = 0.1) -> ControlOutput:
     )  # fmt: skip
 
 
-def test_a_gap_in_the_commands_is_not_a_stall_but_a_still_commanded_tool_is():
-    """A controller frozen for 0.5 s (the plant braked: nothing commanded the tool) is not a
-    stall once it resumes and the tool moves; the same half second of cycles that command
-    0.1 m/s while the tool stands still is one."""
+def test_a_braked_stretch_is_not_a_stall_but_a_still_commanded_tool_is():
+    """A controller frozen for 0.5 s (the plant's watchdog braked: its states held, not
+    commanded) is not a stall once the tool moves again; the same half second of cycles
+    that command 0.1 m/s while the tool stands still is one."""
     period_s = 0.001
-    metrics = PathMetrics(settle_s=0.0, path_speed_m_s=0.1, command_gap_s=0.02)
-    arc_m, t_s = 0.0, 0.0
-    for k in range(1000):  # 1 s moving at the commanded speed
-        t_s, arc_m = k * period_s, k * period_s * 0.1
-        metrics.add(t_s, _cycle(arc_m))
-    t_s += 0.5  # frozen: no cycle for 0.5 s, the tool held where it was
-    for k in range(1000):  # resumed, moving again
-        metrics.add(t_s + k * period_s, _cycle(arc_m + k * period_s * 0.1))
+    metrics = PathMetrics(settle_s=0.0, path_speed_m_s=0.1)
+    arc_m = 0.0
+    for k in range(2500):  # 1 s moving, 0.5 s braked where it was, 1 s moving again
+        t_s = k * period_s
+        braked = 1000 <= k < 1500
+        arc_m += 0.0 if braked else 0.1 * period_s
+        metrics.add(t_s, _cycle(arc_m), commanded=not braked)
     assert metrics.stalled_s == 0 and metrics.stalls == 0 and not metrics.problems()
 
-    still = PathMetrics(settle_s=0.0, path_speed_m_s=0.1, command_gap_s=0.02)
+    still = PathMetrics(settle_s=0.0, path_speed_m_s=0.1)
     for k in range(1600):  # commanded every cycle, never moving after 0.5 s
         t_s = k * period_s
         still.add(t_s, _cycle(min(t_s, 0.5) * 0.1))
