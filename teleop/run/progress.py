@@ -13,6 +13,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from teleop.sim.proximity import FAR_DISTANCE_M
+
 # A progress line at least every this many seconds of sim time, and at each new phase.
 PROGRESS_PERIOD_S = 5.0
 
@@ -93,10 +95,7 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
             f"{_num(summary.get('max_device_force_n'), '.2f', ' N')}, held weight "
             f"{_num(summary.get('held_weight_n'), '.2f', ' N')}"
         )
-        lines.append(
-            "  obstacle clearance "
-            f"{_num(summary.get('obstacle_min_clearance_m'), '.3f', ' m')} (min)"
-        )
+        lines.append(_clearance_line(summary))
     else:
         lines.append(f"{scenario} ({mode}): {summary.get('duration_s')} s simulated")
         lines.append(
@@ -105,6 +104,11 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
             f"(after {summary.get('settle_s')} s)"
         )
         lines.append(f"  manipulability     min {_num(summary.get('min_manipulability'), '.3f')}")
+        lines.append(
+            f"  motion             path_progress {_num(summary.get('path_progress'), '.3f')}, "
+            f"stalled {_num(summary.get('stalled_s'), '.1f', ' s')}"
+        )
+        lines.append(_clearance_line(summary))
     timing = f"  timing             realtime factor {_num(summary.get('realtime_factor'), '.3f')}"
     if "overrun_fraction" in summary:  # a services run
         timing += (
@@ -135,6 +139,19 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
     if summary_path:
         lines.append(f"  full summary       {summary_path}")
     return lines
+
+
+def _clearance_line(summary: Mapping[str, Any]) -> str:
+    """The arm's clearance and unintended contacts, and the virtual obstacles' clearance
+    when the scene has any (a summary without one carries proximity's far distance)."""
+    line = (
+        f"  clearance          arm {_num(_mm(summary.get('min_clearance_m')), '.1f', ' mm')} "
+        f"(min), contacts {_num(summary.get('arm_contacts'), 'd')}"
+    )
+    obstacle_m = summary.get("obstacle_min_clearance_m")
+    if obstacle_m is not None and obstacle_m < FAR_DISTANCE_M:
+        line += f", obstacle {obstacle_m * 1000.0:.1f} mm"
+    return line
 
 
 def fault_line(fault: Mapping[str, Any]) -> str:

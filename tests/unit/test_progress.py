@@ -53,3 +53,16 @@ def test_the_short_summary_says_the_outcome_the_verdict_and_where_the_files_are(
     assert "real time          degraded" in text and "braked 7" in text
     assert "SCHED_FIFO refused" in text and "/r/summary.json" in text
     assert len(lines) <= 16
+
+
+def test_the_short_summary_shows_clearance_and_an_obstacle_only_when_there_is_one():
+    base = {"scenario": "grasp", "mode": "lockstep", "success": True, "arm_contacts": 0}
+    plain = "\n".join(human_summary({**base, "obstacle_min_clearance_m": 1000.0}, None))
+    assert "arm n/a (min), contacts 0" in plain and "obstacle" not in plain
+    shown = {**base, "min_clearance_m": 0.0097, "obstacle_min_clearance_m": 0.064}
+    text = "\n".join(human_summary(shown, None))
+    assert "arm 9.7 mm (min), contacts 0, obstacle 64.0 mm" in text
+    path = {"scenario": "path-following", "mode": "lockstep", "path_progress": 0.98,
+            "stalled_s": 0.0, "min_clearance_m": 0.027, "arm_contacts": 0}  # fmt: skip
+    text = "\n".join(human_summary(path, None))
+    assert "path_progress 0.980, stalled 0.0 s" in text and "arm 27.0 mm" in text
