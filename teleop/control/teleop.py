@@ -728,6 +728,10 @@ class TeleopController:
 
         qd_ref = velocity_reference(self.control, terms.compensation, qd_c, self._previous_qd_c, dt)
         self._previous_qd_c = qd_c
+        if terms.clearance_caps:
+            # As in path following: the compensation adds the velocity loops' dynamics to
+            # q'_c, and the reference the plant applies must keep the caps too.
+            qd_ref = hold_clearance(np.array(qd_ref), list(terms.clearance_caps))[0].tolist()
         return TeleopOutput(
             qd_ref_rad_s=np.array(_within_limits(qd_ref, self._speed_limits_rad_s)[0]),
             qd_c_rad_s=np.array(qd_c),
