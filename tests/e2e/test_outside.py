@@ -12,6 +12,7 @@ import os
 import subprocess
 import sys
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import IO
 
@@ -88,8 +89,13 @@ def assert_clean(summary: dict, outside: str) -> None:
 
 def test_outside_controller_follows_its_path_in_lockstep_deterministically(tmp_path):
     args = ["path-following", "--mode", "lockstep", "--duration", "5", "--without", "controller"]
-    first, client, code = run_with_client(tmp_path, "a", args, "outside_controller.py")
-    second, _, _ = run_with_client(tmp_path, "b", args, "outside_controller.py")
+    # Both at once (lockstep results do not depend on the load; the stacks mostly wait).
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        runs = [
+            pool.submit(run_with_client, tmp_path, name, args, "outside_controller.py")
+            for name in ("a", "b")
+        ]
+        (first, client, code), (second, _, _) = (run.result() for run in runs)
     print("outside controller:", json.dumps(client), "plant:", first["steps"], "steps,",
           first["commands_applied"], "applied,", first["stale_commands"], "stale")  # fmt: skip
     assert code == 0
