@@ -91,24 +91,30 @@ def test_realtime_grasp_puts_the_cube_in_the_bin(tmp_path):
     assert Path(summary["rrd"]).stat().st_size > 0
 
 
-def test_lockstep_grasp_is_deterministic(tmp_path):
-    args = ("--mode", "lockstep", "--seed", "4")
-    runs = grasps(tmp_path, {"a": args, "b": args})
-    first, second = runs["a"], runs["b"]
+@pytest.fixture(scope="module")
+def obstacle_pair(tmp_path_factory) -> tuple[dict, dict, Path]:
+    """The same lockstep grasp with an obstacle twice, at once: both summaries and the
+    first one's run directory (the obstacle, recording and report tests use the first)."""
+    tmp_path = tmp_path_factory.mktemp("grasp_obstacle")
+    args = ("--mode", "lockstep", "--seed", "2",
+            *[item for override in OBSTACLE for item in ("--set", override)])  # fmt: skip
+    runs = grasps(tmp_path, {"obstacle": args, "again": args})
+    return runs["obstacle"], runs["again"], tmp_path / "obstacle"
+
+
+@pytest.fixture(scope="module")
+def obstacle_run(obstacle_pair) -> tuple[dict, Path]:
+    """One lockstep grasp with an obstacle (the summary and its run directory)."""
+    first, _, run_dir = obstacle_pair
+    return first, run_dir
+
+
+def test_lockstep_grasp_is_deterministic(obstacle_pair):
+    first, second, _ = obstacle_pair
     assert first["success"] and second["success"]
     assert first["final_state_sha256"] == second["final_state_sha256"]
     assert first["duration_s"] == second["duration_s"]
     assert_physical(first)
-
-
-@pytest.fixture(scope="module")
-def obstacle_run(tmp_path_factory) -> tuple[dict, Path]:
-    """One lockstep grasp with an obstacle (the summary and its run directory), shared by
-    the obstacle test and the recording and report tests below."""
-    tmp_path = tmp_path_factory.mktemp("grasp_obstacle")
-    args = [item for override in OBSTACLE for item in ("--set", override)]
-    summary = grasp(tmp_path, "obstacle", "--mode", "lockstep", "--seed", "2", *args)
-    return summary, tmp_path / "obstacle"
 
 
 def test_obstacle_is_felt_and_avoided(obstacle_run):

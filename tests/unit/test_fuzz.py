@@ -118,7 +118,7 @@ def valid(schema: m.Schema, buf: bytes) -> bool:
 def test_every_decoder_takes_exactly_the_valid_records_and_counts_the_rest():
     generated = [0]
 
-    @settings(FUZZ, max_examples=400)
+    @settings(FUZZ, max_examples=200)
     @given(
         schema=st.sampled_from(RECORD_SCHEMAS),
         seed=st.integers(0, 2**32 - 1),
@@ -135,7 +135,7 @@ def test_every_decoder_takes_exactly_the_valid_records_and_counts_the_rest():
         generated[0] += len(buffers)
 
     check()
-    assert generated[0] >= 60_000
+    assert generated[0] >= 30_000
 
 
 def test_an_eye_view_frame_is_taken_only_whole():
