@@ -2,8 +2,9 @@
 
 Inputs: TOOL_POSE and OBJECT_POSES (plant, every ``1 / scene_rate_hz``, stamped with
 ``sim_time_ns``; tick = sim_time_ns / timestep), HEAD_POSE (hmd, keyed by the tick its
-predicted yaw applies from), RUN_EVENT STARTED and the HMD's liveliness token. Outputs:
-HAND_INPUT (to the haptic device) and RUN_EVENT PHASE / TASK_DONE.
+predicted yaw applies from), RUN_EVENT STARTED and the liveliness tokens of the HMD and
+the haptic device. Outputs: HAND_INPUT (to the haptic device) and RUN_EVENT PHASE /
+TASK_DONE.
 
 The Zenoh callbacks only store samples in the loop's observation buffer and queue the
 tool-pose ticks; one run thread hands them to the loop in arrival order, so decisions
@@ -12,6 +13,7 @@ follow sim time only (see OperatorLoop for which decisions an arrival triggers).
 
 from __future__ import annotations
 
+import logging
 import queue
 import sys
 import threading
@@ -27,7 +29,10 @@ from teleop.bus.session import Publisher, subscribe, subscribe_events
 from teleop.core.clock import NS_PER_S
 from teleop.devices.operator import HandCommand, OperatorLoop, Scenario
 
+logger = logging.getLogger(__name__)
+
 HMD_SERVICE = "hmd"  # liveliness name of the HMD service
+DEVICE_SERVICE = "haptic"  # liveliness name of the operator's device
 
 _NEW_RUN = "new_run"  # queue item: the plant's STARTED event
 # How many pose-to-decision delays the summary's percentiles take (the newest ones).
@@ -67,6 +72,11 @@ class OperatorService(Service):
                 topics.alive(HMD_SERVICE), self._on_hmd_token, history=True
             )
         )
+        self.keep(
+            self.session.liveliness().declare_subscriber(
+                topics.alive(DEVICE_SERVICE), self._on_device_token, history=True
+            )
+        )
         self.announce()
 
     # -- callbacks (Zenoh threads): store and hand over, nothing else ----------------------
@@ -93,6 +103,14 @@ class OperatorService(Service):
     def _on_hmd_token(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.PUT:
             self.loop.hmd_seen()
+
+    def _on_device_token(self, sample: zenoh.Sample) -> None:
+        """The device's token: withdrawn while it is dead or restarting (the hand then
+        moves nothing; ScriptedOperator.device_gone), back once it is up again."""
+        gone = sample.kind == zenoh.SampleKind.DELETE
+        if gone != self.loop.operator.device_gone:
+            logger.warning("the haptic device %s", "is gone" if gone else "is back")
+        self.loop.operator.device_gone = gone
 
     # -- the run thread --------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:

@@ -655,6 +655,11 @@ class ScriptedOperator:
         # meanwhile (haptic.hand_input_stale_s), the hand starts over from there.
         self._hand_hold_ticks = round(haptic_cfg.hand_input_stale_s / timestep_s)
         self.hand_holds = 0  # gaps in the decisions that long (a late operator caught up)
+        # The haptic device, the operator's only way to move the tool, is gone (its
+        # liveliness token withdrawn: killed, restarting): nothing the hand does reaches
+        # the tool, so a still tool says nothing about reach (see device_gone).
+        self.device_gone = False
+        self.device_gone_decisions = 0
         # Expected-velocity history kept for the drift estimate (ticks).
         self._history_ticks = round(operator_cfg.reaction_delay_s / timestep_s) + 2 * (
             self._apply_lag_ticks + 1
@@ -923,19 +928,28 @@ class ScriptedOperator:
         ``reaction_delay_s`` earlier (None: nothing seen yet, the hand stays at rest)."""
         if self._last_tick is not None and tick - self._last_tick > self._hand_hold_ticks:
             self._after_hold(tick)
-        if observed is not None and not self.done:
+        gone = self.device_gone
+        if gone:
+            # As after a hold: the tool is not pushed, so no stall window and no drift
+            # learnt; the person waits for the device, the hand at rest, the grip held.
+            self.device_gone_decisions += 1
+            self._prev_seen = None
+            self._expected = []
+            self._stall = []
+        if observed is not None and not self.done and not gone:
             self._update_drift(observed)
             self._update_phase(tick, observed)
         v = np.zeros(3)
         goal = np.zeros(3)
         buttons = Button.NONE
         if observed is not None and not self.done and self.phase >= 0:
-            v = self._wanted_velocity(observed)
-            goal = limit_offset(
-                hand_offset_for_velocity(v, observed.view_yaw_rad, self.teleop),
-                self.operator_cfg.max_hand_offset_m,
-                self.haptic.workspace_half_m,
-            )
+            if not gone:
+                v = self._wanted_velocity(observed)
+                goal = limit_offset(
+                    hand_offset_for_velocity(v, observed.view_yaw_rad, self.teleop),
+                    self.operator_cfg.max_hand_offset_m,
+                    self.haptic.workspace_half_m,
+                )
             if self.scenario.phases[self.phase].gripper_closed:
                 buttons = Button.GRIPPER_CLOSE
         hand_m = self._move_hand(tick, goal)
@@ -1171,4 +1185,5 @@ class OperatorLoop:
             "withheld_inputs": self.withheld_inputs,
             "skipped_decisions": self.skipped_decisions,
             "hand_holds": op.hand_holds,
+            "device_gone_decisions": op.device_gone_decisions,
         }

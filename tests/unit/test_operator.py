@@ -280,6 +280,8 @@ class IntegratorWorld:
         max_s: float,
         kill_in: tuple[str, float, float] | None = None,
         restart: bool = True,
+        device_out: tuple[str, float, float] | None = None,
+        told: bool = True,
     ) -> ScriptedOperator:
         """Play until done or ``max_s``. ``kill_in`` = (phase name, s into it, outage s):
         the operator is killed that long into that phase and a new one (a restart, with
@@ -287,7 +289,9 @@ class IntegratorWorld:
         was only starved and decides again after the outage, from the newest look.
         Meanwhile no hand input comes: the hand holds its last one until it is
         ``haptic.hand_input_stale_s`` old, then centres the handle keeping its buttons
-        (the haptic device's rule)."""
+        (the haptic device's rule). ``device_out`` = (phase name, s into it, outage s): the
+        haptic device is gone that long (nothing the hand does moves the tool; the grip
+        holds); ``told``: the operator sees its token go (ScriptedOperator.device_gone)."""
         pending: dict[int, tuple[np.ndarray, Button]] = {}
         hand, buttons = np.zeros(3), Button.NONE
         held: np.ndarray | None = None
@@ -296,7 +300,21 @@ class IntegratorWorld:
         alive = True
         phase_began: dict[int, int] = {}
         back_tick = None
+        device_back = None  # the tick the device comes back, while it is out
+        device_done = device_out is None
         for tick in range(round(max_s / TIMESTEP_S)):
+            if not device_done and device_back is None:
+                assert device_out is not None
+                phase = self.operator.phase
+                phase_began.setdefault(phase, tick)
+                name, into_s, outage_s = device_out
+                if phase >= 0 and self.scenario.phases[phase].name == name:
+                    if tick - phase_began[phase] >= round(into_s / TIMESTEP_S):
+                        device_back = tick + round(outage_s / TIMESTEP_S)
+                        self.operator.device_gone = told
+            if device_back is not None and tick == device_back:
+                device_back, device_done = None, True
+                self.operator.device_gone = False
             if kill_in is not None and alive and back_tick is None:
                 phase = self.operator.phase
                 phase_began.setdefault(phase, tick)
@@ -327,6 +345,8 @@ class IntegratorWorld:
             elif tick - hand_from > stale_ticks:
                 hand = np.zeros(3)
             v = reference_tool_velocity(hand, self.yaw(tick), self.cfg.teleop)
+            if device_back is not None:
+                v = np.zeros(3)  # no device: the controller commands no motion
             closed = bool(buttons & Button.GRIPPER_CLOSE)
             if closed and held is None and np.linalg.norm(self.cube - self.tool) < GRASP_RADIUS_M:
                 held = self.cube - self.tool
@@ -615,6 +635,24 @@ def test_an_operator_starved_for_seconds_catches_up_and_the_task_succeeds(phase)
     assert operator.hand_holds == 1 and operator.resumed is None
     (drop,) = world.drops
     assert np.linalg.norm(drop[:2] - BIN_M[:2]) < 0.03
+
+
+@pytest.mark.parametrize("phase", ["descend", "lift", "carry"])
+def test_an_operator_waits_out_its_devices_restart_and_the_task_succeeds(phase):
+    """The haptic device is gone for 4 s (killed, restarting: the tool does not move
+    whatever the hand does). An operator that sees the device's token go waits, the grip
+    held, and goes on once it is back; one that does not took the still tool for out of
+    reach (stalled longer than its 3 s window) and gave up."""
+    scenario = Scenario.load(GRASP_FILE)
+    outage = (phase, 0.5, 4.0)
+    world = IntegratorWorld(scenario)
+    operator = world.run(scenario.max_task_s + 5.0, device_out=outage)
+    assert operator.done and operator.success, operator.failure
+    assert operator.device_gone_decisions > 0
+    (drop,) = world.drops
+    assert np.linalg.norm(drop[:2] - BIN_M[:2]) < 0.03
+    blind = IntegratorWorld(scenario).run(scenario.max_task_s + 5.0, device_out=outage, told=False)
+    assert not blind.success and "out of reach" in blind.failure
 
 
 def test_a_late_operator_loop_catches_up_by_skipping_not_by_a_burst():
