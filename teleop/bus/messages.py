@@ -49,7 +49,11 @@ MAX_IMAGE_SIDE_PX = 4096  # width and height of an EYE_VIEW image are at most th
 RGB_CHANNELS = 3  # EYE_VIEW pixels: 8-bit R, G, B
 
 # Declared per-field limits (validated on decode; a record outside them is dropped).
-JOINT_POSITION_LIMIT_RAD = 100.0
+# Joint positions: a continuous joint (the arms' shoulder_pan) turns once per lap of a
+# path around the base, about 0.29 rad/s on the paper's path: past 100 rad after six
+# minutes, when every receiver dropped every state and the stack stood braked. 1e6 rad
+# is 40 days of that, and still far from garbage (1e300, an uninitialised double).
+JOINT_POSITION_LIMIT_RAD = 1.0e6
 JOINT_VELOCITY_LIMIT_RAD_S = 100.0  # measured joint speeds (a collision may exceed the drives')
 # Joint velocity references: the widest drive range of the shipped arms (their velocity
 # actuators' ctrlrange, +-pi rad/s; tests/unit/test_plant_limits.py checks the models). The

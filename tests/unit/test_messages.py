@@ -159,7 +159,7 @@ def test_rejects_non_finite_in_every_float_field(schema: m.Schema, value: float)
 @pytest.mark.parametrize(
     ("schema", "name", "value"),
     [
-        (m.PLANT_STATE, "q_rad", 100.5),
+        (m.PLANT_STATE, "q_rad", 1.0e6 + 1.0),
         (m.PLANT_STATE, "qd_rad_s", -101.0),
         (m.JOINT_COMMAND, "qd_ref_rad_s", 1e3),
         (m.JOINT_COMMAND, "gripper_cmd", 1.01),
@@ -251,3 +251,11 @@ def test_protocol_doc_embeds_the_current_layout_table():
     assert text[begin:end].strip() == m.layout_table().strip(), (
         "docs/protocol.md is stale: paste `python -m teleop.bus.messages` between the markers"
     )
+
+
+def test_a_continuous_joint_many_turns_round_is_a_valid_state():
+    """The shoulder_pan joint has no limits: on the paper's path it turns once per lap
+    (about 0.29 rad/s), 100 rad after six minutes of `teleop up`; such a state is valid."""
+    rec = m.PLANT_STATE.new()
+    rec["q_rad"][0] = -0.29 * 3600.0  # an hour of laps
+    assert m.PLANT_STATE.decode(m.PLANT_STATE.encode(rec))["q_rad"][0] == rec["q_rad"][0]
