@@ -556,7 +556,11 @@ class PathMetrics:
         stall = clearance if clearance is not None else ClearanceConfig()
         self.stall_window_s = stall.stall_window_s
         self.stall_progress = stall.stall_progress
-        self.errors_m: list[float] = []
+        # The path error after settling, as running figures: a list of every cycle's grew
+        # 32 B per cycle (32 KB/s at 1 kHz) under a `teleop up` that runs for hours.
+        self.error_count = 0
+        self.error_sq_sum_m2 = 0.0
+        self.error_max_m = 0.0
         self.min_manipulability = float("inf")
         self.safety = MotionSafety(singularity_manipulability)
         self.stalled_s = 0.0
@@ -591,7 +595,10 @@ class PathMetrics:
         moved by commands (not held by the plant's brake)."""
         self.min_manipulability = min(self.min_manipulability, output.manipulability)
         if sim_time_s >= self.settle_s:
-            self.errors_m.append(output.path_error_m)
+            error_m = output.path_error_m
+            self.error_count += 1
+            self.error_sq_sum_m2 += error_m * error_m
+            self.error_max_m = max(self.error_max_m, error_m)
             if self._settled is None:
                 self._settled = (sim_time_s, output.path_arc_m)
         self._last = (sim_time_s, output.path_arc_m)
@@ -651,10 +658,9 @@ class PathMetrics:
             "path_error_max_m": None,
             "min_manipulability": self.min_manipulability,
         }
-        if self.errors_m:
-            errors = np.asarray(self.errors_m)
-            figures["path_error_rms_m"] = float(np.sqrt(np.mean(errors**2)))
-            figures["path_error_max_m"] = float(errors.max())
+        if self.error_count:
+            figures["path_error_rms_m"] = math.sqrt(self.error_sq_sum_m2 / self.error_count)
+            figures["path_error_max_m"] = self.error_max_m
             figures["min_manipulability"] = float(self.min_manipulability)
         return {
             **figures,
