@@ -707,8 +707,9 @@ class TeleopController:
         # Last of the changes that turn the command: the speed caps below scale it as a
         # whole, which keeps every close pair's approach within its cap.
         held = 0
-        if terms.clearance_caps:
-            held_qd, held = hold_clearance(np.array(qd_c), list(terms.clearance_caps))
+        caps = list(terms.clearance_caps)
+        if caps:
+            held_qd, held = hold_clearance(np.array(qd_c), caps)
             qd_c = held_qd.tolist()
         # The drives track with a small lag; when the tool moved faster than it was told
         # last cycle, command that much less so the MEASURED speed respects the cap.
@@ -728,10 +729,10 @@ class TeleopController:
 
         qd_ref = velocity_reference(self.control, terms.compensation, qd_c, self._previous_qd_c, dt)
         self._previous_qd_c = qd_c
-        if terms.clearance_caps:
+        if caps:
             # As in path following: the compensation adds the velocity loops' dynamics to
             # q'_c, and the reference the plant applies must keep the caps too.
-            qd_ref = hold_clearance(np.array(qd_ref), list(terms.clearance_caps))[0].tolist()
+            qd_ref = hold_clearance(np.array(qd_ref), caps)[0].tolist()
         return TeleopOutput(
             qd_ref_rad_s=np.array(_within_limits(qd_ref, self._speed_limits_rad_s)[0]),
             qd_c_rad_s=np.array(qd_c),

@@ -919,6 +919,11 @@ class ScriptedOperator:
         self.hand_holds += 1
         self._hand_m = np.zeros(3)
         self._last_tick = tick
+        self._forget_unpushed()
+
+    def _forget_unpushed(self) -> None:
+        """A stretch in which the hand did not push the tool: no drift to learn from it,
+        and the stall window starts over."""
         self._prev_seen = None
         self._expected = []
         self._stall = []
@@ -933,9 +938,7 @@ class ScriptedOperator:
             # As after a hold: the tool is not pushed, so no stall window and no drift
             # learnt; the person waits for the device, the hand at rest, the grip held.
             self.device_gone_decisions += 1
-            self._prev_seen = None
-            self._expected = []
-            self._stall = []
+            self._forget_unpushed()
         if observed is not None and not self.done and not gone:
             self._update_drift(observed)
             self._update_phase(tick, observed)

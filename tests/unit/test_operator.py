@@ -302,28 +302,32 @@ class IntegratorWorld:
         back_tick = None
         device_back = None  # the tick the device comes back, while it is out
         device_done = device_out is None
+
+        def outage_ends(spec: tuple[str, float, float], tick: int) -> int | None:
+            """The tick an outage ``spec`` = (phase name, s into it, outage s) that begins
+            at ``tick`` ends; None while it is not due."""
+            phase = self.operator.phase
+            phase_began.setdefault(phase, tick)
+            name, into_s, outage_s = spec
+            if phase < 0 or self.scenario.phases[phase].name != name:
+                return None
+            if tick - phase_began[phase] < round(into_s / TIMESTEP_S):
+                return None
+            return tick + round(outage_s / TIMESTEP_S)
+
         for tick in range(round(max_s / TIMESTEP_S)):
-            if not device_done and device_back is None:
-                assert device_out is not None
-                phase = self.operator.phase
-                phase_began.setdefault(phase, tick)
-                name, into_s, outage_s = device_out
-                if phase >= 0 and self.scenario.phases[phase].name == name:
-                    if tick - phase_began[phase] >= round(into_s / TIMESTEP_S):
-                        device_back = tick + round(outage_s / TIMESTEP_S)
-                        self.operator.device_gone = told
+            if device_out is not None and not device_done and device_back is None:
+                device_back = outage_ends(device_out, tick)
+                if device_back is not None:
+                    self.operator.device_gone = told
             if device_back is not None and tick == device_back:
                 device_back, device_done = None, True
                 self.operator.device_gone = False
             if kill_in is not None and alive and back_tick is None:
-                phase = self.operator.phase
-                phase_began.setdefault(phase, tick)
-                name, into_s, outage_s = kill_in
-                if phase >= 0 and self.scenario.phases[phase].name == name:
-                    if tick - phase_began[phase] >= round(into_s / TIMESTEP_S):
-                        alive = False
-                        pending.clear()  # what it sent before dying was lost with it
-                        back_tick = tick + round(outage_s / TIMESTEP_S)
+                back_tick = outage_ends(kill_in, tick)
+                if back_tick is not None:
+                    alive = False
+                    pending.clear()  # what it sent before dying was lost with it
             if not alive and tick == back_tick:
                 alive = True
                 if restart:
