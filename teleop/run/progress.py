@@ -109,12 +109,23 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
             f"stalled {_num(summary.get('stalled_s'), '.1f', ' s')}"
         )
         lines.append(_clearance_line(summary))
-    timing = f"  timing             realtime factor {_num(summary.get('realtime_factor'), '.3f')}"
-    if "overrun_fraction" in summary:  # a services run
-        timing += (
-            f", overruns {_num(summary.get('overrun_fraction'), '.2%')}, watchdog brakes "
-            f"{summary.get('stale_commands')}, dropped {summary.get('dropped_messages')}"
+    lockstep = mode == "lockstep"
+    if lockstep:  # not paced by the wall clock: its speed is the machine's, not a verdict
+        timing = (
+            f"  timing             lockstep (deterministic, not paced): "
+            f"{_num(summary.get('realtime_factor'), '.2f')} x real time"
         )
+    else:
+        timing = (
+            f"  timing             realtime factor {_num(summary.get('realtime_factor'), '.3f')}"
+        )
+    if "overrun_fraction" in summary:  # a services run
+        if not lockstep:
+            timing += (
+                f", overruns {_num(summary.get('overrun_fraction'), '.2%')}, watchdog brakes "
+                f"{summary.get('stale_commands')}"
+            )
+        timing += f", dropped {summary.get('dropped_messages')}"
     lines.append(timing)
     if summary.get("failure"):
         lines.append(f"  ABORTED            {summary['failure']}")
@@ -124,7 +135,8 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
             f"{resume['steps_lost']} steps lost, {_num(resume['wall_gap_s'], '.2f', ' s')} gap"
         )
     if "realtime_verdict" in summary:  # a services run judged itself
-        lines.append(f"  real time          {verdict}")
+        # A lockstep run keeps no real time: its verdict is only about missing data.
+        lines.append(f"  {'data' if lockstep else 'real time':18s} {verdict}")
     lines += [f"    - {problem}" for problem in summary.get("realtime_problems", [])]
     for fault in summary.get("faults") or []:
         lines.append(f"  fault              {fault_line(fault)}")

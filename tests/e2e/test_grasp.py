@@ -24,7 +24,7 @@ from teleop.viz.blueprint import view_specs
 from teleop.viz.report import write_report
 from teleop.viz.rrd import Recording
 from teleop.viz.scene3d import ENTITY_GHOSTS, SceneModel
-from tests.e2e.outcome import assert_ran
+from tests.e2e.outcome import assert_ran, needs_realtime_stack
 
 # Tolerance on the held weight the operator feels, as a fraction of m g.
 WEIGHT_TOLERANCE = 0.10
@@ -83,6 +83,7 @@ def assert_physical(summary: dict, speed_tolerance: float = SPEED_TOLERANCE_LOCK
     assert summary["unlinked_peers"] == {}  # every pair of services linked before the run
 
 
+@needs_realtime_stack
 def test_realtime_grasp_puts_the_cube_in_the_bin(tmp_path):
     summary = grasp(tmp_path, "rt", "--mode", "realtime", "--seed", "0")
     assert summary["success"] and summary["object_in_box"]

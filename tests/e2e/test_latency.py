@@ -24,6 +24,7 @@ from teleop.core.clock import NS_PER_S
 from teleop.core.config import load_config
 from teleop.core.rundir import HAPTIC_SAMPLES_FILE, HAPTIC_TRACE_FILE
 from teleop.run.idle_poll import NOT_POLLED, idle_cgroup_writable
+from tests.e2e.outcome import needs_realtime_stack
 from tests.unit.test_latency_report import assert_matches_reference
 
 # The stack run: 10 s measured after the 1 s warm-up.
@@ -66,6 +67,7 @@ def test_stamps_follow_the_loop_in_order(stack_run):
         assert (latency.hop_ns(loops, hop) >= 0).all(), hop.name
 
 
+@needs_realtime_stack
 def test_no_sample_lost_or_counted_twice_at_1khz(stack_run):
     services = stack_run.summary["services"]
     lost, reordered = latency.stream_counters(services)

@@ -20,7 +20,7 @@ import pytest
 
 from teleop.core.config import load_config
 from teleop.run.stack import free_loopback_port
-from tests.e2e.outcome import assert_ran
+from tests.e2e.outcome import assert_ran, needs_realtime_stack
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 CONFIG_LINE = "zenoh config:"  # the join instructions' line naming the client's config file
@@ -112,6 +112,7 @@ def test_outside_controller_follows_its_path_in_lockstep_deterministically(tmp_p
     assert first["final_state_sha256"] == second["final_state_sha256"]
 
 
+@needs_realtime_stack
 def test_outside_haptic_device_lets_the_operator_put_the_cube_in_the_bin(tmp_path):
     """A 1 kHz device loop beside the stack's SCHED_FIFO loops: run as the join
     instructions say (SCHED_FIFO; the CI runs as root), else its periods slip on 2 cores."""

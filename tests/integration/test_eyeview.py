@@ -34,11 +34,20 @@ def test_the_service_renders_the_newest_state_and_head_pose_and_survives_bad_inp
     view moves to the HMD's predicted pose once HEAD_POSE arrives.
 
     Ingress downsampling is off (``state_rate_hz = 0``): it would keep only the first of
-    three states sent back to back (at any rate: one TCP read may hold all three)."""
+    three states sent back to back (at any rate: one TCP read may hold all three).
+
+    Frames go over the socket (``bus.shm = false``): publisher and receiver are this one
+    test process, which under an ordinary user's locked-memory limit may already have
+    spent it on pools mapped by earlier tests, and a pool a receiver cannot map is
+    silently not received (shm/provider.py). As ``nobody``, after the e2e tests in one
+    pytest process, no frame came. Frames through shared memory, within the limit, are
+    test_unprivileged.py's and the stack tests'."""
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     config = load_config(
-        None, [f'bus.endpoint="{endpoint}"', "eyeview.rate_hz=50", "eyeview.state_rate_hz=0"]
-    )
+        None,
+        [f'bus.endpoint="{endpoint}"', "eyeview.rate_hz=50", "eyeview.state_rate_hz=0",
+         "bus.shm=false"],
+    )  # fmt: skip
     topics = Topics(config.robot.robot_id)
     holder: list[EyeViewService] = []
     stop, opened = threading.Event(), threading.Event()

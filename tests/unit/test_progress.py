@@ -66,3 +66,13 @@ def test_the_short_summary_shows_clearance_and_an_obstacle_only_when_there_is_on
             "stalled_s": 0.0, "min_clearance_m": 0.027, "arm_contacts": 0}  # fmt: skip
     text = "\n".join(human_summary(path, None))
     assert "path_progress 0.980, stalled 0.0 s" in text and "arm 27.0 mm" in text
+
+
+def test_a_lockstep_run_reports_its_speed_and_its_data_not_a_real_time_verdict():
+    summary = {"scenario": "grasp", "mode": "lockstep", "success": True,
+               "realtime_factor": 0.489, "overrun_fraction": 0.0, "stale_commands": 0,
+               "dropped_messages": 0, "realtime_verdict": "clean"}  # fmt: skip
+    text = "\n".join(human_summary(summary, None))
+    assert "lockstep (deterministic, not paced): 0.49 x real time, dropped 0" in text
+    assert "data               clean" in text
+    assert "real time" not in text.replace("x real time", "") and "watchdog" not in text
