@@ -23,7 +23,15 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from teleop.bus.messages import HAND_INPUT, HEAD_POSE, OBJECT_POSES, RUN_EVENT, TOOL_POSE, Event
+from teleop.bus.messages import (
+    HAND_INPUT,
+    HEAD_POSE,
+    OBJECT_POSES,
+    RUN_EVENT,
+    TOOL_POSE,
+    Event,
+    Flag,
+)
 from teleop.bus.service import STOP_POLL_S, Service, service_main
 from teleop.bus.session import Publisher, subscribe, subscribe_events
 from teleop.core.clock import NS_PER_S
@@ -85,7 +93,8 @@ class OperatorService(Service):
 
     def _on_tool(self, rec: np.ndarray, rx_ns: int) -> None:
         tick = self._tick_of(rec)
-        self.loop.buffer.add_tool(tick, rec["world_p_tool_m"])
+        braked = bool(int(rec["flags"]) & Flag.BRAKING)
+        self.loop.buffer.add_tool(tick, rec["world_p_tool_m"], braked)
         self._arrivals.put((tick, int(rec["t_source_ns"])))
 
     def _on_objects(self, rec: np.ndarray, rx_ns: int) -> None:

@@ -121,7 +121,7 @@ class Flag(enum.IntFlag):
     """Bits of the header's ``flags`` field."""
 
     NONE = 0
-    BRAKING = 1 << 0  # PLANT_STATE: the watchdog brakes: the drives hold the arm where it is
+    BRAKING = 1 << 0  # the watchdog brakes (PLANT_STATE), or braked since the last TOOL_POSE
     STALE = 1 << 1  # HAPTIC_STATE: the device is fading out a stale feedback force
 
 
@@ -808,7 +808,9 @@ EVENT_MEANINGS: Mapping[Event, tuple[str, str]] = {  # (sent by, meaning and val
 }  # fmt: skip
 FLAG_MEANINGS: Mapping[Flag, str] = {
     Flag.BRAKING: "PLANT_STATE: the command watchdog brakes; the drives hold the arm where "
-    "braking began (`qd_ref_applied_rad_s` carries the hold references)",
+    "braking began (`qd_ref_applied_rad_s` carries the hold references). TOOL_POSE: the "
+    "watchdog braked in a step since the previous TOOL_POSE (the tool was held, whatever "
+    "was commanded)",
     Flag.STALE: "HAPTIC_STATE: the newest feedback is older than `haptic.stale_feedback_s`; "
     "the device fades it out to zero over `haptic.fade_s`",
 }

@@ -58,7 +58,8 @@ over (or around) them (:mod:`teleop.devices.routing`), passed at cruising speed,
 phase's timeout lengthened by the detour. And it notices when the tool no longer comes
 closer though it pushes toward it (``STALL_WINDOW_S``): it gives up at once with an
 OUT_OF_REACH event and the reason (out of reach, or blocked by an obstacle) instead of
-pushing until the phase times out.
+pushing until the phase times out. A tool the plant held meanwhile (its watchdog braked:
+TOOL_POSE's BRAKING flag) was not pushed, and no progress is expected of it.
 """
 
 from __future__ import annotations
@@ -425,6 +426,9 @@ class Observation:
     tool_p_m: np.ndarray  # (3,)
     objects_p_m: Mapping[str, np.ndarray]  # name -> (3,)
     view_yaw_rad: float
+    # The plant's watchdog braked since the tool sample before this one (TOOL_POSE's
+    # BRAKING flag): the tool was held still, whatever the hand asked.
+    tool_braked: bool = False
 
 
 class ObservationBuffer:
@@ -472,9 +476,10 @@ class ObservationBuffer:
                 del values[:cut]
             self._cond.notify_all()
 
-    def add_tool(self, tick: int, world_p_m: np.ndarray) -> None:
-        """TOOL_POSE at ``tick``: the tool site position (world, m)."""
-        self._add("tool", tick, np.array(world_p_m, dtype=np.float64))
+    def add_tool(self, tick: int, world_p_m: np.ndarray, braked: bool = False) -> None:
+        """TOOL_POSE at ``tick``: the tool site position (world, m); ``braked``: the plant
+        braked since the previous one (its BRAKING flag)."""
+        self._add("tool", tick, (np.array(world_p_m, dtype=np.float64), braked))
 
     def add_objects(self, tick: int, world_p_m: np.ndarray) -> None:
         """OBJECT_POSES at ``tick``: rows in ``object_names`` order (world, m)."""
@@ -502,7 +507,8 @@ class ObservationBuffer:
         if tool is None or objects is None:
             return None
         yaw = self.default_yaw_rad if head is None else head[1]
-        return Observation(tool[0], tool[1], objects[1], yaw)
+        tool_p_m, braked = tool[1]
+        return Observation(tool[0], tool_p_m, objects[1], yaw, braked)
 
     def ready(self, tick: int, head_valid_from: int | None) -> bool:
         """True once :meth:`observe` ``(tick)`` can no longer change: the objects sample of
@@ -826,7 +832,10 @@ class ScriptedOperator:
         """Give up (True) when the tool has stopped short of its aim (see STALL_WINDOW_S):
         blocked by a volume it is up against, else out of reach. Announces OUT_OF_REACH."""
         distance_m = float(np.linalg.norm(self.aim_m - seen.tool_p_m))
-        self._stall.append((tick, distance_m, self._intended_speed_m_s(distance_m)))
+        # A tool the plant held (braked: lost real time, a silent peer) was not pushed:
+        # no progress is expected of it until the next look.
+        intended = 0.0 if seen.tool_braked else self._intended_speed_m_s(distance_m)
+        self._stall.append((tick, distance_m, intended))
         first_tick = self._stall[0][0]
         if self._elapsed_s(tick, first_tick) < STALL_WINDOW_S:
             return False

@@ -399,6 +399,9 @@ class PlantLoop:
         self._state["arm_body"] = -1
         self._state["distance_m"] = FAR_DISTANCE_M
         self._tool = TOOL_POSE.new()
+        # A step braked since the last TOOL_POSE: the next one carries Flag.BRAKING (the
+        # operator, who sees the tool at the scene rate, then knows it was held).
+        self._braked_since_scene = False
         self._objects = OBJECT_POSES.new()
         self._event = RUN_EVENT.new()
         self.figures = PlantFigures()
@@ -941,6 +944,7 @@ class PlantLoop:
         self.state_seq += 1
         rec["seq"] = self.state_seq
         rec["flags"] = Flag.BRAKING if self.plant.braking else Flag.NONE
+        self._braked_since_scene |= self.plant.braking
         rec["sim_time_ns"] = sample.sim_time_ns
         rec["step"] = sample.step
         rec["n_joints"] = n
@@ -1026,6 +1030,8 @@ class PlantLoop:
             rec["sim_time_ns"] = sim_time_ns
         self._tool["world_p_tool_m"] = position
         self._tool["world_q_tool_wxyz"] = quat
+        self._tool["flags"] = Flag.BRAKING if self._braked_since_scene else Flag.NONE
+        self._braked_since_scene = False
         self._put("tool_pose", self._tool)
         positions, quats = self.plant.object_poses()
         n = len(positions)

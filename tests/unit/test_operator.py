@@ -282,6 +282,8 @@ class IntegratorWorld:
         restart: bool = True,
         device_out: tuple[str, float, float] | None = None,
         told: bool = True,
+        braked: tuple[str, float, float] | None = None,
+        flagged: bool = True,
     ) -> ScriptedOperator:
         """Play until done or ``max_s``. ``kill_in`` = (phase name, s into it, outage s):
         the operator is killed that long into that phase and a new one (a restart, with
@@ -291,7 +293,10 @@ class IntegratorWorld:
         ``haptic.hand_input_stale_s`` old, then centres the handle keeping its buttons
         (the haptic device's rule). ``device_out`` = (phase name, s into it, outage s): the
         haptic device is gone that long (nothing the hand does moves the tool; the grip
-        holds); ``told``: the operator sees its token go (ScriptedOperator.device_gone)."""
+        holds); ``told``: the operator sees its token go (ScriptedOperator.device_gone).
+        ``braked`` = (phase name, s into it, brake s): the plant's watchdog holds the tool
+        that long (a silent controller, lost real time); ``flagged``: the tool samples
+        say so (TOOL_POSE's BRAKING flag)."""
         pending: dict[int, tuple[np.ndarray, Button]] = {}
         hand, buttons = np.zeros(3), Button.NONE
         held: np.ndarray | None = None
@@ -302,6 +307,8 @@ class IntegratorWorld:
         back_tick = None
         device_back = None  # the tick the device comes back, while it is out
         device_done = device_out is None
+        brake_ends = None  # the tick the plant stops braking, while it brakes
+        brake_done = braked is None
 
         def outage_ends(spec: tuple[str, float, float], tick: int) -> int | None:
             """The tick an outage ``spec`` = (phase name, s into it, outage s) that begins
@@ -323,6 +330,10 @@ class IntegratorWorld:
             if device_back is not None and tick == device_back:
                 device_back, device_done = None, True
                 self.operator.device_gone = False
+            if braked is not None and not brake_done and brake_ends is None:
+                brake_ends = outage_ends(braked, tick)
+            if brake_ends is not None and tick == brake_ends:
+                brake_ends, brake_done = None, True
             if kill_in is not None and alive and back_tick is None:
                 back_tick = outage_ends(kill_in, tick)
                 if back_tick is not None:
@@ -334,7 +345,7 @@ class IntegratorWorld:
                     self.operator, self.buffer = self.new_operator(), self.new_buffer()
                     self.operator.joining = True
             if tick % self.period == 0 and (alive or not restart):  # a starved one sees
-                self.buffer.add_tool(tick, self.tool)
+                self.buffer.add_tool(tick, self.tool, flagged and brake_ends is not None)
                 self.buffer.add_objects(tick, np.array([self.cube, BIN_M]))
                 self.buffer.add_head(tick, self.yaw(tick))
             if alive and tick % self.period == 0:
@@ -351,6 +362,8 @@ class IntegratorWorld:
             v = reference_tool_velocity(hand, self.yaw(tick), self.cfg.teleop)
             if device_back is not None:
                 v = np.zeros(3)  # no device: the controller commands no motion
+            if brake_ends is not None:
+                v = np.zeros(3)  # the plant holds the arm
             closed = bool(buttons & Button.GRIPPER_CLOSE)
             if closed and held is None and np.linalg.norm(self.cube - self.tool) < GRASP_RADIUS_M:
                 held = self.cube - self.tool
@@ -656,6 +669,20 @@ def test_an_operator_waits_out_its_devices_restart_and_the_task_succeeds(phase):
     (drop,) = world.drops
     assert np.linalg.norm(drop[:2] - BIN_M[:2]) < 0.03
     blind = IntegratorWorld(scenario).run(scenario.max_task_s + 5.0, device_out=outage, told=False)
+    assert not blind.success and "out of reach" in blind.failure
+
+
+@pytest.mark.parametrize("phase", ["approach", "descend", "carry"])
+def test_a_tool_the_plant_holds_is_no_target_out_of_reach(phase):
+    """The plant's watchdog holds the tool 4 s (longer than the 3 s stall window): an
+    operator that sees the tool samples' BRAKING flag expects no progress of a held tool
+    and goes on once it moves; one that does not see it takes the still tool for out
+    of reach and gives up."""
+    scenario = Scenario.load(GRASP_FILE)
+    brake = (phase, 0.5, 4.0)
+    operator = IntegratorWorld(scenario).run(scenario.max_task_s + 5.0, braked=brake)
+    assert operator.done and operator.success, operator.failure
+    blind = IntegratorWorld(scenario).run(scenario.max_task_s + 5.0, braked=brake, flagged=False)
     assert not blind.success and "out of reach" in blind.failure
 
 

@@ -137,6 +137,25 @@ def test_plant_tick_pacing_brakes_on_a_stale_command_and_resumes():
     assert (summary["stale_commands"], summary["commands_applied"]) == (1, 2)
 
 
+def test_a_tool_pose_says_whether_the_plant_braked_since_the_one_before():
+    """TOOL_POSE comes at the scene rate; its BRAKING flag covers every step since the
+    previous one, so an operator watching the tool knows it was held."""
+    loop, out, clock = make_loop('run.mode="realtime"')
+    loop.begin_run(None)
+    loop.publish_initial_state()
+    every = loop.scene_every_steps
+    for _ in range(every):  # no command yet: every step brakes
+        clock.advance(PERIOD_NS)
+        loop.tick()
+    assert out.records["tool_pose"][-1]["flags"] == Flag.BRAKING
+    for seq in range(1, 2 * every + 1):  # a fresh command every step: none brakes
+        loop.on_command(command(seq, state_seq=loop.state_seq, now_ns=clock.now_ns()), 0)
+        clock.advance(PERIOD_NS)
+        loop.tick()
+    assert out.records["tool_pose"][-1]["flags"] == Flag.NONE
+    assert out.records["plant_state"][-1]["flags"] == Flag.NONE
+
+
 def test_apply_on_arrival_steps_once_per_device_period_and_never_runs_ahead():
     """Commands step at once; a late one merges, a gap is filled, sim time = device time."""
     loop, out, clock = make_loop('run.scenario="grasp"', 'run.mode="realtime"')
