@@ -40,6 +40,7 @@ from teleop.bus.session import (
     wait_alive,
 )
 from teleop.bus.topics import Topics
+from teleop.core.clock import NS_PER_S
 from teleop.core.config import Config, ConfigError, ModelError, load_config
 from teleop.core.rundir import incarnation_path, incarnation_paths, summary_path
 
@@ -102,6 +103,9 @@ class Service:
         # the GIL the service's own threads need.
         self.running_summary_cpu_max_ms = 0.0
         self.unlinked_peers: list[str] = []  # peers never seen (become_ready gave up)
+        # Peers become_ready gave up on that linked after all: name -> seconds after the
+        # start of the wait (on a starved machine start-up can outlast PEER_LINK_WAIT_S).
+        self.peers_linked_late: dict[str, float] = {}
         # Realtime privileges asked for and whether the kernel granted them (service_main
         # fills it in): {"sched_fifo": ..., "cpu_pinning": ...}, each "granted ...",
         # "refused: <why>" or "not requested".
@@ -140,7 +144,8 @@ class Service:
                 for (kind, reason), count in sorted(self.drops.counts().items())
             },
             "cpu_s": time.process_time(),
-            "unlinked_peers": self.unlinked_peers,
+            "unlinked_peers": list(self.unlinked_peers),
+            "peers_linked_late": dict(self.peers_linked_late),
             "privileges": self.privileges,
             "running_summaries": self.running_summaries,
             "running_summary_cpu_max_ms": round(self.running_summary_cpu_max_ms, 3),
@@ -189,6 +194,7 @@ class Service:
         within a second: a link made late would miss all of it).
         """
         assert self.session is not None
+        started_ns = time.monotonic_ns()
         missing = self._wait_tokens(stop, self.options.peers, ready=False, limit_s=PEER_LINK_WAIT_S)
         if missing and stop.is_set():
             return False
@@ -196,12 +202,32 @@ class Service:
             self.unlinked_peers = list(missing)
             logger.error(
                 "no link to %s after %g s: going on without (what this service sends "
-                "them is lost; see the summary's unlinked_peers)",
+                "them is lost until they link; see the summary's unlinked_peers)",
                 ", ".join(missing),
                 PEER_LINK_WAIT_S,
             )
+            self.keep(self._watch_late_links(missing, started_ns))
         self.keep(declare_alive(self.session, self.topics, self.name, ready=True))
         return True
+
+    def _watch_late_links(self, missing: tuple[str, ...], started_ns: int) -> Any:
+        """A liveliness subscriber that moves each of ``missing`` from ``unlinked_peers``
+        to ``peers_linked_late`` when its token comes after all (over this session's own
+        link to it: from then on what this service sends reaches it)."""
+        assert self.session is not None
+
+        def on_token(sample: zenoh.Sample) -> None:
+            name = self.topics.service_of(str(sample.key_expr))
+            if sample.kind != zenoh.SampleKind.PUT or name not in self.unlinked_peers:
+                return
+            late_s = (time.monotonic_ns() - started_ns) / NS_PER_S
+            self.unlinked_peers.remove(name)
+            self.peers_linked_late[name] = round(late_s, 3)
+            logger.warning("linked to %s after all, %.1f s after the wait began", name, late_s)
+
+        return self.session.liveliness().declare_subscriber(
+            self.topics.alive_all, on_token, history=True
+        )
 
     def wait_for_peers(self, stop: threading.Event) -> bool:
         """Wait (event driven) until ``options.await_services`` are ready; False if
