@@ -45,6 +45,9 @@ DESIRED_STYLE = {"color": "tab:red", "linestyle": "--", "linewidth": 1.4}
 ACTUAL_STYLE = {"color": "tab:blue", "linewidth": 1.0}
 AXIS_COLORS = {"x": "tab:red", "y": "tab:green", "z": "tab:blue"}
 FORCE_COLORS = {name: tuple(c / 255 for c in rgb) for name, rgb in r.FORCE_ARROW_COLORS.items()}
+# The workspace wall's force is the device's own (device frame, no world arrow): a colour
+# of its own here, apart from the arm's limits' grey.
+FORCE_COLORS["workspace"] = (0.15, 0.65, 0.75)
 LATENCY_PERCENTILES = (50.0, 99.0)
 FIG7_MAX_POSES = 8  # ghost poses drawn in the stroboscopic figure (more would clutter it)
 # A ghost pose is drawn only if its tool tip is this far from every pose drawn before
@@ -199,7 +202,8 @@ def _fig_forces(sim: Mapping[str, rrd.Series], report: Report, t0: float) -> Non
     ax.set_ylabel("|F| (N)")
     ax.set_title("Force feedback: components and the force rendered on the device")
     ax.grid(True, alpha=0.3)
-    ax.legend(loc="upper right", fontsize=8)
+    # Beside the panel: inside it the legend covers the held weight's level.
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     _save(fig, report.out_dir / "fig_feedback_forces.png", report)
 
 
