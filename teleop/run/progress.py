@@ -146,6 +146,9 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
         lines += [f"    - {line}" for line in refused]
     if summary.get("rrd"):
         lines.append(f"  recording          {summary['rrd']}")
+    viewer = (summary.get("services") or {}).get("recorder", {}).get("viewer", "")
+    if viewer.startswith("not spawned"):  # --spawn asked for one
+        lines.append(f"  live viewer        {viewer}: open the recording (teleop view)")
     if summary.get("run_dir"):
         lines.append(f"  logs               {summary['run_dir']}/logs")
     if summary_path:

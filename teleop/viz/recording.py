@@ -41,6 +41,7 @@ import json
 import logging
 import math
 import os
+import socket
 import threading
 import time
 import uuid
@@ -132,6 +133,8 @@ from teleop.viz.scene3d import SceneModel, ghost_entity, ghost_rgba
 logger = logging.getLogger(__name__)
 
 # --- Tuning -------------------------------------------------------------------------------
+# The port a spawned native viewer listens on (Rerun's default, what rr.GrpcSink() reaches).
+VIEWER_PORT = 9876
 # Per-stream buffer bound (records): 20 s of a 1 kHz stream, about 6 MB of PLANT_STATE.
 # A flush that falls further behind drops the oldest records and counts them.
 BUFFER_CAPACITY_RECORDS = 20_000
@@ -421,6 +424,25 @@ class EyeViewFrames:
         return out
 
 
+VIEWER_SPAWNED = "spawned"
+VIEWER_NOT_REQUESTED = "not requested"
+
+
+def no_display_reason(environ: Mapping[str, str]) -> str | None:
+    """Why a native window cannot open in this environment (None: it may): no X11
+    display and no Wayland one."""
+    if any(environ.get(name) for name in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET")):
+        return None
+    return "no display (DISPLAY and WAYLAND_DISPLAY unset)"
+
+
+def _listening(port: int) -> bool:
+    """Whether something accepts TCP connections on loopback ``port``."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.settimeout(1.0)
+        return probe.connect_ex(("127.0.0.1", port)) == 0
+
+
 class RecordingWriter:
     """Every stream of a robot, buffered as it arrives and logged to a Rerun recording.
 
@@ -467,6 +489,8 @@ class RecordingWriter:
         self._joint_names: Sequence[str] = config.robot.arm_joints[:MAX_JOINTS]
         self._object_names: Sequence[str] = config.robot.object_bodies[:MAX_OBJECTS]
         self._rec: rr.RecordingStream | None = None
+        # The live viewer (recorder.spawn): VIEWER_SPAWNED, or why none was.
+        self.viewer = VIEWER_NOT_REQUESTED
         self._logged = dict.fromkeys(STREAM_SCHEMAS, 0)
         self._flushes = 0
         self._flush_wall_s_max = 0.0
@@ -512,6 +536,27 @@ class RecordingWriter:
         self._lines_lock = threading.Lock()
 
     # -- lifecycle ---------------------------------------------------------------------
+    def _spawn_viewer(self, rec: rr.RecordingStream) -> str:
+        """Start the native viewer beside the file; VIEWER_SPAWNED, or why not.
+
+        A recording that also streams to a viewer that never came up (no display: it
+        exits at once) stalls on that sink, and the file got a tenth of the run. So
+        without a display no viewer is started, and one that does not listen after
+        Rerun's own start-up wait gets no stream: the file alone has the run."""
+        reason = no_display_reason(os.environ)
+        if reason is None:
+            rec.spawn(port=VIEWER_PORT, connect=False)
+            if not _listening(VIEWER_PORT):
+                reason = f"the spawned viewer does not listen on port {VIEWER_PORT}"
+        if reason is None:
+            return VIEWER_SPAWNED
+        logger.warning(
+            "recorder.spawn: %s: no live viewer; the whole run is in %s (teleop view)",
+            reason,
+            self.rrd_path,
+        )
+        return f"not spawned: {reason}"
+
     def open(self) -> None:
         """Open the recording: the file (and viewer), the blueprint, the static scene."""
         self._rec = self._open_recording()
@@ -527,8 +572,9 @@ class RecordingWriter:
         # complete recording (rerun.chunk.RrdReader and the viewer read it in order).
         sinks: list[Any] = [rr.FileSink(self.rrd_path, write_footer=False)]
         if self.config.recorder.spawn:
-            rec.spawn(connect=False)
-            sinks.append(rr.GrpcSink())
+            self.viewer = self._spawn_viewer(rec)
+            if self.viewer == VIEWER_SPAWNED:
+                sinks.append(rr.GrpcSink())
         if self.config.recorder.grpc_url:
             sinks.append(rr.GrpcSink(self.config.recorder.grpc_url))
         rec.set_sinks(*sinks)
@@ -1126,6 +1172,7 @@ class RecordingWriter:
             "overflow_drops": overflow,
             "decode_drops": self.drops.total,
             "rerun_errors": self._rerun_errors,
+            "viewer": self.viewer,
             "flushes": self._flushes,
             "flush_wall_s_max": self._flush_wall_s_max,
             "flush_wall_s_total": self._flush_wall_s_total,

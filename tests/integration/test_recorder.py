@@ -93,7 +93,7 @@ def free_endpoint() -> str:
     return f"tcp/127.0.0.1:{port}"
 
 
-def make_config(rrd_path: Path | str, endpoint: str) -> Config:
+def make_config(rrd_path: Path | str, endpoint: str, *extra: str) -> Config:
     return load_config(
         None,
         (
@@ -106,6 +106,7 @@ def make_config(rrd_path: Path | str, endpoint: str) -> Config:
             f'recorder.rrd_path="{rrd_path}"',
             f"recorder.flush_period_s={FLUSH_PERIOD_S}",
             f"recorder.rate_window_s={RATE_WINDOW_S}",
+            *extra,
         ),
     )
 
@@ -615,3 +616,28 @@ def test_a_restarted_recorder_writes_the_next_segment_and_the_reader_joins_them(
     (tmp_path / RECORDER_SEGMENTS_FILE).unlink()
     assert r.RecorderService(config, options).rrd_path == paths[0]
     assert not paths[1].exists()
+
+
+def test_no_display_reason_reads_the_x11_and_wayland_variables():
+    assert recording.no_display_reason({}) is not None
+    assert recording.no_display_reason({"DISPLAY": ""}) is not None
+    assert recording.no_display_reason({"DISPLAY": ":0"}) is None
+    assert recording.no_display_reason({"WAYLAND_DISPLAY": "wayland-0"}) is None
+
+
+def test_spawn_without_a_display_records_the_whole_run_to_the_file(tmp_path, monkeypatch):
+    """recorder.spawn on a machine without a display: no viewer is started (it could not
+    open a window, and a sink to it stalled the recording: a tenth of the run reached
+    the file), the summary says why, and the file has every record."""
+    for name in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"):
+        monkeypatch.delenv(name, raising=False)
+    config = make_config(tmp_path / "spawn.rrd", free_endpoint(), "recorder.spawn=true")
+    writer = recording.RecordingWriter(config, tmp_path / "spawn.rrd", m.DropCounter())
+    writer.open()
+    for i in range(50):
+        writer.buffers["plant_state"](build("plant_state", i), 0)
+    writer.close()
+    assert writer.stats()["viewer"].startswith("not spawned: no display")
+    rec = Recording(tmp_path / "spawn.rrd")
+    q = rec.scalars(ent.TIMELINE_SIM)[ent.joint_entity(ent.ENTITY_JOINT_Q, JOINTS[0])]
+    assert len(q.t_ns) == 50

@@ -76,3 +76,11 @@ def test_a_lockstep_run_reports_its_speed_and_its_data_not_a_real_time_verdict()
     assert "lockstep (deterministic, not paced): 0.49 x real time, dropped 0" in text
     assert "data               clean" in text
     assert "real time" not in text.replace("x real time", "") and "watchdog" not in text
+
+
+def test_a_viewer_that_could_not_start_is_said_and_the_recording_named():
+    summary = {"scenario": "grasp", "mode": "lockstep", "success": True, "rrd": "/r/x.rrd",
+               "services": {"recorder": {"viewer": "not spawned: no display"}}}  # fmt: skip
+    text = "\n".join(human_summary(summary, None))
+    assert "live viewer        not spawned: no display: open the recording" in text
+    assert "live viewer" not in "\n".join(human_summary({**summary, "services": {}}, None))
