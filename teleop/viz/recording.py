@@ -41,7 +41,6 @@ import json
 import logging
 import math
 import os
-import socket
 import threading
 import time
 import uuid
@@ -129,12 +128,15 @@ from teleop.viz.entities import (
     rate_entity,
 )
 from teleop.viz.scene3d import SceneModel, ghost_entity, ghost_rgba
+from teleop.viz.viewer import grpc_url, listening
 
 logger = logging.getLogger(__name__)
 
 # --- Tuning -------------------------------------------------------------------------------
-# The port a spawned native viewer listens on (Rerun's default, what rr.GrpcSink() reaches).
+# The port a spawned native viewer listens on (Rerun's default), and how long one attempt
+# to connect to it may take (s; the spawn has already waited for the viewer to start).
 VIEWER_PORT = 9876
+VIEWER_PROBE_S = 1.0
 # Per-stream buffer bound (records): 20 s of a 1 kHz stream, about 6 MB of PLANT_STATE.
 # A flush that falls further behind drops the oldest records and counts them.
 BUFFER_CAPACITY_RECORDS = 20_000
@@ -436,13 +438,6 @@ def no_display_reason(environ: Mapping[str, str]) -> str | None:
     return "no display (DISPLAY and WAYLAND_DISPLAY unset)"
 
 
-def _listening(port: int) -> bool:
-    """Whether something accepts TCP connections on loopback ``port``."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-        probe.settimeout(1.0)
-        return probe.connect_ex(("127.0.0.1", port)) == 0
-
-
 class RecordingWriter:
     """Every stream of a robot, buffered as it arrives and logged to a Rerun recording.
 
@@ -546,7 +541,7 @@ class RecordingWriter:
         reason = no_display_reason(os.environ)
         if reason is None:
             rec.spawn(port=VIEWER_PORT, connect=False)
-            if not _listening(VIEWER_PORT):
+            if not listening(VIEWER_PORT, VIEWER_PROBE_S):
                 reason = f"the spawned viewer does not listen on port {VIEWER_PORT}"
         if reason is None:
             return VIEWER_SPAWNED
@@ -574,7 +569,7 @@ class RecordingWriter:
         if self.config.recorder.spawn:
             self.viewer = self._spawn_viewer(rec)
             if self.viewer == VIEWER_SPAWNED:
-                sinks.append(rr.GrpcSink())
+                sinks.append(rr.GrpcSink(grpc_url(VIEWER_PORT)))
         if self.config.recorder.grpc_url:
             sinks.append(rr.GrpcSink(self.config.recorder.grpc_url))
         rec.set_sinks(*sinks)

@@ -113,16 +113,24 @@ def _signal_group(pid: int, signum: signal.Signals) -> None:
         os.killpg(pid, signum)
 
 
+def listening(port: int, timeout_s: float) -> bool:
+    """Whether something accepts TCP connections on loopback ``port`` (one attempt,
+    ``timeout_s`` at most)."""
+    try:
+        with socket.create_connection((LOOPBACK, port), timeout=timeout_s):
+            return True
+    except OSError:
+        return False
+
+
 def _wait_listening(process: subprocess.Popen[bytes], port: int, timeout_s: float) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if process.poll() is not None:
             raise ViewerError(f"the web viewer exited with code {process.returncode}")
-        try:
-            with socket.create_connection((LOOPBACK, port), timeout=SERVE_POLL_S):
-                return
-        except OSError:
-            time.sleep(SERVE_POLL_S)
+        if listening(port, SERVE_POLL_S):
+            return
+        time.sleep(SERVE_POLL_S)
     raise ViewerError(f"the web viewer did not listen on port {port} within {timeout_s:g} s")
 
 
