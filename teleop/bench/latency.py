@@ -45,11 +45,11 @@ from teleop.bus.session import close_session, open_session, wait_alive
 from teleop.bus.topics import Topics
 from teleop.core.clock import NS_PER_S, NS_PER_US
 from teleop.core.config import Config, EyeViewConfig, load_config
+from teleop.core.net import free_loopback_port
 from teleop.core.rundir import HAPTIC_SAMPLES_FILE, HAPTIC_TRACE_FILE, SHED_FILE_SUFFIX
 from teleop.run.stack import (
     ALIVE_TIMEOUT_S,
     SERVICE_ENVIRONMENT,
-    free_loopback_port,
     idle_poll_cpus,
     idle_poll_programs,
     peer_mesh,

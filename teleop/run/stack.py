@@ -54,6 +54,7 @@ from teleop.bus.session import (
 from teleop.bus.topics import Topics
 from teleop.control.kinematics import build_arm_model, tool_jacobian
 from teleop.core.config import BusConfig, Config, load_config
+from teleop.core.net import free_loopback_port
 from teleop.core.rundir import (
     AUTH_DIR,
     LOG_DIR,
@@ -135,19 +136,6 @@ def scenario_services(config: Config) -> tuple[str, ...]:
 
 class RunError(RuntimeError):
     """A services run did not complete; the message says which service and why."""
-
-
-def free_loopback_port() -> int:
-    """A TCP port on 127.0.0.1 that is free now (the OS picks it).
-
-    The port stays unbound until the service given it listens there, seconds later, while
-    the stack's peers open connections. Those cannot take it: Linux gives bind() to port
-    0 odd ports and connect() even ones first (checked on this machine, kernel 6.18: 50
-    of 50 each way), so only another bind() to port 0 could, with odds of about one in
-    14000 per bind."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def loopback_endpoint(tls: bool) -> str:

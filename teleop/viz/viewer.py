@@ -23,9 +23,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import quote
 
+from teleop.core.net import LOOPBACK, free_loopback_port
 from teleop.core.rundir import segment_paths
 
-LOOPBACK = "127.0.0.1"
 # How long to wait for the web viewer's HTTP port to accept connections (s) ...
 SERVE_TIMEOUT_S = 30.0
 # ... polling it this often (s).
@@ -49,13 +49,6 @@ def rerun_executable() -> str:
     if found is None:
         raise ViewerError("no `rerun` executable: install rerun-sdk in this environment")
     return found
-
-
-def free_port() -> int:
-    """A loopback TCP port the OS just reported free."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((LOOPBACK, 0))
-        return int(s.getsockname()[1])
 
 
 def grpc_url(port: int) -> str:
@@ -147,8 +140,8 @@ def serve_web(
     """
     if rrd_path is not None and not rrd_path.is_file():
         raise ViewerError(f"no recording {rrd_path}")
-    web_port = web_port or free_port()
-    grpc_port = grpc_port or free_port()
+    web_port = web_port or free_loopback_port()
+    grpc_port = grpc_port or free_loopback_port()
     args = [
         rerun_executable(),
         "--serve-web",

@@ -1,14 +1,19 @@
 """Benchmark: what the clearance costs path following, in process, in the same run.
 
 Three variants of the in-process loop (plant + path-following controller, the default
-path), alternating so machine noise hits them alike:
+path), and the plant alone as the host's floor, alternating so machine noise hits them
+alike:
 
+- ``floor``: the plant stepping on zero commands, no controller: what one simulated
+  millisecond costs this host before any control (the speed of the machine, for
+  comparing absolute figures between hosts);
 - ``none``: the controller without a clearance model (the law before clearance);
 - ``measure``: clearance measured every cycle, no avoidance (``clearance.avoid=false``);
 - ``avoid``: measured and kept (the default).
 
 Reports per variant the median CPU time per step and realtime factor (process CPU time,
-so other load on the machine does not count), and the ratios to ``none``.
+so other load on the machine does not count), and the ratios to ``none`` and to the
+floor.
 
     .venv/bin/python tests/benchmarks/clearance_cost.py --duration 20 --repeat 3
 """
@@ -21,13 +26,15 @@ import statistics
 import time
 from pathlib import Path
 
+import numpy as np
+
 from teleop.control.clearance import ClearanceModel
 from teleop.control.kinematics import build_arm_model
 from teleop.control.path import PathFollowingController
 from teleop.core.config import load_config
 from teleop.sim.plant import Plant, initial_configuration
 
-VARIANTS = ("none", "measure", "avoid")
+VARIANTS = ("floor", "none", "measure", "avoid")
 
 
 def run(variant: str, duration_s: float) -> float:
@@ -38,6 +45,14 @@ def run(variant: str, duration_s: float) -> float:
     config = load_config(None, overrides)
     plant = Plant(config)
     plant.reset(initial_configuration(config))
+    steps = round(duration_s / config.plant.timestep_s)
+    if variant == "floor":
+        zero_rad_s = np.zeros(len(config.robot.arm_joints))
+        start = time.process_time()
+        for _ in range(steps):
+            plant.sample()
+            plant.step(zero_rad_s, gripper_cmd=1.0)
+        return (time.process_time() - start) / steps
     arm = build_arm_model(config.robot)
     clearance = None if variant == "none" else ClearanceModel(config, arm)
     controller = PathFollowingController(
@@ -47,7 +62,6 @@ def run(variant: str, duration_s: float) -> float:
         config.plant.timestep_s,
         clearance=clearance,
     )
-    steps = round(duration_s / config.plant.timestep_s)
     start = time.process_time()
     for _ in range(steps):
         sample = plant.sample()
@@ -73,6 +87,7 @@ def main() -> int:
             "cpu_us_per_step": medians[variant] * 1e6,
             "cpu_realtime_factor": timestep_s / medians[variant],
             "ratio_to_none": medians[variant] / medians["none"],
+            "ratio_to_floor": medians[variant] / medians["floor"],
         }
         for variant in VARIANTS
     }
@@ -80,7 +95,8 @@ def main() -> int:
         print(
             f"{variant:8s} {figures['cpu_us_per_step']:7.1f} us/step  "
             f"{figures['cpu_realtime_factor']:5.2f} x real time  "
-            f"{figures['ratio_to_none']:4.2f} x none"
+            f"{figures['ratio_to_none']:4.2f} x none  "
+            f"{figures['ratio_to_floor']:4.2f} x floor"
         )
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps({"duration_s": args.duration, **report}, indent=2))

@@ -42,7 +42,7 @@ from teleop.bus.access import new_zid
 from teleop.bus.session import Publisher, close_session, open_session, subscribe
 from teleop.bus.topics import Topics
 from teleop.core.config import load_config
-from teleop.run.stack import free_loopback_port
+from teleop.core.net import free_loopback_port
 
 U64_MAX = 2**64 - 1
 START_TIMEOUT_S = 120.0

@@ -44,7 +44,7 @@ from teleop.bus.messages import FORCE_FEEDBACK, HAPTIC_STATE, JOINT_COMMAND, PLA
 from teleop.bus.service import Service, ServiceOptions
 from teleop.bus.session import deliver
 from teleop.core.config import Config, load_config
-from teleop.run.stack import free_loopback_port
+from teleop.core.net import free_loopback_port
 
 # The loop's stages this replay covers: the latency report's compute and wait hops.
 STAGES = tuple(hop for hop in HOPS if hop.kind in ("compute", "wait"))

@@ -19,7 +19,7 @@ from typing import IO
 import pytest
 
 from teleop.core.config import load_config
-from teleop.run.stack import free_loopback_port
+from teleop.core.net import free_loopback_port
 from tests.e2e.outcome import assert_ran, needs_realtime_stack
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"

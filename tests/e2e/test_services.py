@@ -27,8 +27,9 @@ from teleop.bus.session import (
 )
 from teleop.bus.topics import Topics
 from teleop.core.config import load_config
+from teleop.core.net import free_loopback_port
 from teleop.run.experiments import run_path_following_inprocess
-from teleop.run.stack import free_loopback_port, service_programs
+from teleop.run.stack import service_programs
 from teleop.run.supervise import Stack
 from teleop.viz import entities as ent
 from teleop.viz.rrd import Recording

@@ -7,7 +7,7 @@ import threading
 
 import numpy as np
 
-from teleop.run.stack import free_loopback_port
+from teleop.core.net import free_loopback_port
 
 TIMEOUT_S = 10.0  # generous bound on any single wait; passing runs take well under 1 s
 

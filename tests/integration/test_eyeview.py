@@ -23,7 +23,8 @@ from teleop.bus.session import (
 )
 from teleop.bus.topics import Topics
 from teleop.core.config import load_config
-from teleop.run.stack import EYEVIEW, free_loopback_port
+from teleop.core.net import free_loopback_port
+from teleop.run.stack import EYEVIEW
 
 TIMEOUT_S = 30.0  # bound on one wait on the bus; passing runs take well under a second
 

@@ -32,7 +32,7 @@ from teleop.bus.messages import (
 from teleop.bus.session import Publisher, close_session, open_session, subscribe, wait_alive
 from teleop.bus.topics import Topics
 from teleop.core.config import REPO_ROOT, Config, load_config
-from teleop.run.stack import free_loopback_port
+from teleop.core.net import free_loopback_port
 
 NS_PER_MS = 1_000_000
 NS_PER_S = 1_000_000_000

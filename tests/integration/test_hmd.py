@@ -18,9 +18,9 @@ from teleop.bus.messages import HEAD_POSE, TOOL_POSE, DropCounter
 from teleop.bus.session import Publisher, close_session, open_session, subscribe, wait_alive
 from teleop.bus.topics import Topics
 from teleop.core.config import REPO_ROOT, load_config
+from teleop.core.net import free_loopback_port
 from teleop.core.ticks import last_sample_tick
 from teleop.devices.hmd import HmdEmulator, HmdSchedule
-from teleop.run.stack import free_loopback_port
 from tests.unit.test_hmd import run_emulator
 
 ALIVE_TIMEOUT_S = 60.0

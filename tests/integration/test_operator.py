@@ -22,7 +22,7 @@ from teleop.bus.messages import (
 from teleop.bus.session import Publisher, close_session, open_session, subscribe, wait_alive
 from teleop.bus.topics import Topics
 from teleop.core.config import REPO_ROOT, load_config
-from teleop.run.stack import free_loopback_port
+from teleop.core.net import free_loopback_port
 from tests.unit.test_operator import BIN_M, CUBE_M, HOME_TOOL_M, TIMESTEP_S
 
 ALIVE_TIMEOUT_S = 60.0
