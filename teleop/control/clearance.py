@@ -125,12 +125,29 @@ def push_depth_m(config: ClearanceConfig, kind: PairKind, distance_m: float) -> 
     return depth * min(depth / (slowdown - stop), 1.0)
 
 
-def allowed_approach_m_s(config: ClearanceConfig, kind: PairKind, distance_m: float) -> float:
+def allowed_approach_m_s(
+    config: ClearanceConfig, kind: PairKind, distance_m: float, closing_m_s: float = 0.0
+) -> float:
     """Largest speed (m/s) at which a pair may close in: ``approach_speed_m_s`` at the
-    slowdown distance and beyond, falling linearly to 0 at the stop distance."""
+    slowdown distance and beyond, falling linearly to 0 at the stop distance, and on
+    below it, negative: a pair inside its stop distance must open, at up to
+    ``approach_speed_m_s``.
+
+    The negative part restores the margin: the joints track a command with a small error
+    (1 % of a wrist turning at 2 rad/s moves a finger millimetres per second), and
+    without it a pair held at its stop distance by a zero cap drifts inside (a finger
+    crept 1.1 mm past the shoulder's 5 mm stop over 0.3 s in a grasp), and a 6-DOF arm
+    under a 6D task has no null space to push it back with.
+
+    The distance counted is the one ``approach_lookahead_s`` ahead at the pair's measured
+    closing speed ``closing_m_s`` (positive: closing in; opening counts as 0): the joints
+    reach a command after a lag, and a pair that enters its slowdown zone fast would
+    coast that lag's travel past its stop distance; on the distance ahead it brakes in
+    time."""
     stop, slowdown = thresholds_m(config, kind)
-    fraction = (distance_m - stop) / (slowdown - stop)
-    return config.approach_speed_m_s * min(max(fraction, 0.0), 1.0)
+    ahead_m = distance_m - config.approach_lookahead_s * max(closing_m_s, 0.0)
+    fraction = (ahead_m - stop) / (slowdown - stop)
+    return config.approach_speed_m_s * min(max(fraction, -1.0), 1.0)
 
 
 class ClearanceModel:

@@ -381,7 +381,7 @@ class PathFollowingController:
                 q_rad, self.clearance.open_m if gripper_opening_m is None else gripper_opening_m
             )
             if self.clearance.config.avoid:
-                g, caps = self._avoidance(q_rad, clearance, g)
+                g, caps = self._avoidance(q_rad, qd_rad_s, clearance, g)
         inverse, det = symmetric_3x3_inverse(
             jv @ jv.T + singular_damping_sq(ctl, w) * self._identity3
         )
@@ -428,11 +428,12 @@ class PathFollowingController:
         )
 
     def _avoidance(
-        self, q_rad: np.ndarray, clearance: Clearance, g: np.ndarray
+        self, q_rad: np.ndarray, qd_rad_s: np.ndarray, clearance: Clearance, g: np.ndarray
     ) -> tuple[np.ndarray, list[tuple[float, np.ndarray]]]:
         """The null-space objective with the clearance and joint-limit pushes added, and
-        the approach caps (cap m/s, row) of the pairs inside their slowdown distance.
-        Reads the joint Jacobians at ``q_rad`` that the tool Jacobian left in arm.data."""
+        the approach caps (cap m/s, row) of the pairs inside their slowdown distance, at
+        their closing speed measured from ``qd_rad_s``. Reads the joint Jacobians at
+        ``q_rad`` that the tool Jacobian left in arm.data."""
         config = self.clearance.config if self.clearance is not None else None
         assert config is not None
         pushes, caps = [], []
@@ -442,7 +443,10 @@ class PathFollowingController:
                 continue
             row = approach_row(self.arm, pair)
             pushes.append((push_depth_m(config, pair.kind, pair.distance_m), row))
-            caps.append((allowed_approach_m_s(config, pair.kind, pair.distance_m), row))
+            closing_m_s = -float(row @ qd_rad_s)
+            caps.append(
+                (allowed_approach_m_s(config, pair.kind, pair.distance_m, closing_m_s), row)
+            )
         push = clearance_push(pushes, config)
         if push is not None:
             g = g + push

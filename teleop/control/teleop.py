@@ -533,7 +533,7 @@ class TeleopController:
         clearance, caps, null_push, f_scene, f_limits = None, (), None, None, None
         if self.clearance is not None:  # reads the joint Jacobians left in arm.data
             clearance, caps, null_push, f_scene, f_limits = self._clearance_terms(
-                arm, q_rad, gripper_opening_m, jacobian, task_to_qd
+                arm, q_rad, qd_rad_s, gripper_opening_m, jacobian, task_to_qd
             )
         for array in (tool_p, tool_r, v_tool, rotation_error, f_scene, f_limits):
             if array is not None:
@@ -563,6 +563,7 @@ class TeleopController:
         self,
         arm: ArmModel,
         q_rad: np.ndarray,
+        qd_rad_s: np.ndarray,
         gripper_opening_m: float | None,
         jacobian: np.ndarray,
         task_to_qd: np.ndarray,
@@ -574,8 +575,9 @@ class TeleopController:
         np.ndarray | None,
     ]:
         """The clearance at ``q_rad``, and with ``clearance.avoid``: the approach caps of
-        the close pairs, the null-space push away from them and from the joint limits, and
-        the push-back of the scene and of the arm's own limits felt on the handle.
+        the close pairs (at their closing speed measured from ``qd_rad_s``), the
+        null-space push away from them and from the joint limits, and the push-back of the
+        scene and of the arm's own limits felt on the handle.
 
         A pair inside its slowdown distance by ``depth`` m with approach row j (d' = j q')
         is felt as ``scene_stiffness * depth`` N along u = (j T)^T / |j T|, T the
@@ -603,7 +605,10 @@ class TeleopController:
                 continue
             row = approach_row(arm, pair)
             pushes.append((push_depth_m(config, pair.kind, pair.distance_m), row))
-            caps.append((allowed_approach_m_s(config, pair.kind, pair.distance_m), row))
+            closing_m_s = -float(row @ qd_rad_s)
+            caps.append(
+                (allowed_approach_m_s(config, pair.kind, pair.distance_m, closing_m_s), row)
+            )
             direction = row @ linear_to_qd  # (3,): opening speed per unit tool velocity
             norm = _norm(direction)
             if norm > MIN_FEEDBACK_DIRECTION:

@@ -286,6 +286,12 @@ class ClearanceConfig:
     # Largest approach speed allowed at the slowdown distance (m/s); it falls linearly
     # to 0 at the stop distance.
     approach_speed_m_s: float = 0.25
+    # The approach caps act on the distance a pair will have this far ahead (s) at its
+    # measured closing speed: the velocity loops reach a command after about
+    # 1 / control.velocity_gain_per_s (20 ms), so a pair closing fast starts braking that
+    # much earlier instead of coasting that lag's travel past its stop distance. 0: the
+    # distance now.
+    approach_lookahead_s: float = 0.02
     # Null space: a link inside influence_m is pushed away at gain * (influence - d) m/s.
     null_space_gain_per_s: float = 4.0
     # Joint limits: pushed back in the null space within this margin (rad), and the
@@ -307,6 +313,7 @@ class ClearanceConfig:
                 0 <= stop < slow <= self.influence_m,
                 f"clearance: 0 <= {near} < {far} <= influence_m",
             )
+        _require(self.approach_lookahead_s >= 0, "clearance.approach_lookahead_s >= 0")
         for name in ("null_space_gain_per_s", "joint_limit_margin_rad",
                      "joint_limit_gain_per_s"):  # fmt: skip
             _require(getattr(self, name) >= 0, f"clearance.{name} >= 0")

@@ -106,9 +106,34 @@ def test_the_allowed_approach_speed_falls_to_zero_at_the_stop_distance():
     stop, slow = config.stop_m, config.slowdown_m
     assert allowed_approach_m_s(config, PairKind.SCENE, slow) == config.approach_speed_m_s
     assert allowed_approach_m_s(config, PairKind.SCENE, stop) == 0.0
-    assert allowed_approach_m_s(config, PairKind.SCENE, -0.01) == 0.0
+    # Inside the stop distance the pair must open, as fast as it may close at the
+    # slowdown distance at most.
+    inside = allowed_approach_m_s(config, PairKind.SCENE, stop - 0.1 * (slow - stop))
+    assert inside == pytest.approx(-0.1 * config.approach_speed_m_s)
+    assert allowed_approach_m_s(config, PairKind.SCENE, -0.5) == -config.approach_speed_m_s
     half = allowed_approach_m_s(config, PairKind.SCENE, 0.5 * (stop + slow))
     assert half == pytest.approx(0.5 * config.approach_speed_m_s)
+
+
+def test_a_pair_closing_fast_is_capped_on_the_distance_it_will_have_a_lag_ahead():
+    config = load_config().clearance
+    stop, slow = config.self_stop_m, config.self_slowdown_m
+    lookahead_s = config.approach_lookahead_s
+    assert lookahead_s > 0
+    closing_m_s = 0.2
+    ahead_m = 0.5 * (stop + slow)
+    now_m = ahead_m + lookahead_s * closing_m_s
+    assert allowed_approach_m_s(config, PairKind.SELF, now_m, closing_m_s) == pytest.approx(
+        allowed_approach_m_s(config, PairKind.SELF, ahead_m)
+    )
+    # Opening, or still: the distance now.
+    assert allowed_approach_m_s(config, PairKind.SELF, now_m, -closing_m_s) == pytest.approx(
+        allowed_approach_m_s(config, PairKind.SELF, now_m)
+    )
+    # Closing at the approach speed itself from one lag's travel beyond the stop: stop now.
+    at_m = stop + lookahead_s * config.approach_speed_m_s
+    stop_now = allowed_approach_m_s(config, PairKind.SELF, at_m, config.approach_speed_m_s)
+    assert stop_now == pytest.approx(0.0, abs=1e-12)
 
 
 def test_the_null_space_push_enters_without_a_step_and_is_linear_from_the_stop_distance():
