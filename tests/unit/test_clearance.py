@@ -21,7 +21,7 @@ from teleop.control.clearance import (
     push_depth_m,
 )
 from teleop.control.kinematics import build_arm_model, tool_position_and_jacobian
-from teleop.control.path import ControlOutput, PathMetrics
+from teleop.control.path import ControlOutput, PathMetrics, hold_clearance
 from teleop.core.config import load_config
 from teleop.run.experiments import run_path_following_inprocess
 
@@ -134,6 +134,18 @@ def test_a_pair_closing_fast_is_capped_on_the_distance_it_will_have_a_lag_ahead(
     at_m = stop + lookahead_s * config.approach_speed_m_s
     stop_now = allowed_approach_m_s(config, PairKind.SELF, at_m, config.approach_speed_m_s)
     assert stop_now == pytest.approx(0.0, abs=1e-12)
+
+
+def test_a_still_command_opens_a_pair_that_drifted_inside_its_stop_distance():
+    config = load_config().clearance
+    stop, slow = config.self_stop_m, config.self_slowdown_m
+    cap = allowed_approach_m_s(config, PairKind.SELF, stop - 0.2 * (slow - stop))
+    assert cap < 0
+    row = np.array([0.0, 0.3, -0.2, 0.1, 0.0, 0.05])  # m/rad: d' = row . q'
+    held, count = hold_clearance(np.zeros(6), [(cap, row)])
+    assert count == 1
+    opening_m_s = float(row @ held)  # the row's own damping leaves a few percent out
+    assert -cap * 0.9 < opening_m_s <= -cap
 
 
 def test_the_null_space_push_enters_without_a_step_and_is_linear_from_the_stop_distance():
