@@ -206,13 +206,13 @@ class Service:
                 ", ".join(missing),
                 PEER_LINK_WAIT_S,
             )
-            self.keep(self._watch_late_links(missing, started_ns))
+            self.keep(self._watch_late_links(started_ns))
         self.keep(declare_alive(self.session, self.topics, self.name, ready=True))
         return True
 
-    def _watch_late_links(self, missing: tuple[str, ...], started_ns: int) -> Any:
-        """A liveliness subscriber that moves each of ``missing`` from ``unlinked_peers``
-        to ``peers_linked_late`` when its token comes after all (over this session's own
+    def _watch_late_links(self, started_ns: int) -> Any:
+        """A liveliness subscriber that moves each peer of ``unlinked_peers`` to
+        ``peers_linked_late`` when its token comes after all (over this session's own
         link to it: from then on what this service sends reaches it)."""
         assert self.session is not None
 

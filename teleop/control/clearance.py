@@ -150,6 +150,16 @@ def allowed_approach_m_s(
     return config.approach_speed_m_s * min(max(fraction, -1.0), 1.0)
 
 
+def approach_cap(
+    config: ClearanceConfig, pair: ClearancePair, row: np.ndarray, qd_rad_s: np.ndarray
+) -> tuple[float, np.ndarray]:
+    """``(cap m/s, row)`` of a close pair for ``hold_clearance``: its allowed approach
+    speed at its closing speed -row q' measured from ``qd_rad_s`` (row: its
+    :func:`approach_row`)."""
+    closing_m_s = -float(row @ qd_rad_s)
+    return allowed_approach_m_s(config, pair.kind, pair.distance_m, closing_m_s), row
+
+
 class ClearanceModel:
     """The scene file compiled for distance queries, and the pairs to query.
 

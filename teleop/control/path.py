@@ -33,7 +33,7 @@ from teleop.bus.messages import Event
 from teleop.control.clearance import (
     Clearance,
     ClearanceModel,
-    allowed_approach_m_s,
+    approach_cap,
     approach_row,
     push_depth_m,
     thresholds_m,
@@ -443,10 +443,7 @@ class PathFollowingController:
                 continue
             row = approach_row(self.arm, pair)
             pushes.append((push_depth_m(config, pair.kind, pair.distance_m), row))
-            closing_m_s = -float(row @ qd_rad_s)
-            caps.append(
-                (allowed_approach_m_s(config, pair.kind, pair.distance_m, closing_m_s), row)
-            )
+            caps.append(approach_cap(config, pair, row, qd_rad_s))
         push = clearance_push(pushes, config)
         if push is not None:
             g = g + push

@@ -56,7 +56,7 @@ from teleop.control.clearance import (
     Clearance,
     ClearanceModel,
     PairKind,
-    allowed_approach_m_s,
+    approach_cap,
     approach_row,
     push_depth_m,
     thresholds_m,
@@ -605,10 +605,7 @@ class TeleopController:
                 continue
             row = approach_row(arm, pair)
             pushes.append((push_depth_m(config, pair.kind, pair.distance_m), row))
-            closing_m_s = -float(row @ qd_rad_s)
-            caps.append(
-                (allowed_approach_m_s(config, pair.kind, pair.distance_m, closing_m_s), row)
-            )
+            caps.append(approach_cap(config, pair, row, qd_rad_s))
             direction = row @ linear_to_qd  # (3,): opening speed per unit tool velocity
             norm = _norm(direction)
             if norm > MIN_FEEDBACK_DIRECTION:
