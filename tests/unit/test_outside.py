@@ -10,6 +10,7 @@ import zenoh
 from teleop import cli
 from teleop.bus.session import session_config
 from teleop.core.config import ConfigError, load_config
+from teleop.core.net import LoopbackPorts
 from teleop.run import outside
 from teleop.run.stack import peer_mesh
 
@@ -22,7 +23,8 @@ def test_without_names_only_services_of_the_stack_in_stack_order():
 
 
 def test_the_outside_config_is_the_stacks_own_session_config(tmp_path):
-    mesh = peer_mesh(["plant", "recorder", "controller"], listener=None)
+    with LoopbackPorts() as ports:
+        mesh = peer_mesh(["plant", "recorder", "controller"], None, ports)
     config = load_config(None, ['bus.endpoint="tcp/127.0.0.1:7000"', *mesh["controller"]])
     path = outside.write_outside_config(tmp_path, "controller", config.bus)
     assert path == tmp_path / "outside" / "controller.json5"
