@@ -3,7 +3,8 @@
 It subscribes to every stream the graph gives it (teleop.bus.graph: the recorder among a
 stream's consumers; a fast stream through its observers' batched copy), the eye-view
 frames and the liveliness tokens (services joining or leaving the bus go to the event
-log), and flushes the writer every ``recorder.flush_period_s``.
+log), and flushes the writer every ``recorder.flush_every_s`` (more often while a live
+viewer watches).
 """
 
 from __future__ import annotations
@@ -112,8 +113,9 @@ class RecorderService(Service):
         self.writer.add_line(level, text)
 
     def run(self, stop: threading.Event) -> None:
-        """Flush every ``flush_period_s`` until ``stop`` is set, then flush the rest."""
-        period_s = self.config.recorder.flush_period_s
+        """Flush every ``recorder.flush_every_s`` until ``stop`` is set, then flush the
+        rest."""
+        period_s = self.config.recorder.flush_every_s
         while not stop.wait(period_s):
             self.writer.flush()
         self.writer.flush()

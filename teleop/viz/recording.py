@@ -2,7 +2,7 @@
 
 The bus callbacks (services/recorder.py) only copy the record's bytes into a bounded
 per-stream buffer; the recorder's thread swaps the buffers every
-``recorder.flush_period_s`` and sends each stream to Rerun with ``send_columns`` (one
+``recorder.flush_every_s`` and sends each stream to Rerun with ``send_columns`` (one
 call per entity per flush, never one per sample), so a 1 kHz stream costs a few Rerun
 calls per flush, not a thousand.
 
