@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +25,7 @@ from teleop.viz.report import write_report
 from teleop.viz.rrd import Recording
 from teleop.viz.scene3d import ENTITY_GHOSTS, SceneModel
 from tests.e2e.outcome import assert_ran, needs_realtime_stack
+from tests.e2e.users import HANG_S, USER, UserEnv
 
 # Tolerance on the held weight the operator feels, as a fraction of m g.
 WEIGHT_TOLERANCE = 0.10
@@ -44,25 +45,31 @@ def grasp(tmp_path: Path, name: str, *args: str) -> dict:
     return grasps(tmp_path, {name: args})[name]
 
 
-def grasps(tmp_path: Path, runs: dict[str, Sequence[str]]) -> dict[str, dict]:
+def grasps(
+    tmp_path: Path, runs: dict[str, Sequence[str]], users: Mapping[str, UserEnv] | None = None
+) -> dict[str, dict]:
     """Several grasp runs at once (name: args), each in ``tmp_path/name``; their
     summaries. Only for lockstep runs beside each other: their results do not depend on
-    the load, and a lockstep stack waits on its hops more than it computes, so two take
-    little longer than one."""
+    the load. A run named in ``users`` runs as that user, in its home."""
+    users = users or {}
     started = {}
     for name, args in runs.items():
-        out = tmp_path / f"{name}.json"
-        command = [sys.executable, "-m", "teleop.cli", "run", "grasp", "--run-dir",
-                   str(tmp_path / name), "--summary-json", str(out), "--quiet", *args]  # fmt: skip
+        user = users.get(name)
+        base = user.home if user is not None else tmp_path
+        teleop_args = ["-m", "teleop.cli", "run", "grasp", "--run-dir", str(base / name),
+                       "--summary-json", str(base / f"{name}.json"), "--quiet", *args]  # fmt: skip
+        command = user.argv(teleop_args) if user is not None else [sys.executable, *teleop_args]
         with (tmp_path / f"{name}.stderr").open("w") as stderr_file:  # no pipe to fill
             started[name] = subprocess.Popen(
-                command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=stderr_file
-            )
+                command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=stderr_file,
+                cwd=base,
+            )  # fmt: skip
     summaries = {}
     for name, process in started.items():
-        process.wait(timeout=600)
+        process.wait(timeout=HANG_S)
         stderr = (tmp_path / f"{name}.stderr").read_text()
-        out = tmp_path / f"{name}.json"
+        user = users.get(name)
+        out = (user.home if user is not None else tmp_path) / f"{name}.json"
         assert out.exists(), stderr[-3000:]
         summary = json.loads(out.read_text())
         if summary["success"]:
@@ -93,13 +100,16 @@ def test_realtime_grasp_puts_the_cube_in_the_bin(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def obstacle_pair(tmp_path_factory) -> tuple[dict, dict, Path]:
-    """The same lockstep grasp with an obstacle twice, at once: both summaries and the
-    first one's run directory (the obstacle, recording and report tests use the first)."""
+def obstacle_pair(tmp_path_factory, ordinary_user_or_why) -> tuple[dict, dict, Path]:
+    """The same lockstep grasp with an obstacle twice, at once: the second as an ordinary
+    user where this machine has one (tests/e2e/users.py). Both summaries and the first
+    one's run directory (the obstacle, recording and report tests use the first)."""
     tmp_path = tmp_path_factory.mktemp("grasp_obstacle")
     args = ("--mode", "lockstep", "--seed", "2",
             *[item for override in OBSTACLE for item in ("--set", override)])  # fmt: skip
-    runs = grasps(tmp_path, {"obstacle": args, "again": args})
+    user = ordinary_user_or_why
+    users = {"again": user} if isinstance(user, UserEnv) else {}
+    runs = grasps(tmp_path, {"obstacle": args, "again": args}, users)
     return runs["obstacle"], runs["again"], tmp_path / "obstacle"
 
 
@@ -110,12 +120,18 @@ def obstacle_run(obstacle_pair) -> tuple[dict, Path]:
     return first, run_dir
 
 
-def test_lockstep_grasp_is_deterministic(obstacle_pair):
+def test_lockstep_grasp_is_deterministic_for_any_user(obstacle_pair, ordinary_user_or_why):
+    """The same run, by root and by an ordinary user who is refused SCHED_FIFO, locked
+    memory and the CPU cgroups: the same final state, bit for bit."""
     first, second, _ = obstacle_pair
     assert first["success"] and second["success"]
     assert first["final_state_sha256"] == second["final_state_sha256"]
     assert first["duration_s"] == second["duration_s"]
     assert_physical(first)
+    if isinstance(ordinary_user_or_why, UserEnv):
+        assert second["machine"]["user"] == USER and second["machine"]["uid"] != 0
+    else:
+        assert second["machine"]["user"] == first["machine"]["user"]
 
 
 def test_obstacle_is_felt_and_avoided(obstacle_run):
