@@ -42,13 +42,17 @@ lint: $(STAMP)
 
 # The web viewer's screenshot test needs Chromium: install it if we can (root, Debian);
 # without it that test checks the page is served and skips the screenshot.
+# The unit layer (no bus, no processes) on every core; then the integration and e2e
+# layers one test at a time, as their stacks need the cores to themselves.
 test: lint
 	-@test -x $(CHROMIUM) || $(MAKE) --no-print-directory chromium
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest tests/unit -n auto
+	$(BIN)/python -m pytest tests/integration tests/e2e
 
 # The unit and integration layers only (no supervisord stacks): a minute or so.
 test-fast: lint
-	$(BIN)/python -m pytest -m "not slow"
+	$(BIN)/python -m pytest tests/unit -n auto
+	$(BIN)/python -m pytest tests/integration
 
 # Debian's Chromium, for the headless screenshot of the web viewer served by --web.
 # `make test` installs it when it can and runs the screenshot test when it is there (else
