@@ -213,19 +213,16 @@ def service_programs(
     listener: str | None,
     await_services: dict[str, Sequence[str]],
     continuous: bool,
+    mesh: dict[str, list[str]],
     credentials: Mapping[str, Path] | None = None,
-    mesh: dict[str, list[str]] | None = None,
-    tls: bool = False,
     restarts: Mapping[str, dict[str, int]] | None = None,
 ) -> list[Program]:
     """The supervisord programs of ``services``, each given the same config and
-    overrides, then its place in the run's ``mesh`` (default: a :func:`peer_mesh` of
-    ``services``, over TLS endpoints with ``tls``; with outside services, one that
-    includes them too) and its ``credentials`` file, if any (:func:`run_credentials`);
-    ``restarts``: how a service's restarts start (:func:`restart_priorities`)."""
+    overrides, then its place in the run's ``mesh`` (a :func:`peer_mesh` of the
+    services, and of the outside ones too if any) and its ``credentials`` file, if any
+    (:func:`run_credentials`); ``restarts``: how a service's restarts start
+    (:func:`restart_priorities`)."""
     programs = []
-    if mesh is None:
-        mesh = peer_mesh(services, listener, tls=tls)
     for name in services:
         own = list(mesh[name])
         if credentials is not None:

@@ -27,9 +27,9 @@ from teleop.bus.session import (
 )
 from teleop.bus.topics import Topics
 from teleop.core.config import load_config
-from teleop.core.net import free_loopback_port
+from teleop.core.net import LoopbackPorts
 from teleop.run.experiments import run_path_following_inprocess
-from teleop.run.stack import service_programs
+from teleop.run.stack import peer_mesh, service_programs
 from teleop.run.supervise import Stack
 from teleop.viz import entities as ent
 from teleop.viz.rrd import Recording
@@ -189,23 +189,23 @@ class Observer:
 @pytest.fixture
 def realtime_pair(tmp_path):
     """Plant and controller (realtime, continuous) under supervisord, and a Observer."""
-    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    ports = LoopbackPorts()  # held until the stack is down, as a launcher holds them
+    endpoint = f"tcp/127.0.0.1:{ports.take()}"
     overrides = [f'bus.endpoint="{endpoint}"', 'run.mode="realtime"']
     config = load_config(None, overrides)
     topics = Topics(config.robot.robot_id)
     tester = Observer(config, topics)
-    programs = [
-        p
-        for p in service_programs(
-            ("plant", "controller"),
-            None,
-            overrides,
-            tmp_path,
-            listener=None,
-            await_services={"plant": ["controller", OBSERVER]},
-            continuous=True,
-        )
-    ]
+    services = ("plant", "controller")
+    programs = service_programs(
+        services,
+        None,
+        overrides,
+        tmp_path,
+        listener=None,
+        await_services={"plant": ["controller", OBSERVER]},
+        continuous=True,
+        mesh=peer_mesh(services, None, ports),
+    )
     stack = Stack(tmp_path, programs)
     try:
         stack.start()
@@ -215,6 +215,7 @@ def realtime_pair(tmp_path):
     finally:
         stack.stop()
         tester.close()
+        ports.close()
 
 
 def test_watchdog_brakes_and_holds_on_a_frozen_controller_then_resumes(realtime_pair):
