@@ -150,14 +150,42 @@ def allowed_approach_m_s(
     return config.approach_speed_m_s * min(max(fraction, -1.0), 1.0)
 
 
-def approach_cap(
-    config: ClearanceConfig, pair: ClearancePair, row: np.ndarray, qd_rad_s: np.ndarray
-) -> tuple[float, np.ndarray]:
-    """``(cap m/s, row)`` of a close pair for ``hold_clearance``: its allowed approach
-    speed at its closing speed -row q' measured from ``qd_rad_s`` (row: its
-    :func:`approach_row`)."""
-    closing_m_s = -float(row @ qd_rad_s)
-    return allowed_approach_m_s(config, pair.kind, pair.distance_m, closing_m_s), row
+@dataclass(frozen=True)
+class ClosePair:
+    """A pair inside its slowdown distance, with what both control laws make of it."""
+
+    pair: ClearancePair
+    row: np.ndarray  # (n,) approach row j: d' = j q' (approach_row)
+    inside_m: float  # how far inside its slowdown distance (m, > 0)
+    push_depth_m: float  # that depth as the null-space push counts it (push_depth_m)
+    cap_m_s: float  # its allowed approach speed at its measured closing speed
+
+
+def close_pairs(
+    config: ClearanceConfig, arm: ArmModel, clearance: Clearance, qd_rad_s: np.ndarray
+) -> list[ClosePair]:
+    """The pairs of ``clearance`` inside their slowdown distance, in its order: each with
+    its approach row at the q whose joint Jacobians ``arm.data`` holds (call a
+    tool-Jacobian function first), its push depth, and its approach cap at the closing
+    speed -row q' measured from ``qd_rad_s``."""
+    close = []
+    for pair in clearance.pairs:
+        _, slowdown = thresholds_m(config, pair.kind)
+        inside_m = slowdown - pair.distance_m
+        if inside_m <= 0.0:
+            continue
+        row = approach_row(arm, pair)
+        closing_m_s = -float(row @ qd_rad_s)
+        close.append(
+            ClosePair(
+                pair,
+                row,
+                inside_m,
+                push_depth_m(config, pair.kind, pair.distance_m),
+                allowed_approach_m_s(config, pair.kind, pair.distance_m, closing_m_s),
+            )
+        )
+    return close
 
 
 class ClearanceModel:

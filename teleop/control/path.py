@@ -30,14 +30,7 @@ from typing import Any
 import numpy as np
 
 from teleop.bus.messages import Event
-from teleop.control.clearance import (
-    Clearance,
-    ClearanceModel,
-    approach_cap,
-    approach_row,
-    push_depth_m,
-    thresholds_m,
-)
+from teleop.control.clearance import Clearance, ClearanceModel, close_pairs
 from teleop.control.kinematics import (
     ArmModel,
     manipulability_and_gradient,
@@ -436,15 +429,9 @@ class PathFollowingController:
         ``q_rad`` that the tool Jacobian left in arm.data."""
         config = self.clearance.config if self.clearance is not None else None
         assert config is not None
-        pushes, caps = [], []
-        for pair in clearance.pairs:
-            _, slowdown = thresholds_m(config, pair.kind)
-            if pair.distance_m >= slowdown:
-                continue
-            row = approach_row(self.arm, pair)
-            pushes.append((push_depth_m(config, pair.kind, pair.distance_m), row))
-            caps.append(approach_cap(config, pair, row, qd_rad_s))
-        push = clearance_push(pushes, config)
+        close = close_pairs(config, self.arm, clearance, qd_rad_s)
+        caps = [(c.cap_m_s, c.row) for c in close]
+        push = clearance_push([(c.push_depth_m, c.row) for c in close], config)
         if push is not None:
             g = g + push
         if self._limits:

@@ -52,15 +52,7 @@ import numpy as np
 import pinocchio as pin
 from scipy.linalg import lapack
 
-from teleop.control.clearance import (
-    Clearance,
-    ClearanceModel,
-    PairKind,
-    approach_cap,
-    approach_row,
-    push_depth_m,
-    thresholds_m,
-)
+from teleop.control.clearance import Clearance, ClearanceModel, PairKind, close_pairs
 from teleop.control.kinematics import ArmModel, tool_jacobian, tool_pose_and_jacobian
 from teleop.control.path import (
     CompensationTerms,
@@ -595,26 +587,20 @@ class TeleopController:
         if not config.avoid:
             return clearance, (), None, None, None
         linear_to_qd = task_to_qd[:, :3]  # (n, 3): tool linear velocity -> joint rates
-        pushes, caps = [], []
         f_scene, f_limits = np.zeros(3), np.zeros(3)
         k_scene = self.teleop.scene_stiffness_n_per_m
-        for pair in clearance.pairs:
-            _, slowdown = thresholds_m(config, pair.kind)
-            depth = slowdown - pair.distance_m
-            if depth <= 0.0:
-                continue
-            row = approach_row(arm, pair)
-            pushes.append((push_depth_m(config, pair.kind, pair.distance_m), row))
-            caps.append(approach_cap(config, pair, row, qd_rad_s))
-            direction = row @ linear_to_qd  # (3,): opening speed per unit tool velocity
+        close = close_pairs(config, arm, clearance, qd_rad_s)
+        for c in close:
+            direction = c.row @ linear_to_qd  # (3,): opening speed per unit tool velocity
             norm = _norm(direction)
             if norm > MIN_FEEDBACK_DIRECTION:
-                force = (k_scene * depth / norm) * direction
-                if pair.kind == PairKind.SELF:
+                force = (k_scene * c.inside_m / norm) * direction
+                if c.pair.kind == PairKind.SELF:
                     f_limits += force
                 else:
                     f_scene += force
-        push = clearance_push(pushes, config)
+        caps = [(c.cap_m_s, c.row) for c in close]
+        push = clearance_push([(c.push_depth_m, c.row) for c in close], config)
         margin = config.joint_limit_margin_rad
         k_limit = self.teleop.joint_limit_stiffness_n_per_rad
         q = q_rad.tolist()
