@@ -71,3 +71,11 @@ def test_a_malformed_toml_literal_is_reported_as_such():
         load_config(None, ["path.center_m=[0.1, 0.0"])
     # A bare word is still a string.
     assert load_config(None, ["bus.zenoh_config=local.json5"]).bus.zenoh_config == "local.json5"
+
+
+def test_the_recorder_flushes_often_only_while_a_live_viewer_watches():
+    file_only = load_config().recorder
+    assert file_only.flush_every_s == file_only.flush_period_s
+    for live in ("recorder.spawn=true", 'recorder.grpc_url="rerun+http://127.0.0.1:9876/proxy"'):
+        recorder = load_config(None, [live]).recorder
+        assert recorder.flush_every_s == recorder.live_flush_period_s < recorder.flush_period_s
