@@ -1,8 +1,11 @@
-"""Shared fixtures: the default config and the second (7-DOF) arm's overrides."""
+"""Shared fixtures: the default config and the second (7-DOF) arm's overrides; and an
+exit that never waits for a Zenoh session a failed test left open."""
 
 from __future__ import annotations
 
 import os
+import sys
+import threading
 
 import pytest
 
@@ -31,3 +34,32 @@ def config() -> Config:
 @pytest.fixture(params=["arm6", "arm7"])
 def any_arm_config(request) -> Config:
     return load_config(None, ARM7_OVERRIDES if request.param == "arm7" else ())
+
+
+# zenoh-python runs each subscriber's callbacks on a thread of this name, not a daemon:
+# while a session is open the interpreter's exit waits for them, for ever.
+ZENOH_CALLBACK_THREAD = "pyo3-closure"
+_exit_status: list[int] = []
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    _exit_status.append(int(exitstatus))
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    """A test that fails before it closes its Zenoh session leaves the session's callback
+    threads running, and the run would then hang at exit (CI: until its time limit)
+    instead of reporting the failure. Name them and exit now, with pytest's status."""
+    left = [
+        thread.name
+        for thread in threading.enumerate()
+        if ZENOH_CALLBACK_THREAD in thread.name and thread.is_alive() and not thread.daemon
+    ]
+    if left and _exit_status:
+        sys.stderr.write(
+            f"tests: {len(left)} Zenoh callback threads still running (a session left open "
+            "by a test); exiting without waiting for them\n"
+        )
+        sys.stderr.flush()
+        sys.stdout.flush()
+        os._exit(_exit_status[-1])

@@ -194,7 +194,6 @@ def realtime_pair(tmp_path):
     overrides = [f'bus.endpoint="{endpoint}"', 'run.mode="realtime"']
     config = load_config(None, overrides)
     topics = Topics(config.robot.robot_id)
-    tester = Observer(config, topics)
     services = ("plant", "controller")
     programs = service_programs(
         services,
@@ -207,6 +206,7 @@ def realtime_pair(tmp_path):
         mesh=peer_mesh(services, None, ports),
     )
     stack = Stack(tmp_path, programs)
+    tester = Observer(config, topics)
     try:
         stack.start()
         wait_alive(tester.session, topics, ["plant", "controller"], ALIVE_TIMEOUT_S)
