@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import socket
-from types import TracebackType
+from contextlib import ExitStack
 
 LOOPBACK = "127.0.0.1"
 
 
-class LoopbackPorts:
+class LoopbackPorts(ExitStack):
     """Free TCP ports on 127.0.0.1 for the processes of one run, each held by this
     process until :meth:`close`.
 
@@ -19,42 +19,18 @@ class LoopbackPorts:
     such binds landed on 5000 held ports on this machine, kernel 6.18). Released at
     once, the 8 picks of a stack held a repeat in 36 of 20000 tries (1 in 550: the
     kernel draws from about 14000 odd ports), and one of the run's services then could
-    not listen. The process given the port can still listen
-    on it: Zenoh's listeners and Rust's set SO_REUSEADDR too. Close once the processes
-    listen, or when the run ends.
+    not listen. The process given the port can still listen on it: Zenoh's listeners
+    and Rust's set SO_REUSEADDR too. Close once the processes listen, or when the run
+    ends (an :class:`~contextlib.ExitStack` of the held sockets).
     """
-
-    def __init__(self) -> None:
-        self._held: list[socket.socket] = []
 
     def take(self) -> int:
         """A free port, distinct from every other taken here and held until close()."""
         held = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        try:
-            held.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            held.bind((LOOPBACK, 0))
-        except BaseException:
-            held.close()
-            raise
-        self._held.append(held)
+        self.enter_context(held)
+        held.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        held.bind((LOOPBACK, 0))
         return int(held.getsockname()[1])
-
-    def close(self) -> None:
-        """Release every port taken (a process listening on one keeps it)."""
-        for held in self._held:
-            held.close()
-        self._held.clear()
-
-    def __enter__(self) -> LoopbackPorts:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 def free_loopback_port() -> int:
