@@ -39,11 +39,11 @@ def any_arm_config(request) -> Config:
 # zenoh-python runs each subscriber's callbacks on a thread of this name, not a daemon:
 # while a session is open the interpreter's exit waits for them, for ever.
 ZENOH_CALLBACK_THREAD = "pyo3-closure"
-_exit_status: list[int] = []
+EXIT_STATUS = pytest.StashKey[int]()
 
 
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
-    _exit_status.append(int(exitstatus))
+    session.config.stash[EXIT_STATUS] = int(exitstatus)
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
@@ -55,11 +55,12 @@ def pytest_unconfigure(config: pytest.Config) -> None:
         for thread in threading.enumerate()
         if ZENOH_CALLBACK_THREAD in thread.name and thread.is_alive() and not thread.daemon
     ]
-    if left and _exit_status:
+    status = config.stash.get(EXIT_STATUS, None)
+    if left and status is not None:
         sys.stderr.write(
             f"tests: {len(left)} Zenoh callback threads still running (a session left open "
             "by a test); exiting without waiting for them\n"
         )
         sys.stderr.flush()
         sys.stdout.flush()
-        os._exit(_exit_status[-1])
+        os._exit(status)

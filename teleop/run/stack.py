@@ -442,13 +442,10 @@ def run_on_services(
         gossip=False,
         credentials_file=str(credentials[LAUNCHER]) if credentials else "",
     )
-    try:
-        session = open_session(bus, listen=True)
-    except BaseException:
-        ports.close()
-        raise
+    session = None
     entities: list[Any] = []
     try:
+        session = open_session(bus, listen=True)
         if faults is not None:
             entities += faults.subscribe(session, topics, drops)
         entities.append(subscribe_events(session, topics, "plant_events", on_event, drops))

@@ -52,12 +52,13 @@ def grasps(
     summaries. Only for lockstep runs beside each other: their results do not depend on
     the load. A run named in ``users`` runs as that user, in its home."""
     users = users or {}
-    started = {}
+    started, outs = {}, {}
     for name, args in runs.items():
         user = users.get(name)
         base = user.home if user is not None else tmp_path
+        outs[name] = base / f"{name}.json"
         teleop_args = ["-m", "teleop.cli", "run", "grasp", "--run-dir", str(base / name),
-                       "--summary-json", str(base / f"{name}.json"), "--quiet", *args]  # fmt: skip
+                       "--summary-json", str(outs[name]), "--quiet", *args]  # fmt: skip
         command = user.argv(teleop_args) if user is not None else [sys.executable, *teleop_args]
         with (tmp_path / f"{name}.stderr").open("w") as stderr_file:  # no pipe to fill
             started[name] = subprocess.Popen(
@@ -68,8 +69,7 @@ def grasps(
     for name, process in started.items():
         process.wait(timeout=HANG_S)
         stderr = (tmp_path / f"{name}.stderr").read_text()
-        user = users.get(name)
-        out = (user.home if user is not None else tmp_path) / f"{name}.json"
+        out = outs[name]
         assert out.exists(), stderr[-3000:]
         summary = json.loads(out.read_text())
         if summary["success"]:
