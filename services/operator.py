@@ -123,34 +123,38 @@ class OperatorService(Service):
 
     # -- the run thread --------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
-        """Hand arrivals to the loop in order until stopped. Realtime: poses queued
-        behind a newer one are skipped (a late operator catches up by skipping, never by
-        a burst of late hand inputs: OperatorLoop.on_arrival ``catch_up``); lockstep
+        """Hand arrivals to the loop in order until stopped. A late operator (realtime:
+        poses queued behind a newer one; lockstep: a run that went on without it,
+        OperatorLoop.left_behind) decides on the newest pose only and skips the rest: it
+        catches up by skipping, never by a burst of late hand inputs. Lockstep otherwise
         decides every one (the haptic device waits for each)."""
         while not stop.is_set():
             try:
                 items = [self._arrivals.get(timeout=STOP_POLL_S)]
             except queue.Empty:
                 continue
-            while not self.loop.lockstep:
+            while True:
                 try:
                     items.append(self._arrivals.get_nowait())
                 except queue.Empty:
                     break
+            poses = [item for item in items if isinstance(item, tuple)]
+            newest_tick = poses[-1][0] if poses else -1
+            behind = bool(poses) and self.loop.left_behind(newest_tick)
+            catch_up = behind and (len(poses) > 1 or self.loop.lockstep)
             for i, item in enumerate(items):
                 if item == _NEW_RUN:
                     self.loop.on_started()
                     continue
                 assert isinstance(item, tuple)
-                newer = any(isinstance(later, tuple) for later in items[i + 1 :])
-                if newer:
+                if behind and any(isinstance(later, tuple) for later in items[i + 1 :]):
                     continue  # a newer pose is queued behind it
                 tick, sampled_ns = item
                 self._lateness_ns[self._poses_decided % LATENESS_SAMPLES] = (
                     time.monotonic_ns() - sampled_ns
                 )
                 self._poses_decided += 1
-                self.loop.on_arrival(tick, catch_up=len(items) > 1)
+                self.loop.on_arrival(tick, catch_up=catch_up)
 
     # -- OperatorOutputs: the loop's decisions onto the bus --------------------------------
     def hand(self, valid_from_tick: int, command: HandCommand) -> None:

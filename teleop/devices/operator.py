@@ -525,6 +525,10 @@ class ObservationBuffer:
             return False
         if head_valid_from is not None:
             heads = self._ticks["head"]
+            if heads and head_valid_from < heads[0]:
+                # Older than every head pose held: sent before this operator subscribed
+                # (a restart), or past the history kept. It will never come.
+                return True
             i = bisect.bisect_left(heads, head_valid_from)
             return i < len(heads) and heads[i] == head_valid_from
         return True
@@ -1053,6 +1057,13 @@ class OperatorLoop:
             )
         self.lockstep = lockstep
         self.lead_ticks = round(1.0 / (self.rate_hz * self.timestep_s))
+        # Lockstep: how far the newest TOOL_POSE can be ahead of the last one decided while
+        # the haptic device waits for this operator's hand inputs (a hand input applies
+        # for a decision period from a decision period ahead, and poses come every scene
+        # period), with a scene period to spare. A pose further ahead means the run went
+        # on without this operator (a restart, or the device gave up waiting for it).
+        scene_ticks = round(1.0 / (config.plant.scene_rate_hz * self.timestep_s))
+        self.lockstep_lag_ticks = 3 * self.lead_ticks + 2 * scene_ticks
         self.delay_ticks = round(config.operator.reaction_delay_s / self.timestep_s)
         self.hmd_rate_hz = config.hmd.rate_hz
         self.hmd_lead_ticks = round(config.hmd.prediction_s / self.timestep_s)
@@ -1102,12 +1113,23 @@ class OperatorLoop:
         self.runs += 1
         logger.info("new run: operator reset")
 
+    def left_behind(self, m: int) -> bool:
+        """Whether the TOOL_POSE of tick ``m`` shows the run going on without this
+        operator: realtime, always decide on the newest pose; lockstep, only once a pose
+        is further ahead of the last one decided than a device waiting for this
+        operator lets the plant go (``lockstep_lag_ticks``: never in a run the device
+        waited through, so lockstep stays deterministic)."""
+        if not self.lockstep:
+            return True
+        return self._last_tick is not None and m - self._last_tick > self.lockstep_lag_ticks
+
     def on_arrival(self, m: int, catch_up: bool = False) -> None:
         """The TOOL_POSE of tick ``m`` is in the buffer: decide every sample tick up to it.
 
-        ``catch_up`` (realtime, a late operator whose caller skipped the poses queued
-        before this one): decide only the newest sample tick, never a burst of decisions
-        whose hand inputs would all be late (see ScriptedOperator._after_hold)."""
+        ``catch_up`` (a late operator whose caller skipped the poses queued before this
+        one, see :meth:`left_behind`): decide only the newest sample tick, never a burst
+        of decisions whose hand inputs would all be late (see
+        ScriptedOperator._after_hold)."""
         if m == 0 and self._last_tick != 0:
             self._new_run()
         elif self._last_tick is not None and m <= self._last_tick:

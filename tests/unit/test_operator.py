@@ -11,6 +11,7 @@ import pytest
 
 from teleop.bus.messages import Button, Event
 from teleop.core.config import DEPLOY_DIR, ConfigError, load_config
+from teleop.core.ticks import expected_valid_from
 from teleop.devices.operator import (
     HandCommand,
     Observation,
@@ -700,3 +701,45 @@ def test_a_late_operator_loop_catches_up_by_skipping_not_by_a_burst():
     lead = loop.lead_ticks
     assert sorted(outputs.hands) == [0 + lead, 1000 + lead]
     assert loop.summary()["skipped_decisions"] == 99
+
+
+def test_a_lockstep_operator_left_behind_catches_up_and_waits_for_nothing_it_missed():
+    """Lockstep, restarted: the device went on without it, so its poses run far ahead of
+    its decisions. It is left behind (never while the device waits for it: a pose at
+    most ``lockstep_lag_ticks`` ahead), and a head pose older than every one it holds
+    (sent before it subscribed) is not waited for: no decision times out on it."""
+    config = load_config(None, ['run.mode="lockstep"'])
+    outputs = Outputs()
+    loop = OperatorLoop(
+        config, Scenario.load(GRASP_FILE), outputs, lockstep=True, scene=restart_scene()
+    )
+    loop.hmd_seen()
+    joined = 8000
+    for tick in range(joined, joined + 3001, 10):
+        loop.buffer.add_objects(tick, np.array([CUBE_M, BIN_M]))
+        loop.buffer.add_tool(tick, HOME_TOOL_M)
+    hmd = config.hmd
+    for tick in range(joined + 30, joined + 3001):  # the HMD's, from after the join only
+        valid_from = expected_valid_from(tick, hmd.rate_hz, loop.timestep_s, loop.hmd_lead_ticks)
+        loop.buffer.add_head(valid_from, 0.0)
+    assert not loop.left_behind(joined)  # nothing decided yet: the join decides the newest
+    loop.on_arrival(joined)
+    assert not loop.left_behind(joined + loop.lockstep_lag_ticks)
+    assert loop.left_behind(joined + loop.lockstep_lag_ticks + 1)
+    loop.on_arrival(joined + 3000, catch_up=True)
+    summary = loop.summary()
+    assert summary["decisions"] == 2 and summary["skipped_decisions"] == 299
+    assert summary["late_observations"] == 0  # waited for no head pose it could not get
+    assert max(outputs.hands) == joined + 3000 + loop.lead_ticks
+    realtime = OperatorLoop(config, Scenario.load(GRASP_FILE), Outputs(), lockstep=False)
+    assert realtime.left_behind(0)  # realtime: always on the newest pose
+
+
+def test_the_observation_buffer_waits_for_no_head_pose_older_than_it_holds():
+    buffer = ObservationBuffer(("cube", "bin"), delay_ticks=0, default_yaw_rad=0.0)
+    buffer.add_tool(500, [0, 0, 0])
+    buffer.add_objects(500, np.zeros((2, 3)))
+    assert not buffer.ready(500, 480)  # no head pose yet: it may still come
+    buffer.add_head(490, 0.2)
+    assert buffer.ready(500, 480)  # older than the first one held: never coming
+    assert not buffer.ready(500, 501) and buffer.ready(500, 490)
