@@ -16,9 +16,9 @@ from typing import Any
 
 import numpy as np
 
-from teleop.bus.messages import HAPTIC_STATE, HEAD_POSE, PLANT_STATE, DecodeError, Kind, Reason
+from teleop.bus.messages import DecodeError, Kind, Reason
 from teleop.bus.service import Service, service_main
-from teleop.bus.session import BatchPublisher, Publisher, subscribe
+from teleop.bus.session import BatchPublisher, Publisher
 from teleop.control.cycle import BilateralCycle, ControllerCore, PathCycle
 from teleop.control.kinematics import build_arm_model
 from teleop.core.clock import MonotonicClock
@@ -33,7 +33,7 @@ class ControllerService(Service):
     def open(self) -> None:
         super().open()
         assert self.session is not None
-        session, topics, drops = self.session, self.topics, self.drops
+        session, topics = self.session, self.topics
         self.arm = build_arm_model(self.config.robot)
         teleoperated = self.config.run.scenario == "grasp"
         outputs = ["joint_command", "controller_events"]
@@ -50,9 +50,9 @@ class ControllerService(Service):
                 )
             )
             core = self.core
-            self.keep(subscribe(session, topics.haptic_state, HAPTIC_STATE, core.on_haptic, drops))
-            self.keep(subscribe(session, topics.head_pose, HEAD_POSE, core.on_head_pose, drops))
-        self.keep(subscribe(session, topics.plant_state, PLANT_STATE, self._on_state, drops))
+            self.subscribe_stream("haptic_state", core.on_haptic)
+            self.subscribe_stream("head_pose", core.on_head_pose)
+        self.subscribe_stream("plant_state", self._on_state)
         self.announce()
 
     def _on_state(self, rec: np.ndarray, rx_ns: int) -> None:

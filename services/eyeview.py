@@ -37,8 +37,6 @@ import numpy as np
 import shm
 from teleop.bus.messages import (
     EYE_VIEW,
-    HEAD_POSE,
-    OBJECT_POSES,
     PLANT_STATE,
     RGB_CHANNELS,
     DecodeError,
@@ -118,10 +116,8 @@ class EyeViewService(Service):
                 batched=True,
             )
         )
-        self.keep(
-            subscribe(self.session, self.topics.objects, OBJECT_POSES, self.objects, self.drops)
-        )
-        self.keep(subscribe(self.session, self.topics.head_pose, HEAD_POSE, self.heads, self.drops))
+        self.subscribe_stream("objects", self.objects)
+        self.subscribe_stream("head_pose", self.heads)
         # Within the locked-memory limit: a smaller pool, or the socket path (counted in
         # the summary's shm_pool) when not even FRAMES_IN_FLIGHT frames fit.
         provider, self.pool = None, None

@@ -20,9 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from teleop.bus.messages import FORCE_FEEDBACK, HAND_INPUT, PLANT_STATE
 from teleop.bus.service import Service, service_main
-from teleop.bus.session import BatchPublisher, Publisher, subscribe
+from teleop.bus.session import BatchPublisher, Publisher
 from teleop.core.clock import MonotonicClock
 from teleop.core.rundir import HAPTIC_SAMPLES_FILE, HAPTIC_TRACE_FILE, shed_path
 from teleop.devices.haptic import EmulatedDevice, max_stable_stiffness_n_per_m
@@ -48,15 +47,10 @@ class HapticService(Service):
                 self.session, self.topics, "haptic_state_batch", cfg.bus.observer_batch_records
             )
         )
-        topics, drops = self.topics, self.drops
-        self.keep(
-            subscribe(self.session, topics.force_feedback, FORCE_FEEDBACK, self._on_feedback, drops)
-        )
-        self.keep(subscribe(self.session, topics.hand_input, HAND_INPUT, self._on_hand, drops))
+        self.subscribe_stream("force_feedback", self._on_feedback)
+        self.subscribe_stream("hand_input", self._on_hand)
         if self.lockstep:  # realtime: the feedback's tick is the clock (see HapticLoop)
-            self.keep(
-                subscribe(self.session, topics.plant_state, PLANT_STATE, self._on_state, drops)
-            )
+            self.subscribe_stream("plant_state", self._on_state)
         logger.info(
             "%s mode; stiffness a feedback law may render: K_max = 2 b / T = %.0f N/m",
             cfg.run.mode,

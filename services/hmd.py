@@ -21,9 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from teleop.bus.messages import HEAD_POSE, TOOL_POSE
+from teleop.bus.messages import HEAD_POSE
 from teleop.bus.service import Service, service_main
-from teleop.bus.session import Publisher, subscribe
+from teleop.bus.session import Publisher
 from teleop.core.clock import NS_PER_S
 from teleop.devices.hmd import HmdLoop, fill_head_pose
 
@@ -40,9 +40,7 @@ class HmdService(Service):
         self._record = HEAD_POSE.new()
         self._lock = threading.Lock()
         self.published = 0
-        self.keep(
-            subscribe(self.session, self.topics.tool_pose, TOOL_POSE, self._on_clock, self.drops)
-        )
+        self.subscribe_stream("tool_pose", self._on_clock)
         self.announce()
 
     def _on_clock(self, rec: np.ndarray, rx_ns: int) -> None:

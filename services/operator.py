@@ -25,15 +25,12 @@ import zenoh
 
 from teleop.bus.messages import (
     HAND_INPUT,
-    HEAD_POSE,
-    OBJECT_POSES,
     RUN_EVENT,
-    TOOL_POSE,
     Event,
     Flag,
 )
 from teleop.bus.service import STOP_POLL_S, Service, service_main
-from teleop.bus.session import Publisher, subscribe, subscribe_events
+from teleop.bus.session import Publisher, subscribe_events
 from teleop.core.clock import NS_PER_S
 from teleop.devices.operator import HandCommand, OperatorLoop, Scenario
 
@@ -71,9 +68,9 @@ class OperatorService(Service):
         self._lateness_ns = np.zeros(LATENESS_SAMPLES, dtype=np.int64)
         self._poses_decided = 0
         topics, drops = self.topics, self.drops
-        self.keep(subscribe(self.session, topics.tool_pose, TOOL_POSE, self._on_tool, drops))
-        self.keep(subscribe(self.session, topics.objects, OBJECT_POSES, self._on_objects, drops))
-        self.keep(subscribe(self.session, topics.head_pose, HEAD_POSE, self._on_head, drops))
+        self.subscribe_stream("tool_pose", self._on_tool)
+        self.subscribe_stream("objects", self._on_objects)
+        self.subscribe_stream("head_pose", self._on_head)
         self.keep(subscribe_events(self.session, topics, "plant_events", self._on_event, drops))
         self.keep(
             self.session.liveliness().declare_subscriber(

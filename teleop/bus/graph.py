@@ -75,12 +75,22 @@ class Stream:
     seq_per_record: bool = True  # seq goes up by one per record (not a cycle counter)
     note: str = ""  # what a reader of the protocol must know besides the above
     scenarios: tuple[str, ...] = ()  # the scenarios whose stacks carry it (empty: all)
+    # The consumers that, in a realtime run, take only the newest record: one that falls
+    # behind skips what came meanwhile (counted) instead of working through a backlog,
+    # whose answers would all be late. Every other consumer, and every consumer in
+    # lockstep (deterministic: each record counts), takes every record in order.
+    newest_for: tuple[str, ...] = ()
+
+    def takes_newest(self, consumer: str, mode: str) -> bool:
+        """Whether ``consumer`` takes only the newest record of this stream in a run of
+        ``mode`` (``run.mode``)."""
+        return mode == "realtime" and consumer in self.newest_for
 
 
 PATH, TELEOP = ("path-following",), ("grasp",)  # streams of one scenario's stack only
 STREAMS: tuple[Stream, ...] = (
     Stream("plant_state", "state/plant", PLANT_STATE, ("plant",), ("controller", "haptic"),
-           "1 kHz, one per plant step",
+           "1 kHz, one per plant step", newest_for=("controller",),
            note="contact and proximity fields computed every step in teleoperation, else "
            "every `1 / plant.scene_rate_hz` (`interaction_step`); the haptic service "
            "takes it in lockstep only"),
@@ -89,9 +99,10 @@ STREAMS: tuple[Stream, ...] = (
            qos=OBSERVER_QOS, batch_of="plant_state"),
     Stream("tool_pose", "state/tool_pose", TOOL_POSE, ("plant",),
            ("recorder", "operator", "hmd", "launcher"),
-           "`plant.scene_rate_hz` (100 Hz)"),
+           "`plant.scene_rate_hz` (100 Hz)", newest_for=("operator", "launcher")),
     Stream("objects", "state/objects", OBJECT_POSES, ("plant",),
-           ("recorder", "operator", "eyeview"), "`plant.scene_rate_hz` (100 Hz)"),
+           ("recorder", "operator", "eyeview"), "`plant.scene_rate_hz` (100 Hz)",
+           newest_for=("operator", "eyeview")),
     Stream("joint_command", "cmd/joint_velocity", JOINT_COMMAND, ("controller",), ("plant",),
            "1 kHz: one per state (lockstep, path following) or per haptic sample",
            note="realtime teleoperation: carries its sample's `device_deadline_ns`; the "
@@ -112,20 +123,20 @@ STREAMS: tuple[Stream, ...] = (
            ("recorder", "launcher"), "on change", periodic=False,
            note="STALL, CONTACT, SINGULARITY: the motion is not safe or not progressing"),
     Stream("haptic_state", "haptic/state", HAPTIC_STATE, ("haptic",), ("controller",),
-           "1 kHz, one per device period", scenarios=TELEOP),
+           "1 kHz, one per device period", scenarios=TELEOP, newest_for=("controller",)),
     Stream("haptic_state_batch", "haptic/state/batch", HAPTIC_STATE, ("haptic",),
            ("recorder",), "1 kHz / `bus.observer_batch_records`", qos=OBSERVER_QOS,
            batch_of="haptic_state", scenarios=TELEOP),
     Stream("hand_input", "operator/hand", HAND_INPUT, ("operator",), ("haptic", "recorder"),
            "100 Hz", note="published ahead of its `valid_from_tick`", scenarios=TELEOP),
     Stream("force_feedback", "haptic/feedback", FORCE_FEEDBACK, ("controller",), ("haptic",),
-           "1 kHz, one per plant state", scenarios=TELEOP),
+           "1 kHz, one per plant state", scenarios=TELEOP, newest_for=("haptic",)),
     Stream("force_feedback_batch", "haptic/feedback/batch", FORCE_FEEDBACK, ("controller",),
            ("recorder",), "1 kHz / `bus.observer_batch_records`", qos=OBSERVER_QOS,
            batch_of="force_feedback", scenarios=TELEOP),
     Stream("head_pose", "hmd/pose", HEAD_POSE, ("hmd",),
            ("controller", "operator", "eyeview", "recorder"), "`hmd.rate_hz` (90 Hz)",
-           scenarios=TELEOP),
+           scenarios=TELEOP, newest_for=("controller", "operator", "eyeview")),
     Stream("teleop_status", "control/teleop", TELEOP_STATUS, ("controller",),
            ("recorder",), "100 Hz", scenarios=TELEOP),
     Stream("eye_view", "view/eye", EYE_VIEW, ("eyeview",), ("recorder",),
@@ -231,11 +242,13 @@ def graph_tables() -> str:
             s.rate,
             s.qos.describe(),
             ", ".join(s.scenarios) or "all",
+            ", ".join(s.newest_for) or "-",
             s.note or (f"observers' copy of `{s.batch_of}`" if s.batch_of else ""),
         )
         for s in STREAMS
     ]
-    header = ("stream", "key", "record", "from -> to", "rate", "QoS", "scenarios", "note")
+    header = ("stream", "key", "record", "from -> to", "rate", "QoS", "scenarios",
+              "newest only (realtime)", "note")  # fmt: skip
     lines = _table(header, streams)
     lines += ["", *_table(("token", "meaning"), [(f"`{k}`", m) for k, m in TOKENS])]
     services = [

@@ -31,12 +31,16 @@ from typing import Any, ClassVar
 
 import zenoh
 
+from teleop.bus import graph
 from teleop.bus.messages import DropCounter, Kind
 from teleop.bus.session import (
+    NewestSubscriber,
+    RecordCallback,
     ServicesMissing,
     close_session,
     declare_alive,
     open_session,
+    subscribe_newest,
     wait_alive,
 )
 from teleop.bus.topics import Topics
@@ -94,10 +98,14 @@ class Service:
         self.drops = DropCounter()
         self.session: zenoh.Session | None = None
         self._entities: list[Any] = []
+        self._newest: dict[str, NewestSubscriber] = {}  # streams taken newest-only, by name
         self._closed = False
         self._summary_stop = threading.Event()
         self._summary_thread: threading.Thread | None = None
         self.running_summaries = 0  # summaries so far written while running
+        # CPU time (s) this process had used when it declared itself ready: its start-up
+        # (imports, models, session, links), apart from what its work costs per second.
+        self.cpu_s_ready: float | None = None
         self.running_summary_failures = 0  # of which summary() raised (skipped)
         # CPU time (ms) the costliest one took, the first apart: about how long it held
         # the GIL the service's own threads need.
@@ -120,6 +128,28 @@ class Service:
         """Declare this service alive: call once its subscribers are in place."""
         assert self.session is not None
         self.keep(declare_alive(self.session, self.topics, self.name))
+
+    def subscribe_stream(
+        self, stream_name: str, callback: RecordCallback
+    ) -> zenoh.Subscriber | NewestSubscriber:
+        """Subscribe this service to the graph's stream ``stream_name`` (its key and record
+        kind) as the graph says it takes it in this run's mode: every record in order, or
+        only the newest (:class:`NewestSubscriber`, its skips in the summary's
+        ``skipped``). Kept: close() undeclares it."""
+        assert self.session is not None
+        stream = graph.stream(stream_name)
+        newest = stream.takes_newest(self.name, self.config.run.mode)
+        sub = subscribe_newest(
+            self.session,
+            getattr(self.topics, stream_name),
+            stream.schema,
+            callback,
+            self.drops,
+            newest=newest,
+        )
+        if isinstance(sub, NewestSubscriber):
+            self._newest[stream_name] = sub
+        return self.keep(sub)
 
     def keep(self, entity: Any) -> Any:
         """Remember a Zenoh entity so close() undeclares it; returns it."""
@@ -144,6 +174,13 @@ class Service:
                 for (kind, reason), count in sorted(self.drops.counts().items())
             },
             "cpu_s": time.process_time(),
+            "cpu_s_ready": self.cpu_s_ready,
+            # per stream taken newest-only (realtime): records taken, and skipped because
+            # a newer one came first (this service was behind)
+            "newest_only": {
+                name: {"taken": sub.taken, "skipped": sub.skipped}
+                for name, sub in self._newest.items()
+            },
             "unlinked_peers": list(self.unlinked_peers),
             "peers_linked_late": dict(self.peers_linked_late),
             "privileges": self.privileges,
@@ -207,6 +244,7 @@ class Service:
                 PEER_LINK_WAIT_S,
             )
             self.keep(self._watch_late_links(started_ns))
+        self.cpu_s_ready = time.process_time()
         self.keep(declare_alive(self.session, self.topics, self.name, ready=True))
         return True
 

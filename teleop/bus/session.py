@@ -267,6 +267,93 @@ def subscribe(
     return session.declare_subscriber(key, on_sample)
 
 
+class NewestSubscriber:
+    """A subscription whose callback sees only the newest record: what a realtime consumer
+    takes (``Stream.newest_for`` in :mod:`teleop.bus.graph`).
+
+    Zenoh keeps one sample in a ring (``RingChannel(1)``: a newer sample overwrites one
+    not yet taken) and a thread of this object takes it, decodes it like :func:`subscribe`
+    and calls back. A callback that takes longer than the stream's period, or a thread
+    that is not scheduled for a while, therefore never leaves a backlog: the next record
+    it gets is the newest. The records it never saw show as gaps in their ``seq``:
+    ``skipped`` counts them (with any the bus lost; on loopback it loses none).
+
+    The hand-off is the one Zenoh's own Python callbacks make (a Rust thread queues the
+    sample, a Python thread runs the callback), with a ring of one instead of an unbounded
+    queue. :meth:`undeclare` closes the ring, which ends the thread, and joins it.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        schema: Schema,
+        callback: RecordCallback,
+        drops: DropCounter,
+    ) -> None:
+        self.key = key
+        self.skipped = 0  # records overwritten before this subscriber took them (seq gaps)
+        self.taken = 0  # records handed to the callback
+        self._last_seq = -1
+        self._schema, self._callback, self._drops = schema, callback, drops
+        self._sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
+        # recv() on the handler, not the subscriber: undeclare() must not wait for it
+        self._ring = self._sub.handler
+        self._failed_once = False
+        self._thread = threading.Thread(target=self._take, name=f"newest {key}", daemon=True)
+        self._thread.start()
+
+    def _count(self, rec: np.ndarray, rx_ns: int) -> None:
+        seq = int(rec["seq"])
+        if self._last_seq >= 0 and self._last_seq < seq <= self._last_seq + SKIP_WINDOW:
+            self.skipped += seq - self._last_seq - 1
+        self._last_seq = seq
+        self.taken += 1
+        self._callback(rec, rx_ns)
+
+    def _take(self) -> None:
+        while True:
+            try:
+                sample = self._ring.recv()
+            except zenoh.ZError:
+                return  # undeclared: the ring is closed and empty
+            rx_ns = time.monotonic_ns()
+            try:
+                deliver(sample.payload.to_bytes(), rx_ns, self._schema, self._count, self._drops)
+            except Exception:
+                if not self._failed_once:  # a bug in the callback: say it, keep taking
+                    self._failed_once = True
+                    logger.exception("callback of %s failed (further failures not logged)",
+                                     self.key)  # fmt: skip
+
+    def undeclare(self) -> None:
+        _undeclare(self._sub)
+        if threading.current_thread() is not self._thread:
+            self._thread.join()
+
+
+# A seq further ahead of the last one than this is a producer that started over (or a
+# forged counter), not records skipped: not counted (about a minute at 1 kHz).
+SKIP_WINDOW = 1 << 16
+
+
+def subscribe_newest(
+    session: zenoh.Session,
+    key: str,
+    schema: Schema,
+    callback: RecordCallback,
+    drops: DropCounter,
+    *,
+    newest: bool,
+) -> zenoh.Subscriber | NewestSubscriber:
+    """:func:`subscribe` (``newest`` False: every record, in order) or a
+    :class:`NewestSubscriber` (True: only the newest): the choice a consumer makes once,
+    from the graph (``Stream.takes_newest``)."""
+    if newest:
+        return NewestSubscriber(session, key, schema, callback, drops)
+    return subscribe(session, key, schema, callback, drops)
+
+
 def owned_events(stream_name: str, callback: RecordCallback, drops: DropCounter) -> RecordCallback:
     """``callback`` behind a check that each RUN_EVENT is one the service of
     ``stream_name`` owns (:data:`graph.EVENT_STREAM`); any other is counted in ``drops``

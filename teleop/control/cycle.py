@@ -115,6 +115,7 @@ class ControllerCore:
         # and make the real answer look like a duplicate).
         self._out_lock = threading.Lock()
         self._last_seq = -1
+        self._realtime = config.run.mode == "realtime"
         # t_source_ns of this run's state 0: a state 0 with the same stamp is the plant
         # re-sending it (byte for byte), not a new run.
         self._run_start_ns = -1
@@ -136,7 +137,11 @@ class ControllerCore:
         lost on the way (:meth:`resend_last`; a receiver that has it drops the copy)."""
         with self._lock:
             seq = int(rec["seq"])
-            if seq == 0 and int(rec["t_source_ns"]) != self._run_start_ns:
+            # Realtime: the plant never re-sends, and the state stream is taken newest-only
+            # (teleop.bus.graph), which may skip a new run's state 0: any seq going back
+            # is the plant starting over.
+            started_over = self._realtime and 0 <= seq < self._last_seq
+            if (seq == 0 and int(rec["t_source_ns"]) != self._run_start_ns) or started_over:
                 self._run_start_ns = int(rec["t_source_ns"])  # a new run (or plant restart):
                 self.reset()  # forget the task state
                 self.runs += 1

@@ -49,6 +49,7 @@ from teleop.bus.session import (
     open_session,
     subscribe,
     subscribe_events,
+    subscribe_newest,
     wait_alive,
 )
 from teleop.bus.topics import Topics
@@ -451,7 +452,10 @@ def run_on_services(
         entities.append(subscribe_events(session, topics, "plant_events", on_event, drops))
         if config.run.scenario == "grasp":  # the operator's TASK_DONE (success or not)
             entities.append(subscribe_events(session, topics, "operator_events", on_event, drops))
-        entities.append(subscribe(session, topics.tool_pose, TOOL_POSE, tool, drops))
+        newest_tools = graph.stream("tool_pose").takes_newest(LAUNCHER, config.run.mode)
+        entities.append(
+            subscribe_newest(session, topics.tool_pose, TOOL_POSE, tool, drops, newest=newest_tools)
+        )
         entities.append(declare_alive(session, topics, LAUNCHER))
         entities.append(declare_alive(session, topics, LAUNCHER, ready=True))
         mesh = peer_mesh([*services, *outside], None, ports, tls=config.bus.tls)
@@ -538,8 +542,6 @@ def run_on_services(
     }
     if config.run.scenario == "grasp":
         summary.update(_grasp_summary(summaries, task_done))
-        if plant.get("aborted"):  # whatever the world looks like, the run did not go on
-            summary["success"] = False
     else:
         summary.update(
             {
@@ -555,6 +557,10 @@ def run_on_services(
                 "motion_problems": controller.get("motion_problems", []),
             }
         )
+    if plant.get("aborted") or plant.get("failure"):
+        # The plant ended the run on a failure: whatever the task's figures say, it did
+        # not go on to its end.
+        summary["success"] = False
     idle_poll = idle_poll_report(polled_cpus, run_dir)
     machine = machine_section(summaries, polled_cpus, idle_poll)
     # The brakes an injected fault caused are the fault's, not a loss of real time.

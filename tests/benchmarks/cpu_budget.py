@@ -105,6 +105,12 @@ def stack_round(run_dir: Path, priority: int) -> dict[str, Any]:
     plant = services["plant"]
     sim_s = plant["steps"] * 1e-3
     cpu = {name: s.get("cpu_s", 0.0) / sim_s for name, s in services.items()}
+    # The same without each service's start-up (CPU until it declared itself ready).
+    running = {
+        name: (s.get("cpu_s", 0.0) - (s.get("cpu_s_ready") or 0.0)) / sim_s
+        for name, s in services.items()
+    }
+    startup = {name: s.get("cpu_s_ready") for name, s in services.items()}
     return {
         "exit_code": process.returncode,
         "success": summary.get("success"),
@@ -114,6 +120,10 @@ def stack_round(run_dir: Path, priority: int) -> dict[str, Any]:
         "stalls": plant.get("arrival", {}).get("stalls"),
         "cpu_per_sim_s": cpu,
         "cpu_per_sim_s_total": sum(cpu.values()),
+        "running_cpu_per_sim_s": running,
+        "running_cpu_per_sim_s_total": sum(running.values()),
+        "startup_cpu_s": startup,
+        "sim_s": sim_s,
         "probe_gaps": gaps,
     }
 
@@ -134,12 +144,17 @@ def main() -> int:
     rounds: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="cpu-budget-") as tmp:
         for index in range(args.rounds):
+            loadavg_before = os.getloadavg()
             baseline = probe_all(args.probe_priority, PROBE_S)
             stack = stack_round(Path(tmp) / f"run{index}", args.probe_priority)
-            rounds.append({"baseline_probe_gaps": baseline, "stack": stack})
-            cpus = stack["cpu_per_sim_s"]
+            rounds.append(
+                {"loadavg_before": loadavg_before, "baseline_probe_gaps": baseline, "stack": stack}
+            )
+            cpus = stack["running_cpu_per_sim_s"]
             print(
-                f"round {index + 1}/{args.rounds}: CPU/sim s {stack['cpu_per_sim_s_total']:.2f} ("
+                f"round {index + 1}/{args.rounds} (load average before "
+                f"{loadavg_before[0]:.2f}): CPU/sim s {stack['cpu_per_sim_s_total']:.2f} with "
+                f"start-up, {stack['running_cpu_per_sim_s_total']:.2f} running ("
                 + ", ".join(f"{k} {v:.2f}" for k, v in cpus.items())
                 + f"), realtime factor {stack['realtime_factor']:.3f}, braked "
                 f"{stack['braked_fraction']:.1%}, probe guard gaps with stack "
@@ -152,6 +167,13 @@ def main() -> int:
         "rounds": rounds,
         "median": {
             "cpu_per_sim_s_total": statistics.median(s["cpu_per_sim_s_total"] for s in stacks),
+            "running_cpu_per_sim_s_total": statistics.median(
+                s["running_cpu_per_sim_s_total"] for s in stacks
+            ),
+            "running_cpu_per_sim_s": {
+                name: statistics.median(s["running_cpu_per_sim_s"].get(name, 0.0) for s in stacks)
+                for name in stacks[0]["running_cpu_per_sim_s"]
+            },
             "cpu_per_sim_s": {
                 name: statistics.median(s["cpu_per_sim_s"].get(name, 0.0) for s in stacks)
                 for name in stacks[0]["cpu_per_sim_s"]
@@ -161,13 +183,14 @@ def main() -> int:
         },
         "cpus": len(os.sched_getaffinity(0)),
         "probe_s": PROBE_S,
-        "loadavg": os.getloadavg(),
+        "loadavg_after": os.getloadavg(),
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(result, indent=2))
     median = result["median"]
     print(
-        f"median: CPU/sim s {median['cpu_per_sim_s_total']:.2f} on {result['cpus']} CPUs, "
+        f"median: CPU/sim s {median['cpu_per_sim_s_total']:.2f} with start-up, "
+        f"{median['running_cpu_per_sim_s_total']:.2f} running, on {result['cpus']} CPUs, "
         f"realtime factor {median['realtime_factor']:.3f}, braked {median['braked_fraction']:.1%}"
     )
     print(f"wrote {args.json}")

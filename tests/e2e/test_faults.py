@@ -10,6 +10,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 # A run that neither fails nor finishes within this long is a hang (s).
 HANG_S = 600
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_REALTIME_LOST = 0, 1, 2, 3
@@ -50,20 +52,26 @@ def test_a_controller_killed_then_frozen_in_lockstep_comes_back_and_the_run_comp
     assert killed["running"] and killed["pid"] != summary["services"]["controller"]["pid"]
 
 
-def test_a_killed_plant_never_passes_for_a_clean_run(tmp_path):
-    """Killed mid-run, the plant either resumes where it was (sim time continues to the
-    end of the run) or the run fails saying the world was reset; never a success that
-    hides a run started over."""
+@pytest.mark.parametrize("checkpoints", [True, False], ids=["checkpoints", "no-checkpoints"])
+def test_a_killed_plant_never_passes_for_a_clean_run(tmp_path, checkpoints):
+    """Killed mid-run, the plant resumes where it was from its newest checkpoint (on by
+    default: sim time continues to the end of the run); without checkpoints the run fails
+    saying it could not resume. Never a success that hides a run started over."""
+    no_checkpoints = () if checkpoints else ("--set", "plant.checkpoint_s=0")
     code, err, summary = _teleop(
-        tmp_path / "run", "--mode", "lockstep", "--duration", "4", "--kill", "plant@2"
-    )
-    if code == EXIT_FAILED:
-        assert "started the run over from step 0" in err, err
-        assert not summary  # no summary of a run that did not complete
-    else:
-        assert code == EXIT_OK, err
-        (fault,) = summary["faults"]
-        assert fault["resumed_s"] is not None and summary["steps"] == 4 * STEPS_PER_S
+        tmp_path / "run", "--mode", "lockstep", "--duration", "4", "--kill", "plant@2",
+        *no_checkpoints,
+    )  # fmt: skip
+    if not checkpoints:
+        assert code == EXIT_FAILED, err
+        assert "no checkpoint to resume from" in err, err
+        assert summary["success"] is False and summary["failure"], summary.get("failure")
+        return
+    assert code == EXIT_OK, err
+    (fault,) = summary["faults"]
+    assert fault["resumed_s"] is not None and summary["steps"] == 4 * STEPS_PER_S
+    (resume,) = summary["plant_resumes"]
+    assert 0 < resume["step"] < 4 * STEPS_PER_S and resume["steps_lost"] >= 0
 
 
 def test_a_controller_frozen_in_realtime_is_braked_on_and_resumes_after_the_thaw(tmp_path):

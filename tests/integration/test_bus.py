@@ -388,3 +388,64 @@ def test_a_zenoh_listener_opens_on_a_port_the_launcher_holds():
                 pass
         finally:
             bus.close_session(session)
+
+
+def test_a_newest_only_subscriber_that_falls_behind_takes_the_newest_and_counts_the_rest():
+    """A realtime consumer slower than its stream (here: 20 ms per record, records every
+    millisecond) never works through a backlog: each record it takes is the newest sent
+    by then, the last one it takes is the last one sent, and what it never saw is counted
+    as skipped. A FIFO subscriber beside it takes every record, late."""
+    endpoint = free_endpoint()
+    topics = Topics(ROBOT)
+    listener = bus.open_session(_bus(endpoint), listen=True)
+    session = bus.open_session(_bus(endpoint), listen=False)
+    drops = m.DropCounter()
+    newest_got: list[tuple[int, int]] = []  # (seq taken, newest seq sent by then)
+    every_got: list[int] = []
+    sent = [-1]
+    last = 199
+    newest_done, every_done = threading.Event(), threading.Event()
+
+    def slow(rec: np.ndarray, rx_ns: int) -> None:
+        newest_got.append((int(rec["seq"]), sent[0]))
+        time.sleep(0.02)
+        if int(rec["seq"]) == last:
+            newest_done.set()
+
+    def every(rec: np.ndarray, rx_ns: int) -> None:
+        every_got.append(int(rec["seq"]))
+        if int(rec["seq"]) == last:
+            every_done.set()
+
+    newest = bus.subscribe_newest(
+        listener, topics.plant_state, m.PLANT_STATE, slow, drops, newest=True
+    )
+    fifo = bus.subscribe_newest(listener, topics.plant_state, m.PLANT_STATE, every, drops,
+                                newest=False)  # fmt: skip
+    assert isinstance(newest, bus.NewestSubscriber) and isinstance(fifo, zenoh.Subscriber)
+    pub = bus.Publisher.declare(session, topics.plant_state, m.PLANT_STATE)
+    try:
+        assert pub.wait_matched(TIMEOUT_S)
+        rec = m.PLANT_STATE.new()
+        start_s = time.monotonic()
+        for seq in range(last + 1):
+            rec["seq"] = seq
+            sent[0] = seq
+            pub.put(rec)
+            time.sleep(0.001)
+        sending_s = time.monotonic() - start_s
+        assert newest_done.wait(TIMEOUT_S) and every_done.wait(TIMEOUT_S)
+        assert every_got == list(range(last + 1))
+        taken = [seq for seq, _ in newest_got]
+        assert taken == sorted(taken) and taken[-1] == last
+        # One record per 20 ms callback while they came, and the last: no backlog.
+        assert len(taken) <= sending_s / 0.02 + 2, (len(taken), sending_s)
+        # Each record taken after the first was fresh when taken (a FIFO's lag would grow
+        # to the whole backlog: about 190 records here).
+        assert all(sent_then - seq <= 25 for seq, sent_then in newest_got[1:]), newest_got
+        assert newest.taken == len(taken)
+        assert newest.skipped == taken[-1] - taken[0] - (len(taken) - 1)
+    finally:
+        bus.close_session(session, pub)
+        bus.close_session(listener, fifo, newest)
+    assert not newest._thread.is_alive()  # undeclare ended and joined its thread
