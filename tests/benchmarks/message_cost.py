@@ -90,8 +90,9 @@ def receiver(variant: str, endpoint: str, messages: int, report: Any) -> None:
     elif variant == "floor_direct":
         sub = session.declare_subscriber(
             key,
-            zenoh.handlers.Callback(lambda sample: (sample.payload.to_bytes(), tick()),
-                                    indirect=False),  # fmt: skip
+            zenoh.handlers.Callback(
+                lambda sample: (sample.payload.to_bytes(), tick()), indirect=False
+            ),  # fmt: skip
         )
     elif variant == "floor_ring":
         sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
