@@ -80,20 +80,28 @@ class Stream:
     # whose answers would all be late. Every other consumer, and every consumer in
     # lockstep (deterministic: each record counts), takes every record in order.
     newest_for: tuple[str, ...] = ()
+    # The scenarios in which they do (empty: every scenario that carries the stream).
+    newest_in: tuple[str, ...] = ()
 
-    def takes_newest(self, consumer: str, mode: str) -> bool:
+    def takes_newest(self, consumer: str, mode: str, scenario: str) -> bool:
         """Whether ``consumer`` takes only the newest record of this stream in a run of
-        ``mode`` (``run.mode``)."""
-        return mode == "realtime" and consumer in self.newest_for
+        ``mode`` and ``scenario`` (``run.mode``, ``run.scenario``)."""
+        return (
+            mode == "realtime"
+            and consumer in self.newest_for
+            and (not self.newest_in or scenario in self.newest_in)
+        )
 
 
 PATH, TELEOP = ("path-following",), ("grasp",)  # streams of one scenario's stack only
 STREAMS: tuple[Stream, ...] = (
     Stream("plant_state", "state/plant", PLANT_STATE, ("plant",), ("controller", "haptic"),
-           "1 kHz, one per plant step", newest_for=("controller",),
+           "1 kHz, one per plant step", newest_for=("controller",), newest_in=PATH,
            note="contact and proximity fields computed every step in teleoperation, else "
            "every `1 / plant.scene_rate_hz` (`interaction_step`); the haptic service "
-           "takes it in lockstep only"),
+           "takes it in lockstep only; realtime teleoperation takes every state and sheds "
+           "one older than 5 ms itself, logged for the latency report's loop accounting "
+           "(`shed`)"),
     Stream("plant_state_batch", "state/plant/batch", PLANT_STATE, ("plant",),
            ("recorder", "eyeview", "launcher"), "1 kHz / `bus.observer_batch_records`",
            qos=OBSERVER_QOS, batch_of="plant_state"),
@@ -123,14 +131,18 @@ STREAMS: tuple[Stream, ...] = (
            ("recorder", "launcher"), "on change", periodic=False,
            note="STALL, CONTACT, SINGULARITY: the motion is not safe or not progressing"),
     Stream("haptic_state", "haptic/state", HAPTIC_STATE, ("haptic",), ("controller",),
-           "1 kHz, one per device period", scenarios=TELEOP, newest_for=("controller",)),
+           "1 kHz, one per device period", scenarios=TELEOP,
+           note="realtime: taken in order, a sample older than 5 ms or superseded while the "
+           "controller is busy is shed and logged (`haptic_shed`)"),
     Stream("haptic_state_batch", "haptic/state/batch", HAPTIC_STATE, ("haptic",),
            ("recorder",), "1 kHz / `bus.observer_batch_records`", qos=OBSERVER_QOS,
            batch_of="haptic_state", scenarios=TELEOP),
     Stream("hand_input", "operator/hand", HAND_INPUT, ("operator",), ("haptic", "recorder"),
            "100 Hz", note="published ahead of its `valid_from_tick`", scenarios=TELEOP),
     Stream("force_feedback", "haptic/feedback", FORCE_FEEDBACK, ("controller",), ("haptic",),
-           "1 kHz, one per plant state", scenarios=TELEOP, newest_for=("haptic",)),
+           "1 kHz, one per plant state", scenarios=TELEOP,
+           note="realtime: taken in order, one older than 5 ms or than the newest rendered "
+           "is dropped and logged"),
     Stream("force_feedback_batch", "haptic/feedback/batch", FORCE_FEEDBACK, ("controller",),
            ("recorder",), "1 kHz / `bus.observer_batch_records`", qos=OBSERVER_QOS,
            batch_of="force_feedback", scenarios=TELEOP),
@@ -242,7 +254,8 @@ def graph_tables() -> str:
             s.rate,
             s.qos.describe(),
             ", ".join(s.scenarios) or "all",
-            ", ".join(s.newest_for) or "-",
+            (", ".join(s.newest_for) + (f" ({', '.join(s.newest_in)})" if s.newest_in else ""))
+            or "-",
             s.note or (f"observers' copy of `{s.batch_of}`" if s.batch_of else ""),
         )
         for s in STREAMS

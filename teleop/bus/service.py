@@ -138,7 +138,7 @@ class Service:
         ``skipped``). Kept: close() undeclares it."""
         assert self.session is not None
         stream = graph.stream(stream_name)
-        newest = stream.takes_newest(self.name, self.config.run.mode)
+        newest = stream.takes_newest(self.name, self.config.run.mode, self.config.run.scenario)
         sub = subscribe_newest(
             self.session,
             getattr(self.topics, stream_name),

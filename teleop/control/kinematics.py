@@ -13,6 +13,7 @@ All vectors are in the world frame (z up, origin at the arm base); ``q_rad`` and
 from __future__ import annotations
 
 import math
+import operator
 from dataclasses import dataclass
 
 import mujoco
@@ -206,7 +207,9 @@ def manipulability_and_gradient(jacobian: np.ndarray) -> tuple[float, np.ndarray
 
 
 def _dot(x: list[float], y: list[float]) -> float:
-    return sum(p * q for p, q in zip(x, y, strict=True))
+    # map(mul) adds the same products in the same order as a generator, bit for bit, at
+    # about half its cost (no generator frame per term).
+    return sum(map(operator.mul, x, y))
 
 
 def symmetric_3x3_inverse(m: np.ndarray) -> tuple[np.ndarray, float]:

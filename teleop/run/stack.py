@@ -452,7 +452,9 @@ def run_on_services(
         entities.append(subscribe_events(session, topics, "plant_events", on_event, drops))
         if config.run.scenario == "grasp":  # the operator's TASK_DONE (success or not)
             entities.append(subscribe_events(session, topics, "operator_events", on_event, drops))
-        newest_tools = graph.stream("tool_pose").takes_newest(LAUNCHER, config.run.mode)
+        newest_tools = graph.stream("tool_pose").takes_newest(
+            LAUNCHER, config.run.mode, config.run.scenario
+        )
         entities.append(
             subscribe_newest(session, topics.tool_pose, TOOL_POSE, tool, drops, newest=newest_tools)
         )

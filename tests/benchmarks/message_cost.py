@@ -47,6 +47,8 @@ STREAM_CONSUMERS = {
     "haptic_state": "controller",
     "force_feedback": "haptic",
 }
+# The scenario whose realtime subscriptions are measured (its 1 kHz loop).
+SCENARIO = "grasp"
 PERIOD_NS = 1_000_000  # 1 kHz
 # The receiver's first messages pay one-off costs (imports, first allocations): CPU is
 # counted from this many messages on.
@@ -109,7 +111,7 @@ def receiver(variant: str, endpoint: str, messages: int, report: Any) -> None:
         threading.Thread(target=drain, daemon=True).start()
     else:
         stream = graph.stream(variant)
-        newest = stream.takes_newest(STREAM_CONSUMERS[variant], "realtime")
+        newest = stream.takes_newest(STREAM_CONSUMERS[variant], "realtime", SCENARIO)
         key = getattr(Topics("bench"), variant)
         sub = bus.subscribe_newest(
             session, key, stream.schema, lambda rec, rx_ns: tick(), DropCounter(), newest=newest
