@@ -3,8 +3,9 @@
 Inputs: PLANT_STATE (every task) and, in teleoperation, HAPTIC_STATE and HEAD_POSE.
 Outputs: JOINT_COMMAND, and CONTROL_STATUS (path following) or FORCE_FEEDBACK (with
 its batched copy for the recorder) and TELEOP_STATUS (teleoperation). Each input is
-handled in the Zenoh callback that delivers it (a hand-off to a service thread would
-add a thread wake-up to every cycle); the cycles themselves are the cores'.
+handled on the thread that takes it off the bus (Zenoh's callback thread, or for a
+stream taken newest-only in realtime its NewestSubscriber's: the path-following states,
+the head poses), with no further hand-off; the cycles themselves are the cores'.
 """
 
 from __future__ import annotations

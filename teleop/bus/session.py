@@ -267,6 +267,11 @@ def subscribe(
     return session.declare_subscriber(key, on_sample)
 
 
+# A seq further ahead of the last one than this is a producer that started over (or a
+# forged counter), not records skipped: not counted (about a minute at 1 kHz).
+SKIP_WINDOW = 1 << 16
+
+
 class NewestSubscriber:
     """A subscription whose callback sees only the newest record: what a realtime consumer
     takes (``Stream.newest_for`` in :mod:`teleop.bus.graph`).
@@ -330,11 +335,6 @@ class NewestSubscriber:
         _undeclare(self._sub)
         if threading.current_thread() is not self._thread:
             self._thread.join()
-
-
-# A seq further ahead of the last one than this is a producer that started over (or a
-# forged counter), not records skipped: not counted (about a minute at 1 kHz).
-SKIP_WINDOW = 1 << 16
 
 
 def subscribe_newest(
