@@ -27,6 +27,7 @@ from shm.provider import SHM_THRESHOLD_BYTES, configure_session, put_by_size, to
 from teleop.bus import graph
 from teleop.bus.access import TLS_CONFIG, zenoh_entries
 from teleop.bus.messages import DecodeError, DropCounter, Event, FrameSchema, Kind, Reason, Schema
+from teleop.bus.stamps import SeqGaps
 from teleop.bus.topics import Topics
 from teleop.core.config import BusConfig, ConfigError
 
@@ -267,11 +268,6 @@ def subscribe(
     return session.declare_subscriber(key, on_sample)
 
 
-# A seq further ahead of the last one than this is a producer that started over (or a
-# forged counter), not records skipped: not counted (about a minute at 1 kHz).
-SKIP_WINDOW = 1 << 16
-
-
 class NewestSubscriber:
     """A subscription whose callback sees only the newest record: what a realtime consumer
     takes (``Stream.newest_for`` in :mod:`teleop.bus.graph`).
@@ -297,9 +293,8 @@ class NewestSubscriber:
         drops: DropCounter,
     ) -> None:
         self.key = key
-        self.skipped = 0  # records overwritten before this subscriber took them (seq gaps)
         self.taken = 0  # records handed to the callback
-        self._last_seq = -1
+        self._gaps = SeqGaps()
         self._schema, self._callback, self._drops = schema, callback, drops
         self._sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
         # recv() on the handler, not the subscriber: undeclare() must not wait for it
@@ -308,11 +303,13 @@ class NewestSubscriber:
         self._thread = threading.Thread(target=self._take, name=f"newest {key}", daemon=True)
         self._thread.start()
 
+    @property
+    def skipped(self) -> int:
+        """Records overwritten before this subscriber took them (gaps in their seq)."""
+        return self._gaps.missing
+
     def _count(self, rec: np.ndarray, rx_ns: int) -> None:
-        seq = int(rec["seq"])
-        if self._last_seq >= 0 and self._last_seq < seq <= self._last_seq + SKIP_WINDOW:
-            self.skipped += seq - self._last_seq - 1
-        self._last_seq = seq
+        self._gaps.add(int(rec["seq"]))
         self.taken += 1
         self._callback(rec, rx_ns)
 

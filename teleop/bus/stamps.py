@@ -101,6 +101,50 @@ MAX_RESYNC_RUNS = 4
 FUTURE_STAMP_TOLERANCE_NS = 1_000_000
 
 
+class SeqGaps:
+    """The one rule for what a receiver makes of a stream's ``seq`` (records that go up by
+    one each): a seq ahead of the previous one by ``step`` in ``1..SEQ_WINDOW`` leaves
+    ``step - 1`` records ``missing`` (lost on the way, or skipped by a newest-only
+    consumer that was behind); one not ahead (or further ahead than the window) is the
+    producer starting over (a restart, a new run, or a counter nobody can trust): counted
+    in ``restarts``, no gap. Used record by record (:meth:`add`) by a newest-only
+    subscription, and batch by batch (:meth:`add_batch`) by the recorder: the same
+    counts either way. Not thread-safe: its owner calls it from one thread.
+    """
+
+    def __init__(self) -> None:
+        self.previous: int | None = None  # the newest seq seen; None: none yet
+        self.missing = 0
+        self.restarts = 0
+
+    def add(self, seq: int) -> int:
+        """One record's seq; the records missing before it (0 for a restart)."""
+        previous, self.previous = self.previous, seq
+        if previous is None:
+            return 0
+        step = seq - previous
+        if 1 <= step <= SEQ_WINDOW:
+            self.missing += step - 1
+            return step - 1
+        self.restarts += 1
+        return 0
+
+    def add_batch(self, seqs: np.ndarray) -> tuple[int, int]:
+        """Seqs of several records in arrival order; (missing, restarts) among them."""
+        if len(seqs) == 0:
+            return 0, 0
+        seqs = np.asarray(seqs, dtype=np.int64)
+        first = seqs[0] - 1 if self.previous is None else self.previous
+        steps = np.diff(seqs, prepend=first)
+        self.previous = int(seqs[-1])
+        gaps = (steps >= 1) & (steps <= SEQ_WINDOW)
+        missing = int((steps[gaps] - 1).sum())
+        restarts = int(len(steps) - np.count_nonzero(gaps))
+        self.missing += missing
+        self.restarts += restarts
+        return missing, restarts
+
+
 class SeqCheck:
     """Losses, reordering and restarts of one stream, from the ``seq`` of its records.
 

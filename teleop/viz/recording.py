@@ -66,6 +66,7 @@ from teleop.bus.messages import (
     Schema,
     Stage,
 )
+from teleop.bus.stamps import SeqGaps
 from teleop.control.path import DesiredPath
 from teleop.control.teleop import view_to_world
 from teleop.core.config import Config, ModelError
@@ -522,7 +523,7 @@ class RecordingWriter:
         # Per stream: [window start ns, records counted]; and the newest record counted.
         self._rate_windows: dict[str, list[int]] = {}
         self._rate_last: dict[str, np.ndarray] = {}
-        self._last_seq: dict[str, int] = {}  # per stream: newest seq
+        self._seq_gaps: dict[str, SeqGaps] = {}  # per stream: its seq gaps and restarts
         self._hops: dict[str, list[tuple[Stage, Stage]]] = {}  # per stream, column order
         self._chain_stages: dict[str, set[Stage]] = {}  # per stream: stages seen so far
         self._seen_drops: dict[tuple[int, str], int] = {}
@@ -1080,18 +1081,15 @@ class RecordingWriter:
         self._rec.log(entity, archetype, static=True)
 
     def _check_seq(self, name: str, seq: np.ndarray) -> None:
-        """Gaps (lost records) and restarts (seq going back: the producer restarted)."""
-        previous = self._last_seq.get(name)
-        self._last_seq[name] = int(seq[-1])
-        steps = np.diff(seq, prepend=seq[0] - 1 if previous is None else previous)
-        restarts = int(np.count_nonzero(steps <= 0))
-        missing = int(steps[steps > 1].sum() - np.count_nonzero(steps > 1))
+        """Gaps (lost records) and restarts (the producer started over), by the bus
+        layer's rule (:class:`teleop.bus.stamps.SeqGaps`)."""
+        missing, restarts = self._seq_gaps.setdefault(name, SeqGaps()).add_batch(seq)
         if missing:
             self.add_line(LEVEL_WARN, f"{name}: {missing} record(s) missing (seq gaps)")
         if restarts:
             self.add_line(
                 LEVEL_INFO,
-                f"{name}: seq went back {restarts} time(s) (producer restart or new run)",
+                f"{name}: seq started over {restarts} time(s) (producer restart or new run)",
             )
 
     def _write_recorder_events(self) -> None:

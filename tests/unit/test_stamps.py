@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import numpy as np
+import pytest
+
 from teleop.bus.messages import JOINT_COMMAND, Stage
-from teleop.bus.stamps import SHED_AGE_NS, Inbound, SeqCheck
+from teleop.bus.stamps import SEQ_WINDOW, SHED_AGE_NS, Inbound, SeqCheck, SeqGaps
 
 
 def command(seq: int, tx_ns: int, sample_ns: int = 0):
@@ -34,3 +37,34 @@ def test_inbound_drops_older_and_stale_records_and_logs_their_loops():
     # a record of no teleoperation loop (no sample stamp) is shed but leaves no stamp
     assert not inbound.accept(command(3, 0), now_ns)
     assert inbound.shed == 2 and len(inbound.shed_log) == 1
+
+
+SEQ_RUNS = [
+    [0, 1, 2, 3],  # in order: nothing missing
+    [5, 6, 9, 10, 20],  # gaps: 2 + 9 missing
+    [7, 8, 3, 4, 6],  # went back once (a new run), then 1 missing
+    [1, 2, 2, 3],  # a repeat: not ahead, counted as starting over
+    [1, 1 + SEQ_WINDOW + 1, 1 + SEQ_WINDOW + 2],  # too far ahead: no gap of 65536
+]
+
+
+@pytest.mark.parametrize("seqs", SEQ_RUNS)
+def test_seq_gaps_count_the_same_record_by_record_and_in_batches(seqs):
+    one = SeqGaps()
+    for seq in seqs:
+        one.add(seq)
+    batched = SeqGaps()
+    for part in (seqs[:2], seqs[2:3], seqs[3:]):  # batches of a recorder's flushes
+        batched.add_batch(np.array(part, dtype=np.int64))
+    assert (one.missing, one.restarts) == (batched.missing, batched.restarts)
+    assert one.previous == batched.previous == seqs[-1]
+
+
+def test_seq_gaps_of_each_case():
+    expected = [(0, 0), (11, 0), (1, 1), (0, 1), (0, 1)]
+    for seqs, (missing, restarts) in zip(SEQ_RUNS, expected, strict=True):
+        gaps = SeqGaps()
+        assert gaps.add_batch(np.array(seqs)) == (missing, restarts)
+        assert (gaps.missing, gaps.restarts) == (missing, restarts)
+    gaps = SeqGaps()
+    assert gaps.add(4) == 0 and gaps.add(7) == 2 and gaps.add_batch(np.zeros(0)) == (0, 0)
