@@ -91,9 +91,8 @@ def no_session_left_open(request: pytest.FixtureRequest) -> Iterator[None]:
         threads = {thread for thread in threads if thread.is_alive()}
     if open_sessions or threads:
         what = [f"{len(open_sessions)} session(s)"] if open_sessions else []
-        what += [f"subscription thread(s) {', '.join(sorted(t.name for t in threads))}"] * bool(
-            threads
-        )
+        if threads:
+            what.append(f"subscription thread(s) {', '.join(sorted(t.name for t in threads))}")
         for session in open_sessions:  # the rest of the run must not wait on them
             session.close()
         pytest.fail(

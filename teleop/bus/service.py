@@ -31,7 +31,6 @@ from typing import Any, ClassVar
 
 import zenoh
 
-from teleop.bus import graph
 from teleop.bus.messages import DropCounter, Kind
 from teleop.bus.session import (
     NewestSubscriber,
@@ -40,7 +39,7 @@ from teleop.bus.session import (
     close_session,
     declare_alive,
     open_session,
-    subscribe_newest,
+    subscribe_stream,
     wait_alive,
 )
 from teleop.bus.topics import Topics
@@ -137,15 +136,16 @@ class Service:
         only the newest (:class:`NewestSubscriber`, its skips in the summary's
         ``skipped``). Kept: close() undeclares it."""
         assert self.session is not None
-        stream = graph.stream(stream_name)
-        newest = stream.takes_newest(self.name, self.config.run.mode, self.config.run.scenario)
-        sub = subscribe_newest(
+        run = self.config.run
+        sub = subscribe_stream(
             self.session,
-            getattr(self.topics, stream_name),
-            stream.schema,
+            self.topics,
+            stream_name,
             callback,
             self.drops,
-            newest=newest,
+            consumer=self.name,
+            mode=run.mode,
+            scenario=run.scenario,
         )
         if isinstance(sub, NewestSubscriber):
             self._newest[stream_name] = sub

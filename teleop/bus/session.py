@@ -277,7 +277,8 @@ class NewestSubscriber:
     and calls back. A callback that takes longer than the stream's period, or a thread
     that is not scheduled for a while, therefore never leaves a backlog: the next record
     it gets is the newest. The records it never saw show as gaps in their ``seq``:
-    ``skipped`` counts them (with any the bus lost; on loopback it loses none).
+    ``skipped`` counts them by the bus layer's one rule (:class:`teleop.bus.stamps.SeqGaps`;
+    with any the bus lost: on loopback it loses none).
 
     The hand-off is the one Zenoh's own Python callbacks make (a Rust thread queues the
     sample, a Python thread runs the callback), with a ring of one instead of an unbounded
@@ -334,21 +335,26 @@ class NewestSubscriber:
             self._thread.join()
 
 
-def subscribe_newest(
+def subscribe_stream(
     session: zenoh.Session,
-    key: str,
-    schema: Schema,
+    topics: Topics,
+    stream_name: str,
     callback: RecordCallback,
     drops: DropCounter,
     *,
-    newest: bool,
+    consumer: str,
+    mode: str,
+    scenario: str,
 ) -> zenoh.Subscriber | NewestSubscriber:
-    """:func:`subscribe` (``newest`` False: every record, in order) or a
-    :class:`NewestSubscriber` (True: only the newest): the choice a consumer makes once,
-    from the graph (``Stream.takes_newest``)."""
-    if newest:
-        return NewestSubscriber(session, key, schema, callback, drops)
-    return subscribe(session, key, schema, callback, drops)
+    """Subscribe ``consumer`` to the graph's stream ``stream_name`` (its key and record
+    kind) as the graph says it takes it in a run of ``mode`` and ``scenario``
+    (``Stream.takes_newest``): a :class:`NewestSubscriber`, or :func:`subscribe` (every
+    record, in order). The choice is made here, once per subscription."""
+    stream = graph.stream(stream_name)
+    key = getattr(topics, stream_name)
+    if stream.takes_newest(consumer, mode, scenario):
+        return NewestSubscriber(session, key, stream.schema, callback, drops)
+    return subscribe(session, key, stream.schema, callback, drops)
 
 
 def owned_events(stream_name: str, callback: RecordCallback, drops: DropCounter) -> RecordCallback:

@@ -39,7 +39,7 @@ import zenoh
 
 from teleop.bus import graph
 from teleop.bus.access import LAUNCHER, OBSERVER, write_run_credentials
-from teleop.bus.messages import PLANT_STATE, TOOL_POSE, DropCounter, Event
+from teleop.bus.messages import PLANT_STATE, DropCounter, Event
 from teleop.bus.service import read_summary
 from teleop.bus.session import (
     Latest,
@@ -49,7 +49,7 @@ from teleop.bus.session import (
     open_session,
     subscribe,
     subscribe_events,
-    subscribe_newest,
+    subscribe_stream,
     wait_alive,
 )
 from teleop.bus.topics import Topics
@@ -452,11 +452,17 @@ def run_on_services(
         entities.append(subscribe_events(session, topics, "plant_events", on_event, drops))
         if config.run.scenario == "grasp":  # the operator's TASK_DONE (success or not)
             entities.append(subscribe_events(session, topics, "operator_events", on_event, drops))
-        newest_tools = graph.stream("tool_pose").takes_newest(
-            LAUNCHER, config.run.mode, config.run.scenario
-        )
         entities.append(
-            subscribe_newest(session, topics.tool_pose, TOOL_POSE, tool, drops, newest=newest_tools)
+            subscribe_stream(
+                session,
+                topics,
+                "tool_pose",
+                tool,
+                drops,
+                consumer=LAUNCHER,
+                mode=config.run.mode,
+                scenario=config.run.scenario,
+            )
         )
         entities.append(declare_alive(session, topics, LAUNCHER))
         entities.append(declare_alive(session, topics, LAUNCHER, ready=True))

@@ -69,7 +69,6 @@ def receiver(variant: str, endpoint: str, messages: int, report: Any) -> None:
     """Subscribe as ``variant`` says; report (CPU s, messages) from message WARMUP on."""
     import zenoh
 
-    from teleop.bus import graph
     from teleop.bus import session as bus
     from teleop.bus.messages import DropCounter
     from teleop.bus.topics import Topics
@@ -110,12 +109,10 @@ def receiver(variant: str, endpoint: str, messages: int, report: Any) -> None:
 
         threading.Thread(target=drain, daemon=True).start()
     else:
-        stream = graph.stream(variant)
-        newest = stream.takes_newest(STREAM_CONSUMERS[variant], "realtime", SCENARIO)
-        key = getattr(Topics("bench"), variant)
-        sub = bus.subscribe_newest(
-            session, key, stream.schema, lambda rec, rx_ns: tick(), DropCounter(), newest=newest
-        )
+        sub = bus.subscribe_stream(
+            session, Topics("bench"), variant, lambda rec, rx_ns: tick(), DropCounter(),
+            consumer=STREAM_CONSUMERS[variant], mode="realtime", scenario=SCENARIO,
+        )  # fmt: skip
     report.put(("ready", variant))
     done.wait(60 + messages / 1000)
     cpu_s = time.process_time() - start[0]

@@ -417,12 +417,8 @@ def test_a_newest_only_subscriber_that_falls_behind_takes_the_newest_and_counts_
         if int(rec["seq"]) == last:
             every_done.set()
 
-    newest = bus.subscribe_newest(
-        listener, topics.plant_state, m.PLANT_STATE, slow, drops, newest=True
-    )
-    fifo = bus.subscribe_newest(listener, topics.plant_state, m.PLANT_STATE, every, drops,
-                                newest=False)  # fmt: skip
-    assert isinstance(newest, bus.NewestSubscriber) and isinstance(fifo, zenoh.Subscriber)
+    newest = bus.NewestSubscriber(listener, topics.plant_state, m.PLANT_STATE, slow, drops)
+    fifo = bus.subscribe(listener, topics.plant_state, m.PLANT_STATE, every, drops)
     pub = bus.Publisher.declare(session, topics.plant_state, m.PLANT_STATE)
     try:
         assert pub.wait_matched(TIMEOUT_S)
