@@ -36,7 +36,7 @@ FINISHED = 2  # RUN_EVENT code
 GRIPPER_OPEN = 1.0
 
 # -- the path and the law ---------------------------------------------------------------
-AMPLITUDE_RAD = 0.1  # swing of every joint about its centre (the plant cuts the tool at 0.25 m/s)
+AMPLITUDE_RAD = 0.1  # swing of every joint about its centre (the plant cuts the tool at 0.30 m/s)
 PERIOD_S = 6.0  # one swing
 CENTRE_OFFSET_RAD = 0.1  # the centre is this far from the start: the error starts at 0.1 rad
 GAIN_PER_S = 20.0  # K: a joint error of 0.01 rad asks for 0.2 rad/s more

@@ -29,7 +29,7 @@ import operator
 import struct
 import sys
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -835,5 +835,24 @@ def code_tables() -> str:
     return "\n".join(out) + "\n"
 
 
+def version_text() -> str:
+    """The protocol version as docs/protocol.md states it (embedded verbatim between
+    markers; a test checks they match): the value every record's header carries."""
+    return (
+        f"The protocol version is **{PROTOCOL_VERSION}** (`PROTOCOL_VERSION` in "
+        "`teleop/bus/messages.py`): every record's header starts with it (`version`, u2 "
+        f"little-endian at offset 0, bytes `{PROTOCOL_VERSION & 0xFF:02x} "
+        f"{PROTOCOL_VERSION >> 8:02x}`), and a receiver drops a record of any other version "
+        f"(reason `{Reason.VERSION.value}`).\n"
+    )
+
+
+DOC_TEXTS: Mapping[str, Callable[[], str]] = {
+    "layouts": layout_table,
+    "codes": code_tables,
+    "version": version_text,
+}
+
+
 if __name__ == "__main__":
-    sys.stdout.write(code_tables() if sys.argv[1:] == ["codes"] else layout_table())
+    sys.stdout.write(DOC_TEXTS[sys.argv[1] if sys.argv[1:] else "layouts"]())

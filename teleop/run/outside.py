@@ -6,24 +6,36 @@ to: peers do not forward data for each other, so it needs a link to each), write
 complete Zenoh config of that place to ``<run_dir>/outside/<service>.json5``
 (:func:`write_outside_config`), tells the user what the service must do to join
 (:func:`join_instructions`), and waits for its ready token (:func:`wait_for_outside`).
-What a client must do is in docs/protocol.md; examples/ has two such clients.
+What a client must do is in docs/protocol.md, whose table of the tokens each service
+waits for is generated here (:func:`join_tables`); examples/ has two such clients.
+
+A by-hand observer of a running stack gets a Zenoh config the same way, from the run
+directory alone (:func:`write_observer_config`, ``python -m teleop.run.outside observer
+RUN_DIR``): a link to every process of the run, the read-only observer credentials.
 """
 
 from __future__ import annotations
 
+import argparse
+import configparser
 import json
+import shlex
+import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import zenoh
 
 from teleop.bus import graph
+from teleop.bus.access import LAUNCHER, OBSERVER
 from teleop.bus.session import ServicesMissing, session_config, wait_alive
 from teleop.bus.topics import Topics
-from teleop.core.config import BusConfig, Config, ConfigError
+from teleop.core.config import SCENARIOS, Config, ConfigError, load_config
+from teleop.core.rundir import AUTH_DIR, SUPERVISOR_CONF_FILE
 
 OUTSIDE_DIR = "outside"  # under the run directory: one Zenoh config per outside service
 # Waiting for an outside service: a line of countdown this often (s), and the wait
@@ -64,18 +76,28 @@ def _differences(value: Any, default: Any) -> Any:
     return None if value == default else value
 
 
-def write_outside_config(run_dir: Path, service: str, bus: BusConfig) -> Path:
+def outside_metadata(config: Config, service: str) -> dict[str, str]:
+    """What the outside config file tells its program besides Zenoh's settings, under
+    Zenoh's ``metadata`` (free-form JSON that Zenoh does not interpret: it only shows it
+    in its admin space): the robot id of the run's keys and the service's name."""
+    return {"robot_id": config.robot.robot_id, "service": service}
+
+
+def write_outside_config(run_dir: Path, service: str, config: Config) -> Path:
     """Write the Zenoh config an outside ``service`` opens its session with
     (``zenoh.Config.from_file(path)``); its path.
 
-    ``bus`` is that service's bus settings in the run's mesh (endpoint, own listen port,
-    the ports to connect to, gossip off). The file holds everything in which the
-    session the stack's own services open (teleop.bus.session.session_config) differs
-    from Zenoh's defaults: mode peer, multicast off, gossip off, endpoints, and the
-    same shared-memory and low-latency transport settings (a low-latency peer and a
-    normal one do not link). The file is private to the user (mode 0600).
+    ``config.bus`` is that service's bus settings in the run's mesh (endpoint, own listen
+    port, the ports to connect to, gossip off, its credentials). The file holds
+    everything in which the session the stack's own services open
+    (teleop.bus.session.session_config) differs from Zenoh's defaults: mode peer,
+    multicast off, gossip off, endpoints, and the same shared-memory and low-latency
+    transport settings (a low-latency peer and a normal one do not link); and, under
+    ``metadata``, the robot id (:func:`outside_metadata`). The file is private to the
+    user (mode 0600).
     """
-    conf = session_config(bus, listen=False)
+    conf = session_config(config.bus, listen=False)
+    conf.insert_json5("metadata", json.dumps(outside_metadata(config, service)))
     wanted = _differences(json.loads(str(conf)), json.loads(str(zenoh.Config())))
     path = outside_config_path(run_dir, service)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -83,6 +105,8 @@ def write_outside_config(run_dir: Path, service: str, bus: BusConfig) -> Path:
         f"// Zenoh config of the '{service}' service, run outside the stack (teleop run or\n"
         "// up --without): open the session with zenoh.Config.from_file(this file).\n"
         "// Written by the launcher for this run only: its ports change every run.\n"
+        f"// Robot id: {config.robot.robot_id} (also metadata/robot_id below, which Zenoh\n"
+        "// does not interpret): every key is teleop/<robot id>/...\n"
     )
     path.touch(mode=0o600)
     path.write_text(header + json.dumps(wanted, indent=2) + "\n")
@@ -105,6 +129,55 @@ def _stream_lines(service: str, topics: Topics, scenario: str) -> list[str]:
     return lines
 
 
+def tokens_to_await(
+    service: str, stack: Sequence[str], *, launcher: bool
+) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """Whose tokens ``service`` waits for in a stack of ``stack``'s services (outside
+    ones included): the ``alive`` tokens before it declares its own ``ready`` (every
+    other service: its links to each are up), and the ``ready`` tokens before its work
+    (the plant only, before its first step: every other service, and the ``launcher``
+    of ``teleop run`` when ``launcher``). The launcher starts its programs with the
+    same lists (``--peers``, ``--await``; a test holds them together)."""
+    alive = tuple(name for name in stack if name != service)
+    if service != "plant":
+        return alive, ()
+    return alive, (*alive, *((LAUNCHER,) if launcher else ()))
+
+
+def _names(names: Sequence[str]) -> str:
+    return ", ".join(f"`{name}`" for name in names) or "-"
+
+
+def join_tables() -> str:
+    """The table of docs/protocol.md ("Bringing your own service"): per scenario and
+    service, whose ``alive`` tokens it waits for before ``ready``, and whose ``ready``
+    tokens before its work (Markdown; ``python -m teleop.run.outside``)."""
+    lines = [
+        "| scenario | service | `alive` tokens to see before declaring `ready` "
+        "| `ready` tokens to see before its work |",
+        "| --- | --- | --- | --- |",
+    ]
+    optional = [spec for spec in graph.SERVICES if spec.optional]
+    for scenario in SCENARIOS:
+        stack = graph.scenario_services(scenario)
+        extra = [spec.name for spec in optional if scenario in spec.scenarios]
+        for service in stack:
+            alive, ready = tokens_to_await(service, stack, launcher=False)
+            with_launcher = tokens_to_await(service, stack, launcher=True)[1]
+            ready_text = "-"
+            if ready:
+                ready_text = f"`teleop run`: {_names(with_launcher)}; `teleop up`: {_names(ready)}"
+            lines.append(f"| {scenario} | `{service}` | {_names(alive)} | {ready_text} |")
+        if extra:
+            lines.append(f"| {scenario} | {_names(extra)} | as any other service | - |")
+    notes = [
+        f"`{spec.name}` runs with `{spec.optional}`: every service then waits for its "
+        "`alive` token too, and the plant for its `ready` token."
+        for spec in optional
+    ]
+    return "\n".join([*lines, "", *notes])
+
+
 def join_instructions(
     service: str,
     config: Config,
@@ -116,7 +189,7 @@ def join_instructions(
 ) -> str:
     """What the user's own ``service`` must do to join this stack (printed by the CLI)."""
     topics = Topics(config.robot.robot_id)
-    others = [name for name in stack if name != service]
+    others, _ = tokens_to_await(service, stack, launcher=False)
     bus = config.bus
     lines = [
         f"{service} is left out: start your own (see docs/protocol.md; examples/).",
@@ -187,3 +260,112 @@ def wait_for_outside(
             missing = exc.missing
         if still_running is not None:
             still_running()
+
+
+# The run's settings on a supervised program's command line (teleop.run.stack.service_command).
+_CONFIG_FLAG, _SET_FLAG = "--config", "--set"
+# A program's own place in the run's mesh and its own credentials: not the observer's.
+_OWN_SETTINGS = (
+    "bus.peer_listen_endpoint=",
+    "bus.peer_connect_endpoints=",
+    "bus.credentials_file=",
+)
+OBSERVER_CONFIG = OBSERVER  # <run_dir>/outside/observer.json5
+
+
+def _program_commands(run_dir: Path) -> list[list[str]]:
+    """The argv of every program in ``<run_dir>/supervisord.conf`` (as supervisord reads
+    it: '%' doubled in the file, the command split by POSIX shlex)."""
+    path = run_dir / SUPERVISOR_CONF_FILE
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no stack was started in {run_dir}")
+    parser = configparser.RawConfigParser(strict=False)
+    parser.read(path)
+    return [
+        shlex.split(parser.get(section, "command").replace("%%", "%"))
+        for section in parser.sections()
+        if section.startswith("program:") and parser.has_option(section, "command")
+    ]
+
+
+def _settings(argv: Sequence[str]) -> tuple[Path | None, list[str]]:
+    """A service command's config file and its ``--set`` overrides, in order."""
+    config_file, overrides = None, []
+    for flag, value in zip(argv, argv[1:], strict=False):
+        if flag == _CONFIG_FLAG:
+            config_file = Path(value)
+        elif flag == _SET_FLAG:
+            overrides.append(value)
+    return config_file, overrides
+
+
+def stack_endpoints(run_dir: Path) -> tuple[str, tuple[str, ...]]:
+    """Where the processes of the stack started in ``run_dir`` (``teleop run`` or ``teleop
+    up``) listen: the run's listener (``bus.endpoint``: the launcher of ``teleop run``, the
+    plant of ``teleop up``) and every other process's own endpoint, its outside services'
+    included (from their config files). Peers do not forward data for each other: a
+    session that must hear every stream needs a link to each of these."""
+    listener, own = "", []
+    for argv in _program_commands(run_dir):
+        for override in _settings(argv)[1]:
+            name, _, value = override.partition("=")
+            if name == "bus.endpoint":
+                listener = json.loads(value)
+            elif name == "bus.peer_listen_endpoint":
+                own.append(json.loads(value))
+    for path in sorted((run_dir / OUTSIDE_DIR).glob("*.json5")):
+        if path.stem != OBSERVER_CONFIG:
+            own += json.loads(str(zenoh.Config.from_file(str(path))))["listen"]["endpoints"]
+    if not listener:
+        raise ValueError(f"{run_dir / SUPERVISOR_CONF_FILE}: no service names bus.endpoint")
+    return listener, tuple(dict.fromkeys(own))
+
+
+def observer_config(run_dir: Path) -> Config:
+    """The run's config as its services load it, with the bus of a read-only observer:
+    connected to the listener and to every other process (:func:`stack_endpoints`),
+    listening on a port of its own choice, with ``<run_dir>/auth/observer.json`` as its
+    credentials when the run's bus is secure."""
+    run_dir = Path(run_dir).absolute()
+    services = [argv for argv in _program_commands(run_dir) if _SET_FLAG in argv]
+    if not services:
+        raise ValueError(f"{run_dir / SUPERVISOR_CONF_FILE}: no bus service in it")
+    config_file, overrides = _settings(services[0])
+    run_settings = [o for o in overrides if not o.startswith(_OWN_SETTINGS)]
+    config = load_config(config_file, run_settings)
+    listener, own = stack_endpoints(run_dir)
+    credentials = run_dir / AUTH_DIR / f"{OBSERVER}.json"
+    bus = replace(
+        config.bus,
+        endpoint=listener,
+        gossip=False,
+        peer_listen_endpoint="",
+        peer_connect_endpoints=own,
+        credentials_file=str(credentials) if config.bus.secure else "",
+    )
+    return replace(config, bus=bus)
+
+
+def write_observer_config(run_dir: Path) -> Path:
+    """Write ``<run_dir>/outside/observer.json5``, the Zenoh config of a by-hand observer
+    of the stack running in ``run_dir`` (:func:`observer_config`); its path."""
+    return write_outside_config(Path(run_dir), OBSERVER_CONFIG, observer_config(run_dir))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m teleop.run.outside``: the join table of docs/protocol.md;
+    ``python -m teleop.run.outside observer RUN_DIR``: write the observer's config."""
+    parser = argparse.ArgumentParser(prog="python -m teleop.run.outside", description=main.__doc__)
+    sub = parser.add_subparsers(dest="command")
+    observer = sub.add_parser("observer", help="write RUN_DIR/outside/observer.json5")
+    observer.add_argument("run_dir", type=Path, help="the --run-dir of a running stack")
+    args = parser.parse_args(argv)
+    if args.command == "observer":
+        print(write_observer_config(args.run_dir))
+    else:
+        print(join_tables())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -357,7 +357,7 @@ def prepare_outside(
         if credentials is not None:
             own_overrides.append(f'bus.credentials_file="{credentials[name]}"')
         own = load_config(config_file, [*overrides, *own_overrides])
-        path = write_outside_config(run_dir, name, own.bus)
+        path = write_outside_config(run_dir, name, own)
         awaits = plant_awaits if name == "plant" else ()
         text = join_instructions(name, own, path, stack, awaits=awaits, timeout_s=timeout_s)
         joins.append((text, own.bus))
