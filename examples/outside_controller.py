@@ -147,13 +147,15 @@ def wait_for_tokens(session: zenoh.Session, key: str, names: set) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("zenoh_config", help="the file teleop run/up --without printed")
-    parser.add_argument("--robot", default="arm0", help="robot id (default: arm0)")
+    parser.add_argument("--robot", help="robot id (default: the config file's metadata)")
     parser.add_argument("--peers", default="plant,recorder", help="the stack's services")
     parser.add_argument("--timeout", type=float, default=600.0, help="end after (s)")
     args = parser.parse_args()
-    session = zenoh.open(zenoh.Config.from_file(args.zenoh_config))
-    controller = OutsideController(session, args.robot)
-    key = f"teleop/{args.robot}"
+    conf = zenoh.Config.from_file(args.zenoh_config)
+    robot = args.robot or json.loads(str(conf))["metadata"]["robot_id"]  # the launcher's
+    session = zenoh.open(conf)
+    controller = OutsideController(session, robot)
+    key = f"teleop/{robot}"
     tokens = [session.liveliness().declare_token(f"{key}/alive/controller")]  # dropped: gone
     wait_for_tokens(session, f"{key}/alive", set(args.peers.split(",")))
     tokens.append(session.liveliness().declare_token(f"{key}/ready/controller"))  # plant starts

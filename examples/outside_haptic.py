@@ -178,13 +178,15 @@ def wait_for_tokens(session: zenoh.Session, key: str, names: set) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("zenoh_config", help="the file teleop run/up --without printed")
-    parser.add_argument("--robot", default="arm0", help="robot id (default: arm0)")
+    parser.add_argument("--robot", help="robot id (default: the config file's metadata)")
     parser.add_argument("--peers", default="plant,controller,hmd,operator,recorder")
     args = parser.parse_args()
-    session = zenoh.open(zenoh.Config.from_file(args.zenoh_config))
+    conf = zenoh.Config.from_file(args.zenoh_config)
+    robot = args.robot or json.loads(str(conf))["metadata"]["robot_id"]  # the launcher's
+    session = zenoh.open(conf)
     with Handle() as device:
-        haptic = OutsideHaptic(session, args.robot, device)
-        key = f"teleop/{args.robot}"
+        haptic = OutsideHaptic(session, robot, device)
+        key = f"teleop/{robot}"
         tokens = [session.liveliness().declare_token(f"{key}/alive/haptic")]  # dropped: gone
         wait_for_tokens(session, f"{key}/alive", set(args.peers.split(",")))
         tokens.append(session.liveliness().declare_token(f"{key}/ready/haptic"))  # plant starts
