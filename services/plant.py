@@ -1,10 +1,11 @@
-"""The plant service: :class:`teleop.sim.stepping.PlantLoop` on the bus.
+"""The plant service: :class:`teleop.sim.plant_loop.PlantLoop` on the bus.
 
 Input: JOINT_COMMAND (from the controller, or any client that speaks docs/protocol.md),
 and the operator's RUN_EVENTs (its TASK_DONE names the tick at which the run ends). Outputs:
 PLANT_STATE every step (and its batched copy for observers), TOOL_POSE and OBJECT_POSES
 at the scene rate, RUN_EVENT on start, finish, grasp, release and watchdog changes. The
-stepping, pacing and watchdog are in PlantLoop; this module wires them to Zenoh.
+stepping and watchdog (teleop.sim.stepping) and the pacing (teleop.sim.pacing) are in
+PlantLoop; this module wires them to Zenoh.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from teleop.bus.session import BatchPublisher, Publisher, subscribe, subscribe_e
 from teleop.core.clock import MonotonicClock
 from teleop.core.rundir import PLANT_CHECKPOINT_FILE, shed_path
 from teleop.sim.checkpoint import CheckpointStore
-from teleop.sim.stepping import PlantLoop
+from teleop.sim.plant_loop import PlantLoop
 
 logger = logging.getLogger(__name__)
 
@@ -68,7 +69,7 @@ class PlantService(Service):
 
     def _on_command(self, rec: np.ndarray, rx_ns: int) -> None:
         """Accept commands for exactly this arm; anything else is counted and dropped."""
-        n_joints = self.loop.plant.n_joints
+        n_joints = self.loop.core.plant.n_joints
         if int(rec["n_joints"]) != n_joints:
             detail = f"n_joints={int(rec['n_joints'])}, arm has {n_joints}"
             self.drops.record(DecodeError(Kind.JOINT_COMMAND, Reason.COUNT, detail))
@@ -96,8 +97,9 @@ class PlantService(Service):
         if not self.options.continuous:
             steps = round(self.config.run.duration_s / self.config.plant.timestep_s)
         self.loop.run(stop, steps)
-        if self.loop.finished or self.loop.aborted:
-            ended = "finished" if self.loop.finished else "aborted"
+        core = self.loop.core
+        if core.finished or core.aborted:
+            ended = "finished" if core.finished else "aborted"
             logger.info("run %s: %s", ended, self.summary())
             # The run's end on file as well as on the bus: the runner ends the run on
             # either, so a FINISHED event lost on a starved machine cannot hang it.
@@ -107,8 +109,7 @@ class PlantService(Service):
     def close(self) -> None:
         loop = getattr(self, "loop", None)  # None if open() failed before building it
         if self.options.run_dir is not None and loop is not None:
-            with loop.cond:
-                loop.command_in.save(shed_path(self.options.run_dir, self.name))
+            loop.save_shed_log(shed_path(self.options.run_dir, self.name))
         super().close()
 
     def summary(self) -> dict[str, Any]:

@@ -97,8 +97,9 @@ def set_state(model: mujoco.MjModel, data: mujoco.MjData, state: np.ndarray) -> 
 class Snapshot:
     """One checkpoint: the physics and the plant loop's own state after ``step``.
 
-    ``loop`` holds the loop's scalars and counters by name (:meth:`PlantLoop.snapshot`
-    decides them); ``hold_q_rad`` is the brake's hold position (None: not braking).
+    ``loop`` holds the loop's scalars and counters by name
+    (:meth:`teleop.sim.stepping.PlantStepCore.snapshot` decides them); ``hold_q_rad`` is
+    the brake's hold position (None: not braking).
     """
 
     model_id: str

@@ -45,6 +45,7 @@ from teleop.bus.service import Service, ServiceOptions
 from teleop.bus.session import deliver
 from teleop.core.config import Config, load_config
 from teleop.core.net import free_loopback_port
+from teleop.sim.pacing import DeviceClockPacer
 
 # The loop's stages this replay covers: the latency report's compute and wait hops.
 STAGES = tuple(hop for hop in HOPS if hop.kind in ("compute", "wait"))
@@ -98,7 +99,7 @@ class Loop:
         # Stages are driven one by one here, with a cache eviction between them that can
         # outlast the realtime shed age: nothing may be shed as too old, every stage runs.
         for inbound in (
-            self.plant.loop.command_in,
+            self.plant.loop.core.command_in,
             self.controller.core.haptic_in,
             self.controller.core.state_in,
             self.haptic.loop.feedback_in,
@@ -106,10 +107,14 @@ class Loop:
             inbound.shed_age_ns = NEVER_SHED_NS
         # Nor may the controller take the plant for silent (it then commands no motion).
         self.controller.core.state_silent_ns = NEVER_SHED_NS
-        self.plant.loop.begin_run(None)
-        self.plant.loop.begin_on_arrival()
-        self.plant.loop._publish_state(None, 0, 0)  # state 0: the first sample is answered on it
-        state = self.plant.loop._state.tobytes()
+        pacer = self.plant.loop.pacer
+        assert isinstance(pacer, DeviceClockPacer), "the latency run's plant paces on arrival"
+        self.pacer = pacer
+        pacer.core.begin_run(None)
+        pacer.begin()
+        pacer.core.publish_state()  # state 0: the first sample is answered on it
+        pacer.core.prepare_next_step()
+        state = pacer.core.state_rec.tobytes()
         deliver(
             state,
             time.monotonic_ns(),
@@ -123,7 +128,7 @@ class Loop:
         feedback's stamps as rendered, which carry the whole chain's)."""
         controller, plant, haptic = self.controller, self.plant, self.haptic
         between()  # the device samples the handle on the plant's grid
-        deadline_ns = plant.loop.grid.next_ns if plant.loop.grid is not None else 0
+        deadline_ns = self.pacer.grid.next_ns if self.pacer.grid is not None else 0
         loop = haptic.loop
         with loop.cond:
             loop._step(max(loop._state_seq, 0), 0, None, time.monotonic_ns(), deadline_ns)
@@ -142,7 +147,7 @@ class Loop:
         command = controller.core._command.tobytes()
         between()
         deliver(command, time.monotonic_ns(), JOINT_COMMAND, plant._on_command, plant.drops)
-        state = plant.loop._state.tobytes()
+        state = self.pacer.core.state_rec.tobytes()
         between()
         deliver(state, time.monotonic_ns(), PLANT_STATE, controller._on_state, controller.drops)
         feedback = controller.core._feedback.tobytes()

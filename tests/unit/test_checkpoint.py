@@ -21,8 +21,10 @@ from teleop.sim.checkpoint import (
     CheckpointStore,
     Snapshot,
 )
+from teleop.sim.pacing import LockstepPacer
 from teleop.sim.plant import Plant, initial_configuration
-from teleop.sim.stepping import Abort, PlantLoop
+from teleop.sim.plant_loop import PlantLoop
+from teleop.sim.stepping import Abort
 
 from .test_stepping import Recorded
 
@@ -51,6 +53,8 @@ class Incarnation:
         self.config = load_config(None, [*LOCKSTEP, *overrides])
         self.out, self.clock = Recorded(), FakeClock(start_ns=10**12)
         self.loop = PlantLoop(self.config, self.out, self.clock, store_in(tmp_path))
+        assert isinstance(self.loop.pacer, LockstepPacer)
+        self.pacer = self.loop.pacer
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self.loop.run, args=(self.stop, steps))
         self.thread.start()
@@ -58,14 +62,15 @@ class Incarnation:
     def answer_until(self, step: int, first_command_seq: int) -> int:
         """Answer each pending state (the 'controller') until the plant reaches ``step``;
         the next command seq."""
-        loop, clock, seq = self.loop, self.clock, first_command_seq
-        while loop.plant.step_count < step and not loop.finished:
-            pending = loop.state_seq - loop.delay_steps
-            if pending < 0 or not loop._lockstep_running:
+        pacer, clock, seq = self.pacer, self.clock, first_command_seq
+        core = pacer.core
+        while core.plant.step_count < step and not core.finished:
+            pending = pacer.pending_state
+            if pending < 0 or not pacer.running:
                 clock.advance(1)  # the run thread has not started lockstep yet
                 continue
             clock.advance(1_000_000)
-            loop.on_command(answer(seq, pending, clock.now_ns(), 0.2), clock.now_ns())
+            self.loop.on_command(answer(seq, pending, clock.now_ns(), 0.2), clock.now_ns())
             seq += 1
         return seq
 
@@ -126,7 +131,7 @@ def test_a_restarted_plant_resumes_its_run_where_the_stream_stopped(tmp_path):
     first.kill()  # stopped, as if killed: the next incarnation finds its files
     states = {int(r["seq"]): r for r in first.out.records["plant_state"]}
     last = max(states)
-    assert last == 35 and first.loop.checkpoint_cost.taken == 4  # steps 0, 10, 20, 30
+    assert last == 35 and first.loop.core.checkpoint_cost.taken == 4  # steps 0, 10, 20, 30
 
     second = Incarnation(tmp_path, 200)
     second.answer_until(60, command_seq)
@@ -152,8 +157,9 @@ def test_a_restart_that_cannot_resume_aborts_the_run(tmp_path):
     (tmp_path / "plant.checkpoint").write_bytes(b"garbage")
     plant = Incarnation(tmp_path, 200)
     plant.thread.join(timeout=30)
-    assert plant.loop.aborted and not plant.loop.finished
-    assert "cannot resume" in (plant.loop.failure or "")
+    core = plant.loop.core
+    assert core.aborted and not core.finished
+    assert "cannot resume" in (core.failure or "")
     events = plant.out.records["plant_events"]
     assert [Event(int(e["event"])) for e in events] == [Event.ABORTED]
     assert float(events[0]["value"]) == Abort.RESUME_FAILED
@@ -163,11 +169,11 @@ def test_a_restart_that_cannot_resume_aborts_the_run(tmp_path):
 def test_lockstep_without_an_answer_ends_the_run_after_its_bound(tmp_path):
     plant = Incarnation(tmp_path, 200, "plant.lockstep_timeout_s=5")
     plant.answer_until(3, 0)
-    loop = plant.loop
-    assert loop.lockstep_waited(loop.plant.step_count)  # within the bound: re-sent
+    pacer, core = plant.pacer, plant.loop.core
+    assert pacer.waited(core.plant.step_count)  # within the bound: re-sent
     assert plant.out.resent
     plant.clock.advance(5_000_000_000)
-    assert not loop.lockstep_waited(loop.plant.step_count)
+    assert not pacer.waited(core.plant.step_count)
     plant.thread.join(timeout=30)
-    assert loop.aborted and not loop.finished and "no answer" in (loop.failure or "")
+    assert core.aborted and not core.finished and "no answer" in (core.failure or "")
     assert Event(int(plant.out.records["plant_events"][-1]["event"])) is Event.ABORTED

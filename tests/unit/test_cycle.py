@@ -17,7 +17,7 @@ from teleop.core.config import load_config
 from teleop.devices.haptic import EmulatedDevice
 from teleop.devices.haptic_loop import HapticLoop
 from teleop.run.experiments import run_path_following_inprocess
-from teleop.sim.stepping import PlantLoop
+from teleop.sim.plant_loop import PlantLoop
 
 GRASP = 'run.scenario="grasp"'
 LOCKSTEP = 'run.mode="lockstep"'
@@ -406,7 +406,7 @@ def test_the_path_cycle_converges_on_the_in_process_plant_like_the_in_process_ru
     finally:
         stop.set()
         runner.join(timeout=30)
-    assert loop.finished and loop.plant.step_count == steps
+    assert loop.core.finished and loop.core.plant.step_count == steps
 
     errors_m = [float(rec["path_error_m"]) for rec in wire.queues["control_status"]]
     assert errors_m[0] > 10 * PATH_RMS_BAR_M  # the seeded start is off the path
@@ -416,7 +416,7 @@ def test_the_path_cycle_converges_on_the_in_process_plant_like_the_in_process_ru
     reference = run_path_following_inprocess(config, progress=None)
     for key in ("path_error_rms_m", "path_error_max_m", "min_manipulability"):
         assert summary[key] == reference[key]
-    assert loop.plant.state_sha256() == reference["final_state_sha256"]
+    assert loop.core.plant.state_sha256() == reference["final_state_sha256"]
 
 
 def test_a_silent_handle_zeroes_the_rendered_force_even_in_contact():

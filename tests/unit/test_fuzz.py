@@ -21,8 +21,8 @@ from teleop.bus.session import deliver, owned_events
 from teleop.bus.stamps import RESYNC_RECORDS, SEQ_WINDOW, Inbound
 from teleop.core.clock import FakeClock
 from teleop.core.config import load_config
+from teleop.sim.pacing import TickPacer, make_pacer
 from teleop.sim.plant import Plant
-from teleop.sim.stepping import PlantLoop
 
 FUZZ = settings(
     deadline=None,
@@ -277,9 +277,11 @@ def test_the_plant_admits_its_controller_through_hostile_commands():
         """One hostile command every RESYNC_RECORDS + 2 cycles (a sustained attack is for
         access control to stop), the controller's own every cycle."""
         clock = FakeClock(start_ns=NOW_NS)
-        loop = PlantLoop(config, _Discard(), clock)
-        loop.begin_run(None)
-        loop.publish_initial_state()
+        pacer = make_pacer(config, _Discard(), clock)
+        assert isinstance(pacer, TickPacer)
+        core = pacer.core
+        core.begin_run(None)
+        pacer.start()
         rng = np.random.default_rng(seed)
         rejected_run = 0
         cycles = len(hostile) * (RESYNC_RECORDS + 2)
@@ -291,20 +293,20 @@ def test_the_plant_admits_its_controller_through_hostile_commands():
             bad["n_joints"] = 6
             bad["qd_ref_rad_s"][:6] = rng.uniform(-math.pi, math.pi, 6)
             good = m.JOINT_COMMAND.new()
-            good["seq"], good["state_seq"] = k + 1, loop.state_seq
+            good["seq"], good["state_seq"] = k + 1, core.state_seq
             good["trace_ns"][m.Stage.CONTROLLER_TX] = clock.now_ns()
             good["n_joints"] = 6
             good["qd_ref_rad_s"][:6] = 0.05
             if k % (RESYNC_RECORDS + 2) == 0:
-                loop.on_command(bad, clock.now_ns())
-            loop.on_command(good, clock.now_ns())
-            newest = loop.commands.get()
+                pacer.on_command(bad, clock.now_ns())
+            pacer.on_command(good, clock.now_ns())
+            newest = pacer.commands.get()
             admitted = newest is not None and int(newest[0]["seq"]) == k + 1
             rejected_run = 0 if admitted else rejected_run + 1
             assert rejected_run <= RESYNC_RECORDS
             clock.advance(1_000_000)
-            loop.tick()
-        assert loop.commands_received == cycles + len(hostile)
+            pacer.tick()
+        assert core.commands_received == cycles + len(hostile)
         generated[0] += cycles + len(hostile)
 
     check()

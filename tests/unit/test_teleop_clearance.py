@@ -22,7 +22,7 @@ from teleop.control.kinematics import build_arm_model
 from teleop.core.clock import FakeClock
 from teleop.core.config import load_config
 from teleop.core.ticks import expected_valid_from
-from teleop.sim.stepping import PlantLoop
+from teleop.sim.plant_loop import PlantLoop
 from tests.unit.test_cycle import Wire
 
 # From the home pose (tool at about (0.39, 0.13, 0.40) m) nothing but the table lies
@@ -73,7 +73,7 @@ def drive_down(*overrides: str) -> tuple[dict[str, Any], list[np.ndarray]]:
     finally:
         stop.set()
         runner.join(timeout=60)
-    assert loop.finished
+    assert loop.core.finished
     return cycle.summary(), list(wire.queues["force_feedback"])
 
 

@@ -1,0 +1,308 @@
+"""The plant's pacers without a bus, each on the fake clock: plant tick, device clock,
+lockstep, and the one choice among them."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from teleop.bus.messages import PLANT_STATE, RUN_EVENT, Event, Flag, Stage
+from teleop.core.clock import FakeClock
+from teleop.core.config import load_config
+from teleop.sim.pacing import (
+    CATCH_UP_MAX_PERIODS,
+    OWN_STEP_AFTER_PERIODS,
+    RELOCK_PERIODS,
+    DeviceClockGrid,
+    DeviceClockPacer,
+    LockstepPacer,
+    SentTicks,
+    TickPacer,
+    make_pacer,
+)
+from teleop.sim.plant_loop import PlantLoop
+
+from .test_stepping import PERIOD_NS, Recorded, command
+
+TELEOP = ('run.scenario="grasp"', 'run.mode="realtime"')
+
+
+def make(*overrides: str):
+    """The configured pacer at the start of a run (not yet paced), its outputs, its clock."""
+    config = load_config(None, overrides)
+    outputs, clock = Recorded(), FakeClock(start_ns=10**12)
+    pacer = make_pacer(config, outputs, clock)
+    pacer.core.begin_run(None)
+    return pacer, outputs, clock
+
+
+@pytest.mark.parametrize(
+    ("overrides", "kind"),
+    [
+        (('run.mode="lockstep"',), LockstepPacer),
+        (('run.mode="lockstep"', 'run.scenario="grasp"'), LockstepPacer),
+        (TELEOP, DeviceClockPacer),
+        ((*TELEOP, "plant.apply_on_arrival=false"), TickPacer),
+        (('run.mode="realtime"', 'run.scenario="path-following"'), TickPacer),
+    ],
+)
+def test_the_pacer_is_chosen_once_from_the_mode(overrides, kind):
+    pacer, out, clock = make(*overrides)
+    assert type(pacer) is kind
+    # Only lockstep keeps what it sent, for a re-send.
+    assert isinstance(pacer.core.outputs, SentTicks) == (kind is LockstepPacer)
+
+
+# -- plant tick --------------------------------------------------------------------------
+def test_plant_tick_pacing_brakes_on_a_stale_command_and_resumes():
+    pacer, out, clock = make('run.mode="realtime"')
+    assert isinstance(pacer, TickPacer)
+    core = pacer.core
+    pacer.start()
+    limit_ms = round(core.config.plant.watchdog_s * 1000)
+    pacer.tick()  # no command yet: braking, no event
+    assert out.records["plant_state"][-1]["flags"] == Flag.BRAKING and out.events() == []
+    pacer.on_command(command(1, state_seq=1, now_ns=clock.now_ns()), clock.now_ns())
+    # Applied while state 1 (the one answered) went out less than the limit ago.
+    for _ in range(limit_ms - 1):
+        clock.advance(PERIOD_NS)
+        pacer.tick()
+    assert core.commands_applied == 1 and out.events() == []
+    assert out.records["plant_state"][-1]["flags"] == Flag.NONE
+    clock.advance(PERIOD_NS)
+    pacer.tick()  # the command now answers a state sent the limit ago
+    assert out.events() == [Event.WATCHDOG_BRAKE]
+    assert out.records["plant_state"][-1]["flags"] == Flag.BRAKING
+    fresh = command(2, state_seq=core.state_seq, now_ns=clock.now_ns())
+    pacer.on_command(fresh, clock.now_ns())
+    pacer.tick()
+    assert out.events() == [Event.WATCHDOG_BRAKE, Event.WATCHDOG_RESUME]
+    assert out.records["plant_state"][-1]["cmd_seq_applied"] == 2
+    summary = core.summary(pacer.figures())
+    assert (summary["stale_commands"], summary["commands_applied"]) == (1, 2)
+
+
+class Stalling(Recorded):
+    """Outputs whose put of one state takes ``stall_ns`` of the fake clock."""
+
+    def __init__(self, clock: FakeClock, stall_seq: int, stall_ns: int) -> None:
+        super().__init__()
+        self.clock, self.stall_seq, self.stall_ns = clock, stall_seq, stall_ns
+
+    def put(self, stream: str, rec: np.ndarray) -> bytes:
+        if stream == "plant_state" and int(rec["seq"]) == self.stall_seq:
+            self.clock.advance(self.stall_ns)
+        return super().put(stream, rec)
+
+
+def test_plant_tick_pacing_steps_once_a_period_and_skips_a_stall_never_bursting():
+    config = load_config(None, ['run.mode="realtime"'])
+    clock = FakeClock(start_ns=10**12)
+    out = Stalling(clock, stall_seq=5, stall_ns=7 * PERIOD_NS // 2)  # 3.5 periods
+    pacer = TickPacer(make_pacer(config, out, clock).core)
+    pacer.core.begin_run(20)
+    start_ns = clock.now_ns()
+    pacer.run(threading.Event(), resumed=False)
+    sent_ns = np.array([int(s["t_source_ns"]) for s in out.records["plant_state"]])
+    assert pacer.core.plant.step_count == 20 and len(sent_ns) == 21
+    assert np.diff(sent_ns).min() == PERIOD_NS  # never two steps in one period
+    figures = pacer.figures()
+    assert figures.skipped_ticks == 3  # the periods the stall took, given up
+    assert clock.now_ns() - start_ns == (20 + 3) * PERIOD_NS
+    assert figures.loop["skipped"] == 3 and figures.arrival is None
+
+
+# -- device clock ------------------------------------------------------------------------
+def test_device_clock_grid_steps_each_device_period_once():
+    grid = DeviceClockGrid(PERIOD_NS, start_ns=0)
+    assert not grid.locked and grid.own_step_ns == OWN_STEP_AFTER_PERIODS * PERIOD_NS
+    deadline_ns = 10_000_000  # the device's period, not the arrival time
+    grid.lock(deadline_ns)
+    assert grid.periods_ahead(deadline_ns) == 0
+    grid.stepped()
+    # The next device period is the next step's, whatever the arrival jitter.
+    assert grid.periods_ahead(deadline_ns + PERIOD_NS) == 0
+    # A command of a period already stepped is late; one two periods on has a gap.
+    assert grid.periods_ahead(deadline_ns) == -1
+    assert grid.periods_ahead(deadline_ns + 3 * PERIOD_NS) == 2
+    # Without a command, the plant steps the period itself a fixed time after it began.
+    assert grid.own_step_ns == deadline_ns + (1 + OWN_STEP_AFTER_PERIODS) * PERIOD_NS
+    grid.skip(3)  # a stall
+    assert grid.skipped == 3 and grid.periods_ahead(deadline_ns + 4 * PERIOD_NS) == 0
+    with pytest.raises(ValueError):
+        DeviceClockGrid(0, 0)
+
+
+def begun(*overrides: str) -> tuple[DeviceClockPacer, Recorded, FakeClock]:
+    pacer, out, clock = make(*TELEOP, *overrides)
+    assert isinstance(pacer, DeviceClockPacer)
+    pacer.core.publish_state()
+    pacer.begin()
+    return pacer, out, clock
+
+
+def test_device_clock_pacing_steps_once_per_device_period_and_never_runs_ahead():
+    """Commands step at once; a late one merges, a gap is filled, sim time = device time."""
+    pacer, out, clock = begun()
+    core = pacer.core
+    t0_ns = clock.now_ns()
+
+    def arrive(seq: int, periods: int) -> None:
+        deadline_ns = t0_ns + periods * PERIOD_NS
+        rec = command(seq, max(core.state_seq, 0), clock.now_ns(), deadline_ns=deadline_ns)
+        pacer.on_command(rec, clock.now_ns())
+
+    arrive(1, 0)
+    assert core.plant.step_count == 1 and pacer.counts.steps_on_arrival == 1
+    arrive(2, 1)  # the next period's command: one more step, on arrival
+    assert core.plant.step_count == 2
+    arrive(3, 1)  # late (its period was stepped): no step of its own, held for the next
+    assert core.plant.step_count == 2 and pacer.counts.commands_late == 1
+    arrive(4, 3)  # two periods on: the period in between (no command) is stepped first
+    assert core.plant.step_count == 4 and pacer.counts.steps_without_command == 1
+    arrive(5, 20)  # after a long gap only CATCH_UP_MAX_PERIODS are stepped back to back
+    assert core.plant.step_count == 5 + CATCH_UP_MAX_PERIODS
+    assert pacer.grid is not None
+    assert pacer.grid.skipped == 20 - 4 - CATCH_UP_MAX_PERIODS
+    assert pacer.grid.periods_ahead(t0_ns + 21 * PERIOD_NS) == 0  # sim time = device time
+    arrive(6, 2 * RELOCK_PERIODS)  # a restarted device: the grid re-locks to its clock
+    assert pacer.grid.locks == 2
+    arrive(6, 2 * RELOCK_PERIODS + 1)  # not newer than the last: dropped, counted
+    assert core.command_in.seq.reordered == 1
+    summary = core.summary(pacer.figures())["arrival"]
+    assert summary["commands_late"] == 1 and summary["commands_reordered"] == 1
+
+
+def test_device_clock_pacing_steps_periods_without_commands_itself_and_skips_stalls():
+    pacer, out, clock = begun()
+    core = pacer.core
+    assert pacer.own_step_due(clock.now_ns()) == OWN_STEP_AFTER_PERIODS * PERIOD_NS
+    clock.advance(OWN_STEP_AFTER_PERIODS * PERIOD_NS)
+    pacer.own_step(clock.now_ns())
+    assert core.plant.step_count == 1 and pacer.counts.stalls == 0
+    clock.advance(50 * PERIOD_NS)  # a stall: skip, never burst
+    pacer.own_step(clock.now_ns())
+    assert core.plant.step_count == 2 and pacer.counts.stalls == 1
+    assert pacer.own_step_due(clock.now_ns()) > -CATCH_UP_MAX_PERIODS * PERIOD_NS
+    figures = pacer.figures()
+    assert figures.overrun_fraction == 0.5 and figures.skipped_ticks == pacer.grid.skipped
+
+
+def test_device_clock_pacing_sheds_a_command_older_than_the_shed_age_and_logs_its_loop():
+    pacer, out, clock = begun()
+    core = pacer.core
+    old = command(1, 0, clock.now_ns() - 10 * core.command_in.shed_age_ns)
+    pacer.on_command(old, clock.now_ns())
+    assert core.plant.step_count == 0 and core.command_in.shed == 1
+    assert len(core.command_in.shed_log) == 1
+
+
+def test_device_clock_pacing_steps_nothing_outside_its_run():
+    pacer, out, clock = make(*TELEOP)
+    assert isinstance(pacer, DeviceClockPacer)
+    core = pacer.core
+    assert pacer.figures().arrival is None  # no grid yet: nothing to report
+    core.publish_state()
+    pacer.on_command(command(1, 0, clock.now_ns(), deadline_ns=clock.now_ns()), clock.now_ns())
+    assert core.plant.step_count == 0 and core.commands_received == 1
+    stopped = threading.Event()
+    stopped.set()
+    pacer.run(stopped, resumed=False)  # begins on a grid, ends at once
+    assert pacer.grid is not None and pacer.figures().arrival is not None
+    pacer.on_command(command(2, 1, clock.now_ns(), deadline_ns=clock.now_ns()), clock.now_ns())
+    assert core.plant.step_count == 0 and core.commands_received == 2
+
+
+# -- lockstep ----------------------------------------------------------------------------
+def started(*overrides: str) -> tuple[LockstepPacer, Recorded, FakeClock]:
+    pacer, out, clock = make('run.mode="lockstep"', *overrides)
+    assert isinstance(pacer, LockstepPacer)
+    pacer.start()
+    return pacer, out, clock
+
+
+def test_lockstep_steps_only_on_the_answer_to_the_pending_state():
+    pacer, out, clock = started("plant.lockstep_delay_steps=1")
+    core = pacer.core
+    # State 0, then the delay step no command answers: state 1; state 0's answer is due.
+    assert core.state_seq == 1 and pacer.pending_state == 0 and pacer.running
+    pacer.on_command(command(1, state_seq=1, now_ns=clock.now_ns()), clock.now_ns())
+    assert core.plant.step_count == 1 and core.unanswered_commands == 1
+    clock.advance(PERIOD_NS)
+    answer = command(2, state_seq=0, now_ns=clock.now_ns())
+    state_0 = out.records["plant_state"][0]
+    answer["trace_ns"][Stage.PLANT_STATE_TX] = state_0["trace_ns"][Stage.PLANT_STATE_TX]
+    answer["trace_ns"][Stage.CONTROLLER_RX] = clock.now_ns()
+    pacer.on_command(answer, clock.now_ns())
+    assert core.plant.step_count == 2 and core.commands_applied == 1
+    state = out.records["plant_state"][-1]
+    assert int(state["seq"]) == 2 and int(state["cmd_seq_applied"]) == 2
+    assert pacer.figures().lockstep_cycle_us  # the cycle's stamps are all there
+
+
+def test_lockstep_re_sends_the_states_in_flight_byte_for_byte():
+    pacer, out, clock = started("plant.lockstep_delay_steps=1")
+    pacer.core.publish_event(Event.GRASP, 1.0)
+    pacer.republish_pending()
+    # States 0 and 1 are in flight, state 0 with its tick's scene; no event is re-sent.
+    sent = {
+        (stream, rec.tobytes())
+        for stream in ("plant_state", "tool_pose", "objects")
+        for rec in out.records[stream]
+    }
+    assert [stream for stream, _ in out.resent] == [
+        "plant_state", "tool_pose", "objects", "plant_state"
+    ]  # fmt: skip
+    assert set(out.resent) == sent
+    out.resent.clear()
+    pacer.on_command(command(1, state_seq=0, now_ns=clock.now_ns()), clock.now_ns())
+    pacer.republish_pending()  # states 1 and 2 now
+    assert [int(np.frombuffer(d, PLANT_STATE.dtype)["seq"][0]) for _, d in out.resent] == [1, 2]
+
+
+def test_lockstep_without_an_answer_re_sends_then_ends_the_run_after_its_bound():
+    pacer, out, clock = started("plant.lockstep_timeout_s=5")
+    core = pacer.core
+    assert pacer.waited(last_step=-1)  # it stepped since: nothing to do
+    assert not out.resent
+    assert pacer.waited(core.plant.step_count)  # within the bound: re-sent
+    assert out.resent and not core.aborted
+    clock.advance(5_000_000_000)
+    assert not pacer.waited(core.plant.step_count)
+    assert core.aborted and "no answer" in (core.failure or "") and not pacer.running
+    assert out.events()[-1] is Event.ABORTED
+    steps = core.plant.step_count
+    pacer.on_command(command(1, pacer.pending_state, clock.now_ns()), clock.now_ns())
+    assert core.plant.step_count == steps  # a late answer steps nothing
+
+
+def test_a_lockstep_run_starts_steps_on_answers_and_finishes():
+    """The loop's run: STARTED, the steps the answers drive (run thread waiting), FINISHED."""
+    config = load_config(None, ['run.mode="lockstep"', "plant.lockstep_delay_steps=0"])
+    out, clock = Recorded(), FakeClock(start_ns=10**12)
+    loop = PlantLoop(config, out, clock)
+    pacer, core = loop.pacer, loop.core
+    assert isinstance(pacer, LockstepPacer)
+    stop = threading.Event()
+    runner = threading.Thread(target=loop.run, args=(stop, 3))
+    runner.start()
+    try:
+        while core.state_seq < 0:  # state 0 published (answers wait for the lock)
+            runner.join(timeout=0.001)
+        # a command answering a state not sent yet is rejected before anything else
+        loop.on_command(command(1, state_seq=5, now_ns=clock.now_ns()), clock.now_ns())
+        assert core.plant.step_count == 0 and core.commands_future_state == 1
+        for seq in range(3):
+            loop.on_command(command(seq + 2, core.state_seq, clock.now_ns()), clock.now_ns())
+        runner.join(timeout=30)
+        assert not runner.is_alive()
+    finally:
+        stop.set()
+        runner.join(timeout=30)
+    assert core.finished and core.plant.step_count == 3 and core.commands_applied == 3
+    assert out.events() == [Event.STARTED, Event.FINISHED]
+    assert [int(r["seq"]) for r in out.records["plant_state"]] == [0, 1, 2, 3]
+    assert out.flushes == 1
+    assert PLANT_STATE.size and RUN_EVENT.size  # the records' layouts are the bus's
