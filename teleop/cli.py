@@ -317,8 +317,8 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--mode", choices=("lockstep", "realtime"), default="realtime")
     up.add_argument(
         "--endpoint",
-        help="the bus's listening endpoint, e.g. tcp/127.0.0.1:7447 (default: a free port); "
-        "refused if taken; tls/127.0.0.1:PORT with --set bus.tls=true",
+        help="the bus's listening endpoint, e.g. tls/127.0.0.1:7447 (default: a free port); "
+        "refused if taken; tcp/127.0.0.1:PORT with --set bus.tls=false",
     )
     up.add_argument("--run-dir", type=Path, default=DEFAULT_UP_DIR, help="(default: %(default)s)")
     _add_without_arguments(up)

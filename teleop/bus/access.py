@@ -1,29 +1,35 @@
-"""Who may say what on a stack's bus: per-run credentials and an access-control list,
+"""Who may say what on a stack's bus: per-run identities and an access-control list,
 both derived from the one description of the graph (:mod:`teleop.bus.graph`).
 
 A launcher (``teleop run``, ``teleop up``, ``teleop latency``) gives every process of the
-run (every service, the launcher itself, an outside client) a name, a random password
-and a random Zenoh id, written to files only its user can read
+run (every service, the launcher itself, an outside client, the read-only observer) a
+name and a random Zenoh id, and writes each one a file only its user can read
 (:func:`write_run_credentials`). :func:`teleop.bus.session.open_session` loads a
-process's file (``bus.credentials_file``) into its Zenoh config:
+process's file (``bus.credentials_file``) into its Zenoh config.
 
-- Authentication (Zenoh's user/password): a link is accepted only from a process that
-  presents a user and password of the run's dictionary. A session of another stack,
-  another user, or anyone without this run's files cannot link at all.
-- Access control, default deny, the same list in every process: a participant may
-  publish only the streams the graph lists it as producing, subscribe only to those it
-  consumes, and declare only its own liveliness tokens. So only the controller's
-  commands reach the plant, only the plant's states and events the others, and so on.
+With ``bus.tls`` (the default) the identity is a certificate: the launcher makes a
+certificate authority for the run (its key never written) and one certificate and key
+per participant (:mod:`teleop.bus.tls`). Every link is mutual TLS, so both of its ends
+are authenticated, and a participant's file names its own key and the authority's
+(public) certificate only: no file reveals another participant's secret. The
+access-control list (default deny, the same in every process) knows a peer as a
+participant only if both its certificate's common name and its session's Zenoh id are
+that participant's: a second session holding a participant's certificate but its own
+id gets no right at all, and Zenoh refuses a second session with an id already linked.
+So one session per participant: the controller's commands come from the controller's
+session or not at all.
 
-Zenoh's user/password authenticates the process that opens a link to the one that
-accepts it, not the other way round. Each process therefore matches a peer by either:
-its authenticated user name (links it accepted) or its Zenoh id (links it opened: the
-ids are per-run secrets in the same 0600 files, so a process squatting on a port
-cannot pass for a service of the run). See docs/protocol.md, "Access control".
+Without TLS (``bus.tls = false``), Zenoh's user/password authentication closes the bus:
+a link is accepted only from a process presenting a user and password of the run's
+dictionary, which every process that accepts links must hold (so a service's file does
+reveal the others' passwords; the observer's, which accepts no links, does not). The
+list then knows a peer by its Zenoh id only: user/password authenticates the process
+that opens a link to the one that accepts it, not the other way round, and a name
+matched on its own would let any holder of a participant's password in with any id.
 
-With ``bus.tls`` the run also gets a certificate authority and one certificate per
-participant (:mod:`teleop.bus.tls`): every link is mutual TLS, and a peer also matches
-its policy by its certificate's common name, which both ends of a link authenticate.
+Either way a participant may publish only the streams the graph lists it as producing,
+subscribe only to those it consumes, and declare only its own liveliness tokens. See
+docs/protocol.md, "Access control".
 """
 
 from __future__ import annotations
@@ -32,7 +38,7 @@ import json
 import os
 import secrets
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -46,7 +52,8 @@ LAUNCHER = "launcher"
 # A read-only participant every launcher adds: it may subscribe to every stream and
 # publish nothing (a user's own plotting script, a test watching the bus).
 OBSERVER = "observer"
-# The run's dictionary of user:password lines (every process accepts links from these).
+# Without TLS: the run's dictionary of user:password lines (what every process that
+# accepts links checks a new link against).
 PASSWORDS_FILE = "passwords"
 # With TLS: the run's certificate authority (every process's root of trust), and each
 # participant's certificate and private key (<name> + suffix).
@@ -64,8 +71,8 @@ _NAME_ALPHABET = frozenset("abcdefghijklmnopqrstuvwxyz0123456789_-")
 class Credentials:
     """One participant's identity on the run's bus."""
 
-    user: str
-    password: str
+    user: str  # the participant's name
+    password: str  # user/password authentication (runs without TLS only)
     zid: str  # Zenoh id, 32 hex digits, the first not 0 (Zenoh refuses leading zeros)
 
     @classmethod
@@ -109,8 +116,8 @@ def access_control(
     subject): *ingress* is what the peer sends it, *egress* what it sends the peer. A
     peer may send the puts of the streams it produces and the subscriptions of those it
     consumes, and receive the converse; it may declare its own tokens and watch all.
-    A peer is recognised by its user name or its Zenoh id and, with ``tls``, by its
-    certificate's common name (the participant's name).
+    A peer is recognised by its Zenoh id and, with ``tls``, also by its certificate's
+    common name (the participant's name) in the same subject: both must match.
     """
     prefix = f"{ROOT}/{robot_id}"
     tokens = [f"{prefix}/{ALIVE_TOKEN}/*", f"{prefix}/{READY_TOKEN}/*"]
@@ -137,12 +144,12 @@ def access_control(
                 _rule(f"{name}-receives", ["put"], "egress", consumed),
             ]
         rules += mine
-        mine_subjects = [
-            {"id": f"{name}-by-user", "usernames": [cred.user]},
-            {"id": f"{name}-by-zid", "zids": [cred.zid]},
-        ]
-        if tls:
-            mine_subjects.append({"id": f"{name}-by-cert", "cert_common_names": [name]})
+        if tls:  # both authenticated by TLS together: the name and this session
+            mine_subjects = [
+                {"id": f"{name}-by-cert", "cert_common_names": [name], "zids": [cred.zid]}
+            ]
+        else:
+            mine_subjects = [{"id": f"{name}-by-zid", "zids": [cred.zid]}]
         subjects += mine_subjects
         policies.append(
             {
@@ -200,25 +207,37 @@ def write_run_certificates(
 def write_run_credentials(
     directory: Path, participants: Sequence[str], robot_id: str, *, tls: bool = False
 ) -> dict[str, Path]:
-    """Fresh credentials for ``participants`` in ``directory`` (made mode 0700): the
-    run's password dictionary and one file per participant (mode 0600) with its user,
-    password, Zenoh id and the run's access-control list; returns the files by name
-    (each one ``bus.credentials_file`` of its participant). ``tls``: also the run's
-    certificates (:func:`write_run_certificates`), named in each file."""
+    """Fresh identities for ``participants`` in ``directory`` (made mode 0700), one file
+    per participant (mode 0600) with its name, Zenoh id and the run's access-control
+    list; returns the files by name (each one ``bus.credentials_file`` of its
+    participant).
+
+    ``tls``: the run's certificates (:func:`write_run_certificates`), each file naming
+    its participant's own; no password anywhere. Without: a password per participant
+    and the run's dictionary (:data:`PASSWORDS_FILE`), named in the file of every
+    participant that accepts links (all but :data:`OBSERVER`)."""
     directory = Path(directory).absolute()
     directory.mkdir(parents=True, exist_ok=True)
     os.chmod(directory, 0o700)
     credentials = {name: Credentials.generate(name) for name in participants}
-    dictionary = directory / PASSWORDS_FILE
-    _write_private(dictionary, "".join(f"{c.user}:{c.password}\n" for c in credentials.values()))
     acl = access_control(credentials, robot_id, tls=tls)
-    certificates = write_run_certificates(directory, list(credentials)) if tls else {}
+    own_secret: dict[str, dict[str, Any]]
+    if tls:
+        certificates = write_run_certificates(directory, list(credentials))
+        own_secret = {name: {"tls": certificates[name]} for name in credentials}
+    else:
+        dictionary = directory / PASSWORDS_FILE
+        lines = "".join(f"{c.user}:{c.password}\n" for c in credentials.values())
+        _write_private(dictionary, lines)
+        own_secret = {
+            name: {"password": cred.password}
+            | ({} if name == OBSERVER else {"dictionary_file": str(dictionary)})
+            for name, cred in credentials.items()
+        }
     files = {}
     for name, cred in credentials.items():
         path = directory / f"{name}.json"
-        content = {**asdict(cred), "dictionary_file": str(dictionary), "access_control": acl}
-        if tls:
-            content["tls"] = certificates[name]
+        content = {"user": cred.user, "zid": cred.zid, **own_secret[name], "access_control": acl}
         _write_private(path, json.dumps(content, indent=1))
         files[name] = path
     return files
@@ -226,17 +245,16 @@ def write_run_credentials(
 
 def zenoh_entries(credentials_file: Path) -> dict[str, Any]:
     """The Zenoh config entries (path -> value) a participant's credentials file sets:
-    its id, its user/password with the run's dictionary, the access-control list and,
-    in a TLS run, its certificate files (under :data:`TLS_CONFIG`)."""
+    its id, the access-control list and either its certificate files (under
+    :data:`TLS_CONFIG`) or its user/password (with the run's dictionary where it
+    accepts links)."""
     content = json.loads(Path(credentials_file).read_text())
-    tls = {f"{TLS_CONFIG}/{key}": value for key, value in content.get("tls", {}).items()}
-    return {
-        **tls,
-        "id": content["zid"],
-        "transport/auth/usrpwd": {
-            "user": content["user"],
-            "password": content["password"],
-            "dictionary_file": content["dictionary_file"],
-        },
-        "access_control": content["access_control"],
-    }
+    entries: dict[str, Any] = {"id": content["zid"], "access_control": content["access_control"]}
+    if "tls" in content:
+        entries |= {f"{TLS_CONFIG}/{key}": value for key, value in content["tls"].items()}
+    else:
+        usrpwd = {"user": content["user"], "password": content["password"]}
+        if "dictionary_file" in content:
+            usrpwd["dictionary_file"] = content["dictionary_file"]
+        entries["transport/auth/usrpwd"] = usrpwd
+    return entries

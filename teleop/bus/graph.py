@@ -174,6 +174,8 @@ EVENT_STREAM: Mapping[Event, str] = {
     Event.FINISHED: "plant_events",
     Event.WATCHDOG_BRAKE: "plant_events",
     Event.WATCHDOG_RESUME: "plant_events",
+    Event.PROTECTIVE_STOP: "plant_events",
+    Event.PROTECTIVE_RELEASE: "plant_events",
     Event.GRASP: "plant_events",
     Event.RELEASE: "plant_events",
     Event.RESUMED: "plant_events",

@@ -152,6 +152,9 @@ class Event(enum.IntEnum):
     CONTACT = 12  # controller: the arm touches the scene or itself (value: clearance, m)
     SINGULARITY = 13  # controller: the manipulability fell below the event threshold
     OUT_OF_REACH = 14  # operator: the tool stopped short of where it headed (value: m left)
+    PROTECTIVE_STOP = 15  # the plant held the arm on a contact force or tool speed beyond
+    #                      its limit (value: teleop.sim.protective.StopCause)
+    PROTECTIVE_RELEASE = 16  # a command asked for no motion: the plant follows commands again
 
 
 class Reason(enum.StrEnum):
@@ -785,6 +788,13 @@ EVENT_MEANINGS: Mapping[Event, tuple[str, str]] = {  # (sent by, meaning and val
                            "`plant.watchdog_s`: the drives hold the arm where it is; value: "
                            "the command's age (s)"),
     Event.WATCHDOG_RESUME: ("plant", "a fresh command again: the plant follows the commands"),
+    Event.PROTECTIVE_STOP: ("plant", "protective stop: the net contact force on the gripper "
+                            "above `plant.contact_force_limit_n`, or the measured tool speed "
+                            "above `plant.tool_speed_stop_m_s`: the drives hold the arm while "
+                            "the commands ask for motion; value: 1 contact force, 2 tool speed"),
+    Event.PROTECTIVE_RELEASE: ("plant", "a command asked for a tool motion of at most "
+                               "`plant.protective_release_m_s`: the protective stop is over, "
+                               "the plant follows the commands; value: the stop's cause"),
     Event.GRASP: ("plant", "an object is pinched between the fingers; value: its body id"),
     Event.RELEASE: ("plant", "the held object left the gripper"),
     Event.PHASE: ("operator", "a task phase began; value: its index in the scenario file"),

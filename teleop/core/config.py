@@ -135,6 +135,16 @@ class PlantConfig:
     # and clearance corrections included, so it must not act on a well-behaved command
     # whose velocity loops lag a little behind it.
     tool_speed_limit_m_s: float = 0.30
+    # The protective stop (teleop/sim/protective.py), on the plant's own measurements
+    # after each step: a net contact force on the gripper above contact_force_limit_n
+    # (the grasp's normal contacts, the held cube's weight and the fingers on the table
+    # included, stay under 4 N), or a measured tool speed above tool_speed_stop_m_s (the
+    # commands are cut to tool_speed_limit_m_s: faster means pushed, or not following),
+    # brakes and holds the arm until a command asks for a tool motion of at most
+    # protective_release_m_s.
+    contact_force_limit_n: float = 8.0
+    tool_speed_stop_m_s: float = 0.33
+    protective_release_m_s: float = 0.01
     # Rate of the scene streams (tool pose, object poses) and, outside teleoperation, of the
     # contact and proximity fields of the plant state (one per step; teleoperation: fresh
     # every step).
@@ -177,6 +187,15 @@ class PlantConfig:
         )
         _require(self.watchdog_s >= self.timestep_s, "plant.watchdog_s >= plant.timestep_s")
         _require(self.tool_speed_limit_m_s > 0, "plant.tool_speed_limit_m_s > 0")
+        _require(self.contact_force_limit_n > 0, "plant.contact_force_limit_n > 0")
+        _require(
+            self.tool_speed_stop_m_s > self.tool_speed_limit_m_s,
+            "plant.tool_speed_stop_m_s > plant.tool_speed_limit_m_s",
+        )
+        _require(
+            0 <= self.protective_release_m_s < self.tool_speed_limit_m_s,
+            "plant.protective_release_m_s in [0, plant.tool_speed_limit_m_s)",
+        )
 
 
 @dataclass(frozen=True)
@@ -669,13 +688,16 @@ class BusConfig:
     # (teleop/bus/access.py): only this run's processes can link, each may publish only
     # what the graph lets it. false: an open bus (any local process can join).
     secure: bool = True
-    # With secure: the launchers also make a certificate authority for the run and one
+    # With secure: the launchers make a certificate authority for the run and one
     # certificate per process (teleop/bus/tls.py) and link the run over tls/ endpoints
-    # only, mutual TLS (each end checks the other's certificate; the access-control list
-    # also knows a process by its certificate's name). Encrypts the bus; shared memory
-    # and the low-latency transport work over TLS links as over TCP. Cost: see
-    # docs/protocol.md, "TLS".
-    tls: bool = False
+    # only, mutual TLS: both ends of every link are authenticated, each process's file
+    # holds its own key only, and the access-control list knows a process by its
+    # certificate's name and its session's Zenoh id together. Encrypts the bus; shared
+    # memory and the low-latency transport work over TLS links as over TCP. false:
+    # user/password authentication, where every service's file names the run's password
+    # dictionary (see teleop/bus/access.py). Ignored without secure. Cost: see
+    # docs/protocol.md, "TLS cost".
+    tls: bool = True
     # This process's credentials file (written by its launcher; empty: no authentication).
     credentials_file: str = ""
     # Records per message on the observers' copies of the fast streams (recorder, eye
@@ -696,10 +718,11 @@ class BusConfig:
             "bus.zenoh_overrides: entries like path=json5value",
         )
         _require(self.shm_pool_bytes >= 1 << 16, "bus.shm_pool_bytes >= 65536")
-        _require(
-            self.secure or not self.tls,
-            "bus.tls needs bus.secure (the certificates come with the run's credentials)",
-        )
+
+    @property
+    def mutual_tls(self) -> bool:
+        """Whether a launcher's run links over mutual TLS (``tls`` on a ``secure`` bus)."""
+        return self.secure and self.tls
 
     @property
     def zenoh_config_path(self) -> Path:

@@ -276,7 +276,7 @@ def run_credentials(
         run_dir / AUTH_DIR,
         [*participants, OBSERVER],
         config.robot.robot_id,
-        tls=config.bus.tls,
+        tls=config.bus.mutual_tls,
     )
 
 
@@ -428,7 +428,7 @@ def run_on_services(
     faults = _FaultRun(config, fault_specs) if fault_specs else None
     # The run's ports stay held here until it ends: a restarted service takes its own again.
     ports = LoopbackPorts()
-    endpoint = loopback_endpoint(ports, config.bus.tls)
+    endpoint = loopback_endpoint(ports, config.bus.mutual_tls)
     run_overrides = [
         *overrides,
         f'bus.endpoint="{endpoint}"',
@@ -466,7 +466,7 @@ def run_on_services(
         )
         entities.append(declare_alive(session, topics, LAUNCHER))
         entities.append(declare_alive(session, topics, LAUNCHER, ready=True))
-        mesh = peer_mesh([*services, *outside], None, ports, tls=config.bus.tls)
+        mesh = peer_mesh([*services, *outside], None, ports, tls=config.bus.mutual_tls)
         plant_awaits = _plant_awaits(stack_services, LAUNCHER)
         programs = service_programs(
             services,
@@ -958,19 +958,22 @@ def start_detached(
     refuse_if_running(run_dir)
     clear_run_results(run_dir)  # a previous stack's checkpoint must not be resumed
     if endpoint is not None:
-        if config.bus.tls and not endpoint.startswith("tls/"):
-            raise RunError(f"bus.tls: the endpoint must be tls/HOST:PORT, not {endpoint}")
+        if config.bus.mutual_tls and not endpoint.startswith("tls/"):
+            raise RunError(
+                f"endpoint {endpoint}: this run links over mutual TLS (bus.tls), so its "
+                "endpoint is tls/HOST:PORT (or --set bus.tls=false for a tcp/ one)"
+            )
         ensure_endpoint_free(endpoint)
     # Held until every service listens: then each holds its own.
     with LoopbackPorts() as ports:
-        endpoint = endpoint or loopback_endpoint(ports, config.bus.tls)
+        endpoint = endpoint or loopback_endpoint(ports, config.bus.mutual_tls)
         run_overrides = [*overrides, f'bus.endpoint="{endpoint}"']
         if not config.recorder.rrd_path:
             run_overrides.append(f'recorder.rrd_path="{run_dir / RECORDING_FILE}"')
         stack_services = scenario_services(config)
         outside = check_without(stack_services, without)
         services = tuple(name for name in stack_services if name not in outside)
-        mesh = peer_mesh([*services, *outside], "plant", ports, tls=config.bus.tls)
+        mesh = peer_mesh([*services, *outside], "plant", ports, tls=config.bus.mutual_tls)
         plant_awaits = _plant_awaits(stack_services)
         credentials = run_credentials(config, run_dir, stack_services)
         programs = service_programs(

@@ -18,6 +18,7 @@ import numpy as np
 
 from teleop.core.config import Config, ModelError
 from teleop.sim.checkpoint import get_state, set_state
+from teleop.sim.protective import ProtectiveStop
 from teleop.sim.proximity import apply_scene_overrides
 
 # Hold mode of the drives (the "brake"): stiffness of the position hold, per second.
@@ -114,10 +115,25 @@ class Plant:
         # within its drive's range, the tool point's commanded speed within this.
         self.tool_speed_limit_m_s = config.plant.tool_speed_limit_m_s
         self.clamped_steps = 0  # steps whose command was cut down to the limits
+        # The tool speed the last command asked for (m/s, its motion before any cut).
+        self.commanded_tool_speed_m_s = 0.0
+        # Measured after every step (what the state reports and the protective stop
+        # judges): the net contact force on the gripper (N, world), its contacts, and
+        # the tool point's speed (m/s).
+        self.contact_force_n = np.zeros(3)
+        self.n_contacts = 0
+        self.measured_tool_speed_m_s = 0.0
+        self.protective = self._new_protective_stop()
         self._jacp = np.zeros((3, self.model.nv))
         self.step_count = 0
         self.gripper_cmd = 1.0  # the gripper command in effect (0 closed .. 1 open)
         self._hold_q_rad: np.ndarray | None = None
+
+    def _new_protective_stop(self) -> ProtectiveStop:
+        plant = self._config.plant
+        return ProtectiveStop(
+            plant.contact_force_limit_n, plant.tool_speed_stop_m_s, plant.protective_release_m_s
+        )
 
     def _in_subtree(self, body: int, root: int) -> bool:
         while body != 0:
@@ -143,6 +159,8 @@ class Plant:
         self.gripper_cmd = min(max(gripper_open, 0.0), 1.0)
         self.step_count = 0
         self._hold_q_rad = None
+        self.protective = self._new_protective_stop()
+        self._measure()
 
     def integration_state(self) -> np.ndarray:
         """MuJoCo's full integration state now (teleop.sim.checkpoint.get_state)."""
@@ -167,6 +185,7 @@ class Plant:
         self.step_count = step
         self.gripper_cmd = min(max(gripper_cmd, 0.0), 1.0)
         self._hold_q_rad = None if hold_q_rad is None else np.array(hold_q_rad, dtype=float)
+        self._measure()
 
     @property
     def hold_q_rad(self) -> np.ndarray | None:
@@ -203,6 +222,14 @@ class Plant:
         mujoco.mj_step2(self.model, self.data)
         self._step1_done = False
         self.step_count += 1
+        self._measure()
+        force_n = self.contact_force_n.tolist()
+        self.protective.measure(self.step_count, math.hypot(*force_n), self.measured_tool_speed_m_s)
+
+    def _measure(self) -> None:
+        """The contact force on the gripper and the tool's speed in the state now."""
+        self.contact_force_n, self.n_contacts = self.gripper_contact_force()
+        self.measured_tool_speed_m_s = self.tool_speed_m_s()
 
     def limit(self, qd_ref_rad_s: np.ndarray) -> np.ndarray:
         """``qd_ref_rad_s`` within the robot's limits: each joint clipped to its drive's
@@ -225,6 +252,7 @@ class Plant:
         hold = self.data.qfrc_bias[self.dof_index] / self.kv  # references that hold still
         motion = qd - hold
         speed_m_s = math.hypot(*(self._jacp[:, self.dof_index] @ motion).tolist())
+        self.commanded_tool_speed_m_s = speed_m_s
         if speed_m_s > self.tool_speed_limit_m_s:
             qd = hold + motion * (self.tool_speed_limit_m_s / speed_m_s)
             qd = np.minimum(np.maximum(qd, self.ctrl_low), self.ctrl_high)
@@ -234,11 +262,17 @@ class Plant:
         return qd
 
     def step(self, qd_ref_rad_s: np.ndarray, gripper_cmd: float) -> None:
-        """Apply velocity references (rad/s, within :meth:`limit`) and advance one step."""
-        self._hold_q_rad = None
-        self.data.ctrl[self._ctrl_at] = self.limit(qd_ref_rad_s)
+        """Apply velocity references (rad/s, within :meth:`limit`) and advance one step;
+        while a protective stop holds (teleop.sim.protective) the gripper follows the
+        command and the arm is held, until a command asks for no motion."""
+        qd = self.limit(qd_ref_rad_s)
         self.data.ctrl[self.gripper_actuator] = self._gripper_ctrl(gripper_cmd)
         self.gripper_cmd = min(max(gripper_cmd, 0.0), 1.0)
+        if self.protective.holds(self.step_count + 1, self.commanded_tool_speed_m_s):
+            self._brake()
+            return
+        self._hold_q_rad = None
+        self.data.ctrl[self._ctrl_at] = qd
         self._advance()
 
     def step_before_commands(self) -> None:
@@ -250,6 +284,10 @@ class Plant:
 
     def step_braking(self) -> None:
         """Hold the arm where braking began (watchdog): no drift, gravity held by the drives."""
+        self.protective.held()
+        self._brake()
+
+    def _brake(self) -> None:
         self.prepare_step()  # the bias forces of the state now, however the caller got here
         q = self.data.qpos[self.qpos_index]
         if self._hold_q_rad is None:

@@ -53,6 +53,7 @@ from teleop.sim.checkpoint import (
 )
 from teleop.sim.contact import finger_bodies, held_mass_kg, held_object
 from teleop.sim.plant import Plant, initial_configuration
+from teleop.sim.protective import Stop
 from teleop.sim.proximity import FAR_DISTANCE_M, ObstacleProximity, ProximitySample
 
 logger = logging.getLogger(__name__)
@@ -642,7 +643,26 @@ class PlantStepCore:
         if sample.step % self.scene_every_steps == 0:
             self._publish_scene(sample.sim_time_ns, now_ns)
         figures = self.figures
-        figures.max_tool_speed_m_s = max(figures.max_tool_speed_m_s, self.plant.tool_speed_m_s())
+        plant = self.plant
+        figures.max_tool_speed_m_s = max(figures.max_tool_speed_m_s, plant.measured_tool_speed_m_s)
+        figures.max_contact_force_n = max(
+            figures.max_contact_force_n, math.hypot(*plant.contact_force_n.tolist())
+        )
+        for stop, released in self.plant.protective.take_transitions():
+            self._announce(stop, released)
+
+    def _announce(self, stop: Stop, released: bool) -> None:
+        """A protective stop's transition as a RUN_EVENT, logged."""
+        if released:
+            logger.info("protective stop released at step %d", stop.released_step)
+            self.publish_event(Event.PROTECTIVE_RELEASE, float(stop.cause))
+        else:
+            logger.warning(
+                "protective stop at step %d: %s %.3g beyond its limit; the arm is held "
+                "until a command asks for no motion",
+                stop.step, stop.cause.name.lower(), stop.measured,
+            )  # fmt: skip
+            self.publish_event(Event.PROTECTIVE_STOP, float(stop.cause))
 
     def _sample_interaction(self, step: int) -> Event | None:
         """Fill the state record's contact and proximity fields from the plant as it is.
@@ -658,10 +678,7 @@ class PlantStepCore:
         figures = self.figures
         figures.min_obstacle_clearance_m = min(figures.min_obstacle_clearance_m, closest.distance_m)
         closest.write_to(rec)
-        force_n, count = self.plant.gripper_contact_force()
-        figures.max_contact_force_n = max(
-            figures.max_contact_force_n, math.hypot(*force_n.tolist())
-        )
+        force_n, count = self.plant.contact_force_n, self.plant.n_contacts
         model, data = self.plant.model, self.plant.data
         held = held_object(model, data, self._fingers, self.plant.object_bodies) if count else -1
         event = None
@@ -724,6 +741,7 @@ class PlantStepCore:
             "max_contact_force_n": figures.max_contact_force_n,
             "obstacle_min_clearance_m": figures.min_obstacle_clearance_m,
             "tool_speed_max_m_s": figures.max_tool_speed_m_s,
+            "protective_stop": self.plant.protective.summary(plant_cfg.timestep_s),
             "object_in_box": self.plant.object_in_bin(),
             "rate_hz": self.plant.step_count / self.wall_s if self.wall_s > 0 else None,
             "aborted": self.aborted,

@@ -127,7 +127,7 @@ def test_up_status_down_runs_a_linked_stack_until_stopped(tmp_path):
     up = teleop("up", "--mode", "realtime", "--run-dir", str(run_dir))
     try:
         assert up.returncode == 0, up.stderr
-        endpoint = re.search(r"bus: (tcp/127\.0\.0\.1:\d+)", up.stdout).group(1)
+        endpoint = re.search(r"bus: (tls/127\.0\.0\.1:\d+)", up.stdout).group(1)
         services = ("plant", "controller", "recorder", "eyeview")
         # The plant steps only once every service is ready: its states applying the
         # controller's commands mean the whole stack runs. The run's read-only observer
@@ -162,7 +162,7 @@ def test_a_session_without_the_runs_credentials_sees_nothing_of_a_stack(tmp_path
     up = teleop("up", "--mode", "realtime", "--run-dir", str(run_dir))
     try:
         assert up.returncode == 0, up.stderr
-        endpoint = re.search(r"bus: (tcp/127\.0\.0\.1:\d+)", up.stdout).group(1)
+        endpoint = re.search(r"bus: (tls/127\.0\.0\.1:\d+)", up.stdout).group(1)
         stranger = StateCount(endpoint, None)
         try:
             observer = run_dir / "auth" / "observer.json"

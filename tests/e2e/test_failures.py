@@ -123,7 +123,7 @@ def test_up_on_a_port_in_use_is_one_line_naming_the_port(tmp_path):
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
-        endpoint = f"tcp/127.0.0.1:{taken.getsockname()[1]}"
+        endpoint = f"tls/127.0.0.1:{taken.getsockname()[1]}"
         proc = _teleop("up", "--run-dir", str(tmp_path / "up"), "--endpoint", endpoint)
         _, err = proc.communicate(timeout=HANG_S)
     assert proc.returncode == EXIT_FAILED

@@ -9,10 +9,13 @@ same links at the same time.
 from __future__ import annotations
 
 import dataclasses
+import json
 import stat
+import time
+from pathlib import Path
 
 from teleop.bus import session as bus
-from teleop.bus.access import PASSWORDS_FILE, write_run_credentials
+from teleop.bus.access import PASSWORDS_FILE, new_zid, write_run_credentials
 from teleop.bus.messages import HAPTIC_STATE, JOINT_COMMAND, PLANT_STATE, DropCounter
 from teleop.bus.topics import Topics
 from teleop.core.config import BusConfig
@@ -90,3 +93,49 @@ def test_only_the_graphs_producers_reach_a_stream_and_strangers_cannot_link(tmp_
     assert max(states_at_controller.seqs) <= RECORDS  # no state from the stranger
     # the stranger never linked: it saw its own states only (Zenoh delivers those locally)
     assert [seq for seq in states_at_stranger.seqs if seq <= RECORDS] == []
+
+
+def test_without_tls_the_controllers_password_with_another_id_gets_no_right(tmp_path):
+    """A thief with the controller's user and password (accepted: the plant holds the
+    run's dictionary) but a Zenoh id of its own matches no participant: none of its
+    commands reaches the plant, while the controller's, sent in the same loop, all do."""
+    files = write_run_credentials(tmp_path / "auth", ["plant", "controller"], ROBOT)
+    thief_file = tmp_path / "thief.json"
+    stolen = json.loads(files["controller"].read_text())
+    thief_file.write_text(json.dumps({**stolen, "zid": new_zid()}))
+    topics, endpoint = Topics(ROBOT), free_endpoint()
+
+    def config(credentials: Path) -> BusConfig:
+        return dataclasses.replace(
+            BusConfig(endpoint=endpoint), gossip=False, credentials_file=str(credentials)
+        )
+
+    plant = bus.open_session(config(files["plant"]), listen=True)
+    controller = bus.open_session(config(files["controller"]), listen=False)
+    thief = bus.open_session(config(thief_file), listen=False)
+    commands = Seen()
+    entities = [bus.subscribe(plant, topics.joint_command, JOINT_COMMAND, commands, DropCounter())]
+    try:
+        entities.append(bus.declare_alive(controller, topics, "controller"))
+        entities.append(bus.declare_alive(plant, topics, "plant"))
+        bus.wait_alive(plant, topics, ["controller"], TIMEOUT_S)
+        bus.wait_alive(controller, topics, ["plant"], TIMEOUT_S)
+        plant_zid = str(plant.info.zid())
+        deadline = time.monotonic() + TIMEOUT_S
+        while plant_zid not in {str(z) for z in thief.info.peers_zid()}:
+            assert time.monotonic() < deadline, "the thief's password did not link"
+            time.sleep(0.01)
+        senders = [
+            (0, bus.Publisher.declare(controller, topics.joint_command, JOINT_COMMAND)),
+            (20_000, bus.Publisher.declare(thief, topics.joint_command, JOINT_COMMAND)),
+        ]
+        for i in range(1, RECORDS + 1):
+            for first, pub in senders:
+                rec = pub.schema.new()
+                rec["seq"] = first + i
+                pub.put(rec)
+        assert commands.wait(RECORDS), "the controller's commands did not reach the plant"
+    finally:
+        for session in (thief, controller, plant):
+            bus.close_session(session)
+    assert sorted(commands.seqs) == list(range(1, RECORDS + 1))  # none from the thief

@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import time
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
 from teleop.bus import session as bus
-from teleop.bus.access import write_run_credentials
+from teleop.bus.access import new_zid, write_run_credentials
 from teleop.bus.messages import HAPTIC_STATE, JOINT_COMMAND, PLANT_STATE, DropCounter
 from teleop.bus.topics import Topics
 from teleop.core.config import BusConfig, ConfigError
@@ -39,7 +40,7 @@ class Run:
 
     def __init__(self, files: dict[str, Path]) -> None:
         self.topics = Topics(ROBOT)
-        endpoint = free_endpoint("tls")
+        self.endpoint = endpoint = free_endpoint("tls")
         own = {"controller": free_endpoint("tls"), "haptic": free_endpoint("tls")}
 
         def config(name: str) -> BusConfig:
@@ -55,6 +56,7 @@ class Run:
         self.controller = bus.open_session(config("controller"), listen=False)
         self.haptic = bus.open_session(config("haptic"), listen=False)
         self.commands, self.states, self.haptic_samples = Seen(), Seen(), Seen()
+        self._publishers: list[tuple[int, bus.Publisher]] = []
         drops, topics = DropCounter(), self.topics
         self.entities = [
             bus.subscribe(self.plant, topics.joint_command, JOINT_COMMAND, self.commands, drops),
@@ -77,18 +79,23 @@ class Run:
     def send(self) -> None:
         """Every participant's records; the haptic service also sends commands (seq
         10_000..), which only the controller may."""
-        topics = self.topics
-        publishers = [
-            (0, bus.Publisher.declare(self.plant, topics.plant_state, PLANT_STATE)),
-            (0, bus.Publisher.declare(self.controller, topics.joint_command, JOINT_COMMAND)),
-            (0, bus.Publisher.declare(self.haptic, topics.haptic_state, HAPTIC_STATE)),
-            (10_000, bus.Publisher.declare(self.haptic, topics.joint_command, JOINT_COMMAND)),
-        ]
         for i in range(1, RECORDS + 1):
-            for first, pub in publishers:
-                rec = pub.schema.new()
-                rec["seq"] = first + i
-                pub.put(rec)
+            self.send_once(i)
+
+    def send_once(self, i: int) -> None:
+        """The ``i``-th record of each sender of :meth:`send`."""
+        if not self._publishers:
+            topics = self.topics
+            self._publishers = [
+                (0, bus.Publisher.declare(self.plant, topics.plant_state, PLANT_STATE)),
+                (0, bus.Publisher.declare(self.controller, topics.joint_command, JOINT_COMMAND)),
+                (0, bus.Publisher.declare(self.haptic, topics.haptic_state, HAPTIC_STATE)),
+                (10_000, bus.Publisher.declare(self.haptic, topics.joint_command, JOINT_COMMAND)),
+            ]
+        for first, pub in self._publishers:
+            rec = pub.schema.new()
+            rec["seq"] = first + i
+            pub.put(rec)
 
     def close(self) -> None:
         for session in (self.haptic, self.controller, self.plant):
@@ -97,9 +104,9 @@ class Run:
 
 @pytest.mark.parametrize("haptic_ca", ["own", "another"])
 def test_only_certificates_of_the_runs_authority_link(tmp_path, haptic_ca):
-    """The haptic service holds this run's user, password and Zenoh id; only its
-    certificate differs: signed by this run's authority, it links and its samples reach
-    the controller; signed by another run's, it links to nobody."""
+    """The haptic service holds this run's Zenoh id; only its certificate differs: signed
+    by this run's authority, it links and its samples reach the controller; signed by
+    another run's, it links to nobody."""
     files = write_run_credentials(tmp_path / "auth", PARTICIPANTS, ROBOT, tls=True)
     if haptic_ca == "another":
         other = write_run_credentials(tmp_path / "other", ["haptic"], ROBOT, tls=True)
@@ -123,29 +130,41 @@ def test_only_certificates_of_the_runs_authority_link(tmp_path, haptic_ca):
         assert run.haptic_samples.seqs == []
 
 
-def test_with_tls_the_access_list_knows_a_peer_by_its_certificate(tmp_path):
-    """Policies that name peers by certificate only (user and Zenoh id subjects
-    removed) still let each participant do what the graph allows, and no more."""
-    files = write_run_credentials(tmp_path / "auth", PARTICIPANTS, ROBOT, tls=True)
-
-    def certificates_only(content: dict) -> None:
-        acl = content["access_control"]
-        acl["subjects"] = [s for s in acl["subjects"] if "cert_common_names" in s]
-        for policy in acl["policies"]:
-            policy["subjects"] = [s for s in policy["subjects"] if s.endswith("-by-cert")]
-
-    for path in files.values():
-        edit_credentials(path, certificates_only)
+@pytest.mark.parametrize("borrowed", ["controller", "observer"])
+def test_a_second_session_with_a_borrowed_certificate_gets_no_right(tmp_path, borrowed):
+    """A thief holding the controller's (or the observer's) certificate and key, with a
+    Zenoh id of its own, links to the plant (TLS accepts the certificate) but matches no
+    participant of the access list: not one of its commands reaches the plant, while the
+    real controller's, sent in the same loop, all do."""
+    files = write_run_credentials(tmp_path / "auth", [*PARTICIPANTS, "observer"], ROBOT, tls=True)
+    stolen = json.loads(files[borrowed].read_text())
+    thief_file = tmp_path / "thief.json"
+    thief_file.write_text(json.dumps({**stolen, "zid": new_zid()}))
     run = Run(files)
+    plant_zid = json.loads(files["plant"].read_text())["zid"]
+    thief = bus.open_session(
+        dataclasses.replace(
+            BusConfig(endpoint=run.endpoint), gossip=False, credentials_file=str(thief_file)
+        ),
+        listen=False,
+    )
     try:
         run.link(PARTICIPANTS)
-        run.send()
+        deadline = time.monotonic() + TIMEOUT_S
+        while plant_zid not in {str(z) for z in thief.info.peers_zid()}:
+            assert time.monotonic() < deadline, "the thief's certificate did not link"
+            time.sleep(0.01)
+        thief_commands = bus.Publisher.declare(thief, run.topics.joint_command, JOINT_COMMAND)
+        for i in range(1, RECORDS + 1):
+            rec = thief_commands.schema.new()
+            rec["seq"] = 20_000 + i
+            thief_commands.put(rec)
+            run.send_once(i)
         assert run.commands.wait(RECORDS), "the controller's commands did not reach the plant"
-        assert run.states.wait(RECORDS), "the plant's states did not reach the controller"
-        assert run.haptic_samples.wait(RECORDS), "the haptic samples did not reach the controller"
     finally:
+        bus.close_session(thief)
         run.close()
-    assert sorted(run.commands.seqs) == list(range(1, RECORDS + 1))  # none from the haptic
+    assert sorted(run.commands.seqs) == list(range(1, RECORDS + 1))  # none from the thief
 
 
 def test_a_process_holding_certificates_refuses_a_tcp_endpoint(tmp_path):

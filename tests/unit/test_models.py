@@ -146,8 +146,10 @@ def test_prepared_steps_equal_mujoco_steps_bit_for_bit(config):
     """Plant.prepare_step (mj_step1 ahead of the command) changes no bit of the motion."""
     from dataclasses import replace
 
-    # No tool-speed cut (Plant.limit), so both plants step the same references.
-    config = replace(config, plant=replace(config.plant, tool_speed_limit_m_s=1e9))
+    # No tool-speed cut (Plant.limit) and no protective stop, so both plants step the
+    # same references.
+    no_limits = dict(tool_speed_limit_m_s=1e9, tool_speed_stop_m_s=2e9, contact_force_limit_n=1e9)
+    config = replace(config, plant=replace(config.plant, **no_limits))
     prepared, plain = Plant(config), Plant(config)
     q0 = random_configurations(prepared, 1, seed=5)[0]
     prepared.reset(q0)

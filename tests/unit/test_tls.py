@@ -6,6 +6,7 @@ from __future__ import annotations
 import ipaddress
 import json
 import stat
+from pathlib import Path
 
 import pytest
 from cryptography import x509
@@ -15,13 +16,15 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from teleop.bus.access import (
     CA_FILE,
     CERTIFICATE_SUFFIX,
+    OBSERVER,
+    PASSWORDS_FILE,
     PRIVATE_KEY_SUFFIX,
     TLS_CONFIG,
     write_run_credentials,
     zenoh_entries,
 )
 from teleop.bus.tls import RunAuthority
-from teleop.core.config import ConfigError, load_config
+from teleop.core.config import load_config
 
 PARTICIPANTS = ["plant", "controller"]
 
@@ -74,13 +77,51 @@ def test_tls_credentials_name_private_certificate_files_and_the_acl_knows_their_
         for suffix in (CERTIFICATE_SUFFIX, PRIVATE_KEY_SUFFIX)
     }
     acl = json.loads(files["plant"].read_text())["access_control"]
-    by_cert = {s["id"]: s for s in acl["subjects"] if "cert_common_names" in s}
-    assert by_cert == {
-        f"{name}-by-cert": {"id": f"{name}-by-cert", "cert_common_names": [name]}
+    zids = {name: json.loads(files[name].read_text())["zid"] for name in PARTICIPANTS}
+    # one subject per participant: its certificate's name and its session's id together
+    assert acl["subjects"] == [
+        {"id": f"{name}-by-cert", "cert_common_names": [name], "zids": [zids[name]]}
         for name in PARTICIPANTS
-    }
+    ]
     for policy in acl["policies"]:
-        assert f"{policy['id']}-by-cert" in policy["subjects"]
+        assert policy["subjects"] == [f"{policy['id']}-by-cert"]
+
+
+def test_each_tls_file_leads_to_its_own_key_and_no_password(tmp_path):
+    """What a participant is given (its file and every file it names) holds no secret of
+    another: no password, no dictionary, no other participant's key."""
+    directory = tmp_path / "auth"
+    participants = [*PARTICIPANTS, OBSERVER]
+    files = write_run_credentials(directory, participants, "arm0", tls=True)
+    assert not (directory / PASSWORDS_FILE).exists()
+    for name in participants:
+        content = json.loads(files[name].read_text())
+        assert "password" not in content and "dictionary_file" not in content
+        named = {Path(value) for value in content["tls"].values() if isinstance(value, str)}
+        assert named == {
+            directory / CA_FILE,
+            directory / (name + CERTIFICATE_SUFFIX),
+            directory / (name + PRIVATE_KEY_SUFFIX),
+        }
+        ca_text = (directory / CA_FILE).read_text()
+        assert "PRIVATE KEY" not in ca_text  # the authority's certificate only
+        assert "transport/auth/usrpwd" not in zenoh_entries(files[name])
+
+
+def test_without_tls_the_observer_is_not_given_the_password_dictionary(tmp_path):
+    directory = tmp_path / "auth"
+    files = write_run_credentials(directory, [*PARTICIPANTS, OBSERVER], "arm0")
+    observer = json.loads(files[OBSERVER].read_text())
+    assert "dictionary_file" not in observer
+    assert "dictionary_file" not in zenoh_entries(files[OBSERVER])["transport/auth/usrpwd"]
+    others = [json.loads(files[name].read_text())["password"] for name in PARTICIPANTS]
+    assert not any(password in files[OBSERVER].read_text() for password in others)
+    # a service accepts links: it checks them against the dictionary
+    plant = zenoh_entries(files["plant"])["transport/auth/usrpwd"]
+    assert plant["dictionary_file"] == str(directory / PASSWORDS_FILE)
+    # known by Zenoh id only: a name alone would let any password holder in, any id
+    acl = observer["access_control"]
+    assert all(set(subject) == {"id", "zids"} for subject in acl["subjects"])
 
 
 def test_credentials_without_tls_set_no_tls_entries(tmp_path):
@@ -89,7 +130,7 @@ def test_credentials_without_tls_set_no_tls_entries(tmp_path):
     assert list((tmp_path / "auth").glob("*.pem")) == []
 
 
-def test_tls_needs_the_runs_credentials():
-    with pytest.raises(ConfigError, match="bus.tls needs bus.secure"):
-        load_config(None, ["bus.tls=true", "bus.secure=false"])
-    assert load_config(None, ["bus.tls=true"]).bus.tls is True
+def test_tls_is_the_default_and_only_with_the_runs_credentials():
+    assert load_config(None, []).bus.mutual_tls is True
+    assert load_config(None, ["bus.secure=false"]).bus.mutual_tls is False
+    assert load_config(None, ["bus.tls=false"]).bus.mutual_tls is False

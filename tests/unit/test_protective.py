@@ -1,0 +1,149 @@
+"""The plant's protective stop (teleop.sim.protective): the bookkeeping alone, then the
+MuJoCo plant pressed into the table by the teleoperation controller, then the step
+core's events and summary."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from teleop.bus.messages import Event, Flag
+from teleop.core.clock import FakeClock
+from teleop.core.config import ConfigError, load_config
+from teleop.sim.protective import ProtectiveStop, StopCause
+from teleop.sim.stepping import PlantStepCore
+from tests.unit.test_feedback import GraspRig
+from tests.unit.test_stepping import Recorded, command
+
+LIMIT_N, SPEED_STOP_M_S, RELEASE_M_S = 8.0, 0.33, 0.01
+# The press: straight down onto the table, slowly (m/s), as a person leaning on the handle.
+PRESS_SPEED_M_S = 0.03
+
+
+def test_trips_on_either_limit_holds_while_commanded_and_releases_on_a_still_command():
+    stop = ProtectiveStop(LIMIT_N, SPEED_STOP_M_S, RELEASE_M_S)
+    assert not stop.measure(1, LIMIT_N, SPEED_STOP_M_S)  # at the limits: not beyond
+    assert not stop.holds(2, 0.2)  # nothing tripped: commands go through
+    assert stop.measure(2, LIMIT_N + 0.1, 0.0)
+    assert stop.latched and not stop.measure(3, 100.0, 1.0)  # latched: no second trip
+    assert stop.holds(3, 0.2) and stop.holds(4, RELEASE_M_S + 1e-6)  # still pushing
+    stop.held()  # a watchdog brake meanwhile counts as held too
+    assert not stop.holds(6, RELEASE_M_S)  # the command stopped: released from step 6
+    assert not stop.latched
+    assert stop.measure(9, 0.0, SPEED_STOP_M_S + 0.01)  # then too fast
+    transitions = [(t.stop.cause, t.released) for t in stop.take_transitions()]
+    assert transitions == [
+        (StopCause.CONTACT_FORCE, False),
+        (StopCause.CONTACT_FORCE, True),
+        (StopCause.TOOL_SPEED, False),
+    ]
+    assert stop.take_transitions() == []
+    summary = stop.summary(0.001)
+    assert (summary["count"], summary["steps_held"]) == (2, 3)
+    assert summary["stops"][0] == {
+        "cause": "contact_force", "t_s": 0.002, "measured": LIMIT_N + 0.1,
+        "released_t_s": 0.006, "steps_held": 3,
+    }  # fmt: skip
+    assert summary["stops"][1]["cause"] == "tool_speed"
+    assert summary["stops"][1]["released_t_s"] is None
+
+
+def test_the_stop_speed_must_lie_above_the_command_limit():
+    with pytest.raises(ConfigError, match="tool_speed_stop_m_s > plant.tool_speed_limit"):
+        load_config(None, ["plant.tool_speed_stop_m_s=0.2"])
+    with pytest.raises(ConfigError, match="contact_force_limit_n > 0"):
+        load_config(None, ["plant.contact_force_limit_n=0"])
+
+
+def press(rig: GraspRig, steps: int) -> list[float]:
+    """The handle held down: ``steps`` steps commanding the tool down at the press speed;
+    the net contact force after each (N)."""
+    forces = []
+    for _ in range(steps):
+        sample = rig.plant.sample()
+        v_ref = np.array([0.0, 0.0, -PRESS_SPEED_M_S])
+        out = rig.ctl.update(sample.q_rad, sample.qd_rad_s, v_ref, None, 1.0)
+        rig.plant.step(out.qd_ref_rad_s, out.gripper_cmd)
+        forces.append(math.hypot(*rig.plant.contact_force_n.tolist()))
+    return forces
+
+
+@pytest.fixture(scope="module")
+def pressed():
+    """The open gripper moved above the table beside the cube, then pressed down onto it
+    until well after the stop; the rig and the forces of the press."""
+    rig = GraspRig(load_config())
+    above = rig.plant.tool_pose()[0] + [0.0, 0.15, 0.0]
+    above[2] = 0.16
+    rig.move(above, 1.0, 2500)
+    assert rig.plant.contact_force_n.tolist() == [0.0, 0.0, 0.0]
+    forces = press(rig, round(0.15 / PRESS_SPEED_M_S * 1000))  # 15 cm: far into the table
+    return rig, forces
+
+
+def test_pressed_into_the_table_the_plant_stops_and_holds_while_pushed(pressed):
+    rig, forces = pressed
+    stops = rig.plant.protective.stops
+    assert [s.cause for s in stops] == [StopCause.CONTACT_FORCE]  # one stop, on force
+    tripped = stops[0].step
+    assert forces[-1] > 0  # still touching, still reported (the operator feels it)
+    assert rig.plant.protective.latched and rig.plant.braking  # the handle still pushes
+    # Held: the tool no longer goes down, the force settles below the limit.
+    z_held = rig.plant.tool_pose()[0][2]
+    after = press(rig, 200)
+    assert rig.plant.tool_pose()[0][2] == pytest.approx(z_held, abs=1e-4)
+    assert max(after) < load_config().plant.contact_force_limit_n
+    assert stops[0].steps_held > 200 and rig.plant.step_count - tripped > 200
+    # Unguarded, the same press goes on pushing: tens of newtons.
+    unguarded = GraspRig(replace_limits(load_config(), contact_force_limit_n=1e9))
+    above = unguarded.plant.tool_pose()[0] + [0.0, 0.15, 0.0]
+    above[2] = 0.16
+    unguarded.move(above, 1.0, 2500)
+    free = press(unguarded, len(forces))
+    assert max(free[-200:]) > 3 * load_config().plant.contact_force_limit_n
+
+
+def test_a_command_that_stops_releases_the_stop(pressed):
+    rig, _ = pressed
+    assert rig.plant.protective.latched
+    rig.ctl.reset()  # the handle let go: no motion asked for
+    for _ in range(20):
+        sample = rig.plant.sample()
+        out = rig.ctl.update(sample.q_rad, sample.qd_rad_s, np.zeros(3), None, 1.0)
+        rig.plant.step(out.qd_ref_rad_s, out.gripper_cmd)
+    assert not rig.plant.protective.latched and not rig.plant.braking
+    assert rig.plant.protective.stops[0].released_step is not None
+
+
+def replace_limits(config, **limits):
+    return replace(config, plant=replace(config.plant, **limits))
+
+
+def test_the_core_announces_each_stop_and_lists_it_in_the_summary():
+    config = load_config(None, ['run.mode="realtime"'])
+    outputs, clock = Recorded(), FakeClock(start_ns=10**12)
+    core = PlantStepCore(config, outputs, clock)
+    core.begin_run(None)
+    core.publish_state()
+    # Tripped through the bookkeeping the plant feeds after a step (a tool this fast).
+    core.plant.protective.measure(core.plant.step_count, 0.0, 1.0)
+    for seq in range(1, 4):
+        clock.advance(1_000_000)
+        core.step(command(seq, core.state_seq, clock.now_ns(), qd=0.5), clock.now_ns())
+    assert Event.PROTECTIVE_STOP in outputs.events()
+    assert int(outputs.records["plant_state"][-1]["flags"]) & Flag.BRAKING
+    # A command that asks for no motion: the drives' references that hold the arm
+    # against gravity (Plant.limit counts the motion beyond them).
+    plant = core.plant
+    still = command(4, core.state_seq, clock.now_ns() + 1_000_000)
+    still["qd_ref_rad_s"][:6] = plant.data.qfrc_bias[plant.dof_index] / plant.kv
+    clock.advance(1_000_000)
+    core.step(still, clock.now_ns())
+    assert outputs.events()[-1] is Event.PROTECTIVE_RELEASE
+    assert not int(outputs.records["plant_state"][-1]["flags"]) & Flag.BRAKING
+    summary = core.plant.protective.summary(config.plant.timestep_s)
+    assert summary["count"] == 1 and summary["stops"][0]["cause"] == "tool_speed"
+    assert summary["stops"][0]["steps_held"] == 3
