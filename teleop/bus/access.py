@@ -243,6 +243,25 @@ def write_run_credentials(
     return files
 
 
+def participant_zids(credentials_file: Path) -> dict[str, str]:
+    """The run's participants by Zenoh id (lower-case hex -> name), from the access list
+    of a participant's credentials file."""
+    acl = json.loads(Path(credentials_file).read_text())["access_control"]
+    subjects = {subject["id"]: subject for subject in acl["subjects"]}
+    return {
+        zid.lower(): policy["id"]
+        for policy in acl["policies"]
+        for subject_id in policy["subjects"]
+        for zid in subjects[subject_id].get("zids", [])
+    }
+
+
+def strangers(linked: Iterable[object], participants: Mapping[str, str]) -> list[str]:
+    """The Zenoh ids among ``linked`` (a session's ``info.peers_zid()``) that are no
+    participant of the run (:func:`participant_zids`), in order."""
+    return [zid for zid in map(str, linked) if zid.lower() not in participants]
+
+
 def zenoh_entries(credentials_file: Path) -> dict[str, Any]:
     """The Zenoh config entries (path -> value) a participant's credentials file sets:
     its id, the access-control list and either its certificate files (under

@@ -31,6 +31,7 @@ from typing import Any, ClassVar
 
 import zenoh
 
+from teleop.bus.access import participant_zids, strangers
 from teleop.bus.messages import DropCounter, Kind
 from teleop.bus.session import (
     NewestSubscriber,
@@ -110,6 +111,11 @@ class Service:
         # the GIL the service's own threads need.
         self.running_summary_cpu_max_ms = 0.0
         self.unlinked_peers: list[str] = []  # peers never seen (become_ready gave up)
+        # Sessions linked to this one that are no participant of the run (Zenoh ids):
+        # someone holding a run's certificate (or password) under an id of its own. The
+        # access list gives them no right; they are counted, and logged once each.
+        self.unknown_peers: list[str] = []
+        self._participants: dict[str, str] = {}  # the run's Zenoh ids -> names
         # Peers become_ready gave up on that linked after all: name -> seconds after the
         # start of the wait (on a starved machine start-up can outlast PEER_LINK_WAIT_S).
         self.peers_linked_late: dict[str, float] = {}
@@ -122,6 +128,8 @@ class Service:
     def open(self) -> None:
         """Open the session; subclasses declare their publishers and subscribers after."""
         self.session = open_session(self.config.bus, listen=self.options.listen)
+        if self.config.bus.credentials_file:
+            self._participants = participant_zids(Path(self.config.bus.credentials_file))
 
     def announce(self) -> None:
         """Declare this service alive: call once its subscribers are in place."""
@@ -182,6 +190,7 @@ class Service:
                 for name, sub in self._newest.items()
             },
             "unlinked_peers": list(self.unlinked_peers),
+            "unknown_peers": list(self.unknown_peers),
             "peers_linked_late": dict(self.peers_linked_late),
             "privileges": self.privileges,
             "running_summaries": self.running_summaries,
@@ -319,6 +328,24 @@ class Service:
         for taken_in in running:
             taken_in.unlink(missing_ok=True)
 
+    def check_peers(self) -> list[str]:
+        """The Zenoh ids linked to this session that are no participant of the run, newly
+        seen ones logged (once each) and added to :attr:`unknown_peers`; run with each
+        running summary."""
+        if not self._participants or self.session is None or self.session.is_closed():
+            return []
+        new = []
+        for zid in strangers(self.session.info.peers_zid(), self._participants):
+            if zid not in self.unknown_peers:
+                self.unknown_peers.append(zid)
+                new.append(zid)
+                logger.warning(
+                    "a session that is no participant of this run linked (Zenoh id %s): "
+                    "it holds a run certificate or password; the access list gives it "
+                    "nothing", zid,
+                )  # fmt: skip
+        return new
+
     # -- running summaries -------------------------------------------------------------
     def start_running_summaries(self, period_s: float = SUMMARY_PERIOD_S) -> None:
         """Write the summary so far every ``period_s`` from a thread of its own, until
@@ -350,6 +377,7 @@ class Service:
             return
         pid = os.getpid()
         start_ns = time.thread_time_ns()
+        self.check_peers()
         try:
             summary = {**self.summary(), "pid": pid, "running": True}
         except Exception:

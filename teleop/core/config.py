@@ -144,7 +144,7 @@ class PlantConfig:
     # protective_release_m_s.
     contact_force_limit_n: float = 8.0
     tool_speed_stop_m_s: float = 0.33
-    protective_release_m_s: float = 0.01
+    protective_release_m_s: float = 0.005
     # Rate of the scene streams (tool pose, object poses) and, outside teleoperation, of the
     # contact and proximity fields of the plant state (one per step; teleoperation: fresh
     # every step).

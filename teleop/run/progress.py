@@ -127,6 +127,13 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
             )
         timing += f", dropped {summary.get('dropped_messages')}"
     lines.append(timing)
+    for stop in (summary.get("protective_stop") or {}).get("stops", []):
+        released = stop["released_t_s"]
+        lines.append(
+            f"  PROTECTIVE STOP    at {stop['t_s']:.3f} s sim time: "
+            f"{stop['cause'].replace('_', ' ')} {stop['measured']:.3g} beyond its limit, "
+            + ("still held at the end" if released is None else f"released at {released:.3f} s")
+        )
     if summary.get("failure"):
         lines.append(f"  ABORTED            {summary['failure']}")
     for resume in summary.get("plant_resumes") or []:

@@ -597,6 +597,8 @@ def run_on_services(
             "commands_clamped": plant.get("commands_clamped"),
             "command_stream": plant.get("command_stream"),
             "stale_commands": plant.get("stale_commands"),
+            # The plant's own stops on contact force and tool speed (teleop.sim.protective).
+            "protective_stop": plant.get("protective_stop"),
             # The plant ended the run on a failure (its reason), and its restarts.
             "failure": plant.get("failure"),
             "plant_resumes": plant.get("resumes", []),

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from teleop.bus import session as bus
-from teleop.bus.access import new_zid, write_run_credentials
+from teleop.bus.access import new_zid, participant_zids, strangers, write_run_credentials
 from teleop.bus.messages import HAPTIC_STATE, JOINT_COMMAND, PLANT_STATE, DropCounter
 from teleop.bus.topics import Topics
 from teleop.core.config import BusConfig, ConfigError
@@ -139,7 +139,8 @@ def test_a_second_session_with_a_borrowed_certificate_gets_no_right(tmp_path, bo
     files = write_run_credentials(tmp_path / "auth", [*PARTICIPANTS, "observer"], ROBOT, tls=True)
     stolen = json.loads(files[borrowed].read_text())
     thief_file = tmp_path / "thief.json"
-    thief_file.write_text(json.dumps({**stolen, "zid": new_zid()}))
+    thief_zid = new_zid()
+    thief_file.write_text(json.dumps({**stolen, "zid": thief_zid}))
     run = Run(files)
     plant_zid = json.loads(files["plant"].read_text())["zid"]
     thief = bus.open_session(
@@ -161,6 +162,10 @@ def test_a_second_session_with_a_borrowed_certificate_gets_no_right(tmp_path, bo
             thief_commands.put(rec)
             run.send_once(i)
         assert run.commands.wait(RECORDS), "the controller's commands did not reach the plant"
+        # the plant knows it for no participant of the run (a service logs and counts it)
+        participants = participant_zids(files["plant"])
+        assert strangers(run.plant.info.peers_zid(), participants) == [thief_zid]
+        assert strangers(run.controller.info.peers_zid(), participants) == []
     finally:
         bus.close_session(thief)
         run.close()

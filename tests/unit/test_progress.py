@@ -84,3 +84,19 @@ def test_a_viewer_that_could_not_start_is_said_and_the_recording_named():
     text = "\n".join(human_summary(summary, None))
     assert "live viewer        not spawned: no display: open the recording" in text
     assert "live viewer" not in "\n".join(human_summary({**summary, "services": {}}, None))
+
+
+def test_the_short_summary_names_every_protective_stop():
+    stops = [
+        {"cause": "contact_force", "t_s": 4.2, "measured": 9.1, "released_t_s": 5.0,
+         "steps_held": 800},
+        {"cause": "tool_speed", "t_s": 7.5, "measured": 0.34, "released_t_s": None,
+         "steps_held": 12},
+    ]  # fmt: skip
+    summary = {"scenario": "grasp", "mode": "realtime", "success": True,
+               "protective_stop": {"count": 2, "stops": stops}}  # fmt: skip
+    text = "\n".join(human_summary(summary, None))
+    assert "PROTECTIVE STOP    at 4.200 s sim time: contact force 9.1" in text
+    assert "released at 5.000 s" in text and "tool speed 0.34" in text
+    assert "still held at the end" in text
+    assert "PROTECTIVE" not in "\n".join(human_summary({**summary, "protective_stop": None}, None))

@@ -27,6 +27,8 @@ SPEED_SETTINGS = {
     "below the plant's limit",
     "teleop.max_tool_speed_m_s": "teleoperation's controller caps the operator's rate "
     "command here, below the plant's limit",
+    "plant.tool_speed_stop_m_s": "the plant's protective stop: a tool measured faster than "
+    "this after a step (pushed, or not following its drives) is braked and held",
 }
 # Phrases that state the plant's limit or a controller's cap, with the figure (m/s).
 LIMIT_PHRASES = (
@@ -55,6 +57,7 @@ def speed_limits(config: Config) -> str:
         "plant.tool_speed_limit_m_s": config.plant.tool_speed_limit_m_s,
         "control.max_tool_speed_m_s": config.control.max_tool_speed_m_s,
         "teleop.max_tool_speed_m_s": config.teleop.max_tool_speed_m_s,
+        "plant.tool_speed_stop_m_s": config.plant.tool_speed_stop_m_s,
     }
     lines = ["| setting | default | what |", "| --- | ---: | --- |"]
     lines += [f"| `{k}` | {v:.2f} m/s | {SPEED_SETTINGS[k]} |" for k, v in values.items()]
