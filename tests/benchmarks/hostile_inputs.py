@@ -6,14 +6,16 @@ reads what the stack measured. Attackers:
 - an *outsider*: a session with no credentials (any local process, another stack);
 - *another user* (``nobody``, when run as root): the same, from another uid, which also
   cannot read the run's 0600 credential files;
-- an *observer thief*: the run's read-only observer credentials, publishing anyway;
-- *insiders*: sessions holding a stolen password of the controller or the haptic service
-  (another Zenoh id), which access control lets publish those services' streams: the
-  receivers' own checks are what stand between them and the robot.
+- an *observer thief*: the run's read-only observer certificate under another Zenoh
+  id, publishing anyway;
+- *insiders*: sessions holding a stolen certificate (or, with ``bus.tls = false``,
+  password) of the controller or the haptic service under another Zenoh id, which the
+  access list must give no right; they aim with the run's genuine observer file (a
+  viewer's, as handed out), which sees the newest state.
 
 Timeline after the plant's first state (seconds): poisoned counters (seq, state_seq,
 tick = 2^64-1) of a command, a feedback and a handle sample; spoofed run events;
-over-speed commands at 1 kHz answering the newest state; stale-stamped commands; then a
+commands at 3 rad/s per joint, 1 kHz, answering the newest state; stale-stamped commands; then a
 flood at 10x the nominal rate of every stream the insider may or may not publish. Writes
 JSON with the run's summary figures and every attacker's counts::
 
@@ -26,10 +28,12 @@ import argparse
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import threading
 import time
+import traceback
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -107,7 +111,10 @@ def session_for(run_dir: Path, credentials: Path | None) -> Any:
         config.bus,
         endpoint=listener,
         gossip=False,
-        peer_listen_endpoint=f"tcp/127.0.0.1:{free_loopback_port()}",
+        # a thief holding certificates listens as the run's processes do (mutual TLS)
+        peer_listen_endpoint=f"{listener.partition('/')[0]}/127.0.0.1:{free_loopback_port()}"
+        if credentials and "tls" in json.loads(credentials.read_text())
+        else f"tcp/127.0.0.1:{free_loopback_port()}",
         peer_connect_endpoints=tuple(own),
         credentials_file=str(credentials) if credentials else "",
     )
@@ -121,9 +128,14 @@ def attack(run_dir: Path, work: Path, flood_s: float) -> dict[str, Any]:
     hap = session_for(run_dir, stolen(run_dir, "haptic", work / "thief-haptic.json"))
     obs = session_for(run_dir, stolen(run_dir, "observer", work / "thief-observer.json"))
     outsider = session_for(run_dir, None)
-    watch, outsider_seen = Watch(), [0]
+    # The thieves see nothing of the run (the access list gives a stolen certificate
+    # under another id no right), so the attack aims with the run's genuine observer
+    # credentials (a viewer's file, as handed out): the newest state and applied command.
+    spy = session_for(run_dir, run_dir / "auth" / "observer.json")
+    watch, thief_watch, outsider_seen = Watch(), Watch(), [0]
     keep = [
-        subscribe(ctl, topics.plant_state, m.PLANT_STATE, watch, drops),
+        subscribe(spy, topics.plant_state, m.PLANT_STATE, watch, drops),
+        subscribe(ctl, topics.plant_state, m.PLANT_STATE, thief_watch, drops),
         subscribe(outsider, topics.plant_state, m.PLANT_STATE,
                   lambda r, t: outsider_seen.__setitem__(0, outsider_seen[0] + 1), drops),
     ]  # fmt: skip
@@ -151,7 +163,7 @@ def attack(run_dir: Path, work: Path, flood_s: float) -> dict[str, Any]:
         rec["t_source_ns"] = stamp_ns
         return rec
 
-    assert watch.first.wait(START_TIMEOUT_S), "no plant state seen by the insider"
+    assert watch.first.wait(START_TIMEOUT_S), "no plant state seen by the observer"
     t0 = time.monotonic()
 
     def at(t_s: float) -> None:
@@ -172,7 +184,7 @@ def attack(run_dir: Path, work: Path, flood_s: float) -> dict[str, Any]:
         ev = m.RUN_EVENT.new()
         ev["seq"], ev["event"], ev["step"], ev["value"] = 1, event, watch.state_seq, 1.0
         put(name, ev)
-    for t_s, qd, age_ns in ((4.0, 0.78, 0), (6.0, 0.05, 1_000_000_000)):  # over-speed, stale
+    for t_s, qd, age_ns in ((4.0, 3.0, 0), (6.0, 0.05, 1_000_000_000)):  # 3 rad/s, stale
         at(t_s)
         end = time.monotonic() + 2.0
         while time.monotonic() < end:
@@ -181,6 +193,9 @@ def attack(run_dir: Path, work: Path, flood_s: float) -> dict[str, Any]:
             put("observer_cmd", command(watch.cmd_seq + 1, watch.state_seq, qd, stamp))
             put("outsider_cmd", command(watch.cmd_seq + 1, watch.state_seq, qd, stamp))
             time.sleep(0.001)
+    # What the thief saw of the run: before the flood, whose plant states Zenoh hands
+    # its own session's subscriber locally.
+    insider_states_seen = thief_watch.states
     at(8.0)  # a flood: 10x the nominal rate of every stream (1 kHz ones at 10 kHz)
     flood_pubs = {
         s.name: Publisher.declare(ctl, getattr(topics, s.name), s.schema)
@@ -203,9 +218,12 @@ def attack(run_dir: Path, work: Path, flood_s: float) -> dict[str, Any]:
     result = {
         "sent": {**sent, "flood": flood_sent},
         "outsider_states_seen": outsider_seen[0],
-        "insider_states_seen": watch.states,
+        "observer_states_seen": watch.states,
+        "insider_states_seen": insider_states_seen,
     }
-    for session, *entities in ((ctl, *keep[:1]), (outsider, keep[1]), (hap,), (obs,)):
+    for session, *entities in (
+        (spy, keep[0]), (ctl, keep[1]), (outsider, keep[2]), (hap,), (obs,)
+    ):  # fmt: skip
         close_session(session, *entities)
     return result
 
@@ -274,9 +292,17 @@ def main() -> int:
     while not (run_dir / "supervisord.conf").exists() and time.monotonic() < deadline:
         time.sleep(0.2)
     results: dict[str, Any] = {"other_user": None}
-    runner = threading.Thread(target=lambda: results.update(other_user=other_user(run_dir)))
+    runner = threading.Thread(
+        target=lambda: results.update(other_user=other_user(run_dir)), daemon=True
+    )
     runner.start()
-    results["attacks"] = attack(run_dir, run_dir, args.flood_s)
+    try:
+        results["attacks"] = attack(run_dir, run_dir, args.flood_s)
+    except BaseException:
+        traceback.print_exc()
+        stack.send_signal(signal.SIGINT)  # the stack stops, not left running
+        stack.wait(timeout=120)
+        os._exit(1)  # the attack's open sessions would keep this process alive
     runner.join()
     code = stack.wait(timeout=300)
     summary = json.loads(summary_file.read_text()) if summary_file.exists() else {}
@@ -285,9 +311,12 @@ def main() -> int:
         "exit_code": code,
         **{k: summary.get(k) for k in (
             "success", "duration_s", "tool_speed_max_m_s", "max_device_force_n",
+            "max_contact_force_n",
             "stale_commands", "commands_received", "commands_applied", "commands_clamped",
             "command_stream", "dropped_messages", "stale_feedback_events")},
         "dropped_by_service": {n: s.get("dropped_by_reason") for n, s in services.items()},
+        "unknown_peers_by_service": {n: s.get("unknown_peers") for n, s in services.items()},
+        "protective_stop": summary.get("protective_stop"),
         "controller_haptic_stream": services.get("controller", {}).get("haptic_stream"),
         "haptic_feedback_stream": services.get("haptic", {}).get("feedback_stream"),
     }  # fmt: skip
