@@ -788,10 +788,11 @@ EVENT_MEANINGS: Mapping[Event, tuple[str, str]] = {  # (sent by, meaning and val
                            "`plant.watchdog_s`: the drives hold the arm where it is; value: "
                            "the command's age (s)"),
     Event.WATCHDOG_RESUME: ("plant", "a fresh command again: the plant follows the commands"),
-    Event.PROTECTIVE_STOP: ("plant", "protective stop: the net contact force on the gripper "
-                            "above `plant.contact_force_limit_n`, or the measured tool speed "
-                            "above `plant.tool_speed_stop_m_s`: the drives hold the arm while "
-                            "the commands ask for motion; value: 1 contact force, 2 tool speed"),
+    Event.PROTECTIVE_STOP: ("plant", "protective stop: the scene's contact force on the "
+                            "gripper above `plant.contact_force_limit_n`, or the measured "
+                            "tool speed above `plant.tool_speed_stop_m_s`: the drives hold "
+                            "the arm while the commands ask for motion; value: 1 contact "
+                            "force, 2 tool speed"),
     Event.PROTECTIVE_RELEASE: ("plant", "a command asked for a tool motion of at most "
                                "`plant.protective_release_m_s`: the protective stop is over, "
                                "the plant follows the commands; value: the stop's cause"),

@@ -455,7 +455,8 @@ class BilateralCycle(ControllerCore):
         prepared_seq, terms, obstacle = self._prepared
         if prepared_seq != tick:  # not prepared for this state: all of it here
             terms, obstacle = None, ProximitySample.from_state(state)
-        output, gripper_cmd, _, _ = self._control(tick, state, haptic, obstacle, terms)
+        yaw_rad = self._head_yaw_rad(tick)
+        output, gripper_cmd, _ = self._control(state, haptic, obstacle, yaw_rad, terms)
         self.compute_ns_total += self.clock.now_ns() - t0
         trace = np.zeros(N_STAGES, dtype=np.int64)  # np.zeros_like is slower on a record field
         trace[Stage.HAPTIC_SAMPLE] = haptic["trace_ns"][Stage.HAPTIC_SAMPLE]
@@ -504,18 +505,19 @@ class BilateralCycle(ControllerCore):
     # -- the control law and the feedback --------------------------------------------------
     def _control(
         self,
-        tick: int,
         state: np.ndarray,
         haptic: np.ndarray | None,
         obstacle: ProximitySample | None,
+        yaw_rad: float,
         terms: JointStateTerms | None = None,
-    ) -> tuple[TeleopOutput, float, np.ndarray, float]:
+    ) -> tuple[TeleopOutput, float, np.ndarray]:
         """One control law cycle from the handle (None: no input, the tool holds still);
         ``terms``: the joint-state half of the law, prepared from ``state`` (None:
         computed here).
 
-        Returns the output, the gripper command, the handle offset (m, device frame) and
-        the view yaw (rad) it was computed with.
+        ``yaw_rad``: the HMD's view yaw that applies at the state's tick.
+
+        Returns the output, the gripper command and the handle offset (m, device frame).
         """
         if haptic is None:
             handle_d_m, buttons = np.zeros(3), 0
@@ -524,7 +526,6 @@ class BilateralCycle(ControllerCore):
         # Plain int bit tests: an enum.Flag operation costs microseconds per call.
         clutch = bool(buttons & _CLUTCH)
         gripper_cmd = GRIPPER_CLOSED if buttons & _GRIPPER_CLOSE else GRIPPER_OPEN
-        yaw_rad = self._head_yaw_rad(tick)
         v_ref = teleop_reference(handle_d_m, yaw_rad, clutch, self.config.teleop)
         n = self.arm.n_joints
         output = self.controller.update(
@@ -537,7 +538,7 @@ class BilateralCycle(ControllerCore):
             terms=terms,
             gripper_opening_m=float(state["gripper_opening_m"]),
         )
-        return output, gripper_cmd, handle_d_m, yaw_rad
+        return output, gripper_cmd, handle_d_m
 
     def _prepare(self, state: np.ndarray) -> JointStateTerms:
         """The joint-state half of the control law (clearance included) at ``state``."""
@@ -607,14 +608,14 @@ class BilateralCycle(ControllerCore):
         haptic = records.get("haptic")
         if haptic is not None and tick - int(haptic["tick"]) > self.stale_ticks:
             haptic = None  # the handle went silent: no reference, the tool holds still
+        # Before the compute's clock starts: in lockstep this may wait for the HMD's record.
+        yaw_rad = self._head_yaw_rad(tick)
         t0 = self.clock.now_ns()
         if haptic is None:
             self.no_input_cycles += 1
         obstacle = ProximitySample.from_state(state)
         terms = self._prepare(state)
-        output, gripper_cmd, handle_d_m, yaw_rad = self._control(
-            tick, state, haptic, obstacle, terms
-        )
+        output, gripper_cmd, handle_d_m = self._control(state, haptic, obstacle, yaw_rad, terms)
         components, device_f_n, held_mass = self._feedback_force(
             state, obstacle, handle_d_m, yaw_rad, terms, live=haptic is not None
         )

@@ -136,9 +136,9 @@ class PlantConfig:
     # whose velocity loops lag a little behind it.
     tool_speed_limit_m_s: float = 0.30
     # The protective stop (teleop/sim/protective.py), on the plant's own measurements
-    # after each step: a net contact force on the gripper above contact_force_limit_n
-    # (the grasp's normal contacts, the held cube's weight and the fingers on the table
-    # included, stay under 4 N), or a measured tool speed above tool_speed_stop_m_s (the
+    # after each step: a contact force of the scene (table, bin, arm; not a held cube's)
+    # on the gripper above contact_force_limit_n (a grasp touches the scene with none),
+    # or a measured tool speed above tool_speed_stop_m_s (the
     # commands are cut to tool_speed_limit_m_s: faster means pushed, or not following),
     # brakes and holds the arm until a command asks for a tool motion of at most
     # protective_release_m_s.

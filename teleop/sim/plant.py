@@ -64,7 +64,8 @@ class Plant:
         self._config = config
         self._step1_done = False  # prepare_step ran for the next step
         # prepare_step's gripper contacts (see gripper_contact_force); None: not known.
-        self._gripper_contacts: list[tuple[int, bool]] | None = None
+        # (index, whether the gripper is geom2, whether the other geom is a free object's)
+        self._gripper_contacts: list[tuple[int, bool, bool]] | None = None
 
         def lookup(kind: mujoco.mjtObj, name: str) -> int:
             index = mujoco.mj_name2id(self.model, kind, name)
@@ -103,6 +104,12 @@ class Plant:
         self._gripper_geoms = frozenset(
             g for g in range(self.model.ngeom) if self.model.geom_bodyid[g] in self.gripper_bodies
         )
+        # The objects that move freely (the cube; not the bin, welded to the world): the
+        # gripper may hold them, and what they push is not a press on the scene.
+        free = {b for b in self.object_bodies.tolist() if self.model.body_weldid[b] != 0}
+        self._object_geoms = frozenset(
+            g for g in range(self.model.ngeom) if self.model.geom_bodyid[g] in free
+        )
         # The arm's joints as slices when contiguous (they are in the shipped model): a
         # slice reads a view, an index array makes numpy gather into a new array.
         self._q_at = _as_slice(self.qpos_index)
@@ -118,10 +125,12 @@ class Plant:
         # The tool speed the last command asked for (m/s, its motion before any cut).
         self.commanded_tool_speed_m_s = 0.0
         # Measured after every step (what the state reports and the protective stop
-        # judges): the net contact force on the gripper (N, world), its contacts, and
+        # judges): the net contact force on the gripper (N, world), its contacts, the part
+        # of that force from everything but the free objects (the scene, the arm), and
         # the tool point's speed (m/s).
         self.contact_force_n = np.zeros(3)
         self.n_contacts = 0
+        self.scene_contact_force_n = np.zeros(3)
         self.measured_tool_speed_m_s = 0.0
         self.protective = self._new_protective_stop()
         self._jacp = np.zeros((3, self.model.nv))
@@ -223,12 +232,12 @@ class Plant:
         self._step1_done = False
         self.step_count += 1
         self._measure()
-        force_n = self.contact_force_n.tolist()
-        self.protective.measure(self.step_count, math.hypot(*force_n), self.measured_tool_speed_m_s)
+        scene_n = self.scene_contact_force_n.tolist()
+        self.protective.measure(self.step_count, math.hypot(*scene_n), self.measured_tool_speed_m_s)
 
     def _measure(self) -> None:
-        """The contact force on the gripper and the tool's speed in the state now."""
-        self.contact_force_n, self.n_contacts = self.gripper_contact_force()
+        """The contact forces on the gripper and the tool's speed in the state now."""
+        self.contact_force_n, self.n_contacts, self.scene_contact_force_n = self._contact_forces()
         self.measured_tool_speed_m_s = self.tool_speed_m_s()
 
     def limit(self, qd_ref_rad_s: np.ndarray) -> np.ndarray:
@@ -325,7 +334,15 @@ class Plant:
         return position, quat
 
     def gripper_contact_force(self) -> tuple[np.ndarray, int]:
-        """Total contact force on the gripper (N, world frame) and the number of contacts.
+        """Total contact force on the gripper (N, world frame) and the number of contacts."""
+        total, count, _ = self._contact_forces()
+        return total, count
+
+    def _contact_forces(self) -> tuple[np.ndarray, int, np.ndarray]:
+        """The total contact force on the gripper (N, world frame), its number of
+        contacts, and the part of the total from contacts with anything but a free object
+        (the table, the bin, the arm): a held cube's weight and inertia (a sharp stop
+        with the cube in hand) are no press on the scene.
 
         MuJoCo's contact frame has its normal pointing from geom1 to geom2 and
         ``mj_contactForce`` gives the force geom1 exerts on geom2 in that frame.
@@ -333,26 +350,31 @@ class Plant:
         contacts = self._gripper_contacts
         if contacts is None:  # no step since reset: the contacts of mj_forward
             contacts = self._find_gripper_contacts()
-        total = np.zeros(3)
+        total, scene = np.zeros(3), np.zeros(3)
         wrench = np.zeros(6)
-        for i, on_geom2 in contacts:
+        for i, on_geom2, with_object in contacts:
             mujoco.mj_contactForce(self.model, self.data, i, wrench)
             force_world = self.data.contact.frame[i].reshape(3, 3).T @ wrench[:3]
-            total += force_world if on_geom2 else -force_world
-        return total, len(contacts)
+            on_gripper = force_world if on_geom2 else -force_world
+            total += on_gripper
+            if not with_object:
+                scene += on_gripper
+        return total, len(contacts), scene
 
-    def _find_gripper_contacts(self) -> list[tuple[int, bool]]:
-        """(index, whether the gripper is geom2) of the contacts between the gripper and
-        anything else, in ``data.contact`` order.
+    def _find_gripper_contacts(self) -> list[tuple[int, bool, bool]]:
+        """(index, whether the gripper is geom2, whether the other geom is a free
+        object's) of the contacts between the gripper and anything else, in
+        ``data.contact`` order.
 
         Geom pairs as Python ints: a pass over them costs half of one MjContact per
         contact, or of numpy masks (cold caches included).
         """
         found = []
+        gripper, objects = self._gripper_geoms, self._object_geoms
         for i, (geom1, geom2) in enumerate(self.data.contact.geom.tolist()):
-            on_geom2 = geom2 in self._gripper_geoms
-            if (geom1 in self._gripper_geoms) != on_geom2:  # not itself against itself
-                found.append((i, on_geom2))
+            on_geom2 = geom2 in gripper
+            if (geom1 in gripper) != on_geom2:  # not itself against itself
+                found.append((i, on_geom2, (geom1 if on_geom2 else geom2) in objects))
         return found
 
     def object_poses(self) -> tuple[np.ndarray, np.ndarray]:

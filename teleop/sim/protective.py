@@ -4,8 +4,9 @@ Collaborative robots stop when they press too hard or move too fast, whatever th
 told (power and force limiting, ISO/TS 15066). The plant does the same on its own
 measurements, after every physics step:
 
-- the net contact force on the gripper (N, what the force feedback renders) above
-  ``plant.contact_force_limit_n``, or
+- the contact force the scene (the table, the bin, the arm itself) puts on the gripper
+  above ``plant.contact_force_limit_n`` (N; what a free object such as a held cube puts
+  on it does not count: its weight and inertia are no press on the scene), or
 - the tool point's measured speed above ``plant.tool_speed_stop_m_s`` (the commands are
   already cut to ``plant.tool_speed_limit_m_s``; a tool faster than that is pushed, or
   not following its drives),

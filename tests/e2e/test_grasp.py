@@ -88,6 +88,7 @@ def assert_physical(summary: dict, speed_tolerance: float = SPEED_TOLERANCE_LOCK
     assert summary["tool_speed_max_m_s"] <= config.teleop.max_tool_speed_m_s * (1 + speed_tolerance)
     assert summary["dropped_messages"] == 0
     assert summary["unlinked_peers"] == {}  # every pair of services linked before the run
+    assert summary["protective_stop"]["count"] == 0  # a grasp never presses on the scene
 
 
 @needs_realtime_stack

@@ -73,11 +73,12 @@ def press(rig: GraspRig, steps: int) -> list[float]:
 
 @pytest.fixture(scope="module")
 def pressed():
-    """The open gripper moved above the table beside the cube, then pressed down onto it
-    until well after the stop; the rig and the forces of the press."""
+    """The open gripper moved above a free spot of the table (away from the cube and the
+    bin), then pressed down onto it until well after the stop; the rig and the forces of
+    the press."""
     rig = GraspRig(load_config())
-    above = rig.plant.tool_pose()[0] + [0.0, 0.15, 0.0]
-    above[2] = 0.16
+    above = rig.plant.tool_pose()[0] + [0.0, -0.15, 0.0]
+    above[2] = 0.10
     rig.move(above, 1.0, 2500)
     assert rig.plant.contact_force_n.tolist() == [0.0, 0.0, 0.0]
     forces = press(rig, round(0.15 / PRESS_SPEED_M_S * 1000))  # 15 cm: far into the table
@@ -99,8 +100,8 @@ def test_pressed_into_the_table_the_plant_stops_and_holds_while_pushed(pressed):
     assert stops[0].steps_held > 200 and rig.plant.step_count - tripped > 200
     # Unguarded, the same press goes on pushing: tens of newtons.
     unguarded = GraspRig(replace_limits(load_config(), contact_force_limit_n=1e9))
-    above = unguarded.plant.tool_pose()[0] + [0.0, 0.15, 0.0]
-    above[2] = 0.16
+    above = unguarded.plant.tool_pose()[0] + [0.0, -0.15, 0.0]
+    above[2] = 0.10
     unguarded.move(above, 1.0, 2500)
     free = press(unguarded, len(forces))
     assert max(free[-200:]) > 3 * load_config().plant.contact_force_limit_n
@@ -147,3 +148,21 @@ def test_the_core_announces_each_stop_and_lists_it_in_the_summary():
     summary = core.plant.protective.summary(config.plant.timestep_s)
     assert summary["count"] == 1 and summary["stops"][0]["cause"] == "tool_speed"
     assert summary["stops"][0]["steps_held"] == 3
+
+
+def test_a_held_cube_braked_hard_is_no_press_on_the_scene():
+    """The cube in hand, carried at speed and then braked: its inertia pulls on the
+    fingers well past the limit, but that is no contact with the scene: no stop."""
+    config = load_config()
+    rig = GraspRig(config)
+    rig.move(rig.cube_p + [0.0, 0.0, 0.12], 1.0, 1500)  # above, open
+    rig.move(rig.cube_p.copy(), 1.0, 1000)  # around it
+    rig.move(rig.cube_p.copy(), 0.0, 500)  # closed on it
+    assert rig.held() == rig.cube
+    total_n = []
+    rig.move(rig.cube_p + [0.0, -0.3, 0.15], 0.0, 600)  # carried off at the speed limit
+    for _ in range(300):
+        rig.plant.step_braking()  # a hard stop (as the watchdog's)
+        total_n.append(math.hypot(*rig.plant.contact_force_n.tolist()))
+    assert max(total_n) > config.plant.contact_force_limit_n  # the cube's inertia
+    assert rig.plant.protective.stops == [] and rig.held() == rig.cube
