@@ -106,6 +106,9 @@ class PlantService(Service):
             self.write_summary()
             stop.wait()  # hold (no stepping) until stopped: supervisord must not restart us
 
+    def on_strangers(self, zids: list[str]) -> None:
+        self.loop.core.publish_event(Event.UNKNOWN_PEER, float(len(self.unknown_peers)))
+
     def close(self) -> None:
         loop = getattr(self, "loop", None)  # None if open() failed before building it
         if self.options.run_dir is not None and loop is not None:

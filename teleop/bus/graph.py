@@ -176,6 +176,7 @@ EVENT_STREAM: Mapping[Event, str] = {
     Event.WATCHDOG_RESUME: "plant_events",
     Event.PROTECTIVE_STOP: "plant_events",
     Event.PROTECTIVE_RELEASE: "plant_events",
+    Event.UNKNOWN_PEER: "plant_events",
     Event.GRASP: "plant_events",
     Event.RELEASE: "plant_events",
     Event.RESUMED: "plant_events",

@@ -155,6 +155,8 @@ class Event(enum.IntEnum):
     PROTECTIVE_STOP = 15  # the plant held the arm on a contact force or tool speed beyond
     #                      its limit (value: teleop.sim.protective.StopCause)
     PROTECTIVE_RELEASE = 16  # a command asked for no motion: the plant follows commands again
+    UNKNOWN_PEER = 17  # a session that is no participant of the run linked to the plant
+    #                   (value: how many such sessions so far)
 
 
 class Reason(enum.StrEnum):
@@ -796,6 +798,10 @@ EVENT_MEANINGS: Mapping[Event, tuple[str, str]] = {  # (sent by, meaning and val
     Event.PROTECTIVE_RELEASE: ("plant", "a command asked for a tool motion of at most "
                                "`plant.protective_release_m_s`: the protective stop is over, "
                                "the plant follows the commands; value: the stop's cause"),
+    Event.UNKNOWN_PEER: ("plant", "a session that is no participant of the run (a run "
+                         "certificate or password under a Zenoh id of its own) linked to "
+                         "the plant: the access list gives it nothing; value: how many "
+                         "such sessions so far (the plant's summary: `unknown_peers`)"),
     Event.GRASP: ("plant", "an object is pinched between the fingers; value: its body id"),
     Event.RELEASE: ("plant", "the held object left the gripper"),
     Event.PHASE: ("operator", "a task phase began; value: its index in the scenario file"),

@@ -344,7 +344,13 @@ class Service:
                     "it holds a run certificate or password; the access list gives it "
                     "nothing", zid,
                 )  # fmt: skip
+        if new:
+            self.on_strangers(new)
         return new
+
+    def on_strangers(self, zids: list[str]) -> None:
+        """Sessions that are no participant of the run newly linked to this one (already
+        logged and counted); a service that owns an event stream announces them."""
 
     # -- running summaries -------------------------------------------------------------
     def start_running_summaries(self, period_s: float = SUMMARY_PERIOD_S) -> None:

@@ -271,6 +271,7 @@ class PlantStepCore:
         self._braked_since_scene = False
         self._objects = OBJECT_POSES.new()
         self._event = RUN_EVENT.new()
+        self._event_lock = threading.Lock()  # events come from more than one thread
         self.figures = PlantFigures()
         # JOINT_COMMAND order, age and shed log; every command is admitted here first
         self.command_in = Inbound(Stage.CONTROLLER_TX, name="joint_command")
@@ -580,14 +581,17 @@ class PlantStepCore:
 
     # -- publishing ----------------------------------------------------------------------
     def publish_event(self, event: Event, value: float = 0.0) -> None:
-        rec = self._event
-        rec["seq"] += 1
-        rec["t_source_ns"] = self.clock.now_ns()
-        rec["sim_time_ns"] = self.plant.step_count * self.period_ns
-        rec["step"] = self.plant.step_count
-        rec["event"] = event
-        rec["value"] = value
-        self.outputs.put("plant_events", rec)
+        """A RUN_EVENT on the plant's stream; from the stepping thread or another one (the
+        service's watch on its links)."""
+        with self._event_lock:
+            rec = self._event
+            rec["seq"] += 1
+            rec["t_source_ns"] = self.clock.now_ns()
+            rec["sim_time_ns"] = self.plant.step_count * self.period_ns
+            rec["step"] = self.plant.step_count
+            rec["event"] = event
+            rec["value"] = value
+            self.outputs.put("plant_events", rec)
         logger.info("event %s at step %d", event.name, self.plant.step_count)
 
     def publish_state(

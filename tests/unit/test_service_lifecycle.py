@@ -144,3 +144,39 @@ def test_a_running_service_writes_its_summary_so_far_until_it_closes(tmp_path):
     service.close()  # joins the writer before the final summary: nothing left behind
     assert not path.exists() and service.running_summaries >= 1
     assert read_summary(tmp_path, "counting") == {"count": 9, "pid": os.getpid()}
+
+
+class _Linked:
+    """A stand-in session whose links are what the test says (Zenoh ids)."""
+
+    def __init__(self, zids: list[str]) -> None:
+        self.zids = zids
+        self.info = self
+
+    def peers_zid(self) -> list[str]:
+        return list(self.zids)
+
+    def is_closed(self) -> bool:
+        return False
+
+
+def test_a_linked_session_that_is_no_participant_is_counted_logged_and_announced_once(caplog):
+    announced: list[list[str]] = []
+
+    class Watching(Service):
+        name = "plant"
+
+        def on_strangers(self, zids: list[str]) -> None:
+            announced.append(zids)
+
+    service = Watching(load_config())
+    service._participants = {"aa01": "controller", "bb02": "haptic"}
+    service.session = _Linked(["aa01", "BB02"])  # type: ignore[assignment]
+    assert service.check_peers() == [] and announced == []
+    service.session.zids.append("cc03")  # type: ignore[attr-defined]
+    with caplog.at_level(logging.WARNING):
+        assert service.check_peers() == ["cc03"]
+        assert service.check_peers() == []  # still linked: not again
+    assert announced == [["cc03"]] and service.unknown_peers == ["cc03"]
+    assert caplog.text.count("cc03") == 1
+    assert service.summary()["unknown_peers"] == ["cc03"]
