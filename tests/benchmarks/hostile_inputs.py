@@ -9,7 +9,7 @@ reads what the stack measured. Attackers:
 - an *observer thief*: the run's read-only observer certificate under another Zenoh
   id, publishing anyway;
 - *insiders*: sessions holding a stolen certificate (or, with ``bus.tls = false``,
-  password) of the controller or the haptic service under another Zenoh id, which the
+  password) of the controller, the haptic service or the HMD under another Zenoh id, which the
   access list must give no right; they aim with the run's genuine observer file (a
   viewer's, as handed out), which sees the newest state.
 
@@ -127,6 +127,7 @@ def attack(run_dir: Path, work: Path, flood_s: float) -> dict[str, Any]:
     ctl = session_for(run_dir, stolen(run_dir, "controller", work / "thief-controller.json"))
     hap = session_for(run_dir, stolen(run_dir, "haptic", work / "thief-haptic.json"))
     obs = session_for(run_dir, stolen(run_dir, "observer", work / "thief-observer.json"))
+    hmd = session_for(run_dir, stolen(run_dir, "hmd", work / "thief-hmd.json"))
     outsider = session_for(run_dir, None)
     # The thieves see nothing of the run (the access list gives a stolen certificate
     # under another id no right), so the attack aims with the run's genuine observer
@@ -146,6 +147,8 @@ def attack(run_dir: Path, work: Path, flood_s: float) -> dict[str, Any]:
         "op_events": Publisher.declare(ctl, topics.operator_events, m.RUN_EVENT),
         "plant_events": Publisher.declare(ctl, topics.plant_events, m.RUN_EVENT),
         "observer_cmd": Publisher.declare(obs, topics.joint_command, m.JOINT_COMMAND),
+        "hmd_cmd": Publisher.declare(hmd, topics.joint_command, m.JOINT_COMMAND),
+        "hmd_pose": Publisher.declare(hmd, topics.head_pose, m.HEAD_POSE),
         "outsider_cmd": Publisher.declare(outsider, topics.joint_command, m.JOINT_COMMAND),
     }
     sent: dict[str, int] = dict.fromkeys(pubs, 0)
@@ -179,6 +182,11 @@ def attack(run_dir: Path, work: Path, flood_s: float) -> dict[str, Any]:
     hs["seq"], hs["tick"] = U64_MAX, U64_MAX
     hs["trace_ns"][m.Stage.HAPTIC_SAMPLE] = time.monotonic_ns()
     put("haptic", hs)
+    pose = m.HEAD_POSE.new()  # the view turned half a turn (HMD thief)
+    pose["seq"], pose["valid_from_tick"] = U64_MAX, 0
+    pose["predicted_yaw_rad"] = 3.0
+    pose["t_source_ns"] = time.monotonic_ns()
+    put("hmd_pose", pose)
     at(3.0)  # spoofed run events: the task is over, the run finished
     for name, event in (("op_events", m.Event.TASK_DONE), ("plant_events", m.Event.FINISHED)):
         ev = m.RUN_EVENT.new()
@@ -191,6 +199,7 @@ def attack(run_dir: Path, work: Path, flood_s: float) -> dict[str, Any]:
             stamp = time.monotonic_ns() - age_ns
             put("cmd", command(watch.cmd_seq + 1, watch.state_seq, qd, stamp))
             put("observer_cmd", command(watch.cmd_seq + 1, watch.state_seq, qd, stamp))
+            put("hmd_cmd", command(watch.cmd_seq + 1, watch.state_seq, qd, stamp))
             put("outsider_cmd", command(watch.cmd_seq + 1, watch.state_seq, qd, stamp))
             time.sleep(0.001)
     # What the thief saw of the run: before the flood, whose plant states Zenoh hands
@@ -222,7 +231,7 @@ def attack(run_dir: Path, work: Path, flood_s: float) -> dict[str, Any]:
         "insider_states_seen": insider_states_seen,
     }
     for session, *entities in (
-        (spy, keep[0]), (ctl, keep[1]), (outsider, keep[2]), (hap,), (obs,)
+        (spy, keep[0]), (ctl, keep[1]), (outsider, keep[2]), (hap,), (obs,), (hmd,)
     ):  # fmt: skip
         close_session(session, *entities)
     return result
