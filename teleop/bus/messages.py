@@ -154,7 +154,7 @@ class Event(enum.IntEnum):
     OUT_OF_REACH = 14  # operator: the tool stopped short of where it headed (value: m left)
     PROTECTIVE_STOP = 15  # the plant held the arm on a contact force or tool speed beyond
     #                      its limit (value: teleop.sim.protective.StopCause)
-    PROTECTIVE_RELEASE = 16  # a command asked for no motion: the plant follows commands again
+    PROTECTIVE_RELEASE = 16  # the commands asked for no motion: the plant follows them again
     UNKNOWN_PEER = 17  # a session that is no participant of the run linked to the plant
     #                   (value: how many such sessions so far)
 
@@ -795,9 +795,11 @@ EVENT_MEANINGS: Mapping[Event, tuple[str, str]] = {  # (sent by, meaning and val
                             "tool speed above `plant.tool_speed_stop_m_s`: the drives hold "
                             "the arm while the commands ask for motion; value: 1 contact "
                             "force, 2 tool speed"),
-    Event.PROTECTIVE_RELEASE: ("plant", "a command asked for a tool motion of at most "
-                               "`plant.protective_release_m_s`: the protective stop is over, "
-                               "the plant follows the commands; value: the stop's cause"),
+    Event.PROTECTIVE_RELEASE: ("plant", "the commands asked for a tool motion of at most "
+                               "`plant.protective_release_m_s` for "
+                               "`plant.protective_release_s` in a row: the protective stop "
+                               "is over, the plant follows the commands; value: the stop's "
+                               "cause"),
     Event.UNKNOWN_PEER: ("plant", "a session that is no participant of the run (a run "
                          "certificate or password under a Zenoh id of its own) linked to "
                          "the plant: the access list gives it nothing; value: how many "

@@ -140,11 +140,12 @@ class PlantConfig:
     # on the gripper above contact_force_limit_n (a grasp touches the scene with none),
     # or a measured tool speed above tool_speed_stop_m_s (the
     # commands are cut to tool_speed_limit_m_s: faster means pushed, or not following),
-    # brakes and holds the arm until a command asks for a tool motion of at most
-    # protective_release_m_s.
+    # brakes and holds the arm until the commands have asked for a tool motion of at
+    # most protective_release_m_s for protective_release_s in a row.
     contact_force_limit_n: float = 8.0
     tool_speed_stop_m_s: float = 0.33
     protective_release_m_s: float = 0.005
+    protective_release_s: float = 0.02
     # Rate of the scene streams (tool pose, object poses) and, outside teleoperation, of the
     # contact and proximity fields of the plant state (one per step; teleoperation: fresh
     # every step).
@@ -196,6 +197,7 @@ class PlantConfig:
             0 <= self.protective_release_m_s < self.tool_speed_limit_m_s,
             "plant.protective_release_m_s in [0, plant.tool_speed_limit_m_s)",
         )
+        _require(self.protective_release_s >= 0, "plant.protective_release_s >= 0")
 
 
 @dataclass(frozen=True)

@@ -141,7 +141,10 @@ class Plant:
     def _new_protective_stop(self) -> ProtectiveStop:
         plant = self._config.plant
         return ProtectiveStop(
-            plant.contact_force_limit_n, plant.tool_speed_stop_m_s, plant.protective_release_m_s
+            plant.contact_force_limit_n,
+            plant.tool_speed_stop_m_s,
+            plant.protective_release_m_s,
+            max(1, round(plant.protective_release_s / plant.timestep_s)),
         )
 
     def _in_subtree(self, body: int, root: int) -> bool:

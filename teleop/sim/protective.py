@@ -13,8 +13,10 @@ measurements, after every physics step:
 
 trips the stop: the drives hold the arm where it is (the brake), and keep holding while
 the command asks for motion. The command that caused the stop has to stop first: the
-stop releases on the first command whose tool motion is at most
-``plant.protective_release_m_s``, and the arm follows the commands again. The contact
+stop releases once the commands have asked for a tool motion of at most
+``plant.protective_release_m_s`` for ``plant.protective_release_s`` in a row (a slow
+press whose command dips below that speed now and then is not released and stopped in
+turn), and the arm follows the commands again. The contact
 force goes on being measured and sent to the operator as usual, so a person at the
 handle feels what stopped the arm.
 
@@ -72,11 +74,17 @@ class ProtectiveStop:
     :meth:`take_transitions` are kept for the caller to announce."""
 
     def __init__(
-        self, contact_force_limit_n: float, tool_speed_stop_m_s: float, release_m_s: float
+        self,
+        contact_force_limit_n: float,
+        tool_speed_stop_m_s: float,
+        release_m_s: float,
+        release_steps: int = 1,
     ) -> None:
         self.contact_force_limit_n = contact_force_limit_n
         self.tool_speed_stop_m_s = tool_speed_stop_m_s
         self.release_m_s = release_m_s
+        self.release_steps = release_steps  # still commands in a row that release a stop
+        self._still_steps = 0  # of which so far, while latched
         self.stops: list[Stop] = []
         self._transitions: list[Transition] = []  # not yet announced
 
@@ -90,6 +98,7 @@ class ProtectiveStop:
         stop does not trip again)."""
         if self.latched:
             return False
+        self._still_steps = 0
         if contact_force_n > self.contact_force_limit_n:
             stop = Stop(StopCause.CONTACT_FORCE, step, contact_force_n)
         elif tool_speed_m_s > self.tool_speed_stop_m_s:
@@ -102,15 +111,20 @@ class ProtectiveStop:
 
     def holds(self, step: int, commanded_tool_speed_m_s: float) -> bool:
         """Whether a step with a command asking for this tool motion (m/s, the motion
-        part of the command, before any cut) must be held by the brake; a command that
-        asks for no more than the release speed releases a latched stop from ``step``."""
+        part of the command, before any cut) must be held by the brake; the
+        ``release_steps``-th command in a row that asks for no more than the release
+        speed releases a latched stop from ``step``."""
         if not self.latched:
             return False
         stop = self.stops[-1]
         if commanded_tool_speed_m_s <= self.release_m_s:
-            stop.released_step = step
-            self._transitions.append(Transition(stop, released=True))
-            return False
+            self._still_steps += 1
+            if self._still_steps >= self.release_steps:
+                stop.released_step = step
+                self._transitions.append(Transition(stop, released=True))
+                return False
+        else:
+            self._still_steps = 0
         stop.steps_held += 1
         return True
 
@@ -130,6 +144,7 @@ class ProtectiveStop:
             "contact_force_limit_n": self.contact_force_limit_n,
             "tool_speed_stop_m_s": self.tool_speed_stop_m_s,
             "release_m_s": self.release_m_s,
+            "release_steps": self.release_steps,
             "count": len(self.stops),
             "steps_held": sum(stop.steps_held for stop in self.stops),
             "stops": [stop.summary(timestep_s) for stop in self.stops],

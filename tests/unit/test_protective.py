@@ -23,17 +23,20 @@ LIMIT_N, SPEED_STOP_M_S, RELEASE_M_S = 8.0, 0.33, 0.01
 PRESS_SPEED_M_S = 0.03
 
 
-def test_trips_on_either_limit_holds_while_commanded_and_releases_on_a_still_command():
-    stop = ProtectiveStop(LIMIT_N, SPEED_STOP_M_S, RELEASE_M_S)
+def test_trips_on_either_limit_holds_while_commanded_and_releases_on_still_commands():
+    stop = ProtectiveStop(LIMIT_N, SPEED_STOP_M_S, RELEASE_M_S, release_steps=2)
     assert not stop.measure(1, LIMIT_N, SPEED_STOP_M_S)  # at the limits: not beyond
     assert not stop.holds(2, 0.2)  # nothing tripped: commands go through
     assert stop.measure(2, LIMIT_N + 0.1, 0.0)
     assert stop.latched and not stop.measure(3, 100.0, 1.0)  # latched: no second trip
     assert stop.holds(3, 0.2) and stop.holds(4, RELEASE_M_S + 1e-6)  # still pushing
     stop.held()  # a watchdog brake meanwhile counts as held too
-    assert not stop.holds(6, RELEASE_M_S)  # the command stopped: released from step 6
+    assert stop.holds(6, RELEASE_M_S)  # still: one command in a row, not yet two
+    assert stop.holds(7, 0.2)  # moving again: the count starts over
+    assert stop.holds(8, 0.0)
+    assert not stop.holds(9, RELEASE_M_S)  # two still commands in a row: released
     assert not stop.latched
-    assert stop.measure(9, 0.0, SPEED_STOP_M_S + 0.01)  # then too fast
+    assert stop.measure(10, 0.0, SPEED_STOP_M_S + 0.01)  # then too fast
     transitions = [(t.stop.cause, t.released) for t in stop.take_transitions()]
     assert transitions == [
         (StopCause.CONTACT_FORCE, False),
@@ -42,10 +45,10 @@ def test_trips_on_either_limit_holds_while_commanded_and_releases_on_a_still_com
     ]
     assert stop.take_transitions() == []
     summary = stop.summary(0.001)
-    assert (summary["count"], summary["steps_held"]) == (2, 3)
+    assert (summary["count"], summary["steps_held"]) == (2, 6)
     assert summary["stops"][0] == {
         "cause": "contact_force", "t_s": 0.002, "measured": LIMIT_N + 0.1,
-        "released_t_s": 0.006, "steps_held": 3,
+        "released_t_s": 0.009, "steps_held": 6,
     }  # fmt: skip
     assert summary["stops"][1]["cause"] == "tool_speed"
     assert summary["stops"][1]["released_t_s"] is None
@@ -111,7 +114,7 @@ def test_a_command_that_stops_releases_the_stop(pressed):
     rig, _ = pressed
     assert rig.plant.protective.latched
     rig.ctl.reset()  # the handle let go: no motion asked for
-    for _ in range(20):
+    for _ in range(60):
         sample = rig.plant.sample()
         out = rig.ctl.update(sample.q_rad, sample.qd_rad_s, np.zeros(3), None, 1.0)
         rig.plant.step(out.qd_ref_rad_s, out.gripper_cmd)
@@ -136,18 +139,22 @@ def test_the_core_announces_each_stop_and_lists_it_in_the_summary():
         core.step(command(seq, core.state_seq, clock.now_ns(), qd=0.5), clock.now_ns())
     assert Event.PROTECTIVE_STOP in outputs.events()
     assert int(outputs.records["plant_state"][-1]["flags"]) & Flag.BRAKING
-    # A command that asks for no motion: the drives' references that hold the arm
-    # against gravity (Plant.limit counts the motion beyond them).
+    # Commands that ask for no motion (the drives' references that hold the arm against
+    # gravity: Plant.limit counts the motion beyond them), plant.protective_release_s
+    # of them in a row: the last one releases the stop.
     plant = core.plant
-    still = command(4, core.state_seq, clock.now_ns() + 1_000_000)
-    still["qd_ref_rad_s"][:6] = plant.data.qfrc_bias[plant.dof_index] / plant.kv
-    clock.advance(1_000_000)
-    core.step(still, clock.now_ns())
+    release_steps = round(config.plant.protective_release_s / config.plant.timestep_s)
+    for seq in range(4, 4 + release_steps):
+        still = command(seq, core.state_seq, clock.now_ns() + 1_000_000)
+        still["qd_ref_rad_s"][:6] = plant.data.qfrc_bias[plant.dof_index] / plant.kv
+        clock.advance(1_000_000)
+        assert outputs.events()[-1] is Event.PROTECTIVE_STOP  # not yet released
+        core.step(still, clock.now_ns())
     assert outputs.events()[-1] is Event.PROTECTIVE_RELEASE
     assert not int(outputs.records["plant_state"][-1]["flags"]) & Flag.BRAKING
     summary = core.plant.protective.summary(config.plant.timestep_s)
     assert summary["count"] == 1 and summary["stops"][0]["cause"] == "tool_speed"
-    assert summary["stops"][0]["steps_held"] == 3
+    assert summary["stops"][0]["steps_held"] == 3 + release_steps - 1
 
 
 def test_a_held_cube_braked_hard_is_no_press_on_the_scene():
