@@ -62,6 +62,12 @@ DEFAULT_STOP_TIMEOUT_S = STOP_WAIT_S + 5.0
 STOP_AT_ONCE_MIN_PRIORITY = 20
 # Time after SIGTERM to supervisord's process group before SIGKILL, s.
 KILL_GRACE_S = 2.0
+# While supervisord shuts down, the stop signal goes again to every program still there
+# this often (s): a program spawned a few ms before the stop can lose supervisord's signal
+# (it lands between fork and exec, in the child's copy of supervisord's own handler) and
+# would otherwise be killed only after STOP_WAIT_S. Long enough that supervisord has
+# asked every program in its own order first (a recorder stops after what it records).
+RESIGNAL_S = 5.0
 # Poll interval while waiting for start-up or shutdown (not a control loop), s.
 POLL_INTERVAL_S = 0.02
 # Socket timeout of one XML-RPC call; stopProcess(wait=True) may take up to STOP_WAIT_S, s.
@@ -481,7 +487,7 @@ class Stack:
                 with contextlib.suppress(ProcessLookupError):
                     os.killpg(pgid, signal.SIGINT)
             pid = snapshot.supervisord_pid
-            if not self._wait_gone(pid, timeout_s):
+            if not self._wait_gone_resignalling(pid, snapshot.program_pgids, timeout_s):
                 self._signal_own_group(pid, signal.SIGTERM)
                 if not self._wait_gone(pid, KILL_GRACE_S):
                     self._signal_own_group(pid, signal.SIGKILL)
@@ -513,6 +519,20 @@ class Stack:
                             if priority.get(str(info["name"]), 0) >= STOP_AT_ONCE_MIN_PRIORITY:
                                 at_once.append(program_pid)
         return _StopSnapshot(supervisord_pid=pid, program_pgids=pgids, stop_at_once_pgids=at_once)
+
+    def _wait_gone_resignalling(self, pid: int, pgids: list[int], timeout_s: float) -> bool:
+        """:meth:`_wait_gone` for supervisord, sending SIGINT again to the program groups
+        still there every :data:`RESIGNAL_S` (a signal lost at a program's start)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            left_s = deadline - time.monotonic()
+            if self._wait_gone(pid, min(RESIGNAL_S, max(left_s, 0.0))):
+                return True
+            if left_s <= RESIGNAL_S:
+                return False
+            for pgid in pgids:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(pgid, signal.SIGINT)
 
     def _wait_gone(self, pid: int, timeout_s: float) -> bool:
         """Wait until ``pid`` has exited (reaped or zombie); True if it did within the time."""

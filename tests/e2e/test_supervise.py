@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from teleop.run.supervise import Program, Stack, StackError
+from teleop.run.supervise import STOP_WAIT_S, Program, Stack, StackError
 
 # Waits in these tests poll with a deadline; the deadline only bounds a failure.
 WAIT_TIMEOUT_S = 15.0
@@ -228,3 +228,32 @@ def test_holder_signal_leaves_no_process(tmp_path, signum):
             proc.kill()
         proc.wait()
         proc.stdout.close()
+
+
+# Deaf to the stop signals of the first second after the first one (supervisord's and the
+# stack's own at once: they stand for those lost at a program's start, landing between
+# supervisord's fork and exec in the child's copy of supervisord's own handler, when the
+# stop comes a few ms after the spawn); a later SIGINT ends it with status 0.
+DEAF_AT_FIRST = (
+    "import signal, sys, time; first = []; "
+    "signal.signal(signal.SIGINT, lambda *a: sys.exit(0) if first and time.monotonic() "
+    "- first[0] > 1.0 else first.append(first[0] if first else time.monotonic())); "
+    "open(sys.argv[1], 'w').close(); "
+    "[signal.pause() for _ in iter(int, 1)]"
+)
+
+
+def test_a_program_that_lost_its_stop_signal_is_signalled_again(tmp_path):
+    """Stopping, the stack sends SIGINT again to a program still there after RESIGNAL_S:
+    it ends by its own handler (exit status 0) well before supervisord's SIGKILL."""
+    ready = tmp_path / "ready"
+    program = Program(
+        name="deaf", command=[sys.executable, "-c", DEAF_AT_FIRST, str(ready)], startsecs=0
+    )
+    with Stack(tmp_path / "run", [program]):
+        wait_for(ready.exists, "the program's handler")
+        started = time.monotonic()
+    stopped_s = time.monotonic() - started
+    log = (tmp_path / "run" / "supervisord.log").read_text()
+    assert "stopped: deaf (exit status 0)" in log, log
+    assert "SIGKILL" not in log and stopped_s < STOP_WAIT_S
