@@ -37,7 +37,7 @@ from __future__ import annotations
 import json
 import os
 import secrets
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -243,20 +243,14 @@ def write_run_credentials(
     return files
 
 
-def participant_zids(credentials_file: Path) -> dict[str, str]:
-    """The run's participants by Zenoh id (lower-case hex -> name), from the access list
-    of a participant's credentials file."""
+def participant_zids(credentials_file: Path) -> frozenset[str]:
+    """The Zenoh ids (lower-case hex) of the run's participants, from the access list of
+    a participant's credentials file."""
     acl = json.loads(Path(credentials_file).read_text())["access_control"]
-    subjects = {subject["id"]: subject for subject in acl["subjects"]}
-    return {
-        zid.lower(): policy["id"]
-        for policy in acl["policies"]
-        for subject_id in policy["subjects"]
-        for zid in subjects[subject_id].get("zids", [])
-    }
+    return frozenset(zid.lower() for subject in acl["subjects"] for zid in subject["zids"])
 
 
-def strangers(linked: Iterable[object], participants: Mapping[str, str]) -> list[str]:
+def strangers(linked: Iterable[object], participants: Collection[str]) -> list[str]:
     """The Zenoh ids among ``linked`` (a session's ``info.peers_zid()``) that are no
     participant of the run (:func:`participant_zids`), in order."""
     return [zid for zid in map(str, linked) if zid.lower() not in participants]

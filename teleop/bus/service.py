@@ -115,7 +115,7 @@ class Service:
         # someone holding a run's certificate (or password) under an id of its own. The
         # access list gives them no right; they are counted, and logged once each.
         self.unknown_peers: list[str] = []
-        self._participants: dict[str, str] = {}  # the run's Zenoh ids -> names
+        self._participants: frozenset[str] = frozenset()  # the run's Zenoh ids
         # Peers become_ready gave up on that linked after all: name -> seconds after the
         # start of the wait (on a starved machine start-up can outlast PEER_LINK_WAIT_S).
         self.peers_linked_late: dict[str, float] = {}

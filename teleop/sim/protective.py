@@ -16,9 +16,8 @@ the command asks for motion. The command that caused the stop has to stop first:
 stop releases once the commands have asked for a tool motion of at most
 ``plant.protective_release_m_s`` for ``plant.protective_release_s`` in a row (a slow
 press whose command dips below that speed now and then is not released and stopped in
-turn), and the arm follows the commands again. The contact
-force goes on being measured and sent to the operator as usual, so a person at the
-handle feels what stopped the arm.
+turn), and the arm follows the commands again. The contact force goes on being measured
+and sent to the operator as usual, so a person at the handle feels what stopped the arm.
 
 Pure bookkeeping (no MuJoCo): :class:`teleop.sim.plant.Plant` feeds it its measurements
 and asks it whether to hold; the plant's stepping core announces the transitions as
@@ -70,8 +69,8 @@ class Transition(NamedTuple):
 
 class ProtectiveStop:
     """Trips on a measurement beyond a limit, holds while commanded to move, releases on
-    a command that asks for (almost) no motion. Transitions since the last
-    :meth:`take_transitions` are kept for the caller to announce."""
+    ``release_steps`` commands in a row that ask for (almost) no motion. Transitions
+    since the last :meth:`take_transitions` are kept for the caller to announce."""
 
     def __init__(
         self,
@@ -84,7 +83,7 @@ class ProtectiveStop:
         self.tool_speed_stop_m_s = tool_speed_stop_m_s
         self.release_m_s = release_m_s
         self.release_steps = release_steps  # still commands in a row that release a stop
-        self._still_steps = 0  # of which so far, while latched
+        self._still_steps = 0  # of which so far, since the latched stop tripped
         self.stops: list[Stop] = []
         self._transitions: list[Transition] = []  # not yet announced
 
@@ -98,7 +97,6 @@ class ProtectiveStop:
         stop does not trip again)."""
         if self.latched:
             return False
-        self._still_steps = 0
         if contact_force_n > self.contact_force_limit_n:
             stop = Stop(StopCause.CONTACT_FORCE, step, contact_force_n)
         elif tool_speed_m_s > self.tool_speed_stop_m_s:
@@ -107,6 +105,7 @@ class ProtectiveStop:
             return False
         self.stops.append(stop)
         self._transitions.append(Transition(stop, released=False))
+        self._still_steps = 0
         return True
 
     def holds(self, step: int, commanded_tool_speed_m_s: float) -> bool:

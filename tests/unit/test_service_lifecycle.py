@@ -170,7 +170,7 @@ def test_a_linked_session_that_is_no_participant_is_counted_logged_and_announced
             announced.append(zids)
 
     service = Watching(load_config())
-    service._participants = {"aa01": "controller", "bb02": "haptic"}
+    service._participants = frozenset({"aa01", "bb02"})
     service.session = _Linked(["aa01", "BB02"])  # type: ignore[assignment]
     assert service.check_peers() == [] and announced == []
     service.session.zids.append("cc03")  # type: ignore[attr-defined]
