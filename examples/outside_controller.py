@@ -12,6 +12,10 @@ velocity feed-forward plus a proportional correction, qd_ref = dq_d/dt + K (q_d 
 which the plant's velocity loops track. Every PLANT_STATE is answered by one
 JOINT_COMMAND naming it (state_seq), in realtime and lockstep alike. At the plant's
 FINISHED event it prints a JSON summary (tracking error, commands, braking) and exits.
+
+Zenoh calls each subscriber's callback on its own thread: FINISHED may be handled
+before the run's last state. The event's `step` names that state's step, so the client
+waits for it (a moment at most) before it sums up.
 """
 
 import argparse
@@ -33,6 +37,8 @@ MAX_JOINTS = 8
 BRAKING = 1  # header flag of PLANT_STATE
 CONTROLLER_RX, CONTROLLER_TX = 1, 2  # trace_ns stages this controller stamps
 FINISHED = 2  # RUN_EVENT code
+STEP_OFFSET = 112  # u8 `step` of PLANT_STATE and RUN_EVENT (after the header and sim_time_ns)
+LAST_STATE_WAIT_S = 1.0  # after FINISHED, how long the run's last state may still take
 GRIPPER_OPEN = 1.0
 
 # -- the path and the law ---------------------------------------------------------------
@@ -76,7 +82,9 @@ class OutsideController:
         self.states = self.braking_states = self.bad_records = 0
         self.first_ns = self.last_ns = 0
         self.finished = threading.Event()
-        self.lock = threading.Lock()
+        self.last_step = -1  # the step of the run's last state (FINISHED's step)
+        self.newest_step = -1  # the step of the newest state handled
+        self.lock = threading.Condition()  # notified when a state has been handled
         self.pub = session.declare_publisher(
             f"teleop/{robot}/cmd/joint_velocity",
             congestion_control=zenoh.CongestionControl.BLOCK,
@@ -117,11 +125,19 @@ class OutsideController:
             self.pub.put(header + body)
             self.first_ns = self.first_ns or now_ns
             self.last_ns = now_ns
+            self.newest_step = struct.unpack_from("<Q", data, STEP_OFFSET)[0]
+            self.lock.notify_all()
 
     def on_event(self, sample: zenoh.Sample) -> None:
         data = sample.payload.to_bytes()
         if len(data) == RUN_EVENT_SIZE and struct.unpack_from("<H", data, 128)[0] == FINISHED:
+            self.last_step = struct.unpack_from("<Q", data, STEP_OFFSET)[0]
             self.finished.set()
+
+    def wait_for_last_state(self) -> bool:
+        """After FINISHED: wait until the state of FINISHED's step has been handled."""
+        with self.lock:
+            return self.lock.wait_for(lambda: self.newest_step >= self.last_step, LAST_STATE_WAIT_S)
 
     def summary(self) -> dict:
         errors = np.array(self.law.errors_rad or [np.nan])
@@ -160,7 +176,9 @@ def main() -> None:
     wait_for_tokens(session, f"{key}/alive", set(args.peers.split(",")))
     tokens.append(session.liveliness().declare_token(f"{key}/ready/controller"))  # plant starts
     finished = controller.finished.wait(args.timeout)
-    print(json.dumps({"finished": finished, **controller.summary()}), flush=True)
+    last_state = finished and controller.wait_for_last_state()
+    summary = {"finished": finished, "last_state_handled": last_state, **controller.summary()}
+    print(json.dumps(summary), flush=True)
     session.close()  # undeclares everything: the tokens are gone
 
 

@@ -100,7 +100,7 @@ def test_outside_controller_follows_its_path_in_lockstep_deterministically(tmp_p
           first["commands_applied"], "applied,", first["stale_commands"], "stale")  # fmt: skip
     assert code == 0
     assert_clean(first, "controller")
-    assert client["finished"] and client["bad_records"] == 0
+    assert client["finished"] and client["last_state_handled"] and client["bad_records"] == 0
     assert client["tracking_error_max_rad"] < CONVERGED_RAD
     # Every state answered once (states 0..steps); the plant applied the answers to
     # states 0..steps - d - 1 (d = lockstep_delay_steps), none went stale, none braked.
