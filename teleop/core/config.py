@@ -146,6 +146,15 @@ class PlantConfig:
     tool_speed_stop_m_s: float = 0.33
     protective_release_m_s: float = 0.005
     protective_release_s: float = 0.02
+    # Speed and separation (teleop/sim/protective.py, allowed_approach_m_s): the gripper
+    # may close in on the scene (table, bin, arm; not a free object) at most at
+    # approach_touch_m_s + separation / approach_time_s, so it meets it at
+    # approach_touch_m_s, slow enough for the contact-force stop to catch the press
+    # within its limit. The plant sees the scene within tool_speed_limit_m_s *
+    # approach_time_s of the gripper (MuJoCo contacts in the geoms' margin, inactive).
+    # approach_time_s = 0: no approach limit.
+    approach_touch_m_s: float = 0.004
+    approach_time_s: float = 0.1
     # Rate of the scene streams (tool pose, object poses) and, outside teleoperation, of the
     # contact and proximity fields of the plant state (one per step; teleoperation: fresh
     # every step).
@@ -198,6 +207,8 @@ class PlantConfig:
             "plant.protective_release_m_s in [0, plant.tool_speed_limit_m_s)",
         )
         _require(self.protective_release_s >= 0, "plant.protective_release_s >= 0")
+        _require(self.approach_touch_m_s > 0, "plant.approach_touch_m_s > 0")
+        _require(self.approach_time_s >= 0, "plant.approach_time_s >= 0")
 
 
 @dataclass(frozen=True)

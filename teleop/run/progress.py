@@ -127,7 +127,13 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
             )
         timing += f", dropped {summary.get('dropped_messages')}"
     lines.append(timing)
-    for stop in (summary.get("protective_stop") or {}).get("stops", []):
+    protective = summary.get("protective_stop") or {}
+    if protective.get("approach_slowed_steps"):
+        lines.append(
+            f"  approach slowed    {protective['approach_slowed_steps']} steps: the gripper "
+            "closing in on the scene"
+        )
+    for stop in protective.get("stops", []):
         released = stop["released_t_s"]
         lines.append(
             f"  PROTECTIVE STOP    at {stop['t_s']:.3f} s sim time: "

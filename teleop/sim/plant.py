@@ -12,13 +12,15 @@ from __future__ import annotations
 import hashlib
 import math
 from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
 
 import mujoco
 import numpy as np
 
 from teleop.core.config import Config, ModelError
 from teleop.sim.checkpoint import get_state, set_state
-from teleop.sim.protective import ProtectiveStop
+from teleop.sim.protective import ProtectiveStop, allowed_approach_m_s
 from teleop.sim.proximity import apply_scene_overrides
 
 # Hold mode of the drives (the "brake"): stiffness of the position hold, per second.
@@ -44,6 +46,51 @@ class JointSample:
     gripper_opening_m: float
 
 
+def gripper_bodies(model: mujoco.MjModel, tool_site: int) -> set[int]:
+    """The gripper: every body in the subtree of the tool site's body (palm, fingers)."""
+    root = model.site_bodyid[tool_site]
+
+    def in_subtree(body: int) -> bool:
+        while body != 0:
+            if body == root:
+                return True
+            body = model.body_parentid[body]
+        return root == 0
+
+    return {b for b in range(model.nbody) if in_subtree(b)}
+
+
+def _load_scene(path: Path, tool_site: str, gap_m: float) -> mujoco.MjModel:
+    """The scene's model, the gripper's geoms given a collision gap of ``gap_m``: MuJoCo
+    then reports their contacts up to that far (``exclude`` 1: out of the constraint
+    solver, the physics unchanged). Set in the spec before compiling: a compiled model's
+    collision bounds do not follow a later change of ``geom_gap``."""
+    spec = mujoco.MjSpec.from_file(str(path))
+    model = spec.compile()
+    if gap_m <= 0:
+        return model
+    site = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, tool_site)
+    if site < 0:
+        raise ModelError(f"{path}: no site {tool_site!r}")
+    bodies = gripper_bodies(model, site)
+    for g in range(model.ngeom):
+        if model.geom_bodyid[g] in bodies:
+            geom = spec.geoms[g]  # the spec lists the geoms in the model's order
+            if geom.name != model.geom(g).name:
+                raise ModelError(f"{path}: geom {g} is {geom.name!r} in the spec")
+            geom.gap = gap_m
+    return spec.compile()
+
+
+class GripperContact(NamedTuple):
+    """One of MuJoCo's contacts between the gripper and something else."""
+
+    index: int  # in data.contact
+    on_geom2: bool  # the gripper is the contact's geom2 (the normal points towards it)
+    with_object: bool  # the other geom is a free object's (the cube)
+    active: bool  # touching (in the physics); else only within the approach range
+
+
 class Plant:
     """MuJoCo model + data, with name lookups resolved once from the config."""
 
@@ -52,7 +99,13 @@ class Plant:
         path = robot.scene_path
         if not path.exists():
             raise ModelError(f"scene file not found: {path}")
-        self.model = mujoco.MjModel.from_xml_path(str(path))
+        # Speed and separation: MuJoCo reports the gripper's contacts up to
+        # approach_range_m away but keeps those at a distance out of the physics.
+        plant = config.plant
+        self.approach_touch_m_s = plant.approach_touch_m_s
+        self.approach_time_s = plant.approach_time_s
+        self.approach_range_m = plant.tool_speed_limit_m_s * plant.approach_time_s
+        self.model = _load_scene(path, robot.tool_site, self.approach_range_m)
         if not np.isclose(self.model.opt.timestep, config.plant.timestep_s):
             raise ModelError(
                 f"{path}: timestep {self.model.opt.timestep} s differs from "
@@ -63,9 +116,8 @@ class Plant:
         self.timestep_ns = round(self.model.opt.timestep * 1e9)
         self._config = config
         self._step1_done = False  # prepare_step ran for the next step
-        # prepare_step's gripper contacts (see gripper_contact_force); None: not known.
-        # (index, whether the gripper is geom2, whether the other geom is a free object's)
-        self._gripper_contacts: list[tuple[int, bool, bool]] | None = None
+        # prepare_step's gripper contacts (see _find_gripper_contacts); None: not known.
+        self._gripper_contacts: list[GripperContact] | None = None
 
         def lookup(kind: mujoco.mjtObj, name: str) -> int:
             index = mujoco.mj_name2id(self.model, kind, name)
@@ -96,14 +148,12 @@ class Plant:
         self.object_bodies = np.array(
             [lookup(mujoco.mjtObj.mjOBJ_BODY, n) for n in robot.object_bodies], dtype=int
         )
-        # The gripper: every body in the subtree of the tool site's body (palm and fingers).
-        gripper_root = self.model.site_bodyid[self.tool_site]
-        self.gripper_bodies = {
-            b for b in range(self.model.nbody) if self._in_subtree(b, gripper_root)
-        }
+        self.gripper_bodies = gripper_bodies(self.model, self.tool_site)
         self._gripper_geoms = frozenset(
             g for g in range(self.model.ngeom) if self.model.geom_bodyid[g] in self.gripper_bodies
         )
+        self.approach_slowed_steps = 0  # steps whose command the approach limit slowed
+        self._jac_other = np.zeros((3, self.model.nv))
         # The objects that move freely (the cube; not the bin, welded to the world): the
         # gripper may hold them, and what they push is not a press on the scene.
         free = {b for b in self.object_bodies.tolist() if self.model.body_weldid[b] != 0}
@@ -146,13 +196,6 @@ class Plant:
             plant.protective_release_m_s,
             max(1, round(plant.protective_release_s / plant.timestep_s)),
         )
-
-    def _in_subtree(self, body: int, root: int) -> bool:
-        while body != 0:
-            if body == root:
-                return True
-            body = self.model.body_parentid[body]
-        return root == 0
 
     @property
     def n_joints(self) -> int:
@@ -265,13 +308,55 @@ class Plant:
         motion = qd - hold
         speed_m_s = math.hypot(*(self._jacp[:, self.dof_index] @ motion).tolist())
         self.commanded_tool_speed_m_s = speed_m_s
+        scale = 1.0
         if speed_m_s > self.tool_speed_limit_m_s:
-            qd = hold + motion * (self.tool_speed_limit_m_s / speed_m_s)
-            qd = np.minimum(np.maximum(qd, self.ctrl_low), self.ctrl_high)
+            scale = self.tool_speed_limit_m_s / speed_m_s
             clamped = True
+        approach_scale = self._approach_scale(motion * scale)
+        if approach_scale < 1.0:
+            scale *= approach_scale
+            self.approach_slowed_steps += 1
+        if scale < 1.0:
+            qd = hold + motion * scale
+            qd = np.minimum(np.maximum(qd, self.ctrl_low), self.ctrl_high)
         if clamped:
             self.clamped_steps += 1
         return qd
+
+    def _approach_scale(self, motion_rad_s: np.ndarray) -> float:
+        """How much ``motion_rad_s`` (the arm's joint velocities) must be slowed (a
+        factor in (0, 1]) so that no point of the gripper closes in on the scene (not a
+        free object) faster than :func:`allowed_approach_m_s` at its separation: over
+        the gripper's contacts of the state the step starts from, touching or within
+        ``approach_range_m``, the relative speed of the contact point along the normal."""
+        if self.approach_time_s <= 0:
+            return 1.0
+        contacts = self._gripper_contacts or ()
+        scale = 1.0
+        dofs = self.dof_index
+        model, data = self.model, self.data
+        for contact in contacts:
+            if contact.with_object:
+                continue
+            i = contact.index
+            point = data.contact.pos[i]
+            gripper_geom, other_geom = data.contact.geom[i][:: -1 if contact.on_geom2 else 1]
+            mujoco.mj_jac(model, data, self._jacp, None, point, model.geom_bodyid[gripper_geom])
+            relative = self._jacp[:, dofs] @ motion_rad_s
+            other_body = model.geom_bodyid[other_geom]
+            if model.body_weldid[other_body] != 0:  # a moving body (the arm): relative speed
+                mujoco.mj_jac(model, data, self._jac_other, None, point, other_body)
+                relative -= self._jac_other[:, dofs] @ motion_rad_s
+            # The normal points from geom1 to geom2: from the scene towards the gripper
+            # when the gripper is geom2. Closing in = moving against it.
+            normal = data.contact.frame[i][:3]
+            closing_m_s = float(-(normal @ relative) if contact.on_geom2 else normal @ relative)
+            allowed = allowed_approach_m_s(
+                float(data.contact.dist[i]), self.approach_touch_m_s, self.approach_time_s
+            )
+            if closing_m_s > allowed:
+                scale = min(scale, allowed / closing_m_s)
+        return scale
 
     def step(self, qd_ref_rad_s: np.ndarray, gripper_cmd: float) -> None:
         """Apply velocity references (rad/s, within :meth:`limit`) and advance one step;
@@ -355,29 +440,34 @@ class Plant:
             contacts = self._find_gripper_contacts()
         total, scene = np.zeros(3), np.zeros(3)
         wrench = np.zeros(6)
-        for i, on_geom2, with_object in contacts:
+        touching = 0
+        for i, on_geom2, with_object, active in contacts:
+            if not active:
+                continue  # only near: no force
+            touching += 1
             mujoco.mj_contactForce(self.model, self.data, i, wrench)
             force_world = self.data.contact.frame[i].reshape(3, 3).T @ wrench[:3]
             on_gripper = force_world if on_geom2 else -force_world
             total += on_gripper
             if not with_object:
                 scene += on_gripper
-        return total, len(contacts), scene
+        return total, touching, scene
 
-    def _find_gripper_contacts(self) -> list[tuple[int, bool, bool]]:
-        """(index, whether the gripper is geom2, whether the other geom is a free
-        object's) of the contacts between the gripper and anything else, in
-        ``data.contact`` order.
+    def _find_gripper_contacts(self) -> list[GripperContact]:
+        """The contacts between the gripper and anything else, in ``data.contact``
+        order: touching, or only near (within the approach range, out of the physics).
 
         Geom pairs as Python ints: a pass over them costs half of one MjContact per
         contact, or of numpy masks (cold caches included).
         """
         found = []
         gripper, objects = self._gripper_geoms, self._object_geoms
+        excluded = self.data.contact.exclude.tolist()
         for i, (geom1, geom2) in enumerate(self.data.contact.geom.tolist()):
             on_geom2 = geom2 in gripper
             if (geom1 in gripper) != on_geom2:  # not itself against itself
-                found.append((i, on_geom2, (geom1 if on_geom2 else geom2) in objects))
+                other_is_object = (geom1 if on_geom2 else geom2) in objects
+                found.append(GripperContact(i, on_geom2, other_is_object, excluded[i] == 0))
         return found
 
     def object_poses(self) -> tuple[np.ndarray, np.ndarray]:

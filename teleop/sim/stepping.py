@@ -442,6 +442,7 @@ class PlantStepCore:
                     "commands_future_state": self.commands_future_state,
                     "unanswered_commands": self.unanswered_commands,
                     "clamped_steps": plant.clamped_steps,
+                    "approach_slowed_steps": plant.approach_slowed_steps,
                     "watchdog_brakes": self.watchdog.brakes,
                     "stale_steps": self.watchdog.stale_steps,
                 },
@@ -482,6 +483,7 @@ class PlantStepCore:
             snapshot.mujoco_state, step, float(loop["gripper_cmd"]), snapshot.hold_q_rad
         )
         self.plant.clamped_steps = int(loop["counts"]["clamped_steps"])
+        self.plant.approach_slowed_steps = int(loop["counts"]["approach_slowed_steps"])
         self.state_seq = last_seq
         self._steps = steps
         finish = max(int(loop["finish_tick"]), previous.finish_tick if previous else -1)
@@ -745,7 +747,11 @@ class PlantStepCore:
             "max_contact_force_n": figures.max_contact_force_n,
             "obstacle_min_clearance_m": figures.min_obstacle_clearance_m,
             "tool_speed_max_m_s": figures.max_tool_speed_m_s,
-            "protective_stop": self.plant.protective.summary(plant_cfg.timestep_s),
+            "protective_stop": {
+                **self.plant.protective.summary(plant_cfg.timestep_s),
+                # Steps whose command the approach limit slowed (speed and separation).
+                "approach_slowed_steps": self.plant.approach_slowed_steps,
+            },
             "object_in_box": self.plant.object_in_bin(),
             "rate_hz": self.plant.step_count / self.wall_s if self.wall_s > 0 else None,
             "aborted": self.aborted,

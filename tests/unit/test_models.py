@@ -146,14 +146,21 @@ def test_prepared_steps_equal_mujoco_steps_bit_for_bit(config):
     """Plant.prepare_step (mj_step1 ahead of the command) changes no bit of the motion."""
     from dataclasses import replace
 
-    # No tool-speed cut (Plant.limit) and no protective stop, so both plants step the
-    # same references.
-    no_limits = dict(tool_speed_limit_m_s=1e9, tool_speed_stop_m_s=2e9, contact_force_limit_n=1e9)
+    # No tool-speed cut or approach limit (Plant.limit) and no protective stop, so the
+    # plants step the same references. The approach range's collision gap stays (0.1 m:
+    # an approach time that allows any speed): a third plant without it steps the same
+    # bits, the contacts the gap adds are out of the physics.
+    no_limits = dict(
+        tool_speed_limit_m_s=1e9, approach_time_s=1e-10, approach_touch_m_s=1e9,
+        tool_speed_stop_m_s=2e9, contact_force_limit_n=1e9,
+    )  # fmt: skip
     config = replace(config, plant=replace(config.plant, **no_limits))
     prepared, plain = Plant(config), Plant(config)
+    no_gap = Plant(replace(config, plant=replace(config.plant, approach_time_s=0.0)))
+    assert prepared.model.geom_gap.max() > 0 and no_gap.model.geom_gap.max() == 0
     q0 = random_configurations(prepared, 1, seed=5)[0]
-    prepared.reset(q0)
-    plain.reset(q0)
+    for plant in (prepared, plain, no_gap):
+        plant.reset(q0)
     rng = np.random.default_rng(6)
     for k in range(600):
         qd_ref = rng.normal(0.0, 0.5, prepared.n_joints)
@@ -161,9 +168,12 @@ def test_prepared_steps_equal_mujoco_steps_bit_for_bit(config):
         prepared.prepare_step()
         prepared.prepare_step()  # twice: still one mj_step1
         prepared.step(qd_ref, gripper)
-        plain.data.ctrl[plain.actuator_index] = qd_ref
-        plain.data.ctrl[plain.gripper_actuator] = plain._gripper_ctrl(gripper)
-        mujoco.mj_step(plain.model, plain.data)
+        for plant in (plain, no_gap):
+            plant.data.ctrl[plant.actuator_index] = qd_ref
+            plant.data.ctrl[plant.gripper_actuator] = plant._gripper_ctrl(gripper)
+            mujoco.mj_step(plant.model, plant.data)
+        assert np.array_equal(no_gap.data.qpos, plain.data.qpos), k
+        assert np.array_equal(no_gap.data.qvel, plain.data.qvel), k
         assert np.array_equal(prepared.data.qpos, plain.data.qpos), k
         assert np.array_equal(prepared.data.qvel, plain.data.qvel), k
     assert prepared.step_count == 600

@@ -13,7 +13,7 @@ import pytest
 from teleop.bus.messages import Event, Flag
 from teleop.core.clock import FakeClock
 from teleop.core.config import ConfigError, load_config
-from teleop.sim.protective import ProtectiveStop, StopCause
+from teleop.sim.protective import ProtectiveStop, StopCause, allowed_approach_m_s
 from teleop.sim.stepping import PlantStepCore
 from tests.unit.test_feedback import GraspRig
 from tests.unit.test_stepping import Recorded, command
@@ -61,29 +61,35 @@ def test_the_stop_speed_must_lie_above_the_command_limit():
         load_config(None, ["plant.contact_force_limit_n=0"])
 
 
-def press(rig: GraspRig, steps: int) -> list[float]:
-    """The handle held down: ``steps`` steps commanding the tool down at the press speed;
+def press(rig: GraspRig, steps: int, speed_m_s: float = PRESS_SPEED_M_S) -> list[float]:
+    """The handle held down: ``steps`` steps commanding the tool down at ``speed_m_s``;
     the net contact force after each (N)."""
     forces = []
     for _ in range(steps):
         sample = rig.plant.sample()
-        v_ref = np.array([0.0, 0.0, -PRESS_SPEED_M_S])
+        v_ref = np.array([0.0, 0.0, -speed_m_s])
         out = rig.ctl.update(sample.q_rad, sample.qd_rad_s, v_ref, None, 1.0)
         rig.plant.step(out.qd_ref_rad_s, out.gripper_cmd)
         forces.append(math.hypot(*rig.plant.contact_force_n.tolist()))
     return forces
 
 
-@pytest.fixture(scope="module")
-def pressed():
+def above_the_table(config) -> GraspRig:
     """The open gripper moved above a free spot of the table (away from the cube and the
-    bin), then pressed down onto it until well after the stop; the rig and the forces of
-    the press."""
-    rig = GraspRig(load_config())
+    bin), 10 cm up."""
+    rig = GraspRig(config)
     above = rig.plant.tool_pose()[0] + [0.0, -0.15, 0.0]
     above[2] = 0.10
     rig.move(above, 1.0, 2500)
     assert rig.plant.contact_force_n.tolist() == [0.0, 0.0, 0.0]
+    return rig
+
+
+@pytest.fixture(scope="module")
+def pressed():
+    """The gripper above the table pressed down onto it until well after the stop; the
+    rig and the forces of the press."""
+    rig = above_the_table(load_config())
     forces = press(rig, round(0.15 / PRESS_SPEED_M_S * 1000))  # 15 cm: far into the table
     return rig, forces
 
@@ -93,6 +99,7 @@ def test_pressed_into_the_table_the_plant_stops_and_holds_while_pushed(pressed):
     stops = rig.plant.protective.stops
     assert [s.cause for s in stops] == [StopCause.CONTACT_FORCE]  # one stop, on force
     tripped = stops[0].step
+    assert max(forces) <= 1.1 * LIMIT_N  # the approach limit makes it a touch, not an impact
     assert forces[-1] > 0  # still touching, still reported (the operator feels it)
     assert rig.plant.protective.latched and rig.plant.braking  # the handle still pushes
     # Held: the tool no longer goes down, the force settles below the limit.
@@ -101,13 +108,37 @@ def test_pressed_into_the_table_the_plant_stops_and_holds_while_pushed(pressed):
     assert rig.plant.tool_pose()[0][2] == pytest.approx(z_held, abs=1e-4)
     assert max(after) < load_config().plant.contact_force_limit_n
     assert stops[0].steps_held > 200 and rig.plant.step_count - tripped > 200
-    # Unguarded, the same press goes on pushing: tens of newtons.
-    unguarded = GraspRig(replace_limits(load_config(), contact_force_limit_n=1e9))
-    above = unguarded.plant.tool_pose()[0] + [0.0, -0.15, 0.0]
-    above[2] = 0.10
-    unguarded.move(above, 1.0, 2500)
-    free = press(unguarded, len(forces))
+    # Unguarded (no stop, no approach limit), the same press goes on pushing: tens of
+    # newtons.
+    config = replace_limits(load_config(), contact_force_limit_n=1e9, approach_time_s=0.0)
+    free = press(above_the_table(config), len(forces))
     assert max(free[-200:]) > 3 * load_config().plant.contact_force_limit_n
+
+
+@pytest.mark.parametrize("approach_limit", [True, False], ids=["approach-limit", "none"])
+def test_a_fast_press_meets_the_table_slowly_enough_for_the_force_limit(approach_limit):
+    """Straight down at the tool's speed limit: with the approach limit the gripper
+    meets the table at plant.approach_touch_m_s and the force stays within the limit's
+    10 %; without it the impact alone is tens of times the limit."""
+    config = load_config()
+    if not approach_limit:
+        config = replace_limits(config, approach_time_s=0.0)
+    rig = above_the_table(config)
+    forces = press(rig, 1500, speed_m_s=config.plant.tool_speed_limit_m_s)
+    assert forces[-1] > 0  # it reached the table
+    if approach_limit:
+        assert max(forces) <= 1.1 * LIMIT_N
+        assert rig.plant.approach_slowed_steps > 0
+    else:
+        assert max(forces) > 10 * LIMIT_N
+        assert rig.plant.approach_slowed_steps == 0
+
+
+def test_the_allowed_approach_speed_falls_with_the_separation_to_the_touch_speed():
+    assert allowed_approach_m_s(0.0, 0.004, 0.1) == 0.004
+    assert allowed_approach_m_s(-0.001, 0.004, 0.1) == 0.004  # touching: no faster
+    assert allowed_approach_m_s(0.01, 0.004, 0.1) == pytest.approx(0.104)
+    assert allowed_approach_m_s(0.03, 0.004, 0.1) > 0.30  # the whole range: not slowed
 
 
 def test_a_command_that_stops_releases_the_stop(pressed):
