@@ -18,6 +18,7 @@ from teleop.control.clearance import ClearanceModel
 from teleop.control.kinematics import build_arm_model
 from teleop.control.path import PathFollowingController, PathMetrics
 from teleop.core.config import Config
+from teleop.run.criteria import judge_task
 from teleop.sim.plant import Plant, initial_configuration
 
 # Progress lines on long runs: one every this fraction of the run.
@@ -69,6 +70,7 @@ def run_path_following_inprocess(
     last = controller.update(final.q_rad, final.qd_rad_s, final.gripper_opening_m)
     metrics.add(final.sim_time_ns * 1e-9, last)
     wall_s = time.perf_counter() - wall_start
+    figures = metrics.summary()
     return {
         "scenario": "path-following",
         "mode": "inprocess",
@@ -76,8 +78,9 @@ def run_path_following_inprocess(
         "seed": config.run.seed,
         "settle_s": config.run.settle_s,
         "compensation": config.control.compensation,
-        **metrics.summary(),
-        "success": not metrics.problems(),
+        **figures,
+        # The task's criteria (teleop.run.criteria) and what the motion itself reported.
+        **judge_task("path-following", figures, metrics.problems()).summary(),
         "events": [
             {"event": e.event.name, "sim_time_s": e.sim_time_s, "value": e.value}
             for e in metrics.events

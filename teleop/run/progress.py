@@ -97,7 +97,13 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
         )
         lines.append(_clearance_line(summary))
     else:
-        lines.append(f"{scenario} ({mode}): {summary.get('duration_s')} s simulated")
+        outcome = f"{scenario} ({mode}): {summary.get('duration_s')} s simulated"
+        if summary.get("success") is False:
+            failed = [c["detail"] for c in summary.get("criteria") or [] if c["status"] == "fail"]
+            outcome += ", FAILED: " + "; ".join(
+                [*failed, *(summary.get("motion_problems") or [])] or ["see the summary"]
+            )
+        lines.append(outcome)
         lines.append(
             f"  path error         RMS {_num(_mm(summary.get('path_error_rms_m')), '.3f', ' mm')}, "
             f"max {_num(_mm(summary.get('path_error_max_m')), '.3f', ' mm')} "

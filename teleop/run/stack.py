@@ -67,6 +67,7 @@ from teleop.core.rundir import (
 )
 from teleop.devices.operator import Scenario
 from teleop.run import restart_priority
+from teleop.run.criteria import judge_task
 from teleop.run.failure import ProgramWatch, ServiceFailed, program_log_text
 from teleop.run.faults import (
     FaultInjector,
@@ -551,18 +552,23 @@ def run_on_services(
     if config.run.scenario == "grasp":
         summary.update(_grasp_summary(summaries, task_done))
     else:
+        figures = {
+            "duration_s": config.run.duration_s,
+            "settle_s": controller.get("settle_s"),
+            "compensation": controller.get("compensation"),
+            "path_error_rms_m": controller.get("path_error_rms_m"),
+            "path_error_max_m": controller.get("path_error_max_m"),
+            "min_manipulability": controller.get("min_manipulability"),
+            **{key: controller.get(key) for key in PATH_MOTION_KEYS},
+        }
+        # The task's criteria (teleop.run.criteria); a run that stalls or collides is not
+        # a good run either (teleop.control.path).
+        problems = controller.get("motion_problems", [])
         summary.update(
             {
-                "duration_s": config.run.duration_s,
-                "settle_s": controller.get("settle_s"),
-                "compensation": controller.get("compensation"),
-                "path_error_rms_m": controller.get("path_error_rms_m"),
-                "path_error_max_m": controller.get("path_error_max_m"),
-                "min_manipulability": controller.get("min_manipulability"),
-                **{key: controller.get(key) for key in PATH_MOTION_KEYS},
-                # A run that stalls or collides is not a good run (teleop.control.path).
-                "success": not controller.get("motion_problems"),
-                "motion_problems": controller.get("motion_problems", []),
+                **figures,
+                **judge_task("path-following", figures, problems).summary(),
+                "motion_problems": problems,
             }
         )
     if plant.get("aborted") or plant.get("failure"):
@@ -673,8 +679,16 @@ def _grasp_summary(summaries: dict[str, dict[str, Any]], task_done: list[float])
     said_success = operator.get("success") if operator is not None else task_done[-1:] == [1.0]
     operator = operator or {}
     problems = controller.get("motion_problems", [])
+    figures = {
+        **{key: controller.get(key) for key in TELEOP_MOTION_KEYS},
+        "object_in_box": plant.get("object_in_box"),
+        "max_device_force_n": haptic.get("max_rendered_force_n"),
+    }
+    # The task's criteria (teleop.run.criteria), the motion's problems, and the operator's
+    # word: it finished the task.
+    said = [] if said_success else ["the operator did not finish the task"]
     return {
-        "success": bool(said_success) and bool(plant.get("object_in_box")) and not problems,
+        **judge_task("grasp", figures, [*problems, *said]).summary(),
         "motion_problems": problems,
         **{key: controller.get(key) for key in TELEOP_MOTION_KEYS},
         "object_in_box": plant.get("object_in_box"),

@@ -2,14 +2,9 @@
 
 A sweep draws its tasks with :mod:`teleop.run.tasks` (seeded: the same seed gives the
 same tasks), runs each in a worker process (``workers``, one per core by default) and
-judges it against fixed criteria:
-
-- path following (in process, as ``teleop run path-following --inprocess``): path error
-  RMS <= 1 mm and max <= 3 mm after settling, ``path_progress`` >= 0.95, no unintended
-  contact (``arm_contacts`` == 0);
-- grasp (a lockstep services run, as ``teleop run grasp --mode lockstep``): the cube in
-  the bin, no unintended contact, device force below the device's 8 N peak (it
-  saturates there: a run that reached it asked for more).
+judges it by the run's own criteria (:mod:`teleop.run.criteria`): path following in
+process, as ``teleop run path-following --inprocess``; grasp as a lockstep services run,
+as ``teleop run grasp --mode lockstep``.
 
 A criterion whose figure the run does not report is *unavailable*, never passed: a task
 succeeds only when every criterion was measured and met. Every failure carries its
@@ -37,6 +32,7 @@ import numpy as np
 
 from teleop.core.config import load_config
 from teleop.core.rundir import RECORDING_FILE
+from teleop.run.criteria import FAIL, UNAVAILABLE, event_reasons, judge_task
 from teleop.run.tasks import (
     Generated,
     GraspTask,
@@ -46,14 +42,6 @@ from teleop.run.tasks import (
 )
 
 KINDS = ("path-following", "grasp")
-# Success criteria (issue 18): path following.
-MAX_PATH_ERROR_RMS_M = 1e-3
-MAX_PATH_ERROR_M = 3e-3
-MIN_PATH_PROGRESS = 0.95
-# Grasp: the largest force rendered on the handle (N), the device's peak. The device
-# saturates there, so a run that reached it (within SATURATED_N) asked for more: it fails.
-MAX_DEVICE_FORCE_N = 8.0
-SATURATED_N = 0.01
 # Report files in the output directory.
 REPORT_JSON = "sweep.json"
 REPORT_MARKDOWN = "sweep.md"
@@ -61,107 +49,6 @@ REPORT_MARKDOWN = "sweep.md"
 STARTUP_RETRIES = 2
 # Percentiles of the clearance distribution in the report.
 CLEARANCE_PERCENTILES = (0, 5, 25, 50, 75, 100)
-
-PASS, FAIL, UNAVAILABLE = "pass", "fail", "unavailable"
-
-
-@dataclass(frozen=True)
-class Criterion:
-    """One success criterion of one task: ``status`` pass, fail or unavailable."""
-
-    name: str
-    status: str
-    detail: str
-
-
-def _figure(summary: Mapping[str, Any], key: str) -> float | None:
-    value = summary.get(key)
-    return None if value is None else float(value)
-
-
-def _at_most(summary: Mapping[str, Any], key: str, bound: float, unit: str, scale: float,
-             name: str) -> Criterion:  # fmt: skip
-    value = _figure(summary, key)
-    if value is None:
-        return Criterion(name, UNAVAILABLE, f"{key} not reported")
-    shown = f"{value * scale:.3g} {unit}"
-    if value <= bound:
-        return Criterion(name, PASS, shown)
-    return Criterion(name, FAIL, f"{name}: {shown} > {bound * scale:g} {unit}")
-
-
-def _no_contact(summary: Mapping[str, Any]) -> Criterion:
-    contacts = summary.get("arm_contacts")
-    if contacts is None:
-        return Criterion("no unintended contact", UNAVAILABLE, "arm_contacts not reported")
-    if int(contacts) == 0:
-        return Criterion("no unintended contact", PASS, "0 steps")
-    return Criterion(
-        "no unintended contact", FAIL, f"unintended contact: {int(contacts)} steps in contact"
-    )
-
-
-def judge_path(summary: Mapping[str, Any]) -> list[Criterion]:
-    """The path-following criteria on a run's summary."""
-    progress = _figure(summary, "path_progress")
-    if progress is None:
-        progress_c = Criterion("path progress", UNAVAILABLE, "path_progress not reported")
-    elif progress >= MIN_PATH_PROGRESS:
-        progress_c = Criterion("path progress", PASS, f"{progress:.3f}")
-    else:
-        progress_c = Criterion(
-            "path progress", FAIL, f"path progress {progress:.3f} < {MIN_PATH_PROGRESS:g}"
-        )
-    return [
-        _at_most(summary, "path_error_rms_m", MAX_PATH_ERROR_RMS_M, "mm", 1e3, "path error RMS"),
-        _at_most(summary, "path_error_max_m", MAX_PATH_ERROR_M, "mm", 1e3, "path error max"),
-        progress_c,
-        _no_contact(summary),
-    ]
-
-
-def judge_grasp(summary: Mapping[str, Any]) -> list[Criterion]:
-    """The grasp criteria on a run's summary."""
-    in_bin = summary.get("object_in_box")
-    if in_bin is None:
-        bin_c = Criterion("cube in the bin", UNAVAILABLE, "object_in_box not reported")
-    elif in_bin:
-        bin_c = Criterion("cube in the bin", PASS, "yes")
-    else:
-        bin_c = Criterion("cube in the bin", FAIL, "the cube is not in the bin")
-    force = _figure(summary, "max_device_force_n")
-    if force is None:
-        force_c = Criterion("device force", UNAVAILABLE, "max_device_force_n not reported")
-    elif force < MAX_DEVICE_FORCE_N - SATURATED_N:
-        force_c = Criterion("device force", PASS, f"{force:.3g} N")
-    else:
-        force_c = Criterion(
-            "device force", FAIL, f"device force at its {MAX_DEVICE_FORCE_N:g} N peak (saturated)"
-        )
-    return [bin_c, _no_contact(summary), force_c]
-
-
-def event_reasons(summary: Mapping[str, Any]) -> list[str]:
-    """What the run itself said went wrong: the operator's failure reason and the run's
-    events (stall, unintended contact, singularity, out of reach), when it reports them."""
-    reasons = []
-    if summary.get("failure"):  # the plant ended the run (teleop.sim.stepping.Abort)
-        reasons.append(f"plant: {summary['failure']}")
-    operator = summary.get("services", {}).get("operator", {}) if "services" in summary else {}
-    failure = summary.get("operator_failure") or (
-        operator.get("failure") if isinstance(operator, Mapping) else None
-    )
-    if failure:
-        reasons.append(f"operator: {failure}")
-    for event in summary.get("events") or ():
-        if isinstance(event, Mapping):
-            name = event.get("event") or event.get("kind") or event.get("name")
-            at = event.get("sim_time_s")
-            reasons.append(f"event {name}" + (f" at {float(at):.1f} s" if at is not None else ""))
-        else:
-            reasons.append(f"event {event}")
-    return reasons
-
 
 # --- Running one task (in a worker) ---------------------------------------------------------
 
@@ -198,17 +85,17 @@ def run_job(job: Job) -> dict[str, Any]:
             wall_s=time.perf_counter() - start,
         )
         return record
-    criteria = judge_path(summary) if job.kind == "path-following" else judge_grasp(summary)
-    failed = [c.detail for c in criteria if c.status == FAIL]
-    unavailable = [c.name for c in criteria if c.status == UNAVAILABLE]
+    # The run's own criteria (teleop.run.criteria), every one of them measured.
+    verdict = judge_task(job.kind, summary)
+    failed, unavailable = verdict.failed, verdict.unmeasured
     events = event_reasons(summary)
-    success = not failed and not unavailable
+    success = verdict.success and verdict.complete
     reasons = [*failed, *events] if not success else []
     if not success and not failed and not events:
         reasons = [f"unmeasured: {', '.join(unavailable)}"]
     record.update(
         success=success,
-        criteria=[c.__dict__ for c in criteria],
+        criteria=verdict.summary()["criteria"],
         reasons=reasons,
         figures={key: summary.get(key) for key in _FIGURES[job.kind] if key in summary},
         wall_s=time.perf_counter() - start,

@@ -168,57 +168,6 @@ def test_inverse_kinematics_reaches_the_pose_it_returns(checker: ReachabilityChe
     assert np.allclose(r, home_r, atol=1e-3)
 
 
-def _statuses(criteria: list[sweep.Criterion]) -> dict[str, str]:
-    return {c.name: c.status for c in criteria}
-
-
-def test_missing_figures_are_unavailable_never_passed() -> None:
-    judged = _statuses(sweep.judge_path({"path_error_rms_m": 2e-4, "path_error_max_m": 5e-4}))
-    assert judged == {
-        "path error RMS": sweep.PASS,
-        "path error max": sweep.PASS,
-        "path progress": sweep.UNAVAILABLE,
-        "no unintended contact": sweep.UNAVAILABLE,
-    }
-
-
-def test_path_criteria_fail_with_their_reason() -> None:
-    summary = {
-        "path_error_rms_m": 1.2e-3,
-        "path_error_max_m": 2e-3,
-        "path_progress": 0.5,
-        "arm_contacts": 40,
-    }
-    criteria = sweep.judge_path(summary)
-    failed = [c.detail for c in criteria if c.status == sweep.FAIL]
-    assert failed == [
-        "path error RMS: 1.2 mm > 1 mm",
-        "path progress 0.500 < 0.95",
-        "unintended contact: 40 steps in contact",
-    ]
-    ok = {"path_error_rms_m": 1e-5, "path_error_max_m": 2e-5, "path_progress": 0.99,
-          "arm_contacts": 0}  # fmt: skip
-    assert all(c.status == sweep.PASS for c in sweep.judge_path(ok))
-
-
-def test_grasp_criteria_and_the_operators_reason() -> None:
-    summary = {
-        "object_in_box": False,
-        "arm_contacts": 0,
-        "max_device_force_n": 8.0,  # the device's peak: it saturated
-        "services": {"operator": {"failure": "timeout in carry"}},
-    }
-    judged = _statuses(sweep.judge_grasp(summary))
-    assert judged == {
-        "cube in the bin": sweep.FAIL,
-        "no unintended contact": sweep.PASS,
-        "device force": sweep.FAIL,
-    }
-    assert sweep.event_reasons(summary) == ["operator: timeout in carry"]
-    light = {"object_in_box": True, "arm_contacts": 0, "max_device_force_n": 1.2}
-    assert all(c.status == sweep.PASS for c in sweep.judge_grasp(light))
-
-
 def test_failures_are_counted_by_kind_without_their_numbers() -> None:
     assert sweep.reason_kind("event STALL at 0.5 s") == "event STALL"
     assert sweep.reason_kind("path error RMS: 2.71 mm > 1 mm") == "path error RMS"

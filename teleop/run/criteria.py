@@ -1,0 +1,173 @@
+"""A task's success criteria: one verdict for ``teleop run``, ``teleop sweep`` and the
+report.
+
+Pure functions of a run's summary (the dict ``teleop run`` writes), so a unit test judges
+one without running anything:
+
+- path following: path error RMS <= 1 mm and max <= 3 mm after settling,
+  ``path_progress`` >= 0.95, no unintended contact (``arm_contacts`` == 0);
+- grasp: the cube in the bin, no unintended contact, device force below the device's
+  8 N peak (it saturates there: a run that reached it asked for more).
+
+A criterion whose figure the run does not report is *unavailable*: a short run (before
+``run.settle_s``), or one whose controller ran outside the stack, has no path error. A
+run succeeds when no criterion fails and the run itself reported no problem (a stall, a
+contact, an operator that gave up, a plant that aborted); the sweep asks more of its
+tasks: every criterion measured as well (:attr:`TaskVerdict.complete`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+# Path following.
+MAX_PATH_ERROR_RMS_M = 1e-3
+MAX_PATH_ERROR_M = 3e-3
+MIN_PATH_PROGRESS = 0.95
+# Grasp: the largest force rendered on the handle (N), the device's peak. The device
+# saturates there, so a run that reached it (within SATURATED_N) asked for more: it fails.
+MAX_DEVICE_FORCE_N = 8.0
+SATURATED_N = 0.01
+
+PASS, FAIL, UNAVAILABLE = "pass", "fail", "unavailable"
+
+
+@dataclass(frozen=True)
+class Criterion:
+    """One success criterion of one task: ``status`` pass, fail or unavailable."""
+
+    name: str
+    status: str
+    detail: str
+
+
+@dataclass(frozen=True)
+class TaskVerdict:
+    """A run judged: its criteria, and the problems the run itself reported."""
+
+    criteria: tuple[Criterion, ...]
+    problems: tuple[str, ...] = ()
+
+    @property
+    def failed(self) -> list[str]:
+        """The details of the criteria that failed."""
+        return [c.detail for c in self.criteria if c.status == FAIL]
+
+    @property
+    def unmeasured(self) -> list[str]:
+        """The names of the criteria the run gave no figure for."""
+        return [c.name for c in self.criteria if c.status == UNAVAILABLE]
+
+    @property
+    def success(self) -> bool:
+        """No criterion failed and the run reported no problem."""
+        return not self.failed and not self.problems
+
+    @property
+    def complete(self) -> bool:
+        """Every criterion was measured."""
+        return not self.unmeasured
+
+    def summary(self) -> dict[str, Any]:
+        """The summary's ``success`` and ``criteria``."""
+        return {"success": self.success, "criteria": [asdict(c) for c in self.criteria]}
+
+
+def _figure(summary: Mapping[str, Any], key: str) -> float | None:
+    value = summary.get(key)
+    return None if value is None else float(value)
+
+
+def _at_most(summary: Mapping[str, Any], key: str, bound: float, unit: str, scale: float,
+             name: str) -> Criterion:  # fmt: skip
+    value = _figure(summary, key)
+    if value is None:
+        return Criterion(name, UNAVAILABLE, f"{key} not reported")
+    shown = f"{value * scale:.3g} {unit}"
+    if value <= bound:
+        return Criterion(name, PASS, shown)
+    return Criterion(name, FAIL, f"{name}: {shown} > {bound * scale:g} {unit}")
+
+
+def _no_contact(summary: Mapping[str, Any]) -> Criterion:
+    contacts = summary.get("arm_contacts")
+    if contacts is None:
+        return Criterion("no unintended contact", UNAVAILABLE, "arm_contacts not reported")
+    if int(contacts) == 0:
+        return Criterion("no unintended contact", PASS, "0 steps")
+    return Criterion(
+        "no unintended contact", FAIL, f"unintended contact: {int(contacts)} steps in contact"
+    )
+
+
+def judge_path(summary: Mapping[str, Any]) -> list[Criterion]:
+    """The path-following criteria on a run's summary."""
+    progress = _figure(summary, "path_progress")
+    if progress is None:
+        progress_c = Criterion("path progress", UNAVAILABLE, "path_progress not reported")
+    elif progress >= MIN_PATH_PROGRESS:
+        progress_c = Criterion("path progress", PASS, f"{progress:.3f}")
+    else:
+        progress_c = Criterion(
+            "path progress", FAIL, f"path progress {progress:.3f} < {MIN_PATH_PROGRESS:g}"
+        )
+    return [
+        _at_most(summary, "path_error_rms_m", MAX_PATH_ERROR_RMS_M, "mm", 1e3, "path error RMS"),
+        _at_most(summary, "path_error_max_m", MAX_PATH_ERROR_M, "mm", 1e3, "path error max"),
+        progress_c,
+        _no_contact(summary),
+    ]
+
+
+def judge_grasp(summary: Mapping[str, Any]) -> list[Criterion]:
+    """The grasp criteria on a run's summary."""
+    in_bin = summary.get("object_in_box")
+    if in_bin is None:
+        bin_c = Criterion("cube in the bin", UNAVAILABLE, "object_in_box not reported")
+    elif in_bin:
+        bin_c = Criterion("cube in the bin", PASS, "yes")
+    else:
+        bin_c = Criterion("cube in the bin", FAIL, "the cube is not in the bin")
+    force = _figure(summary, "max_device_force_n")
+    if force is None:
+        force_c = Criterion("device force", UNAVAILABLE, "max_device_force_n not reported")
+    elif force < MAX_DEVICE_FORCE_N - SATURATED_N:
+        force_c = Criterion("device force", PASS, f"{force:.3g} N")
+    else:
+        force_c = Criterion(
+            "device force", FAIL, f"device force at its {MAX_DEVICE_FORCE_N:g} N peak (saturated)"
+        )
+    return [bin_c, _no_contact(summary), force_c]
+
+
+def judge_task(
+    scenario: str, summary: Mapping[str, Any], problems: Sequence[str] = ()
+) -> TaskVerdict:
+    """``summary`` of a ``scenario`` run judged by its criteria; ``problems``: what the
+    run itself said went wrong."""
+    criteria = judge_grasp(summary) if scenario == "grasp" else judge_path(summary)
+    return TaskVerdict(tuple(criteria), tuple(problems))
+
+
+def event_reasons(summary: Mapping[str, Any]) -> list[str]:
+    """What the run itself said went wrong: the operator's failure reason and the run's
+    events (stall, unintended contact, singularity, out of reach), when it reports them."""
+    reasons = []
+    if summary.get("failure"):  # the plant ended the run (teleop.sim.stepping.Abort)
+        reasons.append(f"plant: {summary['failure']}")
+    operator = summary.get("services", {}).get("operator", {}) if "services" in summary else {}
+    failure = summary.get("operator_failure") or (
+        operator.get("failure") if isinstance(operator, Mapping) else None
+    )
+    if failure:
+        reasons.append(f"operator: {failure}")
+    for event in summary.get("events") or ():
+        if isinstance(event, Mapping):
+            name = event.get("event") or event.get("kind") or event.get("name")
+            at = event.get("sim_time_s")
+            reasons.append(f"event {name}" + (f" at {float(at):.1f} s" if at is not None else ""))
+        else:
+            reasons.append(f"event {event}")
+    return reasons

@@ -1,0 +1,81 @@
+"""The task criteria (teleop.run.criteria): one verdict for a run, a sweep and the report."""
+
+from __future__ import annotations
+
+from teleop.run import criteria
+
+
+def _statuses(criteria: list[criteria.Criterion]) -> dict[str, str]:
+    return {c.name: c.status for c in criteria}
+
+
+def test_missing_figures_are_unavailable_never_passed() -> None:
+    judged = _statuses(criteria.judge_path({"path_error_rms_m": 2e-4, "path_error_max_m": 5e-4}))
+    assert judged == {
+        "path error RMS": criteria.PASS,
+        "path error max": criteria.PASS,
+        "path progress": criteria.UNAVAILABLE,
+        "no unintended contact": criteria.UNAVAILABLE,
+    }
+
+
+def test_path_criteria_fail_with_their_reason() -> None:
+    summary = {
+        "path_error_rms_m": 1.2e-3,
+        "path_error_max_m": 2e-3,
+        "path_progress": 0.5,
+        "arm_contacts": 40,
+    }
+    judged = criteria.judge_path(summary)
+    failed = [c.detail for c in judged if c.status == criteria.FAIL]
+    assert failed == [
+        "path error RMS: 1.2 mm > 1 mm",
+        "path progress 0.500 < 0.95",
+        "unintended contact: 40 steps in contact",
+    ]
+    ok = {"path_error_rms_m": 1e-5, "path_error_max_m": 2e-5, "path_progress": 0.99,
+          "arm_contacts": 0}  # fmt: skip
+    assert all(c.status == criteria.PASS for c in criteria.judge_path(ok))
+
+
+def test_grasp_criteria_and_the_operators_reason() -> None:
+    summary = {
+        "object_in_box": False,
+        "arm_contacts": 0,
+        "max_device_force_n": 8.0,  # the device's peak: it saturated
+        "services": {"operator": {"failure": "timeout in carry"}},
+    }
+    judged = _statuses(criteria.judge_grasp(summary))
+    assert judged == {
+        "cube in the bin": criteria.FAIL,
+        "no unintended contact": criteria.PASS,
+        "device force": criteria.FAIL,
+    }
+    assert criteria.event_reasons(summary) == ["operator: timeout in carry"]
+    light = {"object_in_box": True, "arm_contacts": 0, "max_device_force_n": 1.2}
+    assert all(c.status == criteria.PASS for c in criteria.judge_grasp(light))
+
+
+def test_a_run_off_its_path_is_no_success_however_it_ended():
+    """A path near a singularity: no stall, no contact, the run went to its end; 2.2 mm
+    RMS and 93 % progress fail the criteria, so the run is not a success either."""
+    summary = {"path_error_rms_m": 2.2e-3, "path_error_max_m": 2.9e-3, "path_progress": 0.93,
+               "arm_contacts": 0}  # fmt: skip
+    verdict = criteria.judge_task("path-following", summary)
+    assert not verdict.success and verdict.complete
+    assert verdict.failed == ["path error RMS: 2.2 mm > 1 mm", "path progress 0.930 < 0.95"]
+    assert verdict.summary()["success"] is False
+
+
+def test_a_short_run_is_judged_on_what_it_measured_and_a_problem_fails_it():
+    """Before run.settle_s there is no path error: unavailable, which fails a sweep's task
+    (complete is False) but not the run; a problem the run reported fails it."""
+    short = {"path_progress": None, "arm_contacts": 0}
+    verdict = criteria.judge_task("path-following", short)
+    assert verdict.success and not verdict.complete
+    assert verdict.unmeasured == ["path error RMS", "path error max", "path progress"]
+    stalled = criteria.judge_task("path-following", short, ["the tool stalled 1.0 s"])
+    assert not stalled.success
+    grasp = criteria.judge_task("grasp", {"object_in_box": True, "arm_contacts": 0,
+                                          "max_device_force_n": 1.2})  # fmt: skip
+    assert grasp.success and grasp.complete
