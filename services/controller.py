@@ -36,7 +36,7 @@ class ControllerService(Service):
         assert self.session is not None
         session, topics = self.session, self.topics
         self.arm = build_arm_model(self.config.robot)
-        teleoperated = self.config.run.scenario == "grasp"
+        teleoperated = self.config.run.teleoperated
         outputs = ["joint_command", "controller_events"]
         outputs += ["force_feedback", "teleop_status"] if teleoperated else ["control_status"]
         self.publishers = {name: self.keep(Publisher.for_stream(session, topics, name))

@@ -418,7 +418,7 @@ def _run_and_report(
 
     where = "in process" if args.inprocess else f"on services, {config.run.mode}"
     length = f"{config.run.duration_s:g} s simulated"
-    if args.scenario == "grasp":
+    if config.run.teleoperated:
         length = f"until the operator is done (at most {config.run.duration_s:g} s simulated)"
     print(f"{args.scenario} {where}, seed {config.run.seed}: {length}", file=sys.stderr)
     if args.inprocess:

@@ -30,6 +30,7 @@ from teleop.bus.messages import (
     Event,
     Schema,
 )
+from teleop.core.config import AUTONOMOUS, SCENARIOS, TELEOPERATED
 
 ROOT = "teleop"  # first chunk of every key expression of the project
 
@@ -93,7 +94,7 @@ class Stream:
         )
 
 
-PATH, TELEOP = ("path-following",), ("grasp",)  # streams of one scenario's stack only
+PATH, TELEOP = AUTONOMOUS, TELEOPERATED  # streams of one kind of stack only
 STREAMS: tuple[Stream, ...] = (
     Stream("plant_state", "state/plant", PLANT_STATE, ("plant",), ("controller", "haptic"),
            "1 kHz, one per plant step", newest_for=("controller",), newest_in=PATH,
@@ -219,13 +220,13 @@ class ServiceSpec:
 
 SERVICES: tuple[ServiceSpec, ...] = (
     # The plant comes first in every stack's list and starts last: it waits for the others.
-    ServiceSpec("plant", ("path-following", "grasp"), 30, "MuJoCo at 1 kHz"),
-    ServiceSpec("controller", ("path-following", "grasp"), 20, "control law, force feedback"),
-    ServiceSpec("haptic", ("grasp",), 20, "haptic device (emulated Falcon)"),
-    ServiceSpec("hmd", ("grasp",), 20, "head pose, filtered and predicted"),
-    ServiceSpec("operator", ("grasp",), 20, "scripted operator on the handle"),
-    ServiceSpec("recorder", ("path-following", "grasp"), 10, "every stream into Rerun"),
-    ServiceSpec("eyeview", ("path-following", "grasp"), 20, "the operator's eye view",
+    ServiceSpec("plant", SCENARIOS, 30, "MuJoCo at 1 kHz"),
+    ServiceSpec("controller", SCENARIOS, 20, "control law, force feedback"),
+    ServiceSpec("haptic", TELEOPERATED, 20, "haptic device (emulated Falcon)"),
+    ServiceSpec("hmd", TELEOPERATED, 20, "head pose, filtered and predicted"),
+    ServiceSpec("operator", TELEOPERATED, 20, "scripted operator on the handle"),
+    ServiceSpec("recorder", SCENARIOS, 10, "every stream into Rerun"),
+    ServiceSpec("eyeview", SCENARIOS, 20, "the operator's eye view",
                 optional="eyeview.enabled"),
 )  # fmt: skip
 SERVICES_BY_NAME: Mapping[str, ServiceSpec] = {s.name: s for s in SERVICES}

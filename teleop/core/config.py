@@ -799,7 +799,27 @@ class RecorderConfig:
 
 
 TIMING_MODES = ("realtime", "lockstep")
-SCENARIOS = ("path-following", "grasp")
+
+
+@dataclass(frozen=True)
+class ScenarioSpec:
+    """A task the stack runs, and the one property that shapes the stack: whether a
+    hand on the haptic device drives the arm (teleoperation: the device's clock paces
+    the commands, contact and proximity feed the force every step, the haptic device,
+    HMD and operator run) or the controller drives it on its own."""
+
+    name: str
+    teleoperated: bool
+    what: str
+
+
+SCENARIO_SPECS: tuple[ScenarioSpec, ...] = (
+    ScenarioSpec("path-following", False, "paper experiment 1: the arm follows a path"),
+    ScenarioSpec("grasp", True, "paper experiment 2: pick and place, teleoperated"),
+)
+SCENARIOS = tuple(s.name for s in SCENARIO_SPECS)
+TELEOPERATED = tuple(s.name for s in SCENARIO_SPECS if s.teleoperated)
+AUTONOMOUS = tuple(s.name for s in SCENARIO_SPECS if not s.teleoperated)
 
 
 @dataclass(frozen=True)
@@ -817,6 +837,11 @@ class RunConfig:
     initial_q_rad: tuple[float, ...] = ()
     # Standard deviation of the random perturbation of the initial configuration (rad).
     initial_q_noise_rad: float = 0.05
+
+    @property
+    def teleoperated(self) -> bool:
+        """Whether this run's scenario is teleoperation (ScenarioSpec.teleoperated)."""
+        return self.scenario in TELEOPERATED
 
     def __post_init__(self) -> None:
         _require(self.duration_s > 0, "run.duration_s > 0")

@@ -13,6 +13,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from teleop.core.config import TELEOPERATED
 from teleop.sim.proximity import FAR_DISTANCE_M
 
 # A progress line at least every this many seconds of sim time, and at each new phase.
@@ -77,7 +78,7 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
     lines = []
     scenario, mode = summary.get("scenario"), summary.get("mode")
     verdict = summary.get("realtime_verdict", "clean")
-    if scenario == "grasp":
+    if scenario in TELEOPERATED:
         outcome = "success: the cube is in the bin" if summary.get("success") else "FAILED"
         if not summary.get("success") and summary.get("operator_failure"):
             outcome += f": {summary['operator_failure']}"

@@ -410,7 +410,7 @@ def run_on_services(
     tool = Latest()
 
     phases: tuple[str, ...] = ()
-    if config.run.scenario == "grasp":
+    if config.run.teleoperated:
         scenario = Scenario.load(config.operator.scenario_path, config.robot.object_bodies)
         phases = tuple(phase.name for phase in scenario.phases)
     tracker = RunProgress(config.run.duration_s, phases)
@@ -451,7 +451,7 @@ def run_on_services(
         if faults is not None:
             entities += faults.subscribe(session, topics, drops)
         entities.append(subscribe_events(session, topics, "plant_events", on_event, drops))
-        if config.run.scenario == "grasp":  # the operator's TASK_DONE (success or not)
+        if config.run.teleoperated:  # the operator's TASK_DONE (success or not)
             entities.append(subscribe_events(session, topics, "operator_events", on_event, drops))
         entities.append(
             subscribe_stream(
@@ -549,7 +549,7 @@ def run_on_services(
         "mode": config.run.mode,
         "seed": config.run.seed,
     }
-    if config.run.scenario == "grasp":
+    if config.run.teleoperated:
         summary.update(_grasp_summary(summaries, task_done))
     else:
         figures = {

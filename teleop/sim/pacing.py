@@ -32,7 +32,7 @@ from teleop.bus.session import Latest
 from teleop.core.clock import NS_PER_S, Clock, LoopTimer
 from teleop.core.config import LOCKSTEP_RESEND_S, Config
 from teleop.sim.checkpoint import CheckpointStore
-from teleop.sim.stepping import Abort, PacingFigures, PlantOutputs, PlantStepCore, teleoperated
+from teleop.sim.stepping import Abort, PacingFigures, PlantOutputs, PlantStepCore
 
 
 class Pacer(Protocol):
@@ -69,7 +69,7 @@ def make_pacer(
         sent = SentTicks(outputs, config.plant.lockstep_delay_steps + 1)
         return LockstepPacer(PlantStepCore(config, sent, clock, store), sent)
     core = PlantStepCore(config, outputs, clock, store)
-    if config.plant.apply_on_arrival and teleoperated(config):
+    if config.plant.apply_on_arrival and config.run.teleoperated:
         return DeviceClockPacer(core)
     return TickPacer(core)
 

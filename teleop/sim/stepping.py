@@ -256,7 +256,7 @@ class PlantStepCore:
         # Contact and obstacle proximity feed the 1 kHz force feedback of teleoperation;
         # otherwise only the recorder reads them, at the scene rate (computing them costs
         # the plant a contact scan and a narrow-phase distance query per step).
-        self.interaction_every_steps = 1 if teleoperated(config) else self.scene_every_steps
+        self.interaction_every_steps = 1 if config.run.teleoperated else self.scene_every_steps
         self.watchdog = Watchdog(round(plant_cfg.watchdog_s * NS_PER_S), self.period_ns)
         self.proximity = ObstacleProximity(self.plant.model, self.plant.data, config.robot)
         self._fingers = finger_bodies(self.plant.model, config.robot)
@@ -768,9 +768,3 @@ class PlantStepCore:
             )
         }
         return summary
-
-
-def teleoperated(config: Config) -> bool:
-    """Whether the run is teleoperation (the haptic device's clock paces its commands,
-    and contact and proximity feed the force feedback every step)."""
-    return config.run.scenario == "grasp"

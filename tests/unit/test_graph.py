@@ -9,7 +9,7 @@ import pytest
 from teleop.bus import graph
 from teleop.bus.messages import Event, Stage, code_tables
 from teleop.bus.topics import Topics
-from teleop.core.config import SCENARIOS, load_config
+from teleop.core.config import SCENARIO_SPECS, SCENARIOS, load_config
 from teleop.run.stack import PRIORITY, scenario_services
 from teleop.viz import recording as recorder
 
@@ -91,3 +91,19 @@ def test_scenario_streams_are_those_between_its_services():
             assert set(stream.consumers) & services, (scenario, stream.name)
     assert "control_status" not in {s.name for s in graph.scenario_streams("grasp")}
     assert "haptic_state" not in {s.name for s in graph.scenario_streams("path-following")}
+
+
+def test_whether_a_scenario_is_teleoperated_decides_its_stack():
+    """One property of the scenario (core.config.SCENARIO_SPECS), read once: a
+    teleoperated scenario's stack has the haptic device, the HMD and the operator and
+    carries the bilateral streams; an autonomous one has none of them."""
+    hand = {"haptic", "hmd", "operator"}
+    for spec in SCENARIO_SPECS:
+        config = load_config(None, [f'run.scenario="{spec.name}"'])
+        assert config.run.teleoperated is spec.teleoperated
+        services = set(graph.scenario_services(spec.name))
+        streams = {s.name for s in graph.scenario_streams(spec.name)}
+        if spec.teleoperated:
+            assert hand <= services and {"haptic_state", "force_feedback"} <= streams
+        else:
+            assert not hand & services and not {"haptic_state", "force_feedback"} & streams
