@@ -12,7 +12,9 @@
    recorder completes its .rrd) and merges the summaries.
 
 ``teleop up`` starts the same programs detached with the plant as listener and no
-end (``--continuous``); ``teleop down`` stops them.
+end (``--continuous``); ``teleop down`` stops them. Both lay the stack out with one
+recipe, :func:`plan_stack` (endpoint, overrides, credentials, mesh, programs, the outside
+services' configs), the difference chosen once as a :class:`Launch`.
 
 ``--without SERVICE`` leaves services out of either: they keep their place in the peer
 mesh, the user runs them (teleop.run.outside), and the launcher waits for their ready
@@ -22,6 +24,7 @@ tokens before the run goes on.
 from __future__ import annotations
 
 import contextlib
+import enum
 import json
 import os
 import signal
@@ -30,7 +33,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -365,6 +368,110 @@ def prepare_outside(
     return joins
 
 
+class Launch(enum.Enum):
+    """How a stack is launched: chosen once, by the command.
+
+    - RUN (``teleop run``): this process holds the mesh's endpoint and takes part in the
+      run (its own credentials; the plant waits for its ready token); the stack ends at
+      the plant's FINISHED.
+    - UP (``teleop up``): the plant holds the endpoint; the stack runs until stopped.
+    """
+
+    RUN = "run"
+    UP = "up"
+
+    @property
+    def listener(self) -> str | None:
+        """The service that holds the mesh's endpoint (None: the launcher itself)."""
+        return None if self is Launch.RUN else "plant"
+
+    @property
+    def participants(self) -> tuple[str, ...]:
+        """Processes of the run besides the services: the launcher, in a RUN."""
+        return (LAUNCHER,) if self is Launch.RUN else ()
+
+
+@dataclass(frozen=True)
+class StackServices:
+    """Which services a stack has: the scenario's, the ones left out (``--without``),
+    and those it starts."""
+
+    scenario: tuple[str, ...]
+    outside: tuple[str, ...]
+    started: tuple[str, ...]
+
+    @classmethod
+    def of(cls, config: Config, without: Sequence[str]) -> StackServices:
+        """ConfigError names a service left out that the stack does not run."""
+        scenario = scenario_services(config)
+        outside = check_without(scenario, without)
+        return cls(scenario, outside, tuple(n for n in scenario if n not in outside))
+
+
+@dataclass(frozen=True)
+class StackPlan:
+    """A stack laid out, nothing started yet: what each process is told (its overrides,
+    its place in the mesh, its credentials), the supervisord programs, and the join
+    instructions of the services left out."""
+
+    services: StackServices
+    endpoint: str
+    run_overrides: list[str]
+    credentials: dict[str, Path] | None
+    mesh: dict[str, list[str]]
+    programs: list[Program]
+    joins: list[tuple[str, BusConfig]]  # per service left out: instructions, its bus
+
+
+def plan_stack(
+    launch: Launch,
+    config: Config,
+    config_file: Path | None,
+    overrides: Sequence[str],
+    run_dir: Path,
+    ports: LoopbackPorts,
+    services: StackServices,
+    *,
+    endpoint: str | None = None,
+    without_timeout_s: float = DEFAULT_WITHOUT_TIMEOUT_S,
+) -> StackPlan:
+    """The one launch recipe: the mesh's endpoint (``endpoint``, or a loopback port of
+    ``ports``), the run's overrides, credentials for every participant, an explicit
+    mesh of the services (outside ones included), their programs (and the idle
+    pollers'), and the outside services' Zenoh configs and join instructions, all
+    written to ``run_dir``."""
+    tls = config.bus.mutual_tls
+    endpoint = endpoint or loopback_endpoint(ports, tls)
+    run_overrides = [
+        *overrides,
+        f'bus.endpoint="{endpoint}"',
+        f'run.mode="{config.run.mode}"',
+        f'run.scenario="{config.run.scenario}"',
+    ]
+    if not config.recorder.rrd_path:
+        run_overrides.append(f'recorder.rrd_path="{run_dir / RECORDING_FILE}"')
+    credentials = run_credentials(config, run_dir, [*services.scenario, *launch.participants])
+    mesh = peer_mesh([*services.started, *services.outside], launch.listener, ports, tls=tls)
+    plant_awaits = _plant_awaits(services.scenario, *launch.participants)
+    programs = service_programs(
+        services.started,
+        config_file,
+        run_overrides,
+        run_dir,
+        listener=launch.listener,
+        await_services={"plant": plant_awaits},
+        continuous=launch is Launch.UP,
+        credentials=credentials,
+        mesh=mesh,
+        restarts=restart_priorities(config),
+    ) + idle_poll_programs(idle_poll_cpus(config), run_dir)
+    joins = prepare_outside(
+        config_file, run_overrides, run_dir, services.scenario, services.outside, mesh,
+        plant_awaits, without_timeout_s, credentials,
+    )  # fmt: skip
+    return StackPlan(services, endpoint, run_overrides, credentials, mesh, programs, joins)
+
+
 def run_on_services(
     config: Config,
     config_file: Path | None,
@@ -394,15 +501,13 @@ def run_on_services(
     (teleop.run.faults; a bad one raises FaultSpecError before anything starts); the
     summary's ``faults`` says what followed each.
     """
-    stack_services = scenario_services(config)
-    outside = check_without(stack_services, without)
-    services = tuple(name for name in stack_services if name not in outside)
+    layout = StackServices.of(config, without)
+    services, outside = layout.started, layout.outside
     fault_specs = parse_faults(kills, freezes, services, config.run.duration_s)
     run_dir = run_dir.absolute()
     run_dir.mkdir(parents=True, exist_ok=True)
     refuse_if_running(run_dir)
     clear_run_results(run_dir)
-    credentials = run_credentials(config, run_dir, [*stack_services, LAUNCHER])
     topics = Topics(config.robot.robot_id)
     drops = DropCounter()
     finished = threading.Event()
@@ -429,18 +534,14 @@ def run_on_services(
     faults = _FaultRun(config, fault_specs) if fault_specs else None
     # The run's ports stay held here until it ends: a restarted service takes its own again.
     ports = LoopbackPorts()
-    endpoint = loopback_endpoint(ports, config.bus.mutual_tls)
-    run_overrides = [
-        *overrides,
-        f'bus.endpoint="{endpoint}"',
-        f'run.mode="{config.run.mode}"',
-        f'run.scenario="{config.run.scenario}"',
-    ]
-    if not config.recorder.rrd_path:
-        run_overrides.append(f'recorder.rrd_path="{run_dir / RECORDING_FILE}"')
+    plan = plan_stack(
+        Launch.RUN, config, config_file, overrides, run_dir, ports, layout,
+        without_timeout_s=without_timeout_s,
+    )  # fmt: skip
+    credentials = plan.credentials
     bus = replace(  # the mesh's listener
         config.bus,
-        endpoint=endpoint,
+        endpoint=plan.endpoint,
         gossip=False,
         credentials_file=str(credentials[LAUNCHER]) if credentials else "",
     )
@@ -467,31 +568,14 @@ def run_on_services(
         )
         entities.append(declare_alive(session, topics, LAUNCHER))
         entities.append(declare_alive(session, topics, LAUNCHER, ready=True))
-        mesh = peer_mesh([*services, *outside], None, ports, tls=config.bus.mutual_tls)
-        plant_awaits = _plant_awaits(stack_services, LAUNCHER)
-        programs = service_programs(
-            services,
-            config_file,
-            run_overrides,
-            run_dir,
-            listener=None,
-            await_services={"plant": plant_awaits},
-            continuous=False,
-            credentials=credentials,
-            mesh=mesh,
-            restarts=restart_priorities(config),
-        ) + idle_poll_programs(polled_cpus, run_dir)
-        for text, _ in prepare_outside(
-            config_file, run_overrides, run_dir, stack_services, outside, mesh, plant_awaits,
-            without_timeout_s, credentials,
-        ):  # fmt: skip
+        for text, _ in plan.joins:
             announce(text)
         factor = (
             LOCKSTEP_TIMEOUT_FACTOR if config.run.mode == "lockstep" else REALTIME_TIMEOUT_FACTOR
         )
         deadline_s = config.run.duration_s * factor + RUN_TIMEOUT_SLACK_S
         wall_start = time.perf_counter()
-        with Stack(run_dir, programs) as stack:
+        with Stack(run_dir, plan.programs) as stack:
             watch = ProgramWatch(stack.log_path, _read_log, frozenset(restarts_expected))
             check = _failure_check(stack, watch)
             if faults is not None:
@@ -980,44 +1064,24 @@ def start_detached(
                 "endpoint is tls/HOST:PORT (or --set bus.tls=false for a tcp/ one)"
             )
         ensure_endpoint_free(endpoint)
+    layout = StackServices.of(config, without)
     # Held until every service listens: then each holds its own.
     with LoopbackPorts() as ports:
-        endpoint = endpoint or loopback_endpoint(ports, config.bus.mutual_tls)
-        run_overrides = [*overrides, f'bus.endpoint="{endpoint}"']
-        if not config.recorder.rrd_path:
-            run_overrides.append(f'recorder.rrd_path="{run_dir / RECORDING_FILE}"')
-        stack_services = scenario_services(config)
-        outside = check_without(stack_services, without)
-        services = tuple(name for name in stack_services if name not in outside)
-        mesh = peer_mesh([*services, *outside], "plant", ports, tls=config.bus.mutual_tls)
-        plant_awaits = _plant_awaits(stack_services)
-        credentials = run_credentials(config, run_dir, stack_services)
-        programs = service_programs(
-            services,
-            config_file,
-            run_overrides,
-            run_dir,
-            listener="plant",
-            await_services={"plant": plant_awaits},
-            continuous=True,
-            credentials=credentials,
-            mesh=mesh,
-            restarts=restart_priorities(config),
-        ) + idle_poll_programs(idle_poll_cpus(config), run_dir)
-        joins = prepare_outside(
-            config_file, run_overrides, run_dir, stack_services, outside, mesh, plant_awaits,
-            without_timeout_s, credentials,
+        plan = plan_stack(
+            Launch.UP, config, config_file, overrides, run_dir, ports, layout,
+            endpoint=endpoint, without_timeout_s=without_timeout_s,
         )  # fmt: skip
-        stack = Stack(run_dir, programs)
+        stack = Stack(run_dir, plan.programs)
         stack.start(detach=True)
-        for text, _ in joins:
+        for text, _ in plan.joins:
             announce(text)
+        credentials = plan.credentials
         observer = credentials[OBSERVER] if credentials is not None else None
-        peers = _listen_endpoints(mesh, [name for name in services if name != "plant"])
-        peers += [bus.peer_listen_endpoint for _, bus in joins]
-        _await_ready_detached(stack, config, endpoint, peers, services, outside,
-                              without_timeout_s, announce, observer)  # fmt: skip
-        return stack.status(), endpoint
+        peers = _listen_endpoints(plan.mesh, [n for n in layout.started if n != "plant"])
+        peers += [bus.peer_listen_endpoint for _, bus in plan.joins]
+        _await_ready_detached(stack, config, plan.endpoint, peers, layout.started,
+                              layout.outside, without_timeout_s, announce, observer)  # fmt: skip
+        return stack.status(), plan.endpoint
 
 
 def _await_ready_detached(

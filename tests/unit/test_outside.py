@@ -10,12 +10,12 @@ import zenoh
 
 from teleop import cli
 from teleop.bus import graph
-from teleop.bus.access import LAUNCHER, OBSERVER, write_run_credentials
+from teleop.bus.access import LAUNCHER, OBSERVER
 from teleop.bus.session import session_config
 from teleop.core.config import SCENARIOS, ConfigError, load_config
 from teleop.core.net import LoopbackPorts
 from teleop.run import outside
-from teleop.run.stack import _plant_awaits, peer_mesh, service_programs
+from teleop.run.stack import Launch, StackServices, _plant_awaits, peer_mesh, plan_stack
 from teleop.run.supervise import Stack
 
 PROTOCOL_DOC = Path(__file__).resolve().parents[2] / "docs" / "protocol.md"
@@ -97,32 +97,27 @@ def test_the_tokens_each_service_awaits_are_the_launchers_and_in_the_doc():
     )
 
 
-def _stack_dir(tmp_path, *, listener, secure):
-    """A run directory as a launcher leaves it: credentials, supervisord.conf (rendered,
-    not started) and the config of an outside controller."""
-    stack, without = ("plant", "recorder"), ("controller",)
+def _stack_dir(tmp_path, *, launch, secure):
+    """A run directory as a launcher leaves it (teleop.run.stack.plan_stack, the one
+    launch recipe): credentials, supervisord.conf (rendered, not started) and the config
+    of an outside controller. The stack's own listen endpoints, in mesh order."""
+    sets = ['robot.robot_id="arm3"', "bus.shm=false", 'run.mode="lockstep"', "bus.tls=false",
+            f"bus.secure={str(secure).lower()}"]  # fmt: skip
+    config = load_config(None, sets)
+    layout = StackServices.of(config, ["controller"])
     with LoopbackPorts() as ports:
-        mesh = peer_mesh([*stack, *without], listener, ports)
-    run = ['bus.endpoint="tcp/127.0.0.1:7000"', 'robot.robot_id="arm3"', "bus.shm=false"]
-    credentials = None
-    run.append(f"bus.secure={str(secure).lower()}")
-    if secure:
-        participants = [*stack, *without, LAUNCHER, OBSERVER]
-        credentials = write_run_credentials(tmp_path / "auth", participants, "arm3")
-    programs = service_programs(
-        stack, None, run, tmp_path, listener=listener, await_services={}, continuous=False,
-        mesh=mesh, credentials=credentials,
-    )  # fmt: skip
-    Stack(tmp_path, programs).conf_path.write_text(Stack(tmp_path, programs).render())
-    outside_config = load_config(None, [*run, *mesh["controller"]])
-    outside.write_outside_config(tmp_path, "controller", outside_config)
-    own = [e.split("=", 1)[1].strip('"') for m in mesh.values() for e in m if "listen_" in e]
-    return own
+        plan = plan_stack(
+            launch, config, None, sets, tmp_path, ports, layout, endpoint="tcp/127.0.0.1:7000"
+        )
+    assert plan.credentials is None or (LAUNCHER in plan.credentials) == (launch is Launch.RUN)
+    Stack(tmp_path, plan.programs).conf_path.write_text(Stack(tmp_path, plan.programs).render())
+    assert (tmp_path / "outside" / "controller.json5").is_file()
+    return [e.split("=", 1)[1].strip('"') for m in plan.mesh.values() for e in m if "listen_" in e]
 
 
-@pytest.mark.parametrize("listener", [None, "plant"])  # teleop run; teleop up
-def test_an_observer_finds_every_endpoint_of_a_stack_from_its_run_dir(tmp_path, listener):
-    own = _stack_dir(tmp_path, listener=listener, secure=True)
+@pytest.mark.parametrize("launch", [Launch.RUN, Launch.UP])
+def test_an_observer_finds_every_endpoint_of_a_stack_from_its_run_dir(tmp_path, launch):
+    own = _stack_dir(tmp_path, launch=launch, secure=True)
     assert outside.stack_endpoints(tmp_path) == ("tcp/127.0.0.1:7000", tuple(own))
     path = outside.write_observer_config(tmp_path)
     assert path == tmp_path / "outside" / "observer.json5"
@@ -139,7 +134,7 @@ def test_an_observer_finds_every_endpoint_of_a_stack_from_its_run_dir(tmp_path, 
 
 
 def test_an_open_bus_gives_the_observer_no_credentials(tmp_path):
-    _stack_dir(tmp_path, listener=None, secure=False)
+    _stack_dir(tmp_path, launch=Launch.RUN, secure=False)
     config = outside.observer_config(tmp_path)
     assert config.bus.credentials_file == ""
     with pytest.raises(FileNotFoundError, match="no stack was started"):
