@@ -115,6 +115,7 @@ class ImpairedProxy:
         self._server: asyncio.Server | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
         self.connections = 0
+        self.refused = 0  # connections closed at once: nothing listened on the target
         self.forward = DirectionStats()  # listen side -> target
         self.backward = DirectionStats()  # target -> listen side
 
@@ -139,6 +140,7 @@ class ImpairedProxy:
         return {
             "impairment": self.impairment.describe(),
             "connections": self.connections,
+            "refused": self.refused,
             "forward": vars(self.forward).copy(),
             "backward": vars(self.backward).copy(),
         }
@@ -146,8 +148,12 @@ class ImpairedProxy:
     async def _accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         try:
             target_reader, target_writer = await asyncio.open_connection(*self.target)
-        except OSError:
+        except OSError as exc:
             writer.close()  # nothing to forward to: the connecting side sees it closed
+            if not self.refused:
+                print(f"netem: cannot reach {self.target[0]}:{self.target[1]} ({exc}): "
+                      "connections are closed until it listens", file=sys.stderr)  # fmt: skip
+            self.refused += 1
             return
         self.connections += 1
         pumps = [

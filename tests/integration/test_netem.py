@@ -136,3 +136,13 @@ def test_a_zenoh_link_through_the_proxy_carries_samples_no_sooner_than_the_delay
     assert arrived.is_set(), "no sample crossed the proxy"
     assert min(got) >= delay_s
     assert stats["connections"] >= 1 and stats["forward"]["bytes"] > 0
+
+
+def test_a_target_that_is_not_there_closes_the_connection_and_is_counted():
+    with socket.create_server(("127.0.0.1", 0)) as placeholder:
+        port = placeholder.getsockname()[1]  # a port nothing listens on once closed
+    with running_proxy(("127.0.0.1", port), LinkImpairment(delay_s=0.001)) as proxy:
+        with socket.create_connection(("127.0.0.1", proxy.port), timeout=TIMEOUT_S) as conn:
+            assert conn.recv(1) == b""  # closed by the proxy, nothing forwarded
+        stats = proxy.stats()
+    assert stats["refused"] == 1 and stats["connections"] == 0
