@@ -270,7 +270,7 @@ def build_parser() -> argparse.ArgumentParser:
             "succeeded, 1 otherwise."
         ),
     )
-    sweep.add_argument("kind", choices=("path-following", "grasp"), help="what to sweep")
+    sweep.add_argument("kind", choices=SCENARIOS, help="what to sweep")
     sweep.add_argument(
         "--paths", type=int, default=None, help="number of random paths (path-following)"
     )

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from teleop.core.config import TELEOPERATED
+from teleop.run.criteria import FAIL
 from teleop.sim.proximity import FAR_DISTANCE_M
 
 # A progress line at least every this many seconds of sim time, and at each new phase.
@@ -100,7 +101,7 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
     else:
         outcome = f"{scenario} ({mode}): {summary.get('duration_s')} s simulated"
         if summary.get("success") is False:
-            failed = [c["detail"] for c in summary.get("criteria") or [] if c["status"] == "fail"]
+            failed = [c["detail"] for c in summary.get("criteria") or [] if c["status"] == FAIL]
             outcome += ", FAILED: " + "; ".join(
                 [*failed, *(summary.get("motion_problems") or [])] or ["see the summary"]
             )

@@ -534,20 +534,20 @@ def run_on_services(
     faults = _FaultRun(config, fault_specs) if fault_specs else None
     # The run's ports stay held here until it ends: a restarted service takes its own again.
     ports = LoopbackPorts()
-    plan = plan_stack(
-        Launch.RUN, config, config_file, overrides, run_dir, ports, layout,
-        without_timeout_s=without_timeout_s,
-    )  # fmt: skip
-    credentials = plan.credentials
-    bus = replace(  # the mesh's listener
-        config.bus,
-        endpoint=plan.endpoint,
-        gossip=False,
-        credentials_file=str(credentials[LAUNCHER]) if credentials else "",
-    )
     session = None
     entities: list[Any] = []
     try:
+        plan = plan_stack(
+            Launch.RUN, config, config_file, overrides, run_dir, ports, layout,
+            without_timeout_s=without_timeout_s,
+        )  # fmt: skip
+        credentials = plan.credentials
+        bus = replace(  # the mesh's listener
+            config.bus,
+            endpoint=plan.endpoint,
+            gossip=False,
+            credentials_file=str(credentials[LAUNCHER]) if credentials else "",
+        )
         session = open_session(bus, listen=True)
         if faults is not None:
             entities += faults.subscribe(session, topics, drops)
@@ -764,15 +764,6 @@ def _grasp_summary(summaries: dict[str, dict[str, Any]], task_done: list[float])
     operator = operator or {}
     problems = controller.get("motion_problems", [])
     figures = {
-        **{key: controller.get(key) for key in TELEOP_MOTION_KEYS},
-        "object_in_box": plant.get("object_in_box"),
-        "max_device_force_n": haptic.get("max_rendered_force_n"),
-    }
-    # The task's criteria (teleop.run.criteria), the motion's problems, and the operator's
-    # word: it finished the task.
-    said = [] if said_success else ["the operator did not finish the task"]
-    return {
-        **judge_task("grasp", figures, [*problems, *said]).summary(),
         "motion_problems": problems,
         **{key: controller.get(key) for key in TELEOP_MOTION_KEYS},
         "object_in_box": plant.get("object_in_box"),
@@ -788,6 +779,10 @@ def _grasp_summary(summaries: dict[str, dict[str, Any]], task_done: list[float])
         "phases": operator.get("phases"),
         "operator_failure": operator.get("failure") or None,  # why the operator gave up
     }
+    # The task's criteria (teleop.run.criteria), the motion's problems, and the operator's
+    # word: it finished the task.
+    said = [] if said_success else ["the operator did not finish the task"]
+    return {**judge_task("grasp", figures, [*problems, *said]).summary(), **figures}
 
 
 def _wait_finished(

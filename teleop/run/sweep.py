@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from teleop.core.config import load_config
+from teleop.core.config import SCENARIOS, load_config
 from teleop.core.rundir import RECORDING_FILE
 from teleop.run.criteria import FAIL, UNAVAILABLE, event_reasons, judge_task
 from teleop.run.tasks import (
@@ -41,7 +41,7 @@ from teleop.run.tasks import (
     random_path_tasks,
 )
 
-KINDS = ("path-following", "grasp")
+KINDS = SCENARIOS  # a sweep runs tasks of one scenario
 # Report files in the output directory.
 REPORT_JSON = "sweep.json"
 REPORT_MARKDOWN = "sweep.md"
