@@ -27,7 +27,16 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from teleop.core.config import SCENARIOS, Config, ConfigError, ModelError, load_config
+from teleop.core.config import (
+    OPERATOR_SITE,
+    ROBOT_SITE,
+    SCENARIOS,
+    SITES,
+    Config,
+    ConfigError,
+    ModelError,
+    load_config,
+)
 from teleop.core.rundir import LATENCY_RECORDING_FILE, LOG_DIR, WEB_VIEWER_LOG_FILE
 from teleop.run.failure import ServiceFailed
 from teleop.run.supervise import interrupt_on_signals
@@ -314,13 +323,42 @@ def build_parser() -> argparse.ArgumentParser:
             "other process or stack can join its bus."
         ),
     )
-    up.add_argument("--mode", choices=("lockstep", "realtime"), default="realtime")
+    up.add_argument(
+        "--mode",
+        choices=("lockstep", "realtime"),
+        help="(default: realtime; --site operator: the robot site's, from its bundle)",
+    )
     up.add_argument(
         "--endpoint",
         help="the bus's listening endpoint, e.g. tls/127.0.0.1:7447 (default: a free port); "
         "refused if taken; tcp/127.0.0.1:PORT with --set bus.tls=false",
     )
     up.add_argument("--run-dir", type=Path, default=DEFAULT_UP_DIR, help="(default: %(default)s)")
+    up.add_argument(
+        "--site",
+        choices=SITES,
+        help="start one site of a run across two hosts (docs/sites.md): robot (plant, "
+        "controller, recorder, eye view) or operator (haptic device, HMD, operator), each "
+        "with a Zenoh router that links to the other site's over mutual TLS",
+    )
+    up.add_argument(
+        "--site-listen",
+        metavar="tls/ADDRESS:PORT",
+        help="--site robot: where its router listens for the operator site's (an address "
+        "of this host the other reaches); writes <run-dir>/operator-site.json to hand over",
+    )
+    up.add_argument(
+        "--join",
+        type=Path,
+        metavar="FILE",
+        help="--site operator: the robot site's operator-site.json (identities and the "
+        "run's settings; keep it private)",
+    )
+    up.add_argument(
+        "--connect",
+        metavar="tls/ADDRESS:PORT",
+        help="--site operator: the robot site's router (default: the bundle's)",
+    )
     _add_without_arguments(up)
     _add_config_arguments(up)
     for name, text in (
@@ -569,10 +607,41 @@ def _sweep(args: argparse.Namespace) -> int:
     return 0 if report["successes"] == report["tasks"] else EXIT_FAILED
 
 
+def _site_overrides(args: argparse.Namespace) -> tuple[list[str], dict[str, Path] | None]:
+    """``teleop up``'s site options as overrides (the operator site's from its bundle
+    first), and the operator site's credentials; SiteError on a bad combination."""
+    from teleop.run.sites import SiteError, join_operator_site
+
+    if args.site is None:
+        if args.site_listen or args.join or args.connect:
+            raise SiteError("--site-listen, --join and --connect go with --site")
+        return [], None
+    if args.site == ROBOT_SITE:
+        if args.join or args.connect:
+            raise SiteError("--join and --connect are the operator site's")
+        listen = [f"site.listen={json.dumps(args.site_listen)}"] if args.site_listen else []
+        return [f'site.name="{ROBOT_SITE}"', *listen], None
+    if args.site_listen:
+        raise SiteError("--site-listen is the robot site's")
+    if args.join is None:
+        raise SiteError("--site operator needs --join FILE: the robot site's operator-site.json")
+    joined = join_operator_site(args.join, args.run_dir)
+    connect = args.connect or joined.connect
+    site = [f'site.name="{OPERATOR_SITE}"', f"site.connect={json.dumps(connect)}"]
+    return [*joined.overrides, *site], joined.credentials
+
+
 def _up(args: argparse.Namespace) -> int:
+    from teleop.run.sites import SiteError
     from teleop.run.stack import RunError, start_detached
 
-    overrides = [*args.overrides, f'run.mode="{args.mode}"']
+    try:
+        site_overrides, credentials = _site_overrides(args)
+    except SiteError as exc:
+        print(f"teleop: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    mode = args.mode or ("" if credentials is not None else "realtime")
+    overrides = [*site_overrides, *args.overrides, *([f'run.mode="{mode}"'] if mode else [])]
     config = load_config(args.config, overrides)
     try:
         status, endpoint = start_detached(
@@ -583,6 +652,7 @@ def _up(args: argparse.Namespace) -> int:
             args.endpoint,
             without=args.without,
             without_timeout_s=args.without_timeout,
+            credentials=credentials,
         )
     except RunError as exc:
         print(f"teleop: {exc}", file=sys.stderr)

@@ -44,14 +44,18 @@ from typing import Any
 
 from teleop.bus import graph
 from teleop.bus.graph import ALIVE_TOKEN, READY_TOKEN, ROOT
-from teleop.bus.tls import RunAuthority
+from teleop.bus.tls import Issued, RunAuthority
+from teleop.core.config import OPERATOR_SITE
 
 # The launcher's own session (teleop run): it consumes the streams the graph lists for
 # "launcher" and declares its tokens under this name.
 LAUNCHER = "launcher"
 # A read-only participant every launcher adds: it may subscribe to every stream and
-# publish nothing (a user's own plotting script, a test watching the bus).
+# publish nothing (a user's own plotting script, a test watching the bus). A run split
+# across hosts has one per site (each site's launcher watches its own services).
 OBSERVER = "observer"
+OPERATOR_OBSERVER = "operator_observer"
+OBSERVERS = (OBSERVER, OPERATOR_OBSERVER)
 # Without TLS: the run's dictionary of user:password lines (what every process that
 # accepts links checks a new link against).
 PASSWORDS_FILE = "passwords"
@@ -87,11 +91,20 @@ def new_zid() -> str:
     return format(secrets.randbits(127) | 1 << 127, "032x")
 
 
+def site_observer(site: str) -> str:
+    """The observer participant of ``site`` (empty: a one-host run's)."""
+    return OPERATOR_OBSERVER if site == OPERATOR_SITE else OBSERVER
+
+
 def rights(participant: str) -> tuple[list[str], list[str]]:
     """Keys (after ``teleop/<robot>/``) the graph lets ``participant`` publish and
-    subscribe to (:data:`OBSERVER`: none, and every stream)."""
-    if participant == OBSERVER:
-        return [], [s.key for s in graph.STREAMS]
+    subscribe to (an observer: none, and every stream; a site's router, which forwards
+    the other site's streams: every stream both ways)."""
+    every = [s.key for s in graph.STREAMS]
+    if participant in OBSERVERS:
+        return [], every
+    if participant in graph.ROUTERS:
+        return every, every
     produces = [s.key for s in graph.STREAMS if participant in s.producers]
     consumes = [s.key for s in graph.STREAMS if participant in s.consumers]
     return produces, consumes
@@ -143,6 +156,8 @@ def access_control(
                 _rule(f"{name}-subscribes", ["declare_subscriber"], "ingress", consumed),
                 _rule(f"{name}-receives", ["put"], "egress", consumed),
             ]
+        if name in graph.ROUTERS:  # forwards the other site's tokens
+            mine.append(_rule(f"{name}-forwards-tokens", ["liveliness_token"], "ingress", tokens))
         rules += mine
         if tls:  # both authenticated by TLS together: the name and this session
             mine_subjects = [
@@ -175,55 +190,74 @@ def _write_private(path: Path, text: str) -> None:
     os.chmod(path, 0o600)  # an existing file keeps its mode through O_CREAT
 
 
+def _write_certificate(directory: Path, name: str, issued: Issued) -> dict[str, Any]:
+    """``name``'s certificate and key in ``directory`` (mode 0600 each), beside the run's
+    :data:`CA_FILE`; returns its Zenoh TLS file settings."""
+    certificate, key = (
+        directory / (name + CERTIFICATE_SUFFIX),
+        directory / (name + PRIVATE_KEY_SUFFIX),
+    )
+    _write_private(certificate, issued.certificate_pem.decode())
+    _write_private(key, issued.private_key_pem.decode())
+    return {
+        "root_ca_certificate": str(directory / CA_FILE),
+        "listen_certificate": str(certificate),
+        "listen_private_key": str(key),
+        "connect_certificate": str(certificate),
+        "connect_private_key": str(key),
+        "enable_mtls": True,
+    }
+
+
 def write_run_certificates(
-    directory: Path, participants: Sequence[str]
-) -> dict[str, dict[str, str]]:
+    directory: Path,
+    participants: Sequence[str],
+    addresses: Mapping[str, Sequence[str]] | None = None,
+) -> dict[str, dict[str, Any]]:
     """A fresh certificate authority's certificate (:data:`CA_FILE`) and one certificate
     and private key per participant in ``directory`` (mode 0600 each; the authority's
-    own key is never written); returns each participant's Zenoh TLS file settings."""
+    own key is never written), valid on loopback and at the participant's ``addresses``
+    (a site's router); returns each participant's Zenoh TLS file settings."""
     authority = RunAuthority()
-    ca_file = directory / CA_FILE
-    _write_private(ca_file, authority.certificate_pem.decode())
-    settings = {}
-    for name in participants:
-        issued = authority.issue(name)
-        certificate, key = (
-            directory / (name + CERTIFICATE_SUFFIX),
-            directory / (name + PRIVATE_KEY_SUFFIX),
-        )
-        _write_private(certificate, issued.certificate_pem.decode())
-        _write_private(key, issued.private_key_pem.decode())
-        settings[name] = {
-            "root_ca_certificate": str(ca_file),
-            "listen_certificate": str(certificate),
-            "listen_private_key": str(key),
-            "connect_certificate": str(certificate),
-            "connect_private_key": str(key),
-            "enable_mtls": True,
-        }
-    return settings
+    _write_private(directory / CA_FILE, authority.certificate_pem.decode())
+    addresses = addresses or {}
+    return {
+        name: _write_certificate(directory, name, authority.issue(name, addresses.get(name, ())))
+        for name in participants
+    }
+
+
+def _private_directory(directory: Path) -> Path:
+    directory = Path(directory).absolute()
+    directory.mkdir(parents=True, exist_ok=True)
+    os.chmod(directory, 0o700)
+    return directory
 
 
 def write_run_credentials(
-    directory: Path, participants: Sequence[str], robot_id: str, *, tls: bool = False
+    directory: Path,
+    participants: Sequence[str],
+    robot_id: str,
+    *,
+    tls: bool = False,
+    addresses: Mapping[str, Sequence[str]] | None = None,
 ) -> dict[str, Path]:
     """Fresh identities for ``participants`` in ``directory`` (made mode 0700), one file
     per participant (mode 0600) with its name, Zenoh id and the run's access-control
     list; returns the files by name (each one ``bus.credentials_file`` of its
     participant).
 
-    ``tls``: the run's certificates (:func:`write_run_certificates`), each file naming
-    its participant's own; no password anywhere. Without: a password per participant
-    and the run's dictionary (:data:`PASSWORDS_FILE`), named in the file of every
-    participant that accepts links (all but :data:`OBSERVER`)."""
-    directory = Path(directory).absolute()
-    directory.mkdir(parents=True, exist_ok=True)
-    os.chmod(directory, 0o700)
+    ``tls``: the run's certificates (:func:`write_run_certificates`; ``addresses``: where
+    a participant listens besides loopback), each file naming its participant's own; no
+    password anywhere. Without: a password per participant and the run's dictionary
+    (:data:`PASSWORDS_FILE`), named in the file of every participant that accepts links
+    (all but the observers)."""
+    directory = _private_directory(directory)
     credentials = {name: Credentials.generate(name) for name in participants}
     acl = access_control(credentials, robot_id, tls=tls)
     own_secret: dict[str, dict[str, Any]]
     if tls:
-        certificates = write_run_certificates(directory, list(credentials))
+        certificates = write_run_certificates(directory, list(credentials), addresses)
         own_secret = {name: {"tls": certificates[name]} for name in credentials}
     else:
         dictionary = directory / PASSWORDS_FILE
@@ -231,7 +265,7 @@ def write_run_credentials(
         _write_private(dictionary, lines)
         own_secret = {
             name: {"password": cred.password}
-            | ({} if name == OBSERVER else {"dictionary_file": str(dictionary)})
+            | ({} if name in OBSERVERS else {"dictionary_file": str(dictionary)})
             for name, cred in credentials.items()
         }
     files = {}
@@ -240,6 +274,52 @@ def write_run_credentials(
         content = {"user": cred.user, "zid": cred.zid, **own_secret[name], "access_control": acl}
         _write_private(path, json.dumps(content, indent=1))
         files[name] = path
+    return files
+
+
+def export_identities(files: Mapping[str, Path]) -> dict[str, Any]:
+    """The identities of ``files`` (participants' credentials files of a TLS run) as one
+    JSON-able record, their certificates and keys and the authority's certificate
+    inline: what another host needs to take part in the run as those participants
+    (:func:`import_identities`). It holds private keys: keep it private."""
+    exported: dict[str, Any] = {"participants": {}}
+    for name, path in files.items():
+        content = json.loads(Path(path).read_text())
+        if "tls" not in content:
+            raise ValueError(f"{path}: no certificate (a run across hosts needs bus.tls)")
+        tls = content["tls"]
+        exported["ca_pem"] = Path(tls["root_ca_certificate"]).read_text()
+        exported["access_control"] = content["access_control"]
+        exported["participants"][name] = {
+            "user": content["user"],
+            "zid": content["zid"],
+            "certificate_pem": Path(tls["connect_certificate"]).read_text(),
+            "private_key_pem": Path(tls["connect_private_key"]).read_text(),
+        }
+    return exported
+
+
+def import_identities(directory: Path, exported: Mapping[str, Any]) -> dict[str, Path]:
+    """Write the identities of :func:`export_identities` into ``directory`` (mode 0700,
+    files 0600) as this host's credentials files; returns them by name. KeyError or
+    ValueError on a malformed record."""
+    directory = _private_directory(directory)
+    _write_private(directory / CA_FILE, str(exported["ca_pem"]))
+    files = {}
+    for name, identity in exported["participants"].items():
+        if not name or not set(name) <= _NAME_ALPHABET:
+            raise ValueError(f"participant name {name!r}")
+        issued = Issued(
+            str(identity["certificate_pem"]).encode(), str(identity["private_key_pem"]).encode()
+        )
+        content = {
+            "user": name,
+            "zid": str(identity["zid"]),
+            "tls": _write_certificate(directory, name, issued),
+            "access_control": exported["access_control"],
+        }
+        files[name] = directory / f"{name}.json"
+        _write_private(files[name], json.dumps(content, indent=1))
     return files
 
 

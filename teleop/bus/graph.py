@@ -30,7 +30,7 @@ from teleop.bus.messages import (
     Event,
     Schema,
 )
-from teleop.core.config import AUTONOMOUS, SCENARIOS, TELEOPERATED
+from teleop.core.config import AUTONOMOUS, OPERATOR_SITE, ROBOT_SITE, SCENARIOS, SITES, TELEOPERATED
 
 ROOT = "teleop"  # first chunk of every key expression of the project
 
@@ -214,22 +214,45 @@ class ServiceSpec:
     name: str
     scenarios: tuple[str, ...]  # the scenarios whose stacks run it
     start_priority: int  # supervisord priority: lower starts first (they still wait on tokens)
+    site: str  # the site that runs it when a run is split across hosts (docs/sites.md)
     what: str = ""
     optional: str = ""  # the config switch that adds it, if not always there
 
 
+ROBOT, OPERATOR = ROBOT_SITE, OPERATOR_SITE
 SERVICES: tuple[ServiceSpec, ...] = (
     # The plant comes first in every stack's list and starts last: it waits for the others.
-    ServiceSpec("plant", SCENARIOS, 30, "MuJoCo at 1 kHz"),
-    ServiceSpec("controller", SCENARIOS, 20, "control law, force feedback"),
-    ServiceSpec("haptic", TELEOPERATED, 20, "haptic device (emulated Falcon)"),
-    ServiceSpec("hmd", TELEOPERATED, 20, "head pose, filtered and predicted"),
-    ServiceSpec("operator", TELEOPERATED, 20, "scripted operator on the handle"),
-    ServiceSpec("recorder", SCENARIOS, 10, "every stream into Rerun"),
-    ServiceSpec("eyeview", SCENARIOS, 20, "the operator's eye view",
+    ServiceSpec("plant", SCENARIOS, 30, ROBOT, "MuJoCo at 1 kHz"),
+    ServiceSpec("controller", SCENARIOS, 20, ROBOT, "control law, force feedback"),
+    ServiceSpec("haptic", TELEOPERATED, 20, OPERATOR, "haptic device (emulated Falcon)"),
+    ServiceSpec("hmd", TELEOPERATED, 20, OPERATOR, "head pose, filtered and predicted"),
+    ServiceSpec("operator", TELEOPERATED, 20, OPERATOR, "scripted operator on the handle"),
+    ServiceSpec("recorder", SCENARIOS, 10, ROBOT, "every stream into Rerun"),
+    ServiceSpec("eyeview", SCENARIOS, 20, ROBOT, "the operator's eye view",
                 optional="eyeview.enabled"),
 )  # fmt: skip
 SERVICES_BY_NAME: Mapping[str, ServiceSpec] = {s.name: s for s in SERVICES}
+
+# A run split across hosts adds a Zenoh router per site (services/router.py): the site's
+# services are its peers, and it forwards every stream between the two sites. It starts
+# first (supervisord priority), as the others link through it.
+ROUTER_START_PRIORITY = 5
+
+
+def router_name(site: str) -> str:
+    """The participant name of ``site``'s router (its credentials, program and tokens)."""
+    return f"{site}_router"
+
+
+ROUTERS = tuple(router_name(site) for site in SITES)
+
+
+def site_of(service: str) -> str:
+    """The site that runs ``service`` (a service of :data:`SERVICES` or a router)."""
+    for site in SITES:
+        if service == router_name(site):
+            return site
+    return SERVICES_BY_NAME[service].site
 
 
 def scenario_streams(scenario: str) -> tuple[Stream, ...]:
@@ -270,10 +293,11 @@ def graph_tables() -> str:
     lines += ["", *_table(("token", "meaning"), [(f"`{k}`", m) for k, m in TOKENS])]
     services = [
         (f"`{s.name}`", ", ".join(s.scenarios), str(s.start_priority), s.optional or "always",
-         s.what)
+         s.site, s.what)
         for s in SERVICES
     ]  # fmt: skip
-    lines += ["", *_table(("service", "scenarios", "start priority", "runs", "what"), services)]
+    header = ("service", "scenarios", "start priority", "runs", "site", "what")
+    lines += ["", *_table(header, services)]
     return "\n".join(lines)
 
 

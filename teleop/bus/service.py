@@ -39,7 +39,7 @@ from teleop.bus.session import (
     ServicesMissing,
     close_session,
     declare_alive,
-    open_session,
+    session_config,
     subscribe_stream,
     wait_alive,
 )
@@ -127,9 +127,14 @@ class Service:
     # -- lifecycle ---------------------------------------------------------------------
     def open(self) -> None:
         """Open the session; subclasses declare their publishers and subscribers after."""
-        self.session = open_session(self.config.bus, listen=self.options.listen)
+        self.session = zenoh.open(self.zenoh_config())
         if self.config.bus.credentials_file:
             self._participants = participant_zids(Path(self.config.bus.credentials_file))
+
+    def zenoh_config(self) -> zenoh.Config:
+        """This service's session config: a peer of the run's mesh (a site's router
+        says otherwise)."""
+        return session_config(self.config.bus, listen=self.options.listen)
 
     def announce(self) -> None:
         """Declare this service alive: call once its subscribers are in place."""

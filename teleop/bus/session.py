@@ -29,7 +29,7 @@ from teleop.bus.access import TLS_CONFIG, zenoh_entries
 from teleop.bus.messages import DecodeError, DropCounter, Event, FrameSchema, Kind, Reason, Schema
 from teleop.bus.stamps import SeqGaps
 from teleop.bus.topics import Topics
-from teleop.core.config import BusConfig, ConfigError
+from teleop.core.config import BusConfig, ConfigError, SiteConfig
 
 logger = logging.getLogger(__name__)
 
@@ -113,6 +113,30 @@ def session_config(
     for entry in bus.zenoh_overrides:
         path, _, value = entry.partition("=")
         conf.insert_json5(path.strip(), value.strip())
+    return conf
+
+
+def router_config(bus: BusConfig, site: SiteConfig, *, listen: bool) -> zenoh.Config:
+    """The Zenoh config of ``site``'s router (services/router.py): a session in router
+    mode with its place in the site's mesh (as :func:`session_config`'s peers), that
+    also listens for the other site's router (``site.listen``) or connects to it
+    (``site.connect``), mutual TLS either way.
+
+    It takes no shared memory: what crosses between sites goes over the socket, so
+    nothing is ever attempted through shared memory across hosts (its links within the
+    site go without it too; only the records the other site consumes reach it, each
+    under the shared-memory threshold). It keeps the site's transport (the low-latency
+    one or not, ``bus.lowlatency``): both ends of a link must agree."""
+    conf = session_config(bus, listen=listen)
+    conf.insert_json5("mode", _json("router"))
+    conf.insert_json5("transport/shared_memory/enabled", _json(False))
+    conf.insert_json5("transport/shared_memory/mode", _json("lazy"))
+    for key, extra in (("listen/endpoints", site.listen), ("connect/endpoints", site.connect)):
+        if extra:
+            conf.insert_json5(key, _json([*json.loads(conf.get_json(key)), extra]))
+    if site.connect:
+        conf.insert_json5("connect/timeout_ms", _json(CONNECT_RETRY_FOREVER))
+        conf.insert_json5("connect/exit_on_failure", _json(False))
     return conf
 
 

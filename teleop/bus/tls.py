@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import datetime
 import ipaddress
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from cryptography import x509
@@ -57,6 +58,14 @@ def _key_pem(key: ec.EllipticCurvePrivateKey) -> bytes:
         serialization.PrivateFormat.PKCS8,
         serialization.NoEncryption(),
     )
+
+
+def _general_name(address: str) -> x509.GeneralName:
+    """An IP address's or a host name's subject alternative name."""
+    try:
+        return x509.IPAddress(ipaddress.ip_address(address))
+    except ValueError:
+        return x509.DNSName(address)
 
 
 def _name(common_name: str) -> x509.Name:
@@ -104,9 +113,11 @@ class RunAuthority:
     def certificate_pem(self) -> bytes:
         return self._certificate.public_bytes(serialization.Encoding.PEM)
 
-    def issue(self, common_name: str) -> Issued:
+    def issue(self, common_name: str, addresses: Sequence[str] = ()) -> Issued:
         """A fresh key and a certificate for ``common_name``, good for both ends of a
-        link (server and client authentication) on loopback."""
+        link (server and client authentication) on loopback and at ``addresses`` (IP
+        addresses or host names: where a site's router is reached from another host)."""
+        names = [*LOOPBACK_NAMES, *map(_general_name, addresses)]
         key = _new_key()
         now = datetime.datetime.now(datetime.UTC)
         certificate = (
@@ -124,7 +135,7 @@ class RunAuthority:
                 ),
                 critical=False,
             )
-            .add_extension(x509.SubjectAlternativeName(list(LOOPBACK_NAMES)), critical=False)
+            .add_extension(x509.SubjectAlternativeName(names), critical=False)
             .add_extension(
                 x509.AuthorityKeyIdentifier.from_issuer_public_key(self._key.public_key()),
                 critical=False,

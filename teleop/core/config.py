@@ -747,6 +747,38 @@ class BusConfig:
         return REPO_ROOT / candidate
 
 
+# The two sites of a run split across hosts (docs/sites.md): the robot's (plant,
+# controller, recorder, eye view) and the operator's (haptic device, HMD, operator).
+ROBOT_SITE = "robot"
+OPERATOR_SITE = "operator"
+SITES = (ROBOT_SITE, OPERATOR_SITE)
+
+
+@dataclass(frozen=True)
+class SiteConfig:
+    """Which site of a two-host run this process belongs to, and how the two sites'
+    routers link (docs/sites.md). Empty ``name``: the whole stack on one host."""
+
+    name: str = ""  # "" (one host), "robot" or "operator"
+    # The robot site's router listens here for the operator site's router: tls/ADDR:PORT
+    # with an address of this host the other one can reach.
+    listen: str = ""
+    # The operator site's router connects here: the robot site's ``listen``.
+    connect: str = ""
+
+    def __post_init__(self) -> None:
+        _require(self.name in ("", *SITES), f"site.name: empty or one of {', '.join(SITES)}")
+        for key, endpoint in (("listen", self.listen), ("connect", self.connect)):
+            _require(
+                not endpoint or endpoint.startswith("tls/"),
+                f"site.{key}: tls/ADDRESS:PORT (sites link over mutual TLS only)",
+            )
+        _require(not self.listen or self.name == ROBOT_SITE, "site.listen: the robot site's only")
+        _require(
+            not self.connect or self.name == OPERATOR_SITE, "site.connect: the operator site's only"
+        )
+
+
 @dataclass(frozen=True)
 class RecorderConfig:
     """The Rerun recorder service."""
@@ -868,6 +900,7 @@ class Config:
     bus: BusConfig = field(default_factory=BusConfig)
     recorder: RecorderConfig = field(default_factory=RecorderConfig)
     run: RunConfig = field(default_factory=RunConfig)
+    site: SiteConfig = field(default_factory=SiteConfig)
 
 
 def _coerce(value: Any, annotation: Any, key: str) -> Any:

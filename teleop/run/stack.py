@@ -41,7 +41,13 @@ import numpy as np
 import zenoh
 
 from teleop.bus import graph
-from teleop.bus.access import LAUNCHER, OBSERVER, write_run_credentials
+from teleop.bus.access import (
+    LAUNCHER,
+    OBSERVER,
+    OPERATOR_OBSERVER,
+    site_observer,
+    write_run_credentials,
+)
 from teleop.bus.messages import PLANT_STATE, DropCounter, Event
 from teleop.bus.service import read_summary
 from teleop.bus.session import (
@@ -57,7 +63,7 @@ from teleop.bus.session import (
 )
 from teleop.bus.topics import Topics
 from teleop.control.kinematics import build_arm_model, tool_jacobian
-from teleop.core.config import BusConfig, Config, load_config
+from teleop.core.config import ROBOT_SITE, BusConfig, Config, load_config
 from teleop.core.net import LOOPBACK, LoopbackPorts
 from teleop.core.rundir import (
     AUTH_DIR,
@@ -93,6 +99,7 @@ from teleop.run.outside import (
     write_outside_config,
 )
 from teleop.run.progress import RunProgress
+from teleop.run.sites import SiteError, check_site, write_operator_bundle
 from teleop.run.supervise import Program, Stack, StackError
 from teleop.run.verdict import machine_section, realtime_health, refused_privileges
 
@@ -103,7 +110,9 @@ EYEVIEW = "eyeview"
 IDLE_POLL = "idle_poll"
 # Start order (supervisord priority: lower first) of the bus services, from the graph;
 # they still wait on liveliness.
-PRIORITY = {spec.name: spec.start_priority for spec in graph.SERVICES}
+PRIORITY = {spec.name: spec.start_priority for spec in graph.SERVICES} | {
+    router: graph.ROUTER_START_PRIORITY for router in graph.ROUTERS
+}
 # Before every service, and stopped after them, like the recorder (the producers are told
 # to stop at once: teleop.run.supervise.STOP_AT_ONCE_MIN_PRIORITY).
 IDLE_POLL_PRIORITY = 1
@@ -232,7 +241,8 @@ def service_programs(
         own = list(mesh[name])
         if credentials is not None:
             own.append(f'bus.credentials_file="{credentials[name]}"')
-        command = service_command(name, run_dir, config_file, [*overrides, *own])
+        module = ("services.router",) if name in graph.ROUTERS else ()
+        command = service_command(name, run_dir, config_file, [*overrides, *own], module)
         if name == listener:
             command.append("--listen")
         if await_services.get(name):
@@ -273,14 +283,25 @@ def run_credentials(
 ) -> dict[str, Path] | None:
     """With ``bus.secure``: fresh credentials for ``participants`` and a read-only
     :data:`OBSERVER` in ``<run_dir>/auth`` (teleop.bus.access; with ``bus.tls`` their
-    certificates too), their files by name; else None (an open bus)."""
+    certificates too), their files by name; else None (an open bus). A run across hosts
+    (``site.name``) adds both sites' routers and the operator site's observer: the
+    robot site makes every identity once (teleop.run.sites hands the operator site's
+    over), its router's certificate valid at ``site.listen``'s address too."""
     if not config.bus.secure:
         return None
+    participants = [*participants, OBSERVER]
+    addresses: dict[str, list[str]] = {}
+    if config.site.name:
+        participants += [*graph.ROUTERS, OPERATOR_OBSERVER]
+        if config.site.listen:
+            address = config.site.listen.partition("/")[2].rpartition(":")[0].strip("[]")
+            addresses[graph.router_name(config.site.name)] = [address]
     return write_run_credentials(
         run_dir / AUTH_DIR,
-        [*participants, OBSERVER],
+        participants,
         config.robot.robot_id,
         tls=config.bus.mutual_tls,
+        addresses=addresses,
     )
 
 
@@ -394,18 +415,35 @@ class Launch(enum.Enum):
 @dataclass(frozen=True)
 class StackServices:
     """Which services a stack has: the scenario's, the ones left out (``--without``),
-    and those it starts."""
+    those it starts and, in one site of a run across hosts (``site.name``), those the
+    other site runs (``remote``) and this site's router (started first)."""
 
     scenario: tuple[str, ...]
     outside: tuple[str, ...]
     started: tuple[str, ...]
+    remote: tuple[str, ...] = ()
+    router: str = ""
 
     @classmethod
     def of(cls, config: Config, without: Sequence[str]) -> StackServices:
         """ConfigError names a service left out that the stack does not run."""
         scenario = scenario_services(config)
         outside = check_without(scenario, without)
-        return cls(scenario, outside, tuple(n for n in scenario if n not in outside))
+        started = tuple(n for n in scenario if n not in outside)
+        site = config.site.name
+        if not site:
+            return cls(scenario, outside, started)
+        router = graph.router_name(site)
+        here = tuple(n for n in started if graph.site_of(n) == site)
+        remote = tuple(n for n in scenario if graph.site_of(n) != site)
+        return cls(scenario, outside, (router, *here), remote, router)
+
+    def listener(self, launch: Launch) -> str | None:
+        """The process that holds the stack's endpoint: the launch's, or the site's
+        router where the launch's listener runs on the other site."""
+        if launch.listener is None or launch.listener in self.started:
+            return launch.listener
+        return self.router or None
 
 
 @dataclass(frozen=True)
@@ -434,12 +472,13 @@ def plan_stack(
     *,
     endpoint: str | None = None,
     without_timeout_s: float = DEFAULT_WITHOUT_TIMEOUT_S,
+    credentials: dict[str, Path] | None = None,
 ) -> StackPlan:
     """The one launch recipe: the mesh's endpoint (``endpoint``, or a loopback port of
-    ``ports``), the run's overrides, credentials for every participant, an explicit
-    mesh of the services (outside ones included), their programs (and the idle
-    pollers'), and the outside services' Zenoh configs and join instructions, all
-    written to ``run_dir``."""
+    ``ports``), the run's overrides, credentials for every participant (``credentials``:
+    given, as a site's from the other site's launcher), an explicit mesh of the
+    services (outside ones included), their programs (and the idle pollers'), and the
+    outside services' Zenoh configs and join instructions, all written to ``run_dir``."""
     tls = config.bus.mutual_tls
     endpoint = endpoint or loopback_endpoint(ports, tls)
     run_overrides = [
@@ -450,15 +489,17 @@ def plan_stack(
     ]
     if not config.recorder.rrd_path:
         run_overrides.append(f'recorder.rrd_path="{run_dir / RECORDING_FILE}"')
-    credentials = run_credentials(config, run_dir, [*services.scenario, *launch.participants])
-    mesh = peer_mesh([*services.started, *services.outside], launch.listener, ports, tls=tls)
+    if credentials is None:
+        credentials = run_credentials(config, run_dir, [*services.scenario, *launch.participants])
+    listener = services.listener(launch)
+    mesh = peer_mesh([*services.started, *services.outside], listener, ports, tls=tls)
     plant_awaits = _plant_awaits(services.scenario, *launch.participants)
     programs = service_programs(
         services.started,
         config_file,
         run_overrides,
         run_dir,
-        listener=launch.listener,
+        listener=listener,
         await_services={"plant": plant_awaits},
         continuous=launch is Launch.UP,
         credentials=credentials,
@@ -501,6 +542,11 @@ def run_on_services(
     (teleop.run.faults; a bad one raises FaultSpecError before anything starts); the
     summary's ``faults`` says what followed each.
     """
+    if config.site.name:
+        raise RunError(
+            "site.name: a run across hosts starts one site per host with teleop up --site "
+            "(docs/sites.md); teleop run keeps the whole stack on this host"
+        )
     layout = StackServices.of(config, without)
     services, outside = layout.started, layout.outside
     fault_specs = parse_faults(kills, freezes, services, config.run.duration_s)
@@ -1038,6 +1084,7 @@ def start_detached(
     without: Sequence[str] = (),
     without_timeout_s: float = DEFAULT_WITHOUT_TIMEOUT_S,
     announce: Callable[[str], None] = _stderr,
+    credentials: dict[str, Path] | None = None,
 ) -> tuple[dict[str, str], str]:
     """``teleop up``: the stack with the plant as listener on ``endpoint`` (None: a free
     loopback port), running until stopped; the services' states and the endpoint.
@@ -1048,10 +1095,19 @@ def start_detached(
     started, wait for their ready tokens (a session of this process linked to each of
     them); if one does not come within ``without_timeout_s``, stop the stack and raise
     RunError.
+
+    One site of a run across hosts (``site.name``, teleop.run.sites): the site's services
+    and its router (the listener where the plant runs elsewhere); the robot site writes
+    the operator site's bundle (announced), the operator site is given its
+    ``credentials`` from it. The plant waits for the other site's services as for its own.
     """
     run_dir = run_dir.absolute()
     refuse_if_running(run_dir)
     clear_run_results(run_dir)  # a previous stack's checkpoint must not be resumed
+    try:
+        check_site(config)
+    except SiteError as exc:
+        raise RunError(str(exc)) from None
     if endpoint is not None:
         if config.bus.mutual_tls and not endpoint.startswith("tls/"):
             raise RunError(
@@ -1064,15 +1120,24 @@ def start_detached(
     with LoopbackPorts() as ports:
         plan = plan_stack(
             Launch.UP, config, config_file, overrides, run_dir, ports, layout,
-            endpoint=endpoint, without_timeout_s=without_timeout_s,
+            endpoint=endpoint, without_timeout_s=without_timeout_s, credentials=credentials,
         )  # fmt: skip
+        credentials = plan.credentials
+        if config.site.name == ROBOT_SITE and credentials is not None:
+            bundle = write_operator_bundle(run_dir, config, overrides, credentials, layout.scenario)
+            announce(
+                f"operator site: copy {bundle} to the operator's host (it holds private "
+                f"keys: scp keeps it 0600), then there: teleop up --site operator --join "
+                f"FILE (its router connects to {config.site.listen})"
+            )
         stack = Stack(run_dir, plan.programs)
         stack.start(detach=True)
         for text, _ in plan.joins:
             announce(text)
-        credentials = plan.credentials
-        observer = credentials[OBSERVER] if credentials is not None else None
-        peers = _listen_endpoints(plan.mesh, [n for n in layout.started if n != "plant"])
+        watcher = site_observer(config.site.name)
+        observer = credentials[watcher] if credentials is not None else None
+        listener = layout.listener(Launch.UP)
+        peers = _listen_endpoints(plan.mesh, [n for n in layout.started if n != listener])
         peers += [bus.peer_listen_endpoint for _, bus in plan.joins]
         _await_ready_detached(stack, config, plan.endpoint, peers, layout.started,
                               layout.outside, without_timeout_s, announce, observer)  # fmt: skip
