@@ -7,23 +7,29 @@ ends inside the bin. The 20-seed statistics are the benchmark's
 
 from __future__ import annotations
 
+import contextlib
 import json
+import shutil
 import subprocess
 import sys
-from collections.abc import Mapping, Sequence
+import time
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from teleop.bus.access import write_run_credentials
 from teleop.control.feedback import STANDARD_GRAVITY_M_S2
 from teleop.core.config import load_config
+from teleop.run.sites import OPERATOR_BUNDLE_FILE
 from teleop.viz import entities as ent
 from teleop.viz import recording
 from teleop.viz.blueprint import view_specs
 from teleop.viz.report import write_report
 from teleop.viz.rrd import Recording
 from teleop.viz.scene3d import ENTITY_GHOSTS, SceneModel
+from tests.e2e.hosts import Host, HostsUnavailable, two_hosts
 from tests.e2e.outcome import assert_ran, needs_realtime_stack
 from tests.e2e.users import HANG_S, USER, UserEnv
 
@@ -246,3 +252,116 @@ def test_report_writes_the_paper_figures(obstacle_run, tmp_path):
         summary["held_weight_n"], rel=WEIGHT_TOLERANCE
     )
     assert report.metrics["ghost_poses"] >= 2
+
+
+def _site_summaries(run_dir: Path, names: Sequence[str]) -> dict[str, dict]:
+    return {name: json.loads((run_dir / f"{name}.summary.json").read_text()) for name in names}
+
+
+def _wait_plant_finished(run_dir: Path, timeout_s: float) -> dict:
+    """The plant's summary once it says the run finished (written as it finishes)."""
+    path = run_dir / "plant.summary.json"
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        with contextlib.suppress(OSError, ValueError):
+            summary = json.loads(path.read_text())
+            if summary.get("finished") or summary.get("aborted"):
+                return summary
+        time.sleep(1.0)
+    raise AssertionError(f"the plant did not finish within {timeout_s:g} s")
+
+
+def _stranger_at(host: Host, endpoint: str, credentials: Path | None) -> dict:
+    """What a session dialling ``endpoint`` from ``host`` linked to and saw in 3 s: with
+    another run's ``credentials``, or none at all."""
+    script = (
+        "import dataclasses, json, time\n"
+        "from teleop.bus import session as bus\n"
+        "from teleop.core.config import BusConfig\n"
+        f"config = dataclasses.replace(BusConfig(endpoint={endpoint!r}), gossip=False, "
+        f"credentials_file={str(credentials or '')!r})\n"
+        "s = bus.open_session(config, listen=False)\n"
+        "got = []\n"
+        "sub = s.declare_subscriber('teleop/**', lambda sample: got.append(1))\n"
+        "time.sleep(3)\n"
+        "print(json.dumps({'routers': [str(z) for z in s.info.routers_zid()], "
+        "'peers': [str(z) for z in s.info.peers_zid()], 'samples': len(got)}))\n"
+        "sub.undeclare(); s.close()\n"
+    )
+    result = subprocess.run(
+        host.argv([sys.executable, "-c", script]),
+        capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-2000:]
+    return json.loads(result.stdout.splitlines()[-1])
+
+
+@pytest.fixture
+def test_hosts() -> Iterator[tuple[Host, Host]]:
+    """A robot host and an operator host (tests/e2e/hosts.py); skipped where this machine
+    cannot make them."""
+    with contextlib.ExitStack() as stack:
+        try:
+            hosts = stack.enter_context(two_hosts())
+        except HostsUnavailable as exc:
+            pytest.skip(f"no test hosts: {exc}")
+        yield hosts
+
+
+def test_a_grasp_split_across_two_hosts_is_the_same_run_as_on_one(
+    obstacle_run, test_hosts, tmp_path
+):
+    """The robot site and the operator site in two network namespaces (a veth pair, the
+    robot's router at an address that exists only there), their routers linked over
+    mutual TLS: the lockstep grasp of ``obstacle_run`` ends in the same final state, bit
+    for bit, and sessions without the run's credentials get no link at the router."""
+    reference, _ = obstacle_run
+    robot, operator = test_hosts
+    teleop = [sys.executable, "-m", "teleop.cli"]
+    robot_dir, operator_dir = tmp_path / "robot", tmp_path / "operator"
+    site_endpoint = f"tls/{robot.address}:7447"
+    settings = ["--set", 'run.scenario="grasp"', "--set", "run.seed=2",
+                *[item for override in OBSTACLE for item in ("--set", override)]]  # fmt: skip
+    try:
+        up = subprocess.run(
+            robot.argv([*teleop, "up", "--mode", "lockstep", "--site", "robot", "--site-listen",
+                        site_endpoint, "--run-dir", str(robot_dir), *settings]),
+            capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL,
+        )  # fmt: skip
+        assert up.returncode == 0, up.stderr[-3000:]
+        assert "operator-site.json" in up.stderr and "robot_router" in up.stdout
+        # Handed over as scp would: the file only, its mode kept.
+        bundle = tmp_path / "handed-over.json"
+        shutil.copy2(robot_dir / OPERATOR_BUNDLE_FILE, bundle)
+        up = subprocess.run(
+            operator.argv([*teleop, "up", "--site", "operator", "--join", str(bundle),
+                           "--run-dir", str(operator_dir)]),
+            capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL,
+        )  # fmt: skip
+        assert up.returncode == 0, up.stderr[-3000:]
+        others = write_run_credentials(tmp_path / "other", ["operator_router"], "arm0", tls=True)
+        strangers = {
+            "another run's certificate": _stranger_at(
+                operator, site_endpoint, others["operator_router"]
+            ),
+            "no credentials": _stranger_at(operator, site_endpoint, None),
+        }
+        plant = _wait_plant_finished(robot_dir, HANG_S)
+    finally:
+        for run_dir in (operator_dir, robot_dir):
+            subprocess.run([*teleop, "down", "--run-dir", str(run_dir)], timeout=120)
+    print("strangers at the robot router:", json.dumps(strangers))
+    for stranger in strangers.values():
+        assert stranger == {"routers": [], "peers": [], "samples": 0}
+    assert plant["finished"] and plant["object_in_box"]
+    assert plant["final_state_sha256"] == reference["final_state_sha256"]
+    robot_side = _site_summaries(robot_dir, ["controller", "recorder", "robot_router"])
+    operator_side = _site_summaries(operator_dir, ["haptic", "hmd", "operator", "operator_router"])
+    assert operator_side["operator"]["success"]
+    for name, summary in {**robot_side, **operator_side, "plant": plant}.items():
+        assert summary["dropped_messages"] == 0, name
+        assert summary["unknown_peers"] == summary["unlinked_peers"] == [], name
+    for router in ("robot_router", "operator_router"):
+        summary = {**robot_side, **operator_side}[router]
+        assert summary["other_site_links"] == 1, router  # linked once, never lost
+    assert (robot_dir / "recording.rrd").stat().st_size > 0

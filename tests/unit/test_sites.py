@@ -1,0 +1,178 @@
+"""A run across two hosts, without a bus: which site runs what, who may forward what,
+and the robot site's bundle of identities for the operator site (teleop.run.sites)."""
+
+from __future__ import annotations
+
+import json
+import os
+import stat
+
+import pytest
+from cryptography import x509
+
+from teleop.bus import graph
+from teleop.bus.access import OPERATOR_OBSERVER, rights
+from teleop.cli import EXIT_USAGE, main
+from teleop.core.config import OPERATOR_SITE, ROBOT_SITE, ConfigError, load_config
+from teleop.run.sites import (
+    OPERATOR_BUNDLE_FILE,
+    SiteError,
+    check_site,
+    join_operator_site,
+    write_operator_bundle,
+)
+from teleop.run.stack import Launch, StackServices, run_credentials
+
+SITE_LISTEN = "tls/10.213.0.1:7447"
+GRASP = ['run.scenario="grasp"', "eyeview.enabled=true"]
+
+
+def robot_config(*extra: str):
+    return load_config(
+        None, [*GRASP, f'site.name="{ROBOT_SITE}"', f'site.listen="{SITE_LISTEN}"', *extra]
+    )
+
+
+def test_every_service_has_one_site_and_the_sites_split_the_teleoperation_loop():
+    assert {graph.site_of(s.name) for s in graph.SERVICES} == {ROBOT_SITE, OPERATOR_SITE}
+    assert graph.site_of("haptic") == graph.site_of("operator") == OPERATOR_SITE
+    assert graph.site_of("plant") == graph.site_of("controller") == ROBOT_SITE
+    for site in (ROBOT_SITE, OPERATOR_SITE):
+        assert graph.site_of(graph.router_name(site)) == site
+
+
+def test_each_site_starts_its_own_services_and_router_and_knows_the_others():
+    robot = StackServices.of(robot_config(), [])
+    operator = StackServices.of(
+        load_config(None, [*GRASP, 'site.name="operator"', 'site.connect="tls/10.0.0.1:1"']), []
+    )
+    assert robot.started == ("robot_router", "plant", "controller", "recorder", "eyeview")
+    assert robot.remote == ("haptic", "hmd", "operator")
+    assert operator.started == ("operator_router", "haptic", "hmd", "operator")
+    assert operator.remote == ("plant", "controller", "recorder", "eyeview")
+    assert robot.scenario == operator.scenario
+    # The plant holds the robot site's endpoint; the operator site's router holds its own.
+    assert robot.listener(Launch.UP) == "plant"
+    assert operator.listener(Launch.UP) == "operator_router"
+    one_host = StackServices.of(load_config(None, GRASP), [])
+    assert one_host.remote == () and one_host.router == ""
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (['site.name="moon"'], "site.name"),
+        (['site.name="robot"', 'site.listen="tcp/10.0.0.1:7447"'], "tls/"),
+        (['site.name="operator"', 'site.listen="tls/10.0.0.1:7447"'], "robot site's only"),
+        (['site.name="robot"', 'site.connect="tls/10.0.0.1:7447"'], "operator site's only"),
+    ],
+)
+def test_a_site_setting_that_cannot_work_is_refused(overrides, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(None, overrides)
+
+
+def test_sites_link_over_mutual_tls_only_and_need_their_endpoints():
+    with pytest.raises(SiteError, match="mutual TLS"):
+        check_site(robot_config("bus.tls=false"))
+    with pytest.raises(SiteError, match="--site-listen"):
+        check_site(load_config(None, ['site.name="robot"']))
+    with pytest.raises(SiteError, match="--connect"):
+        check_site(load_config(None, ['site.name="operator"']))
+    check_site(robot_config())
+
+
+def test_a_router_may_forward_every_stream_and_a_peer_only_its_own():
+    every = sorted(s.key for s in graph.STREAMS)
+    for router in graph.ROUTERS:
+        produces, consumes = rights(router)
+        assert sorted(produces) == sorted(consumes) == every
+    produces, _ = rights("haptic")
+    assert "cmd/joint_velocity" not in produces
+    assert rights(OPERATOR_OBSERVER)[0] == []
+
+
+def _certificate(path) -> x509.Certificate:
+    return x509.load_pem_x509_certificate(path.read_bytes())
+
+
+def test_the_robot_router_is_certified_at_its_site_address_the_others_on_loopback(tmp_path):
+    files = run_credentials(robot_config(), tmp_path, ["plant", "haptic"])
+    assert files is not None
+    assert {"robot_router", "operator_router", OPERATOR_OBSERVER} <= set(files)
+
+    def addresses(name: str) -> set[str]:
+        tls = json.loads(files[name].read_text())["tls"]
+        names = _certificate(tls_path := tmp_path / "auth" / f"{name}.cert.pem")
+        assert tls["connect_certificate"] == str(tls_path)
+        san = names.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+        return {str(v) for v in san.get_values_for_type(x509.IPAddress)}
+
+    assert addresses("robot_router") == {"127.0.0.1", "10.213.0.1"}
+    assert addresses("operator_router") == addresses("haptic") == {"127.0.0.1"}
+
+
+def test_the_operator_site_takes_its_identities_and_the_runs_settings_from_the_bundle(tmp_path):
+    config = robot_config()
+    robot_dir, operator_dir = tmp_path / "robot", tmp_path / "operator"
+    robot_dir.mkdir()
+    scenario = StackServices.of(config, []).scenario
+    files = run_credentials(config, robot_dir, [*scenario])
+    assert files is not None
+    overrides = [*GRASP, 'site.name="robot"', 'bus.endpoint="tls/127.0.0.1:9"', "run.seed=2"]
+    bundle = write_operator_bundle(robot_dir, config, overrides, files, scenario)
+    assert bundle == robot_dir / OPERATOR_BUNDLE_FILE
+    assert stat.S_IMODE(bundle.stat().st_mode) == 0o600
+    content = json.loads(bundle.read_text())
+    # Only the operator site's identities: no key of the robot site's leaves it.
+    assert set(content["identities"]["participants"]) == {
+        "haptic", "hmd", "operator", "operator_router", OPERATOR_OBSERVER,
+    }  # fmt: skip
+
+    joined = join_operator_site(bundle, operator_dir)
+    assert joined.connect == SITE_LISTEN
+    assert joined.overrides == [*GRASP, "run.seed=2", 'robot.robot_id="arm0"']
+    assert set(joined.credentials) == set(content["identities"]["participants"])
+    assert stat.S_IMODE((operator_dir / "auth").stat().st_mode) == 0o700
+    for name, path in joined.credentials.items():
+        mine, theirs = json.loads(path.read_text()), json.loads(files[name].read_text())
+        assert mine["zid"] == theirs["zid"]
+        assert mine["access_control"] == theirs["access_control"]
+        for key in ("connect_certificate", "connect_private_key", "root_ca_certificate"):
+            assert os.path.dirname(mine["tls"][key]) == str(operator_dir / "auth")
+            assert open(mine["tls"][key]).read() == open(theirs["tls"][key]).read()
+            assert stat.S_IMODE(os.stat(mine["tls"][key]).st_mode) == 0o600
+
+
+def test_a_bundle_others_may_read_or_that_is_no_bundle_is_refused(tmp_path):
+    path = tmp_path / "bundle.json"
+    with pytest.raises(SiteError, match="copy the robot site's"):
+        join_operator_site(path, tmp_path / "run")
+    path.write_text(json.dumps({"format": "teleop-site/1"}))
+    path.chmod(0o644)
+    with pytest.raises(SiteError, match="chmod 600"):
+        join_operator_site(path, tmp_path / "run")
+    path.chmod(0o600)
+    with pytest.raises(SiteError, match="malformed"):
+        join_operator_site(path, tmp_path / "run")
+    path.write_text("{not json")
+    with pytest.raises(SiteError, match="not JSON"):
+        join_operator_site(path, tmp_path / "run")
+    path.write_text(json.dumps({"format": "something else"}))
+    with pytest.raises(SiteError, match="not a site bundle"):
+        join_operator_site(path, tmp_path / "run")
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--site-listen", SITE_LISTEN], "go with --site"),
+        (["--site", "operator"], "needs --join"),
+        (["--site", "robot", "--connect", SITE_LISTEN], "operator site's"),
+        (["--site", "operator", "--site-listen", SITE_LISTEN], "robot site's"),
+    ],
+)
+def test_up_refuses_site_options_that_do_not_go_together(tmp_path, capsys, args, message):
+    assert main(["up", *args, "--run-dir", str(tmp_path / "run")]) == EXIT_USAGE
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()  # nothing started
