@@ -643,6 +643,13 @@ def _up(args: argparse.Namespace) -> int:
     mode = args.mode or ("" if credentials is not None else "realtime")
     overrides = [*site_overrides, *args.overrides, *([f'run.mode="{mode}"'] if mode else [])]
     config = load_config(args.config, overrides)
+    if config.site.name and config.run.mode == "realtime":
+        print(
+            "teleop: note: realtime across hosts needs the sites to share one monotonic "
+            "clock (namespaces of one host do; two machines do not): across machines "
+            "use --mode lockstep (docs/sites.md, Limits)",
+            file=sys.stderr,
+        )
     try:
         status, endpoint = start_detached(
             config,
