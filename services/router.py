@@ -19,9 +19,9 @@ from typing import Any
 import zenoh
 
 from teleop.bus.graph import router_name
-from teleop.bus.service import Service, service_main
+from teleop.bus.service import Service, ServiceOptions, service_main
 from teleop.bus.session import router_config
-from teleop.core.config import ConfigError
+from teleop.core.config import Config, ConfigError
 
 logger = logging.getLogger(__name__)
 
@@ -32,12 +32,14 @@ LINK_CHECK_S = 1.0
 class RouterService(Service):
     name = "router"  # scheduling and logs; the participant is its site's router_name
 
-    def zenoh_config(self) -> zenoh.Config:
-        site = self.config.site
-        if not site.name:
+    def __init__(self, config: Config, options: ServiceOptions | None = None) -> None:
+        super().__init__(config, options)
+        if not config.site.name:
             raise ConfigError("the router serves one site of a run across hosts: set site.name")
-        self.name = router_name(site.name)
-        return router_config(self.config.bus, site, listen=self.options.listen)
+        self.name = router_name(config.site.name)  # its credentials, tokens and summary
+
+    def zenoh_config(self) -> zenoh.Config:
+        return router_config(self.config.bus, self.config.site, listen=self.options.listen)
 
     def open(self) -> None:
         super().open()
