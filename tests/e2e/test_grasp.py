@@ -10,11 +10,14 @@ from __future__ import annotations
 import contextlib
 import json
 import shutil
+import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -51,39 +54,61 @@ def grasp(tmp_path: Path, name: str, *args: str) -> dict:
     return grasps(tmp_path, {name: args})[name]
 
 
-def grasps(
+@dataclass
+class Started:
+    """A ``teleop run grasp`` started by :func:`start_grasps`."""
+
+    process: subprocess.Popen
+    out: Path
+    stderr: Path
+
+
+def start_grasps(
     tmp_path: Path, runs: dict[str, Sequence[str]], users: Mapping[str, UserEnv] | None = None
-) -> dict[str, dict]:
-    """Several grasp runs at once (name: args), each in ``tmp_path/name``; their
-    summaries. Only for lockstep runs beside each other: their results do not depend on
-    the load. A run named in ``users`` runs as that user, in its home."""
+) -> dict[str, Started]:
+    """Start several grasp runs at once (name: args), each in ``tmp_path/name``. Only for
+    lockstep runs beside each other: their results do not depend on the load. A run
+    named in ``users`` runs as that user, in its home."""
     users = users or {}
-    started, outs = {}, {}
+    started = {}
     for name, args in runs.items():
         user = users.get(name)
         base = user.home if user is not None else tmp_path
-        outs[name] = base / f"{name}.json"
+        out = base / f"{name}.json"
         teleop_args = ["-m", "teleop.cli", "run", "grasp", "--run-dir", str(base / name),
-                       "--summary-json", str(outs[name]), "--quiet", *args]  # fmt: skip
+                       "--summary-json", str(out), "--quiet", *args]  # fmt: skip
         command = user.argv(teleop_args) if user is not None else [sys.executable, *teleop_args]
-        with (tmp_path / f"{name}.stderr").open("w") as stderr_file:  # no pipe to fill
-            started[name] = subprocess.Popen(
+        stderr = tmp_path / f"{name}.stderr"
+        with stderr.open("w") as stderr_file:  # no pipe to fill
+            process = subprocess.Popen(
                 command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=stderr_file,
                 cwd=base,
             )  # fmt: skip
+        started[name] = Started(process, out, stderr)
+    return started
+
+
+def finish_grasps(started: dict[str, Started]) -> dict[str, dict]:
+    """The summaries of :func:`start_grasps`' runs, once each has ended as it should."""
     summaries = {}
-    for name, process in started.items():
-        process.wait(timeout=HANG_S)
-        stderr = (tmp_path / f"{name}.stderr").read_text()
-        out = outs[name]
-        assert out.exists(), stderr[-3000:]
-        summary = json.loads(out.read_text())
+    for name, run in started.items():
+        run.process.wait(timeout=HANG_S)
+        stderr = run.stderr.read_text()
+        assert run.out.exists(), stderr[-3000:]
+        summary = json.loads(run.out.read_text())
         if summary["success"]:
-            assert_ran(process.returncode, summary, stderr)
+            assert_ran(run.process.returncode, summary, stderr)
         else:
-            assert process.returncode == 1, stderr[-3000:]
+            assert run.process.returncode == 1, stderr[-3000:]
         summaries[name] = summary
     return summaries
+
+
+def grasps(
+    tmp_path: Path, runs: dict[str, Sequence[str]], users: Mapping[str, UserEnv] | None = None
+) -> dict[str, dict]:
+    """Several grasp runs at once (:func:`start_grasps`); their summaries."""
+    return finish_grasps(start_grasps(tmp_path, runs, users))
 
 
 def assert_physical(summary: dict, speed_tolerance: float = SPEED_TOLERANCE_LOCKSTEP) -> None:
@@ -106,18 +131,60 @@ def test_realtime_grasp_puts_the_cube_in_the_bin(tmp_path):
     assert Path(summary["rrd"]).stat().st_size > 0
 
 
+OBSTACLE_SETS = tuple(item for override in OBSTACLE for item in ("--set", override))
+OBSTACLE_ARGS = ("--mode", "lockstep", "--seed", "2", *OBSTACLE_SETS)
+# The same run's settings for `teleop up` (its mode is given apart).
+OBSTACLE_UP_SETTINGS = ("--set", 'run.scenario="grasp"', "--set", "run.seed=2", *OBSTACLE_SETS)
+
+
 @pytest.fixture(scope="module")
-def obstacle_pair(tmp_path_factory, ordinary_user_or_why) -> tuple[dict, dict, Path]:
-    """The same lockstep grasp with an obstacle twice, at once: the second as an ordinary
-    user where this machine has one (tests/e2e/users.py). Both summaries and the first
-    one's run directory (the obstacle, recording and report tests use the first)."""
+def obstacle_runs(tmp_path_factory, ordinary_user_or_why) -> dict[str, Any]:
+    """The same lockstep grasp with an obstacle three times, at once: as root, as an
+    ordinary user where this machine has one (tests/e2e/users.py), and split across two
+    hosts where it can make them (under "sites": a :class:`TwoSites` run, why there are
+    no hosts, or what failed, for the sites test alone to report). The summaries by name
+    and the first one's run directory (the obstacle, recording and report tests use the
+    first)."""
     tmp_path = tmp_path_factory.mktemp("grasp_obstacle")
-    args = ("--mode", "lockstep", "--seed", "2",
-            *[item for override in OBSTACLE for item in ("--set", override)])  # fmt: skip
     user = ordinary_user_or_why
     users = {"again": user} if isinstance(user, UserEnv) else {}
-    runs = grasps(tmp_path, {"obstacle": args, "again": args}, users)
-    return runs["obstacle"], runs["again"], tmp_path / "obstacle"
+    with contextlib.ExitStack() as stack:
+        try:
+            hosts = stack.enter_context(two_hosts())
+        except HostsUnavailable as exc:
+            hosts = None
+            sites: TwoSites | str | BaseException = f"no test hosts: {exc}"
+        started = start_grasps(tmp_path, {"obstacle": OBSTACLE_ARGS, "again": OBSTACLE_ARGS}, users)
+        stack.callback(_interrupt, started)  # on a failure: Ctrl-C leaves nothing behind
+        if hosts is not None:
+            sites = stack.enter_context(TwoSites(*hosts, tmp_path / "sites"))
+            try:
+                sites.start(OBSTACLE_UP_SETTINGS)
+            except Exception as exc:  # the sites test reports it; the others go on
+                sites = exc
+        runs: dict[str, Any] = finish_grasps(started)
+        if isinstance(sites, TwoSites):
+            try:
+                sites.finish()
+            except Exception as exc:
+                sites = exc
+        runs["sites"] = sites
+    return runs | {"run_dir": tmp_path / "obstacle"}
+
+
+def _interrupt(started: dict[str, Started]) -> None:
+    """Ctrl-C to the runs still going, then wait for them."""
+    for run in started.values():
+        if run.process.poll() is None:
+            run.process.send_signal(signal.SIGINT)
+    for run in started.values():
+        run.process.wait(timeout=120)
+
+
+@pytest.fixture(scope="module")
+def obstacle_pair(obstacle_runs) -> tuple[dict, dict, Path]:
+    """The root and the ordinary user's runs, and the first one's run directory."""
+    return obstacle_runs["obstacle"], obstacle_runs["again"], obstacle_runs["run_dir"]
 
 
 @pytest.fixture(scope="module")
@@ -254,8 +321,70 @@ def test_report_writes_the_paper_figures(obstacle_run, tmp_path):
     assert report.metrics["ghost_poses"] >= 2
 
 
-def _site_summaries(run_dir: Path, names: Sequence[str]) -> dict[str, dict]:
-    return {name: json.loads((run_dir / f"{name}.summary.json").read_text()) for name in names}
+class TwoSites:
+    """A lockstep grasp split across two hosts: the robot site (``teleop up --site
+    robot``) in the robot host's namespace, the operator site (``--join`` the handed-over
+    file) in the operator host's, and, while it runs, strangers that dial the robot
+    router from the operator's host. A context manager: both sites are stopped on exit."""
+
+    def __init__(self, robot: Host, operator: Host, tmp_path: Path) -> None:
+        self.robot, self.operator, self.tmp_path = robot, operator, tmp_path
+        self.robot_dir, self.operator_dir = tmp_path / "robot", tmp_path / "operator"
+        self.site_endpoint = f"tls/{robot.address}:7447"
+        self.teleop = [sys.executable, "-m", "teleop.cli"]
+        self.robot_up = self.operator_up = ""
+        self.strangers: dict[str, dict] = {}
+        self.summaries: dict[str, dict] = {}
+
+    def __enter__(self) -> TwoSites:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        for run_dir in (self.operator_dir, self.robot_dir):
+            if (run_dir / "supervisord.conf").exists():
+                subprocess.run([*self.teleop, "down", "--run-dir", str(run_dir)], timeout=120)
+
+    def _up(self, host: Host, args: Sequence[str]) -> subprocess.CompletedProcess:
+        up = subprocess.run(
+            host.argv([*self.teleop, "up", *args]),
+            capture_output=True, text=True, timeout=180, stdin=subprocess.DEVNULL,
+        )  # fmt: skip
+        assert up.returncode == 0, up.stderr[-3000:]
+        return up
+
+    def start(self, settings: Sequence[str]) -> None:
+        """Both sites up (the bundle handed over as scp would: the file only, its mode
+        kept), then the strangers' attempts."""
+        self.tmp_path.mkdir(parents=True, exist_ok=True)
+        up = self._up(self.robot, ["--mode", "lockstep", "--site", "robot", "--site-listen",
+                                   self.site_endpoint, "--run-dir", str(self.robot_dir),
+                                   *settings])  # fmt: skip
+        self.robot_up = up.stdout + up.stderr
+        bundle = self.tmp_path / "handed-over.json"
+        shutil.copy2(self.robot_dir / OPERATOR_BUNDLE_FILE, bundle)
+        up = self._up(self.operator, ["--site", "operator", "--join", str(bundle),
+                                      "--run-dir", str(self.operator_dir)])  # fmt: skip
+        self.operator_up = up.stdout + up.stderr
+        others = write_run_credentials(
+            self.tmp_path / "other", ["operator_router"], "arm0", tls=True
+        )
+        self.strangers = {
+            "another run's certificate": _stranger_at(
+                self.operator, self.site_endpoint, others["operator_router"]
+            ),
+            "no credentials": _stranger_at(self.operator, self.site_endpoint, None),
+        }
+
+    def finish(self) -> None:
+        """Wait for the plant to finish, stop both sites, read every service's summary."""
+        self.summaries["plant"] = _wait_plant_finished(self.robot_dir, HANG_S)
+        self.__exit__()
+        for run_dir, names in (
+            (self.robot_dir, ["controller", "recorder", "robot_router"]),
+            (self.operator_dir, ["haptic", "hmd", "operator", "operator_router"]),
+        ):
+            for name in names:
+                self.summaries[name] = json.loads((run_dir / f"{name}.summary.json").read_text())
 
 
 def _wait_plant_finished(run_dir: Path, timeout_s: float) -> dict:
@@ -296,72 +425,27 @@ def _stranger_at(host: Host, endpoint: str, credentials: Path | None) -> dict:
     return json.loads(result.stdout.splitlines()[-1])
 
 
-@pytest.fixture
-def test_hosts() -> Iterator[tuple[Host, Host]]:
-    """A robot host and an operator host (tests/e2e/hosts.py); skipped where this machine
-    cannot make them."""
-    with contextlib.ExitStack() as stack:
-        try:
-            hosts = stack.enter_context(two_hosts())
-        except HostsUnavailable as exc:
-            pytest.skip(f"no test hosts: {exc}")
-        yield hosts
-
-
-def test_a_grasp_split_across_two_hosts_is_the_same_run_as_on_one(
-    obstacle_run, test_hosts, tmp_path
-):
+def test_a_grasp_split_across_two_hosts_is_the_same_run_as_on_one(obstacle_runs):
     """The robot site and the operator site in two network namespaces (a veth pair, the
     robot's router at an address that exists only there), their routers linked over
-    mutual TLS: the lockstep grasp of ``obstacle_run`` ends in the same final state, bit
-    for bit, and sessions without the run's credentials get no link at the router."""
-    reference, _ = obstacle_run
-    robot, operator = test_hosts
-    teleop = [sys.executable, "-m", "teleop.cli"]
-    robot_dir, operator_dir = tmp_path / "robot", tmp_path / "operator"
-    site_endpoint = f"tls/{robot.address}:7447"
-    settings = ["--set", 'run.scenario="grasp"', "--set", "run.seed=2",
-                *[item for override in OBSTACLE for item in ("--set", override)]]  # fmt: skip
-    try:
-        up = subprocess.run(
-            robot.argv([*teleop, "up", "--mode", "lockstep", "--site", "robot", "--site-listen",
-                        site_endpoint, "--run-dir", str(robot_dir), *settings]),
-            capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL,
-        )  # fmt: skip
-        assert up.returncode == 0, up.stderr[-3000:]
-        assert "operator-site.json" in up.stderr and "robot_router" in up.stdout
-        # Handed over as scp would: the file only, its mode kept.
-        bundle = tmp_path / "handed-over.json"
-        shutil.copy2(robot_dir / OPERATOR_BUNDLE_FILE, bundle)
-        up = subprocess.run(
-            operator.argv([*teleop, "up", "--site", "operator", "--join", str(bundle),
-                           "--run-dir", str(operator_dir)]),
-            capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL,
-        )  # fmt: skip
-        assert up.returncode == 0, up.stderr[-3000:]
-        others = write_run_credentials(tmp_path / "other", ["operator_router"], "arm0", tls=True)
-        strangers = {
-            "another run's certificate": _stranger_at(
-                operator, site_endpoint, others["operator_router"]
-            ),
-            "no credentials": _stranger_at(operator, site_endpoint, None),
-        }
-        plant = _wait_plant_finished(robot_dir, HANG_S)
-    finally:
-        for run_dir in (operator_dir, robot_dir):
-            subprocess.run([*teleop, "down", "--run-dir", str(run_dir)], timeout=120)
-    print("strangers at the robot router:", json.dumps(strangers))
-    for stranger in strangers.values():
+    mutual TLS: the lockstep grasp ends in the same final state as on one host, bit for
+    bit, and sessions without the run's credentials get no link at the router."""
+    sites = obstacle_runs["sites"]
+    if isinstance(sites, str):
+        pytest.skip(sites)
+    if isinstance(sites, BaseException):
+        raise sites
+    assert "operator-site.json" in sites.robot_up and "robot_router" in sites.robot_up
+    print("strangers at the robot router:", json.dumps(sites.strangers))
+    for stranger in sites.strangers.values():
         assert stranger == {"routers": [], "peers": [], "samples": 0}
+    plant = sites.summaries["plant"]
     assert plant["finished"] and plant["object_in_box"]
-    assert plant["final_state_sha256"] == reference["final_state_sha256"]
-    robot_side = _site_summaries(robot_dir, ["controller", "recorder", "robot_router"])
-    operator_side = _site_summaries(operator_dir, ["haptic", "hmd", "operator", "operator_router"])
-    assert operator_side["operator"]["success"]
-    for name, summary in {**robot_side, **operator_side, "plant": plant}.items():
+    assert plant["final_state_sha256"] == obstacle_runs["obstacle"]["final_state_sha256"]
+    assert sites.summaries["operator"]["success"]
+    for name, summary in sites.summaries.items():
         assert summary["dropped_messages"] == 0, name
         assert summary["unknown_peers"] == summary["unlinked_peers"] == [], name
     for router in ("robot_router", "operator_router"):
-        summary = {**robot_side, **operator_side}[router]
-        assert summary["other_site_links"] == 1, router  # linked once, never lost
-    assert (robot_dir / "recording.rrd").stat().st_size > 0
+        assert sites.summaries[router]["other_site_links"] == 1, router  # once, never lost
+    assert (sites.robot_dir / "recording.rrd").stat().st_size > 0
