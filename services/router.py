@@ -6,7 +6,8 @@ site's router; the robot site's router listens for the operator site's
 mutual TLS with the run's certificates. The routers forward each stream between the
 sites (every stream both ways, under the run's access-control list: each local peer may
 still send only its own streams). No Python runs per message: the forwarding is
-Zenoh's own; this process opens the session, reports its links and waits to be stopped.
+Zenoh's own; this process opens the session, follows its link to the other site (the
+other router's liveliness token) and waits to be stopped.
 """
 
 from __future__ import annotations
@@ -21,12 +22,9 @@ import zenoh
 from teleop.bus.graph import router_name
 from teleop.bus.service import Service, ServiceOptions, service_main
 from teleop.bus.session import router_config
-from teleop.core.config import Config, ConfigError
+from teleop.core.config import SITES, Config, ConfigError
 
 logger = logging.getLogger(__name__)
-
-# How often the router logs a change of its links to the other site (s).
-LINK_CHECK_S = 1.0
 
 
 class RouterService(Service):
@@ -37,42 +35,54 @@ class RouterService(Service):
         if not config.site.name:
             raise ConfigError("the router serves one site of a run across hosts: set site.name")
         self.name = router_name(config.site.name)  # its credentials, tokens and summary
+        other = next(site for site in SITES if site != config.site.name)
+        self.other_router = router_name(other)
+        self._lock = threading.Lock()
+        self.other_site_linked = False
+        self.other_site_links = 0  # times the other site's router came (its token appeared)
+        self.other_site_losses = 0  # times it went (its token's DELETE: link cut, or it died)
 
     def zenoh_config(self) -> zenoh.Config:
         return router_config(self.config.bus, self.config.site, listen=self.options.listen)
 
     def open(self) -> None:
         super().open()
-        self.other_site_links = 0  # times the link to the other site's router came up
-        self._linked = False
+        assert self.session is not None
+        # The other router's liveliness token crosses the link between the sites: it
+        # appears when the link comes up and goes when the link is cut, at once (event
+        # driven, no polling that could miss a short cut).
+        self.keep(
+            self.session.liveliness().declare_subscriber(
+                self.topics.alive(self.other_router), self._on_other_router, history=True
+            )
+        )
         self.announce()
 
-    def _routers(self) -> list[str]:
-        assert self.session is not None
-        return [str(zid) for zid in self.session.info.routers_zid()]
+    def _on_other_router(self, sample: zenoh.Sample) -> None:
+        linked = sample.kind == zenoh.SampleKind.PUT
+        with self._lock:
+            if linked == self.other_site_linked:
+                return
+            self.other_site_linked = linked
+            self.other_site_links += linked
+            self.other_site_losses += not linked
+        if linked:
+            logger.info("linked to the other site's router (%s)", self.other_router)
+        else:
+            logger.warning("the other site's router is gone: waiting for it to link again")
 
     def run(self, stop: threading.Event) -> None:
-        """Log each time the other site's router links or goes, until stopped."""
-        while not stop.wait(LINK_CHECK_S):
-            linked = bool(self._routers())
-            if linked != self._linked:
-                self._linked = linked
-                self.other_site_links += linked
-                if linked:
-                    logger.info("linked to the other site's router")
-                else:
-                    logger.warning("the other site's router is gone: waiting for it")
+        """The forwarding is Zenoh's; this thread only waits to be stopped."""
+        stop.wait()
 
     def summary(self) -> dict[str, Any]:
-        session = self.session
-        open_ = session is not None and not session.is_closed()
-        return {
-            **super().summary(),
-            "site": self.config.site.name,
-            "other_site_linked": bool(open_ and self._routers()),
-            "other_site_links": getattr(self, "other_site_links", 0),
-            "site_peers": len(list(session.info.peers_zid())) if open_ else 0,
-        }
+        with self._lock:
+            links = {
+                "other_site_linked": self.other_site_linked,
+                "other_site_links": self.other_site_links,
+                "other_site_losses": self.other_site_losses,
+            }
+        return {**super().summary(), "site": self.config.site.name, **links}
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ from teleop.bus.access import write_run_credentials
 from teleop.control.feedback import STANDARD_GRAVITY_M_S2
 from teleop.core.config import load_config
 from teleop.run.sites import OPERATOR_BUNDLE_FILE
+from teleop.run.supervise import Stack
 from teleop.viz import entities as ent
 from teleop.viz import recording
 from teleop.viz.blueprint import view_specs
@@ -324,8 +325,9 @@ def test_report_writes_the_paper_figures(obstacle_run, tmp_path):
 class TwoSites:
     """A lockstep grasp split across two hosts: the robot site (``teleop up --site
     robot``) in the robot host's namespace, the operator site (``--join`` the handed-over
-    file) in the operator host's, and, while it runs, strangers that dial the robot
-    router from the operator's host. A context manager: both sites are stopped on exit."""
+    file) in the operator host's; while it runs, strangers dial the robot router from
+    the operator's host, then the robot router is killed. A context manager: both sites
+    are stopped on exit."""
 
     def __init__(self, robot: Host, operator: Host, tmp_path: Path) -> None:
         self.robot, self.operator, self.tmp_path = robot, operator, tmp_path
@@ -374,6 +376,9 @@ class TwoSites:
             ),
             "no credentials": _stranger_at(self.operator, self.site_endpoint, None),
         }
+        # Mid-run, the link between the sites is cut: the robot's router killed
+        # (supervisord brings it back, the operator's router links again).
+        Stack.attach(self.robot_dir).signal_program("robot_router", signal.SIGKILL)
 
     def finish(self) -> None:
         """Wait for the plant to finish, stop both sites, read every service's summary."""
@@ -428,8 +433,9 @@ def _stranger_at(host: Host, endpoint: str, credentials: Path | None) -> dict:
 def test_a_grasp_split_across_two_hosts_is_the_same_run_as_on_one(obstacle_runs):
     """The robot site and the operator site in two network namespaces (a veth pair, the
     robot's router at an address that exists only there), their routers linked over
-    mutual TLS: the lockstep grasp ends in the same final state as on one host, bit for
-    bit, and sessions without the run's credentials get no link at the router."""
+    mutual TLS: sessions without the run's credentials get no link at the router, and
+    the lockstep grasp ends in the same final state as on one host, bit for bit, though
+    the robot's router was killed mid-run (lockstep waits for the link to come back)."""
     sites = obstacle_runs["sites"]
     if isinstance(sites, str):
         pytest.skip(sites)
@@ -446,6 +452,13 @@ def test_a_grasp_split_across_two_hosts_is_the_same_run_as_on_one(obstacle_runs)
     for name, summary in sites.summaries.items():
         assert summary["dropped_messages"] == 0, name
         assert summary["unknown_peers"] == summary["unlinked_peers"] == [], name
-    for router in ("robot_router", "operator_router"):
-        assert sites.summaries[router]["other_site_links"] == 1, router  # once, never lost
+    # The robot router's second process linked once; the operator's router twice.
+    robot_router, operator_router = (
+        sites.summaries["robot_router"],
+        sites.summaries["operator_router"],
+    )
+    assert len(robot_router.get("earlier_incarnations", [])) == 1
+    assert (robot_router["other_site_links"], robot_router["other_site_losses"]) == (1, 0)
+    assert (operator_router["other_site_links"], operator_router["other_site_losses"]) == (2, 1)
+    assert "earlier_incarnations" not in operator_router
     assert (sites.robot_dir / "recording.rrd").stat().st_size > 0
