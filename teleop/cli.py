@@ -37,7 +37,12 @@ from teleop.core.config import (
     ModelError,
     load_config,
 )
-from teleop.core.rundir import LATENCY_RECORDING_FILE, LOG_DIR, WEB_VIEWER_LOG_FILE
+from teleop.core.rundir import (
+    LATENCY_RECORDING_FILE,
+    LOG_DIR,
+    RUN_SUMMARY_FILE,
+    WEB_VIEWER_LOG_FILE,
+)
 from teleop.run.failure import ServiceFailed
 from teleop.run.supervise import interrupt_on_signals
 from teleop.run.verdict import LOST
@@ -249,11 +254,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="write the paper's figures (PNG) and a markdown summary of a recording",
         description=(
             "Read a .rrd back and write the paper's figures as PNG files and report.md "
-            "into <stem>_report/ next to it (or --out)."
+            "into <stem>_report/ next to it (or --out). With the run's summary (the "
+            "summary.json beside the recording, or --summary) the report opens with the "
+            "run's verdict, judged by the same criteria as teleop run and teleop sweep."
         ),
     )
     report.add_argument("rrd", type=Path, help="the recording (.rrd)")
     report.add_argument("--out", type=Path, help="output directory (default: <stem>_report/)")
+    report.add_argument(
+        "--summary",
+        type=Path,
+        help="the run's summary.json (default: the one beside the recording, if any)",
+    )
     report.add_argument(
         "--settle-s",
         type=float,
@@ -403,7 +415,7 @@ def _print_line(text: str) -> None:
 
 def _summary_path(args: argparse.Namespace) -> Path:
     summary_json: Path | None = args.summary_json
-    return summary_json if summary_json is not None else args.run_dir / "summary.json"
+    return summary_json if summary_json is not None else args.run_dir / RUN_SUMMARY_FILE
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -485,7 +497,9 @@ def _run_and_report(
     if args.report and summary.get("rrd"):
         from teleop.viz.report import write_report
 
-        report = write_report(Path(str(summary["rrd"])), settle_s=config.run.settle_s)
+        report = write_report(
+            Path(str(summary["rrd"])), settle_s=config.run.settle_s, run_summary=summary
+        )
         print(f"report: {report.summary}", file=sys.stderr)
     if web is not None:
         print(f"web viewer: {web.url} (Ctrl-C to stop)", file=sys.stderr, flush=True)
@@ -552,12 +566,18 @@ def _view(args: argparse.Namespace) -> int:
 
 
 def _report(args: argparse.Namespace) -> int:
-    from teleop.viz.report import write_report
+    from teleop.viz.report import read_run_summary, write_report
     from teleop.viz.rrd import NotARecording
 
     settle_s = args.settle_s if args.settle_s is not None else load_config().run.settle_s
+    run_summary = None
+    if args.summary is not None:
+        run_summary = read_run_summary(args.summary)
+        if run_summary is None:
+            print(f"teleop: {args.summary}: not a run's summary (JSON)", file=sys.stderr)
+            return EXIT_USAGE
     try:
-        report = write_report(args.rrd, args.out, settle_s=settle_s)
+        report = write_report(args.rrd, args.out, settle_s=settle_s, run_summary=run_summary)
     except NotARecording as exc:
         print(f"teleop: {exc}", file=sys.stderr)
         return EXIT_USAGE

@@ -39,6 +39,9 @@ AUTH_DIR = "auth"
 WEB_VIEWER_LOG_FILE = "web-viewer.log"
 # The Rerun recording of `teleop latency`'s figures (in its run directory).
 LATENCY_RECORDING_FILE = "latency.rrd"
+# A run's whole summary (`teleop run`, unless --summary-json says elsewhere; the sweep's
+# tasks), which `teleop report` reads beside the recording for the run's verdict.
+RUN_SUMMARY_FILE = "summary.json"
 # `teleop report` (teleop.viz.report) and `teleop run --report`: the figures and the
 # summary go into ``<recording stem>_report/`` next to the recording.
 REPORT_DIR_SUFFIX = "_report"

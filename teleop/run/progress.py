@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from teleop.core.config import TELEOPERATED
-from teleop.run.criteria import FAIL
+from teleop.core.criteria import FAIL
 from teleop.sim.proximity import FAR_DISTANCE_M
 
 # A progress line at least every this many seconds of sim time, and at each new phase.

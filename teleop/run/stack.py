@@ -64,6 +64,7 @@ from teleop.bus.session import (
 from teleop.bus.topics import Topics
 from teleop.control.kinematics import build_arm_model, tool_jacobian
 from teleop.core.config import ROBOT_SITE, BusConfig, Config, load_config
+from teleop.core.criteria import judge_task
 from teleop.core.net import LOOPBACK, LoopbackPorts
 from teleop.core.rundir import (
     AUTH_DIR,
@@ -76,7 +77,6 @@ from teleop.core.rundir import (
 )
 from teleop.devices.operator import Scenario
 from teleop.run import restart_priority
-from teleop.run.criteria import judge_task
 from teleop.run.failure import ProgramWatch, ServiceFailed, program_log_text
 from teleop.run.faults import (
     FaultInjector,
@@ -680,7 +680,7 @@ def run_on_services(
         "seed": config.run.seed,
     }
     if config.run.teleoperated:
-        summary.update(_grasp_summary(summaries, task_done))
+        figures, problems = _grasp_figures(summaries, task_done)
     else:
         figures = {
             "duration_s": config.run.duration_s,
@@ -691,20 +691,16 @@ def run_on_services(
             "min_manipulability": controller.get("min_manipulability"),
             **{key: controller.get(key) for key in PATH_MOTION_KEYS},
         }
-        # The task's criteria (teleop.run.criteria); a run that stalls or collides is not
-        # a good run either (teleop.control.path).
-        problems = controller.get("motion_problems", [])
-        summary.update(
-            {
-                **figures,
-                **judge_task("path-following", figures, problems).summary(),
-                "motion_problems": problems,
-            }
-        )
+        # A run that stalls or collides is not a good run either (teleop.control.path).
+        problems = list(controller.get("motion_problems", []))
+        figures["motion_problems"] = problems
     if plant.get("aborted") or plant.get("failure"):
         # The plant ended the run on a failure: whatever the task's figures say, it did
         # not go on to its end.
-        summary["success"] = False
+        problems = [*problems, f"plant: {plant.get('failure') or 'aborted'}"]
+    # The task's criteria (teleop.core.criteria) and the problems: the one verdict, which
+    # the summary holds enough to give again (criteria.judge_summary).
+    summary.update({**figures, **judge_task(config.run.scenario, figures, problems).summary()})
     idle_poll = idle_poll_report(polled_cpus, run_dir)
     machine = machine_section(summaries, polled_cpus, idle_poll)
     # The brakes an injected fault caused are the fault's, not a loss of real time.
@@ -801,9 +797,12 @@ def _eye_view_summary(summaries: dict[str, dict[str, Any]]) -> dict[str, Any] | 
     }
 
 
-def _grasp_summary(summaries: dict[str, dict[str, Any]], task_done: list[float]) -> dict[str, Any]:
+def _grasp_figures(
+    summaries: dict[str, dict[str, Any]], task_done: list[float]
+) -> tuple[dict[str, Any], list[str]]:
     """The teleoperation task's figures of merit, from the services that measured them
-    (an outside service's are None; an outside operator's success is its TASK_DONE's)."""
+    (an outside service's are None; an outside operator's success is its TASK_DONE's),
+    and the problems the run reported: the motion's, and an operator that did not finish."""
     plant, controller = summaries.get("plant", {}), summaries.get("controller", {})
     haptic, operator = summaries.get("haptic", {}), summaries.get("operator")
     said_success = operator.get("success") if operator is not None else task_done[-1:] == [1.0]
@@ -825,10 +824,8 @@ def _grasp_summary(summaries: dict[str, dict[str, Any]], task_done: list[float])
         "phases": operator.get("phases"),
         "operator_failure": operator.get("failure") or None,  # why the operator gave up
     }
-    # The task's criteria (teleop.run.criteria), the motion's problems, and the operator's
-    # word: it finished the task.
     said = [] if said_success else ["the operator did not finish the task"]
-    return {**judge_task("grasp", figures, [*problems, *said]).summary(), **figures}
+    return figures, [*problems, *said]
 
 
 def _wait_finished(

@@ -2,7 +2,7 @@
 
 A sweep draws its tasks with :mod:`teleop.run.tasks` (seeded: the same seed gives the
 same tasks), runs each in a worker process (``workers``, one per core by default) and
-judges it by the run's own criteria (:mod:`teleop.run.criteria`): path following in
+judges it by the run's own criteria (:mod:`teleop.core.criteria`): path following in
 process, as ``teleop run path-following --inprocess``; grasp as a lockstep services run,
 as ``teleop run grasp --mode lockstep``.
 
@@ -31,8 +31,8 @@ from typing import Any
 import numpy as np
 
 from teleop.core.config import SCENARIOS, load_config
-from teleop.core.rundir import RECORDING_FILE
-from teleop.run.criteria import FAIL, UNAVAILABLE, event_reasons, judge_task
+from teleop.core.criteria import FAIL, UNAVAILABLE, event_reasons, judge_summary
+from teleop.core.rundir import RECORDING_FILE, RUN_SUMMARY_FILE
 from teleop.run.tasks import (
     Generated,
     GraspTask,
@@ -85,22 +85,28 @@ def run_job(job: Job) -> dict[str, Any]:
             wall_s=time.perf_counter() - start,
         )
         return record
-    # The run's own criteria (teleop.run.criteria), every one of them measured.
-    verdict = judge_task(job.kind, summary)
-    failed, unavailable = verdict.failed, verdict.unmeasured
-    events = event_reasons(summary)
-    success = verdict.success and verdict.complete
-    reasons = [*failed, *events] if not success else []
-    if not success and not failed and not events:
-        reasons = [f"unmeasured: {', '.join(unavailable)}"]
     record.update(
-        success=success,
-        criteria=verdict.summary()["criteria"],
-        reasons=reasons,
+        **judge_record(summary),
         figures={key: summary.get(key) for key in _FIGURES[job.kind] if key in summary},
         wall_s=time.perf_counter() - start,
     )
     return record
+
+
+def judge_record(summary: Mapping[str, Any]) -> dict[str, Any]:
+    """A task's ``success``, ``criteria`` and ``reasons`` from its run's summary: the
+    run's own verdict (criteria.judge_summary), and every criterion measured besides. The
+    reasons say why a task failed: the failed criteria, then what the run said went
+    wrong (the operator's reason, its events, else its problems)."""
+    verdict = judge_summary(summary)
+    success = verdict.success and verdict.complete
+    reasons: list[str] = []
+    if not success:
+        told = event_reasons(summary) or list(verdict.problems)
+        reasons = [*verdict.failed, *told]
+        if not reasons:
+            reasons = [f"unmeasured: {', '.join(verdict.unmeasured)}"]
+    return {"success": success, "criteria": verdict.summary()["criteria"], "reasons": reasons}
 
 
 # Figures kept per task in the report.
@@ -167,7 +173,7 @@ def _run(job: Job) -> dict[str, Any]:
     run_dir = Path(job.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     summary = run_on_services(config, job.config_file, overrides, run_dir, None)
-    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    (run_dir / RUN_SUMMARY_FILE).write_text(json.dumps(summary, indent=2) + "\n")
     if not job.keep_recordings:  # tens of MB each; the summary and the logs stay
         Path(str(summary.get("rrd") or run_dir / RECORDING_FILE)).unlink(missing_ok=True)
     return summary

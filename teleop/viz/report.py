@@ -28,7 +28,8 @@ import matplotlib.pyplot as plt  # noqa: E402  (after the backend choice)
 import numpy as np  # noqa: E402
 
 from teleop.bus.messages import Stage  # noqa: E402
-from teleop.core.rundir import REPORT_SUMMARY_FILE, report_dir  # noqa: E402
+from teleop.core.criteria import judge_summary  # noqa: E402
+from teleop.core.rundir import REPORT_SUMMARY_FILE, RUN_SUMMARY_FILE, report_dir  # noqa: E402
 from teleop.viz import entities as r  # noqa: E402
 from teleop.viz import rrd  # noqa: E402
 from teleop.viz.scene3d import ENTITY_GHOSTS, GHOST_SKELETON  # noqa: E402
@@ -463,13 +464,48 @@ def _summary_text(
     return "\n".join(lines)
 
 
+def verdict_text(run_summary: Mapping[str, Any]) -> list[str]:
+    """The report's verdict section: the run's summary judged again by the one verdict
+    (teleop.core.criteria.judge_summary, as ``teleop run`` and ``teleop sweep`` judge)."""
+    verdict = judge_summary(run_summary)
+    lines = [
+        "## Verdict",
+        "",
+        f"- task: {'success' if verdict.success else 'failed'} "
+        f"({run_summary['scenario']}, judged by teleop.core.criteria)",
+        "",
+        "| criterion | status | detail |",
+        "| --- | --- | --- |",
+    ]
+    lines += [f"| {c.name} | {c.status} | {c.detail} |" for c in verdict.criteria]
+    lines += ["", *[f"- problem: {problem}" for problem in verdict.problems]]
+    return [*lines, ""] if verdict.problems else lines
+
+
+def read_run_summary(path: Path) -> dict[str, Any] | None:
+    """A run's summary file (``teleop run``'s summary.json) if it is there and names its
+    scenario; None otherwise."""
+    try:
+        content = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return content if isinstance(content, dict) and "scenario" in content else None
+
+
 def write_report(
-    rrd_path: str | Path, out_dir: str | Path | None = None, settle_s: float = DEFAULT_SETTLE_S
+    rrd_path: str | Path,
+    out_dir: str | Path | None = None,
+    settle_s: float = DEFAULT_SETTLE_S,
+    run_summary: Mapping[str, Any] | None = None,
 ) -> Report:
-    """Read ``rrd_path`` back and write the figures and ``report.md`` into ``out_dir``."""
+    """Read ``rrd_path`` back and write the figures and ``report.md`` into ``out_dir``;
+    with ``run_summary`` (the run's summary; default: the ``summary.json`` beside the
+    recording, if any) the report opens with the run's verdict."""
     path = Path(rrd_path)
     if not path.is_file():
         raise FileNotFoundError(f"no recording {path}")
+    if run_summary is None:
+        run_summary = read_run_summary(path.parent / RUN_SUMMARY_FILE)
     report = Report(Path(out_dir) if out_dir is not None else default_out_dir(path))
     report.out_dir.mkdir(parents=True, exist_ok=True)
     rec = rrd.Recording(path)
@@ -491,7 +527,10 @@ def write_report(
     if r.norm_entity("device") in sim:
         _fig_forces(sim, report, t0)
     _fig_timing(rec, report)
-    summary = _summary_text(path, report, _events(rec), _stats(rec), _segments_text(rec))
+    verdict = verdict_text(run_summary) if run_summary is not None else []
+    summary = _summary_text(
+        path, report, _events(rec), _stats(rec), [*verdict, *_segments_text(rec)]
+    )
     report.summary = report.out_dir / REPORT_SUMMARY_FILE
     report.summary.write_text(summary)
     return report

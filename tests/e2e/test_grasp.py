@@ -30,7 +30,7 @@ from teleop.run.supervise import Stack
 from teleop.viz import entities as ent
 from teleop.viz import recording
 from teleop.viz.blueprint import view_specs
-from teleop.viz.report import write_report
+from teleop.viz.report import read_run_summary, write_report
 from teleop.viz.rrd import Recording
 from teleop.viz.scene3d import ENTITY_GHOSTS, SceneModel
 from tests.e2e.hosts import Host, HostsUnavailable, two_hosts
@@ -302,8 +302,10 @@ def test_grasp_recording_holds_every_entity_the_blueprint_shows(obstacle_run):
 
 
 def test_report_writes_the_paper_figures(obstacle_run, tmp_path):
-    summary, _ = obstacle_run
-    report = write_report(summary["rrd"], tmp_path / "report")
+    summary, run_dir = obstacle_run
+    written = read_run_summary(run_dir.parent / "obstacle.json")  # the run's --summary-json
+    assert written is not None
+    report = write_report(summary["rrd"], tmp_path / "report", run_summary=written)
     names = {p.name for p in report.figures}
     assert names == {
         "fig7_stroboscopic.png",
@@ -316,6 +318,9 @@ def test_report_writes_the_paper_figures(obstacle_run, tmp_path):
         assert figure.read_bytes().startswith(b"\x89PNG") and figure.stat().st_size > 10_000
     text = report.summary.read_text()
     assert all(name in text for name in names)
+    # The run's verdict, judged again from its summary: what teleop run said.
+    assert summary["success"] and "## Verdict\n\n- task: success (grasp" in text
+    assert "| cube in the bin | pass | yes |" in text
     assert report.metrics["max_weight_feedback_force_n"] == pytest.approx(
         summary["held_weight_n"], rel=WEIGHT_TOLERANCE
     )

@@ -1,8 +1,14 @@
-"""The task criteria (teleop.run.criteria): one verdict for a run, a sweep and the report."""
+"""The task criteria (teleop.core.criteria): one verdict for a run, a sweep and the report."""
 
 from __future__ import annotations
 
-from teleop.run import criteria
+import json
+
+import pytest
+
+from teleop.core import criteria
+from teleop.run import sweep
+from teleop.viz.report import verdict_text
 
 
 def _statuses(criteria: list[criteria.Criterion]) -> dict[str, str]:
@@ -79,3 +85,41 @@ def test_a_short_run_is_judged_on_what_it_measured_and_a_problem_fails_it():
     grasp = criteria.judge_task("grasp", {"object_in_box": True, "arm_contacts": 0,
                                           "max_device_force_n": 1.2})  # fmt: skip
     assert grasp.success and grasp.complete
+
+
+def _written(scenario: str, figures: dict, problems: list[str]) -> dict:
+    """A summary as ``teleop run`` writes it: its scenario, figures and verdict."""
+    return {"scenario": scenario, **figures,
+            **criteria.judge_task(scenario, figures, problems).summary()}  # fmt: skip
+
+
+GOOD_GRASP = {"object_in_box": True, "arm_contacts": 0, "max_device_force_n": 1.2}
+GOOD_PATH = {"path_error_rms_m": 1e-5, "path_error_max_m": 2e-5, "path_progress": 0.99,
+             "arm_contacts": 0}  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "scenario, figures, problems",
+    [
+        ("grasp", GOOD_GRASP, []),
+        ("grasp", GOOD_GRASP, ["the operator did not finish the task"]),
+        ("grasp", {**GOOD_GRASP, "object_in_box": False}, []),
+        ("path-following", GOOD_PATH, []),
+        ("path-following", GOOD_PATH, ["plant: the arm left its joint range"]),
+        ("path-following", {**GOOD_PATH, "path_progress": None}, []),
+    ],
+)
+def test_run_sweep_and_report_give_a_summary_one_verdict(scenario, figures, problems):
+    """What ``teleop run`` wrote, judged again from the summary alone by the run's
+    verdict, the sweep's record and the report's section: the same success."""
+    summary = _written(scenario, figures, problems)
+    again = criteria.judge_summary(json.loads(json.dumps(summary)))  # as read from file
+    assert again.success is summary["success"]
+    assert again.summary() == {k: summary[k] for k in ("success", "criteria", "problems")}
+    record = sweep.judge_record(summary)
+    assert record["success"] is (summary["success"] and again.complete)
+    if not record["success"]:
+        assert record["reasons"]  # never a silent failure
+    section = "\n".join(verdict_text(summary))
+    assert f"- task: {'success' if summary['success'] else 'failed'}" in section
+    assert all(f"- problem: {p}" in section for p in problems)

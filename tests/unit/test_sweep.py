@@ -188,7 +188,12 @@ def test_a_stack_that_did_not_come_up_is_started_again(
     time never ran: the task is started again (and the retry counted); a service that
     failed once the run was under way is the task's result."""
     calls = []
-    done = {"object_in_box": True, "arm_contacts": 0, "max_device_force_n": 1.0}
+    done = {
+        "scenario": "grasp",
+        "object_in_box": True,
+        "arm_contacts": 0,
+        "max_device_force_n": 1.0,
+    }
 
     def run(job: sweep.Job) -> dict:
         calls.append(job)

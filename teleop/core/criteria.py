@@ -71,8 +71,13 @@ class TaskVerdict:
         return not self.unmeasured
 
     def summary(self) -> dict[str, Any]:
-        """The summary's ``success`` and ``criteria``."""
-        return {"success": self.success, "criteria": [asdict(c) for c in self.criteria]}
+        """The summary's ``success``, ``criteria`` and ``problems``: with the figures, all
+        :func:`judge_summary` needs to judge the run again, the same way."""
+        return {
+            "success": self.success,
+            "criteria": [asdict(c) for c in self.criteria],
+            "problems": list(self.problems),
+        }
 
 
 def _figure(summary: Mapping[str, Any], key: str) -> float | None:
@@ -149,6 +154,13 @@ def judge_task(
     run itself said went wrong."""
     criteria = judge_grasp(summary) if scenario == "grasp" else judge_path(summary)
     return TaskVerdict(tuple(criteria), tuple(problems))
+
+
+def judge_summary(summary: Mapping[str, Any]) -> TaskVerdict:
+    """A run's summary (as ``teleop run`` writes it: its ``scenario``, figures and
+    ``problems``) judged again: the one verdict ``teleop run`` gave it, and the one the
+    sweep and the report give it. KeyError if it names no scenario."""
+    return judge_task(summary["scenario"], summary, summary.get("problems") or ())
 
 
 def event_reasons(summary: Mapping[str, Any]) -> list[str]:
