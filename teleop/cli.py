@@ -397,16 +397,15 @@ def _overrides(args: argparse.Namespace) -> list[str]:
 def _emit_summary(summary: dict[str, object], path: Path, as_json: bool) -> None:
     """The full summary to ``path``; on stdout the short one for a person (or, with
     ``as_json``, the full JSON)."""
+    from teleop.core.summary import summary_text, write_run_summary
     from teleop.run.progress import human_summary
 
-    text = json.dumps(summary, indent=2, sort_keys=False)
     if as_json:
-        print(text)
+        print(summary_text(summary), end="")
     else:
         print("\n".join(human_summary(summary, str(path))))
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(text + "\n")
+        write_run_summary(path, summary)
 
 
 def _print_line(text: str) -> None:
@@ -566,19 +565,15 @@ def _view(args: argparse.Namespace) -> int:
 
 
 def _report(args: argparse.Namespace) -> int:
-    from teleop.viz.report import read_run_summary, write_report
+    from teleop.core.summary import SummaryError, read_run_summary
+    from teleop.viz.report import write_report
     from teleop.viz.rrd import NotARecording
 
     settle_s = args.settle_s if args.settle_s is not None else load_config().run.settle_s
-    run_summary = None
-    if args.summary is not None:
-        run_summary = read_run_summary(args.summary)
-        if run_summary is None:
-            print(f"teleop: {args.summary}: not a run's summary (JSON)", file=sys.stderr)
-            return EXIT_USAGE
     try:
+        run_summary = read_run_summary(args.summary) if args.summary is not None else None
         report = write_report(args.rrd, args.out, settle_s=settle_s, run_summary=run_summary)
-    except NotARecording as exc:
+    except (NotARecording, SummaryError) as exc:
         print(f"teleop: {exc}", file=sys.stderr)
         return EXIT_USAGE
     for figure in report.figures:

@@ -33,6 +33,7 @@ import numpy as np
 from teleop.core.config import SCENARIOS, load_config
 from teleop.core.criteria import FAIL, UNAVAILABLE, event_reasons, judge_summary
 from teleop.core.rundir import RECORDING_FILE, RUN_SUMMARY_FILE
+from teleop.core.summary import write_run_summary
 from teleop.run.tasks import (
     Generated,
     GraspTask,
@@ -173,7 +174,7 @@ def _run(job: Job) -> dict[str, Any]:
     run_dir = Path(job.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     summary = run_on_services(config, job.config_file, overrides, run_dir, None)
-    (run_dir / RUN_SUMMARY_FILE).write_text(json.dumps(summary, indent=2) + "\n")
+    write_run_summary(run_dir / RUN_SUMMARY_FILE, summary)
     if not job.keep_recordings:  # tens of MB each; the summary and the logs stay
         Path(str(summary.get("rrd") or run_dir / RECORDING_FILE)).unlink(missing_ok=True)
     return summary

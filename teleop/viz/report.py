@@ -30,6 +30,7 @@ import numpy as np  # noqa: E402
 from teleop.bus.messages import Stage  # noqa: E402
 from teleop.core.criteria import judge_summary  # noqa: E402
 from teleop.core.rundir import REPORT_SUMMARY_FILE, RUN_SUMMARY_FILE, report_dir  # noqa: E402
+from teleop.core.summary import read_run_summary  # noqa: E402
 from teleop.viz import entities as r  # noqa: E402
 from teleop.viz import rrd  # noqa: E402
 from teleop.viz.scene3d import ENTITY_GHOSTS, GHOST_SKELETON  # noqa: E402
@@ -482,16 +483,6 @@ def verdict_text(run_summary: Mapping[str, Any]) -> list[str]:
     return [*lines, ""] if verdict.problems else lines
 
 
-def read_run_summary(path: Path) -> dict[str, Any] | None:
-    """A run's summary file (``teleop run``'s summary.json) if it is there and names its
-    scenario; None otherwise."""
-    try:
-        content = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    return content if isinstance(content, dict) and "scenario" in content else None
-
-
 def write_report(
     rrd_path: str | Path,
     out_dir: str | Path | None = None,
@@ -500,12 +491,14 @@ def write_report(
 ) -> Report:
     """Read ``rrd_path`` back and write the figures and ``report.md`` into ``out_dir``;
     with ``run_summary`` (the run's summary; default: the ``summary.json`` beside the
-    recording, if any) the report opens with the run's verdict."""
+    recording, if any) the report opens with the run's verdict. SummaryError if that
+    file is no run summary of this version."""
     path = Path(rrd_path)
     if not path.is_file():
         raise FileNotFoundError(f"no recording {path}")
-    if run_summary is None:
-        run_summary = read_run_summary(path.parent / RUN_SUMMARY_FILE)
+    beside = path.parent / RUN_SUMMARY_FILE
+    if run_summary is None and beside.exists():
+        run_summary = read_run_summary(beside)
     report = Report(Path(out_dir) if out_dir is not None else default_out_dir(path))
     report.out_dir.mkdir(parents=True, exist_ok=True)
     rec = rrd.Recording(path)

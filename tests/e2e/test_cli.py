@@ -13,6 +13,7 @@ from teleop.bus.messages import PLANT_STATE, DropCounter
 from teleop.bus.session import close_session, open_session, subscribe
 from teleop.bus.topics import Topics
 from teleop.core.config import load_config
+from teleop.core.summary import SUMMARY_VERSION, read_run_summary, summary_problems
 
 SUMMARY_KEYS = {
     "scenario",
@@ -51,6 +52,7 @@ def test_inprocess_run_writes_the_summary(tmp_path):
     assert result.returncode == 0, result.stderr
     summary = json.loads(out.read_text())
     assert SUMMARY_KEYS <= summary.keys()
+    assert summary_problems(summary) == [] and summary["summary_version"] == SUMMARY_VERSION
     assert summary["steps"] == 3000 and summary["compensation"] is True
     assert json.loads(result.stdout) == summary  # --json: the full summary on stdout
     assert "100%" in result.stderr  # progress is shown
@@ -65,7 +67,8 @@ def test_without_json_the_summary_is_short_and_the_file_full(tmp_path):
     lines = result.stdout.splitlines()
     assert lines[0].startswith("path-following") and len(lines) <= 15
     assert f"  full summary       {tmp_path / 'summary.json'}" in lines
-    assert SUMMARY_KEYS <= json.loads((tmp_path / "summary.json").read_text()).keys()
+    summary = read_run_summary(tmp_path / "summary.json")
+    assert SUMMARY_KEYS <= summary.keys() and summary_problems(summary) == []
 
 
 def test_bad_override_exits_2_with_the_key_named():

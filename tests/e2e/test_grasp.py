@@ -25,12 +25,13 @@ import pytest
 from teleop.bus.access import write_run_credentials
 from teleop.control.feedback import STANDARD_GRAVITY_M_S2
 from teleop.core.config import load_config
+from teleop.core.summary import read_run_summary, summary_problems
 from teleop.run.sites import OPERATOR_BUNDLE_FILE
 from teleop.run.supervise import Stack
 from teleop.viz import entities as ent
 from teleop.viz import recording
 from teleop.viz.blueprint import view_specs
-from teleop.viz.report import read_run_summary, write_report
+from teleop.viz.report import write_report
 from teleop.viz.rrd import Recording
 from teleop.viz.scene3d import ENTITY_GHOSTS, SceneModel
 from tests.e2e.hosts import Host, HostsUnavailable, two_hosts
@@ -97,6 +98,7 @@ def finish_grasps(started: dict[str, Started]) -> dict[str, dict]:
         stderr = run.stderr.read_text()
         assert run.out.exists(), stderr[-3000:]
         summary = json.loads(run.out.read_text())
+        assert summary_problems(summary) == []  # as teleop.core.summary describes it
         if summary["success"]:
             assert_ran(run.process.returncode, summary, stderr)
         else:
@@ -304,7 +306,6 @@ def test_grasp_recording_holds_every_entity_the_blueprint_shows(obstacle_run):
 def test_report_writes_the_paper_figures(obstacle_run, tmp_path):
     summary, run_dir = obstacle_run
     written = read_run_summary(run_dir.parent / "obstacle.json")  # the run's --summary-json
-    assert written is not None
     report = write_report(summary["rrd"], tmp_path / "report", run_summary=written)
     names = {p.name for p in report.figures}
     assert names == {

@@ -28,6 +28,7 @@ from teleop.bus.session import (
 from teleop.bus.topics import Topics
 from teleop.core.config import load_config
 from teleop.core.net import LoopbackPorts
+from teleop.core.summary import summary_problems
 from teleop.run.experiments import run_path_following_inprocess
 from teleop.run.stack import peer_mesh, service_programs
 from teleop.run.supervise import Stack
@@ -61,6 +62,7 @@ def run_services(tmp_path: Path, name: str, *args: str) -> dict:
     )  # fmt: skip
     summary = json.loads(out.read_text()) if out.exists() else None
     assert_ran(result.returncode, summary, result.stderr)
+    assert summary_problems(summary) == []  # as teleop.core.summary describes it
     return summary
 
 
