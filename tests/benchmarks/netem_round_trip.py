@@ -17,22 +17,18 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import struct
 import sys
-import threading
-import time
 from pathlib import Path
 
 import numpy as np
-import zenoh
 
 from teleop.bench.netem import LinkImpairment, running_proxy
+from teleop.bench.ping import paced_round_trips_ms
 from teleop.bus import session as bus
 from teleop.core.config import BusConfig
 from teleop.core.net import free_loopback_port
 
 PING, PONG = "teleop/netem/ping", "teleop/netem/pong"
-TIMEOUT_S = 10.0
 
 
 def _bus(endpoint: str) -> BusConfig:
@@ -41,36 +37,11 @@ def _bus(endpoint: str) -> BusConfig:
 
 def round_trips_ms(connect_port: int, pings: int, rate_hz: float) -> np.ndarray:
     """Pings from a session that connects to ``connect_port``; their round trips (ms)."""
-    done: dict[int, float] = {}
-    arrived = threading.Condition()
-
-    def on_pong(sample: zenoh.Sample) -> None:
-        seq, sent_ns = struct.unpack("<qq", sample.payload.to_bytes())
-        with arrived:
-            done[seq] = (time.monotonic_ns() - sent_ns) / 1e6
-            arrived.notify_all()
-
     far = bus.open_session(_bus(f"tcp/127.0.0.1:{connect_port}"), listen=False)
     try:
-        sub = far.declare_subscriber(PONG, on_pong)
-        pub = far.declare_publisher(PING)
-        with arrived:  # the first ping that comes back: the link and the answerer are up
-            deadline = time.monotonic() + TIMEOUT_S
-            while -1 not in done and time.monotonic() < deadline:
-                pub.put(struct.pack("<qq", -1, time.monotonic_ns()))
-                arrived.wait(0.2)
-        period_s = 1.0 / rate_hz
-        start = time.monotonic()
-        for seq in range(pings):
-            time.sleep(max(0.0, start + seq * period_s - time.monotonic()))
-            pub.put(struct.pack("<qq", seq, time.monotonic_ns()))
-        with arrived:
-            arrived.wait_for(lambda: all(s in done for s in range(pings)), TIMEOUT_S)
-        sub.undeclare()
-        pub.undeclare()
+        return paced_round_trips_ms(far, PING, PONG, pings, rate_hz)
     finally:
         far.close()
-    return np.array([done[s] for s in range(pings) if s in done])
 
 
 def main() -> int:

@@ -28,11 +28,8 @@ import dataclasses
 import json
 import multiprocessing
 import os
-import struct
 import sys
 import tempfile
-import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -40,6 +37,7 @@ import numpy as np
 import zenoh
 
 from teleop.bench.netem import LinkImpairment, running_proxy
+from teleop.bench.ping import paced_round_trips_ms
 from teleop.bus import graph
 from teleop.bus import session as bus
 from teleop.bus.access import write_run_credentials
@@ -50,7 +48,6 @@ from teleop.core.net import free_loopback_port
 ROBOT = "bench"
 ROBOT_ROUTER, OPERATOR_ROUTER = graph.router_name(ROBOT_SITE), graph.router_name(OPERATOR_SITE)
 PARTICIPANTS = ["haptic", "controller", ROBOT_ROUTER, OPERATOR_ROUTER]
-TIMEOUT_S = 15.0
 
 
 def _endpoint() -> str:
@@ -107,38 +104,13 @@ def _processes(*targets: tuple) -> Iterator[None]:
 def round_trips_ms(bus_config: BusConfig, pings: int, rate_hz: float) -> np.ndarray:
     """Samples from the haptic end, paced at ``rate_hz``; their round trips (ms)."""
     topics = Topics(ROBOT)
-    done: dict[int, float] = {}
-    arrived = threading.Condition()
-
-    def on_answer(sample: zenoh.Sample) -> None:
-        seq, sent_ns = struct.unpack("<qq", sample.payload.to_bytes())
-        with arrived:
-            done[seq] = (time.monotonic_ns() - sent_ns) / 1e6
-            arrived.notify_all()
-
     session = bus.open_session(bus_config, listen=False)
     try:
-        sub = session.declare_subscriber(topics.force_feedback, on_answer)
-        pub = session.declare_publisher(topics.haptic_state, express=True)
-        with arrived:  # the first answer: every link and the answerer are up
-            deadline = time.monotonic() + TIMEOUT_S
-            while -1 not in done and time.monotonic() < deadline:
-                pub.put(struct.pack("<qq", -1, time.monotonic_ns()))
-                arrived.wait(0.2)
-        if -1 not in done:
-            raise RuntimeError("no answer: the path never came up")
-        period_s = 1.0 / rate_hz
-        start = time.monotonic()
-        for seq in range(pings):
-            time.sleep(max(0.0, start + seq * period_s - time.monotonic()))
-            pub.put(struct.pack("<qq", seq, time.monotonic_ns()))
-        with arrived:
-            arrived.wait_for(lambda: all(s in done for s in range(pings)), TIMEOUT_S)
-        sub.undeclare()
-        pub.undeclare()
+        return paced_round_trips_ms(
+            session, topics.haptic_state, topics.force_feedback, pings, rate_hz
+        )
     finally:
         session.close()
-    return np.array([done[s] for s in range(pings) if s in done])
 
 
 def measure(files: dict[str, Path], variant: str, delay_ms: float, args: argparse.Namespace):
