@@ -493,6 +493,10 @@ class EyeViewConfig:
         _require(0 <= self.jpeg_quality <= 100, "eyeview.jpeg_quality in [0, 100]")
 
 
+# Force feedback stabilisers under delay (TeleopConfig.stabiliser).
+STABILISERS = ("none", "tdpa")
+
+
 @dataclass(frozen=True)
 class TeleopConfig:
     """Teleoperation in the controller: rate control, limits and force feedback."""
@@ -528,8 +532,20 @@ class TeleopConfig:
     # Hold the tool pointing straight down (top grasps), keeping its start heading;
     # false: hold whatever orientation the tool has when teleoperation starts.
     approach_down: bool = True
+    # Force feedback under delay (teleop/devices/passivity.py): "none" renders the force
+    # as it comes (the energy it exchanges is observed and reported all the same);
+    # "tdpa": the time-domain passivity controller at the handle damps what the delayed
+    # channel would give out, at most tdpa_max_damping_n_s_m (and what the handle renders
+    # stably).
+    stabiliser: str = "none"
+    tdpa_max_damping_n_s_m: float = 20.0
 
     def __post_init__(self) -> None:
+        _require(
+            self.stabiliser in STABILISERS,
+            f"teleop.stabiliser: one of {', '.join(STABILISERS)}",
+        )
+        _require(self.tdpa_max_damping_n_s_m > 0, "teleop.tdpa_max_damping_n_s_m > 0")
         _require(self.rate_gain_per_s > 0, "teleop.rate_gain_per_s > 0")
         _require(self.deadband_m >= 0, "teleop.deadband_m >= 0")
         _require(self.max_tool_speed_m_s > 0, "teleop.max_tool_speed_m_s > 0")

@@ -119,6 +119,10 @@ SUMMARY_FIELDS: tuple[SummaryField, ...] = (
     F("object_in_box", "boolean", GRASP, "the cube ended in the bin", nullable=True),
     F("max_device_force_n", "number", GRASP, "largest force rendered on the handle (N; "
       "the device saturates at 8 N)", nullable=True),
+    F("passivity", "object", GRASP, "the energy the force feedback exchanged with the "
+      "operator's hand (J, teleop.devices.passivity): energy_in_j, energy_out_j, "
+      "observed_j and its least value observer_min_j (below zero: the channel gave "
+      "energy out), dissipated_j by the stabiliser (teleop.stabiliser)", nullable=True),
     F("max_contact_force_n", "number", GRASP, "largest contact force on the gripper (N)",
       nullable=True),
     F("obstacle_min_clearance_m", "number", GRASP, "the tool's least distance to a virtual "

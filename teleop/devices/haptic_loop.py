@@ -62,6 +62,7 @@ from teleop.devices.haptic import (
     HapticDevice,
     max_stable_stiffness_n_per_m,
 )
+from teleop.devices.passivity import PassivityControl, max_stable_damping_n_s_m
 
 logger = logging.getLogger(__name__)
 
@@ -136,6 +137,15 @@ class HapticLoop:
         self.max_feedback_n = OVERSIZED_FEEDBACK_FACTOR * config.haptic.peak_force_n
         self.render_on_arrival = config.haptic.render_on_arrival
         self.hold = FeedbackHold(config.haptic.stale_feedback_s, config.haptic.fade_s)
+        # The energy the force exchanges with the hand, observed; damped with "tdpa".
+        self.passivity = PassivityControl(
+            config.teleop.stabiliser == "tdpa",
+            min(
+                config.teleop.tdpa_max_damping_n_s_m,
+                max_stable_damping_n_s_m(config.haptic.handle_mass_kg, self.period_s),
+            ),
+            self.period_s,
+        )
         self.hand_inputs = TickedInputs()
         self.timer: LoopTimer | None = None
         self._first_wake_ns = 0
@@ -246,7 +256,7 @@ class HapticLoop:
         trace = np.array(rec["trace_ns"])
         trace[Stage.FEEDBACK_RX] = rx_ns
         if self.render_on_arrival:
-            self.device.send_force(force)
+            self.device.send_force(self.passivity.control(force))
             trace[Stage.FEEDBACK_RENDERED] = self.clock.now_ns()
             self.trace_log.append(trace)
         else:
@@ -259,6 +269,7 @@ class HapticLoop:
         """Device reset, inputs forgotten (caller holds the lock)."""
         self.device.reset()
         self.hold.clear()
+        self.passivity.reset()
         self.hand_inputs.clear()
         self._feedback.clear()
         self._first_tick = 0
@@ -387,7 +398,7 @@ class HapticLoop:
         0 in lockstep.
         """
         force, stale = self.hold.force_at(t_ns)
-        self.device.send_force(force)
+        self.device.send_force(self.passivity.control(force))
         if self._pending_trace is not None:
             self._pending_trace[Stage.FEEDBACK_RENDERED] = self.clock.now_ns()
             self.trace_log.append(self._pending_trace)
@@ -406,6 +417,7 @@ class HapticLoop:
                 )
         self._hand_stale = hand_stale
         sample = self.device.next_sample(held)
+        self.passivity.observe(sample.f_n, sample.v_m_s)
         sample_ns = self.clock.now_ns()
         self.steps += 1
         rec = self.record
@@ -460,6 +472,7 @@ class HapticLoop:
             "feedback_rendered": len(self.trace_log) + self.trace_log.overflow,
             "trace_rows_not_kept": self.trace_log.overflow,
             "rate_hz": self._rate_hz(),
+            "passivity": self.passivity.summary(self.config.teleop.stabiliser),
             "max_stable_stiffness_n_per_m": max_stable_stiffness_n_per_m(
                 self.config.haptic, self.period_s
             ),

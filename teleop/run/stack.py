@@ -814,6 +814,8 @@ def _grasp_figures(
         "object_in_box": plant.get("object_in_box"),
         "duration_s": operator.get("task_duration_s"),
         "max_device_force_n": haptic.get("max_rendered_force_n"),
+        # The energy the force exchanged with the hand, and what the stabiliser dissipated.
+        "passivity": haptic.get("passivity"),
         "max_contact_force_n": plant.get("max_contact_force_n"),
         "obstacle_min_clearance_m": plant.get("obstacle_min_clearance_m"),
         "tool_speed_max_m_s": plant.get("tool_speed_max_m_s"),
