@@ -52,7 +52,7 @@ class PassivityControl:
         self.energy_out_j = 0.0  # from the environment to the operator
         self.dissipated_j = 0.0  # by the controller's damping
         self.active_steps = 0  # steps the controller damped
-        self.damping_max_n_s_m = 0.0
+        self.correction_max_n = 0.0  # the largest force the controller took out
         self._velocity = np.zeros(3)
 
     def observe(self, rendered_f_n: np.ndarray, v_m_s: np.ndarray) -> None:
@@ -85,7 +85,7 @@ class PassivityControl:
         along = max(float(np.dot(force_n, v)), 0.0) / speed2
         alpha = min(-predicted_j / (speed2 * self.dt_s), along + self.max_damping_n_s_m)
         self.active_steps += 1
-        self.damping_max_n_s_m = max(self.damping_max_n_s_m, alpha)
+        self.correction_max_n = max(self.correction_max_n, alpha * math.sqrt(speed2))
         self.dissipated_j += alpha * speed2 * self.dt_s
         return force_n - alpha * v
 
@@ -99,7 +99,7 @@ class PassivityControl:
             "observer_min_j": self.observer_min_j,
             "dissipated_j": self.dissipated_j,
             "active_steps": self.active_steps,
-            "damping_max_n_s_m": self.damping_max_n_s_m,
+            "correction_max_n": self.correction_max_n,
         }
 
 
