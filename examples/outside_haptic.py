@@ -23,11 +23,13 @@ import numpy as np
 import zenoh
 
 # -- the wire format (docs/protocol.md, "Records") --------------------------------------
-VERSION = 5
+VERSION = 6
 HEADER = struct.Struct("<HHIQq10q")  # version, kind, flags, seq, t_source_ns, trace_ns[10]
 HAPTIC_STATE, HAND_INPUT, FORCE_FEEDBACK, RUN_EVENT = 8, 9, 10, 7  # kinds
 HAND_INPUT_SIZE, FORCE_FEEDBACK_SIZE, RUN_EVENT_SIZE = 137, 288, 130
-STATE_BODY = struct.Struct("<qQq9dB")  # sim_time_ns, tick, device_deadline_ns, p, v, f, buttons
+# sim_time_ns, tick, device_deadline_ns, p, v, f, passivity_observed_j,
+# passivity_dissipated_j, buttons
+STATE_BODY = struct.Struct("<qQq11dB")
 STALE, FINISHED = 2, 2  # HAPTIC_STATE flag: an old force fades out; RUN_EVENT code
 BATCH_RECORDS = 10  # the recorder's batched copy: this many records per message
 
@@ -97,6 +99,7 @@ class OutsideHaptic:
         self.tick, self.sim_time_ns, self.feedback_rx_ns = 0, 0, None  # newest feedback's
         self.feedback_n, self.hands, self.batch = np.zeros(3), {}, []  # hands: by valid_from
         self.seq = self.stale_periods = self.skipped_periods = 0
+        self.observed_j = 0.0  # passivity observer: energy the force took from the hand
         key = f"teleop/{robot}"
         self.pub = session.declare_publisher(
             f"{key}/haptic/state", priority=zenoh.Priority.REAL_TIME, express=True,
@@ -141,7 +144,11 @@ class OutsideHaptic:
                 self.device.send_force(self.feedback_n * max(0.0, 1 - overdue_s / FADE_S))
             hand = max((k for k in self.hands if k <= self.tick), default=None)  # applies now
             p, v, f, buttons = self.device.next_sample(self.hands.get(hand))
-            body = STATE_BODY.pack(self.sim_time_ns, self.tick, deadline_ns, *p, *v, *f, buttons)
+            # The energy the force took from the hand, net (no controller here: none dissipated).
+            self.observed_j -= sum(fi * vi for fi, vi in zip(f, v, strict=True)) * PERIOD_S
+            body = STATE_BODY.pack(
+                self.sim_time_ns, self.tick, deadline_ns, *p, *v, *f, self.observed_j, 0.0, buttons
+            )
         self.seq += 1
         now_ns = time.monotonic_ns()
         trace = [now_ns] + [0] * 9  # HAPTIC_SAMPLE: the controller measures the age from it

@@ -40,8 +40,10 @@ logger = logging.getLogger(__name__)
 # OBSTACLE_PROXIMITY folded into the plant's state record, JOINT_STATE renamed PLANT_STATE
 # with the same kind value and on key state/plant: one plant record per step; 4:
 # device_deadline_ns in HAPTIC_STATE and JOINT_COMMAND, the plant's steps on the haptic
-# device's clock; 5: FORCE_FEEDBACK carries the scene's and the arm's own limits' push-back).
-PROTOCOL_VERSION = 5
+# device's clock; 5: FORCE_FEEDBACK carries the scene's and the arm's own limits' push-back;
+# 6: HAPTIC_STATE carries the passivity observer's energy and what its controller
+# dissipated).
+PROTOCOL_VERSION = 6
 MAX_JOINTS = 8  # joint arrays are padded with zeros to this length; n_joints says how many count
 MAX_OBJECTS = 8  # object pose arrays are padded to this length; n_objects says how many count
 N_STAGES = 10  # length of the header's trace_ns array (one slot per Stage)
@@ -567,6 +569,9 @@ RUN_EVENT = Schema(
 )
 
 _FORCE = {"lo": -FORCE_LIMIT_N, "hi": FORCE_LIMIT_N, "unit": "N"}
+# Energy a haptic handle exchanges over a run: 8 N at 1 m/s for a month stays below it.
+ENERGY_LIMIT_J = 1e8
+_ENERGY = {"lo": -ENERGY_LIMIT_J, "hi": ENERGY_LIMIT_J, "unit": "J"}
 _SPEED = {"lo": -SPEED_LIMIT_M_S, "hi": SPEED_LIMIT_M_S, "unit": "m/s"}
 
 
@@ -586,9 +591,18 @@ HAPTIC_STATE = Schema(
         Field("device_p_m", "f8", (3,), **_POS, doc="handle position, device frame, centred"),
         Field("device_v_m_s", "f8", (3,), **_SPEED, doc="handle velocity (Kalman estimate)"),
         Field("device_f_n", "f8", (3,), **_FORCE, doc="force rendered on the handle"),
+        Field(
+            "passivity_observed_j", "f8", **_ENERGY,
+            doc="energy the force took from the hand this run, net (passivity observer; "
+            "below zero: it gave energy out)",
+        ),
+        Field(
+            "passivity_dissipated_j", "f8", lo=0.0, hi=ENERGY_LIMIT_J, unit="J",
+            doc="energy the passivity controller dissipated this run (teleop.stabiliser)",
+        ),
         Field("buttons", "u1", lo=0, hi=max(Button) * 2 - 1, doc="Button bits"),
     ],
-)
+)  # fmt: skip
 
 HAND_INPUT = Schema(
     Kind.HAND_INPUT,

@@ -432,6 +432,8 @@ class HapticLoop:
         rec["device_p_m"] = sample.p_m
         rec["device_v_m_s"] = sample.v_m_s
         rec["device_f_n"] = sample.f_n
+        rec["passivity_observed_j"] = self.passivity.observed_j
+        rec["passivity_dissipated_j"] = self.passivity.dissipated_j
         rec["buttons"] = int(sample.buttons)
         return sample
 

@@ -109,6 +109,11 @@ def figure_tabs(config: Config) -> tuple[tuple[str, tuple[ViewSpec, ...]], ...]:
             ViewSpec(
                 "series", "Force on the device (N, device frame)", _xyz(r.ENTITY_FEEDBACK_DEVICE_F)
             ),
+            ViewSpec(
+                "series",
+                "Passivity at the handle (J): observed energy, dissipated",
+                (r.ENTITY_PASSIVITY_OBSERVED, r.ENTITY_PASSIVITY_DISSIPATED),
+            ),
         ),
     )
     return (teleop, forces, timing)

@@ -51,6 +51,9 @@ ENTITY_HAPTIC_P = "haptic/device_p_m"  # + /x, /y, /z, Scalars
 ENTITY_HAPTIC_V = "haptic/device_v_m_s"  # + /x, /y, /z, Scalars (Kalman estimate)
 ENTITY_HAPTIC_F = "haptic/device_f_n"  # + /x, /y, /z, Scalars (force rendered)
 ENTITY_HAPTIC_BUTTONS = "haptic/buttons"  # Scalars, the Button bits as a number
+# The passivity observer's energy (J) and what its controller dissipated (teleop.stabiliser).
+ENTITY_PASSIVITY_OBSERVED = "haptic/passivity/observed_j"  # Scalars
+ENTITY_PASSIVITY_DISSIPATED = "haptic/passivity/dissipated_j"  # Scalars
 # Scripted operator's hand (HAND_INPUT), device frame.
 ENTITY_HAND_TARGET = "operator/hand_target_m"  # + /x, /y, /z, Scalars
 ENTITY_HAND_BUTTONS = "operator/buttons"  # Scalars, the Button bits as a number

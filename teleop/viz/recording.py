@@ -100,6 +100,8 @@ from teleop.viz.entities import (
     ENTITY_MANIPULABILITY,
     ENTITY_OBJECTS,
     ENTITY_OBSTACLE_DISTANCE,
+    ENTITY_PASSIVITY_DISSIPATED,
+    ENTITY_PASSIVITY_OBSERVED,
     ENTITY_PATH_ERROR,
     ENTITY_PATH_S,
     ENTITY_QD_REF,
@@ -903,6 +905,8 @@ class RecordingWriter:
         self._send_xyz(indexes, ENTITY_HAPTIC_P, records["device_p_m"])
         self._send_xyz(indexes, ENTITY_HAPTIC_V, records["device_v_m_s"])
         self._send_xyz(indexes, ENTITY_HAPTIC_F, records["device_f_n"])
+        self._send_scalars(ENTITY_PASSIVITY_OBSERVED, indexes, records["passivity_observed_j"])
+        self._send_scalars(ENTITY_PASSIVITY_DISSIPATED, indexes, records["passivity_dissipated_j"])
         self._send_scalars(ENTITY_HAPTIC_BUTTONS, indexes, records["buttons"].astype(float))
 
     def _write_hand_input(self, records: np.ndarray) -> None:

@@ -6,7 +6,8 @@ figures and a short markdown summary into ``<recording stem>_report/`` next to i
 - path following (paper experiment 1): Fig. 7 stroboscopic arm, Fig. 8 desired vs
   actual tool path per axis, Fig. 9 distance to the path;
 - teleoperation (experiment 2): Fig. 7 (the arm along the task), Fig. 12 operator
-  reference vs actual tool velocity, Fig. 13 control error, the feedback forces;
+  reference vs actual tool velocity, Fig. 13 control error, the feedback forces, the
+  passivity observer's energy;
 - both: loop rates and per-hop latency.
 
 Only figures whose data the recording holds are drawn.
@@ -207,6 +208,27 @@ def _fig_forces(sim: Mapping[str, rrd.Series], report: Report, t0: float) -> Non
     # Beside the panel: inside it the legend covers the held weight's level.
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     _save(fig, report.out_dir / "fig_feedback_forces.png", report)
+
+
+def _fig_passivity(sim: Mapping[str, rrd.Series], report: Report, t0: float) -> None:
+    """The passivity observer's energy over the run (below zero: the force gave the hand
+    energy out) and what the stabiliser dissipated (teleop.devices.passivity)."""
+    observed = sim[r.ENTITY_PASSIVITY_OBSERVED]
+    fig, ax = plt.subplots(figsize=FIG_SIZE_WIDE_IN)
+    ax.plot(observed.t_s - t0, observed.values * 1e3, color="tab:blue", linewidth=1.0,
+            label="observed energy W (mJ)")  # fmt: skip
+    if r.ENTITY_PASSIVITY_DISSIPATED in sim:
+        dissipated = sim[r.ENTITY_PASSIVITY_DISSIPATED]
+        ax.plot(dissipated.t_s - t0, dissipated.values * 1e3, color="tab:orange",
+                linewidth=1.0, label="dissipated by the stabiliser (mJ)")  # fmt: skip
+    ax.axhline(0.0, color="black", linewidth=0.6)
+    report.metrics["passivity_observer_min_j"] = min(0.0, float(observed.values.min()))  # W(0) = 0
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("energy (mJ)")
+    ax.set_title("Passivity of the force channel at the handle (W >= 0: passive)")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="upper left", fontsize=8)
+    _save(fig, report.out_dir / "fig_passivity.png", report)
 
 
 def _fig_timing(rec: rrd.Recording, report: Report) -> None:
@@ -438,6 +460,11 @@ def _summary_text(
             key = f"max_{component}_feedback_force_n"
             if key in m:
                 lines.append(f"- {key} (fed back to the operator): {m[key]:.3f} N")
+        if "passivity_observer_min_j" in m:
+            lines.append(
+                "- passivity_observer_min_j (below zero: the force gave energy out): "
+                f"{m['passivity_observer_min_j'] * 1e3:.3f} mJ"
+            )
         lines.append("")
     if m.get("latency"):
         lines += ["## Latency per hop", "", "| hop | p50 (ms) | p99 (ms) | samples |"]
@@ -519,6 +546,8 @@ def write_report(
         _fig_control_error(sim, report, t0)
     if r.norm_entity("device") in sim:
         _fig_forces(sim, report, t0)
+    if r.ENTITY_PASSIVITY_OBSERVED in sim:
+        _fig_passivity(sim, report, t0)
     _fig_timing(rec, report)
     verdict = verdict_text(run_summary) if run_summary is not None else []
     summary = _summary_text(

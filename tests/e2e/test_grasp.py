@@ -313,6 +313,7 @@ def test_report_writes_the_paper_figures(obstacle_run, tmp_path):
         "fig12_reference_vs_actual_velocity.png",
         "fig13_control_error.png",
         "fig_feedback_forces.png",
+        "fig_passivity.png",
         "fig_timing.png",
     }
     for figure in report.figures:
@@ -326,6 +327,10 @@ def test_report_writes_the_paper_figures(obstacle_run, tmp_path):
         summary["held_weight_n"], rel=WEIGHT_TOLERANCE
     )
     assert report.metrics["ghost_poses"] >= 2
+    # The passivity observer's least energy, as the haptic service itself counted it.
+    assert report.metrics["passivity_observer_min_j"] == pytest.approx(
+        summary["passivity"]["observer_min_j"], abs=1e-9
+    )
 
 
 class TwoSites:
