@@ -695,7 +695,33 @@ def _status(args: argparse.Namespace) -> int:
         return EXIT_FAILED
     for name, state in status.items():
         print(f"{name:12s} {state}")
+    for line in _site_link_lines(args.run_dir, status):
+        print(line)
     return 0 if all(state == "RUNNING" for state in status.values()) else EXIT_FAILED
+
+
+def _site_link_lines(run_dir: Path, status: dict[str, str]) -> list[str]:
+    """One site of a run across hosts: whether its router sees the other site, from the
+    router's running summary (written every 2 s)."""
+    from teleop.bus.graph import ROUTERS
+    from teleop.core.rundir import incarnation_paths
+
+    lines = []
+    for router in (name for name in ROUTERS if status.get(name) == "RUNNING"):
+        paths = incarnation_paths(run_dir, router)
+        try:
+            summary = json.loads(paths[-1].read_text()) if paths else None
+        except (OSError, ValueError):
+            summary = None
+        if summary is None:
+            lines.append(f"{router}: no summary yet")
+            continue
+        linked = "linked" if summary.get("other_site_linked") else "NOT linked"
+        lines.append(
+            f"{router}: the other site is {linked} (links {summary.get('other_site_links')}, "
+            f"losses {summary.get('other_site_losses')}; as of its summary, every 2 s)"
+        )
+    return lines
 
 
 def _down(args: argparse.Namespace) -> int:

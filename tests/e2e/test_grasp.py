@@ -236,6 +236,12 @@ def test_grasp_recording_holds_every_entity_the_blueprint_shows(obstacle_run):
         for base in (ent.ENTITY_TELEOP_V_REF, ent.ENTITY_TELEOP_V_TOOL, ent.ENTITY_TELEOP_V_ERROR):
             feeds[ent.axis_entity(base, axis)] = "teleop_status"
     feeds.update({ent.norm_entity(c): "force_feedback" for c in ent.FEEDBACK_COMPONENTS})
+    feeds.update(
+        {
+            e: "haptic_state"
+            for e in (ent.ENTITY_PASSIVITY_OBSERVED, ent.ENTITY_PASSIVITY_DISSIPATED)
+        }
+    )
     for spec in view_specs(config):
         for entity in spec.entities:
             values = data[entity]["Scalars:scalars"]
@@ -345,7 +351,7 @@ class TwoSites:
         self.robot_dir, self.operator_dir = tmp_path / "robot", tmp_path / "operator"
         self.site_endpoint = f"tls/{robot.address}:7447"
         self.teleop = [sys.executable, "-m", "teleop.cli"]
-        self.robot_up = self.operator_up = ""
+        self.robot_up = self.operator_up = self.robot_status = ""
         self.strangers: dict[str, dict] = {}
         self.summaries: dict[str, dict] = {}
 
@@ -387,6 +393,11 @@ class TwoSites:
             ),
             "no credentials": _stranger_at(self.operator, self.site_endpoint, None),
         }
+        status = subprocess.run(
+            [*self.teleop, "status", "--run-dir", str(self.robot_dir)],
+            capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL,
+        )  # fmt: skip
+        self.robot_status = status.stdout
         # Mid-run, the link between the sites is cut: the robot's router killed
         # (supervisord brings it back, the operator's router links again).
         Stack.attach(self.robot_dir).signal_program("robot_router", signal.SIGKILL)
@@ -453,6 +464,7 @@ def test_a_grasp_split_across_two_hosts_is_the_same_run_as_on_one(obstacle_runs)
     if isinstance(sites, BaseException):
         raise sites
     assert "operator-site.json" in sites.robot_up and "robot_router" in sites.robot_up
+    assert "robot_router: the other site is linked" in sites.robot_status
     print("strangers at the robot router:", json.dumps(sites.strangers))
     for stranger in sites.strangers.values():
         assert stranger == {"routers": [], "peers": [], "samples": 0}
