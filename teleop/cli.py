@@ -647,7 +647,7 @@ def _site_overrides(args: argparse.Namespace) -> tuple[list[str], dict[str, Path
 
 
 def _up(args: argparse.Namespace) -> int:
-    from teleop.run.sites import SiteError
+    from teleop.run.sites import SiteError, check_site
     from teleop.run.stack import RunError, start_detached
 
     try:
@@ -658,6 +658,11 @@ def _up(args: argparse.Namespace) -> int:
     mode = args.mode or ("" if credentials is not None else "realtime")
     overrides = [*site_overrides, *args.overrides, *([f'run.mode="{mode}"'] if mode else [])]
     config = load_config(args.config, overrides)
+    try:
+        check_site(config)
+    except SiteError as exc:
+        print(f"teleop: {exc}", file=sys.stderr)
+        return EXIT_USAGE
     if config.site.name and config.run.mode == "realtime":
         print(
             "teleop: note: realtime across hosts needs the sites to share one monotonic "

@@ -42,6 +42,11 @@ def check_site(config: Config) -> None:
     site = config.site
     if not site.name:
         return
+    if not config.run.teleoperated:
+        raise SiteError(
+            f"{config.run.scenario} has no operator site (nobody at the handle): sites "
+            "split a teleoperated run, e.g. --set 'run.scenario=\"grasp\"'"
+        )
     if not config.bus.mutual_tls:
         raise SiteError("sites link over mutual TLS only: drop bus.secure=false / bus.tls=false")
     if site.name == ROBOT_SITE and not site.listen:

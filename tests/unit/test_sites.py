@@ -76,9 +76,11 @@ def test_sites_link_over_mutual_tls_only_and_need_their_endpoints():
     with pytest.raises(SiteError, match="mutual TLS"):
         check_site(robot_config("bus.tls=false"))
     with pytest.raises(SiteError, match="--site-listen"):
-        check_site(load_config(None, ['site.name="robot"']))
+        check_site(load_config(None, [*GRASP, 'site.name="robot"']))
     with pytest.raises(SiteError, match="--connect"):
-        check_site(load_config(None, ['site.name="operator"']))
+        check_site(load_config(None, [*GRASP, 'site.name="operator"']))
+    with pytest.raises(SiteError, match="path-following has no operator site"):
+        check_site(robot_config('run.scenario="path-following"'))
     check_site(robot_config())
 
 
@@ -170,6 +172,8 @@ def test_a_bundle_others_may_read_or_that_is_no_bundle_is_refused(tmp_path):
         (["--site", "operator"], "needs --join"),
         (["--site", "robot", "--connect", SITE_LISTEN], "operator site's"),
         (["--site", "operator", "--site-listen", SITE_LISTEN], "robot site's"),
+        (["--site", "robot", "--site-listen", SITE_LISTEN], "path-following has no operator"),
+        (["--site", "robot", "--set", 'run.scenario="grasp"'], "--site-listen tls/"),
     ],
 )
 def test_up_refuses_site_options_that_do_not_go_together(tmp_path, capsys, args, message):
