@@ -182,7 +182,7 @@ def access_control(
     }
 
 
-def _write_private(path: Path, text: str) -> None:
+def write_private(path: Path, text: str) -> None:
     """Write ``text`` to a file only this user can read, from its creation on."""
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     with os.fdopen(fd, "w") as f:
@@ -197,8 +197,8 @@ def _write_certificate(directory: Path, name: str, issued: Issued) -> dict[str, 
         directory / (name + CERTIFICATE_SUFFIX),
         directory / (name + PRIVATE_KEY_SUFFIX),
     )
-    _write_private(certificate, issued.certificate_pem.decode())
-    _write_private(key, issued.private_key_pem.decode())
+    write_private(certificate, issued.certificate_pem.decode())
+    write_private(key, issued.private_key_pem.decode())
     return {
         "root_ca_certificate": str(directory / CA_FILE),
         "listen_certificate": str(certificate),
@@ -219,7 +219,7 @@ def write_run_certificates(
     own key is never written), valid on loopback and at the participant's ``addresses``
     (a site's router); returns each participant's Zenoh TLS file settings."""
     authority = RunAuthority()
-    _write_private(directory / CA_FILE, authority.certificate_pem.decode())
+    write_private(directory / CA_FILE, authority.certificate_pem.decode())
     addresses = addresses or {}
     return {
         name: _write_certificate(directory, name, authority.issue(name, addresses.get(name, ())))
@@ -262,7 +262,7 @@ def write_run_credentials(
     else:
         dictionary = directory / PASSWORDS_FILE
         lines = "".join(f"{c.user}:{c.password}\n" for c in credentials.values())
-        _write_private(dictionary, lines)
+        write_private(dictionary, lines)
         own_secret = {
             name: {"password": cred.password}
             | ({} if name in OBSERVERS else {"dictionary_file": str(dictionary)})
@@ -272,7 +272,7 @@ def write_run_credentials(
     for name, cred in credentials.items():
         path = directory / f"{name}.json"
         content = {"user": cred.user, "zid": cred.zid, **own_secret[name], "access_control": acl}
-        _write_private(path, json.dumps(content, indent=1))
+        write_private(path, json.dumps(content, indent=1))
         files[name] = path
     return files
 
@@ -291,7 +291,6 @@ def export_identities(files: Mapping[str, Path]) -> dict[str, Any]:
         exported["ca_pem"] = Path(tls["root_ca_certificate"]).read_text()
         exported["access_control"] = content["access_control"]
         exported["participants"][name] = {
-            "user": content["user"],
             "zid": content["zid"],
             "certificate_pem": Path(tls["connect_certificate"]).read_text(),
             "private_key_pem": Path(tls["connect_private_key"]).read_text(),
@@ -304,7 +303,7 @@ def import_identities(directory: Path, exported: Mapping[str, Any]) -> dict[str,
     files 0600) as this host's credentials files; returns them by name. KeyError or
     ValueError on a malformed record."""
     directory = _private_directory(directory)
-    _write_private(directory / CA_FILE, str(exported["ca_pem"]))
+    write_private(directory / CA_FILE, str(exported["ca_pem"]))
     files = {}
     for name, identity in exported["participants"].items():
         if not name or not set(name) <= _NAME_ALPHABET:
@@ -319,7 +318,7 @@ def import_identities(directory: Path, exported: Mapping[str, Any]) -> dict[str,
             "access_control": exported["access_control"],
         }
         files[name] = directory / f"{name}.json"
-        _write_private(files[name], json.dumps(content, indent=1))
+        write_private(files[name], json.dumps(content, indent=1))
     return files
 
 

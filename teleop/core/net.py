@@ -1,4 +1,5 @@
-"""Loopback ports for the processes of one run (bus endpoints, a web viewer's ports)."""
+"""Loopback ports for the processes of one run (bus endpoints, a web viewer's ports), and
+the address of a Zenoh endpoint."""
 
 from __future__ import annotations
 
@@ -38,3 +39,10 @@ def free_loopback_port() -> int:
     a tool's single listener. Several ports for one run: :class:`LoopbackPorts`."""
     with LoopbackPorts() as ports:
         return ports.take()
+
+
+def endpoint_address(endpoint: str) -> tuple[str, str]:
+    """The host and port of a Zenoh endpoint ``proto/HOST:PORT`` (an IPv6 host without
+    its brackets; both empty where the endpoint has none)."""
+    host, _, port = endpoint.partition("/")[2].rpartition(":")
+    return host.strip("[]"), port

@@ -16,14 +16,18 @@ the bus.
 from __future__ import annotations
 
 import json
-import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from teleop.bus import graph
-from teleop.bus.access import OPERATOR_OBSERVER, export_identities, import_identities
+from teleop.bus.access import (
+    OPERATOR_OBSERVER,
+    export_identities,
+    import_identities,
+    write_private,
+)
 from teleop.core.config import OPERATOR_SITE, ROBOT_SITE, Config
 from teleop.core.rundir import AUTH_DIR
 
@@ -61,8 +65,8 @@ def check_site(config: Config) -> None:
 def operator_participants(scenario: Sequence[str]) -> list[str]:
     """The participants the operator site runs: its services of ``scenario``, its router
     and its observer."""
-    here = [name for name in scenario if graph.site_of(name) == OPERATOR_SITE]
-    return [*here, graph.router_name(OPERATOR_SITE), OPERATOR_OBSERVER]
+    return [*graph.on_site(scenario, OPERATOR_SITE), graph.router_name(OPERATOR_SITE),
+            OPERATOR_OBSERVER]  # fmt: skip
 
 
 def write_operator_bundle(
@@ -85,10 +89,7 @@ def write_operator_bundle(
         "identities": export_identities({name: credentials[name] for name in names}),
     }
     path = Path(run_dir).absolute() / OPERATOR_BUNDLE_FILE
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as f:
-        json.dump(bundle, f, indent=1)
-    os.chmod(path, 0o600)
+    write_private(path, json.dumps(bundle, indent=1))
     return path
 
 

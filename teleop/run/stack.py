@@ -65,7 +65,7 @@ from teleop.bus.topics import Topics
 from teleop.control.kinematics import build_arm_model, tool_jacobian
 from teleop.core.config import ROBOT_SITE, BusConfig, Config, load_config
 from teleop.core.criteria import judge_task
-from teleop.core.net import LOOPBACK, LoopbackPorts
+from teleop.core.net import LOOPBACK, LoopbackPorts, endpoint_address
 from teleop.core.rundir import (
     AUTH_DIR,
     LOG_DIR,
@@ -162,7 +162,7 @@ def loopback_endpoint(ports: LoopbackPorts, tls: bool) -> str:
 def ensure_endpoint_free(endpoint: str) -> None:
     """Raise :class:`RunError` (one line, what to do) if ``endpoint``'s TCP port on this
     host is taken: by another stack, or any program. A stack never joins another's bus."""
-    host, _, port = endpoint.partition("/")[2].rpartition(":")
+    host, port = endpoint_address(endpoint)
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         try:
             s.bind((host or "127.0.0.1", int(port)))
@@ -294,8 +294,8 @@ def run_credentials(
     if config.site.name:
         participants += [*graph.ROUTERS, OPERATOR_OBSERVER]
         if config.site.listen:
-            address = config.site.listen.partition("/")[2].rpartition(":")[0].strip("[]")
-            addresses[graph.router_name(config.site.name)] = [address]
+            host, _ = endpoint_address(config.site.listen)
+            addresses[graph.router_name(config.site.name)] = [host]
     return write_run_credentials(
         run_dir / AUTH_DIR,
         participants,
@@ -434,7 +434,7 @@ class StackServices:
         if not site:
             return cls(scenario, outside, started)
         router = graph.router_name(site)
-        here = tuple(n for n in started if graph.site_of(n) == site)
+        here = graph.on_site(started, site)
         remote = tuple(n for n in scenario if graph.site_of(n) != site)
         return cls(scenario, outside, (router, *here), remote, router)
 
@@ -459,6 +459,7 @@ class StackPlan:
     mesh: dict[str, list[str]]
     programs: list[Program]
     joins: list[tuple[str, BusConfig]]  # per service left out: instructions, its bus
+    polled_cpus: list[int]  # the CPUs kept polling (idle_poll_cpus), a poller each
 
 
 def plan_stack(
@@ -494,6 +495,7 @@ def plan_stack(
     listener = services.listener(launch)
     mesh = peer_mesh([*services.started, *services.outside], listener, ports, tls=tls)
     plant_awaits = _plant_awaits(services.scenario, *launch.participants)
+    polled_cpus = idle_poll_cpus(config)
     programs = service_programs(
         services.started,
         config_file,
@@ -505,12 +507,14 @@ def plan_stack(
         credentials=credentials,
         mesh=mesh,
         restarts=restart_priorities(config),
-    ) + idle_poll_programs(idle_poll_cpus(config), run_dir)
+    ) + idle_poll_programs(polled_cpus, run_dir)
     joins = prepare_outside(
         config_file, run_overrides, run_dir, services.scenario, services.outside, mesh,
         plant_awaits, without_timeout_s, credentials,
     )  # fmt: skip
-    return StackPlan(services, endpoint, run_overrides, credentials, mesh, programs, joins)
+    return StackPlan(
+        services, endpoint, run_overrides, credentials, mesh, programs, joins, polled_cpus
+    )
 
 
 def run_on_services(
@@ -576,7 +580,6 @@ def run_on_services(
         elif int(rec["event"]) == Event.TASK_DONE:
             task_done.append(float(rec["value"]))
 
-    polled_cpus = idle_poll_cpus(config)
     faults = _FaultRun(config, fault_specs) if fault_specs else None
     # The run's ports stay held here until it ends: a restarted service takes its own again.
     ports = LoopbackPorts()
@@ -701,8 +704,8 @@ def run_on_services(
     # The task's criteria (teleop.core.criteria) and the problems: the one verdict, which
     # the summary holds enough to give again (criteria.judge_summary).
     summary.update({**figures, **judge_task(config.run.scenario, figures, problems).summary()})
-    idle_poll = idle_poll_report(polled_cpus, run_dir)
-    machine = machine_section(summaries, polled_cpus, idle_poll)
+    idle_poll = idle_poll_report(plan.polled_cpus, run_dir)
+    machine = machine_section(summaries, plan.polled_cpus, idle_poll)
     # The brakes an injected fault caused are the fault's, not a loss of real time.
     fault_braked = faults.braked_states() if faults is not None else 0
     health = realtime_health(
