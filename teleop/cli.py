@@ -24,13 +24,16 @@ import contextlib
 import json
 import os
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from teleop.core.config import (
     OPERATOR_SITE,
+    OPERATORS,
     ROBOT_SITE,
     SCENARIOS,
+    SCRIPTED,
     SITES,
     Config,
     ConfigError,
@@ -157,6 +160,13 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"logs and supervisord files of a services run (default: {DEFAULT_RUN_DIR})",
     )
     run.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    run.add_argument(
+        "--operator",
+        choices=OPERATORS,
+        help="who drives the handle in teleoperation (run.operator): the scripted operator "
+        "(default) or a person at this terminal's keyboard (keys on screen; works over "
+        "ssh -t and in tmux; progress lines are then left out)",
+    )
     viewers = run.add_mutually_exclusive_group()
     viewers.add_argument(
         "--spawn", action="store_true", help="also stream the run to the native Rerun viewer"
@@ -426,6 +436,8 @@ def _run(args: argparse.Namespace) -> int:
             raise ConfigError("--rrd needs the services run (drop --inprocess)")
     else:
         overrides.append(f'run.mode="{args.mode}"')
+        if args.operator is not None:
+            overrides.append(f'run.operator="{args.operator}"')
         if args.rrd is not None:
             overrides.append(f'recorder.rrd_path="{args.rrd.absolute()}"')
         if args.spawn:
@@ -438,6 +450,7 @@ def _run(args: argparse.Namespace) -> int:
             "run (drop --inprocess)"
         )
     config = load_config(args.config, overrides)
+    check_operator(config, args.without)
     # A failed run must not leave the previous run's summary looking like its own.
     _summary_path(args).unlink(missing_ok=True)
     web = None
@@ -458,6 +471,26 @@ def _run(args: argparse.Namespace) -> int:
     finally:
         if web is not None:
             web.stop()
+
+
+def check_operator(config: Config, without: Sequence[str] = ()) -> None:
+    """ConfigError (exit 2, one line) for a person's operator (``run.operator``) this run
+    cannot have: no teleoperation, the operator left out, or no terminal for the keys."""
+    device = config.run.operator
+    if device == SCRIPTED:
+        return
+    if not config.run.teleoperated:
+        raise ConfigError(
+            f"--operator {device}: {config.run.scenario} is not teleoperated (no operator to "
+            "replace); teleoperated: grasp"
+        )
+    if "operator" in without:
+        raise ConfigError(f"--operator {device} and --without operator: choose one")
+    if device == "keyboard" and not (sys.stdin.isatty() and sys.stdout.isatty()):
+        raise ConfigError(
+            "keyboard: standard input or output is not a terminal, so no key can be read: "
+            "run teleop in a terminal (ssh -t for a remote one, or tmux)"
+        )
 
 
 def _run_and_report(
@@ -483,7 +516,7 @@ def _run_and_report(
                 args.config,
                 overrides,
                 args.run_dir,
-                None if args.quiet else _print_line,
+                None if args.quiet or config.run.operator != SCRIPTED else _print_line,
                 without=args.without,
                 without_timeout_s=args.without_timeout,
                 kills=args.kill,
@@ -658,6 +691,12 @@ def _up(args: argparse.Namespace) -> int:
     mode = args.mode or ("" if credentials is not None else "realtime")
     overrides = [*site_overrides, *args.overrides, *([f'run.mode="{mode}"'] if mode else [])]
     config = load_config(args.config, overrides)
+    if config.run.operator != SCRIPTED:
+        raise ConfigError(
+            f"run.operator={config.run.operator}: teleop up runs the stack detached, with no "
+            f"terminal for a person; drive it with teleop run grasp --operator "
+            f"{config.run.operator}"
+        )
     try:
         check_site(config)
     except SiteError as exc:

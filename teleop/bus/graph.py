@@ -145,8 +145,9 @@ STREAMS: tuple[Stream, ...] = (
            note="realtime: taken in order, one older than 5 ms or than the newest rendered "
            "is dropped and logged"),
     Stream("force_feedback_batch", "haptic/feedback/batch", FORCE_FEEDBACK, ("controller",),
-           ("recorder",), "1 kHz / `bus.observer_batch_records`", qos=OBSERVER_QOS,
-           batch_of="force_feedback", scenarios=TELEOP),
+           ("recorder", "operator"), "1 kHz / `bus.observer_batch_records`", qos=OBSERVER_QOS,
+           batch_of="force_feedback", scenarios=TELEOP,
+           note="a person's operator shows the force felt (`run.operator`)"),
     Stream("head_pose", "hmd/pose", HEAD_POSE, ("hmd",),
            ("controller", "operator", "eyeview", "recorder"), "`hmd.rate_hz` (90 Hz)",
            scenarios=TELEOP, newest_for=("controller", "operator", "eyeview")),

@@ -19,12 +19,12 @@ steps ahead and is valid from ``sample_tick + lead_ticks`` (see :class:`HmdSched
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from teleop.core.config import Config, ConfigError, HmdConfig
+from teleop.core.config import SCRIPTED, Config, ConfigError, HmdConfig
 from teleop.core.ticks import expected_valid_from, is_sample_tick
 
 # Head pitch nod of the scripted motion: amplitude (rad, about 3 degrees) and its period
@@ -92,9 +92,15 @@ class HeadMotion:
     head sways sideways (perpendicular to ``head_yaw_rad``, in the horizontal plane) by
     ``sway_amplitude_m`` in phase with the yaw, as a person leans toward where they look;
     and it nods by :data:`NOD_AMPLITUDE_RAD` twice per period.
+
+    ``still``: the head holds its pose (facing ``head_yaw_rad``): a person at a keyboard
+    or a gamepad looks at a screen, so the view frame their keys move in stays put.
     """
 
-    def __init__(self, hmd: HmdConfig) -> None:
+    def __init__(self, hmd: HmdConfig, *, still: bool = False) -> None:
+        if still:
+            hmd = replace(hmd, yaw_amplitude_rad=0.0, sway_amplitude_m=0.0)
+        self.still = still
         self.hmd = hmd
         self._center_m = np.array(hmd.head_p_m, dtype=np.float64)
         yaw0 = hmd.head_yaw_rad
@@ -108,7 +114,9 @@ class HeadMotion:
         return HeadPose(
             p_m=self._center_m + self.hmd.sway_amplitude_m * s * self._lateral,
             yaw_rad=float(wrap_angle(self.hmd.head_yaw_rad + self.hmd.yaw_amplitude_rad * s)),
-            pitch_rad=NOD_AMPLITUDE_RAD * math.sin(self._nod_omega_rad_s * t_s),
+            pitch_rad=0.0
+            if self.still
+            else NOD_AMPLITUDE_RAD * math.sin(self._nod_omega_rad_s * t_s),
         )
 
 
@@ -341,7 +349,8 @@ class HmdEmulator:
 
     def __init__(self, config: Config) -> None:
         self.schedule = HmdSchedule.from_config(config)
-        self.motion = HeadMotion(config.hmd)
+        # A person's operator drives from a screen: no scripted head (run.operator).
+        self.motion = HeadMotion(config.hmd, still=config.run.operator != SCRIPTED)
         self.tracker = Tracker(config.hmd, config.run.seed)
         self.filter = HeadFilter.from_config(config.hmd)
         self.reset()

@@ -63,7 +63,7 @@ from teleop.bus.session import (
 )
 from teleop.bus.topics import Topics
 from teleop.control.kinematics import build_arm_model, tool_jacobian
-from teleop.core.config import ROBOT_SITE, BusConfig, Config, load_config
+from teleop.core.config import ROBOT_SITE, SCRIPTED, BusConfig, Config, load_config
 from teleop.core.criteria import judge_task
 from teleop.core.net import LOOPBACK, LoopbackPorts, endpoint_address
 from teleop.core.rundir import (
@@ -75,6 +75,7 @@ from teleop.core.rundir import (
     idle_poll_status_path,
     summary_path,
 )
+from teleop.devices.human_loop import PHASES as HUMAN_PHASES
 from teleop.devices.operator import Scenario
 from teleop.run import restart_priority
 from teleop.run.failure import ProgramWatch, ServiceFailed, program_log_text
@@ -89,6 +90,7 @@ from teleop.run.faults import (
     stage_stamps,
     world_reset,
 )
+from teleop.run.foreground import Foreground, ForegroundExited
 from teleop.run.idle_poll import POLLING, read_status
 from teleop.run.outside import (
     DEFAULT_WITHOUT_TIMEOUT_S,
@@ -230,18 +232,22 @@ def service_programs(
     mesh: dict[str, list[str]],
     credentials: Mapping[str, Path] | None = None,
     restarts: Mapping[str, dict[str, int]] | None = None,
+    modules: Mapping[str, str] | None = None,
 ) -> list[Program]:
     """The supervisord programs of ``services``, each given the same config and
     overrides, then its place in the run's ``mesh`` (a :func:`peer_mesh` of the
     services, and of the outside ones too if any) and its ``credentials`` file, if any
     (:func:`run_credentials`); ``restarts``: how a service's restarts start
-    (:func:`restart_priorities`)."""
+    (:func:`restart_priorities`); ``modules``: the program of a service that is not
+    services/<name>.py (a person's operator)."""
     programs = []
     for name in services:
         own = list(mesh[name])
         if credentials is not None:
             own.append(f'bus.credentials_file="{credentials[name]}"')
         module = ("services.router",) if name in graph.ROUTERS else ()
+        if modules and name in modules:
+            module = (modules[name],)
         command = service_command(name, run_dir, config_file, [*overrides, *own], module)
         if name == listener:
             command.append("--listen")
@@ -412,6 +418,10 @@ class Launch(enum.Enum):
         return (LAUNCHER,) if self is Launch.RUN else ()
 
 
+# The service a person's device stands in for (run.operator).
+OPERATOR_SERVICE = "operator"
+
+
 @dataclass(frozen=True)
 class StackServices:
     """Which services a stack has: the scenario's, the ones left out (``--without``),
@@ -423,6 +433,11 @@ class StackServices:
     started: tuple[str, ...]
     remote: tuple[str, ...] = ()
     router: str = ""
+    # Started by the launcher in the user's terminal, not by supervisord: a person's
+    # operator (``run.operator``; teleop.run.foreground).
+    foreground: tuple[str, ...] = ()
+    # The program each service runs, where it is not services/<name>.py.
+    modules: tuple[tuple[str, str], ...] = ()
 
     @classmethod
     def of(cls, config: Config, without: Sequence[str]) -> StackServices:
@@ -430,13 +445,16 @@ class StackServices:
         scenario = scenario_services(config)
         outside = check_without(scenario, without)
         started = tuple(n for n in scenario if n not in outside)
+        human = config.run.operator != SCRIPTED and OPERATOR_SERVICE in started
+        foreground = (OPERATOR_SERVICE,) if human else ()
+        modules = ((OPERATOR_SERVICE, f"services.{config.run.operator}"),) if human else ()
         site = config.site.name
         if not site:
-            return cls(scenario, outside, started)
+            return cls(scenario, outside, started, foreground=foreground, modules=modules)
         router = graph.router_name(site)
         here = graph.on_site(started, site)
         remote = tuple(n for n in scenario if graph.site_of(n) != site)
-        return cls(scenario, outside, (router, *here), remote, router)
+        return cls(scenario, outside, (router, *here), remote, router, foreground, modules)
 
     def listener(self, launch: Launch) -> str | None:
         """The process that holds the stack's endpoint: the launch's, or the site's
@@ -460,6 +478,7 @@ class StackPlan:
     programs: list[Program]
     joins: list[tuple[str, BusConfig]]  # per service left out: instructions, its bus
     polled_cpus: list[int]  # the CPUs kept polling (idle_poll_cpus), a poller each
+    foreground: list[Program]  # run in the user's terminal (StackServices.foreground)
 
 
 def plan_stack(
@@ -496,7 +515,11 @@ def plan_stack(
     mesh = peer_mesh([*services.started, *services.outside], listener, ports, tls=tls)
     plant_awaits = _plant_awaits(services.scenario, *launch.participants)
     polled_cpus = idle_poll_cpus(config)
-    programs = service_programs(
+    restarts = {
+        name: how for name, how in restart_priorities(config).items()
+        if name not in services.foreground
+    }  # fmt: skip
+    every = service_programs(
         services.started,
         config_file,
         run_overrides,
@@ -506,15 +529,20 @@ def plan_stack(
         continuous=launch is Launch.UP,
         credentials=credentials,
         mesh=mesh,
-        restarts=restart_priorities(config),
-    ) + idle_poll_programs(polled_cpus, run_dir)
+        restarts=restarts,
+        modules=dict(services.modules),
+    )
+    programs = [p for p in every if p.name not in services.foreground]
+    programs += idle_poll_programs(polled_cpus, run_dir)
+    foreground = [p for p in every if p.name in services.foreground]
     joins = prepare_outside(
         config_file, run_overrides, run_dir, services.scenario, services.outside, mesh,
         plant_awaits, without_timeout_s, credentials,
     )  # fmt: skip
     return StackPlan(
-        services, endpoint, run_overrides, credentials, mesh, programs, joins, polled_cpus
-    )
+        services, endpoint, run_overrides, credentials, mesh, programs, joins, polled_cpus,
+        foreground,
+    )  # fmt: skip
 
 
 def run_on_services(
@@ -545,6 +573,10 @@ def run_on_services(
     ``kills`` / ``freezes``: faults to inject, ``SERVICE@T`` / ``SERVICE@T:SECONDS``
     (teleop.run.faults; a bad one raises FaultSpecError before anything starts); the
     summary's ``faults`` says what followed each.
+
+    A person's operator (``run.operator``) runs in this process's terminal, started once
+    the stack is up and stopped when the run ends (teleop.run.foreground); the run fails
+    if it ends first.
     """
     if config.site.name:
         raise RunError(
@@ -565,7 +597,9 @@ def run_on_services(
     tool = Latest()
 
     phases: tuple[str, ...] = ()
-    if config.run.teleoperated:
+    if config.run.teleoperated and config.run.operator != SCRIPTED:
+        phases = HUMAN_PHASES  # read from the world (teleop.devices.human_loop)
+    elif config.run.teleoperated:
         scenario = Scenario.load(config.operator.scenario_path, config.robot.object_bodies)
         phases = tuple(phase.name for phase in scenario.phases)
     tracker = RunProgress(config.run.duration_s, phases)
@@ -624,11 +658,17 @@ def run_on_services(
         )
         deadline_s = config.run.duration_s * factor + RUN_TIMEOUT_SLACK_S
         wall_start = time.perf_counter()
-        with Stack(run_dir, plan.programs) as stack:
+        with contextlib.ExitStack() as running:
+            stack = running.enter_context(Stack(run_dir, plan.programs))
             watch = ProgramWatch(stack.log_path, _read_log, frozenset(restarts_expected))
             check = _failure_check(stack, watch)
             if faults is not None:
                 check = faults.start(stack, watch, check)
+            # Entered last: stopped first, while the stack still runs (its summary then
+            # has the run's end).
+            for program in plan.foreground:
+                check = _foreground_check(running.enter_context(Foreground(program, run_dir)),
+                                          check)  # fmt: skip
             try:
                 _wait_alive(session, topics, services, stack, check)
                 try:
@@ -886,6 +926,19 @@ def refuse_if_running(run_dir: Path) -> None:
         f"a stack already runs in {run_dir}: stop it (teleop down --run-dir {run_dir}) "
         "or use another --run-dir"
     )
+
+
+def _foreground_check(foreground: Foreground, check: Callable[[], None]) -> Callable[[], None]:
+    """``check``, then whether ``foreground`` still runs (RunError if not)."""
+
+    def both() -> None:
+        check()
+        try:
+            foreground.check()
+        except ForegroundExited as exc:
+            raise RunError(str(exc)) from None
+
+    return both
 
 
 def _failure_check(stack: Stack, watch: ProgramWatch | None = None) -> Callable[[], None]:

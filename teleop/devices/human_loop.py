@@ -1,0 +1,333 @@
+"""The operator service of a person at the controls, as pure code: when hand inputs go
+out, and the task's phases read from the world.
+
+:class:`HumanOperatorLoop` takes what the service receives (the plant's STARTED, GRASP and
+RELEASE events, TOOL_POSE and OBJECT_POSES), asks a device for the person's
+:class:`teleop.devices.human.HandIntent` and hands HAND_INPUT and RUN_EVENT decisions to
+:class:`HumanOutputs`. Clock-injected: each call takes the time; ``services/human.py`` is
+the bus adapter.
+
+When hand inputs go out (:meth:`HumanOperatorLoop.due`), on the grid of sample ticks the
+haptic device expects (teleop.core.ticks: ``operator.decision_rate_hz``, each valid from
+its sample tick plus one decision period):
+
+- lockstep: the haptic device steps tick ``k`` only once the input that applies at ``k``
+  is in, so this loop paces the run by the person's clock. The input of sample tick
+  ``s`` goes out once ``s`` plant periods of wall time have passed since the run started,
+  and never more than ``MAX_AHEAD_TICKS`` ahead of the newest tick seen: the run goes no
+  faster than real time, slows down with a busy machine rather than braking, and a key
+  takes effect in the next input, at most a decision period and the run's lag later.
+- realtime: once per decision period of wall time, valid from the newest tick seen plus
+  one decision period (the haptic device takes the newest input that applies).
+
+The hand holds the handle where the device puts it. The emulated hand is a spring
+(``haptic.hand_stiffness_n_per_m``) that the rendered force pushes aside by ``f / k``: a
+person on a haptic handle feels the force and leans into it, one at a keyboard cannot, so
+the hand's target leans into the newest force felt (the controller's batched
+FORCE_FEEDBACK) by that much. Without it a held cube's weight alone would sink the tool
+(its 1 N moves the handle past the rate control's dead band); the force is shown instead.
+
+The task's phases come from the world, not from a script (:class:`WorldTask`): reach
+(nothing held), carry (the plant's GRASP), placed (released with the object over the
+bin); the task is done once the object has rested in the bin for ``PLACED_SETTLE_S``,
+or when the person ends it (not a success).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from teleop.bus.messages import Button, Event
+from teleop.core.clock import NS_PER_S
+from teleop.core.config import Config
+from teleop.core.ticks import is_sample_tick
+from teleop.devices.human import HandIntent, hand_command
+from teleop.devices.routing import SceneKnowledge
+from teleop.sim.proximity import BIN_BODY
+
+logger = logging.getLogger(__name__)
+
+# Lockstep: inputs go out at most this many ticks ahead of the newest tick seen (a run
+# slower than real time does not let a key wait behind a queue of older inputs).
+MAX_AHEAD_TICKS = 60
+# The object counts as placed once it has lain in the bin, not held, this long (sim s).
+PLACED_SETTLE_S = 0.5
+# A grasp or release counts once it has held this long (sim s): fingers that close on or
+# open from an object touch and leave it several times within milliseconds.
+HOLD_SETTLE_S = 0.05
+# TASK_DONE names a tick this far ahead of the tick that ends the task: the plant ends the
+# run there (the same margin as the scripted operator's).
+TASK_DONE_AHEAD_TICKS = 100
+
+# Where the task's events go: (event, tick, step, value) as the RUN_EVENT record has them.
+Emit = Callable[[Event, int, int, float], None]
+
+REACH, CARRY, PLACED = 0, 1, 2
+PHASES = ("reach", "carry", "placed")
+
+
+class HumanOutputs(Protocol):
+    """Where the loop's decisions go (the bus adapter publishes them)."""
+
+    def hand(self, valid_from_tick: int, target_p_m: np.ndarray, buttons: Button) -> None: ...
+
+    def event(self, event: Event, tick: int, step: int, value: float) -> None: ...
+
+
+@dataclass
+class WorldView:
+    """What the person's screen shows: the newest of the world, as the services sent it."""
+
+    tick: int = -1
+    tool_p_m: np.ndarray | None = None  # world frame
+    tool_speed_m_s: float = 0.0
+    objects_p_m: dict[str, np.ndarray] | None = None
+    holding: bool = False
+    device_f_n: np.ndarray | None = None  # the force the handle renders, device frame
+    phase: int = -1
+    done: bool = False
+    success: bool = False
+
+
+class WorldTask:
+    """The pick-and-place task's phases from the world: what is held (the plant's GRASP
+    and RELEASE) and where the objects are (OBJECT_POSES)."""
+
+    def __init__(
+        self, scene: SceneKnowledge, object_names: Sequence[str], timestep_s: float
+    ) -> None:
+        self.scene = scene
+        self.object_names = tuple(object_names)
+        self.movable = tuple(name for name in object_names if name != BIN_BODY)
+        self.timestep_s = timestep_s
+        self.reset()
+
+    def reset(self) -> None:
+        self.phase = -1
+        self.holding = False
+        self.done = False
+        self.success = False
+        self._placed_since_tick: int | None = None
+        self._objects: dict[str, np.ndarray] | None = None
+        self._hold_change: tuple[bool, int] | None = None  # (holding, since tick), pending
+        self.phase_times: list[dict[str, Any]] = []
+        self.start_tick: int | None = None
+        self.done_tick: int | None = None
+
+    def _enter(self, phase: int, tick: int, emit: Emit) -> None:
+        if phase == self.phase:
+            return
+        self.phase = phase
+        if self.start_tick is None:
+            self.start_tick = tick
+        self.phase_times.append({"name": PHASES[phase], "sim_time_s": tick * self.timestep_s})
+        emit(Event.PHASE, tick, tick, float(phase))
+
+    def start(self, tick: int, emit: Emit) -> None:
+        """The run started: the person reaches for the object."""
+        self._enter(REACH, tick, emit)
+
+    def on_hold(self, holding: bool, tick: int) -> None:
+        """The plant's GRASP (``holding``) or RELEASE at ``tick``: it counts once it has
+        held for HOLD_SETTLE_S (:meth:`on_objects` sees to it)."""
+        self._hold_change = (holding, tick)
+
+    def _settle_hold(self, tick: int, emit: Emit) -> None:
+        change = self._hold_change
+        if change is None or (tick - change[1]) * self.timestep_s < HOLD_SETTLE_S:
+            return
+        self._hold_change = None
+        holding, since = change
+        if holding == self.holding:
+            return
+        self.holding = holding
+        if self.done or self.phase < 0:
+            return
+        self._placed_since_tick = None
+        if holding:
+            self._enter(CARRY, since, emit)
+        # Released: placed if over the bin (it falls in: settled below), else dropped.
+        elif not any(self._over_bin(name, inside=False) for name in self.movable):
+            self._enter(REACH, since, emit)
+        else:
+            self._enter(PLACED, since, emit)
+
+    def _over_bin(self, name: str, *, inside: bool) -> bool:
+        """Whether object ``name`` is over the bin's floor, seen from above; ``inside``:
+        and below the top of its walls."""
+        objects = self._objects
+        if objects is None or name not in objects or self.scene.bin_high_m is None:
+            return False
+        bin_p_m = objects.get(BIN_BODY)
+        if bin_p_m is None or not self.scene.in_bin(objects[name], bin_p_m):
+            return False
+        return not inside or objects[name][2] <= bin_p_m[2] + self.scene.bin_high_m[2]
+
+    def on_objects(self, tick: int, objects_p_m: dict[str, np.ndarray], emit: Emit) -> None:
+        """OBJECT_POSES at ``tick``: a grasp or release that has held counts; a placed
+        object that rests in the bin ends the task."""
+        self._objects = objects_p_m
+        self._settle_hold(tick, emit)
+        if self.done or self.phase < 0 or self.holding or self._hold_change is not None:
+            return
+        if not any(self._over_bin(name, inside=True) for name in self.movable):
+            self._placed_since_tick = None
+            return
+        if self.phase != PLACED:
+            self._enter(PLACED, tick, emit)
+        if self._placed_since_tick is None:
+            self._placed_since_tick = tick
+        elif (tick - self._placed_since_tick) * self.timestep_s >= PLACED_SETTLE_S:
+            self.finish(True, tick, emit)
+
+    def finish(self, success: bool, tick: int, emit: Emit) -> None:
+        """The task ends (placed, or the person ended it): TASK_DONE, once."""
+        if self.done:
+            return
+        self.done, self.success, self.done_tick = True, success, tick
+        emit(Event.TASK_DONE, tick, tick + TASK_DONE_AHEAD_TICKS, 1.0 if success else 0.0)
+
+
+class HumanOperatorLoop:
+    """Hand inputs from a person's device, paced for the run's mode, and the task's
+    phases from the world (see the module docstring)."""
+
+    def __init__(
+        self,
+        config: Config,
+        outputs: HumanOutputs,
+        scene: SceneKnowledge,
+        *,
+        lockstep: bool,
+    ) -> None:
+        self.config = config
+        self.outputs = outputs
+        self.lockstep = lockstep
+        self.timestep_s = config.plant.timestep_s
+        self.period_ns = round(self.timestep_s * NS_PER_S)
+        self.rate_hz = config.operator.decision_rate_hz
+        self.lead_ticks = round(1.0 / (self.rate_hz * self.timestep_s))
+        self.decision_ns = round(NS_PER_S / self.rate_hz)
+        self.hand_stiffness_n_per_m = config.haptic.hand_stiffness_n_per_m
+        self.task = WorldTask(scene, config.robot.object_bodies, self.timestep_s)
+        self.view = WorldView()
+        self.runs = 0
+        self.inputs_sent = 0
+        self.inputs_held_back = 0  # lockstep: inputs due by the wall clock the run lagged
+        self._start_ns: int | None = None
+        self._next_sample_tick = 0
+        self._next_realtime_ns = 0
+        self._held_back_tick = -1
+        self._last_tool: tuple[int, np.ndarray] | None = None
+
+    # -- what the bus brings -------------------------------------------------------------
+    def on_started(self, now_ns: int) -> None:
+        """The plant's STARTED: a new run from tick 0."""
+        self.runs += 1
+        self._start_ns = now_ns
+        self._next_sample_tick = 0
+        self._next_realtime_ns = now_ns
+        self._last_tool = None
+        self.view = WorldView(tick=0)
+        self.task.reset()
+        self.task.start(0, self._emit)
+        self.view.phase = self.task.phase
+
+    def on_tool(self, tick: int, world_p_m: np.ndarray) -> None:
+        p = np.array(world_p_m, dtype=np.float64)
+        if self._last_tool is not None and tick > self._last_tool[0]:
+            dt_s = (tick - self._last_tool[0]) * self.timestep_s
+            self.view.tool_speed_m_s = float(np.linalg.norm(p - self._last_tool[1])) / dt_s
+        self._last_tool = (tick, p)
+        self.view.tick = max(self.view.tick, tick)
+        self.view.tool_p_m = p
+
+    def on_objects(self, tick: int, objects_p_m: Sequence[np.ndarray]) -> None:
+        names = self.config.robot.object_bodies
+        pairs = zip(names, objects_p_m, strict=False)  # the record names its first n
+        objects = {n: np.array(p, dtype=np.float64) for n, p in pairs}
+        self.view.objects_p_m = objects
+        self.task.on_objects(tick, objects, self._emit)
+        self._sync_view()
+
+    def on_hold(self, holding: bool, tick: int) -> None:
+        self.view.holding = holding
+        self.task.on_hold(holding, tick)
+
+    def on_force(self, device_f_n: np.ndarray) -> None:
+        self.view.device_f_n = np.array(device_f_n, dtype=np.float64)
+
+    def end_task(self) -> None:
+        """The person ends the run (not a success)."""
+        if self._start_ns is not None:
+            self.task.finish(False, max(self.view.tick, 0), self._emit)
+            self._sync_view()
+
+    def _sync_view(self) -> None:
+        task = self.task
+        self.view.phase, self.view.done, self.view.success = task.phase, task.done, task.success
+
+    def _emit(self, event: Event, tick: int, step: int, value: float) -> None:
+        self.outputs.event(event, tick, step, value)
+
+    # -- hand inputs ---------------------------------------------------------------------
+    def due(self, now_ns: int, intent: HandIntent) -> int:
+        """Send the hand inputs due at ``now_ns`` with ``intent``; the time of the next
+        one (ns, the clock's), for the caller's wait."""
+        if self._start_ns is None:
+            return now_ns + self.decision_ns  # no run yet
+        target_p_m, buttons = hand_command(intent, self.config.teleop)
+        if self.view.device_f_n is not None:
+            target_p_m = target_p_m - self.view.device_f_n / self.hand_stiffness_n_per_m
+        if not self.lockstep:
+            if now_ns >= self._next_realtime_ns:
+                self._send(max(self.view.tick, 0) + self.lead_ticks, target_p_m, buttons)
+                self._next_realtime_ns += self.decision_ns
+                if self._next_realtime_ns <= now_ns:  # a stall: no burst to catch up
+                    self._next_realtime_ns = now_ns + self.decision_ns
+            return self._next_realtime_ns
+        newest = max(self.view.tick, 0)
+        while True:
+            s = self._next_sample_tick
+            due_ns = self._start_ns + s * self.period_ns
+            if due_ns > now_ns:
+                return due_ns
+            if s + self.lead_ticks > newest + MAX_AHEAD_TICKS:
+                if s != self._held_back_tick:
+                    self._held_back_tick = s
+                    self.inputs_held_back += 1
+                return now_ns + self.decision_ns  # the run lags: wait for its next pose
+            self._send(s + self.lead_ticks, target_p_m, buttons)
+            self._next_sample_tick = self._following_sample_tick(s)
+
+    def _following_sample_tick(self, tick: int) -> int:
+        j = tick + 1
+        while not is_sample_tick(j, self.rate_hz, self.timestep_s):
+            j += 1
+        return j
+
+    def _send(self, valid_from_tick: int, target_p_m: np.ndarray, buttons: Button) -> None:
+        self.outputs.hand(valid_from_tick, target_p_m, buttons)
+        self.inputs_sent += 1
+
+    def summary(self) -> dict[str, Any]:
+        """The task's outcome and phase times, as the scripted operator reports them."""
+        task = self.task
+        duration_s = None
+        if task.start_tick is not None and task.done_tick is not None:
+            duration_s = (task.done_tick - task.start_tick) * self.timestep_s
+        return {
+            "phases": task.phase_times,
+            "task_done": task.done,
+            "success": task.success if task.done else None,
+            "failure": "" if task.success or not task.done else "ended by the person",
+            "task_duration_s": duration_s,
+            "runs": self.runs,
+            "hand_inputs_sent": self.inputs_sent,
+            "hand_inputs_held_back": self.inputs_held_back,
+        }

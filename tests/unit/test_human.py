@@ -1,0 +1,266 @@
+"""A person at the controls, without a bus: key presses into hand intents
+(teleop.devices.human), hand inputs paced for each timing mode and the task's phases read
+from the world (teleop.devices.human_loop), on a fake clock."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from teleop.bus.messages import Button, Event
+from teleop.core.clock import NS_PER_S
+from teleop.core.config import ConfigError, load_config
+from teleop.core.ticks import expected_valid_from
+from teleop.devices.human import (
+    DEFAULT_KEYS,
+    UP,
+    HandIntent,
+    KeyboardIntent,
+    hand_command,
+    top_offset_m,
+)
+from teleop.devices.human_loop import (
+    CARRY,
+    MAX_AHEAD_TICKS,
+    PLACED,
+    REACH,
+    TASK_DONE_AHEAD_TICKS,
+    HumanOperatorLoop,
+    WorldTask,
+)
+from teleop.devices.routing import SceneKnowledge
+
+MS = 1_000_000  # ns
+CONFIG = load_config()
+BIN = np.array([0.35, 0.35, 0.0])
+SCENE = SceneKnowledge(bin_low_m=(-0.09, -0.09, 0.0), bin_high_m=(0.09, 0.09, 0.08))
+
+
+class Outputs:
+    def __init__(self) -> None:
+        self.hands: list[tuple[int, np.ndarray, Button]] = []
+        self.events: list[tuple[Event, int, int, float]] = []
+
+    def hand(self, valid_from_tick: int, target_p_m: np.ndarray, buttons: Button) -> None:
+        self.hands.append((valid_from_tick, np.array(target_p_m), buttons))
+
+    def event(self, event: Event, tick: int, step: int, value: float) -> None:
+        self.events.append((event, tick, step, value))
+
+
+# -- intents and hand commands -------------------------------------------------------------
+def test_no_intent_leaves_the_handle_at_its_centre():
+    target, buttons = hand_command(HandIntent(), CONFIG.teleop)
+    assert np.array_equal(target, np.zeros(3)) and buttons == Button.NONE
+
+
+def test_a_full_intent_asks_for_the_top_speed_within_the_free_workspace():
+    teleop = CONFIG.teleop
+    target, _ = hand_command(HandIntent((1.0, 0.0, 0.0)), teleop)
+    assert target[0] == pytest.approx(top_offset_m(teleop)) and target[1:].tolist() == [0, 0]
+    assert top_offset_m(teleop) <= teleop.workspace_free_m
+    # The rate law (v = gain (x - deadband)) gives the fraction of the top speed asked for.
+    half, _ = hand_command(HandIntent((0.0, -0.5, 0.0)), teleop)
+    top_speed = teleop.rate_gain_per_s * (top_offset_m(teleop) - teleop.deadband_m)
+    speed = teleop.rate_gain_per_s * (abs(half[1]) - teleop.deadband_m)
+    assert half[1] < 0 and speed == pytest.approx(0.5 * top_speed)
+
+
+def test_a_diagonal_intent_is_clipped_to_the_top_speed_and_keeps_its_direction():
+    target, _ = hand_command(HandIntent((1.0, 1.0, 0.0)), CONFIG.teleop)
+    assert np.linalg.norm(target) == pytest.approx(top_offset_m(CONFIG.teleop))
+    assert target[0] == pytest.approx(target[1])
+
+
+def test_gripper_and_clutch_are_the_hand_inputs_buttons():
+    assert HandIntent(gripper_closed=True).buttons == Button.GRIPPER_CLOSE
+    assert HandIntent(clutch=True, gripper_closed=True).buttons == (
+        Button.GRIPPER_CLOSE | Button.CLUTCH
+    )
+
+
+@pytest.mark.parametrize("bad", [(math.nan, 0.0, 0.0), (1.5, 0.0, 0.0), (0.0, 0.0)])
+def test_an_intent_out_of_range_is_refused(bad):
+    with pytest.raises(ValueError, match="velocity_fraction"):
+        HandIntent(bad)
+
+
+def test_a_key_moves_its_axis_for_the_hold_time_and_a_repeat_extends_it():
+    keys = KeyboardIntent(CONFIG.keyboard)
+    hold_ns = round(CONFIG.keyboard.hold_s * NS_PER_S)
+    speed = CONFIG.keyboard.speed_steps[CONFIG.keyboard.start_speed_step]
+    keys.press("w", 0)
+    assert keys.intent(1).velocity_fraction == (speed, 0.0, 0.0)
+    assert keys.intent(hold_ns).velocity_fraction == (0.0, 0.0, 0.0)  # a tap: one step
+    keys.press(UP, hold_ns - 1)  # the same axis by its other key (a repeat)
+    assert keys.intent(hold_ns + 100 * MS).velocity_fraction[0] == speed
+    keys.press("s", hold_ns + 100 * MS)  # the opposite key takes the axis over
+    assert keys.intent(hold_ns + 200 * MS).velocity_fraction[0] == -speed
+    keys.press("a", hold_ns + 200 * MS)  # another axis adds to it
+    assert keys.intent(hold_ns + 300 * MS).velocity_fraction[:2] == (-speed, speed)
+    keys.press(" ", hold_ns + 300 * MS)
+    assert not keys.intent(hold_ns + 300 * MS).moving
+
+
+def test_speed_steps_stop_at_their_ends_and_toggles_flip():
+    keys = KeyboardIntent(CONFIG.keyboard)
+    for _ in range(10):
+        keys.press("+", 0)
+    assert keys.speed_fraction == CONFIG.keyboard.speed_steps[-1]
+    for _ in range(10):
+        keys.press("-", 0)
+    assert keys.speed_fraction == CONFIG.keyboard.speed_steps[0]
+    keys.press("g", 0)
+    keys.press("c", 0)
+    assert keys.intent(0).buttons == Button.GRIPPER_CLOSE | Button.CLUTCH
+    keys.press("g", 0)
+    assert keys.intent(0).buttons == Button.CLUTCH
+
+
+def test_unknown_keys_are_counted_and_do_nothing():
+    keys = KeyboardIntent(CONFIG.keyboard)
+    assert keys.press("z", 0) is None and keys.press("", 0) is None
+    assert keys.unknown_keys == 2 and keys.presses == 0 and not keys.intent(0).moving
+    assert keys.press("q", 0) is not None and keys.quit_requested
+
+
+def test_every_move_key_names_an_axis_and_a_sign():
+    moves = [a for a in DEFAULT_KEYS.values() if a.kind == "move"]
+    assert {(a.axis, a.sign) for a in moves} == {
+        (axis, sign) for axis in range(3) for sign in (1.0, -1.0)
+    }
+
+
+def test_keyboard_config_is_checked():
+    with pytest.raises(ConfigError, match="keyboard.start_speed_step"):
+        load_config(None, ["keyboard.start_speed_step=9"])
+    with pytest.raises(ConfigError, match="run.operator"):
+        load_config(None, ['run.operator="joystick"'])
+
+
+# -- pacing ----------------------------------------------------------------------------------
+def _loop(lockstep: bool) -> tuple[HumanOperatorLoop, Outputs]:
+    outputs = Outputs()
+    return HumanOperatorLoop(CONFIG, outputs, SCENE, lockstep=lockstep), outputs
+
+
+def test_nothing_goes_out_before_the_run_starts():
+    loop, out = _loop(lockstep=True)
+    assert loop.due(5 * MS, HandIntent()) > 5 * MS and out.hands == []
+
+
+def test_lockstep_inputs_follow_the_wall_clock_on_the_grid_the_haptic_device_waits_on():
+    loop, out = _loop(lockstep=True)
+    t0 = 1_000 * MS
+    loop.on_started(t0)
+    next_ns = loop.due(t0, HandIntent())
+    assert [h[0] for h in out.hands] == [10] and next_ns == t0 + 10 * MS
+    for tick in range(0, 60, 10):  # the run keeps up: poses come as it steps
+        loop.on_tool(tick, np.zeros(3))
+    loop.due(t0 + 45 * MS, HandIntent())  # sample ticks 10..40 are due by now
+    sent = [h[0] for h in out.hands]
+    assert sent == [10, 20, 30, 40, 50]
+    # The haptic device's expected input at every tick up to the last is among them.
+    for tick in range(10, 60):
+        assert expected_valid_from(tick, 100.0, CONFIG.plant.timestep_s, 10) in sent
+
+
+def test_lockstep_holds_inputs_back_while_the_run_lags_and_never_bursts_past_it():
+    loop, out = _loop(lockstep=True)
+    loop.on_started(0)
+    loop.due(10 * NS_PER_S, HandIntent())  # ten seconds of wall clock, no pose seen yet
+    newest = max(h[0] for h in out.hands)
+    assert newest <= MAX_AHEAD_TICKS and loop.inputs_held_back == 1
+    loop.on_tool(100, np.zeros(3))
+    loop.due(10 * NS_PER_S + MS, HandIntent())
+    assert max(h[0] for h in out.hands) <= 100 + MAX_AHEAD_TICKS
+    assert [h[0] for h in out.hands] == sorted({h[0] for h in out.hands})  # in order, once
+
+
+def test_realtime_sends_one_input_per_decision_period_ahead_of_the_newest_tick():
+    loop, out = _loop(lockstep=False)
+    loop.on_started(0)
+    loop.on_tool(500, np.zeros(3))
+    assert loop.due(0, HandIntent()) == 10 * MS
+    assert loop.due(5 * MS, HandIntent()) == 10 * MS and len(out.hands) == 1
+    assert out.hands[0][0] == 510
+    loop.due(2 * NS_PER_S, HandIntent())  # after a stall: one input, not two hundred
+    assert len(out.hands) == 2
+
+
+def test_the_hand_leans_into_the_force_it_renders():
+    loop, out = _loop(lockstep=False)
+    loop.on_started(0)
+    loop.on_force(np.array([0.0, 0.0, -1.0]))  # a held cube's weight on the handle
+    loop.due(0, HandIntent())
+    stiffness = CONFIG.haptic.hand_stiffness_n_per_m
+    assert out.hands[0][1].tolist() == pytest.approx([0.0, 0.0, 1.0 / stiffness])
+
+
+# -- the task's phases, from the world -------------------------------------------------------
+class Task:
+    def __init__(self) -> None:
+        self.events: list[tuple[Event, int, int, float]] = []
+        self.task = WorldTask(SCENE, ("cube", "bin"), 0.001)
+        self.task.start(0, self.emit)
+
+    def emit(self, event: Event, tick: int, step: int, value: float) -> None:
+        self.events.append((event, tick, step, value))
+
+    def objects(self, tick: int, cube: tuple[float, float, float]) -> None:
+        self.task.on_objects(tick, {"cube": np.array(cube), "bin": BIN}, self.emit)
+
+    def phases(self) -> list[int]:
+        return [int(e[3]) for e in self.events if e[0] == Event.PHASE]
+
+
+def test_a_grasp_carry_and_placing_end_the_task_a_success():
+    t = Task()
+    t.objects(10, (0.45, -0.25, 0.025))
+    t.task.on_hold(True, 100)
+    for tick in range(110, 400, 10):  # carried over the bin
+        t.objects(tick, (0.35, 0.35, 0.2))
+    assert t.phases() == [REACH, CARRY]
+    t.task.on_hold(False, 400)
+    for tick in range(410, 1000, 10):  # fallen in and lying there
+        t.objects(tick, (0.35, 0.35, 0.03))
+    assert t.phases() == [REACH, CARRY, PLACED]
+    done = [e for e in t.events if e[0] == Event.TASK_DONE]
+    assert len(done) == 1 and done[0][3] == 1.0
+    assert done[0][2] == done[0][1] + TASK_DONE_AHEAD_TICKS
+    assert t.task.phase_times[1] == {"name": "carry", "sim_time_s": 0.1}
+
+
+def test_fingers_that_touch_and_leave_within_milliseconds_change_no_phase():
+    t = Task()
+    for i, tick in enumerate(range(100, 110)):
+        t.task.on_hold(i % 2 == 0, tick)  # grasp, release, grasp ... released at last
+    for tick in range(110, 300, 10):
+        t.objects(tick, (0.45, -0.25, 0.025))
+    assert t.phases() == [REACH]
+
+
+def test_a_cube_dropped_outside_the_bin_is_reached_for_again():
+    t = Task()
+    t.task.on_hold(True, 100)
+    t.objects(200, (0.45, -0.25, 0.1))
+    t.task.on_hold(False, 300)
+    for tick in range(310, 1500, 10):
+        t.objects(tick, (0.45, -0.25, 0.025))
+    assert t.phases() == [REACH, CARRY, REACH]
+    assert not t.task.done
+
+
+def test_the_person_ending_the_run_is_no_success_and_said_once():
+    loop, out = _loop(lockstep=True)
+    loop.on_started(0)
+    loop.on_tool(1234, np.zeros(3))
+    loop.end_task()
+    loop.end_task()
+    done = [e for e in out.events if e[0] == Event.TASK_DONE]
+    assert done == [(Event.TASK_DONE, 1234, 1234 + TASK_DONE_AHEAD_TICKS, 0.0)]
+    summary = loop.summary()
+    assert summary["task_done"] and summary["success"] is False
+    assert summary["failure"] == "ended by the person"
