@@ -590,6 +590,9 @@ class OperatorConfig:
 # person through one of the human input devices (teleop/devices/human.py).
 SCRIPTED = "scripted"
 OPERATORS = (SCRIPTED, "keyboard")
+# The person's devices read in the launcher's terminal (the launcher runs them in the
+# foreground); the others run under supervisord like every service.
+TERMINAL_OPERATORS = ("keyboard",)
 
 
 @dataclass(frozen=True)

@@ -63,7 +63,14 @@ from teleop.bus.session import (
 )
 from teleop.bus.topics import Topics
 from teleop.control.kinematics import build_arm_model, tool_jacobian
-from teleop.core.config import ROBOT_SITE, SCRIPTED, BusConfig, Config, load_config
+from teleop.core.config import (
+    ROBOT_SITE,
+    SCRIPTED,
+    TERMINAL_OPERATORS,
+    BusConfig,
+    Config,
+    load_config,
+)
 from teleop.core.criteria import judge_task
 from teleop.core.net import LOOPBACK, LoopbackPorts, endpoint_address
 from teleop.core.rundir import (
@@ -446,7 +453,8 @@ class StackServices:
         outside = check_without(scenario, without)
         started = tuple(n for n in scenario if n not in outside)
         human = config.run.operator != SCRIPTED and OPERATOR_SERVICE in started
-        foreground = (OPERATOR_SERVICE,) if human else ()
+        terminal = human and config.run.operator in TERMINAL_OPERATORS
+        foreground = (OPERATOR_SERVICE,) if terminal else ()
         modules = ((OPERATOR_SERVICE, f"services.{config.run.operator}"),) if human else ()
         site = config.site.name
         if not site:
