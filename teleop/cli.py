@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from teleop.core.config import (
+    INPUT_DEVICE_OPERATORS,
     OPERATOR_SITE,
     OPERATORS,
     ROBOT_SITE,
@@ -491,6 +492,13 @@ def check_operator(config: Config, without: Sequence[str] = ()) -> None:
             "keyboard: standard input or output is not a terminal, so no key can be read: "
             "run teleop in a terminal (ssh -t for a remote one, or tmux)"
         )
+    if device in INPUT_DEVICE_OPERATORS:  # there, and this user may read it
+        from teleop.devices.input_devices import DeviceUnavailable, open_input_device
+
+        try:
+            open_input_device(device, config).close()
+        except DeviceUnavailable as exc:
+            raise ConfigError(str(exc)) from None
 
 
 def _run_and_report(

@@ -589,10 +589,12 @@ class OperatorConfig:
 # Who drives the emulated haptic handle (RunConfig.operator): the scripted operator, or a
 # person through one of the human input devices (teleop/devices/human.py).
 SCRIPTED = "scripted"
-OPERATORS = (SCRIPTED, "keyboard")
+OPERATORS = (SCRIPTED, "keyboard", "gamepad", "spacemouse")
 # The person's devices read in the launcher's terminal (the launcher runs them in the
 # foreground); the others run under supervisord like every service.
 TERMINAL_OPERATORS = ("keyboard",)
+# The person's devices read from Linux input (evdev, hidraw): teleop/devices/input_devices.py.
+INPUT_DEVICE_OPERATORS = ("gamepad", "spacemouse")
 
 
 @dataclass(frozen=True)

@@ -224,6 +224,7 @@ class HumanOperatorLoop:
         self._next_realtime_ns = 0
         self._held_back_tick = -1
         self._last_tool: tuple[int, np.ndarray] | None = None
+        self.tool_start_p_m: np.ndarray | None = None  # the run's first tool pose seen
 
     # -- what the bus brings -------------------------------------------------------------
     def on_started(self, now_ns: int) -> None:
@@ -233,6 +234,7 @@ class HumanOperatorLoop:
         self._next_sample_tick = 0
         self._next_realtime_ns = now_ns
         self._last_tool = None
+        self.tool_start_p_m = None
         self.view = WorldView(tick=0)
         self.task.reset()
         self.task.start(0, self._emit)
@@ -244,6 +246,8 @@ class HumanOperatorLoop:
             dt_s = (tick - self._last_tool[0]) * self.timestep_s
             self.view.tool_speed_m_s = float(np.linalg.norm(p - self._last_tool[1])) / dt_s
         self._last_tool = (tick, p)
+        if self.tool_start_p_m is None:
+            self.tool_start_p_m = p
         self.view.tick = max(self.view.tick, tick)
         self.view.tool_p_m = p
 
@@ -256,7 +260,7 @@ class HumanOperatorLoop:
         self._sync_view()
 
     def on_hold(self, holding: bool, tick: int) -> None:
-        self.view.holding = holding
+        """The plant's GRASP or RELEASE: shown and counted once settled (WorldTask)."""
         self.task.on_hold(holding, tick)
 
     def on_force(self, device_f_n: np.ndarray) -> None:
@@ -271,6 +275,7 @@ class HumanOperatorLoop:
     def _sync_view(self) -> None:
         task = self.task
         self.view.phase, self.view.done, self.view.success = task.phase, task.done, task.success
+        self.view.holding = task.holding
 
     def _emit(self, event: Event, tick: int, step: int, value: float) -> None:
         self.outputs.event(event, tick, step, value)
@@ -330,4 +335,12 @@ class HumanOperatorLoop:
             "runs": self.runs,
             "hand_inputs_sent": self.inputs_sent,
             "hand_inputs_held_back": self.inputs_held_back,
+            # Where the person took the tool (world frame, m): the run's first and last
+            # tool poses this operator saw.
+            "tool_start_m": _listed(self.tool_start_p_m),
+            "tool_end_m": _listed(self.view.tool_p_m),
         }
+
+
+def _listed(p_m: np.ndarray | None) -> list[float] | None:
+    return None if p_m is None else [round(float(v), 6) for v in p_m]

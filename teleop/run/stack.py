@@ -64,6 +64,7 @@ from teleop.bus.session import (
 from teleop.bus.topics import Topics
 from teleop.control.kinematics import build_arm_model, tool_jacobian
 from teleop.core.config import (
+    INPUT_DEVICE_OPERATORS,
     ROBOT_SITE,
     SCRIPTED,
     TERMINAL_OPERATORS,
@@ -455,7 +456,9 @@ class StackServices:
         human = config.run.operator != SCRIPTED and OPERATOR_SERVICE in started
         terminal = human and config.run.operator in TERMINAL_OPERATORS
         foreground = (OPERATOR_SERVICE,) if terminal else ()
-        modules = ((OPERATOR_SERVICE, f"services.{config.run.operator}"),) if human else ()
+        program = "input_device" if config.run.operator in INPUT_DEVICE_OPERATORS else ""
+        program = program or config.run.operator
+        modules = ((OPERATOR_SERVICE, f"services.{program}"),) if human else ()
         site = config.site.name
         if not site:
             return cls(scenario, outside, started, foreground=foreground, modules=modules)

@@ -1,0 +1,73 @@
+"""A person on a gamepad or a SpaceMouse drives the arm (``teleop run grasp --operator
+gamepad|spacemouse``): the operator's place in the stack (services/human.py), read from a
+Linux input device (teleop/devices/input_devices.py: evdev or hidraw, found through
+sysfs, decoded by teleop/devices/input_events.py).
+
+It runs under supervisord like every service (the device is not the terminal's). Its
+loop waits on the device (``poll``, no busy loop) and hands each intent to the pacer; a
+gamepad that can rumble renders the force the emulated handle feels
+(``gamepad.rumble*``), and the force is in the recording as for every run. A device that
+goes away mid-run ends the task (not a success) rather than leaving the hand where it was.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import sys
+import threading
+import time
+
+from services.human import HumanOperatorService
+from teleop.bus.service import service_main
+from teleop.devices.human import HandIntent
+from teleop.devices.input_devices import DeviceUnavailable, HumanInputDevice, open_input_device
+
+logger = logging.getLogger(__name__)
+
+# The device loop's longest wait for input (s): how soon it sees a stop or renders a new
+# force when the person does not move.
+READ_TIMEOUT_S = 0.05
+
+
+class InputDeviceOperatorService(HumanOperatorService):
+    """The device is ``run.operator`` (gamepad or spacemouse)."""
+
+    def open(self) -> None:
+        self.device = self.config.run.operator
+        self.reader: HumanInputDevice = open_input_device(self.device, self.config)
+        self._intent = HandIntent()
+        self.device_lost = ""
+        super().open()
+
+    def intent(self, now_ns: int) -> HandIntent:
+        return self._intent  # the caller holds self.lock
+
+    def interact(self, stop: threading.Event) -> None:
+        try:
+            while not stop.is_set():
+                try:
+                    intent = self.reader.read(READ_TIMEOUT_S)
+                except DeviceUnavailable as exc:
+                    self.device_lost = str(exc)
+                    logger.error("%s: ending the task", exc)
+                    self.end_task()
+                    stop.wait()
+                    return
+                now_ns = time.monotonic_ns()
+                with self.lock:
+                    changed = intent != self._intent
+                    self._intent = intent
+                    force = self.loop.view.device_f_n
+                if changed:
+                    self.input_changed(now_ns)
+                self.reader.rumble(0.0 if force is None else math.hypot(*force.tolist()))
+        finally:
+            self.reader.close()
+
+    def summary(self) -> dict[str, object]:
+        return {**super().summary(), "device_lost": self.device_lost or None}
+
+
+if __name__ == "__main__":
+    sys.exit(service_main(InputDeviceOperatorService))
