@@ -11,7 +11,7 @@ export RERUN_ANALYTICS := 0
 export TELEMETRY_ENABLED := false
 export MUJOCO_GL ?= egl
 
-.PHONY: demo test test-fast test-web chromium lint venv clean
+.PHONY: demo test test-fast test-web chromium tmux lint venv clean
 
 venv: $(STAMP)
 
@@ -46,6 +46,7 @@ lint: $(STAMP)
 # layers one test at a time, as their stacks need the cores to themselves.
 test: lint
 	-@test -x $(CHROMIUM) || $(MAKE) --no-print-directory chromium
+	@command -v tmux >/dev/null || $(MAKE) --no-print-directory tmux
 	$(BIN)/python -m pytest tests/unit -n auto
 	$(BIN)/python -m pytest tests/integration tests/e2e
 
@@ -63,6 +64,12 @@ $(CHROMIUM):
 	apt-get install -y --no-install-recommends chromium
 
 chromium: $(CHROMIUM)
+
+# tmux: the keyboard operator's end-to-end test types into a real terminal through it
+# (tests/e2e/test_keyboard.py). `make test` installs it when it is missing (root, Debian).
+tmux:
+	apt-get update
+	apt-get install -y --no-install-recommends tmux
 
 test-web: $(STAMP) $(CHROMIUM)
 	TELEOP_REQUIRE_CHROMIUM=1 $(BIN)/python -m pytest tests/e2e/test_viewer.py

@@ -36,6 +36,7 @@ from teleop.core.config import (
     SCENARIOS,
     SCRIPTED,
     SITES,
+    TERMINAL_OPERATORS,
     Config,
     ConfigError,
     ModelError,
@@ -524,7 +525,8 @@ def _run_and_report(
                 args.config,
                 overrides,
                 args.run_dir,
-                None if args.quiet or config.run.operator != SCRIPTED else _print_line,
+                # A person at this terminal's keyboard has the screen: no progress lines.
+                None if args.quiet or config.run.operator in TERMINAL_OPERATORS else _print_line,
                 without=args.without,
                 without_timeout_s=args.without_timeout,
                 kills=args.kill,

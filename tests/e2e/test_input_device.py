@@ -1,0 +1,87 @@
+"""A person on a SpaceMouse drives the arm (``teleop run grasp --operator spacemouse``),
+with the device's own HID reports: a FIFO named like its hidraw node stands in for it
+(this machine has no input devices), and the test writes the reports a SpaceMouse sends
+(report 1: translation, little-endian int16 X, Y, Z; the device's Z points down) while
+the service, under supervisord, reads and decodes them. Pushing the cap down and to the
+left moves the tool down and to the left."""
+
+from __future__ import annotations
+
+import json
+import os
+import selectors
+import struct
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+TRANSLATION = 1  # report id
+
+
+def _report(x: int, y: int, z: int) -> bytes:
+    return struct.pack("<B3h", TRANSLATION, x, y, z)
+
+
+def _push(fd: int, x: int, y: int, z: int, seconds: float, period_s: float = 0.016) -> None:
+    """One report every ``period_s`` (a SpaceMouse reports about every 8-16 ms)."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        os.write(fd, _report(x, y, z))
+        time.sleep(period_s)
+
+
+def _wait_for_line(process: subprocess.Popen[str], text: str, timeout_s: float) -> list[str]:
+    """Lines of the process's stderr up to the first holding ``text``."""
+    assert process.stderr is not None
+    selector = selectors.DefaultSelector()
+    selector.register(process.stderr, selectors.EVENT_READ)
+    lines: list[str] = []
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if selector.select(timeout=0.5):
+            line = process.stderr.readline()
+            if not line:
+                break
+            lines.append(line)
+            if text in line:
+                return lines
+    raise AssertionError(f"no {text!r} on stderr within {timeout_s:g} s:\n{''.join(lines)}")
+
+
+def test_a_spacemouse_pushed_down_and_left_moves_the_tool_down_and_left(tmp_path):
+    node = tmp_path / "hidraw0"
+    os.mkfifo(node)
+    # Read-write: the FIFO always has a writer, so the service never reads its end.
+    fd = os.open(node, os.O_RDWR)
+    run_dir = tmp_path / "run"
+    command = [sys.executable, "-m", "teleop.cli", "run", "grasp", "--operator", "spacemouse",
+               "--mode", "lockstep", "--duration", "12", "--run-dir", str(run_dir),
+               "--set", f'spacemouse.device="{node}"']  # fmt: skip
+    process = subprocess.Popen(
+        command, cwd=REPO, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        _wait_for_line(process, "  sim ", 120.0)  # the run has started
+        _push(fd, 0, 0, 0, 0.3)  # at rest: the device arms
+        _push(fd, -250, 0, 250, 1.5)  # left (-X) and down (+Z)
+        _push(fd, 0, 0, 0, 0.5)
+        _, stderr = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+        os.close(fd)
+    # No task done: the run ends at its duration, not a success (exit 1), not a crash.
+    assert process.returncode == 1, stderr
+    summary = json.loads((run_dir / "summary.json").read_text())
+    operator = summary["services"]["operator"]
+    assert operator["device"] == "spacemouse" and operator["device_lost"] is None
+    start, end = operator["tool_start_m"], operator["tool_end_m"]
+    moved = [e - s for s, e in zip(start, end, strict=True)]
+    print(f"the tool moved {moved} m; device input -> hand input {operator['input_to_hand_ms']}")
+    assert moved[1] > 0.05 and moved[2] < -0.05, moved  # left (+y) and down
+    assert abs(moved[0]) < 0.5 * min(abs(moved[1]), abs(moved[2])), moved
+    assert summary["dropped_messages"] == 0
