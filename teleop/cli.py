@@ -69,6 +69,8 @@ DEFAULT_WITHOUT_TIMEOUT_S = 120.0
 # those of a realtime run; teleop.run.verdict).
 EXIT_FAILED = 1
 EXIT_USAGE = 2
+# A person's run (--operator other than scripted) lasts this long by default (simulated s).
+HUMAN_RUN_DURATION_S = 300.0
 EXIT_REALTIME_LOST = 3
 
 
@@ -166,8 +168,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--operator",
         choices=OPERATORS,
         help="who drives the handle in teleoperation (run.operator): the scripted operator "
-        "(default) or a person at this terminal's keyboard (keys on screen; works over "
-        "ssh -t and in tmux; progress lines are then left out)",
+        "(default), or a person: at this terminal's keyboard (keys on screen; works over "
+        "ssh -t and in tmux), on a gamepad or a SpaceMouse (Linux input; see "
+        "docs/operators.md). A person's run lasts up to 300 s simulated unless --duration "
+        "says otherwise",
     )
     viewers = run.add_mutually_exclusive_group()
     viewers.add_argument(
@@ -440,6 +444,9 @@ def _run(args: argparse.Namespace) -> int:
         overrides.append(f'run.mode="{args.mode}"')
         if args.operator is not None:
             overrides.append(f'run.operator="{args.operator}"')
+            if args.operator != SCRIPTED and args.duration is None:
+                # A person takes longer than the script: give the run room by default.
+                overrides.insert(0, f"run.duration_s={HUMAN_RUN_DURATION_S}")
         if args.rrd is not None:
             overrides.append(f'recorder.rrd_path="{args.rrd.absolute()}"')
         if args.spawn:

@@ -32,6 +32,9 @@ SUPERVISOR_SOCKET_FILE = "supervisor.sock"
 SUPERVISOR_PID_FILE = "supervisord.pid"
 SUPERVISOR_LOG_FILE = "supervisord.log"
 SUPERVISOR_CONSOLE_FILE = "supervisord.console.log"
+# The command line of each program the launcher runs in its terminal instead of under
+# supervisord (a person's keyboard operator): ``<name>.json``, an argv list.
+FOREGROUND_DIR = "foreground"
 LOG_DIR = "logs"  # one ``<program>.log`` per supervised program (program_log_path)
 # The run's credentials (teleop.bus.access): mode 0700, its files 0600.
 AUTH_DIR = "auth"
@@ -74,6 +77,7 @@ _RUN_RESULT_GLOBS = (
     SUPERVISOR_CONSOLE_FILE,
     WEB_VIEWER_LOG_FILE,
     f"{LOG_DIR}/*.log",
+    f"{FOREGROUND_DIR}/*.json",
 )
 
 

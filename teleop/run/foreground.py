@@ -3,19 +3,21 @@ operator that reads the keyboard and draws its screen there (``--operator keyboa
 
 It is started like a supervised program (the same command line: its place in the mesh,
 its credentials) once the stack is up, with the launcher's standard input and output (the
-terminal) and its log in ``<run_dir>/<name>.log``; it is not restarted (a person who
+terminal) and its log in ``<run_dir>/logs/<name>.log``; it is not restarted (a person who
 leaves has left); the launcher stops it (SIGTERM, then SIGKILL) when the run ends.
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
 import subprocess
 from pathlib import Path
 from types import TracebackType
 
+from teleop.core.rundir import FOREGROUND_DIR, LOG_DIR
 from teleop.run.supervise import Program
 
 # Seconds a foreground service has to write its summary and restore the terminal.
@@ -31,10 +33,17 @@ class Foreground:
 
     def __init__(self, program: Program, run_dir: Path) -> None:
         self.program = program
-        self.log_path = run_dir / f"{program.name}.log"
+        self.run_dir = run_dir
+        self.log_path = run_dir / LOG_DIR / f"{program.name}.log"  # beside the others' logs
         self.process: subprocess.Popen[bytes] | None = None
 
     def __enter__(self) -> Foreground:
+        # Its command line where a by-hand observer finds the run's processes
+        # (teleop.run.outside.stack_endpoints), as supervisord's file holds the others'.
+        commands = self.run_dir / FOREGROUND_DIR
+        commands.mkdir(exist_ok=True)
+        self.log_path.parent.mkdir(exist_ok=True)
+        (commands / f"{self.program.name}.json").write_text(json.dumps(self.program.command))
         with open(self.log_path, "ab") as log:
             self.process = subprocess.Popen(
                 self.program.command,

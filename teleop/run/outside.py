@@ -35,7 +35,7 @@ from teleop.bus.access import LAUNCHER, OBSERVER
 from teleop.bus.session import ServicesMissing, session_config, wait_alive
 from teleop.bus.topics import Topics
 from teleop.core.config import SCENARIOS, Config, ConfigError, load_config
-from teleop.core.rundir import AUTH_DIR, SUPERVISOR_CONF_FILE
+from teleop.core.rundir import AUTH_DIR, FOREGROUND_DIR, SUPERVISOR_CONF_FILE
 
 OUTSIDE_DIR = "outside"  # under the run directory: one Zenoh config per outside service
 # Waiting for an outside service: a line of countdown this often (s), and the wait
@@ -275,17 +275,22 @@ OBSERVER_CONFIG = OBSERVER  # <run_dir>/outside/observer.json5
 
 def _program_commands(run_dir: Path) -> list[list[str]]:
     """The argv of every program in ``<run_dir>/supervisord.conf`` (as supervisord reads
-    it: '%' doubled in the file, the command split by POSIX shlex)."""
+    it: '%' doubled in the file, the command split by POSIX shlex), and of the programs
+    the launcher runs in its terminal (``<run_dir>/foreground/``)."""
     path = run_dir / SUPERVISOR_CONF_FILE
     if not path.exists():
         raise FileNotFoundError(f"{path}: no stack was started in {run_dir}")
     parser = configparser.RawConfigParser(strict=False)
     parser.read(path)
-    return [
+    supervised = [
         shlex.split(parser.get(section, "command").replace("%%", "%"))
         for section in parser.sections()
         if section.startswith("program:") and parser.has_option(section, "command")
     ]
+    # The launcher's own terminal programs (teleop.run.foreground), as argv lists.
+    commands = sorted((run_dir / FOREGROUND_DIR).glob("*.json"))
+    foreground = [json.loads(command.read_text()) for command in commands]
+    return supervised + foreground
 
 
 def _settings(argv: Sequence[str]) -> tuple[Path | None, list[str]]:

@@ -48,9 +48,14 @@ class Terminal:
 
     def exited(self) -> int | None:
         """The program's exit status once it has ended, else None."""
-        out = self._tmux("display-message", "-p", "-t", self.session,
-                         "#{pane_dead} #{pane_dead_status}").split()  # fmt: skip
-        return int(out[1]) if out and out[0] == "1" else None
+        dead, status, signal = self._tmux(
+            "display-message", "-p", "-t", self.session,
+            "#{pane_dead}:#{pane_dead_status}:#{pane_dead_signal}",
+        ).strip().split(":")  # fmt: skip
+        if dead != "1":
+            return None
+        # Killed by a signal: no status; as a shell says it, 128 + the signal's number.
+        return int(status) if status else 128 + int(signal or 0)
 
     def wait_for(self, read: Callable[[str], T | None], timeout_s: float, what: str) -> T:
         """The first non-None ``read(screen)`` within ``timeout_s``; AssertionError with
