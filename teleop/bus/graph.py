@@ -153,9 +153,10 @@ STREAMS: tuple[Stream, ...] = (
            scenarios=TELEOP, newest_for=("controller", "operator", "eyeview")),
     Stream("teleop_status", "control/teleop", TELEOP_STATUS, ("controller",),
            ("recorder",), "100 Hz", scenarios=TELEOP),
-    Stream("eye_view", "view/eye", EYE_VIEW, ("eyeview",), ("recorder",),
+    Stream("eye_view", "view/eye", EYE_VIEW, ("eyeview",), ("recorder", "operator"),
            "`eyeview.rate_hz` (5 Hz)", qos=VIEWER_QOS,
-           note="record + pixels; always over shared memory on one host"),
+           note="record + pixels; always over shared memory on one host; a person's "
+           "operator at the web page shows it (`run.operator`)"),
 )  # fmt: skip
 STREAMS_BY_NAME: Mapping[str, Stream] = {s.name: s for s in STREAMS}
 

@@ -589,7 +589,7 @@ class OperatorConfig:
 # Who drives the emulated haptic handle (RunConfig.operator): the scripted operator, or a
 # person through one of the human input devices (teleop/devices/human.py).
 SCRIPTED = "scripted"
-OPERATORS = (SCRIPTED, "keyboard", "gamepad", "spacemouse")
+OPERATORS = (SCRIPTED, "keyboard", "gamepad", "spacemouse", "web")
 # The person's devices read in the launcher's terminal (the launcher runs them in the
 # foreground); the others run under supervisord like every service.
 TERMINAL_OPERATORS = ("keyboard",)
@@ -749,6 +749,42 @@ class SpaceMouseConfig:
         _require(self.device != "", 'spacemouse.device: "auto" or a path')
         _require(self.full_scale_counts > 0, "spacemouse.full_scale_counts > 0")
         _require(0 < self.rel_hold_s <= 1, "spacemouse.rel_hold_s in (0, 1]")
+
+
+@dataclass(frozen=True)
+class WebConfig:
+    """A person at a web page (``--operator web``, services/web.py): the page's port on
+    127.0.0.1, the run's token, and how often the page and the service talk.
+
+    The launcher takes a free loopback port and writes a fresh token to a 0600 file
+    under ``<run_dir>/auth`` (teleop/run/web_operator.py); only the file's path is on a
+    command line, since other users can read every process's command line."""
+
+    # HTTP port on 127.0.0.1 (the launcher takes a free one); 0: any free port (logged).
+    port: int = 0
+    # The file holding the run's token: every request must carry it (empty: refused).
+    token_file: str = ""
+    # The page's state stream (tick, tool, phase, force, ...) is sent this often (Hz).
+    state_rate_hz: float = 20.0
+    # While it asks for motion, the page repeats its input this often (Hz), and sends a
+    # change at once.
+    input_rate_hz: float = 20.0
+    # This long (s) after the page's newest input, its motion falls back to none (the
+    # buttons stay as they were: a held object is not dropped): a closed tab, a lost
+    # link or a frozen browser stops the arm.
+    input_expiry_s: float = 0.5
+    # JPEG quality (1-100) of the eye-view frames the page shows.
+    jpeg_quality: int = 80
+
+    def __post_init__(self) -> None:
+        _require(0 <= self.port <= 65535, "web.port in [0, 65535]")
+        _require(0 < self.state_rate_hz <= 60, "web.state_rate_hz in (0, 60]")
+        _require(0 < self.input_rate_hz <= 100, "web.input_rate_hz in (0, 100]")
+        _require(
+            2 / self.input_rate_hz <= self.input_expiry_s <= 5,
+            "web.input_expiry_s in [2 / web.input_rate_hz, 5]: two of the page's inputs fit in it",
+        )
+        _require(1 <= self.jpeg_quality <= 100, "web.jpeg_quality in [1, 100]")
 
 
 @dataclass(frozen=True)
@@ -1084,6 +1120,7 @@ class Config:
     keyboard: KeyboardConfig = field(default_factory=KeyboardConfig)
     gamepad: GamepadConfig = field(default_factory=GamepadConfig)
     spacemouse: SpaceMouseConfig = field(default_factory=SpaceMouseConfig)
+    web: WebConfig = field(default_factory=WebConfig)
     cpu: CpuConfig = field(default_factory=CpuConfig)
     bus: BusConfig = field(default_factory=BusConfig)
     recorder: RecorderConfig = field(default_factory=RecorderConfig)

@@ -112,6 +112,7 @@ from teleop.run.progress import RunProgress
 from teleop.run.sites import SiteError, check_site, write_operator_bundle
 from teleop.run.supervise import Program, Stack, StackError
 from teleop.run.verdict import machine_section, realtime_health, refused_privileges
+from teleop.run.web_operator import prepare_web_operator, web_overrides
 
 # The operator's eye view renders in a process of its own (see services/eyeview.py for
 # why not a thread in the plant); it joins the stack of any scenario when eyeview.enabled.
@@ -631,9 +632,10 @@ def run_on_services(
     session = None
     entities: list[Any] = []
     try:
+        web = prepare_web_operator(config, run_dir, ports)  # --operator web: port, token
         plan = plan_stack(
-            Launch.RUN, config, config_file, overrides, run_dir, ports, layout,
-            without_timeout_s=without_timeout_s,
+            Launch.RUN, config, config_file, [*overrides, *web_overrides(web)], run_dir,
+            ports, layout, without_timeout_s=without_timeout_s,
         )  # fmt: skip
         credentials = plan.credentials
         bus = replace(  # the mesh's listener
@@ -689,6 +691,8 @@ def run_on_services(
                     )  # fmt: skip
                 except OutsideMissing as exc:
                     raise RunError(str(exc)) from None
+                if web is not None:  # the page is up: its URL, with the token, to the person
+                    announce(web.announcement())
                 _wait_finished(finished, tool, tracker, deadline_s, stack, progress, run_dir, check)
             except ServiceFailed as exc:
                 # Said now, not after the stop (which can take seconds more).
