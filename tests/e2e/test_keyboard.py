@@ -11,14 +11,21 @@ import json
 import re
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+import zenoh
 
+from teleop.bus.messages import HAND_INPUT, DropCounter
+from teleop.bus.session import subscribe
+from teleop.bus.topics import Topics
 from teleop.core.config import load_config
+from teleop.run.outside import write_observer_config
+from teleop.viz.report import write_report
 from tests.e2e.terminal import Terminal
 
 REPO = Path(__file__).resolve().parents[2]
@@ -58,6 +65,22 @@ class Screen:
             int(step.group(1)) if step else None,
             done.group(1) if done else None,
         )
+
+
+def _observer_hears_hand_inputs(run_dir: Path, timeout_s: float = 10.0) -> bool:
+    heard = threading.Event()
+    config = zenoh.Config.from_file(str(write_observer_config(run_dir)))
+    session = zenoh.open(config)
+    try:
+        topics = Topics(load_config().robot.robot_id)
+        sub = subscribe(session, topics.hand_input, HAND_INPUT, lambda rec, rx: heard.set(),
+                        DropCounter())  # fmt: skip
+        try:
+            return heard.wait(timeout_s)
+        finally:
+            sub.undeclare()
+    finally:
+        session.close()
 
 
 def where(condition: Callable[[Screen], bool]) -> Callable[[str], Screen | None]:
@@ -119,6 +142,9 @@ def test_a_person_at_the_keyboard_puts_the_cube_in_the_bin(tmp_path):
             "tool and cube on the screen",
         )
         assert start.phase == "reach" and start.holding is False
+        # A by-hand observer of the run hears the keyboard operator, which supervisord
+        # does not run (teleop.run.outside links it to the launcher's terminal programs).
+        assert _observer_hears_hand_inputs(run_dir), "no HAND_INPUT reached the observer"
         screens.mkdir(parents=True)
         (screens / "before.txt").write_text(start.text)
         cube, bin_p = start.objects["cube"], start.objects["bin"]
@@ -152,6 +178,11 @@ def test_a_person_at_the_keyboard_puts_the_cube_in_the_bin(tmp_path):
     # The tool went where the keys took it: over the bin, the cube below it.
     end = operator["tool_end_m"]
     assert abs(end[0] - bin_p[0]) < 0.03 and abs(end[1] - bin_p[1]) < 0.03
+    # The same report as a scripted run's, the same verdict.
+    report = write_report(run_dir / "recording.rrd")
+    assert report.summary is not None
+    text = report.summary.read_text()
+    assert "- task: success" in text, text
 
 
 @pytest.mark.parametrize(
