@@ -19,8 +19,8 @@ Endpoints:
   applied, the newest eye-view frame's number.
 - ``GET /frame``: the newest eye-view frame (EYE_VIEW, services/eyeview.py), as JPEG
   (``web.jpeg_quality``), encoded once per frame when first asked for. JPEG rather than
-  raw pixels to a canvas: a 320x240 frame is about 15 kB instead of 230 kB, so the view
-  keeps up through an ``ssh -L`` tunnel too, and the browser decodes it natively.
+  raw pixels to a canvas: a small fraction of a raw frame's 230 kB, so the view keeps up
+  through an ``ssh -L`` tunnel too, and the browser decodes it natively.
 - ``POST /input``: the page's intent, ``{"v": [x, y, z], "gripper": bool, "clutch":
   bool}`` (velocity fractions in the view frame, as :class:`HandIntent`). Anything else
   (a body too large, not JSON, another key, a NaN, a value outside [-1, 1]) gets 400,
