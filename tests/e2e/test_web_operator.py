@@ -16,6 +16,7 @@ import base64
 import json
 import queue
 import re
+import signal
 import subprocess
 import sys
 import tempfile
@@ -144,8 +145,8 @@ def web_run(tmp_path) -> Iterator[dict[str, Any]]:
         url = _wait_line(lines, URL_LINE, START_TIMEOUT_S)
         yield {"process": process, "url": url, "run_dir": run_dir, "lines": lines}
     finally:
-        if process.poll() is None:
-            process.terminate()
+        if process.poll() is None:  # Ctrl-C: the launcher stops the stack it started
+            process.send_signal(signal.SIGINT)
             process.wait(EXIT_TIMEOUT_S)
 
 
@@ -198,6 +199,8 @@ def test_a_person_at_the_web_page_moves_the_arm_and_feels_the_table(web_run):
     assert served["forbidden"] >= 4 and served["bad_inputs"] == 0
     assert served["pages"] == 1 and served["inputs"] > 10 and served["frames"] > 0
     assert served["ends"] == 1
+    # Where the keys, the drag and the press on the table took the tool (world frame).
+    assert operator["tool_end_m"][2] < TABLE_NEAR_M < operator["tool_start_m"][2]
     print(f"page input -> hand input: {operator['input_to_hand_ms']}")
     assert operator["input_to_hand_ms"]["inputs"] > 3
     assert summary["max_device_force_n"] >= MIN_FORCE_N
