@@ -48,6 +48,7 @@ class HumanOperatorService(Service):
         assert self.session is not None
         cfg = self.config
         self.timestep_ns = round(cfg.plant.timestep_s * NS_PER_S)
+        self._force_scale = cfg.teleop.force_scale
         self.lock = threading.Lock()
         self.loop = HumanOperatorLoop(
             cfg, self, SceneKnowledge.from_config(cfg), lockstep=cfg.run.mode == "lockstep"
@@ -89,8 +90,9 @@ class HumanOperatorService(Service):
             self.loop.on_objects(self._tick_of(rec), list(rec["world_p_m"][:n]))
 
     def _on_feedback(self, rec: np.ndarray, rx_ns: int) -> None:
+        weight_f_n = self._force_scale * rec["world_f_weight_n"]  # as the handle renders it
         with self.lock:
-            self.loop.on_force(rec["device_f_n"])
+            self.loop.on_force(rec["device_f_n"], weight_f_n)
 
     def _on_event(self, rec: np.ndarray, rx_ns: int) -> None:
         event = int(rec["event"])

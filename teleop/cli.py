@@ -387,6 +387,13 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="tls/ADDRESS:PORT",
         help="--site operator: the robot site's router (default: the bundle's)",
     )
+    up.add_argument(
+        "--operator",
+        choices=OPERATORS,
+        help="who drives the handle of a teleoperated stack (--set 'run.scenario=\"grasp\"'): "
+        "the scripted operator (default), a gamepad, a SpaceMouse or the web page (its URL "
+        "printed); the keyboard needs teleop run (docs/operators.md)",
+    )
     _add_without_arguments(up)
     _add_config_arguments(up)
     for name, text in (
@@ -491,7 +498,7 @@ def check_operator(config: Config, without: Sequence[str] = ()) -> None:
     if not config.run.teleoperated:
         raise ConfigError(
             f"--operator {device}: {config.run.scenario} is not teleoperated (no operator to "
-            "replace); teleoperated: grasp"
+            "replace); teleoperated: grasp (run.scenario)"
         )
     if "operator" in without:
         raise ConfigError(f"--operator {device} and --without operator: choose one")
@@ -707,13 +714,16 @@ def _up(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     mode = args.mode or ("" if credentials is not None else "realtime")
     overrides = [*site_overrides, *args.overrides, *([f'run.mode="{mode}"'] if mode else [])]
+    if args.operator is not None:
+        overrides.append(f'run.operator="{args.operator}"')
     config = load_config(args.config, overrides)
-    if config.run.operator != SCRIPTED:
+    if config.run.operator in TERMINAL_OPERATORS:
         raise ConfigError(
-            f"run.operator={config.run.operator}: teleop up runs the stack detached, with no "
-            f"terminal for a person; drive it with teleop run grasp --operator "
+            f"--operator {config.run.operator}: teleop up runs the stack detached, with no "
+            f"terminal for the keys; drive it with teleop run grasp --operator "
             f"{config.run.operator}"
         )
+    check_operator(config, args.without)
     try:
         check_site(config)
     except SiteError as exc:

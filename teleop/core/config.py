@@ -593,6 +593,9 @@ OPERATORS = (SCRIPTED, "keyboard", "gamepad", "spacemouse", "web")
 # The person's devices read in the launcher's terminal (the launcher runs them in the
 # foreground); the others run under supervisord like every service.
 TERMINAL_OPERATORS = ("keyboard",)
+# The person's devices that show the operator's eye view (the web page): their runs have
+# the eye view in lockstep too.
+VIEWING_OPERATORS = ("web",)
 # The person's devices read from Linux input (evdev, hidraw): teleop/devices/input_devices.py.
 INPUT_DEVICE_OPERATORS = ("gamepad", "spacemouse")
 

@@ -20,12 +20,16 @@ its sample tick plus one decision period):
 - realtime: once per decision period of wall time, valid from the newest tick seen plus
   one decision period (the haptic device takes the newest input that applies).
 
-The hand holds the handle where the device puts it. The emulated hand is a spring
-(``haptic.hand_stiffness_n_per_m``) that the rendered force pushes aside by ``f / k``: a
-person on a haptic handle feels the force and leans into it, one at a keyboard cannot, so
-the hand's target leans into the newest force felt (the controller's batched
-FORCE_FEEDBACK) by that much. Without it a held cube's weight alone would sink the tool
-(its 1 N moves the handle past the rate control's dead band); the force is shown instead.
+The hand holds what it carries. The emulated hand is a spring
+(``haptic.hand_stiffness_n_per_m``) that the rendered force pushes aside by ``f / k``. A
+person on a haptic handle holds a carried object's weight up without thinking; one at a
+keyboard cannot feel it, and its 1 N alone would push the handle past the rate control's
+dead band and sink the tool. So the hand's target leans up by the rendered weight's
+``f / k`` (the weight component of the controller's batched FORCE_FEEDBACK, constant
+while the object is held). Every other force (the table's, the bin's and the obstacles'
+push-back, contact) moves the handle as it moves a hand that does not resist it: it
+slows the motion toward what pushes back, as it is meant to; leaning into those too
+would chase a force that changes with the motion it causes. The force is shown as well.
 
 The task's phases come from the world, not from a script (:class:`WorldTask`): reach
 (nothing held), carry (the plant's GRASP), placed (released with the object over the
@@ -214,6 +218,7 @@ class HumanOperatorLoop:
         self.lead_ticks = round(1.0 / (self.rate_hz * self.timestep_s))
         self.decision_ns = round(NS_PER_S / self.rate_hz)
         self.hand_stiffness_n_per_m = config.haptic.hand_stiffness_n_per_m
+        self.weight_f_n: np.ndarray | None = None  # the held weight the handle renders
         self.task = WorldTask(scene, config.robot.object_bodies, self.timestep_s)
         self.view = WorldView()
         self.runs = 0
@@ -263,8 +268,12 @@ class HumanOperatorLoop:
         """The plant's GRASP or RELEASE: shown and counted once settled (WorldTask)."""
         self.task.on_hold(holding, tick)
 
-    def on_force(self, device_f_n: np.ndarray) -> None:
+    def on_force(self, device_f_n: np.ndarray, weight_f_n: np.ndarray) -> None:
+        """A FORCE_FEEDBACK's force to render and its held weight's share of it (both as
+        the handle renders them, N; the weight is vertical, so the same in the device
+        frame as in the world)."""
         self.view.device_f_n = np.array(device_f_n, dtype=np.float64)
+        self.weight_f_n = np.array(weight_f_n, dtype=np.float64)
 
     def end_task(self) -> None:
         """The person ends the run (not a success)."""
@@ -287,8 +296,8 @@ class HumanOperatorLoop:
         if self._start_ns is None:
             return now_ns + self.decision_ns  # no run yet
         target_p_m, buttons = hand_command(intent, self.config.teleop)
-        if self.view.device_f_n is not None:
-            target_p_m = target_p_m - self.view.device_f_n / self.hand_stiffness_n_per_m
+        if self.weight_f_n is not None:
+            target_p_m = target_p_m - self.weight_f_n / self.hand_stiffness_n_per_m
         if not self.lockstep:
             if now_ns >= self._next_realtime_ns:
                 self._send(max(self.view.tick, 0) + self.lead_ticks, target_p_m, buttons)

@@ -68,6 +68,7 @@ from teleop.core.config import (
     ROBOT_SITE,
     SCRIPTED,
     TERMINAL_OPERATORS,
+    VIEWING_OPERATORS,
     BusConfig,
     Config,
     load_config,
@@ -151,10 +152,12 @@ RUN_TIMEOUT_SLACK_S = 30.0
 
 def scenario_services(config: Config) -> tuple[str, ...]:
     """The processes of ``config.run.scenario``, plus the eye view when it is enabled
-    (in realtime runs; in lockstep ones only with ``eyeview.in_lockstep``)."""
+    (in realtime runs; in lockstep ones with ``eyeview.in_lockstep``, or when a person's
+    device shows the view: their lockstep run goes at their own pace anyway)."""
     services = graph.scenario_services(config.run.scenario)
     eye = config.eyeview
-    if eye.enabled and (config.run.mode == "realtime" or eye.in_lockstep):
+    shown = config.run.operator in VIEWING_OPERATORS
+    if eye.enabled and (config.run.mode == "realtime" or eye.in_lockstep or shown):
         return (*services, EYEVIEW)
     return services
 
@@ -1186,11 +1189,18 @@ def start_detached(
             )
         ensure_endpoint_free(endpoint)
     layout = StackServices.of(config, without)
+    if layout.foreground:
+        raise RunError(
+            f"run.operator={config.run.operator}: teleop up runs the stack detached, with no "
+            f"terminal for it; drive it with teleop run grasp --operator {config.run.operator}"
+        )
     # Held until every service listens: then each holds its own.
     with LoopbackPorts() as ports:
+        web = prepare_web_operator(config, run_dir, ports)  # --operator web: port, token
         plan = plan_stack(
-            Launch.UP, config, config_file, overrides, run_dir, ports, layout,
-            endpoint=endpoint, without_timeout_s=without_timeout_s, credentials=credentials,
+            Launch.UP, config, config_file, [*overrides, *web_overrides(web)], run_dir, ports,
+            layout, endpoint=endpoint, without_timeout_s=without_timeout_s,
+            credentials=credentials,
         )  # fmt: skip
         credentials = plan.credentials
         if config.site.name == ROBOT_SITE and credentials is not None:
@@ -1211,6 +1221,8 @@ def start_detached(
         peers += [bus.peer_listen_endpoint for _, bus in plan.joins]
         _await_ready_detached(stack, config, plan.endpoint, peers, layout.started,
                               layout.outside, without_timeout_s, announce, observer)  # fmt: skip
+        if web is not None:  # the page is up: its URL, with the token, to the person
+            announce(web.announcement())
         return stack.status(), plan.endpoint
 
 

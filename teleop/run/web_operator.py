@@ -52,7 +52,7 @@ class WebAccess:
         return [f"web.port={self.port}", f'web.token_file="{self.token_file}"']
 
     def announcement(self) -> str:
-        """What the launcher prints once the stack is up (see docs/operators-web.md)."""
+        """What the launcher prints once the stack is up (see docs/operators.md)."""
         return (
             f"web operator: open {self.url} in a browser on this machine (over SSH: "
             f"ssh -L {self.port}:{LOOPBACK}:{self.port} HOST, then the same URL); the token "

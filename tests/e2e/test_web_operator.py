@@ -133,7 +133,7 @@ def web_run(tmp_path) -> Iterator[dict[str, Any]]:
     its stderr; stopped if the test leaves it running."""
     run_dir = tmp_path / "run"
     command = [sys.executable, "-m", "teleop.cli", "run", "grasp", "--operator", "web",
-               "--mode", "lockstep", "--duration", "60", "--set", "eyeview.in_lockstep=true",
+               "--mode", "lockstep", "--duration", "60",
                "--run-dir", str(run_dir), "--quiet"]  # fmt: skip
     process = subprocess.Popen(
         command, cwd=REPO, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,

@@ -190,10 +190,11 @@ def test_realtime_sends_one_input_per_decision_period_ahead_of_the_newest_tick()
     assert len(out.hands) == 2
 
 
-def test_the_hand_leans_into_the_force_it_renders():
+def test_the_hand_holds_up_what_it_carries_and_yields_to_every_other_force():
     loop, out = _loop(lockstep=False)
     loop.on_started(0)
-    loop.on_force(np.array([0.0, 0.0, -1.0]))  # a held cube's weight on the handle
+    weight = np.array([0.0, 0.0, -1.0])  # a held cube's weight on the handle
+    loop.on_force(weight + np.array([-1.5, 0.0, 0.0]), weight)  # and the table's push-back
     loop.due(0, HandIntent())
     stiffness = CONFIG.haptic.hand_stiffness_n_per_m
     assert out.hands[0][1].tolist() == pytest.approx([0.0, 0.0, 1.0 / stiffness])
