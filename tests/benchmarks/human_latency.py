@@ -4,13 +4,15 @@ device and timing mode.
 Each device drives a real run (``teleop run grasp --operator DEVICE``, a supervisord
 stack): the keyboard through a tmux terminal (tests/e2e/terminal.py), the SpaceMouse
 through a FIFO named like its hidraw node that gets its HID reports (this machine has no
-input device; a gamepad needs a kernel event device and is not measured here). An
+input device; a gamepad needs a kernel event device and is not measured here), the web
+page by the requests its script sends (the browser's own share left out). An
 observer session of the run (its read-only credentials, teleop.run.outside) takes every
 HAND_INPUT and every PLANT_STATE (the batched copy, with each state's trace stamps).
 
 Inputs alternate every ``--period`` seconds between a move and a stop (keyboard: ``a``
-and space; SpaceMouse: the cap pushed left and let go). For each input at ``t_input``
-(this process's monotonic clock, the same clock as every stamp on one host):
+and space; SpaceMouse: the cap pushed left and let go; web: half speed left and none).
+For each input at ``t_input`` (this process's monotonic clock, the same clock as every
+stamp on one host):
 
 - ``input_to_hand_input``: to the first HAND_INPUT published after it whose target
   changed (terminal or device, the operator service, its pacing to the next decision);
@@ -34,12 +36,15 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import struct
 import subprocess
 import sys
 import tempfile
 import threading
 import time
+import urllib.parse
+import urllib.request
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -200,7 +205,53 @@ def spacemouse_run(
         node.unlink()
 
 
-RUNS = {"keyboard": keyboard_run, "spacemouse": spacemouse_run}
+@contextmanager
+def web_run(mode: str, run_dir: Path) -> Iterator[Controls]:
+    """A web-page run, its page's requests sent by this process (what the page's script
+    sends on a key or a drag: the browser's own share is left out): (input(move), end())."""
+    stderr = run_dir.parent / f"{run_dir.name}.stderr"
+    with open(stderr, "w") as err:
+        process = subprocess.Popen(
+            _command("web", mode, run_dir), cwd=REPO, stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL, stderr=err,
+        )  # fmt: skip
+    try:
+        found: list[str] = []
+
+        def url_printed() -> bool:
+            found[:] = re.findall(r"web operator: open (http://\S+) ", stderr.read_text())
+            return bool(found)
+
+        _wait(url_printed, 120.0, "the page's address")
+        _wait(lambda: "  sim " in stderr.read_text(), 120.0, "the run's start")
+        base, _, query = found[0].partition("/?")
+        token = urllib.parse.parse_qs(query)["token"][0]
+
+        def post(path: str, body: dict[str, Any] | None) -> None:
+            data = json.dumps(body).encode() if body is not None else b""
+            request = urllib.request.Request(
+                base + path, data=data, method="POST",
+                headers={"X-Teleop-Token": token, "Content-Type": "application/json"},
+            )  # fmt: skip
+            with urllib.request.urlopen(request, timeout=10) as answer:
+                answer.read()
+
+        def send(move: bool) -> None:
+            post("/input", {"v": [0.0, 0.5 if move else 0.0, 0.0], "gripper": False,
+                            "clutch": False})  # fmt: skip
+
+        def end() -> None:
+            post("/end", None)
+            process.wait(120)
+
+        yield send, end
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+
+
+RUNS = {"keyboard": keyboard_run, "spacemouse": spacemouse_run, "web": web_run}
 
 
 def measure(device: str, mode: str, inputs: int, period_s: float, work: Path) -> dict[str, Any]:
@@ -234,7 +285,7 @@ def measure(device: str, mode: str, inputs: int, period_s: float, work: Path) ->
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--devices", default="keyboard,spacemouse")
+    parser.add_argument("--devices", default="keyboard,spacemouse,web")
     parser.add_argument("--modes", default="lockstep", help="comma-separated: lockstep,realtime")
     parser.add_argument("--inputs", type=int, default=40, help="inputs per run")
     parser.add_argument("--period", type=float, default=0.3, help="seconds between inputs")

@@ -1,9 +1,9 @@
 """A person at the web page drives the arm (``teleop run grasp --operator web``): the
 stack runs under supervisord, the launcher prints the page's URL with the run's token,
 headless Chromium opens it (over the DevTools protocol, as tests/e2e/test_viewer.py
-does) and the test acts as a person: a held key moves the tool forward, a mouse drag on
-the view moves it right, a held 'f' presses it down to the table until the force bar
-rises; a request without the token gets 403; 'q' ends the run. What moved is read from
+does) and the test acts as a person: a held 'f' presses the tool down to the table until
+the force bar rises, a held key moves it back along the table, a mouse drag on the view
+moves it right; a request without the token gets 403; 'q' ends the run. What moved is read from
 the page's own state (``window.teleop``) and checked against the run's summary. The
 screenshot, taken while the force shows, is kept in the run directory.
 
@@ -65,10 +65,11 @@ FORCE_TIMEOUT_S = 12.0
 TABLE_NEAR_M = 0.06
 # DevTools key events of the keys used: key, code, Windows virtual key code.
 KEYS = {
-    "w": ("w", "KeyW", 87),
+    "s": ("s", "KeyS", 83),
     "f": ("f", "KeyF", 70),
     "q": ("q", "KeyQ", 81),
     "+": ("+", "Equal", 187),
+    "-": ("-", "Minus", 189),
 }
 
 
@@ -218,36 +219,10 @@ def _drive(page: Page, shot: Path) -> None:
     assert start["phase"] == "reach" and start["holding"] is False
     assert page.evaluate("window.teleop.forbidden") is False
 
-    # A held 'w': forward (the view frame's x, the world's x under the head's small yaw).
-    page.key("w", True)
-    page.wait("motion forward", lambda s: s["intent"]["v"][0] > 0, PAGE_TIMEOUT_S)
-    time.sleep(HOLD_S)
-    page.key("w", False)
-    page.wait("the stop", lambda s: s["intent"]["v"] == [0, 0, 0], PAGE_TIMEOUT_S)
-    time.sleep(0.3)
-    after_key = page.state()["tool_p_m"]
-    along, share = _moved(start["tool_p_m"], after_key, 0, 1.0)
-    assert along > MIN_MOVE_M and share > MIN_AXIS_SHARE, (start["tool_p_m"], after_key)
-
-    # A drag to the right on the view: right (the view frame's -y).
-    box = page.evaluate(
-        "(() => { const r = document.getElementById('viewbox').getBoundingClientRect(); "
-        "return [r.x, r.y, r.width, r.height]; })()"
-    )
-    x0, y0 = box[0] + box[2] / 2, box[1] + box[3] / 2
-    page.mouse("mousePressed", x0, y0, held=True)
-    for step in range(1, 6):
-        page.mouse("mouseMoved", x0 + DRAG_PX * step / 5, y0, held=True)
-    page.wait("motion right", lambda s: s["intent"]["v"][1] < 0, PAGE_TIMEOUT_S)
-    time.sleep(HOLD_S)
-    page.mouse("mouseReleased", x0 + DRAG_PX, y0, held=False)
-    page.wait("the drag's end", lambda s: s["intent"]["v"] == [0, 0, 0], PAGE_TIMEOUT_S)
-    time.sleep(0.3)
-    after_drag = page.state()["tool_p_m"]
-    along, share = _moved(after_key, after_drag, 1, -1.0)
-    assert along > MIN_MOVE_M and share > MIN_AXIS_SHARE, (after_key, after_drag)
-
-    # Full speed, then a held 'f' down to the table until its push-back shows in the bar.
+    # Full speed, then a held 'f' straight down to the table until its push-back shows
+    # in the bar. First, from the start pose: the way down is clear of the scene's
+    # virtual obstacle (at x 0.55), which a tool further forward would meet and be
+    # steered around (as it should be), however far a held key took it.
     for _ in range(3):
         page.press("+")
     page.key("f", True)
@@ -269,6 +244,41 @@ def _drive(page: Page, shot: Path) -> None:
         "window.teleop.config.force_full_scale_n"), width  # fmt: skip
     assert pressed["force_n"] >= MIN_FORCE_N
     assert pressed["tool_p_m"][2] < TABLE_NEAR_M, pressed["tool_p_m"]
+    page.wait("the stop", lambda s: s["intent"]["v"] == [0, 0, 0], PAGE_TIMEOUT_S)
+    for _ in range(2):  # back to a moderate speed for the moves along the table
+        page.press("-")
+    time.sleep(0.3)
+
+    # A held 's': back along the table (the view frame's -x, the world's -x: the head
+    # holds still, facing +x, for a person), away from the obstacle.
+    on_table = page.state()["tool_p_m"]
+    page.key("s", True)
+    page.wait("motion back", lambda s: s["intent"]["v"][0] < 0, PAGE_TIMEOUT_S)
+    time.sleep(HOLD_S)
+    page.key("s", False)
+    page.wait("the stop", lambda s: s["intent"]["v"] == [0, 0, 0], PAGE_TIMEOUT_S)
+    time.sleep(0.3)
+    after_key = page.state()["tool_p_m"]
+    along, share = _moved(on_table, after_key, 0, -1.0)
+    assert along > MIN_MOVE_M and share > MIN_AXIS_SHARE, (on_table, after_key)
+
+    # A drag to the right on the view: right (the view frame's -y), toward open table.
+    box = page.evaluate(
+        "(() => { const r = document.getElementById('viewbox').getBoundingClientRect(); "
+        "return [r.x, r.y, r.width, r.height]; })()"
+    )
+    x0, y0 = box[0] + box[2] / 2, box[1] + box[3] / 2
+    page.mouse("mousePressed", x0, y0, held=True)
+    for step in range(1, 6):
+        page.mouse("mouseMoved", x0 + DRAG_PX * step / 5, y0, held=True)
+    page.wait("motion right", lambda s: s["intent"]["v"][1] < 0, PAGE_TIMEOUT_S)
+    time.sleep(HOLD_S)
+    page.mouse("mouseReleased", x0 + DRAG_PX, y0, held=False)
+    page.wait("the drag's end", lambda s: s["intent"]["v"] == [0, 0, 0], PAGE_TIMEOUT_S)
+    time.sleep(0.3)
+    after_drag = page.state()["tool_p_m"]
+    along, share = _moved(after_key, after_drag, 1, -1.0)
+    assert along > MIN_MOVE_M and share > MIN_AXIS_SHARE, (after_key, after_drag)
 
     # 'q' ends the run: the page shows the task done, not a success.
     page.press("q")
