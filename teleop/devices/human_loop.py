@@ -58,7 +58,7 @@ logger = logging.getLogger(__name__)
 
 # Lockstep: inputs go out at most this many ticks ahead of the newest tick seen (a run
 # slower than real time does not let a key wait behind a queue of older inputs).
-MAX_AHEAD_TICKS = 30
+MAX_AHEAD_TICKS = 20
 # The object counts as placed once it has lain in the bin, not held, this long (sim s).
 PLACED_SETTLE_S = 0.5
 # A grasp or release counts once it has held this long (sim s): fingers that close on or

@@ -61,6 +61,7 @@ from teleop.run.outside import write_observer_config
 from tests.e2e.terminal import Terminal
 
 REPO = Path(__file__).resolve().parents[2]
+SETTLE_TIMEOUT_S = 300.0
 # A run's controls: send(move) gives one input (a move or a stop), end() ends the run.
 Controls = tuple[Callable[[bool], None], Callable[[], None]]
 
@@ -254,8 +255,20 @@ def web_run(mode: str, run_dir: Path) -> Iterator[Controls]:
 RUNS = {"keyboard": keyboard_run, "spacemouse": spacemouse_run, "web": web_run}
 
 
-def measure(device: str, mode: str, inputs: int, period_s: float, work: Path) -> dict[str, Any]:
+def settle(load_below: float, timeout_s: float) -> float:
+    """Wait until the 1-minute load average is below ``load_below`` (a run's threads
+    linger in it for minutes), at most ``timeout_s``; the seconds waited."""
+    start = time.monotonic()
+    while os.getloadavg()[0] >= load_below and time.monotonic() - start < timeout_s:
+        time.sleep(5.0)
+    return time.monotonic() - start
+
+
+def measure(
+    device: str, mode: str, inputs: int, period_s: float, work: Path, load_below: float
+) -> dict[str, Any]:
     run_dir = work / f"{device}-{mode}"
+    waited_s = settle(load_below, SETTLE_TIMEOUT_S)
     load = os.getloadavg()
     times: list[int] = []
     with RUNS[device](mode, run_dir) as (send, end):
@@ -275,6 +288,7 @@ def measure(device: str, mode: str, inputs: int, period_s: float, work: Path) ->
         "device": device,
         "mode": mode,
         "load_average_before": [round(v, 2) for v in load],
+        "waited_for_load_s": round(waited_s),
         "inputs": inputs,
         "answered": len(found[PARTS[2]]),
         "hand_inputs_seen": len(observed.hands),
@@ -290,12 +304,18 @@ def main() -> int:
     parser.add_argument("--inputs", type=int, default=40, help="inputs per run")
     parser.add_argument("--period", type=float, default=0.3, help="seconds between inputs")
     parser.add_argument("--json", type=Path, default=Path("runs/bench/human_latency.json"))
+    parser.add_argument(
+        "--load-below", type=float, default=1.0,
+        help="before each run, wait (at most 5 min) for the 1-minute load average to fall "
+        "below this: the previous run's threads linger in it",
+    )  # fmt: skip
     args = parser.parse_args()
     rows = []
     with tempfile.TemporaryDirectory(prefix="human-latency-") as work:
         for mode in args.modes.split(","):
             for device in args.devices.split(","):
-                row = measure(device, mode, args.inputs, args.period, Path(work))
+                row = measure(device, mode, args.inputs, args.period, Path(work),
+                              args.load_below)  # fmt: skip
                 print(json.dumps(row), flush=True)
                 rows.append(row)
     args.json.parent.mkdir(parents=True, exist_ok=True)
