@@ -72,6 +72,8 @@ SUMMARY_FIELDS: tuple[SummaryField, ...] = (
     F("scenario", "string", ALL, "path-following or grasp"),
     F("mode", "string", ALL, "realtime, lockstep or inprocess"),
     F("seed", "integer", ALL, "run.seed"),
+    F("operator", "string", GRASP, "who drove the handle (run.operator): scripted, or a "
+      "person's keyboard, gamepad, spacemouse or web page (docs/operators.md)"),
     F("duration_s", "number", ALL, "path following: run.duration_s; grasp: the operator's "
       "task time (s)", nullable=True),
     # The verdict (teleop.core.criteria).

@@ -119,8 +119,11 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
         lines.append(_clearance_line(summary))
     lockstep = mode == "lockstep"
     if lockstep:  # not paced by the wall clock: its speed is the machine's, not a verdict
+        # A person's run goes at most at their clock's pace (teleop.devices.human_loop).
+        person = summary.get("operator") not in (None, "scripted")
         timing = (
-            f"  timing             lockstep (deterministic, not paced): "
+            f"  timing             lockstep (deterministic, "
+            f"{'paced by the person' if person else 'not paced'}): "
             f"{_num(summary.get('realtime_factor'), '.2f')} x real time"
         )
     else:

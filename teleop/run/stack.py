@@ -741,6 +741,7 @@ def run_on_services(
         "seed": config.run.seed,
     }
     if config.run.teleoperated:
+        summary["operator"] = config.run.operator
         figures, problems = _grasp_figures(summaries, task_done)
     else:
         figures = {

@@ -57,7 +57,7 @@ def test_a_spacemouse_pushed_down_and_left_moves_the_tool_down_and_left(tmp_path
     fd = os.open(node, os.O_RDWR)
     run_dir = tmp_path / "run"
     command = [sys.executable, "-m", "teleop.cli", "run", "grasp", "--operator", "spacemouse",
-               "--mode", "lockstep", "--duration", "12", "--run-dir", str(run_dir),
+               "--mode", "lockstep", "--duration", "6", "--run-dir", str(run_dir),
                "--set", f'spacemouse.device="{node}"']  # fmt: skip
     process = subprocess.Popen(
         command, cwd=REPO, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,

@@ -25,7 +25,7 @@ from teleop.bus.session import subscribe
 from teleop.bus.topics import Topics
 from teleop.core.config import load_config
 from teleop.run.outside import write_observer_config
-from teleop.viz.report import write_report
+from teleop.viz.report import verdict_text
 from tests.e2e.terminal import Terminal
 
 REPO = Path(__file__).resolve().parents[2]
@@ -117,6 +117,7 @@ class Driver:
                 self.terminal.press(" ")
                 return screen
             distance = abs(error[axis])
+            # Fast far away, slow near (0.1, 0.05, 0.025 m/s): faster steps can overshoot.
             self.speed(3 if distance > 0.06 else 2 if distance > 0.02 else 1)
             self.terminal.press(MOVE_KEYS[axis, 1 if error[axis] > 0 else -1])
             time.sleep(0.1)
@@ -182,11 +183,10 @@ def test_a_person_at_the_keyboard_puts_the_cube_in_the_bin(tmp_path):
     # The tool went where the keys took it: over the bin, the cube below it.
     end = operator["tool_end_m"]
     assert abs(end[0] - bin_p[0]) < 0.03 and abs(end[1] - bin_p[1]) < 0.03
-    # The same report as a scripted run's, the same verdict.
-    report = write_report(run_dir / "recording.rrd")
-    assert report.summary is not None
-    text = report.summary.read_text()
-    assert "- task: success" in text, text
+    # The same verdict as a scripted run's, as the report gives it (teleop report renders
+    # this section from the run's summary; its figures are tested on a scripted run).
+    assert "- task: success" in "\n".join(verdict_text(summary))
+    assert (run_dir / "recording.rrd").stat().st_size > 0
 
 
 @pytest.mark.parametrize(
