@@ -23,7 +23,15 @@ from typing import Any
 
 import numpy as np
 
-from teleop.bus.messages import FORCE_FEEDBACK, HAND_INPUT, RUN_EVENT, Button, Event
+from teleop.bus.messages import (
+    FORCE_FEEDBACK,
+    HAND_INPUT,
+    RUN_EVENT,
+    Button,
+    Event,
+    next_hand_input,
+    next_run_event,
+)
 from teleop.bus.service import Service
 from teleop.bus.session import Publisher, subscribe, subscribe_events
 from teleop.core.clock import NS_PER_S
@@ -158,22 +166,12 @@ class HumanOperatorService(Service):
 
     # -- HumanOutputs: the loop's decisions onto the bus -----------------------------------
     def hand(self, valid_from_tick: int, target_p_m: np.ndarray, buttons: Button) -> None:
-        rec = self._hand
-        rec["seq"] += 1
-        rec["t_source_ns"] = time.monotonic_ns()
-        rec["valid_from_tick"] = valid_from_tick
-        rec["target_p_m"] = target_p_m
-        rec["buttons"] = int(buttons)
-        self.hand_pub.put(rec)
+        now_ns = time.monotonic_ns()
+        self.hand_pub.put(next_hand_input(self._hand, now_ns, valid_from_tick, target_p_m, buttons))
 
     def event(self, event: Event, tick: int, step: int, value: float) -> None:
-        rec = self._event
-        rec["seq"] += 1
-        rec["t_source_ns"] = time.monotonic_ns()
-        rec["sim_time_ns"] = tick * self.timestep_ns
-        rec["step"] = step
-        rec["event"] = event
-        rec["value"] = value
+        now_ns = time.monotonic_ns()
+        rec = next_run_event(self._event, event, now_ns, tick * self.timestep_ns, step, value)
         self.events_pub.put(rec)
 
     def summary(self) -> dict[str, Any]:

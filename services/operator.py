@@ -28,6 +28,8 @@ from teleop.bus.messages import (
     RUN_EVENT,
     Event,
     Flag,
+    next_hand_input,
+    next_run_event,
 )
 from teleop.bus.service import STOP_POLL_S, Service, service_main
 from teleop.bus.session import Publisher, subscribe_events
@@ -155,22 +157,13 @@ class OperatorService(Service):
 
     # -- OperatorOutputs: the loop's decisions onto the bus --------------------------------
     def hand(self, valid_from_tick: int, command: HandCommand) -> None:
-        rec = self._hand
-        rec["seq"] += 1
-        rec["t_source_ns"] = time.monotonic_ns()
-        rec["valid_from_tick"] = valid_from_tick
-        rec["target_p_m"] = command.target_p_m
-        rec["buttons"] = int(command.buttons)
+        rec = next_hand_input(self._hand, time.monotonic_ns(), valid_from_tick,
+                              command.target_p_m, command.buttons)  # fmt: skip
         self.hand_pub.put(rec)
 
     def event(self, event: Event, tick: int, step: int, value: float) -> None:
-        rec = self._event
-        rec["seq"] += 1
-        rec["t_source_ns"] = time.monotonic_ns()
-        rec["sim_time_ns"] = tick * self.timestep_ns
-        rec["step"] = step
-        rec["event"] = event
-        rec["value"] = value
+        now_ns = time.monotonic_ns()
+        rec = next_run_event(self._event, event, now_ns, tick * self.timestep_ns, step, value)
         self.events_pub.put(rec)
 
     def summary(self) -> dict[str, Any]:

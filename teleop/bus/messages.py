@@ -568,6 +568,34 @@ RUN_EVENT = Schema(
     ],
 )
 
+
+def next_hand_input(
+    rec: np.ndarray, t_source_ns: int, valid_from_tick: int, target_p_m: np.ndarray, buttons: int
+) -> np.ndarray:
+    """``rec`` (a HAND_INPUT record its operator keeps) filled for its next input, its
+    ``seq`` one up: the scripted operator and a person's device alike."""
+    rec["seq"] += 1
+    rec["t_source_ns"] = t_source_ns
+    rec["valid_from_tick"] = valid_from_tick
+    rec["target_p_m"] = target_p_m
+    rec["buttons"] = int(buttons)
+    return rec
+
+
+def next_run_event(
+    rec: np.ndarray, event: int, t_source_ns: int, sim_time_ns: int, step: int, value: float
+) -> np.ndarray:
+    """``rec`` (a RUN_EVENT record a sender keeps) filled for its next event, its ``seq``
+    one up: what every service does before publishing one."""
+    rec["seq"] += 1
+    rec["t_source_ns"] = t_source_ns
+    rec["sim_time_ns"] = sim_time_ns
+    rec["step"] = step
+    rec["event"] = event
+    rec["value"] = value
+    return rec
+
+
 _FORCE = {"lo": -FORCE_LIMIT_N, "hi": FORCE_LIMIT_N, "unit": "N"}
 # Energy a haptic handle exchanges over a run: 8 N at 1 m/s for a month stays below it.
 ENERGY_LIMIT_J = 1e8

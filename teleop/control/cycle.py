@@ -45,6 +45,7 @@ from teleop.bus.messages import (
     Button,
     Flag,
     Stage,
+    next_run_event,
 )
 from teleop.bus.session import Latest
 from teleop.bus.stamps import Inbound, StampLog
@@ -198,13 +199,9 @@ class ControllerCore:
         """Publish the run events the metrics saw (``controller_events``) and keep them
         for the summary."""
         for event in events:
-            rec = self._event
-            rec["seq"] += 1
-            rec["t_source_ns"] = self.clock.now_ns()
-            rec["sim_time_ns"] = round(event.sim_time_s * 1e9)
-            rec["step"] = step
-            rec["event"] = event.event
-            rec["value"] = event.value
+            sim_time_ns = round(event.sim_time_s * 1e9)
+            rec = next_run_event(self._event, event.event, self.clock.now_ns(), sim_time_ns,
+                                 step, event.value)  # fmt: skip
             self.outputs.put("controller_events", rec)
             self.events_sent.append(
                 {"event": event.event.name, "sim_time_s": event.sim_time_s, "value": event.value}

@@ -35,7 +35,16 @@ from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
-from teleop.bus.messages import OBJECT_POSES, PLANT_STATE, RUN_EVENT, TOOL_POSE, Event, Flag, Stage
+from teleop.bus.messages import (
+    OBJECT_POSES,
+    PLANT_STATE,
+    RUN_EVENT,
+    TOOL_POSE,
+    Event,
+    Flag,
+    Stage,
+    next_run_event,
+)
 from teleop.bus.stamps import Inbound
 from teleop.core.clock import NS_PER_S, Clock
 from teleop.core.config import Config
@@ -586,13 +595,9 @@ class PlantStepCore:
         """A RUN_EVENT on the plant's stream; from the stepping thread or another one (the
         service's watch on its links)."""
         with self._event_lock:
-            rec = self._event
-            rec["seq"] += 1
-            rec["t_source_ns"] = self.clock.now_ns()
-            rec["sim_time_ns"] = self.plant.step_count * self.period_ns
-            rec["step"] = self.plant.step_count
-            rec["event"] = event
-            rec["value"] = value
+            step = self.plant.step_count
+            rec = next_run_event(self._event, event, self.clock.now_ns(),
+                                 step * self.period_ns, step, value)  # fmt: skip
             self.outputs.put("plant_events", rec)
         logger.info("event %s at step %d", event.name, self.plant.step_count)
 

@@ -64,6 +64,7 @@ REPO = Path(__file__).resolve().parents[2]
 SETTLE_TIMEOUT_S = 300.0
 # A run's controls: send(move) gives one input (a move or a stop), end() ends the run.
 Controls = tuple[Callable[[bool], None], Callable[[], None]]
+Background = subprocess.Popen[bytes]  # a teleop run started in the background
 
 
 # The parts of the latency (ms), as the module docstring names them.
@@ -170,38 +171,46 @@ def keyboard_run(
 
 
 @contextmanager
-def spacemouse_run(
-    mode: str, run_dir: Path
-) -> Iterator[tuple[Callable[[bool], None], Callable[[], None]]]:
+def background_run(
+    command: list[str], run_dir: Path
+) -> Iterator[tuple[subprocess.Popen[bytes], Path]]:
+    """``command`` (a ``teleop run``) in the background, its stderr to a file, once the run
+    has started (its first progress line); killed if still running at the end."""
+    stderr = run_dir.parent / f"{run_dir.name}.stderr"
+    with open(stderr, "w") as err:
+        process = subprocess.Popen(command, cwd=REPO, stdin=subprocess.DEVNULL,
+                                   stdout=subprocess.DEVNULL, stderr=err)  # fmt: skip
+    try:
+        _wait(lambda: "  sim " in stderr.read_text(), 120.0, "the run's start")
+        yield process, stderr
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+
+
+@contextmanager
+def spacemouse_run(mode: str, run_dir: Path) -> Iterator[Controls]:
     """A SpaceMouse run on a FIFO standing in for its hidraw node: (input(move), end())."""
     node = run_dir.parent / f"{run_dir.name}-dev" / "hidraw0"  # read as hidraw by its name
     node.parent.mkdir(parents=True)
     os.mkfifo(node)
     fd = os.open(node, os.O_RDWR)
-    stderr = run_dir.parent / f"{run_dir.name}.stderr"
-    with open(stderr, "w") as err:
-        process = subprocess.Popen(
-            _command("spacemouse", mode, run_dir, "--set", f'spacemouse.device="{node}"'),
-            cwd=REPO, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
-        )  # fmt: skip
+    command = _command("spacemouse", mode, run_dir, "--set", f'spacemouse.device="{node}"')
     try:
-        # The run has started once its first progress line is out.
-        _wait(lambda: "  sim " in stderr.read_text(), 120.0, "the run's start")
-        os.write(fd, struct.pack("<B3h", 1, 0, 0, 0))  # at rest: the device arms
-        time.sleep(0.3)
+        with background_run(command, run_dir) as (process, _):
+            os.write(fd, struct.pack("<B3h", 1, 0, 0, 0))  # at rest: the device arms
+            time.sleep(0.3)
 
-        def send(move: bool) -> None:
-            os.write(fd, struct.pack("<B3h", 1, -200 if move else 0, 0, 0))
+            def send(move: bool) -> None:
+                os.write(fd, struct.pack("<B3h", 1, -200 if move else 0, 0, 0))
 
-        def end() -> None:
-            process.terminate()
-            process.wait(120)
+            def end() -> None:
+                process.terminate()
+                process.wait(120)
 
-        yield send, end
+            yield send, end
     finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
         os.close(fd)
         node.unlink()
 
@@ -210,21 +219,9 @@ def spacemouse_run(
 def web_run(mode: str, run_dir: Path) -> Iterator[Controls]:
     """A web-page run, its page's requests sent by this process (what the page's script
     sends on a key or a drag: the browser's own share is left out): (input(move), end())."""
-    stderr = run_dir.parent / f"{run_dir.name}.stderr"
-    with open(stderr, "w") as err:
-        process = subprocess.Popen(
-            _command("web", mode, run_dir), cwd=REPO, stdin=subprocess.DEVNULL,
-            stdout=subprocess.DEVNULL, stderr=err,
-        )  # fmt: skip
-    try:
-        found: list[str] = []
-
-        def url_printed() -> bool:
-            found[:] = re.findall(r"web operator: open (http://\S+) ", stderr.read_text())
-            return bool(found)
-
-        _wait(url_printed, 120.0, "the page's address")
-        _wait(lambda: "  sim " in stderr.read_text(), 120.0, "the run's start")
+    with background_run(_command("web", mode, run_dir), run_dir) as (process, stderr):
+        found = re.findall(r"web operator: open (http://\S+) ", stderr.read_text())
+        assert found, f"no page address in {stderr}"
         base, _, query = found[0].partition("/?")
         token = urllib.parse.parse_qs(query)["token"][0]
 
@@ -246,10 +243,6 @@ def web_run(mode: str, run_dir: Path) -> Iterator[Controls]:
             process.wait(120)
 
         yield send, end
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
 
 
 RUNS = {"keyboard": keyboard_run, "spacemouse": spacemouse_run, "web": web_run}

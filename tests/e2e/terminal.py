@@ -52,10 +52,10 @@ class Terminal:
             "display-message", "-p", "-t", self.session,
             "#{pane_dead}:#{pane_dead_status}:#{pane_dead_signal}",
         ).strip().split(":")  # fmt: skip
-        if dead != "1":
-            return None
+        if dead != "1" or not (status or signal):
+            return None  # running, or dead a moment ago with its status not yet filled in
         # Killed by a signal: no status; as a shell says it, 128 + the signal's number.
-        return int(status) if status else 128 + int(signal or 0)
+        return int(status) if status else 128 + int(signal)
 
     def wait_for(self, read: Callable[[str], T | None], timeout_s: float, what: str) -> T:
         """The first non-None ``read(screen)`` within ``timeout_s``; AssertionError with

@@ -10,6 +10,7 @@ unless TELEOP_REQUIRE_CHROMIUM=1 (`make test-web`) makes it fail instead.
 from __future__ import annotations
 
 import base64
+import contextlib
 import io
 import itertools
 import json
@@ -186,9 +187,10 @@ class DevTools:
                 return reply["result"]
 
 
-def screenshot_until_scene(url: str, shot_path: Path) -> float:
-    """Open ``url`` in headless Chromium and screenshot it until the scene shows (or the
-    timeout); the last screenshot is written to ``shot_path``. The table-pixel share."""
+@contextlib.contextmanager
+def headless_browser() -> Iterator[DevTools]:
+    """Headless Chromium on a fresh profile, its DevTools session open, the page domain
+    enabled; the browser ends with the context."""
     # Chromium's helper processes may still write into the profile for a moment after
     # the browser exits: a leftover file must not fail the test.
     with tempfile.TemporaryDirectory(ignore_cleanup_errors=True) as profile:
@@ -204,18 +206,25 @@ def screenshot_until_scene(url: str, shot_path: Path) -> float:
             with connect(ws_url, max_size=None) as ws:
                 tools = DevTools(ws)
                 tools.call("Page.enable")
-                tools.call("Page.navigate", url=url)
-                share = 0.0
-                deadline = time.monotonic() + SCREENSHOT_TIMEOUT_S
-                while share < TABLE_PIXEL_SHARE and time.monotonic() < deadline:
-                    time.sleep(SCREENSHOT_POLL_S)
-                    png = base64.b64decode(tools.call("Page.captureScreenshot")["data"])
-                    shot_path.write_bytes(png)
-                    share = table_pixel_share(png)
-                return share
+                yield tools
         finally:
             browser.terminate()
             browser.wait(EXIT_TIMEOUT_S)
+
+
+def screenshot_until_scene(url: str, shot_path: Path) -> float:
+    """Open ``url`` in headless Chromium and screenshot it until the scene shows (or the
+    timeout); the last screenshot is written to ``shot_path``. The table-pixel share."""
+    with headless_browser() as tools:
+        tools.call("Page.navigate", url=url)
+        share = 0.0
+        deadline = time.monotonic() + SCREENSHOT_TIMEOUT_S
+        while share < TABLE_PIXEL_SHARE and time.monotonic() < deadline:
+            time.sleep(SCREENSHOT_POLL_S)
+            png = base64.b64decode(tools.call("Page.captureScreenshot")["data"])
+            shot_path.write_bytes(png)
+            share = table_pixel_share(png)
+        return share
 
 
 def test_path_following_recording_holds_what_its_blueprint_shows(web_run):

@@ -19,7 +19,6 @@ import re
 import signal
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 import urllib.error
@@ -29,16 +28,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from websockets.sync.client import connect
 
 from tests.e2e.test_viewer import (
     CHROMIUM,
-    CHROMIUM_FLAGS,
-    DEVTOOLS_LINE,
     REQUIRE_CHROMIUM,
     DevTools,
     _reader,
     _wait_line,
+    headless_browser,
 )
 
 REPO = Path(__file__).resolve().parents[2]
@@ -167,26 +164,10 @@ def test_a_person_at_the_web_page_moves_the_arm_and_feels_the_table(web_run):
             urllib.request.urlopen(request, timeout=PAGE_TIMEOUT_S)
         assert refused.value.code == 403, request.full_url
     shot = run_dir / "web_operator.png"
-    with tempfile.TemporaryDirectory(ignore_cleanup_errors=True) as profile:
-        browser = subprocess.Popen(
-            [CHROMIUM, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "about:blank"],
-            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-            text=True,
-        )  # fmt: skip
-        lines: queue.Queue[str] = queue.Queue()
-        threading.Thread(target=_reader, args=(browser.stderr, lines), daemon=True).start()
-        try:
-            ws_url = _wait_line(lines, DEVTOOLS_LINE, EXIT_TIMEOUT_S)
-            with connect(ws_url, max_size=None) as ws:
-                tools = DevTools(ws)
-                tools.call("Page.enable")
-                tools.call("Emulation.setFocusEmulationEnabled", enabled=True)
-                tools.call("Page.navigate", url=url)
-                page = Page(tools)
-                _drive(page, shot)
-        finally:
-            browser.terminate()
-            browser.wait(EXIT_TIMEOUT_S)
+    with headless_browser() as tools:
+        tools.call("Emulation.setFocusEmulationEnabled", enabled=True)
+        tools.call("Page.navigate", url=url)
+        _drive(Page(tools), shot)
     code = web_run["process"].wait(EXIT_TIMEOUT_S)
     wall_s = time.monotonic() - wall_start
     print(f"screenshot: {shot}")
