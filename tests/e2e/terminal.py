@@ -7,6 +7,7 @@ from __future__ import annotations
 import shlex
 import shutil
 import subprocess
+import tempfile
 import time
 import uuid
 from collections.abc import Callable, Sequence
@@ -26,8 +27,14 @@ class Terminal:
             raise FileNotFoundError("tmux is not installed (make test installs it)")
         self.socket = f"teleop-test-{uuid.uuid4().hex[:8]}"
         self.session = "run"
-        # The pane outlives the program (remain-on-exit), so its last screen can be read.
-        shell = f"cd {shlex.quote(str(cwd))} && {shlex.join(command)}"
+        # The program's exit status goes to a file of its own (tmux's pane_dead_status was
+        # seen left empty for a program that had exited); the pane outlives the program
+        # (remain-on-exit), so its last screen can be read.
+        self._status = Path(tempfile.mkdtemp(prefix="teleop-terminal-")) / "status"
+        shell = (
+            f"cd {shlex.quote(str(cwd))} && {shlex.join(command)}; "
+            f"echo $? > {shlex.quote(str(self._status))}"
+        )
         self._tmux("new-session", "-d", "-s", self.session, "-x", str(columns), "-y",
                    str(rows), shell)  # fmt: skip
         self._tmux("set-option", "-t", self.session, "remain-on-exit", "on")
@@ -48,14 +55,11 @@ class Terminal:
 
     def exited(self) -> int | None:
         """The program's exit status once it has ended, else None."""
-        dead, status, signal = self._tmux(
-            "display-message", "-p", "-t", self.session,
-            "#{pane_dead}:#{pane_dead_status}:#{pane_dead_signal}",
-        ).strip().split(":")  # fmt: skip
-        if dead != "1" or not (status or signal):
-            return None  # running, or dead a moment ago with its status not yet filled in
-        # Killed by a signal: no status; as a shell says it, 128 + the signal's number.
-        return int(status) if status else 128 + int(signal)
+        try:
+            text = self._status.read_text().strip()
+        except FileNotFoundError:
+            return None
+        return int(text) if text else None  # an empty file: being written
 
     def wait_for(self, read: Callable[[str], T | None], timeout_s: float, what: str) -> T:
         """The first non-None ``read(screen)`` within ``timeout_s``; AssertionError with
@@ -72,6 +76,7 @@ class Terminal:
 
     def close(self) -> None:
         subprocess.run(["tmux", "-L", self.socket, "kill-server"], capture_output=True)
+        shutil.rmtree(self._status.parent, ignore_errors=True)
 
     def __enter__(self) -> Terminal:
         return self
