@@ -89,7 +89,7 @@ class HumanOperatorService(Service):
 
     def _on_tool(self, rec: np.ndarray, rx_ns: int) -> None:
         with self.lock:
-            self.loop.on_tool(self._tick_of(rec), rec["world_p_tool_m"])
+            self.loop.on_tool(self._tick_of(rec), rec["world_p_tool_m"], rx_ns)
         self._wake.set()  # lockstep: the run moved on, inputs held back may go
 
     def _on_objects(self, rec: np.ndarray, rx_ns: int) -> None:

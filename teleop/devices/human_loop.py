@@ -49,7 +49,7 @@ import numpy as np
 from teleop.bus.messages import Button, Event
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import Config
-from teleop.core.ticks import is_sample_tick
+from teleop.core.ticks import is_sample_tick, last_sample_tick
 from teleop.devices.human import HandIntent, hand_command
 from teleop.devices.routing import SceneKnowledge
 from teleop.sim.proximity import BIN_BODY
@@ -228,6 +228,7 @@ class HumanOperatorLoop:
         self._next_sample_tick = 0
         self._next_realtime_ns = 0
         self._held_back_tick = -1
+        self.joined_at_tick: int | None = None  # a run joined under way, at this tick
         self._last_tool: tuple[int, np.ndarray] | None = None
         self.tool_start_p_m: np.ndarray | None = None  # the run's first tool pose seen
 
@@ -245,7 +246,12 @@ class HumanOperatorLoop:
         self.task.start(0, self._emit)
         self.view.phase = self.task.phase
 
-    def on_tool(self, tick: int, world_p_m: np.ndarray) -> None:
+    def on_tool(self, tick: int, world_p_m: np.ndarray, now_ns: int) -> None:
+        """TOOL_POSE at ``tick``, received at ``now_ns``. The first one without a STARTED
+        before it is a run under way (this service restarted): the hand inputs take up
+        from the newest sample tick, as if the run had started ``tick`` periods ago."""
+        if self._start_ns is None:
+            self._join(tick, now_ns)
         p = np.array(world_p_m, dtype=np.float64)
         if self._last_tool is not None and tick > self._last_tool[0]:
             dt_s = (tick - self._last_tool[0]) * self.timestep_s
@@ -255,6 +261,17 @@ class HumanOperatorLoop:
             self.tool_start_p_m = p
         self.view.tick = max(self.view.tick, tick)
         self.view.tool_p_m = p
+
+    def _join(self, tick: int, now_ns: int) -> None:
+        self.runs += 1
+        self.joined_at_tick = tick
+        self._start_ns = now_ns - tick * self.period_ns
+        self._next_sample_tick = last_sample_tick(tick, self.rate_hz, self.timestep_s)
+        self._next_realtime_ns = now_ns
+        self.view = WorldView(tick=tick)
+        self.task.reset()
+        self.task.start(tick, self._emit)  # what is held shows at the next grasp or release
+        self.view.phase = self.task.phase
 
     def on_objects(self, tick: int, objects_p_m: Sequence[np.ndarray]) -> None:
         names = self.config.robot.object_bodies
@@ -342,6 +359,7 @@ class HumanOperatorLoop:
             "failure": "" if task.success or not task.done else "ended by the person",
             "task_duration_s": duration_s,
             "runs": self.runs,
+            "joined_at_tick": self.joined_at_tick,
             "hand_inputs_sent": self.inputs_sent,
             "hand_inputs_held_back": self.inputs_held_back,
             # Where the person took the tool (world frame, m): the run's first and last

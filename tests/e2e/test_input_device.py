@@ -3,7 +3,8 @@ with the device's own HID reports: a FIFO named like its hidraw node stands in f
 (this machine has no input devices), and the test writes the reports a SpaceMouse sends
 (report 1: translation, little-endian int16 X, Y, Z; the device's Z points down) while
 the service, under supervisord, reads and decodes them. Pushing the cap down and to the
-left moves the tool down and to the left."""
+left moves the tool down and to the left; after the service is killed and restarted,
+pushing it forward moves the tool forward."""
 
 from __future__ import annotations
 
@@ -85,3 +86,45 @@ def test_a_spacemouse_pushed_down_and_left_moves_the_tool_down_and_left(tmp_path
     assert moved[1] > 0.05 and moved[2] < -0.05, moved  # left (+y) and down
     assert abs(moved[0]) < 0.5 * min(abs(moved[1]), abs(moved[2])), moved
     assert summary["dropped_messages"] == 0
+
+
+def test_a_killed_spacemouse_service_comes_back_and_drives_again(tmp_path):
+    """The operator's service SIGKILLed mid-run (a fault injected at 1.5 s of sim time):
+    supervisord restarts it, it joins the run under way at its newest tick, and the cap
+    pushed forward after the restart moves the tool forward."""
+    node = tmp_path / "hidraw0"
+    os.mkfifo(node)
+    fd = os.open(node, os.O_RDWR)
+    run_dir = tmp_path / "run"
+    log = run_dir / "logs" / "operator.log"
+    command = [sys.executable, "-m", "teleop.cli", "run", "grasp", "--operator", "spacemouse",
+               "--mode", "lockstep", "--duration", "12", "--run-dir", str(run_dir),
+               "--kill", "operator@1.5", "--set", f'spacemouse.device="{node}"']  # fmt: skip
+    process = subprocess.Popen(
+        command, cwd=REPO, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        _wait_for_line(process, "  sim ", 120.0)
+        deadline = time.monotonic() + 60.0
+        while (log.read_text() if log.exists() else "").count("running (robot") < 2:
+            assert time.monotonic() < deadline, "the operator's service did not come back"
+            time.sleep(0.2)
+        _push(fd, 0, 0, 0, 0.3)  # at rest: the new process arms
+        _push(fd, 0, -250, 0, 1.5)  # forward (-Y)
+        _push(fd, 0, 0, 0, 0.5)
+        _, stderr = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+        os.close(fd)
+    assert process.returncode == 1, stderr  # no task done, no failure
+    summary = json.loads((run_dir / "summary.json").read_text())
+    operator = summary["services"]["operator"]
+    assert operator["joined_at_tick"] is not None and operator["joined_at_tick"] > 0
+    assert summary["restarted_services"].get("operator") == 1
+    start, end = operator["tool_start_m"], operator["tool_end_m"]
+    moved = [e - s for s, e in zip(start, end, strict=True)]
+    print(f"after the restart the tool moved {moved} m")
+    assert moved[0] > 0.05 and abs(moved[1]) < 0.5 * moved[0], moved

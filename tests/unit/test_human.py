@@ -158,7 +158,7 @@ def test_lockstep_inputs_follow_the_wall_clock_on_the_grid_the_haptic_device_wai
     next_ns = loop.due(t0, HandIntent())
     assert [h[0] for h in out.hands] == [10] and next_ns == t0 + 10 * MS
     for tick in range(0, 60, 10):  # the run keeps up: poses come as it steps
-        loop.on_tool(tick, np.zeros(3))
+        loop.on_tool(tick, np.zeros(3), t0)
     loop.due(t0 + 45 * MS, HandIntent())  # sample ticks 10..40 are due by now
     sent = [h[0] for h in out.hands]
     assert sent == [10, 20, 30, 40, 50]
@@ -173,7 +173,7 @@ def test_lockstep_holds_inputs_back_while_the_run_lags_and_never_bursts_past_it(
     loop.due(10 * NS_PER_S, HandIntent())  # ten seconds of wall clock, no pose seen yet
     newest = max(h[0] for h in out.hands)
     assert newest <= MAX_AHEAD_TICKS and loop.inputs_held_back == 1
-    loop.on_tool(100, np.zeros(3))
+    loop.on_tool(100, np.zeros(3), 10 * NS_PER_S)
     loop.due(10 * NS_PER_S + MS, HandIntent())
     assert max(h[0] for h in out.hands) <= 100 + MAX_AHEAD_TICKS
     assert [h[0] for h in out.hands] == sorted({h[0] for h in out.hands})  # in order, once
@@ -182,12 +182,27 @@ def test_lockstep_holds_inputs_back_while_the_run_lags_and_never_bursts_past_it(
 def test_realtime_sends_one_input_per_decision_period_ahead_of_the_newest_tick():
     loop, out = _loop(lockstep=False)
     loop.on_started(0)
-    loop.on_tool(500, np.zeros(3))
+    loop.on_tool(500, np.zeros(3), 0)
     assert loop.due(0, HandIntent()) == 10 * MS
     assert loop.due(5 * MS, HandIntent()) == 10 * MS and len(out.hands) == 1
     assert out.hands[0][0] == 510
     loop.due(2 * NS_PER_S, HandIntent())  # after a stall: one input, not two hundred
     assert len(out.hands) == 2
+
+
+@pytest.mark.parametrize("lockstep", [True, False])
+def test_a_restarted_device_takes_up_a_run_under_way_from_its_newest_tick(lockstep):
+    loop, out = _loop(lockstep=lockstep)
+    now_ns = 500 * NS_PER_S  # no STARTED seen: the run began before this process
+    loop.due(now_ns, HandIntent())
+    assert out.hands == []
+    loop.on_tool(12_340, np.zeros(3), now_ns)
+    loop.due(now_ns, HandIntent((0.5, 0.0, 0.0)))
+    first = out.hands[0][0]
+    assert 12_340 < first <= 12_340 + 10  # the newest sample tick, one decision ahead
+    assert out.hands[0][1][0] > 0  # the person's intent, at once
+    assert [e[0] for e in out.events] == [Event.PHASE]  # the task's phases from here
+    assert loop.summary()["joined_at_tick"] == 12_340 and loop.summary()["runs"] == 1
 
 
 def test_the_hand_holds_up_what_it_carries_and_yields_to_every_other_force():
@@ -257,7 +272,7 @@ def test_a_cube_dropped_outside_the_bin_is_reached_for_again():
 def test_the_person_ending_the_run_is_no_success_and_said_once():
     loop, out = _loop(lockstep=True)
     loop.on_started(0)
-    loop.on_tool(1234, np.zeros(3))
+    loop.on_tool(1234, np.zeros(3), 0)
     loop.end_task()
     loop.end_task()
     done = [e for e in out.events if e[0] == Event.TASK_DONE]
