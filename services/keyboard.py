@@ -43,7 +43,7 @@ _SPECIAL_KEYS = {
     curses.KEY_PPAGE: PAGE_UP,
     curses.KEY_NPAGE: PAGE_DOWN,
 }
-# The force bar's full scale (N): the emulated handle's peak force (haptic.max_force_n).
+# The force bar's width (characters); its full scale is haptic.peak_force_n.
 BAR_WIDTH = 30
 _AXIS_WORDS = (("forward", "back"), ("left", "right"), ("up", "down"))
 

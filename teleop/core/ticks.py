@@ -37,6 +37,20 @@ def last_sample_tick(tick: int, rate_hz: float, timestep_s: float) -> int:
     return j
 
 
+def next_sample_tick(tick: int, rate_hz: float, timestep_s: float) -> int:
+    """The first sample tick > ``tick``."""
+    j = tick + 1
+    while not is_sample_tick(j, rate_hz, timestep_s):
+        j += 1
+    return j
+
+
+def lead_ticks(rate_hz: float, timestep_s: float) -> int:
+    """How far ahead a producer at ``rate_hz`` publishes (plant ticks): one of its periods,
+    so a record is in before the first tick it applies to."""
+    return round(1.0 / (rate_hz * timestep_s))
+
+
 def expected_valid_from(
     tick: int, rate_hz: float, timestep_s: float, lead_ticks: int
 ) -> int | None:

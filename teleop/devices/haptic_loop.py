@@ -54,7 +54,7 @@ from teleop.bus.service import STOP_POLL_S
 from teleop.bus.stamps import Inbound, StampLog
 from teleop.core.clock import NS_PER_S, Clock, LoopTimer
 from teleop.core.config import Config
-from teleop.core.ticks import TickedInputs, expected_valid_from
+from teleop.core.ticks import TickedInputs, expected_valid_from, lead_ticks
 from teleop.devices.haptic import (
     DeviceSample,
     FeedbackHold,
@@ -132,7 +132,7 @@ class HapticLoop:
         self.period_s = config.plant.timestep_s
         self.period_ns = round(self.period_s * NS_PER_S)
         self.hand_rate_hz = config.operator.decision_rate_hz
-        self.lead_ticks = round(1.0 / (self.hand_rate_hz * self.period_s))
+        self.lead_ticks = lead_ticks(self.hand_rate_hz, self.period_s)
         self.hand_stale_ticks = round(config.haptic.hand_input_stale_s / self.period_s)
         self.max_feedback_n = OVERSIZED_FEEDBACK_FACTOR * config.haptic.peak_force_n
         self.render_on_arrival = config.haptic.render_on_arrival

@@ -49,7 +49,7 @@ import numpy as np
 from teleop.bus.messages import Button, Event
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import Config
-from teleop.core.ticks import is_sample_tick, last_sample_tick
+from teleop.core.ticks import last_sample_tick, lead_ticks, next_sample_tick
 from teleop.devices.human import HandIntent, hand_command
 from teleop.devices.routing import SceneKnowledge
 from teleop.sim.proximity import BIN_BODY
@@ -215,7 +215,7 @@ class HumanOperatorLoop:
         self.timestep_s = config.plant.timestep_s
         self.period_ns = round(self.timestep_s * NS_PER_S)
         self.rate_hz = config.operator.decision_rate_hz
-        self.lead_ticks = round(1.0 / (self.rate_hz * self.timestep_s))
+        self.lead_ticks = lead_ticks(self.rate_hz, self.timestep_s)
         self.decision_ns = round(NS_PER_S / self.rate_hz)
         self.hand_stiffness_n_per_m = config.haptic.hand_stiffness_n_per_m
         self.weight_f_n: np.ndarray | None = None  # the held weight the handle renders
@@ -235,23 +235,15 @@ class HumanOperatorLoop:
     # -- what the bus brings -------------------------------------------------------------
     def on_started(self, now_ns: int) -> None:
         """The plant's STARTED: a new run from tick 0."""
-        self.runs += 1
-        self._start_ns = now_ns
-        self._next_sample_tick = 0
-        self._next_realtime_ns = now_ns
-        self._last_tool = None
-        self.tool_start_p_m = None
-        self.view = WorldView(tick=0)
-        self.task.reset()
-        self.task.start(0, self._emit)
-        self.view.phase = self.task.phase
+        self._begin(0, now_ns)
 
     def on_tool(self, tick: int, world_p_m: np.ndarray, now_ns: int) -> None:
         """TOOL_POSE at ``tick``, received at ``now_ns``. The first one without a STARTED
         before it is a run under way (this service restarted): the hand inputs take up
         from the newest sample tick, as if the run had started ``tick`` periods ago."""
         if self._start_ns is None:
-            self._join(tick, now_ns)
+            self._begin(tick, now_ns)
+            self.joined_at_tick = tick
         p = np.array(world_p_m, dtype=np.float64)
         if self._last_tool is not None and tick > self._last_tool[0]:
             dt_s = (tick - self._last_tool[0]) * self.timestep_s
@@ -262,15 +254,19 @@ class HumanOperatorLoop:
         self.view.tick = max(self.view.tick, tick)
         self.view.tool_p_m = p
 
-    def _join(self, tick: int, now_ns: int) -> None:
+    def _begin(self, tick: int, now_ns: int) -> None:
+        """A run from ``tick`` at ``now_ns``: the hand inputs from its newest sample tick,
+        the task from reach (what is held shows at the next grasp or release)."""
         self.runs += 1
-        self.joined_at_tick = tick
+        self.joined_at_tick = None
         self._start_ns = now_ns - tick * self.period_ns
         self._next_sample_tick = last_sample_tick(tick, self.rate_hz, self.timestep_s)
         self._next_realtime_ns = now_ns
+        self._last_tool = None
+        self.tool_start_p_m = None
         self.view = WorldView(tick=tick)
         self.task.reset()
-        self.task.start(tick, self._emit)  # what is held shows at the next grasp or release
+        self.task.start(tick, self._emit)
         self.view.phase = self.task.phase
 
     def on_objects(self, tick: int, objects_p_m: Sequence[np.ndarray]) -> None:
@@ -334,13 +330,7 @@ class HumanOperatorLoop:
                     self.inputs_held_back += 1
                 return now_ns + self.decision_ns  # the run lags: wait for its next pose
             self._send(s + self.lead_ticks, target_p_m, buttons)
-            self._next_sample_tick = self._following_sample_tick(s)
-
-    def _following_sample_tick(self, tick: int) -> int:
-        j = tick + 1
-        while not is_sample_tick(j, self.rate_hz, self.timestep_s):
-            j += 1
-        return j
+            self._next_sample_tick = next_sample_tick(s, self.rate_hz, self.timestep_s)
 
     def _send(self, valid_from_tick: int, target_p_m: np.ndarray, buttons: Button) -> None:
         self.outputs.hand(valid_from_tick, target_p_m, buttons)

@@ -87,7 +87,7 @@ from teleop.core.config import (
     build,
     read_toml,
 )
-from teleop.core.ticks import expected_valid_from, is_sample_tick, last_sample_tick
+from teleop.core.ticks import expected_valid_from, is_sample_tick, last_sample_tick, lead_ticks
 from teleop.devices.routing import KeepOut, SceneKnowledge, plan_route, route_length_m
 from teleop.sim.proximity import BIN_BODY
 
@@ -1056,7 +1056,7 @@ class OperatorLoop:
                 f"({config.plant.scene_rate_hz:g}): decisions are driven by TOOL_POSE arrivals"
             )
         self.lockstep = lockstep
-        self.lead_ticks = round(1.0 / (self.rate_hz * self.timestep_s))
+        self.lead_ticks = lead_ticks(self.rate_hz, self.timestep_s)
         # Lockstep: how far the newest TOOL_POSE can be ahead of the last one decided while
         # the haptic device waits for this operator's hand inputs (a hand input applies
         # for a decision period from a decision period ahead, and poses come every scene
