@@ -149,6 +149,8 @@ class HumanOperatorService(Service):
     def _pace(self, stop: threading.Event) -> None:
         """Send each hand input when the loop says it is due; sleep until the next."""
         while not stop.is_set():
+            # Cleared before the loop looks, so a wake-up set while it works is kept.
+            self._wake.clear()
             now_ns = time.monotonic_ns()
             with self.lock:
                 sent_before = self.loop.inputs_sent
@@ -158,7 +160,6 @@ class HumanOperatorService(Service):
                 self._time_input(now_ns - self._pending_input_ns)
                 self._pending_input_ns = None
             self._wake.wait(max(0.0, (next_ns - time.monotonic_ns()) / NS_PER_S))
-            self._wake.clear()
 
     def _time_input(self, latency_ns: int) -> None:
         self._input_latency_ns[self._inputs_timed % LATENCY_SAMPLES] = latency_ns

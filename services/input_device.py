@@ -13,7 +13,6 @@ goes away mid-run ends the task (not a success) rather than leaving the hand whe
 from __future__ import annotations
 
 import logging
-import math
 import sys
 import threading
 import time
@@ -58,10 +57,10 @@ class InputDeviceOperatorService(HumanOperatorService):
                 with self.lock:
                     changed = intent != self._intent
                     self._intent = intent
-                    force = self.loop.view.device_f_n
+                    force_n = self.loop.view.force_n
                 if changed:
                     self.input_changed(now_ns)
-                self.reader.rumble(0.0 if force is None else math.hypot(*force.tolist()))
+                self.reader.rumble(force_n)
         finally:
             self.reader.close()
 

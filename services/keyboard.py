@@ -13,7 +13,6 @@ step, gripper and clutch, and the keys. The keys are those of
 from __future__ import annotations
 
 import curses
-import math
 import sys
 import threading
 import time
@@ -106,7 +105,7 @@ def screen_lines(service: KeyboardOperatorService, now_ns: int) -> list[str]:
         lines.append(f"task done: {'success' if view.success else 'not a success'}"
                      "   (the run ends in a moment)")  # fmt: skip
     else:
-        phase = PHASES[view.phase] if 0 <= view.phase < len(PHASES) else "-"
+        phase = view.phase_name or "-"
         lines.append(f"phase: {phase} ({view.phase + 1}/{len(PHASES)})   "
                      f"holding: {'yes' if view.holding else 'no'}")  # fmt: skip
     if service.run_over.is_set():
@@ -117,7 +116,7 @@ def screen_lines(service: KeyboardOperatorService, now_ns: int) -> list[str]:
                      f"speed {view.tool_speed_m_s:.3f} m/s")  # fmt: skip
     for name, p in (view.objects_p_m or {}).items():
         lines.append(f"{name:<5} x {p[0]:+.3f}  y {p[1]:+.3f}  z {p[2]:+.3f} m")
-    force_n = 0.0 if view.device_f_n is None else math.hypot(*view.device_f_n.tolist())
+    force_n = view.force_n
     peak_n = cfg.haptic.peak_force_n
     filled = min(BAR_WIDTH, round(BAR_WIDTH * force_n / peak_n)) if peak_n > 0 else 0
     lines.append(f"force [{'#' * filled}{'.' * (BAR_WIDTH - filled)}] {force_n:4.1f} N")

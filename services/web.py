@@ -255,8 +255,8 @@ def state_message(
 ) -> dict[str, Any]:
     """What the page shows, as the state stream sends it (units in the names; positions
     in the world frame, the force in the device frame)."""
-    force_n = 0.0 if view.device_f_n is None else float(np.linalg.norm(view.device_f_n))
-    phase = PHASES[view.phase] if 0 <= view.phase < len(PHASES) else None
+    force_n = view.force_n
+    phase = view.phase_name
     return {
         "tick": view.tick,
         "sim_s": round(max(view.tick, 0) * config.plant.timestep_s, 3),

@@ -97,6 +97,16 @@ class WorldView:
     done: bool = False
     success: bool = False
 
+    @property
+    def force_n(self) -> float:
+        """The magnitude of the force the handle renders (N; 0 before the first)."""
+        return 0.0 if self.device_f_n is None else float(np.linalg.norm(self.device_f_n))
+
+    @property
+    def phase_name(self) -> str | None:
+        """The task's phase by name (None before the run starts)."""
+        return PHASES[self.phase] if 0 <= self.phase < len(PHASES) else None
+
 
 class WorldTask:
     """The pick-and-place task's phases from the world: what is held (the plant's GRASP

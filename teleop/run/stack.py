@@ -113,7 +113,7 @@ from teleop.run.progress import RunProgress
 from teleop.run.sites import SiteError, check_site, write_operator_bundle
 from teleop.run.supervise import Program, Stack, StackError
 from teleop.run.verdict import machine_section, realtime_health, refused_privileges
-from teleop.run.web_operator import prepare_web_operator, web_overrides
+from teleop.run.web_operator import WebAccess, prepare_web_operator, web_overrides
 
 # The operator's eye view renders in a process of its own (see services/eyeview.py for
 # why not a thread in the plant); it joins the stack of any scenario when eyeview.enabled.
@@ -460,8 +460,8 @@ class StackServices:
         human = config.run.operator != SCRIPTED and OPERATOR_SERVICE in started
         terminal = human and config.run.operator in TERMINAL_OPERATORS
         foreground = (OPERATOR_SERVICE,) if terminal else ()
-        program = "input_device" if config.run.operator in INPUT_DEVICE_OPERATORS else ""
-        program = program or config.run.operator
+        input_device = config.run.operator in INPUT_DEVICE_OPERATORS
+        program = "input_device" if input_device else config.run.operator
         modules = ((OPERATOR_SERVICE, f"services.{program}"),) if human else ()
         site = config.site.name
         if not site:
@@ -494,6 +494,7 @@ class StackPlan:
     joins: list[tuple[str, BusConfig]]  # per service left out: instructions, its bus
     polled_cpus: list[int]  # the CPUs kept polling (idle_poll_cpus), a poller each
     foreground: list[Program]  # run in the user's terminal (StackServices.foreground)
+    web: WebAccess | None  # the web page's port and token (run.operator "web"), else None
 
 
 def plan_stack(
@@ -516,8 +517,10 @@ def plan_stack(
     outside services' Zenoh configs and join instructions, all written to ``run_dir``."""
     tls = config.bus.mutual_tls
     endpoint = endpoint or loopback_endpoint(ports, tls)
+    web = prepare_web_operator(config, run_dir, ports)  # --operator web: port, token
     run_overrides = [
         *overrides,
+        *web_overrides(web),
         f'bus.endpoint="{endpoint}"',
         f'run.mode="{config.run.mode}"',
         f'run.scenario="{config.run.scenario}"',
@@ -556,7 +559,7 @@ def plan_stack(
     )  # fmt: skip
     return StackPlan(
         services, endpoint, run_overrides, credentials, mesh, programs, joins, polled_cpus,
-        foreground,
+        foreground, web,
     )  # fmt: skip
 
 
@@ -635,10 +638,9 @@ def run_on_services(
     session = None
     entities: list[Any] = []
     try:
-        web = prepare_web_operator(config, run_dir, ports)  # --operator web: port, token
         plan = plan_stack(
-            Launch.RUN, config, config_file, [*overrides, *web_overrides(web)], run_dir,
-            ports, layout, without_timeout_s=without_timeout_s,
+            Launch.RUN, config, config_file, overrides, run_dir, ports, layout,
+            without_timeout_s=without_timeout_s,
         )  # fmt: skip
         credentials = plan.credentials
         bus = replace(  # the mesh's listener
@@ -694,8 +696,8 @@ def run_on_services(
                     )  # fmt: skip
                 except OutsideMissing as exc:
                     raise RunError(str(exc)) from None
-                if web is not None:  # the page is up: its URL, with the token, to the person
-                    announce(web.announcement())
+                if plan.web is not None:  # the page is up: its URL and token, to the person
+                    announce(plan.web.announcement())
                 _wait_finished(finished, tool, tracker, deadline_s, stack, progress, run_dir, check)
             except ServiceFailed as exc:
                 # Said now, not after the stop (which can take seconds more).
@@ -1197,11 +1199,9 @@ def start_detached(
         )
     # Held until every service listens: then each holds its own.
     with LoopbackPorts() as ports:
-        web = prepare_web_operator(config, run_dir, ports)  # --operator web: port, token
         plan = plan_stack(
-            Launch.UP, config, config_file, [*overrides, *web_overrides(web)], run_dir, ports,
-            layout, endpoint=endpoint, without_timeout_s=without_timeout_s,
-            credentials=credentials,
+            Launch.UP, config, config_file, overrides, run_dir, ports, layout,
+            endpoint=endpoint, without_timeout_s=without_timeout_s, credentials=credentials,
         )  # fmt: skip
         credentials = plan.credentials
         if config.site.name == ROBOT_SITE and credentials is not None:
@@ -1222,8 +1222,8 @@ def start_detached(
         peers += [bus.peer_listen_endpoint for _, bus in plan.joins]
         _await_ready_detached(stack, config, plan.endpoint, peers, layout.started,
                               layout.outside, without_timeout_s, announce, observer)  # fmt: skip
-        if web is not None:  # the page is up: its URL, with the token, to the person
-            announce(web.announcement())
+        if plan.web is not None:  # the page is up: its URL and token, to the person
+            announce(plan.web.announcement())
         return stack.status(), plan.endpoint
 
 
