@@ -972,6 +972,8 @@ class BusConfig:
 ROBOT_SITE = "robot"
 OPERATOR_SITE = "operator"
 SITES = (ROBOT_SITE, OPERATOR_SITE)
+# Longest round trip a lockstep run emulates (ms): ten times a transatlantic link's.
+MAX_EMULATED_ROUND_TRIP_MS = 2000.0
 
 
 @dataclass(frozen=True)
@@ -985,9 +987,21 @@ class SiteConfig:
     listen: str = ""
     # The operator site's router connects here: the robot site's ``listen``.
     connect: str = ""
+    # A round trip between the two sites emulated in sim time (ms; lockstep runs with the
+    # scripted operator): what one site sends, the other takes this much simulated time
+    # later, half each way (an odd number of ticks: the extra one on the way back). The
+    # controller then sees the handle, and the handle feels the force, as they were then;
+    # the operator sees the scene that much later too. What a distance does to the
+    # bilateral loop, on any machine (docs/sites.md); a real network's delay is emulated
+    # between two sites' routers by teleop.bench.netem.
+    emulated_round_trip_ms: float = 0.0
 
     def __post_init__(self) -> None:
         _require(self.name in ("", *SITES), f"site.name: empty or one of {', '.join(SITES)}")
+        _require(
+            0.0 <= self.emulated_round_trip_ms <= MAX_EMULATED_ROUND_TRIP_MS,
+            f"site.emulated_round_trip_ms in [0, {MAX_EMULATED_ROUND_TRIP_MS:g}]",
+        )
         for key, endpoint in (("listen", self.listen), ("connect", self.connect)):
             _require(
                 not endpoint or endpoint.startswith("tls/"),
@@ -1129,6 +1143,31 @@ class Config:
     recorder: RecorderConfig = field(default_factory=RecorderConfig)
     run: RunConfig = field(default_factory=RunConfig)
     site: SiteConfig = field(default_factory=SiteConfig)
+
+    def __post_init__(self) -> None:
+        if self.site.emulated_round_trip_ms:
+            _require(
+                self.run.mode == "lockstep",
+                "site.emulated_round_trip_ms: lockstep runs only (in realtime, run two sites "
+                "with teleop.bench.netem between their routers: docs/sites.md)",
+            )
+            _require(
+                self.run.operator == SCRIPTED,
+                "site.emulated_round_trip_ms: the scripted operator only (a person's screen "
+                "would show the scene undelayed)",
+            )
+            ticks = self.site.emulated_round_trip_ms / (self.plant.timestep_s * 1e3)
+            _require(
+                abs(ticks - round(ticks)) < 1e-6,
+                f"site.emulated_round_trip_ms: a whole number of plant steps "
+                f"({self.plant.timestep_s * 1e3:g} ms each)",
+            )
+
+    def link_delay_ticks(self) -> tuple[int, int]:
+        """The emulated link's delay (plant ticks) from the operator's site to the
+        robot's and back (``site.emulated_round_trip_ms``; (0, 0): none)."""
+        round_trip = round(self.site.emulated_round_trip_ms / (self.plant.timestep_s * 1e3))
+        return round_trip // 2, round_trip - round_trip // 2
 
 
 def _coerce(value: Any, annotation: Any, key: str) -> Any:

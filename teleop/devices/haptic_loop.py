@@ -32,6 +32,13 @@ tick (no newer one came: the operator starved, frozen or restarting) is a hand t
 stopped moving: it centres the handle (the tool holds still) and keeps the buttons it
 held (:func:`held_hand`). Sim time, so a stalled plant never makes the hand stale.
 
+Lockstep with an emulated link (``site.emulated_round_trip_ms``: the operator's and the
+robot's site a round trip apart, in sim time): what the controller takes at tick k is
+the handle as sampled ``forward`` ticks before (the record of that sample under tick
+k's seq, tick and stamps), and what the handle feels from tick k on is the feedback of
+tick ``k - 1 - backward``. The device still waits for the feedback of tick k-1 before
+it steps tick k: that is the lockstep's order, whatever the link delays.
+
 Lockstep: a PLANT_STATE seq 0 with a new ``t_source_ns`` (or as the first state) starts
 a new run: the device is reset and every stored input is forgotten. A state with a seq
 already seen is a plant re-send (the plant re-sends every state in flight byte for byte,
@@ -45,6 +52,7 @@ from __future__ import annotations
 import logging
 import math
 import threading
+from collections import deque
 from typing import Any, Protocol
 
 import numpy as np
@@ -61,6 +69,7 @@ from teleop.devices.haptic import (
     HandInput,
     HapticDevice,
     max_stable_stiffness_n_per_m,
+    saturate_force,
 )
 from teleop.devices.passivity import PassivityControl, max_stable_damping_n_s_m
 
@@ -134,8 +143,14 @@ class HapticLoop:
         self.hand_rate_hz = config.operator.decision_rate_hz
         self.lead_ticks = lead_ticks(self.hand_rate_hz, self.period_s)
         self.hand_stale_ticks = round(config.haptic.hand_input_stale_s / self.period_s)
-        self.max_feedback_n = OVERSIZED_FEEDBACK_FACTOR * config.haptic.peak_force_n
+        self.peak_force_n = config.haptic.peak_force_n
+        self.max_feedback_n = OVERSIZED_FEEDBACK_FACTOR * self.peak_force_n
         self.render_on_arrival = config.haptic.render_on_arrival
+        # The emulated link's delay each way (ticks; lockstep only, else (0, 0)).
+        self.forward_ticks, self.backward_ticks = config.link_delay_ticks()
+        self.feedback_keep = FEEDBACK_KEEP + self.backward_ticks
+        # Lockstep with a forward delay: the samples still on their way (oldest first).
+        self._in_flight: deque[np.ndarray] = deque(maxlen=self.forward_ticks + 1)
         self.hold = FeedbackHold(config.haptic.stale_feedback_s, config.haptic.fade_s)
         # The energy the force exchanges with the hand, observed; damped with "tdpa".
         self.passivity = PassivityControl(
@@ -160,7 +175,8 @@ class HapticLoop:
         self._hand_blocked_since_ns: int | None = None  # lockstep: tick waits for its hand
         self._operator_absent = False
         self._last_missing_valid_from: int | None = None
-        self.record = HAPTIC_STATE.new()  # the last sample sent
+        self.record = HAPTIC_STATE.new()  # the last sample taken
+        self.sent = self.record  # the last record sent (with a forward delay: an older sample)
         # Counters for the summary.
         self.steps = 0
         self.runs = 0
@@ -193,7 +209,7 @@ class HapticLoop:
             elif seq <= self._state_seq:
                 if self.lockstep and seq == self._last_tick:
                     self.republished_states += 1
-                    self.outputs.resend(self.record)
+                    self.outputs.resend(self.sent)
                 return
             elif self._state_seq < 0:  # joined a run already under way
                 self._first_tick = seq
@@ -229,7 +245,7 @@ class HapticLoop:
             if tick < self._last_tick:
                 return  # late: its step has been taken
             self._feedback[tick] = force
-            if len(self._feedback) > FEEDBACK_KEEP:
+            if len(self._feedback) > self.feedback_keep:
                 del self._feedback[min(self._feedback)]
             self._try_steps()
 
@@ -256,7 +272,7 @@ class HapticLoop:
         trace = np.array(rec["trace_ns"])
         trace[Stage.FEEDBACK_RX] = rx_ns
         if self.render_on_arrival:
-            self.device.send_force(self.passivity.control(force))
+            self.device.send_force(self._stabilised(force))
             trace[Stage.FEEDBACK_RENDERED] = self.clock.now_ns()
             self.trace_log.append(trace)
         else:
@@ -272,6 +288,7 @@ class HapticLoop:
         self.passivity.reset()
         self.hand_inputs.clear()
         self._feedback.clear()
+        self._in_flight.clear()
         self._first_tick = 0
         self._last_tick = -1
         self._hand_blocked_since_ns = None
@@ -316,14 +333,28 @@ class HapticLoop:
                 return
             self._hand_blocked_since_ns = None
             t_ns = tick * self.period_ns
-            if force is not None:
-                self.hold.receive(force, t_ns - self.period_ns)
-                del self._feedback[tick - 1]
+            delivered = self._feedback.pop(tick - 1 - self.backward_ticks, None)
+            if delivered is not None:
+                self.hold.receive(delivered, t_ns - self.period_ns)
             sim_ns = self._state_sim_ns - (self._state_seq - tick) * self.period_ns
             sample = self._step(tick, sim_ns, hand, t_ns)
-            self.outputs.sample(self.record)
+            self.outputs.sample(self._over_the_link())
             self._account_sample(sample)
             self._last_tick = tick
+
+    def _over_the_link(self) -> np.ndarray:
+        """What the robot's site takes at this tick (lock held, after :meth:`_step`): the
+        sample taken ``forward_ticks`` ago (the run's first while the link fills), under
+        this tick's seq, tick and stamps; with no delay, :attr:`record` itself."""
+        if not self.forward_ticks:
+            self.sent = self.record
+            return self.record
+        self._in_flight.append(self.record.copy())
+        sent = self._in_flight[0].copy()
+        for name in ("seq", "t_source_ns", "trace_ns", "sim_time_ns", "tick"):
+            sent[name] = self.record[name]
+        self.sent = sent
+        return sent
 
     def poll_hand_wait(self) -> float:
         """Give up on a hand input overdue by ``HAND_INPUT_WAIT_S`` (lock held); the time
@@ -381,6 +412,13 @@ class HapticLoop:
         self._account_sample(sample)
 
     # -- shared ------------------------------------------------------------------------
+    def _stabilised(self, force_n: np.ndarray) -> np.ndarray:
+        """The force to send the motors: the stabiliser's correction of the force the
+        device can render (saturated at its peak first: a correction of a force above
+        the peak would be clipped away with it, and a saturated push would go on giving
+        energy out)."""
+        return self.passivity.control(saturate_force(force_n, self.peak_force_n))
+
     def _step(
         self,
         tick: int,
@@ -398,7 +436,7 @@ class HapticLoop:
         0 in lockstep.
         """
         force, stale = self.hold.force_at(t_ns)
-        self.device.send_force(self.passivity.control(force))
+        self.device.send_force(self._stabilised(force))
         if self._pending_trace is not None:
             self._pending_trace[Stage.FEEDBACK_RENDERED] = self.clock.now_ns()
             self.trace_log.append(self._pending_trace)
@@ -474,6 +512,8 @@ class HapticLoop:
             "feedback_rendered": len(self.trace_log) + self.trace_log.overflow,
             "trace_rows_not_kept": self.trace_log.overflow,
             "rate_hz": self._rate_hz(),
+            # the emulated link's delay each way (site.emulated_round_trip_ms)
+            "link_delay_ticks": {"forward": self.forward_ticks, "backward": self.backward_ticks},
             "passivity": self.passivity.summary(self.config.teleop.stabiliser),
             "max_stable_stiffness_n_per_m": max_stable_stiffness_n_per_m(
                 self.config.haptic, self.period_s

@@ -65,6 +65,7 @@ TOOL_POSE's BRAKING flag) was not pushed, and no progress is expected of it.
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import itertools
 import logging
 import math
@@ -1048,6 +1049,15 @@ class OperatorLoop:
         lockstep: bool,
         scene: SceneKnowledge | None = None,
     ) -> None:
+        # Across an emulated link (site.emulated_round_trip_ms) the robot's site's scene
+        # comes its way back later: the operator sees it that much later, and its hand
+        # takes the gain of the longer delay, as a person slows down to a late picture.
+        _, back_ticks = config.link_delay_ticks()
+        if back_ticks:
+            seen_s = config.operator.reaction_delay_s + back_ticks * config.plant.timestep_s
+            config = dataclasses.replace(
+                config, operator=dataclasses.replace(config.operator, reaction_delay_s=seen_s)
+            )
         self.timestep_s = config.plant.timestep_s
         self.rate_hz = config.operator.decision_rate_hz
         if self.rate_hz > config.plant.scene_rate_hz:

@@ -11,9 +11,11 @@ energy than the operator put in::
 
 Delay makes the environment active: a force that answers where the handle was, not
 where it is, pushes the hand along its motion and W falls below zero. The controller
-then adds a damper ``-alpha v`` to the next force, with ``alpha`` just large enough to
-bring W back to zero (at most ``max_damping_n_s_m``, a damping the device renders
-stably), and nothing while W is positive: a passive environment is rendered unchanged.
+then adds a damper ``-alpha v`` to the next force, axis by axis (each axis its own
+port, whose energies sum to W), with ``alpha`` just large enough to bring that axis's
+energy back to zero (at most ``max_damping_n_s_m``, a damping the device renders
+stably), and nothing while that energy is positive: a passive environment is
+rendered unchanged.
 
 The observer runs whatever the ``teleop.stabiliser`` (the energy goes to the haptic
 service's summary and the run's, ``passivity``: with ``none`` it shows how active the
@@ -54,40 +56,54 @@ class PassivityControl:
         self.active_steps = 0  # steps the controller damped
         self.correction_max_n = 0.0  # the largest force the controller took out
         self._velocity = np.zeros(3)
+        self._axis_j = np.zeros(3)  # W of each device axis (their sum: observed_j)
 
     def observe(self, rendered_f_n: np.ndarray, v_m_s: np.ndarray) -> None:
         """One device period: the force the motors rendered during it and the handle's
         velocity at its end."""
-        power_w = -float(np.dot(rendered_f_n, v_m_s))  # into the environment
-        energy_j = power_w * self.dt_s
+        axis_j = -np.asarray(rendered_f_n, dtype=np.float64) * v_m_s * self.dt_s
+        energy_j = float(axis_j.sum())  # into the environment
         if energy_j >= 0:
             self.energy_in_j += energy_j
         else:
             self.energy_out_j -= energy_j
+        self._axis_j += axis_j
         self.observed_j += energy_j
         self.observer_min_j = min(self.observer_min_j, self.observed_j)
         self._velocity = np.asarray(v_m_s, dtype=np.float64)
 
     def control(self, force_n: np.ndarray) -> np.ndarray:
-        """The force to render instead of ``force_n``: unchanged unless enabled and the
-        observed energy would fall below zero, else with the damping that keeps it at
-        zero (at the newest observed velocity)."""
+        """The force to render instead of ``force_n``: unchanged unless enabled and an
+        axis's observed energy would fall below zero, else with the damping on that axis
+        that keeps it at zero (at the newest observed velocity).
+
+        Axis by axis, each its own one-port (their sum is the observed energy, so it
+        stays at or above zero with them): a damper along the whole velocity vector
+        would, from a handle's noisy velocity estimate (20 um encoders: about 1 cm/s of
+        noise on an axis at rest), move a push along one axis into the others rather
+        than take it out."""
         if not self.enabled:
             return force_n
-        v = self._velocity
-        speed2 = float(np.dot(v, v))
-        predicted_j = self.observed_j - float(np.dot(force_n, v)) * self.dt_s
-        if predicted_j >= 0 or speed2 < _STILL_M2_S2:
+        force = np.array(force_n, dtype=np.float64)
+        correction = np.zeros(3)
+        for axis in range(3):
+            v = float(self._velocity[axis])
+            speed2 = v * v
+            predicted_j = float(self._axis_j[axis]) - float(force[axis]) * v * self.dt_s
+            if predicted_j >= 0 or speed2 < _STILL_M2_S2:
+                continue
+            # Removing the force's whole component along the motion is always allowed (the
+            # force only shrinks); damping beyond that, to restore an energy already below
+            # zero, is capped at what the handle renders stably.
+            along = max(float(force[axis]) * v, 0.0) / speed2
+            alpha = min(-predicted_j / (speed2 * self.dt_s), along + self.max_damping_n_s_m)
+            correction[axis] = alpha * v
+            self.dissipated_j += alpha * speed2 * self.dt_s
+        if not correction.any():
             return force_n
-        # Removing the force's whole component along the motion is always allowed (the
-        # force only shrinks); damping beyond that, to restore an energy already below
-        # zero, is capped at what the handle renders stably.
-        along = max(float(np.dot(force_n, v)), 0.0) / speed2
-        alpha = min(-predicted_j / (speed2 * self.dt_s), along + self.max_damping_n_s_m)
         self.active_steps += 1
-        self.correction_max_n = max(self.correction_max_n, alpha * math.sqrt(speed2))
-        self.dissipated_j += alpha * speed2 * self.dt_s
-        return force_n - alpha * v
+        self.correction_max_n = max(self.correction_max_n, math.hypot(*correction.tolist()))
+        return force - correction
 
     def summary(self, stabiliser: str) -> dict[str, Any]:
         """The energy account (J) of the run so far, JSON-ready."""

@@ -19,7 +19,7 @@ from teleop.bus.messages import (
 )
 from teleop.bus.service import STOP_POLL_S
 from teleop.core.clock import FakeClock
-from teleop.core.config import HapticConfig, load_config
+from teleop.core.config import ConfigError, HapticConfig, load_config
 from teleop.devices.haptic import (
     EmulatedDevice,
     FeedbackHold,
@@ -280,6 +280,65 @@ def test_loop_steps_once_per_tick_in_lockstep():
     # State 0 with a new stamp: a new run, the handle back at the centre.
     loop.on_state(plant_state(0, t_source_ns=2))
     assert loop.runs == 2 and np.all(sent.samples[-1]["device_p_m"] == 0.0)
+
+
+def run_lockstep_push(loop: HapticLoop, ticks: int, push_from: int, push_n) -> None:
+    """Drive a lockstep loop: a hand 2 cm along x from the start, a feedback force
+    ``push_n`` from the feedback of tick ``push_from - 1`` on."""
+    lead = loop.lead_ticks
+    for k in range(ticks):
+        loop.on_state(plant_state(k))
+        if k >= 1:
+            loop.on_feedback(feedback(k, k - 1, push_n if k >= push_from else 0.0), 0)
+        if k % lead == 0:
+            loop.on_hand(hand(k + lead, [0.02, 0.0, 0.0]))
+
+
+def test_an_emulated_link_delays_the_handle_forward_and_the_force_back():
+    """site.emulated_round_trip_ms = 25: the controller takes at tick k the handle as it
+    was 12 ticks before (under tick k's seq and tick), the handle feels the feedback of
+    tick k-1 only 13 ticks later; the barrier still waits for feedback k-1."""
+    plain, plain_sent, _ = make_loop(lockstep=True)
+    config = load_config(None, ['run.mode="lockstep"', "site.emulated_round_trip_ms=25"])
+    assert config.link_delay_ticks() == (12, 13)
+    delayed_sent, clock = Sent(), FakeClock(start_ns=10 * NS_PER_S)
+    device = EmulatedDevice(config.haptic, config.plant.timestep_s)
+    delayed = HapticLoop(config, device, delayed_sent, clock, lockstep=True)
+    ticks, push_from, push_n = 400, 200, np.array([0.0, 0.0, 1.5])
+    run_lockstep_push(plain, ticks, push_from, push_n)
+    run_lockstep_push(delayed, ticks, push_from, push_n)
+    assert len(delayed_sent.samples) == ticks
+    for k, rec in enumerate(delayed_sent.samples):
+        assert int(rec["tick"]) == k and int(rec["seq"]) == k + 1
+        assert int(rec["sim_time_ns"]) == k * NS_PER_MS
+        if k < push_from:  # no force yet: the same handle, 12 ticks late
+            sampled = plain_sent.samples[max(k - 12, 0)]
+            assert np.array_equal(rec["device_p_m"], sampled["device_p_m"])
+    # The plain loop renders the push at tick push_from; across the link the handle
+    # feels it 13 ticks later, and the robot's site sees that 12 ticks after.
+    assert np.allclose(plain_sent.samples[push_from]["device_f_n"], push_n)
+    felt = push_from + 13 + 12
+    assert np.all(delayed_sent.samples[felt - 1]["device_f_n"] == 0.0)
+    assert np.allclose(delayed_sent.samples[felt]["device_f_n"], push_n)
+    # Without feedback k-1 tick k does not step, delay or not.
+    delayed.on_state(plant_state(ticks))
+    assert len(delayed_sent.samples) == ticks
+    assert delayed.summary()["link_delay_ticks"] == {"forward": 12, "backward": 13}
+
+
+@pytest.mark.parametrize(
+    ("settings", "error"),
+    [
+        (["site.emulated_round_trip_ms=25"], "lockstep runs only"),
+        (['run.mode="lockstep"', "site.emulated_round_trip_ms=2.5"], "whole number"),
+        (['run.mode="lockstep"', "site.emulated_round_trip_ms=-1"], r"in \[0, 2000\]"),
+        (['run.mode="lockstep"', 'run.operator="web"', "site.emulated_round_trip_ms=20"],
+         "scripted operator only"),
+    ],
+)  # fmt: skip
+def test_an_emulated_link_is_refused_where_it_cannot_be_emulated(settings, error):
+    with pytest.raises(ConfigError, match=error):
+        load_config(None, settings)
 
 
 def test_lockstep_goes_on_without_an_operator_after_the_hand_wait():

@@ -105,3 +105,20 @@ def test_a_wall_felt_late_oscillates_and_gives_energy_out_unless_the_controller_
     print(f"{delay_s * 1e3:.0f} ms: observer min {free.observer_min_j:.3g} J, last second "
           f"{np.ptp(free_x[last_s]) * 1e3:.1f} mm (none); {damped.observer_min_j:.3g} J, "
           f"{np.ptp(damped_x[last_s]) * 1e3:.2f} mm (tdpa)")  # fmt: skip
+
+
+def test_the_controller_takes_a_push_out_on_its_own_axis_only():
+    """A push along z on a handle moving up, its velocity estimate noisy across: the
+    controller takes the push out of z and puts nothing into x or y (a damper along the
+    whole noisy velocity would move it sideways: 3-4 N seen on the whole stack)."""
+    pc = PassivityControl(True, 20.0, DT_S)
+    v_m_s = np.array([0.02, -0.01, 0.03])
+    pc.observe(np.zeros(3), v_m_s)
+    push_n = np.array([0.0, 0.0, 8.0])  # along the motion: energy out
+    rendered = pc.control(push_n)
+    assert rendered[0] == 0.0 and rendered[1] == 0.0
+    assert rendered[2] == pytest.approx(0.0, abs=1e-12)
+    pc.observe(rendered, v_m_s)
+    assert pc.observed_j == 0.0 and pc.observer_min_j == 0.0
+    # A push against the motion is passive: rendered unchanged.
+    assert np.array_equal(pc.control(-push_n), -push_n)
