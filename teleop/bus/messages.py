@@ -42,8 +42,9 @@ logger = logging.getLogger(__name__)
 # device_deadline_ns in HAPTIC_STATE and JOINT_COMMAND, the plant's steps on the haptic
 # device's clock; 5: FORCE_FEEDBACK carries the scene's and the arm's own limits' push-back;
 # 6: HAPTIC_STATE carries the passivity observer's energy and what its controller
-# dissipated).
-PROTOCOL_VERSION = 6
+# dissipated; 7: HAPTIC_STATE and FORCE_FEEDBACK carry the wave variables of
+# teleop.stabiliser "wave").
+PROTOCOL_VERSION = 7
 MAX_JOINTS = 8  # joint arrays are padded with zeros to this length; n_joints says how many count
 MAX_OBJECTS = 8  # object pose arrays are padded to this length; n_objects says how many count
 N_STAGES = 10  # length of the header's trace_ns array (one slot per Stage)
@@ -601,6 +602,10 @@ _FORCE = {"lo": -FORCE_LIMIT_N, "hi": FORCE_LIMIT_N, "unit": "N"}
 ENERGY_LIMIT_J = 1e8
 _ENERGY = {"lo": -ENERGY_LIMIT_J, "hi": ENERGY_LIMIT_J, "unit": "J"}
 _SPEED = {"lo": -SPEED_LIMIT_M_S, "hi": SPEED_LIMIT_M_S, "unit": "m/s"}
+# A wave variable (sqrt(W)): (b v + f) / sqrt(2 b) of a speed, a force and an impedance
+# within their limits (teleop.wave_impedance_n_s_m at most 1000 N s/m).
+WAVE_LIMIT = 1e5
+_WAVE = {"lo": -WAVE_LIMIT, "hi": WAVE_LIMIT, "unit": "sqrt(W)"}
 
 
 def _tick() -> Field:
@@ -627,6 +632,11 @@ HAPTIC_STATE = Schema(
         Field(
             "passivity_dissipated_j", "f8", lo=0.0, hi=ENERGY_LIMIT_J, unit="J",
             doc="energy the passivity controller dissipated this run (teleop.stabiliser)",
+        ),
+        Field(
+            "wave_u", "f8", (3,), **_WAVE,
+            doc="wave variable toward the robot, device frame (teleop.stabiliser \"wave\"; "
+            "else 0)",
         ),
         Field("buttons", "u1", lo=0, hi=max(Button) * 2 - 1, doc="Button bits"),
     ],
@@ -655,6 +665,13 @@ FORCE_FEEDBACK = Schema(
         Field("device_f_workspace_n", "f8", (3,), **_FORCE, doc="workspace spring, device frame"),
         Field("world_f_scene_n", "f8", (3,), **_FORCE, doc="push-back of table, bin, static geoms"),
         Field("world_f_limits_n", "f8", (3,), **_FORCE, doc="push-back of joint limits, own links"),
+        Field(
+            "wave_v",
+            "f8",
+            (3,),
+            **_WAVE,
+            doc='wave variable back to the handle, device frame (teleop.stabiliser "wave"; else 0)',
+        ),
     ],
 )
 

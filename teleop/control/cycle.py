@@ -27,6 +27,7 @@ bus adapter).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 from pathlib import Path
@@ -68,8 +69,10 @@ from teleop.control.teleop import (
     JointStateTerms,
     TeleopController,
     TeleopOutput,
+    rate_to_world,
     teleop_reference,
 )
+from teleop.control.wave import RobotWavePort
 from teleop.core.clock import Clock
 from teleop.core.config import Config
 from teleop.core.ticks import TickBarrier, TickedInputs, expected_valid_from
@@ -328,6 +331,12 @@ class BilateralCycle(ControllerCore):
         self._rt_busy = False
         self._pending: dict[str, Any] = {}
         self._last_output: TeleopOutput | None = None
+        # teleop.stabiliser "wave": the robot's end of the wave channel (else None).
+        self.wave = (
+            RobotWavePort(config.teleop.wave_impedance_n_s_m)
+            if config.teleop.stabiliser == "wave"
+            else None
+        )
         # Realtime: (state seq, its joint-state terms of the control law, its closest
         # obstacle), prepared after that state's feedback went out, so a handle sample
         # answered on that state runs only the handle-dependent rest of the law
@@ -360,6 +369,8 @@ class BilateralCycle(ControllerCore):
     def reset(self) -> None:
         self.controller.reset()
         self.barrier.reset()
+        if self.wave is not None:
+            self.wave.reset()
         self._prepared = (-1, None, None)
         self._reset_metrics()
         self.events_sent = []
@@ -523,7 +534,12 @@ class BilateralCycle(ControllerCore):
         # Plain int bit tests: an enum.Flag operation costs microseconds per call.
         clutch = bool(buttons & _CLUTCH)
         gripper_cmd = GRIPPER_CLOSED if buttons & _GRIPPER_CLOSE else GRIPPER_OPEN
-        v_ref = teleop_reference(handle_d_m, yaw_rad, clutch, self.config.teleop)
+        if self.wave is not None and haptic is not None:
+            # The handle's rate from its wave, against the robot's newest resistance.
+            rate = self.wave.rate(haptic["wave_u"]).tolist()
+            v_ref = np.zeros(3) if clutch else rate_to_world(*rate, yaw_rad, self.config.teleop)
+        else:
+            v_ref = teleop_reference(handle_d_m, yaw_rad, clutch, self.config.teleop)
         n = self.arm.n_joints
         output = self.controller.update(
             state["q_rad"][:n],
@@ -577,6 +593,9 @@ class BilateralCycle(ControllerCore):
             terms.world_f_scene_n if terms is not None else None,
             terms.world_f_limits_n if terms is not None else None,
         )
+        if self.wave is not None:  # the robot's resistance: all but the handle's own spring
+            robot_only = dataclasses.replace(components, device_workspace_f_n=np.zeros(3))
+            self.wave.resist(-device_force(robot_only, yaw_rad, config.teleop, config.haptic))
         if not live:
             return components, np.zeros(3), held_mass_kg
         device_f_n = device_force(components, yaw_rad, config.teleop, config.haptic)
@@ -612,10 +631,13 @@ class BilateralCycle(ControllerCore):
             self.no_input_cycles += 1
         obstacle = ProximitySample.from_state(state)
         terms = self._prepare(state)
-        output, gripper_cmd, handle_d_m = self._control(state, haptic, obstacle, yaw_rad, terms)
+        # The feedback first: with wave variables the control decodes the handle's rate
+        # against the resistance of this state.
+        handle_d_m = haptic["device_p_m"] if haptic is not None else np.zeros(3)
         components, device_f_n, held_mass = self._feedback_force(
             state, obstacle, handle_d_m, yaw_rad, terms, live=haptic is not None
         )
+        output, gripper_cmd, _ = self._control(state, haptic, obstacle, yaw_rad, terms)
         self.compute_ns_total += self.clock.now_ns() - t0
 
         trace = state["trace_ns"].copy()
@@ -650,6 +672,8 @@ class BilateralCycle(ControllerCore):
             rec["device_f_workspace_n"] = components.device_workspace_f_n
             rec["world_f_scene_n"] = components.world_scene_f_n
             rec["world_f_limits_n"] = components.world_limits_f_n
+            if self.wave is not None:
+                rec["wave_v"] = self.wave.wave_back()
             rec["trace_ns"][:] = trace
             now_ns = self.clock.now_ns()
             rec["trace_ns"][Stage.FEEDBACK_TX] = now_ns

@@ -106,24 +106,38 @@ def view_to_world(yaw_rad: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def rate_command(d_m: np.ndarray, yaw_rad: float, cfg: TeleopConfig) -> np.ndarray:
-    """World tool-velocity reference (3,) in m/s from the handle offset ``d_m`` (3,) in m.
+def device_rate(d_m: np.ndarray, cfg: TeleopConfig) -> tuple[float, float, float]:
+    """The handle's rate command (m/s, device/view frame) from its offset ``d_m`` (3,) in m.
 
     Radial deadband, continuous at its edge: v = gain (|d| - deadband) d/|d| beyond it,
-    zero inside (the hand's tremor and the handle's rest offset command nothing). The
-    device/view-frame velocity is rotated to the world by Rz(yaw) and capped in norm at
-    ``max_tool_speed_m_s``. In floats: it runs once per haptic sample (1 kHz), and the
-    numpy form (norm, rotation matrix, product) costs several times more.
+    zero inside (the hand's tremor and the handle's rest offset command nothing), capped
+    in norm at ``max_tool_speed_m_s``. In floats: it runs once per haptic sample (1 kHz),
+    and the numpy form (norm, product) costs several times more.
     """
     dx, dy, dz = np.asarray(d_m, dtype=float).tolist()
     norm = math.hypot(dx, dy, dz)
     if norm <= cfg.deadband_m:
-        return np.zeros(3)
+        return 0.0, 0.0, 0.0
     speed = min(cfg.rate_gain_per_s * (norm - cfg.deadband_m), cfg.max_tool_speed_m_s)
     gain = speed / norm
-    vx, vy, vz = dx * gain, dy * gain, dz * gain
+    return dx * gain, dy * gain, dz * gain
+
+
+def rate_to_world(vx: float, vy: float, vz: float, yaw_rad: float, cfg: TeleopConfig) -> np.ndarray:
+    """A device/view-frame rate (m/s) as the world tool-velocity reference (3,): capped in
+    norm at ``max_tool_speed_m_s`` and rotated by Rz(yaw)."""
+    speed = math.hypot(vx, vy, vz)
+    if speed > cfg.max_tool_speed_m_s:
+        cap = cfg.max_tool_speed_m_s / speed
+        vx, vy, vz = vx * cap, vy * cap, vz * cap
     c, s = math.cos(yaw_rad), math.sin(yaw_rad)
     return np.array((c * vx - s * vy, s * vx + c * vy, vz))  # Rz(yaw) v
+
+
+def rate_command(d_m: np.ndarray, yaw_rad: float, cfg: TeleopConfig) -> np.ndarray:
+    """World tool-velocity reference (3,) in m/s from the handle offset ``d_m`` (3,) in m:
+    :func:`device_rate` rotated to the world (:func:`rate_to_world`)."""
+    return rate_to_world(*device_rate(d_m, cfg), yaw_rad, cfg)
 
 
 def teleop_reference(

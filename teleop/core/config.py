@@ -494,7 +494,9 @@ class EyeViewConfig:
 
 
 # Force feedback stabilisers under delay (TeleopConfig.stabiliser).
-STABILISERS = ("none", "tdpa")
+STABILISERS = ("none", "tdpa", "wave")
+# Wave impedances above this make a wave in flight a wall (N s/m; the record's bounds).
+MAX_WAVE_IMPEDANCE_N_S_M = 1000.0
 
 
 @dataclass(frozen=True)
@@ -536,9 +538,12 @@ class TeleopConfig:
     # as it comes (the energy it exchanges is observed and reported all the same);
     # "tdpa": the time-domain passivity controller at the handle damps what the delayed
     # channel would give out, at most tdpa_max_damping_n_s_m (and what the handle renders
-    # stably).
+    # stably). "wave": the handle's rate and the robot's resistance cross as wave
+    # variables of impedance wave_impedance_n_s_m (teleop/control/wave.py): passive under
+    # any constant delay, a damper of that impedance felt while a wave is in flight.
     stabiliser: str = "none"
     tdpa_max_damping_n_s_m: float = 20.0
+    wave_impedance_n_s_m: float = 10.0
 
     def __post_init__(self) -> None:
         _require(
@@ -546,6 +551,10 @@ class TeleopConfig:
             f"teleop.stabiliser: one of {', '.join(STABILISERS)}",
         )
         _require(self.tdpa_max_damping_n_s_m > 0, "teleop.tdpa_max_damping_n_s_m > 0")
+        _require(
+            0 < self.wave_impedance_n_s_m <= MAX_WAVE_IMPEDANCE_N_S_M,
+            f"teleop.wave_impedance_n_s_m in (0, {MAX_WAVE_IMPEDANCE_N_S_M:g}]",
+        )
         _require(self.rate_gain_per_s > 0, "teleop.rate_gain_per_s > 0")
         _require(self.deadband_m >= 0, "teleop.deadband_m >= 0")
         _require(self.max_tool_speed_m_s > 0, "teleop.max_tool_speed_m_s > 0")

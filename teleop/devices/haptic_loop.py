@@ -60,6 +60,8 @@ import numpy as np
 from teleop.bus.messages import HAPTIC_STATE, N_STAGES, Button, Flag, Stage
 from teleop.bus.service import STOP_POLL_S
 from teleop.bus.stamps import Inbound, StampLog
+from teleop.control.feedback import workspace_force
+from teleop.control.wave import handle_rate_m_s, handle_resistance_n, handle_wave
 from teleop.core.clock import NS_PER_S, Clock, LoopTimer
 from teleop.core.config import Config
 from teleop.core.ticks import TickedInputs, expected_valid_from, lead_ticks
@@ -79,6 +81,8 @@ logger = logging.getLogger(__name__)
 HAND_INPUT_WAIT_S = 1.0
 # Feedback whose norm exceeds this multiple of the peak force is garbage, not a saturation case.
 OVERSIZED_FEEDBACK_FACTOR = 10.0
+# The clutch's bit, as a plain int (an enum.Flag operation costs microseconds per call).
+_CLUTCH = int(Button.CLUTCH)
 # Lockstep feedback records kept by tick (a few ahead of the device is all that can happen).
 FEEDBACK_KEEP = 64
 
@@ -146,6 +150,12 @@ class HapticLoop:
         self.peak_force_n = config.haptic.peak_force_n
         self.max_feedback_n = OVERSIZED_FEEDBACK_FACTOR * self.peak_force_n
         self.render_on_arrival = config.haptic.render_on_arrival
+        # teleop.stabiliser "wave": the feedback brings the robot's wave, not a force, and
+        # the handle renders the channel's resistance and its own workspace spring.
+        self.teleop_cfg = config.teleop
+        wave = config.teleop.stabiliser == "wave"
+        self.wave_b = config.teleop.wave_impedance_n_s_m if wave else 0.0
+        self._wave_u = np.zeros(3)  # the wave of the force last rendered
         # The emulated link's delay each way (ticks; lockstep only, else (0, 0)).
         self.forward_ticks, self.backward_ticks = config.link_delay_ticks()
         self.feedback_keep = FEEDBACK_KEEP + self.backward_ticks
@@ -237,6 +247,8 @@ class HapticLoop:
                     OVERSIZED_FEEDBACK_FACTOR,
                 )
             return
+        if self.wave_b:
+            force = np.array(rec["wave_v"], dtype=np.float64)  # what the handle renders from
         with self.cond:
             if not self.lockstep:
                 self._feedback_realtime(rec, force, rx_ns)
@@ -272,7 +284,7 @@ class HapticLoop:
         trace = np.array(rec["trace_ns"])
         trace[Stage.FEEDBACK_RX] = rx_ns
         if self.render_on_arrival:
-            self.device.send_force(self._stabilised(force))
+            self.device.send_force(self._render(force))
             trace[Stage.FEEDBACK_RENDERED] = self.clock.now_ns()
             self.trace_log.append(trace)
         else:
@@ -289,6 +301,8 @@ class HapticLoop:
         self.hand_inputs.clear()
         self._feedback.clear()
         self._in_flight.clear()
+        self.record["device_p_m"] = 0.0  # the device is back at the centre
+        self._wave_u = np.zeros(3)
         self._first_tick = 0
         self._last_tick = -1
         self._hand_blocked_since_ns = None
@@ -412,6 +426,22 @@ class HapticLoop:
         self._account_sample(sample)
 
     # -- shared ------------------------------------------------------------------------
+    def _render(self, received: np.ndarray) -> np.ndarray:
+        """The force to send the motors from what the feedback brought (lock held): the
+        force, stabilised (:meth:`_stabilised`); with wave variables the robot's wave,
+        decoded against the handle's rate at its last sample (teleop/control/wave.py)
+        into the channel's resistance, rendered with the handle's own workspace spring,
+        and the wave toward the robot that goes with it kept for the next sample."""
+        if not self.wave_b:
+            return self._stabilised(received)
+        handle_d_m = self.record["device_p_m"]
+        clutch = bool(int(self.record["buttons"]) & _CLUTCH)
+        rate = handle_rate_m_s(handle_d_m, clutch, self.teleop_cfg)
+        self._wave_u = handle_wave(rate, received, self.wave_b)
+        resistance_n = handle_resistance_n(rate, received, self.wave_b)
+        spring_n = workspace_force(handle_d_m, self.teleop_cfg)
+        return self._stabilised(spring_n - resistance_n)
+
     def _stabilised(self, force_n: np.ndarray) -> np.ndarray:
         """The force to send the motors: the stabiliser's correction of the force the
         device can render (saturated at its peak first: a correction of a force above
@@ -436,7 +466,7 @@ class HapticLoop:
         0 in lockstep.
         """
         force, stale = self.hold.force_at(t_ns)
-        self.device.send_force(self._stabilised(force))
+        self.device.send_force(self._render(force))
         if self._pending_trace is not None:
             self._pending_trace[Stage.FEEDBACK_RENDERED] = self.clock.now_ns()
             self.trace_log.append(self._pending_trace)
@@ -472,6 +502,7 @@ class HapticLoop:
         rec["device_f_n"] = sample.f_n
         rec["passivity_observed_j"] = self.passivity.observed_j
         rec["passivity_dissipated_j"] = self.passivity.dissipated_j
+        rec["wave_u"] = self._wave_u
         rec["buttons"] = int(sample.buttons)
         return sample
 

@@ -16,8 +16,8 @@ the loop's own plant step, with no jitter.
    oscillation) and one figure per spring and round trip (handle height, device force,
    observer energy over time; none against tdpa).
 
-    .venv/bin/python -m tests.benchmarks.delayed_teleop --seeds 5
-    .venv/bin/python -m tests.benchmarks.delayed_teleop --seeds 0 --press-round-trips-ms 200
+    .venv/bin/python tests/benchmarks/delayed_teleop.py --seeds 5
+    .venv/bin/python tests/benchmarks/delayed_teleop.py --seeds 0 --press-round-trips-ms 200
 
 Writes ``results.json``, ``results.md`` and ``press_k<stiffness>_<round trip>ms.png`` into
 ``--out`` (default runs/bench/delayed_teleop).
@@ -236,14 +236,25 @@ def main() -> int:
         default=10.0,
         help="the stiff contact's spring, times teleop.scene_stiffness_n_per_m",
     )
+    parser.add_argument(
+        "--stabilisers",
+        type=lambda text: [v for v in text.split(",") if v],
+        default=list(STABILISERS),
+        help=f"teleop.stabiliser values to compare (default: {','.join(STABILISERS)})",
+    )
     parser.add_argument("--out", type=Path, default=Path("runs/bench/delayed_teleop"))
     args = parser.parse_args()  # fmt: skip
     args.out.mkdir(parents=True, exist_ok=True)
     spring = load_config().teleop.scene_stiffness_n_per_m
-    results: dict[str, Any] = {"stabilisers": list(STABILISERS), "grasp": [], "press": []}
+    unknown = sorted(set(args.stabilisers) - set(STABILISERS))
+    if unknown:
+        parser.error(
+            f"--stabilisers: unknown {', '.join(unknown)} (known: {', '.join(STABILISERS)})"
+        )
+    results: dict[str, Any] = {"stabilisers": args.stabilisers, "grasp": [], "press": []}
     with tempfile.TemporaryDirectory(prefix="delayed-") as tmp:
         for round_trip in args.round_trips_ms if args.seeds else []:
-            for stabiliser in STABILISERS:
+            for stabiliser in args.stabilisers:
                 runs = []
                 for seed in range(args.seeds):
                     where = Path(tmp) / f"grasp-{round_trip:g}-{stabiliser}-{seed}"
@@ -257,7 +268,7 @@ def main() -> int:
         for round_trip in args.press_round_trips_ms:
             series_by: dict[str, dict[str, rrd.Series]] = {}
             contact = 0.0
-            for stabiliser in STABILISERS:
+            for stabiliser in args.stabilisers:
                 where = args.out / "press" / f"k{stiffness:g}-{round_trip:g}ms-{stabiliser}"
                 summary = run_grasp(0, round_trip, stabiliser, where, [
                     "--set", f'operator.scenario_file="{PRESS_SCENARIO}"',

@@ -3,6 +3,7 @@ the service's loop on a fake clock with the emulator and with a replay device.""
 
 from __future__ import annotations
 
+import math
 import threading
 
 import numpy as np
@@ -18,6 +19,7 @@ from teleop.bus.messages import (
     Stage,
 )
 from teleop.bus.service import STOP_POLL_S
+from teleop.control.wave import handle_rate_m_s
 from teleop.core.clock import FakeClock
 from teleop.core.config import ConfigError, HapticConfig, load_config
 from teleop.devices.haptic import (
@@ -324,6 +326,28 @@ def test_an_emulated_link_delays_the_handle_forward_and_the_force_back():
     delayed.on_state(plant_state(ticks))
     assert len(delayed_sent.samples) == ticks
     assert delayed.summary()["link_delay_ticks"] == {"forward": 12, "backward": 13}
+
+
+def test_with_wave_variables_the_handle_renders_the_channels_resistance():
+    """teleop.stabiliser "wave", nothing coming back (wave 0): the handle feels the
+    matching drag -b r of its own rate, and each sample carries its wave sqrt(2 b) r of
+    the rate it rendered against (teleop/control/wave.py)."""
+    config = load_config(None, ['run.mode="lockstep"', 'teleop.stabiliser="wave"'])
+    sent, clock = Sent(), FakeClock(start_ns=10 * NS_PER_S)
+    device = EmulatedDevice(config.haptic, config.plant.timestep_s)
+    loop = HapticLoop(config, device, sent, clock, lockstep=True)
+    plain, plain_sent, _ = make_loop(lockstep=True)
+    run_lockstep_push(loop, 600, 600, 0.0)
+    run_lockstep_push(plain, 600, 600, 0.0)
+    b, teleop = config.teleop.wave_impedance_n_s_m, config.teleop
+    for before, rec in zip(sent.samples[-50:-1], sent.samples[-49:], strict=True):
+        rate = handle_rate_m_s(before["device_p_m"], False, teleop)
+        assert np.allclose(rec["device_f_n"], -b * rate)
+        assert np.allclose(rec["wave_u"], math.sqrt(2 * b) * rate)
+    # The drag holds the handle back from where the plain one goes (the hand's 2 cm).
+    held_back_m = plain_sent.samples[-1]["device_p_m"][0] - sent.samples[-1]["device_p_m"][0]
+    assert held_back_m > 0.002
+    assert np.all(plain_sent.samples[-1]["wave_u"] == 0.0)
 
 
 @pytest.mark.parametrize(
