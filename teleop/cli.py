@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import sys
 from collections.abc import Sequence
@@ -58,6 +59,10 @@ if TYPE_CHECKING:
 DEFAULT_RUN_DIR = Path("runs") / "latest"
 DEFAULT_UP_DIR = Path("runs") / "up"
 DEFAULT_LATENCY_DIR = Path("runs") / "latency"
+DEFAULT_LATENCY_DURATION_S = 60.0
+# teleop latency --across-sites: one-way delays between the routers (ms), and its report.
+DEFAULT_SITE_DELAYS_MS = (12.5, 25.0, 50.0, 100.0)
+SITES_REPORT_FILE = "sites.json"
 DEFAULT_SWEEP_DIR = Path("runs") / "sweep"
 
 # How long `--without` waits for the services left out (s); teleop.run.outside's default
@@ -218,11 +223,18 @@ def build_parser() -> argparse.ArgumentParser:
             "(haptic sample -> force rendered) and every hop, against baselines measured in "
             "the same command: a bare Zenoh relay chain with the same legs (paced at 1 kHz "
             "and back to back), the stack with shared memory off, a payload sweep with "
-            "shared memory on and off, and the stack with the loop's old timing."
+            "shared memory on and off, and the stack with the loop's old timing. With "
+            "--across-sites: the round trip between the loop's two ends split across two "
+            "sites on this host, directly and through both sites' routers (mutual TLS), "
+            "then through a network emulator between the routers per --delays-ms "
+            "(docs/sites.md)."
         ),
     )
     latency.add_argument(
-        "--duration", type=float, default=60.0, help="seconds of the stack run (default: 60)"
+        "--duration",
+        type=float,
+        default=None,
+        help=f"seconds of the stack run (default: {DEFAULT_LATENCY_DURATION_S:g})",
     )
     latency.add_argument(
         "--baseline-duration",
@@ -243,6 +255,30 @@ def build_parser() -> argparse.ArgumentParser:
         "--no-old-timing",
         action="store_true",
         help="skip the comparison run with the plant's tick and the device step",
+    )
+    latency.add_argument(
+        "--across-sites",
+        action="store_true",
+        help="measure the round trip across two sites' routers instead of the stack's loop",
+    )
+    latency.add_argument(
+        "--delays-ms",
+        type=_delays_ms,
+        default=None,
+        help="--across-sites: one-way delays between the routers, comma separated "
+        f"(default: {','.join(f'{d:g}' for d in DEFAULT_SITE_DELAYS_MS)})",
+    )
+    latency.add_argument(
+        "--pings",
+        type=int,
+        default=2000,
+        help="--across-sites: samples per path, at 1 kHz (default: 2000)",
+    )
+    latency.add_argument(
+        "--rounds",
+        type=int,
+        default=3,
+        help="--across-sites: alternating rounds of the direct and routed paths (default: 3)",
     )
     latency.add_argument(
         "--run-dir",
@@ -576,9 +612,56 @@ def _run_and_report(
     return 0
 
 
+def _delays_ms(text: str) -> list[float]:
+    """``--delays-ms``: comma-separated one-way delays (ms), each >= 0."""
+    try:
+        delays = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a list of numbers: {text!r}") from None
+    if any(not math.isfinite(d) or d < 0 for d in delays):
+        raise argparse.ArgumentTypeError(f"delays must be finite and >= 0 ms: {text!r}")
+    return delays
+
+
+def _latency_across_sites(args: argparse.Namespace) -> int:
+    from teleop.bench import sites
+
+    stack_only = {
+        "--duration": args.duration, "--baseline-duration": args.baseline_duration,
+        "--png": args.png, "--rrd": args.rrd, "--sweep-count": args.sweep_count,
+    }  # fmt: skip
+    given = [name for name, value in stack_only.items() if value is not None]
+    given += ["--no-old-timing"] if args.no_old_timing else []
+    if given:
+        raise ConfigError(f"--across-sites measures no stack: drop {', '.join(given)}")
+    if args.pings < 1 or args.rounds < 1:
+        raise ConfigError("--pings and --rounds: at least 1")
+    delays = DEFAULT_SITE_DELAYS_MS if args.delays_ms is None else args.delays_ms
+    print(
+        f"latency across sites: {args.rounds} rounds direct and through the routers, then "
+        f"{len(delays)} delays, {args.pings} samples each",
+        file=sys.stderr,
+    )
+    report = sites.measure(
+        args.pings, 1000.0, args.rounds, delays, progress=lambda line: print(line, file=sys.stderr)
+    )
+    json_path = args.json if args.json is not None else args.run_dir / SITES_REPORT_FILE
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps(report, indent=2) + "\n")
+    print("\n".join(sites.table(report)))
+    print(f"report: {json_path}")
+    return 1 if report["lost"] else 0
+
+
 def _latency(args: argparse.Namespace) -> int:
     from teleop.bench import latency
 
+    if args.across_sites:
+        return _latency_across_sites(args)
+    if args.delays_ms is not None:
+        raise ConfigError("--delays-ms: with --across-sites only")
+    if args.duration is None:
+        args.duration = DEFAULT_LATENCY_DURATION_S
     if args.duration <= latency.WARMUP_S:
         raise ConfigError(f"--duration must exceed the {latency.WARMUP_S:g} s warm-up")
     latency.config_of(args.config, args.overrides)  # bad --set values fail here, exit 2

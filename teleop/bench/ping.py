@@ -1,5 +1,6 @@
-"""Round trips over Zenoh for the benchmarks (tests/benchmarks/netem_round_trip.py,
-router_hop.py): pings from one session, paced, each timed until its answer comes back."""
+"""Round trips over Zenoh for the measurements (``teleop latency --across-sites``,
+tests/benchmarks/netem_round_trip.py): pings from one session, paced, each timed until
+its answer comes back."""
 
 from __future__ import annotations
 

@@ -1,0 +1,239 @@
+"""The round trip across two sites (``teleop latency --across-sites``): what the sites'
+routers add on one host, and the round trip through the network emulator between the
+routers, per one-way delay (docs/sites.md).
+
+Two processes play the bilateral loop's two ends with a run's settings (mutual TLS, the
+run's certificates and access list, shared memory, the low-latency transport): the
+haptic end sends a sample at ``rate_hz`` and times each answer, the controller end
+answers each one at once. Paths, the first two in alternating rounds:
+
+- ``direct``: the two ends linked to each other (one host, one site: the floor);
+- ``routers``: each end a peer of its own site's router (each router a process of its
+  own, :func:`teleop.bus.session.router_config`), the routers linked over TLS;
+- ``routers + D ms``: the same, the routers' link through :mod:`teleop.bench.netem`
+  with a one-way delay of D ms, compared with the floor plus twice D.
+
+The ends are bare sessions, not the services: the figures are the transport's and the
+routers', the floor under any stack split across the sites (``teleop latency`` without
+``--across-sites`` measures the stack's own loop on one host).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import multiprocessing
+import os
+import tempfile
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from teleop.bench.netem import LinkImpairment, running_proxy
+from teleop.bench.ping import paced_round_trips_ms
+from teleop.bus import graph
+from teleop.bus import session as bus
+from teleop.bus.access import write_run_credentials
+from teleop.bus.topics import Topics
+from teleop.core.config import OPERATOR_SITE, ROBOT_SITE, BusConfig, SiteConfig
+from teleop.core.net import free_loopback_port
+
+ROBOT = "sites"  # the robot id of the measurement's keys (no run shares them)
+ROBOT_ROUTER, OPERATOR_ROUTER = graph.router_name(ROBOT_SITE), graph.router_name(OPERATOR_SITE)
+PARTICIPANTS = ["haptic", "controller", ROBOT_ROUTER, OPERATOR_ROUTER]
+DIRECT, ROUTERS = "direct", "routers"
+# A process of the measurement that does not stop within this long is killed (s).
+STOP_TIMEOUT_S = 10.0
+
+
+def _endpoint() -> str:
+    return f"tls/127.0.0.1:{free_loopback_port()}"
+
+
+def _bus(files: dict[str, Path], name: str, endpoint: str, own: str = "") -> BusConfig:
+    return dataclasses.replace(
+        BusConfig(endpoint=endpoint),
+        gossip=False,
+        peer_listen_endpoint=own,
+        credentials_file=str(files[name]),
+    )
+
+
+def _router(bus_config: BusConfig, site: SiteConfig, listen: bool, stop: Any) -> None:
+    """A site's router until ``stop`` (a multiprocessing Event) is set."""
+    session = zenoh.open(bus.router_config(bus_config, site, listen=listen))
+    stop.wait()
+    session.close()
+
+
+def _answerer(bus_config: BusConfig, listen: bool, stop: Any) -> None:
+    """The controller's end: every sample straight back, until ``stop`` is set."""
+    topics = Topics(ROBOT)
+    session = bus.open_session(bus_config, listen=listen)
+    back = session.declare_publisher(topics.force_feedback, express=True)
+    sub = session.declare_subscriber(
+        topics.haptic_state, lambda sample: back.put(sample.payload.to_bytes())
+    )
+    stop.wait()
+    sub.undeclare()
+    back.undeclare()
+    session.close()
+
+
+@contextlib.contextmanager
+def _processes(*targets: tuple) -> Iterator[None]:
+    """Each ``(function, *args)`` in a process of its own until the block ends."""
+    ctx = multiprocessing.get_context("spawn")
+    stop = ctx.Event()
+    procs = [ctx.Process(target=fn, args=(*args, stop), daemon=True) for fn, *args in targets]
+    for proc in procs:
+        proc.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        for proc in procs:
+            proc.join(timeout=STOP_TIMEOUT_S)
+            if proc.is_alive():
+                proc.kill()
+
+
+def _round_trips_ms(bus_config: BusConfig, pings: int, rate_hz: float) -> np.ndarray:
+    """Samples from the haptic end, paced at ``rate_hz``; their round trips (ms)."""
+    topics = Topics(ROBOT)
+    session = bus.open_session(bus_config, listen=False)
+    try:
+        return paced_round_trips_ms(
+            session, topics.haptic_state, topics.force_feedback, pings, rate_hz
+        )
+    finally:
+        session.close()
+
+
+def round_trips_ms(
+    files: dict[str, Path], path: str, pings: int, rate_hz: float, delay_ms: float | None = None
+) -> np.ndarray:
+    """The round trips (ms) of ``pings`` samples on ``path`` (:data:`DIRECT` or
+    :data:`ROUTERS`; with ``delay_ms``, the routers' link delayed that much each way)."""
+    if path == DIRECT:
+        endpoint = _endpoint()
+        with _processes((_answerer, _bus(files, "controller", endpoint), True)):
+            return _round_trips_ms(_bus(files, "haptic", endpoint, _endpoint()), pings, rate_hz)
+    robot_mesh, operator_mesh, site = _endpoint(), _endpoint(), _endpoint()
+    site_port = int(site.rpartition(":")[2])
+    with contextlib.ExitStack() as stack:
+        connect = site
+        if delay_ms is not None:
+            link = LinkImpairment(delay_s=delay_ms / 1e3)
+            proxy = stack.enter_context(running_proxy(("127.0.0.1", site_port), link))
+            connect = f"tls/127.0.0.1:{proxy.port}"
+        stack.enter_context(
+            _processes(
+                (_answerer, _bus(files, "controller", robot_mesh), True),
+                (
+                    _router,
+                    _bus(files, ROBOT_ROUTER, robot_mesh, _endpoint()),
+                    SiteConfig(ROBOT_SITE, listen=site),
+                    False,
+                ),
+                (
+                    _router,
+                    _bus(files, OPERATOR_ROUTER, operator_mesh),
+                    SiteConfig(OPERATOR_SITE, connect=connect),
+                    True,
+                ),
+            )  # fmt: skip
+        )
+        return _round_trips_ms(_bus(files, "haptic", operator_mesh, _endpoint()), pings, rate_hz)
+
+
+def stats(trips_ms: np.ndarray) -> dict[str, float]:
+    """How many came back, their p50 and p99 (ms)."""
+    return {
+        "received": int(trips_ms.size),
+        "p50_ms": float(np.median(trips_ms)) if trips_ms.size else float("nan"),
+        "p99_ms": float(np.percentile(trips_ms, 99)) if trips_ms.size else float("nan"),
+    }
+
+
+def measure(
+    pings: int,
+    rate_hz: float,
+    rounds: int,
+    delays_ms: Sequence[float],
+    progress: Callable[[str], None] = lambda line: None,
+) -> dict[str, Any]:
+    """Direct and through the routers in ``rounds`` alternating rounds, then through the
+    routers with each one-way delay of ``delays_ms``; the report (JSON-ready), each path's
+    line also given to ``progress`` as it is measured."""
+    report: dict[str, Any] = {
+        "load_average_start": list(os.getloadavg()),
+        "pings": pings,
+        "rate_hz": rate_hz,
+        "rounds": [],
+        "delays": [],
+    }
+    with tempfile.TemporaryDirectory(prefix="teleop-sites-") as tmp:
+        files = write_run_credentials(Path(tmp), PARTICIPANTS, ROBOT, tls=True)
+        for index in range(rounds):
+            order = [DIRECT, ROUTERS] if index % 2 == 0 else [ROUTERS, DIRECT]
+            entry = {path: stats(round_trips_ms(files, path, pings, rate_hz)) for path in order}
+            for path in order:
+                progress(f"round {index + 1} {path}: {_line(entry[path])}")
+            report["rounds"].append(entry)
+        for key in ("p50_ms", "p99_ms"):
+            ratios = [r[ROUTERS][key] / r[DIRECT][key] for r in report["rounds"]]
+            report[f"routers_over_direct_{key[:3]}"] = float(np.median(ratios)) if ratios else None
+        floor_p50 = float(np.median([r[DIRECT]["p50_ms"] for r in report["rounds"]] or [0.0]))
+        for delay_ms in delays_ms:
+            entry = stats(round_trips_ms(files, ROUTERS, pings, rate_hz, delay_ms))
+            entry |= {
+                "delay_ms": delay_ms,
+                "p50_over_floor_plus_2_delays": entry["p50_ms"] / (floor_p50 + 2 * delay_ms),
+            }
+            progress(f"routers + {delay_ms:g} ms each way: {_line(entry)}")
+            report["delays"].append(entry)
+    report["load_average_end"] = list(os.getloadavg())
+    report["lost"] = sum(
+        pings - e["received"]
+        for e in [*report["delays"], *(v for r in report["rounds"] for v in r.values())]
+    )
+    return report
+
+
+def _line(entry: dict[str, float]) -> str:
+    return f"p50 {entry['p50_ms']:.3f} ms, p99 {entry['p99_ms']:.3f} ms, {entry['received']} back"
+
+
+def table(report: dict[str, Any]) -> list[str]:
+    """The report as Markdown lines: a row per path (medians over the rounds)."""
+    lines = [
+        f"Round trip across two sites on this host: {report['pings']} samples per path at "
+        f"{report['rate_hz']:g} Hz, load average {report['load_average_start'][0]:.2f} before",
+        "",
+        "| path | one-way delay | round trip p50 | p99 | p50 / (floor + 2 x delay) |",
+        "| --- | ---: | ---: | ---: | ---: |",
+    ]
+    for path in (DIRECT, ROUTERS):
+        runs = [r[path] for r in report["rounds"]]
+        if runs:
+            p50 = float(np.median([r["p50_ms"] for r in runs]))
+            p99 = float(np.median([r["p99_ms"] for r in runs]))
+            lines.append(f"| {path} | 0 ms | {p50:.3f} ms | {p99:.3f} ms | |")
+    for entry in report["delays"]:
+        lines.append(
+            f"| routers + netem | {entry['delay_ms']:g} ms | {entry['p50_ms']:.2f} ms "
+            f"| {entry['p99_ms']:.2f} ms | {entry['p50_over_floor_plus_2_delays']:.2f} |"
+        )
+    if report.get("routers_over_direct_p50") is not None:
+        lines += [
+            "",
+            f"routers / direct, median over rounds: p50 {report['routers_over_direct_p50']:.2f}, "
+            f"p99 {report['routers_over_direct_p99']:.2f}",
+        ]
+    if report["lost"]:
+        lines.append(f"{report['lost']} samples never came back")
+    return lines
