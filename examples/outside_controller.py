@@ -28,7 +28,7 @@ import numpy as np
 import zenoh
 
 # -- the wire format (docs/protocol.md, "Records") --------------------------------------
-VERSION = 6
+VERSION = 7
 HEADER = struct.Struct("<HHIQq10q")  # version, kind, flags, seq, t_source_ns, trace_ns[10]
 PLANT_STATE, JOINT_COMMAND, RUN_EVENT = 1, 2, 7  # kinds
 PLANT_STATE_SIZE, RUN_EVENT_SIZE = 483, 130

@@ -23,13 +23,13 @@ import numpy as np
 import zenoh
 
 # -- the wire format (docs/protocol.md, "Records") --------------------------------------
-VERSION = 6
+VERSION = 7
 HEADER = struct.Struct("<HHIQq10q")  # version, kind, flags, seq, t_source_ns, trace_ns[10]
 HAPTIC_STATE, HAND_INPUT, FORCE_FEEDBACK, RUN_EVENT = 8, 9, 10, 7  # kinds
-HAND_INPUT_SIZE, FORCE_FEEDBACK_SIZE, RUN_EVENT_SIZE = 137, 288, 130
+HAND_INPUT_SIZE, FORCE_FEEDBACK_SIZE, RUN_EVENT_SIZE = 137, 312, 130
 # sim_time_ns, tick, device_deadline_ns, p, v, f, passivity_observed_j,
-# passivity_dissipated_j, buttons
-STATE_BODY = struct.Struct("<qQq11dB")
+# passivity_dissipated_j, wave_u (3: zero, no wave variables here), buttons
+STATE_BODY = struct.Struct("<qQq14dB")
 STALE, FINISHED = 2, 2  # HAPTIC_STATE flag: an old force fades out; RUN_EVENT code
 BATCH_RECORDS = 10  # the recorder's batched copy: this many records per message
 
@@ -147,7 +147,18 @@ class OutsideHaptic:
             # The energy the force took from the hand, net (no controller here: none dissipated).
             self.observed_j -= sum(fi * vi for fi, vi in zip(f, v, strict=True)) * PERIOD_S
             body = STATE_BODY.pack(
-                self.sim_time_ns, self.tick, deadline_ns, *p, *v, *f, self.observed_j, 0.0, buttons
+                self.sim_time_ns,
+                self.tick,
+                deadline_ns,
+                *p,
+                *v,
+                *f,
+                self.observed_j,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                buttons,
             )
         self.seq += 1
         now_ns = time.monotonic_ns()
