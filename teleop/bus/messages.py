@@ -43,7 +43,8 @@ logger = logging.getLogger(__name__)
 # device's clock; 5: FORCE_FEEDBACK carries the scene's and the arm's own limits' push-back;
 # 6: HAPTIC_STATE carries the passivity observer's energy and what its controller
 # dissipated; 7: HAPTIC_STATE and FORCE_FEEDBACK carry the wave variables of
-# teleop.stabiliser "wave").
+# teleop.stabiliser "wave"). examples/ speak the protocol without this package: a
+# new version changes their VERSION and layouts too (tests/e2e/test_outside.py runs them).
 PROTOCOL_VERSION = 7
 MAX_JOINTS = 8  # joint arrays are padded with zeros to this length; n_joints says how many count
 MAX_OBJECTS = 8  # object pose arrays are padded to this length; n_objects says how many count
