@@ -336,9 +336,8 @@ class HapticLoop:
             tick = self._last_tick + 1
             if tick > self._state_seq:
                 return
-            force = self._feedback.get(tick - 1)
-            if force is None and tick > self._first_tick:
-                return
+            if tick - 1 not in self._feedback and tick > self._first_tick:
+                return  # the feedback of the tick before is the barrier, delayed or not
             hand, waiting = self._hand_for(tick)
             if waiting:
                 if self._hand_blocked_since_ns is None:

@@ -8,6 +8,7 @@ pushing it forward moves the tool forward."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import selectors
@@ -15,6 +16,7 @@ import struct
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
@@ -51,14 +53,18 @@ def _wait_for_line(process: subprocess.Popen[str], text: str, timeout_s: float) 
     raise AssertionError(f"no {text!r} on stderr within {timeout_s:g} s:\n{''.join(lines)}")
 
 
-def test_a_spacemouse_pushed_down_and_left_moves_the_tool_down_and_left(tmp_path):
+@contextlib.contextmanager
+def spacemouse_run(tmp_path: Path, *args: str) -> Iterator[tuple[subprocess.Popen, int, Path]]:
+    """``teleop run grasp --operator spacemouse ARGS`` reading a FIFO named like a hidraw
+    node, once the run has started: (the run's process, the FIFO's fd to write reports
+    to, the run directory). On the way out the run is killed if still going."""
     node = tmp_path / "hidraw0"
     os.mkfifo(node)
     # Read-write: the FIFO always has a writer, so the service never reads its end.
     fd = os.open(node, os.O_RDWR)
     run_dir = tmp_path / "run"
     command = [sys.executable, "-m", "teleop.cli", "run", "grasp", "--operator", "spacemouse",
-               "--mode", "lockstep", "--duration", "6", "--run-dir", str(run_dir),
+               "--mode", "lockstep", "--run-dir", str(run_dir), *args,
                "--set", f'spacemouse.device="{node}"']  # fmt: skip
     process = subprocess.Popen(
         command, cwd=REPO, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
@@ -66,15 +72,20 @@ def test_a_spacemouse_pushed_down_and_left_moves_the_tool_down_and_left(tmp_path
     )  # fmt: skip
     try:
         _wait_for_line(process, "  sim ", 120.0)  # the run has started
-        _push(fd, 0, 0, 0, 0.3)  # at rest: the device arms
-        _push(fd, -250, 0, 250, 1.5)  # left (-X) and down (+Z)
-        _push(fd, 0, 0, 0, 0.5)
-        _, stderr = process.communicate(timeout=120)
+        yield process, fd, run_dir
     finally:
         if process.poll() is None:
             process.kill()
             process.communicate()
         os.close(fd)
+
+
+def test_a_spacemouse_pushed_down_and_left_moves_the_tool_down_and_left(tmp_path):
+    with spacemouse_run(tmp_path, "--duration", "6") as (process, fd, run_dir):
+        _push(fd, 0, 0, 0, 0.3)  # at rest: the device arms
+        _push(fd, -250, 0, 250, 1.5)  # left (-X) and down (+Z)
+        _push(fd, 0, 0, 0, 0.5)
+        _, stderr = process.communicate(timeout=120)
     # No task done: the run ends at its duration, not a success (exit 1), not a crash.
     assert process.returncode == 1, stderr
     summary = json.loads((run_dir / "summary.json").read_text())
@@ -92,20 +103,9 @@ def test_a_killed_spacemouse_service_comes_back_and_drives_again(tmp_path):
     """The operator's service SIGKILLed mid-run (a fault injected at 1.5 s of sim time):
     supervisord restarts it, it joins the run under way at its newest tick, and the cap
     pushed forward after the restart moves the tool forward."""
-    node = tmp_path / "hidraw0"
-    os.mkfifo(node)
-    fd = os.open(node, os.O_RDWR)
-    run_dir = tmp_path / "run"
-    log = run_dir / "logs" / "operator.log"
-    command = [sys.executable, "-m", "teleop.cli", "run", "grasp", "--operator", "spacemouse",
-               "--mode", "lockstep", "--duration", "12", "--run-dir", str(run_dir),
-               "--kill", "operator@1.5", "--set", f'spacemouse.device="{node}"']  # fmt: skip
-    process = subprocess.Popen(
-        command, cwd=REPO, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
-    try:
-        _wait_for_line(process, "  sim ", 120.0)
+    run = spacemouse_run(tmp_path, "--duration", "12", "--kill", "operator@1.5")
+    with run as (process, fd, run_dir):
+        log = run_dir / "logs" / "operator.log"
         deadline = time.monotonic() + 60.0
         while (log.read_text() if log.exists() else "").count("running (robot") < 2:
             assert time.monotonic() < deadline, "the operator's service did not come back"
@@ -114,11 +114,6 @@ def test_a_killed_spacemouse_service_comes_back_and_drives_again(tmp_path):
         _push(fd, 0, -250, 0, 1.5)  # forward (-Y)
         _push(fd, 0, 0, 0, 0.5)
         _, stderr = process.communicate(timeout=120)
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.communicate()
-        os.close(fd)
     assert process.returncode == 1, stderr  # no task done, no failure
     summary = json.loads((run_dir / "summary.json").read_text())
     operator = summary["services"]["operator"]
