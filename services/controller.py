@@ -77,7 +77,7 @@ class ControllerService(Service):
     def close(self) -> None:
         core = getattr(self, "core", None)  # None if open() failed before building it
         if self.options.run_dir is not None and isinstance(core, BilateralCycle):
-            core.save_shed_log(shed_path(self.options.run_dir, self.name))
+            core.save_shed_log(shed_path(self.options.run_dir, self.instance))
         super().close()
 
     def summary(self) -> dict[str, Any]:

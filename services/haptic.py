@@ -3,6 +3,9 @@
 Inputs: FORCE_FEEDBACK (the force to render, from the controller), HAND_INPUT (where the
 operator's hand pulls the handle, keyed by the plant tick it applies from) and, in
 lockstep only, PLANT_STATE, used as the simulation clock (its ``seq`` is the plant tick).
+In a run of several robots each comes from every robot's keys (the robot a hand input
+came on is the one the hand means to drive), and each robot's plant's FINISHED takes it
+off the clock.
 Output: HAPTIC_STATE per device period, with the encoder position, the velocity estimate
 and the force actually rendered, in the device frame, and the deadline of the device
 period it was sampled in (the realtime plant steps on that clock); the recorder gets the
@@ -20,8 +23,9 @@ from typing import Any
 
 import numpy as np
 
+from teleop.bus.messages import Event
 from teleop.bus.service import Service, service_main
-from teleop.bus.session import BatchPublisher, Publisher
+from teleop.bus.session import BatchPublisher, Publisher, RecordCallback, subscribe_events
 from teleop.core.clock import MonotonicClock
 from teleop.core.rundir import HAPTIC_SAMPLES_FILE, HAPTIC_TRACE_FILE, shed_path
 from teleop.devices.haptic import EmulatedDevice, max_stable_stiffness_n_per_m
@@ -41,16 +45,29 @@ class HapticService(Service):
         self.device = EmulatedDevice(cfg.haptic, cfg.plant.timestep_s)
         self.device.connect()
         self.loop = HapticLoop(cfg, self.device, self, MonotonicClock(), lockstep=self.lockstep)
-        self.state_pub = self.keep(Publisher.for_stream(self.session, self.topics, "haptic_state"))
-        self.state_batch = self.keep(  # the recorder's copy, several samples per message
-            BatchPublisher.for_stream(
-                self.session, self.topics, "haptic_state_batch", cfg.bus.observer_batch_records
+        # Per robot (Config.robot_ids; one but in a run of several): its sample stream,
+        # the recorder's batched copy, and what comes back from it.
+        self.state_pubs: list[Publisher] = []
+        self.state_batches: list[BatchPublisher] = []
+        session = self.session
+        for robot, topics in enumerate(self.robot_topics):
+            self.state_pubs.append(self.keep(Publisher.for_stream(session, topics, "haptic_state")))
+            self.state_batches.append(
+                self.keep(  # the recorder's copy, several samples per message
+                    BatchPublisher.for_stream(
+                        session, topics, "haptic_state_batch", cfg.bus.observer_batch_records
+                    )
+                )
             )
-        )
-        self.subscribe_stream("force_feedback", self._on_feedback)
-        self.subscribe_stream("hand_input", self._on_hand)
-        if self.lockstep:  # realtime: the feedback's tick is the clock (see HapticLoop)
-            self.subscribe_stream("plant_state", self._on_state)
+            self.subscribe_stream("force_feedback", self._on_feedback(robot), topics)
+            self.subscribe_stream("hand_input", self._on_hand(robot), topics)
+            if self.lockstep:  # realtime: the feedback's tick is the clock (see HapticLoop)
+                self.subscribe_stream("plant_state", self._on_state(robot), topics)
+            if len(self.robot_topics) > 1:  # a robot whose plant is done leaves the clock
+                events = subscribe_events(
+                    session, topics, "plant_events", self._on_event(robot), self.drops
+                )
+                self.keep(events)
         logger.info(
             "%s mode; stiffness a feedback law may render: K_max = 2 b / T = %.0f N/m",
             cfg.run.mode,
@@ -58,22 +75,38 @@ class HapticService(Service):
         )
         self.announce()
 
-    # -- callbacks: straight into the loop ---------------------------------------------
-    def _on_state(self, rec: np.ndarray, rx_ns: int) -> None:
-        self.loop.on_state(rec)
+    # -- callbacks: straight into the loop, with the robot they came from ---------------
+    def _on_state(self, robot: int) -> RecordCallback:
+        def on_state(rec: np.ndarray, rx_ns: int) -> None:
+            self.loop.on_state(rec, robot)
 
-    def _on_feedback(self, rec: np.ndarray, rx_ns: int) -> None:
-        self.loop.on_feedback(rec, rx_ns)
+        return on_state
 
-    def _on_hand(self, rec: np.ndarray, rx_ns: int) -> None:
-        self.loop.on_hand(rec)
+    def _on_feedback(self, robot: int) -> RecordCallback:
+        def on_feedback(rec: np.ndarray, rx_ns: int) -> None:
+            self.loop.on_feedback(rec, rx_ns, robot)
+
+        return on_feedback
+
+    def _on_hand(self, robot: int) -> RecordCallback:
+        def on_hand(rec: np.ndarray, rx_ns: int) -> None:
+            self.loop.on_hand(rec, robot)
+
+        return on_hand
+
+    def _on_event(self, robot: int) -> RecordCallback:
+        def on_event(rec: np.ndarray, rx_ns: int) -> None:
+            if int(rec["event"]) in (Event.FINISHED, Event.ABORTED):
+                self.loop.on_finished(robot)
+
+        return on_event
 
     # -- HapticOutputs -----------------------------------------------------------------
-    def sample(self, rec: np.ndarray) -> None:
-        self.state_batch.add(self.state_pub.put(rec))
+    def sample(self, rec: np.ndarray, robot: int) -> None:
+        self.state_batches[robot].add(self.state_pubs[robot].put(rec))
 
-    def resend(self, rec: np.ndarray) -> None:
-        self.state_pub.put(rec)
+    def resend(self, rec: np.ndarray, robot: int) -> None:
+        self.state_pubs[robot].put(rec)
 
     # -- lifecycle ---------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:

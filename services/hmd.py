@@ -23,7 +23,7 @@ import numpy as np
 
 from teleop.bus.messages import HEAD_POSE
 from teleop.bus.service import Service, service_main
-from teleop.bus.session import Publisher
+from teleop.bus.session import Publisher, RecordCallback
 from teleop.core.clock import NS_PER_S
 from teleop.devices.hmd import HmdLoop, fill_head_pose
 
@@ -36,23 +36,38 @@ class HmdService(Service):
         assert self.session is not None
         self.loop = HmdLoop(self.config)
         self.timestep_ns = round(self.config.plant.timestep_s * NS_PER_S)
-        self.pose_pub = self.keep(Publisher.for_stream(self.session, self.topics, "head_pose"))
+        # One head, every robot's keys (a run of several robots): each robot's controller
+        # and operator take the head pose from their own robot's stream.
+        self.pose_pubs = [
+            self.keep(Publisher.for_stream(self.session, topics, "head_pose"))
+            for topics in self.robot_topics
+        ]
         self._record = HEAD_POSE.new()
         self._lock = threading.Lock()
         self.published = 0
-        self.subscribe_stream("tool_pose", self._on_clock)
+        for robot, topics in enumerate(self.robot_topics):
+            self.subscribe_stream("tool_pose", self._on_clock(robot), topics)
         self.announce()
 
-    def _on_clock(self, rec: np.ndarray, rx_ns: int) -> None:
-        """Plant tick ``m``: publish every HMD sample up to ``m``."""
-        tick = int(rec["sim_time_ns"]) // self.timestep_ns
-        with self._lock:
-            for sample in self.loop.on_clock(tick):
-                fill_head_pose(
-                    self._record, sample, self.published, time.monotonic_ns(), self.timestep_ns
-                )
-                self.published += 1
-                self.pose_pub.put(self._record)
+    def _on_clock(self, robot: int) -> RecordCallback:
+        """Plant tick ``m`` of ``robot``: publish every HMD sample up to ``m``. Every
+        robot's poses clock the HMD (one whose task is over stops sending); only robot
+        0's tick 0 starts a run (another robot's, late, would restart it)."""
+
+        def on_clock(rec: np.ndarray, rx_ns: int) -> None:
+            tick = int(rec["sim_time_ns"]) // self.timestep_ns
+            with self._lock:
+                if robot and (tick == 0 or tick <= self.loop.last_tick):
+                    return  # the clock's tick came from another robot first
+                for sample in self.loop.on_clock(tick):
+                    fill_head_pose(
+                        self._record, sample, self.published, time.monotonic_ns(), self.timestep_ns
+                    )
+                    self.published += 1
+                    for pub in self.pose_pubs:
+                        pub.put(self._record)
+
+        return on_clock
 
     def run(self, stop: threading.Event) -> None:
         """The work happens in the clock's callback; this thread only waits to be stopped."""

@@ -32,9 +32,10 @@ from teleop.bus.messages import (
     next_run_event,
 )
 from teleop.bus.service import STOP_POLL_S, Service, service_main
-from teleop.bus.session import Publisher, subscribe_events
+from teleop.bus.session import Publisher, RecordCallback, subscribe_events
+from teleop.bus.topics import Topics
 from teleop.core.clock import NS_PER_S
-from teleop.devices.operator import HandCommand, OperatorLoop, Scenario
+from teleop.devices.operator import HandCommand, ObservationBuffer, OperatorLoop, Scenario
 
 logger = logging.getLogger(__name__)
 
@@ -46,7 +47,37 @@ _NEW_RUN = "new_run"  # queue item: the plant's STARTED event
 LATENESS_SAMPLES = 1 << 15
 
 
+class _RobotOutputs:
+    """One robot's end of the operator: its hand stream and its events (OperatorOutputs)."""
+
+    def __init__(self, service: OperatorService, topics: Topics) -> None:
+        assert service.session is not None
+        self.service = service
+        self.hand_pub = service.keep(Publisher.for_stream(service.session, topics, "hand_input"))
+        self.events_pub = service.keep(
+            Publisher.for_stream(service.session, topics, "operator_events")
+        )
+        self._hand = HAND_INPUT.new()  # each stream's seq counts its own records
+        self._event = RUN_EVENT.new()
+
+    def hand(self, valid_from_tick: int, command: HandCommand) -> None:
+        rec = next_hand_input(self._hand, time.monotonic_ns(), valid_from_tick,
+                              command.target_p_m, command.buttons)  # fmt: skip
+        self.hand_pub.put(rec)
+
+    def event(self, event: Event, tick: int, step: int, value: float) -> None:
+        now_ns = time.monotonic_ns()
+        timestep_ns = self.service.timestep_ns
+        rec = next_run_event(self._event, event, now_ns, tick * timestep_ns, step, value)
+        self.events_pub.put(rec)
+
+
 class OperatorService(Service):
+    """The scripted operator. In a run of several robots (``run.robots``) one task per
+    robot, in turn: the hand drives robot 0 (its inputs go out on robot 0's keys) until
+    that task is done, then the next robot's task starts where the last decision left
+    off (:meth:`OperatorLoop.take_over`); every robot's scene is observed all along."""
+
     name = "operator"
 
     def open(self) -> None:
@@ -55,33 +86,36 @@ class OperatorService(Service):
         cfg = self.config
         self.timestep_ns = round(cfg.plant.timestep_s * NS_PER_S)
         self.scenario = Scenario.load(cfg.operator.scenario_path, cfg.robot.object_bodies)
-        self.loop = OperatorLoop(cfg, self.scenario, self, lockstep=cfg.run.mode == "lockstep")
-        self.hand_pub = self.keep(Publisher.for_stream(self.session, self.topics, "hand_input"))
-        self.events_pub = self.keep(
-            Publisher.for_stream(self.session, self.topics, "operator_events")
+        lockstep = cfg.run.mode == "lockstep"
+        self.loops = [
+            OperatorLoop(cfg, self.scenario, _RobotOutputs(self, topics), lockstep=lockstep)
+            for topics in self.robot_topics
+        ]
+        self.active = 0  # the robot the hand drives
+        # Tool poses (robot, tick, the plant's sample stamp) and new-run markers (robot),
+        # in arrival order, for the run thread.
+        self._arrivals: queue.SimpleQueue[tuple[int, int, int] | tuple[str, int]] = (
+            queue.SimpleQueue()
         )
-        self._hand = HAND_INPUT.new()
-        self._event = RUN_EVENT.new()
-        # Tool poses (tick, the plant's sample stamp) and new-run markers, in arrival
-        # order, for the run thread.
-        self._arrivals: queue.SimpleQueue[tuple[int, int] | str] = queue.SimpleQueue()
         # From a pose's sample on the plant to this operator's decisions on it (ns): how
         # late the hand is on top of its reaction delay (realtime; a starved operator).
         self._lateness_ns = np.zeros(LATENESS_SAMPLES, dtype=np.int64)
         self._poses_decided = 0
-        topics, drops = self.topics, self.drops
-        self.subscribe_stream("tool_pose", self._on_tool)
-        self.subscribe_stream("objects", self._on_objects)
-        self.subscribe_stream("head_pose", self._on_head)
-        self.keep(subscribe_events(self.session, topics, "plant_events", self._on_event, drops))
+        for robot, topics in enumerate(self.robot_topics):
+            buffer = self.loops[robot].buffer
+            self.subscribe_stream("tool_pose", self._on_tool(robot), topics)
+            self.subscribe_stream("objects", self._on_objects(buffer), topics)
+            self.subscribe_stream("head_pose", self._on_head(self.loops[robot]), topics)
+            on_event = self._on_event(robot)
+            self.keep(subscribe_events(self.session, topics, "plant_events", on_event, self.drops))
         self.keep(
             self.session.liveliness().declare_subscriber(
-                topics.alive(HMD_SERVICE), self._on_hmd_token, history=True
+                self.topics.alive(HMD_SERVICE), self._on_hmd_token, history=True
             )
         )
         self.keep(
             self.session.liveliness().declare_subscriber(
-                topics.alive(DEVICE_SERVICE), self._on_device_token, history=True
+                self.topics.alive(DEVICE_SERVICE), self._on_device_token, history=True
             )
         )
         self.announce()
@@ -90,43 +124,59 @@ class OperatorService(Service):
     def _tick_of(self, rec: np.ndarray) -> int:
         return round(int(rec["sim_time_ns"]) / self.timestep_ns)
 
-    def _on_tool(self, rec: np.ndarray, rx_ns: int) -> None:
-        tick = self._tick_of(rec)
-        braked = bool(int(rec["flags"]) & Flag.BRAKING)
-        self.loop.buffer.add_tool(tick, rec["world_p_tool_m"], braked)
-        self._arrivals.put((tick, int(rec["t_source_ns"])))
+    def _on_tool(self, robot: int) -> RecordCallback:
+        buffer = self.loops[robot].buffer
 
-    def _on_objects(self, rec: np.ndarray, rx_ns: int) -> None:
-        n = int(rec["n_objects"])
-        self.loop.buffer.add_objects(self._tick_of(rec), rec["world_p_m"][:n])
+        def on_tool(rec: np.ndarray, rx_ns: int) -> None:
+            tick = self._tick_of(rec)
+            braked = bool(int(rec["flags"]) & Flag.BRAKING)
+            buffer.add_tool(tick, rec["world_p_tool_m"], braked)
+            self._arrivals.put((robot, tick, int(rec["t_source_ns"])))
 
-    def _on_head(self, rec: np.ndarray, rx_ns: int) -> None:
-        self.loop.hmd_seen()
-        self.loop.buffer.add_head(int(rec["valid_from_tick"]), float(rec["predicted_yaw_rad"]))
+        return on_tool
 
-    def _on_event(self, rec: np.ndarray, rx_ns: int) -> None:
-        if int(rec["event"]) == Event.STARTED:
-            self._arrivals.put(_NEW_RUN)
+    def _on_objects(self, buffer: ObservationBuffer) -> RecordCallback:
+        def on_objects(rec: np.ndarray, rx_ns: int) -> None:
+            n = int(rec["n_objects"])
+            buffer.add_objects(self._tick_of(rec), rec["world_p_m"][:n])
+
+        return on_objects
+
+    def _on_head(self, loop: OperatorLoop) -> RecordCallback:
+        def on_head(rec: np.ndarray, rx_ns: int) -> None:
+            loop.hmd_seen()
+            loop.buffer.add_head(int(rec["valid_from_tick"]), float(rec["predicted_yaw_rad"]))
+
+        return on_head
+
+    def _on_event(self, robot: int) -> RecordCallback:
+        def on_event(rec: np.ndarray, rx_ns: int) -> None:
+            if int(rec["event"]) == Event.STARTED:
+                self._arrivals.put((_NEW_RUN, robot))
+
+        return on_event
 
     def _on_hmd_token(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.PUT:
-            self.loop.hmd_seen()
+            for loop in self.loops:
+                loop.hmd_seen()
 
     def _on_device_token(self, sample: zenoh.Sample) -> None:
         """The device's token: withdrawn while it is dead or restarting (the hand then
         moves nothing; ScriptedOperator.device_gone), back once it is up again."""
         gone = sample.kind == zenoh.SampleKind.DELETE
-        if gone != self.loop.operator.device_gone:
+        if gone != self.loops[0].operator.device_gone:
             logger.warning("the haptic device %s", "is gone" if gone else "is back")
-        self.loop.operator.device_gone = gone
+        for loop in self.loops:
+            loop.operator.device_gone = gone
 
     # -- the run thread --------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
-        """Hand arrivals to the loop in order until stopped. A late operator (realtime:
-        poses queued behind a newer one; lockstep: a run that went on without it,
-        OperatorLoop.left_behind) decides on the newest pose only and skips the rest: it
-        catches up by skipping, never by a burst of late hand inputs. Lockstep otherwise
-        decides every one (the haptic device waits for each)."""
+        """Hand the driven robot's arrivals to its loop in order until stopped. A late
+        operator (realtime: poses queued behind a newer one; lockstep: a run that went on
+        without it, OperatorLoop.left_behind) decides on the newest pose only and skips
+        the rest: it catches up by skipping, never by a burst of late hand inputs.
+        Lockstep otherwise decides every one (the haptic device waits for each)."""
         while not stop.is_set():
             try:
                 items = [self._arrivals.get(timeout=STOP_POLL_S)]
@@ -137,34 +187,41 @@ class OperatorService(Service):
                     items.append(self._arrivals.get_nowait())
                 except queue.Empty:
                     break
-            poses = [item for item in items if isinstance(item, tuple)]
-            newest_tick = poses[-1][0] if poses else -1
-            behind = bool(poses) and self.loop.left_behind(newest_tick)
-            catch_up = behind and (len(poses) > 1 or self.loop.lockstep)
-            for i, item in enumerate(items):
-                if item == _NEW_RUN:
-                    self.loop.on_started()
-                    continue
-                assert isinstance(item, tuple)
-                if behind and any(isinstance(later, tuple) for later in items[i + 1 :]):
-                    continue  # a newer pose is queued behind it
-                tick, sampled_ns = item
-                self._lateness_ns[self._poses_decided % LATENESS_SAMPLES] = (
-                    time.monotonic_ns() - sampled_ns
-                )
-                self._poses_decided += 1
-                self.loop.on_arrival(tick, catch_up=catch_up)
+            self._take(items)
 
-    # -- OperatorOutputs: the loop's decisions onto the bus --------------------------------
-    def hand(self, valid_from_tick: int, command: HandCommand) -> None:
-        rec = next_hand_input(self._hand, time.monotonic_ns(), valid_from_tick,
-                              command.target_p_m, command.buttons)  # fmt: skip
-        self.hand_pub.put(rec)
-
-    def event(self, event: Event, tick: int, step: int, value: float) -> None:
-        now_ns = time.monotonic_ns()
-        rec = next_run_event(self._event, event, now_ns, tick * self.timestep_ns, step, value)
-        self.events_pub.put(rec)
+    def _take(self, items: list[tuple[int, int, int] | tuple[str, int]]) -> None:
+        """One batch of arrivals, in order: the driven robot's poses decided, a new run
+        started over on robot 0, the hand passed on once the driven robot's task is done."""
+        loop = self.loops[self.active]
+        poses = [item for item in items if item[0] == self.active]
+        newest_tick = int(poses[-1][1]) if poses else -1
+        behind = bool(poses) and loop.left_behind(newest_tick)
+        catch_up = behind and (len(poses) > 1 or loop.lockstep)
+        for i, item in enumerate(items):
+            if item[0] == _NEW_RUN:
+                robot = int(item[1])
+                self.loops[robot].on_started()
+                if robot == 0 and self.active:
+                    self.active = 0  # a new run: robot 0's task first again
+                    self._take(items[i + 1 :])
+                    return
+                continue
+            robot, tick, sampled_ns = (int(x) for x in item)
+            if robot != self.active:
+                continue  # observed (buffered), not driven
+            if behind and any(later[0] == robot for later in items[i + 1 :]):
+                continue  # a newer pose is queued behind it
+            self._lateness_ns[self._poses_decided % LATENESS_SAMPLES] = (
+                time.monotonic_ns() - sampled_ns
+            )
+            self._poses_decided += 1
+            loop.on_arrival(tick, catch_up=catch_up)
+            if loop.done_reported and self.active + 1 < len(self.loops):
+                self.active += 1
+                self.loops[self.active].take_over(tick)
+                logger.info("tick %d: the hand moves on to robot %d", tick, self.active)
+                self._take(items[i + 1 :])  # what came after, for the robot driven now
+                return
 
     def summary(self) -> dict[str, Any]:
         lateness_ms = self._lateness_ns[: min(self._poses_decided, LATENESS_SAMPLES)] / 1e6
@@ -172,7 +229,16 @@ class OperatorService(Service):
         if len(lateness_ms):
             p50, p99 = np.percentile(lateness_ms, [50, 99])
             late = {"p50": round(p50, 3), "p99": round(p99, 3), "max": round(lateness_ms.max(), 3)}
-        return {**super().summary(), **self.loop.summary(), "pose_to_decision_ms": late}
+        if len(self.loops) == 1:
+            tasks = self.loops[0].summary()
+        else:  # one section per robot
+            tasks = {
+                "robots": {
+                    t.robot_id: loop.summary()
+                    for t, loop in zip(self.robot_topics, self.loops, strict=True)
+                }
+            }
+        return {**super().summary(), **tasks, "pose_to_decision_ms": late}
 
 
 if __name__ == "__main__":

@@ -27,7 +27,7 @@ from teleop.bus.messages import (
 from teleop.bus.service import Service, service_main
 from teleop.bus.session import BatchPublisher, Publisher, subscribe, subscribe_events
 from teleop.core.clock import MonotonicClock
-from teleop.core.rundir import PLANT_CHECKPOINT_FILE, shed_path
+from teleop.core.rundir import checkpoint_path, shed_path
 from teleop.sim.checkpoint import CheckpointStore
 from teleop.sim.plant_loop import PlantLoop
 
@@ -54,7 +54,7 @@ class PlantService(Service):
         )
         store = None
         if self.options.run_dir is not None:  # checkpoints, and a restart resumes from them
-            store = CheckpointStore(self.options.run_dir / PLANT_CHECKPOINT_FILE)
+            store = CheckpointStore(checkpoint_path(self.options.run_dir, self.instance))
         self.loop = PlantLoop(self.config, self, MonotonicClock(), store)
         self.keep(subscribe_events(session, topics, "operator_events", self._on_event, self.drops))
         self.keep(
@@ -112,7 +112,7 @@ class PlantService(Service):
     def close(self) -> None:
         loop = getattr(self, "loop", None)  # None if open() failed before building it
         if self.options.run_dir is not None and loop is not None:
-            loop.save_shed_log(shed_path(self.options.run_dir, self.name))
+            loop.save_shed_log(shed_path(self.options.run_dir, self.instance))
         super().close()
 
     def summary(self) -> dict[str, Any]:

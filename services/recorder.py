@@ -12,6 +12,8 @@ from __future__ import annotations
 import logging
 import sys
 import threading
+from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -20,6 +22,7 @@ import zenoh
 from teleop.bus.messages import EYE_VIEW, RUN_EVENT
 from teleop.bus.service import Service, ServiceOptions, lower_priority_to, service_main
 from teleop.bus.session import subscribe, subscribe_events, subscribe_frames
+from teleop.bus.topics import Topics
 from teleop.core.config import Config, ConfigError
 from teleop.core.rundir import RECORDER_SEGMENTS_FILE, RECORDING_FILE
 from teleop.viz.recording import (
@@ -36,7 +39,8 @@ logger = logging.getLogger(__name__)
 
 
 class RecorderService(Service):
-    """Subscribes to every stream of the robot and hands it to a RecordingWriter."""
+    """Subscribes to every stream of each robot and hands it to that robot's
+    RecordingWriter."""
 
     name: ClassVar[str] = "recorder"
     writer_class: ClassVar[type[RecordingWriter]] = RecordingWriter
@@ -50,11 +54,27 @@ class RecorderService(Service):
     ) -> None:
         super().__init__(config, options)
         run_dir = self.options.run_dir
-        ledger = run_dir / RECORDER_SEGMENTS_FILE if run_dir is not None else None
-        segment = claim_segment(self._resolve_rrd_path(), ledger)
-        self.writer = self.writer_class(
-            config, segment.path, self.drops, buffer_capacity=buffer_capacity, segment=segment
-        )
+        # One recording per robot (a run of several: <stem>-<robot_id>.rrd each, every one
+        # a whole single-robot recording that teleop view and teleop report read as is).
+        self.writers: list[RecordingWriter] = []
+        several = len(self.robot_topics) > 1
+        for i, topics in enumerate(self.robot_topics):
+            path, ledger = self._resolve_rrd_path(), None
+            if run_dir is not None:
+                ledger = run_dir / RECORDER_SEGMENTS_FILE
+            if several:
+                path = robot_path(path, topics.robot_id)
+                ledger = robot_path(ledger, topics.robot_id) if ledger is not None else None
+            own = config
+            if i:  # one live viewer at most: robot 0's
+                own = replace(config, recorder=replace(config.recorder, spawn=False))
+            segment = claim_segment(path, ledger)
+            self.writers.append(
+                self.writer_class(
+                    own, segment.path, self.drops, buffer_capacity=buffer_capacity, segment=segment
+                )
+            )
+        self.writer = self.writers[0]
         self._subscribers: list[Any] = []
         self._recording_closed = False
 
@@ -81,44 +101,57 @@ class RecorderService(Service):
             lower_priority_to(self.config.recorder.nice)
             super().open()
             assert self.session is not None
-            session, topics, drops, writer = self.session, self.topics, self.drops, self.writer
-            writer.open()
-            for name, schema in STREAM_SCHEMAS.items():
-                batched = name in BATCHED_STREAMS
-                key = getattr(topics, BATCHED_STREAMS[name] if batched else name)
-                buffer = writer.buffers[name]
-                if schema is RUN_EVENT:  # only the events the stream's service owns
-                    sub = subscribe_events(session, topics, name, buffer, drops)
-                else:
-                    sub = subscribe(session, key, schema, buffer, drops, batched=batched)
-                self._subscribers.append(self.keep(sub))
-            sub = subscribe_frames(session, topics.eye_view, EYE_VIEW, writer.eye_view, drops)
-            self._subscribers.append(self.keep(sub))
-            liveliness = session.liveliness().declare_subscriber(
-                topics.alive_all, self._on_liveliness, history=True
-            )
-            self._subscribers.append(self.keep(liveliness))
+            for topics, writer in zip(self.robot_topics, self.writers, strict=True):
+                self._subscribe_robot(topics, writer)
             self.announce()
         except BaseException:
             self.close()
             raise
 
-    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+    def _subscribe_robot(self, topics: Topics, writer: RecordingWriter) -> None:
+        """Every stream of one robot into its writer."""
+        session, drops = self.session, self.drops
+        assert session is not None
+        writer.open()
+        for name, schema in STREAM_SCHEMAS.items():
+            batched = name in BATCHED_STREAMS
+            key = getattr(topics, BATCHED_STREAMS[name] if batched else name)
+            buffer = writer.buffers[name]
+            if schema is RUN_EVENT:  # only the events the stream's service owns
+                sub = subscribe_events(session, topics, name, buffer, drops)
+            else:
+                sub = subscribe(session, key, schema, buffer, drops, batched=batched)
+            self._subscribers.append(self.keep(sub))
+        sub = subscribe_frames(session, topics.eye_view, EYE_VIEW, writer.eye_view, drops)
+        self._subscribers.append(self.keep(sub))
+        liveliness = session.liveliness().declare_subscriber(
+            topics.alive_all, self._on_liveliness(topics, writer), history=True
+        )
+        self._subscribers.append(self.keep(liveliness))
+
+    @staticmethod
+    def _on_liveliness(topics: Topics, writer: RecordingWriter) -> Callable[[zenoh.Sample], None]:
         """A service joined or left the bus: a line in the event log (a restart is both)."""
-        service = self.topics.service_of(str(sample.key_expr))
-        if sample.kind == zenoh.SampleKind.DELETE:
-            level, text = LEVEL_WARN, f"service {service} left the bus"
-        else:
-            level, text = LEVEL_INFO, f"service {service} joined the bus"
-        self.writer.add_line(level, text)
+
+        def on_token(sample: zenoh.Sample) -> None:
+            service = topics.service_of(str(sample.key_expr))
+            if sample.kind == zenoh.SampleKind.DELETE:
+                level, text = LEVEL_WARN, f"service {service} left the bus"
+            else:
+                level, text = LEVEL_INFO, f"service {service} joined the bus"
+            writer.add_line(level, text)
+
+        return on_token
 
     def run(self, stop: threading.Event) -> None:
         """Flush every ``recorder.flush_every_s`` until ``stop`` is set, then flush the
         rest."""
         period_s = self.config.recorder.flush_every_s
         while not stop.wait(period_s):
-            self.writer.flush()
-        self.writer.flush()
+            for writer in self.writers:
+                writer.flush()
+        for writer in self.writers:
+            writer.flush()
 
     def close(self) -> None:
         """Stop the subscribers, log what is left and the stats, close the file, then
@@ -130,15 +163,27 @@ class RecorderService(Service):
                     sub.undeclare()
                 except zenoh.ZError as exc:  # session already gone
                     logger.debug("undeclare %r: %s", sub, exc)
-            try:
-                self.writer.close()
-            except Exception:  # the summary and the session close must still happen
-                logger.exception("closing the Rerun recording failed")
+            for writer in self.writers:
+                try:
+                    writer.close()
+                except Exception:  # the summary and the session close must still happen
+                    logger.exception("closing the Rerun recording %s failed", writer.rrd_path)
         super().close()
 
     def summary(self) -> dict[str, Any]:
         """The base summary plus the writer's: samples per stream, drops, flushes, CPU."""
-        return {**super().summary(), **self.writer.stats()}
+        if len(self.writers) == 1:
+            return {**super().summary(), **self.writer.stats()}
+        robots = {
+            t.robot_id: w.stats() for t, w in zip(self.robot_topics, self.writers, strict=True)
+        }
+        return {**super().summary(), "robots": robots}
+
+
+def robot_path(path: Path, robot_id: str) -> Path:
+    """``path`` with ``-<robot_id>`` before its suffix: a robot's own file in a run of
+    several robots (its recording, its segment ledger)."""
+    return path.with_name(f"{path.stem}-{robot_id}{path.suffix}")
 
 
 if __name__ == "__main__":

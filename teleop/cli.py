@@ -154,6 +154,15 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--duration", type=float, help="simulated seconds (run.duration_s)")
     run.add_argument("--seed", type=int, help="random seed (run.seed)")
     run.add_argument(
+        "--robots",
+        type=int,
+        help="robots on the bus (run.robots, default 1): each its own plant and controller "
+        "under its own id (arm0, arm1, ...), one operator station driving them in turn, one "
+        "recording per robot, a summary section per robot; grasp in lockstep with the "
+        "scripted operator (docs/sites.md, Several robots). Without --duration the run "
+        "gets run.duration_s per robot",
+    )
+    run.add_argument(
         "--summary-json",
         type=Path,
         help="write the full summary (JSON) here (default: <run-dir>/summary.json)",
@@ -450,6 +459,8 @@ def _overrides(args: argparse.Namespace) -> list[str]:
         overrides.append(f"run.duration_s={args.duration}")
     if getattr(args, "seed", None) is not None:
         overrides.append(f"run.seed={args.seed}")
+    if getattr(args, "robots", None) is not None:
+        overrides.append(f"run.robots={args.robots}")
     return overrides
 
 
@@ -502,6 +513,10 @@ def _run(args: argparse.Namespace) -> int:
             "run (drop --inprocess)"
         )
     config = load_config(args.config, overrides)
+    if config.run.robots > 1 and args.duration is None:
+        # The operator does one robot's task after the other: each gets the usual time.
+        overrides.insert(0, f"run.duration_s={config.run.duration_s * config.run.robots}")
+        config = load_config(args.config, overrides)
     check_operator(config, args.without)
     # A failed run must not leave the previous run's summary looking like its own.
     _summary_path(args).unlink(missing_ok=True)
@@ -586,13 +601,17 @@ def _run_and_report(
             print(f"teleop: {exc}", file=sys.stderr)
             return EXIT_FAILED
     _emit_summary(summary, _summary_path(args), args.json)
-    if args.report and summary.get("rrd"):
+    if args.report:
         from teleop.viz.report import write_report
 
-        report = write_report(
-            Path(str(summary["rrd"])), settle_s=config.run.settle_s, run_summary=summary
-        )
-        print(f"report: {report.summary}", file=sys.stderr)
+        robots = summary.get("robots") or {}
+        # One report per recording: a robot's with its own section of the summary.
+        for section in [summary] if not robots else [{**summary, **s} for s in robots.values()]:
+            if section.get("rrd"):
+                report = write_report(
+                    Path(str(section["rrd"])), settle_s=config.run.settle_s, run_summary=section
+                )
+                print(f"report: {report.summary}", file=sys.stderr)
     if web is not None:
         print(f"web viewer: {web.url} (Ctrl-C to stop)", file=sys.stderr, flush=True)
         # This Ctrl-C ends the viewer, not the run: the exit code stays the run's.

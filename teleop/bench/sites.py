@@ -177,7 +177,7 @@ def measure(
         "delays": [],
     }
     with tempfile.TemporaryDirectory(prefix="teleop-sites-") as tmp:
-        files = write_run_credentials(Path(tmp), PARTICIPANTS, ROBOT, tls=True)
+        files = write_run_credentials(Path(tmp), PARTICIPANTS, (ROBOT,), tls=True)
         for index in range(rounds):
             order = [DIRECT, ROUTERS] if index % 2 == 0 else [ROUTERS, DIRECT]
             entry = {path: stats(round_trips_ms(files, path, pings, rate_hz)) for path in order}

@@ -120,26 +120,41 @@ def _rule(rule_id: str, messages: list[str], flow: str, keys: Iterable[str]) -> 
     }
 
 
+def participant_robots(name: str, robot_ids: Sequence[str]) -> tuple[str, tuple[str, ...]]:
+    """The service whose rights ``name`` has and the robots it acts for in a run of
+    ``robot_ids``: a per-robot service's instance (``plant-arm1``, graph.instance_name)
+    its own robot, any other participant every robot."""
+    role, robot = graph.role_of(name), graph.robot_of(name)
+    if role in graph.PER_ROBOT and robot in robot_ids:
+        return role, (robot,)
+    return name, tuple(robot_ids)
+
+
 def access_control(
-    credentials: Mapping[str, Credentials], robot_id: str, *, tls: bool = False
+    credentials: Mapping[str, Credentials], robot_ids: Sequence[str], *, tls: bool = False
 ) -> dict[str, Any]:
-    """Zenoh's ``access_control`` section for a run of ``credentials``' participants.
+    """Zenoh's ``access_control`` section for a run of ``credentials``' participants and
+    the robots ``robot_ids`` (each one's keys under ``teleop/<robot_id>/``).
 
     Rules are written from the point of view of a process looking at one peer (the
     subject): *ingress* is what the peer sends it, *egress* what it sends the peer. A
     peer may send the puts of the streams it produces and the subscriptions of those it
-    consumes, and receive the converse; it may declare its own tokens and watch all.
+    consumes, and receive the converse; it may declare its own tokens and watch all; all
+    of it under the keys of the robots it acts for (:func:`participant_robots`).
     A peer is recognised by its Zenoh id and, with ``tls``, also by its certificate's
     common name (the participant's name) in the same subject: both must match.
     """
-    prefix = f"{ROOT}/{robot_id}"
-    tokens = [f"{prefix}/{ALIVE_TOKEN}/*", f"{prefix}/{READY_TOKEN}/*"]
+    prefixes = [f"{ROOT}/{robot_id}" for robot_id in robot_ids]
+    tokens = [f"{p}/{kind}/*" for p in prefixes for kind in (ALIVE_TOKEN, READY_TOKEN)]
     rules, subjects, policies = [], [], []
     for name, cred in credentials.items():
-        produces, consumes = rights(name)
-        produced = [f"{prefix}/{key}" for key in produces]
-        consumed = [f"{prefix}/{key}" for key in consumes]
-        own_tokens = [f"{prefix}/{ALIVE_TOKEN}/{name}", f"{prefix}/{READY_TOKEN}/{name}"]
+        role, robots = participant_robots(name, robot_ids)
+        own = [f"{ROOT}/{robot_id}" for robot_id in robots]
+        produces, consumes = rights(role)
+        produced = [f"{p}/{key}" for p in own for key in produces]
+        consumed = [f"{p}/{key}" for p in own for key in consumes]
+        own_tokens = [f"{p}/{kind}/{graph.role_of(role)}" for p in own
+                      for kind in (ALIVE_TOKEN, READY_TOKEN)]  # fmt: skip
         mine = [
             _rule(f"{name}-tokens", ["liveliness_token"], "ingress", own_tokens),
             _rule(f"{name}-peer-tokens", ["liveliness_token"], "egress", tokens),
@@ -237,7 +252,7 @@ def _private_directory(directory: Path) -> Path:
 def write_run_credentials(
     directory: Path,
     participants: Sequence[str],
-    robot_id: str,
+    robot_ids: Sequence[str],
     *,
     tls: bool = False,
     addresses: Mapping[str, Sequence[str]] | None = None,
@@ -252,9 +267,11 @@ def write_run_credentials(
     password anywhere. Without: a password per participant and the run's dictionary
     (:data:`PASSWORDS_FILE`), named in the file of every participant that accepts links
     (all but the observers)."""
+    if isinstance(robot_ids, str):
+        raise TypeError(f"robot_ids: a sequence of robot ids, not the string {robot_ids!r}")
     directory = _private_directory(directory)
     credentials = {name: Credentials.generate(name) for name in participants}
-    acl = access_control(credentials, robot_id, tls=tls)
+    acl = access_control(credentials, robot_ids, tls=tls)
     own_secret: dict[str, dict[str, Any]]
     if tls:
         certificates = write_run_certificates(directory, list(credentials), addresses)

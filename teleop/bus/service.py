@@ -31,6 +31,7 @@ from typing import Any, ClassVar
 
 import zenoh
 
+from teleop.bus import graph
 from teleop.bus.access import participant_zids, strangers
 from teleop.bus.messages import DropCounter, Kind
 from teleop.bus.session import (
@@ -95,6 +96,15 @@ class Service:
         self.config = config
         self.options = options or ServiceOptions()
         self.topics = Topics(config.robot.robot_id)
+        # The robots this process works: its own (a per-robot service), or every robot of
+        # the run (a station's service: its tokens under each robot's keys, so each
+        # robot's services see one of each). Robot 0's first: ``topics``.
+        robot_ids = (config.robot.robot_id,)
+        if self.name not in graph.PER_ROBOT:
+            robot_ids = config.robot_ids()
+        self.robot_topics = tuple(Topics(rid) for rid in robot_ids)
+        # The process's own name: its summary's and its participant's (graph.instance_name).
+        self.instance = graph.instance_name(self.name, config.robot.robot_id, config.run.robots)
         self.drops = DropCounter()
         self.session: zenoh.Session | None = None
         self._entities: list[Any] = []
@@ -139,20 +149,23 @@ class Service:
     def announce(self) -> None:
         """Declare this service alive: call once its subscribers are in place."""
         assert self.session is not None
-        self.keep(declare_alive(self.session, self.topics, self.name))
+        for topics in self.robot_topics:
+            self.keep(declare_alive(self.session, topics, self.name))
 
     def subscribe_stream(
-        self, stream_name: str, callback: RecordCallback
+        self, stream_name: str, callback: RecordCallback, topics: Topics | None = None
     ) -> zenoh.Subscriber | NewestSubscriber:
         """Subscribe this service to the graph's stream ``stream_name`` (its key and record
-        kind) as the graph says it takes it in this run's mode: every record in order, or
-        only the newest (:class:`NewestSubscriber`, its skips in the summary's
-        ``skipped``). Kept: close() undeclares it."""
+        kind) of robot ``topics`` (default: :attr:`topics`) as the graph says it takes it
+        in this run's mode: every record in order, or only the newest
+        (:class:`NewestSubscriber`, its skips in the summary's ``skipped``). Kept:
+        close() undeclares it."""
         assert self.session is not None
         run = self.config.run
+        topics = topics or self.topics
         sub = subscribe_stream(
             self.session,
-            self.topics,
+            topics,
             stream_name,
             callback,
             self.drops,
@@ -161,7 +174,8 @@ class Service:
             scenario=run.scenario,
         )
         if isinstance(sub, NewestSubscriber):
-            self._newest[stream_name] = sub
+            own = topics.robot_id == self.topics.robot_id
+            self._newest[stream_name if own else f"{stream_name}@{topics.robot_id}"] = sub
         return self.keep(sub)
 
     def keep(self, entity: Any) -> Any:
@@ -259,7 +273,8 @@ class Service:
             )
             self.keep(self._watch_late_links(started_ns))
         self.cpu_s_ready = time.process_time()
-        self.keep(declare_alive(self.session, self.topics, self.name, ready=True))
+        for topics in self.robot_topics:
+            self.keep(declare_alive(self.session, topics, self.name, ready=True))
         return True
 
     def _watch_late_links(self, started_ns: int) -> Any:
@@ -294,22 +309,29 @@ class Service:
         ready: bool,
         limit_s: float | None = None,
     ) -> tuple[str, ...]:
-        """Wait until ``services``' tokens are all present, until stopped, or for
-        ``limit_s`` (None: no limit); the services still missing then (empty: none)."""
+        """Wait until ``services``' tokens are all present under the keys of every robot
+        this service works, until stopped, or for ``limit_s`` (None: no limit); the
+        services still missing then (empty: none; under several robots, a service is
+        named once per robot it is missing for, as ``service@robot``)."""
         assert self.session is not None
-        missing = tuple(services)
+        missing: tuple[str, ...] = ()
         waited_s = 0.0
         warned = False
-        while missing and not stop.is_set() and (limit_s is None or waited_s < limit_s):
-            try:
-                wait_alive(self.session, self.topics, services, STOP_POLL_S, ready=ready)
-                missing = ()
-            except ServicesMissing as exc:
-                missing = exc.missing
-                waited_s += STOP_POLL_S
-                if waited_s >= PEER_WAIT_LOG_S and not warned:  # what is this one waiting for
-                    warned = True
-                    logger.warning("still waiting: %s", exc)
+        for topics in self.robot_topics:
+            robot_missing = tuple(services)
+            while robot_missing and not stop.is_set() and (limit_s is None or waited_s < limit_s):
+                try:
+                    wait_alive(self.session, topics, services, STOP_POLL_S, ready=ready)
+                    robot_missing = ()
+                except ServicesMissing as exc:
+                    robot_missing = exc.missing
+                    waited_s += STOP_POLL_S
+                    if waited_s >= PEER_WAIT_LOG_S and not warned:  # what it waits for
+                        warned = True
+                        logger.warning("still waiting (robot %s): %s", topics.robot_id, exc)
+            if len(self.robot_topics) > 1:
+                robot_missing = tuple(f"{name}@{topics.robot_id}" for name in robot_missing)
+            missing += robot_missing
         return missing
 
     def write_summary(self) -> None:
@@ -322,10 +344,10 @@ class Service:
         if self.options.run_dir is None:
             return
         run_dir, pid = self.options.run_dir, os.getpid()
-        path = summary_path(run_dir, self.name)
+        path = summary_path(run_dir, self.instance)
         path.parent.mkdir(parents=True, exist_ok=True)
         summary = {**self.summary(), "pid": pid}
-        running = incarnation_paths(run_dir, self.name)
+        running = incarnation_paths(run_dir, self.instance)
         earlier = earlier_incarnations(path, pid, running)
         if earlier:
             summary["earlier_incarnations"] = earlier
@@ -397,7 +419,7 @@ class Service:
                 logger.warning("running summary skipped (read mid-change)", exc_info=True)
             return
         try:
-            _write_json(incarnation_path(self.options.run_dir, self.name, pid), summary)
+            _write_json(incarnation_path(self.options.run_dir, self.instance, pid), summary)
         except OSError as exc:
             logger.warning("running summary not written: %s", exc)
             return

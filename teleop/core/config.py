@@ -1097,6 +1097,13 @@ TELEOPERATED = tuple(s.name for s in SCENARIO_SPECS if s.teleoperated)
 AUTONOMOUS = tuple(s.name for s in SCENARIO_SPECS if not s.teleoperated)
 
 
+# Characters of a robot id that names services of a run of several robots (their
+# participants' names, teleop.bus.access).
+ROBOT_ID_ALPHABET = frozenset("abcdefghijklmnopqrstuvwxyz0123456789_")
+# Robots one operator station drives (run.robots): each adds a plant and a controller.
+MAX_ROBOTS = 4
+
+
 @dataclass(frozen=True)
 class RunConfig:
     """A scenario run: how long, which seed, when the accuracy measurement starts."""
@@ -1115,6 +1122,10 @@ class RunConfig:
     # Who drives the handle in teleoperation: the scripted operator or a person's device
     # (OPERATORS; teleop run --operator).
     operator: str = SCRIPTED
+    # Robots on the bus (teleop run --robots): each its own plant and controller under its
+    # own id (Config.robot_ids), one operator station (haptic, HMD, operator, recorder)
+    # driving them in turn.
+    robots: int = 1
 
     @property
     def teleoperated(self) -> bool:
@@ -1128,6 +1139,7 @@ class RunConfig:
         _require(0 <= self.settle_s, "run.settle_s >= 0")
         _require(self.initial_q_noise_rad >= 0, "run.initial_q_noise_rad >= 0")
         _require(self.operator in OPERATORS, f"run.operator: one of {', '.join(OPERATORS)}")
+        _require(1 <= self.robots <= MAX_ROBOTS, f"run.robots in [1, {MAX_ROBOTS}]")
 
 
 @dataclass(frozen=True)
@@ -1171,6 +1183,50 @@ class Config:
                 f"site.emulated_round_trip_ms: a whole number of plant steps "
                 f"({self.plant.timestep_s * 1e3:g} ms each)",
             )
+
+        if self.run.robots > 1:
+            self._check_robots()
+
+    def _check_robots(self) -> None:
+        """What a run of several robots (``run.robots``) supports: the scripted operator
+        drives them in turn, in the teleoperation scenario, on one host, each with its
+        own model of the operator's link."""
+        many = f"run.robots={self.run.robots}"
+        _require(self.run.teleoperated, f"{many}: a teleoperated scenario (grasp)")
+        _require(
+            self.run.mode == "lockstep",
+            f"{many}: lockstep runs only (realtime: one robot per operator station)",
+        )
+        _require(
+            self.run.operator == SCRIPTED,
+            f"{many}: the scripted operator only (a person's device has no robot switch yet)",
+        )
+        _require(not self.site.name, f"{many}: one host only (not with site.name)")
+        _require(
+            not self.site.emulated_round_trip_ms,
+            f"{many}: not with site.emulated_round_trip_ms",
+        )
+        _require(
+            self.teleop.stabiliser != "wave",
+            f"{many}: not with teleop.stabiliser=wave (an idle robot's wave port would "
+            "drift on its own resistance)",
+        )
+        ids = self.robot_ids()
+        _require(
+            all(set(rid) <= ROBOT_ID_ALPHABET for rid in ids),
+            f"{many}: robot.robot_id {self.robot.robot_id!r} must be lower-case letters, "
+            "digits and _ (it names each robot's services)",
+        )
+
+    def robot_ids(self) -> tuple[str, ...]:
+        """The id of every robot of the run: ``robot.robot_id`` alone, or with
+        ``run.robots`` > 1 its stem numbered from its own number on (``arm0`` -> ``arm0``,
+        ``arm1``; ``ur`` -> ``ur0``, ``ur1``)."""
+        if self.run.robots == 1:
+            return (self.robot.robot_id,)
+        stem = self.robot.robot_id.rstrip("0123456789")
+        first = int(self.robot.robot_id[len(stem) :] or 0)
+        return tuple(f"{stem}{first + i}" for i in range(self.run.robots))
 
     def link_delay_ticks(self) -> tuple[int, int]:
         """The emulated link's delay (plant ticks) from the operator's site to the

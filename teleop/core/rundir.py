@@ -22,9 +22,10 @@ RECORDING_FILE = "recording.rrd"
 # A restarted recorder never overwrites: it writes the next segment (segment_path), and
 # this ledger in the run directory lists the run's segments and its Rerun recording id.
 RECORDER_SEGMENTS_FILE = "recorder.segments.json"
-# The plant's checkpoint and per-step progress mark (teleop.sim.checkpoint): a restarted
-# plant resumes from it, so a new run must not find the previous run's.
-PLANT_CHECKPOINT_FILE = "plant.checkpoint"
+# The plant's checkpoint and per-step progress mark (teleop.sim.checkpoint):
+# ``<plant>.checkpoint`` (checkpoint_path); a restarted plant resumes from it, so a new
+# run must not find the previous run's.
+CHECKPOINT_SUFFIX = ".checkpoint"
 # supervisord's own files (teleop.run.supervise): its config, control socket, pid file,
 # log, console output (config errors), and the directory of the programs' logs.
 SUPERVISOR_CONF_FILE = "supervisord.conf"
@@ -71,8 +72,10 @@ _RUN_RESULT_GLOBS = (
     HAPTIC_SAMPLES_FILE,
     RECORDING_FILE,
     "recording.*.rrd",  # its later segments (segment_path)
+    "recording-*.rrd",  # each robot's in a run of several (and their segments)
     RECORDER_SEGMENTS_FILE,
-    PLANT_CHECKPOINT_FILE,
+    "recorder.segments-*.json",
+    f"*{CHECKPOINT_SUFFIX}",
     SUPERVISOR_LOG_FILE,
     SUPERVISOR_CONSOLE_FILE,
     WEB_VIEWER_LOG_FILE,
@@ -113,6 +116,12 @@ def segment_paths(rrd_path: Path) -> list[Path]:
     while (path := segment_path(rrd_path, len(paths))).is_file():
         paths.append(path)
     return paths
+
+
+def checkpoint_path(run_dir: Path, plant: str) -> Path:
+    """Where the plant process ``plant`` (``plant``, or one robot's ``plant-<robot>``)
+    keeps its checkpoint."""
+    return Path(run_dir) / f"{plant}{CHECKPOINT_SUFFIX}"
 
 
 def shed_path(run_dir: Path, service: str) -> Path:

@@ -173,6 +173,12 @@ SUMMARY_FIELDS: tuple[SummaryField, ...] = (
       nullable=True),
     F("faults", "array", SERVICES, "what followed each injected fault (--kill, --freeze)"),
     F("rrd", "string", SERVICES, "the Rerun recording", nullable=True),
+    F("cpu_s_per_sim_s", "object", SERVICES, "CPU seconds per simulated second of the "
+      "robot's own processes (plant, controller, eye view), start-up included"),
+    F("robots", "object", SERVICES, "a run of several robots (run.robots): a section per "
+      "robot id with that robot's task, verdict and plant fields of this table, and its "
+      "scenario (criteria.judge_summary judges a section as a run)"),
+    F("rrds", "array", SERVICES, "a run of several robots: every robot's recording"),
     F("run_dir", "string", SERVICES, "the run directory"),
     F("services", "object", SERVICES, "each service's own summary, by name"),
 )  # fmt: skip

@@ -14,8 +14,12 @@ import bisect
 import math
 import threading
 from collections.abc import Callable
+from typing import Generic, TypeVar
 
 import numpy as np
+
+# What a TickedInputs holds per tick (a record, or a record with where it came from).
+Held = TypeVar("Held")
 
 # Tolerance on tick arithmetic in floating point (fraction of a tick).
 _EPS = 1e-9
@@ -60,7 +64,7 @@ def expected_valid_from(
     return last_sample_tick(tick - lead_ticks, rate_hz, timestep_s) + lead_ticks
 
 
-class TickedInputs:
+class TickedInputs(Generic[Held]):
     """Thread-safe store of records keyed by their ``valid_from_tick``.
 
     Zenoh callbacks :meth:`put` records; a loop asks for the one that applies at a
@@ -69,11 +73,11 @@ class TickedInputs:
 
     def __init__(self, keep: int = 64) -> None:
         self._cond = threading.Condition()
-        self._records: dict[int, np.ndarray] = {}
+        self._records: dict[int, Held] = {}
         self._ticks: list[int] = []  # the keys of _records, sorted (latest_at bisects it)
         self._keep = keep
 
-    def put(self, valid_from_tick: int, rec: np.ndarray) -> None:
+    def put(self, valid_from_tick: int, rec: Held) -> None:
         with self._cond:
             if valid_from_tick not in self._records:
                 bisect.insort(self._ticks, valid_from_tick)
@@ -84,7 +88,7 @@ class TickedInputs:
                 del self._ticks[: len(self._ticks) - self._keep]
             self._cond.notify_all()
 
-    def wait_for(self, valid_from_tick: int, timeout_s: float) -> np.ndarray | None:
+    def wait_for(self, valid_from_tick: int, timeout_s: float) -> Held | None:
         """The record valid from exactly that tick, waiting up to ``timeout_s``."""
         with self._cond:
             self._cond.wait_for(lambda: valid_from_tick in self._records, timeout_s)
@@ -95,7 +99,7 @@ class TickedInputs:
         with self._cond:
             return self._ticks[-1] if self._ticks else None
 
-    def latest_at(self, tick: int) -> np.ndarray | None:
+    def latest_at(self, tick: int) -> Held | None:
         """The record with the largest valid_from_tick <= ``tick`` (realtime use)."""
         with self._cond:
             index = bisect.bisect_right(self._ticks, tick)

@@ -88,13 +88,19 @@ FEEDBACK_KEEP = 64
 
 
 class HapticOutputs(Protocol):
-    """Where :class:`HapticLoop` sends its HAPTIC_STATE records (the service: the bus)."""
+    """Where :class:`HapticLoop` sends its HAPTIC_STATE records (the service: the bus),
+    each to one robot (its index in ``Config.robot_ids``)."""
 
-    def sample(self, rec: np.ndarray) -> None:
+    def sample(self, rec: np.ndarray, robot: int) -> None:
         """A new sample (every consumer, the recorder's batch included)."""
 
-    def resend(self, rec: np.ndarray) -> None:
+    def resend(self, rec: np.ndarray, robot: int) -> None:
         """The last sample again, for a plant that re-sent its state (the plant only)."""
+
+
+# A hand input as the loop keeps it: the HAND_INPUT record and the robot it was meant
+# for (the robot whose key it came on: the operator's choice of robot).
+HandFor = tuple[np.ndarray, int]
 
 
 def hand_input(rec: np.ndarray | None) -> HandInput | None:
@@ -171,17 +177,32 @@ class HapticLoop:
             ),
             self.period_s,
         )
-        self.hand_inputs = TickedInputs()
+        self.hand_inputs: TickedInputs[HandFor] = TickedInputs()
+        # Several robots (run.robots): the handle drives the selected one; the others
+        # get a centred handle (their tool holds still) with the buttons they last had.
+        # The clock (lockstep) is the slowest robot still running; a robot whose plant
+        # finished leaves it.
+        self.robots = len(config.robot_ids())
+        self.selected = 0
+        self.deadband_m = config.teleop.deadband_m
+        self._robot_seq = [-1] * self.robots  # newest state seq per robot (lockstep)
+        self._finished: set[int] = set()
+        self._robot_feedback: list[dict[int, np.ndarray]] = [{} for _ in range(self.robots)]
+        self._idle = [HAPTIC_STATE.new() for _ in range(self.robots)]
+        self._robot_sent: list[np.ndarray | None] = [None] * self.robots
+        self.switches: list[dict[str, Any]] = []  # (tick, robot) of each switch
+        self.switch_deferred_steps = 0  # steps a switch waited for the handle's deadband
+        self.unselected_feedback = 0  # realtime: feedback of a robot not driven, not rendered
         self.timer: LoopTimer | None = None
         self._first_wake_ns = 0
         # Everything below is shared by the input methods and the run thread.
         self.cond = threading.Condition()
         self._state_seq = -1  # newest plant tick of this run; -1: none yet
         self._run_start_ns = -1  # t_source_ns of this run's state 0 (a re-send repeats it)
-        self._state_sim_ns = 0  # its sim_time_ns
+        self._state_sim_ns = 0  # its sim_time_ns (realtime)
+        self._sim_offset_ns = 0  # lockstep: robot 0's sim time at tick 0
         self._first_tick = 0  # first tick of the run this loop saw (joined mid-run: > 0)
         self._last_tick = -1  # lockstep: last tick stepped
-        self._feedback: dict[int, np.ndarray] = {}  # lockstep: device_f_n by tick
         self._hand_blocked_since_ns: int | None = None  # lockstep: tick waits for its hand
         self._operator_absent = False
         self._last_missing_valid_from: int | None = None
@@ -209,30 +230,74 @@ class HapticLoop:
         self._warned_no_operator = False
 
     # -- inputs ------------------------------------------------------------------------
-    def on_state(self, rec: np.ndarray) -> None:
-        """PLANT_STATE (lockstep: the clock; its ``seq`` is the plant tick)."""
+    def on_state(self, rec: np.ndarray, robot: int = 0) -> None:
+        """PLANT_STATE of ``robot`` (lockstep: the clock; its ``seq`` is the plant tick).
+        Robot 0's plant starts a run; with several robots the clock is the slowest
+        one's (:meth:`_robots_state`)."""
         seq = int(rec["seq"])
         with self.cond:
+            if robot:
+                self._other_robot_state(seq, robot)
+                return
             if seq == 0 and int(rec["t_source_ns"]) != self._run_start_ns:
                 self._run_start_ns = int(rec["t_source_ns"])
                 self._new_run()
-            elif seq <= self._state_seq:
-                if self.lockstep and seq == self._last_tick:
-                    self.republished_states += 1
-                    self.outputs.resend(self.sent)
+            elif seq <= self._robot_seq[0]:
+                self._resend_if_last(seq, 0)
                 return
-            elif self._state_seq < 0:  # joined a run already under way
+            elif self._robot_seq[0] < 0:  # joined a run already under way
                 self._first_tick = seq
                 self._last_tick = seq - 1
-            self._state_seq = seq
-            self._state_sim_ns = int(rec["sim_time_ns"])
+            self._robot_seq[0] = seq
+            self._sim_offset_ns = int(rec["sim_time_ns"]) - seq * self.period_ns
+            self._state_seq = self._robots_state()
             if self.lockstep:
                 self._try_steps()
                 if self._last_tick < seq:
                     self.lockstep_waits += 1
 
-    def on_feedback(self, rec: np.ndarray, rx_ns: int) -> None:
-        """FORCE_FEEDBACK received at ``rx_ns`` (the clock's time)."""
+    def _other_robot_state(self, seq: int, robot: int) -> None:
+        """PLANT_STATE ``seq`` of a robot other than robot 0 (lock held)."""
+        if seq <= self._robot_seq[robot]:
+            self._resend_if_last(seq, robot)
+            return
+        self._robot_seq[robot] = seq
+        self._state_seq = self._robots_state()
+        if self.lockstep:
+            self._try_steps()
+
+    def _resend_if_last(self, seq: int, robot: int) -> None:
+        """A re-sent state of ``robot`` (lock held): the sample of the tick last stepped
+        again, if it names that tick (lockstep)."""
+        sent = self._robot_sent[robot]
+        if self.lockstep and seq == self._last_tick and sent is not None:
+            self.republished_states += 1
+            self.outputs.resend(sent, robot)
+
+    def _robots_state(self) -> int:
+        """The newest tick every running robot's state has reached (lock held; -1:
+        robot 0 has sent none). A robot not heard from yet holds the clock at -1 but for
+        robot 0 alone, which starts the run."""
+        running = [seq for r, seq in enumerate(self._robot_seq) if r not in self._finished]
+        if not running or self._robot_seq[0] < 0:
+            return max(self._robot_seq[0], -1)
+        return min(running)
+
+    def on_finished(self, robot: int) -> None:
+        """``robot``'s plant finished its run (its FINISHED or ABORTED event): the clock
+        no longer waits for its states and feedback, and it gets no more samples."""
+        with self.cond:
+            if robot in self._finished:
+                return
+            self._finished.add(robot)
+            if len(self._finished) == self.robots:
+                return
+            self._state_seq = self._robots_state()
+            if self.lockstep:
+                self._try_steps()
+
+    def on_feedback(self, rec: np.ndarray, rx_ns: int, robot: int = 0) -> None:
+        """FORCE_FEEDBACK of ``robot`` received at ``rx_ns`` (the clock's time)."""
         force = np.array(rec["device_f_n"], dtype=np.float64)
         force_norm_n = math.hypot(*force.tolist())
         if force_norm_n > self.max_feedback_n:
@@ -251,19 +316,23 @@ class HapticLoop:
             force = np.array(rec["wave_v"], dtype=np.float64)  # what the handle renders from
         with self.cond:
             if not self.lockstep:
+                if robot != self.selected:
+                    self.unselected_feedback += 1  # the handle feels the robot it drives
+                    return
                 self._feedback_realtime(rec, force, rx_ns)
                 return
             tick = int(rec["tick"])
             if tick < self._last_tick:
                 return  # late: its step has been taken
-            self._feedback[tick] = force
-            if len(self._feedback) > self.feedback_keep:
-                del self._feedback[min(self._feedback)]
+            feedback = self._robot_feedback[robot]
+            feedback[tick] = force
+            if len(feedback) > self.feedback_keep:
+                del feedback[min(feedback)]
             self._try_steps()
 
-    def on_hand(self, rec: np.ndarray) -> None:
-        """HAND_INPUT, keyed by the plant tick it applies from."""
-        self.hand_inputs.put(int(rec["valid_from_tick"]), rec)
+    def on_hand(self, rec: np.ndarray, robot: int = 0) -> None:
+        """HAND_INPUT meant for ``robot``, keyed by the plant tick it applies from."""
+        self.hand_inputs.put(int(rec["valid_from_tick"]), (rec, robot))
         with self.cond:
             self._operator_absent = False
             if self.lockstep:
@@ -299,7 +368,11 @@ class HapticLoop:
         self.hold.clear()
         self.passivity.reset()
         self.hand_inputs.clear()
-        self._feedback.clear()
+        for feedback in self._robot_feedback:
+            feedback.clear()
+        self._robot_seq[1:] = [-1] * (self.robots - 1)
+        self._finished.clear()
+        self.selected = 0
         self._in_flight.clear()
         self.record["device_p_m"] = 0.0  # the device is back at the centre
         self._wave_u = np.zeros(3)
@@ -312,7 +385,7 @@ class HapticLoop:
         self.runs += 1
 
     # -- lockstep ----------------------------------------------------------------------
-    def _hand_for(self, tick: int) -> tuple[np.ndarray | None, bool]:
+    def _hand_for(self, tick: int) -> tuple[HandFor | None, bool]:
         """(hand input that applies at ``tick`` or None, still waiting for it)."""
         valid_from = expected_valid_from(tick, self.hand_rate_hz, self.period_s, self.lead_ticks)
         if valid_from is None:
@@ -336,7 +409,7 @@ class HapticLoop:
             tick = self._last_tick + 1
             if tick > self._state_seq:
                 return
-            if tick - 1 not in self._feedback and tick > self._first_tick:
+            if tick > self._first_tick and not self._feedback_in(tick - 1):
                 return  # the feedback of the tick before is the barrier, delayed or not
             hand, waiting = self._hand_for(tick)
             if waiting:
@@ -345,15 +418,70 @@ class HapticLoop:
                     self.cond.notify_all()  # the run thread times the wait
                 return
             self._hand_blocked_since_ns = None
+            rec = self._select(hand, tick)
             t_ns = tick * self.period_ns
-            delivered = self._feedback.pop(tick - 1 - self.backward_ticks, None)
+            delivered = None
+            for robot, feedback in enumerate(self._robot_feedback):
+                force = feedback.pop(tick - 1 - self.backward_ticks, None)
+                if robot == self.selected:
+                    delivered = force
             if delivered is not None:
                 self.hold.receive(delivered, t_ns - self.period_ns)
-            sim_ns = self._state_sim_ns - (self._state_seq - tick) * self.period_ns
-            sample = self._step(tick, sim_ns, hand, t_ns)
-            self.outputs.sample(self._over_the_link())
+            sim_ns = self._sim_offset_ns + tick * self.period_ns
+            sample = self._step(tick, sim_ns, rec, t_ns)
+            self._send(self._over_the_link())
             self._account_sample(sample)
             self._last_tick = tick
+
+    def _feedback_in(self, tick: int) -> bool:
+        """Whether the feedback of ``tick`` is in from every running robot (lock held)."""
+        return all(
+            tick in feedback
+            for robot, feedback in enumerate(self._robot_feedback)
+            if robot not in self._finished
+        )
+
+    def _select(self, hand: HandFor | None, tick: int) -> np.ndarray | None:
+        """The hand's record, after switching the handle to the robot it is meant for
+        (lock held). A switch waits for the handle to rest in the rate deadband (it
+        commands nothing there): a handle held off-centre would drive the new robot at
+        once; meanwhile the hand still moves the robot selected before."""
+        if hand is None:
+            return None
+        rec, robot = hand
+        if robot == self.selected or not 0 <= robot < self.robots:
+            return rec
+        offset_m = math.hypot(*self.record["device_p_m"].tolist())
+        if offset_m > self.deadband_m:
+            self.switch_deferred_steps += 1
+            return rec
+        logger.info("tick %d: the handle drives robot %d (was %d)", tick, robot, self.selected)
+        self.switches.append({"tick": tick, "robot": robot})
+        self.selected = robot
+        self.hold.clear()  # the feedback held is the other robot's
+        return rec
+
+    def _send(self, sent: np.ndarray) -> None:
+        """``sent`` to the selected robot; to every other running one a centred handle
+        with its own buttons held (lock held, or the realtime loop's thread)."""
+        self._robot_sent[self.selected] = sent
+        self.outputs.sample(sent, self.selected)
+        if self.robots == 1:
+            return
+        buttons = int(sent["buttons"])
+        for robot, idle in enumerate(self._idle):
+            if robot == self.selected:
+                idle["buttons"] = buttons  # held when it is not driven
+                continue
+            if robot in self._finished:
+                continue
+            held = idle["buttons"]
+            idle[...] = sent
+            for field in ("device_p_m", "device_v_m_s", "device_f_n", "wave_u"):
+                idle[field] = 0.0
+            idle["buttons"] = held
+            self._robot_sent[robot] = idle
+            self.outputs.sample(idle, robot)
 
     def _over_the_link(self) -> np.ndarray:
         """What the robot's site takes at this tick (lock held, after :meth:`_step`): the
@@ -418,10 +546,11 @@ class HapticLoop:
         with self.cond:
             tick = max(self._state_seq, 0)
             hand = self.hand_inputs.latest_at(tick) if self._state_seq >= 0 else None
-            sample = self._step(tick, self._state_sim_ns, hand, self.clock.now_ns(), deadline_ns)
+            rec = self._select(hand, tick)
+            sample = self._step(tick, self._state_sim_ns, rec, self.clock.now_ns(), deadline_ns)
         # Outside the lock: a feedback that arrives meanwhile is rendered at once. Only
         # this thread steps in realtime, so the record stays as filled.
-        self.outputs.sample(self.record)
+        self._send(self.record)
         self._account_sample(sample)
 
     # -- shared ------------------------------------------------------------------------
@@ -544,6 +673,11 @@ class HapticLoop:
             "rate_hz": self._rate_hz(),
             # the emulated link's delay each way (site.emulated_round_trip_ms)
             "link_delay_ticks": {"forward": self.forward_ticks, "backward": self.backward_ticks},
+            # several robots: when the handle changed robot, and how long a switch waited
+            # for the handle to come back into its deadband
+            "robot_switches": list(self.switches),
+            "switch_deferred_steps": self.switch_deferred_steps,
+            "unselected_feedback": self.unselected_feedback,
             "passivity": self.passivity.summary(self.config.teleop.stabiliser),
             "max_stable_stiffness_n_per_m": max_stable_stiffness_n_per_m(
                 self.config.haptic, self.period_s

@@ -441,6 +441,11 @@ class HmdLoop:
         self.runs = 0
         self.resent_states = 0  # clock ticks seen before (re-sends)
 
+    @property
+    def last_tick(self) -> int:
+        """The newest plant tick handled (-1: none in this run)."""
+        return self._last_tick
+
     def on_clock(self, tick: int) -> list[HeadSample]:
         """Plant tick ``tick`` reached: the samples of every HMD sample tick up to it."""
         if tick == 0 and self._last_tick != 0:

@@ -1123,6 +1123,18 @@ class OperatorLoop:
         self.runs += 1
         logger.info("new run: operator reset")
 
+    @property
+    def done_reported(self) -> bool:
+        """Whether this run's TASK_DONE has gone out."""
+        return self._done_reported
+
+    def take_over(self, tick: int) -> None:
+        """Take the hand over after tick ``tick`` (another robot's last decided pose, in
+        a run of several robots driven in turn): the next arrival decides from the
+        sample tick after ``tick`` on, this task starting at phase 0 then. What this
+        operator decides on was observed meanwhile (its buffer is filled all along)."""
+        self._last_tick = tick
+
     def left_behind(self, m: int) -> bool:
         """Whether the TOOL_POSE of tick ``m`` shows the run going on without this
         operator: realtime, always decide on the newest pose; lockstep, only once a pose

@@ -75,10 +75,46 @@ def _num(value: Any, fmt: str, unit: str = "") -> str:
 
 def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[str]:
     """About a dozen lines for a person: outcome, task time, errors, forces, timing,
-    privileges refused, where the recording, logs and full summary are."""
+    privileges refused, where the recording, logs and full summary are. A run of several
+    robots: the outcome, then each robot's lines."""
+    robots = summary.get("robots")
+    if robots:
+        outcome = "success: every robot's task done" if summary.get("success") else "FAILED"
+        lines = [
+            f"{summary.get('scenario')} ({summary.get('mode')}), {len(robots)} robots: {outcome}"
+        ]
+        shared = {k: v for k, v in summary.items() if k != "robots"}
+        for robot_id, section in robots.items():
+            lines.append(f"robot {robot_id}:")
+            lines += ["  " + line for line in _task_lines({**shared, **section})]
+    else:
+        lines = _task_lines(summary)
+    lockstep = summary.get("mode") == "lockstep"
+    verdict = summary.get("realtime_verdict", "clean")
+    if "realtime_verdict" in summary:  # a services run judged itself
+        # A lockstep run keeps no real time: its verdict is only about missing data.
+        lines.append(f"  {'data' if lockstep else 'real time':18s} {verdict}")
+    lines += [f"    - {problem}" for problem in summary.get("realtime_problems", [])]
+    for fault in summary.get("faults") or []:
+        lines.append(f"  fault              {fault_line(fault)}")
+    refused = summary.get("refused_privileges") or []
+    if refused:
+        lines.append("  privileges refused (README, Privileges):")
+        lines += [f"    - {line}" for line in refused]
+    viewer = (summary.get("services") or {}).get("recorder", {}).get("viewer", "")
+    if viewer.startswith("not spawned"):  # --spawn asked for one
+        lines.append(f"  live viewer        {viewer}: open the recording (teleop view)")
+    if summary.get("run_dir"):
+        lines.append(f"  logs               {summary['run_dir']}/logs")
+    if summary_path:
+        lines.append(f"  full summary       {summary_path}")
+    return lines
+
+
+def _task_lines(summary: Mapping[str, Any]) -> list[str]:
+    """One robot's lines: outcome, task, timing, stops, its recording."""
     lines = []
     scenario, mode = summary.get("scenario"), summary.get("mode")
-    verdict = summary.get("realtime_verdict", "clean")
     if scenario in TELEOPERATED:
         outcome = "success: the cube is in the bin" if summary.get("success") else "FAILED"
         if not summary.get("success") and summary.get("operator_failure"):
@@ -158,25 +194,8 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
             f"  plant restarted    resumed at {resume['sim_time_s']:.3f} s sim time, "
             f"{resume['steps_lost']} steps lost, {_num(resume['wall_gap_s'], '.2f', ' s')} gap"
         )
-    if "realtime_verdict" in summary:  # a services run judged itself
-        # A lockstep run keeps no real time: its verdict is only about missing data.
-        lines.append(f"  {'data' if lockstep else 'real time':18s} {verdict}")
-    lines += [f"    - {problem}" for problem in summary.get("realtime_problems", [])]
-    for fault in summary.get("faults") or []:
-        lines.append(f"  fault              {fault_line(fault)}")
-    refused = summary.get("refused_privileges") or []
-    if refused:
-        lines.append("  privileges refused (README, Privileges):")
-        lines += [f"    - {line}" for line in refused]
     if summary.get("rrd"):
         lines.append(f"  recording          {summary['rrd']}")
-    viewer = (summary.get("services") or {}).get("recorder", {}).get("viewer", "")
-    if viewer.startswith("not spawned"):  # --spawn asked for one
-        lines.append(f"  live viewer        {viewer}: open the recording (teleop view)")
-    if summary.get("run_dir"):
-        lines.append(f"  logs               {summary['run_dir']}/logs")
-    if summary_path:
-        lines.append(f"  full summary       {summary_path}")
     return lines
 
 

@@ -71,6 +71,7 @@ from teleop.core.config import (
     VIEWING_OPERATORS,
     BusConfig,
     Config,
+    ConfigError,
     load_config,
 )
 from teleop.core.criteria import judge_task
@@ -254,29 +255,36 @@ def service_programs(
     services/<name>.py (a person's operator)."""
     programs = []
     for name in services:
+        role, robot = graph.role_of(name), graph.robot_of(name)
         own = list(mesh[name])
+        if robot is not None:  # one robot's instance of a per-robot service
+            own.append(f"robot.robot_id={json.dumps(robot)}")
         if credentials is not None:
             own.append(f'bus.credentials_file="{credentials[name]}"')
-        module = ("services.router",) if name in graph.ROUTERS else ()
+        module = (f"services.{role}",)
+        if name in graph.ROUTERS:
+            module = ("services.router",)
         if modules and name in modules:
             module = (modules[name],)
         command = service_command(name, run_dir, config_file, [*overrides, *own], module)
         if name == listener:
             command.append("--listen")
-        if await_services.get(name):
-            command += ["--await", ",".join(await_services[name])]
-        peers = [other for other in services if other != name]
+        if await_services.get(role):
+            command += ["--await", ",".join(await_services[role])]
+        # Tokens are per robot and by service: an instance's peers are the other services.
+        peers = list(dict.fromkeys(graph.role_of(other) for other in services))
+        peers = [other for other in peers if other != role]
         if peers:
             command += ["--peers", ",".join(peers)]
         if continuous:
             command.append("--continuous")
-        if restarts and restarts.get(name):
-            command = restart_priority.command(run_dir, name, command, **restarts[name])
+        if restarts and restarts.get(role):
+            command = restart_priority.command(run_dir, name, command, **restarts[role])
         programs.append(
             Program(
                 name=name,
                 command=command,
-                priority=PRIORITY[name],
+                priority=PRIORITY[role],
                 environment=dict(SERVICE_ENVIRONMENT),
             )
         )
@@ -317,7 +325,7 @@ def run_credentials(
     return write_run_credentials(
         run_dir / AUTH_DIR,
         participants,
-        config.robot.robot_id,
+        config.robot_ids(),
         tls=config.bus.mutual_tls,
         addresses=addresses,
     )
@@ -376,8 +384,10 @@ def _stderr(line: str) -> None:
 
 
 def _plant_awaits(stack: Sequence[str], *extra: str) -> list[str]:
-    """What the plant waits for (ready tokens) before its first step: everyone else."""
-    return [name for name in stack if name != "plant"] + list(extra)
+    """What the plant waits for (ready tokens, under its robot's keys) before its first
+    step: every other service (an instance of ``stack`` by its service)."""
+    roles = dict.fromkeys(graph.role_of(name) for name in stack)
+    return [name for name in roles if name != PLANT] + list(extra)
 
 
 def prepare_outside(
@@ -432,6 +442,7 @@ class Launch(enum.Enum):
 
 # The service a person's device stands in for (run.operator).
 OPERATOR_SERVICE = "operator"
+PLANT = "plant"
 
 
 @dataclass(frozen=True)
@@ -454,7 +465,11 @@ class StackServices:
     @classmethod
     def of(cls, config: Config, without: Sequence[str]) -> StackServices:
         """ConfigError names a service left out that the stack does not run."""
-        scenario = scenario_services(config)
+        scenario = graph.instances(scenario_services(config), config.robot_ids())
+        if config.run.robots > 1 and without:
+            raise ConfigError(
+                f"--without: not in a run of several robots (run.robots={config.run.robots})"
+            )
         outside = check_without(scenario, without)
         started = tuple(n for n in scenario if n not in outside)
         human = config.run.operator != SCRIPTED and OPERATOR_SERVICE in started
@@ -603,16 +618,23 @@ def run_on_services(
         )
     layout = StackServices.of(config, without)
     services, outside = layout.started, layout.outside
+    robot_ids = config.robot_ids()
+    if len(robot_ids) > 1 and (kills or freezes):
+        raise RunError(f"--kill and --freeze: not in a run of several robots ({len(robot_ids)})")
     fault_specs = parse_faults(kills, freezes, services, config.run.duration_s)
     run_dir = run_dir.absolute()
     run_dir.mkdir(parents=True, exist_ok=True)
     refuse_if_running(run_dir)
     clear_run_results(run_dir)
-    topics = Topics(config.robot.robot_id)
+    robots = [Topics(rid) for rid in robot_ids]
+    topics = robots[0]
+    plants = graph.instances([PLANT], robot_ids)
     drops = DropCounter()
-    finished = threading.Event()
-    task_done: list[float] = []  # the operator's TASK_DONE value (1: success), if any
-    tool = Latest()
+    finished = threading.Event()  # every robot's plant finished
+    finished_robots: set[str] = set()
+    # Per robot, the operator's TASK_DONE value (1: success), if any.
+    task_done: dict[str, list[float]] = {rid: [] for rid in robot_ids}
+    tool = Latest()  # the newest tool pose of any robot: the run's sim time
 
     phases: tuple[str, ...] = ()
     if config.run.teleoperated and config.run.operator != SCRIPTED:
@@ -622,15 +644,20 @@ def run_on_services(
         phases = tuple(phase.name for phase in scenario.phases)
     tracker = RunProgress(config.run.duration_s, phases)
 
-    def on_event(rec: np.ndarray, rx_ns: int) -> None:
-        if int(rec["event"]) == Event.STARTED and faults is not None:
-            faults.on_started(int(rec["t_source_ns"]))
-        if int(rec["event"]) in (Event.FINISHED, Event.ABORTED):
-            finished.set()
-        elif int(rec["event"]) == Event.PHASE:
-            tracker.on_phase(int(rec["value"]), int(rec["sim_time_ns"]) * 1e-9)
-        elif int(rec["event"]) == Event.TASK_DONE:
-            task_done.append(float(rec["value"]))
+    def events_of(robot_id: str) -> Callable[[np.ndarray, int], None]:
+        def on_event(rec: np.ndarray, rx_ns: int) -> None:
+            if int(rec["event"]) == Event.STARTED and faults is not None:
+                faults.on_started(int(rec["t_source_ns"]))
+            if int(rec["event"]) in (Event.FINISHED, Event.ABORTED):
+                finished_robots.add(robot_id)
+                if len(finished_robots) == len(robot_ids):
+                    finished.set()
+            elif int(rec["event"]) == Event.PHASE:
+                tracker.on_phase(int(rec["value"]), int(rec["sim_time_ns"]) * 1e-9)
+            elif int(rec["event"]) == Event.TASK_DONE:
+                task_done[robot_id].append(float(rec["value"]))
+
+        return on_event
 
     faults = _FaultRun(config, fault_specs) if fault_specs else None
     # The run's ports stay held here until it ends: a restarted service takes its own again.
@@ -652,23 +679,27 @@ def run_on_services(
         session = open_session(bus, listen=True)
         if faults is not None:
             entities += faults.subscribe(session, topics, drops)
-        entities.append(subscribe_events(session, topics, "plant_events", on_event, drops))
-        if config.run.teleoperated:  # the operator's TASK_DONE (success or not)
-            entities.append(subscribe_events(session, topics, "operator_events", on_event, drops))
-        entities.append(
-            subscribe_stream(
-                session,
-                topics,
-                "tool_pose",
-                tool,
-                drops,
-                consumer=LAUNCHER,
-                mode=config.run.mode,
-                scenario=config.run.scenario,
+        for robot in robots:
+            on_event = events_of(robot.robot_id)
+            entities.append(subscribe_events(session, robot, "plant_events", on_event, drops))
+            if config.run.teleoperated:  # the operator's TASK_DONE (success or not)
+                entities.append(
+                    subscribe_events(session, robot, "operator_events", on_event, drops)
+                )
+            entities.append(
+                subscribe_stream(
+                    session,
+                    robot,
+                    "tool_pose",
+                    tool,
+                    drops,
+                    consumer=LAUNCHER,
+                    mode=config.run.mode,
+                    scenario=config.run.scenario,
+                )
             )
-        )
-        entities.append(declare_alive(session, topics, LAUNCHER))
-        entities.append(declare_alive(session, topics, LAUNCHER, ready=True))
+            entities.append(declare_alive(session, robot, LAUNCHER))
+            entities.append(declare_alive(session, robot, LAUNCHER, ready=True))
         for text, _ in plan.joins:
             announce(text)
         factor = (
@@ -688,7 +719,7 @@ def run_on_services(
                 check = _foreground_check(running.enter_context(Foreground(program, run_dir)),
                                           check)  # fmt: skip
             try:
-                _wait_alive(session, topics, services, stack, check)
+                _wait_alive(session, robots, services, stack, check)
                 try:
                     wait_for_outside(
                         session, topics, outside, without_timeout_s, announce,
@@ -698,7 +729,9 @@ def run_on_services(
                     raise RunError(str(exc)) from None
                 if plan.web is not None:  # the page is up: its URL and token, to the person
                     announce(plan.web.announcement())
-                _wait_finished(finished, tool, tracker, deadline_s, stack, progress, run_dir, check)
+                _wait_finished(
+                    finished, tool, tracker, deadline_s, stack, progress, run_dir, plants, check
+                )
             except ServiceFailed as exc:
                 # Said now, not after the stop (which can take seconds more).
                 announce(f"teleop: the run failed:\n{exc.block()}\nstopping the services...")
@@ -724,8 +757,6 @@ def run_on_services(
     }
     # A pair of peers that never linked: what one sent the other is lost (Service.become_ready).
     unlinked = {n: s["unlinked_peers"] for n, s in summaries.items() if s.get("unlinked_peers")}
-    # An outside service wrote no summary: its figures are None, the stack's are there.
-    plant, controller = summaries.get("plant", {}), summaries.get("controller", {})
     # Restarted services: their earlier processes' drops count too.
     dropped = drops.total + sum(
         incarnation.get("dropped_messages", 0)
@@ -744,7 +775,76 @@ def run_on_services(
     }
     if config.run.teleoperated:
         summary["operator"] = config.run.operator
-        figures, problems = _grasp_figures(summaries, task_done)
+    sections = {
+        rid: _robot_section(config, robot_view(summaries, rid, robot_ids), task_done[rid])
+        for rid in robot_ids
+    }
+    plant_summaries = [summaries.get(name, {}) for name in plants]
+    if len(robot_ids) == 1:  # one robot: its section is the run's
+        summary.update(sections[robot_ids[0]])
+    else:
+        summary.update(_robots_verdict(config.run.scenario, sections))
+    idle_poll = idle_poll_report(plan.polled_cpus, run_dir)
+    machine = machine_section(summaries, plan.polled_cpus, idle_poll)
+    # The brakes an injected fault caused are the fault's, not a loss of real time.
+    fault_braked = faults.braked_states() if faults is not None else 0
+    health = realtime_health(
+        config.run.mode,
+        overrun_fraction=max(p.get("overrun_fraction", 0.0) for p in plant_summaries),
+        realtime_factor=min(p.get("realtime_factor") or 0.0 for p in plant_summaries),
+        watchdog_brakes=sum(p.get("stale_commands", 0) for p in plant_summaries)
+        - (faults.brakes() if faults else 0),
+        braked_steps=max(0, sum(p.get("stale_steps", 0) for p in plant_summaries) - fault_braked),
+        steps=sum(p.get("steps", 0) for p in plant_summaries),
+        dropped_messages=dropped,
+        unlinked_peers=unlinked,
+    )
+    summary.update(
+        {
+            **health.as_dict(),
+            "outside": list(outside),
+            "summaries_missing": [name for name in services if name not in summaries],
+            # Services whose earlier processes wrote a summary (restarted after it).
+            "restarted_services": restarted,
+            "dropped_messages": dropped,
+            "unlinked_peers": unlinked,
+            "stack_wall_s": wall_s,
+            **idle_poll,
+            "machine": machine,
+            "refused_privileges": refused_privileges(machine),
+            "faults": faults.report(summary.get("success")) if faults is not None else [],
+            "run_dir": str(run_dir),
+            "services": summaries,
+        }
+    )
+    return summary
+
+
+def robot_view(
+    summaries: Mapping[str, dict[str, Any]], robot_id: str, robot_ids: Sequence[str]
+) -> dict[str, dict[str, Any]]:
+    """The services' summaries as one robot's run saw them, by service: its own plant,
+    controller and eye view (``<service>-<robot_id>`` in a run of several robots), and
+    the station's services, whose per-robot figures (a section per robot under
+    ``robots``: the operator's task, the recorder's file) are this robot's."""
+    view: dict[str, dict[str, Any]] = {}
+    for name, summary in summaries.items():
+        role, robot = graph.role_of(name), graph.robot_of(name)
+        if robot is not None and robot != robot_id:
+            continue
+        own = summary.get("robots", {}).get(robot_id) if len(robot_ids) > 1 else None
+        view[role] = {**summary, **own} if isinstance(own, dict) else summary
+    return view
+
+
+def _robot_section(
+    config: Config, view: Mapping[str, dict[str, Any]], task_done: list[float]
+) -> dict[str, Any]:
+    """One robot's figures, verdict and plant figures, from its services' summaries
+    (:func:`robot_view`) and the operator's TASK_DONE values for it."""
+    plant, controller = view.get("plant", {}), view.get("controller", {})
+    if config.run.teleoperated:
+        figures, problems = _grasp_figures(view, task_done)
     else:
         figures = {
             "duration_s": config.run.duration_s,
@@ -764,58 +864,49 @@ def run_on_services(
         problems = [*problems, f"plant: {plant.get('failure') or 'aborted'}"]
     # The task's criteria (teleop.core.criteria) and the problems: the one verdict, which
     # the summary holds enough to give again (criteria.judge_summary).
-    summary.update({**figures, **judge_task(config.run.scenario, figures, problems).summary()})
-    idle_poll = idle_poll_report(plan.polled_cpus, run_dir)
-    machine = machine_section(summaries, plan.polled_cpus, idle_poll)
-    # The brakes an injected fault caused are the fault's, not a loss of real time.
-    fault_braked = faults.braked_states() if faults is not None else 0
-    health = realtime_health(
-        config.run.mode,
-        overrun_fraction=plant.get("overrun_fraction", 0.0),
-        realtime_factor=plant.get("realtime_factor") or 0.0,
-        watchdog_brakes=plant.get("stale_commands", 0) - (faults.brakes() if faults else 0),
-        braked_steps=max(0, plant.get("stale_steps", 0) - fault_braked),
-        steps=plant.get("steps", 0),
-        dropped_messages=dropped,
-        unlinked_peers=unlinked,
-    )
-    summary.update(
-        {
-            **health.as_dict(),
-            "outside": list(outside),
-            "summaries_missing": [name for name in services if name not in summaries],
-            "steps": plant.get("steps"),
-            "wall_s": plant.get("wall_s"),
-            "realtime_factor": plant.get("realtime_factor"),
-            "overrun_fraction": plant.get("overrun_fraction"),
-            "commands_received": plant.get("commands_received"),
-            "commands_applied": plant.get("commands_applied"),
-            "commands_clamped": plant.get("commands_clamped"),
-            "command_stream": plant.get("command_stream"),
-            "stale_commands": plant.get("stale_commands"),
-            # The plant's own stops on contact force and tool speed (teleop.sim.protective).
-            "protective_stop": plant.get("protective_stop"),
-            # The plant ended the run on a failure (its reason), and its restarts.
-            "failure": plant.get("failure"),
-            "plant_resumes": plant.get("resumes", []),
-            # Services whose earlier processes wrote a summary (restarted after it).
-            "restarted_services": restarted,
-            "dropped_messages": dropped,
-            "unlinked_peers": unlinked,
-            "skipped_states": controller.get("skipped_states"),
-            "final_state_sha256": plant.get("final_state_sha256"),
-            "stack_wall_s": wall_s,
-            **idle_poll,
-            "machine": machine,
-            "refused_privileges": refused_privileges(machine),
-            "eye_view": _eye_view_summary(summaries),
-            "faults": faults.report(summary.get("success")) if faults is not None else [],
-            "rrd": summaries.get("recorder", {}).get("rrd_path"),
-            "run_dir": str(run_dir),
-            "services": summaries,
-        }
-    )
-    return summary
+    verdict = judge_task(config.run.scenario, figures, problems).summary()
+    sim_s = (plant.get("steps") or 0) * config.plant.timestep_s
+    return {
+        **figures,
+        **verdict,
+        "steps": plant.get("steps"),
+        "wall_s": plant.get("wall_s"),
+        "realtime_factor": plant.get("realtime_factor"),
+        "overrun_fraction": plant.get("overrun_fraction"),
+        "commands_received": plant.get("commands_received"),
+        "commands_applied": plant.get("commands_applied"),
+        "commands_clamped": plant.get("commands_clamped"),
+        "command_stream": plant.get("command_stream"),
+        "stale_commands": plant.get("stale_commands"),
+        # The plant's own stops on contact force and tool speed (teleop.sim.protective).
+        "protective_stop": plant.get("protective_stop"),
+        # The plant ended the run on a failure (its reason), and its restarts.
+        "failure": plant.get("failure"),
+        "plant_resumes": plant.get("resumes", []),
+        "skipped_states": controller.get("skipped_states"),
+        "final_state_sha256": plant.get("final_state_sha256"),
+        # CPU seconds per simulated second of this robot's own processes (start-up in).
+        "cpu_s_per_sim_s": {
+            role: round(view[role]["cpu_s"] / sim_s, 4)
+            for role in graph.PER_ROBOT
+            if role in view and sim_s > 0 and view[role].get("cpu_s") is not None
+        },
+        "eye_view": _eye_view_summary(view),
+        "rrd": view.get("recorder", {}).get("rrd_path"),
+    }
+
+
+def _robots_verdict(scenario: str, sections: Mapping[str, dict[str, Any]]) -> dict[str, Any]:
+    """A run of several robots: a section per robot (each judged by itself, its
+    ``scenario`` with it so criteria.judge_summary judges it again the same way) and the
+    run's verdict: every robot's task succeeded; its problems, each with its robot."""
+    return {
+        "robots": {rid: {"scenario": scenario, **s} for rid, s in sections.items()},
+        "success": all(s.get("success") for s in sections.values()),
+        "problems": [f"{rid}: {p}" for rid, s in sections.items() for p in s.get("problems", [])],
+        "failure": next((s["failure"] for s in sections.values() if s.get("failure")), None),
+        "rrds": [s["rrd"] for s in sections.values() if s.get("rrd")],
+    }
 
 
 # The controller's figures of safe motion a path-following summary carries.
@@ -902,15 +993,16 @@ def _wait_finished(
     stack: Stack,
     progress: Callable[[str], None] | None,
     run_dir: Path,
+    plants: Sequence[str],
     check: Callable[[], None],
 ) -> None:
-    """Wait until the plant has finished: its FINISHED event, or its summary on file
-    saying so (written as it finishes: an event lost on a starved machine does not hang
-    the run). Reports progress meanwhile: sim time from the tool pose stream, the task's
-    phase from the operator's events (``tracker``)."""
+    """Wait until every plant (``plants``: one per robot) has finished: its FINISHED
+    event, or its summary on file saying so (written as it finishes: an event lost on a
+    starved machine does not hang the run). Reports progress meanwhile: sim time from
+    the tool pose stream, the task's phase from the operator's events (``tracker``)."""
     start = time.monotonic()
     sim_s = 0.0
-    while not finished.wait(timeout=0.5) and not _plant_finished(run_dir):
+    while not finished.wait(timeout=0.5) and not all(_plant_finished(run_dir, p) for p in plants):
         if time.monotonic() - start > deadline_s:
             raise RunError(f"run did not finish within {deadline_s:g} s: {stack.status()}")
         check()
@@ -925,10 +1017,10 @@ def _wait_finished(
         progress(tracker.line(int(latest[0]["sim_time_ns"]) * 1e-9) + "   finished")
 
 
-def _plant_finished(run_dir: Path) -> bool:
-    """True when the plant's summary is on file and says the run finished (or ended on
+def _plant_finished(run_dir: Path, plant: str = PLANT) -> bool:
+    """True when ``plant``'s summary is on file and says the run finished (or ended on
     a failure: aborted)."""
-    path = summary_path(run_dir, "plant")
+    path = summary_path(run_dir, plant)
     try:
         summary = json.loads(path.read_text())
         return bool(summary.get("finished") or summary.get("aborted"))
@@ -1106,7 +1198,7 @@ def _read_log(path: Path) -> str:
 
 def _wait_alive(
     session: zenoh.Session,
-    topics: Topics,
+    robots: Sequence[Topics],
     services: Sequence[str],
     stack: Stack,
     check: Callable[[], None],
@@ -1116,17 +1208,24 @@ def _wait_alive(
     process lived a second), checking the programs meanwhile (one that dies or
     crash-loops fails the run at once, not after the time-out). A service still not
     ready then has hung in its start-up: it is killed (it may not answer the stop
-    signal) and :class:`ServiceFailed` names it with its log."""
+    signal) and :class:`ServiceFailed` names it with its log. Under several robots each
+    robot's keys hold a ready token of each service (``services``' processes: a per-robot
+    service's own, a station service's for every robot)."""
     deadline = time.monotonic() + ALIVE_TIMEOUT_S
+    waiting = list(robots)
+    roles = list(dict.fromkeys(graph.role_of(name) for name in services))
     while True:
         check()
         try:
-            wait_alive(session, topics, services, ALIVE_POLL_S, ready=True)
+            while waiting:
+                wait_alive(session, waiting[0], roles, ALIVE_POLL_S, ready=True)
+                waiting.pop(0)
             return
         except ServicesMissing as exc:
             if time.monotonic() < deadline:
                 continue
-            name = exc.missing[0]
+            robot_id = waiting[0].robot_id
+            name = graph.instance_name(exc.missing[0], robot_id, len(robots))
             with contextlib.suppress(StackError, OSError):
                 stack.signal_program(name, signal.SIGKILL)
             path = stack.log_path(name)
@@ -1177,6 +1276,11 @@ def start_detached(
     the operator site's bundle (announced), the operator site is given its
     ``credentials`` from it. The plant waits for the other site's services as for its own.
     """
+    if config.run.robots > 1:
+        raise RunError(
+            f"run.robots={config.run.robots}: teleop up runs one robot; several robots run "
+            "with teleop run grasp --robots N"
+        )
     run_dir = run_dir.absolute()
     refuse_if_running(run_dir)
     clear_run_results(run_dir)  # a previous stack's checkpoint must not be resumed
@@ -1258,7 +1362,7 @@ def _await_ready_detached(
     try:
         session = open_session(watcher, listen=False)
         check = _failure_check(stack)
-        _wait_alive(session, topics, services, stack, check)
+        _wait_alive(session, [topics], services, stack, check)
         wait_for_outside(session, topics, outside, timeout_s, announce, still_running=check)
     except (OutsideMissing, RunError) as exc:
         stack.stop()

@@ -405,7 +405,7 @@ class TwoSites:
                                       "--run-dir", str(self.operator_dir)])  # fmt: skip
         self.operator_up = up.stdout + up.stderr
         others = write_run_credentials(
-            self.tmp_path / "other", ["operator_router"], "arm0", tls=True
+            self.tmp_path / "other", ["operator_router"], ("arm0",), tls=True
         )
         self.strangers = {
             "another run's certificate": _stranger_at(

@@ -26,7 +26,7 @@ RECORDS = 300  # per sender: enough for any link to carry some if it is up
 
 
 def test_only_the_graphs_producers_reach_a_stream_and_strangers_cannot_link(tmp_path):
-    files = write_run_credentials(tmp_path / "auth", ["plant", "controller", "haptic"], ROBOT)
+    files = write_run_credentials(tmp_path / "auth", ["plant", "controller", "haptic"], (ROBOT,))
     assert stat.S_IMODE((tmp_path / "auth").stat().st_mode) == 0o700
     assert stat.S_IMODE((tmp_path / "auth" / PASSWORDS_FILE).stat().st_mode) == 0o600
     assert all(stat.S_IMODE(path.stat().st_mode) == 0o600 for path in files.values())
@@ -99,7 +99,7 @@ def test_without_tls_the_controllers_password_with_another_id_gets_no_right(tmp_
     """A thief with the controller's user and password (accepted: the plant holds the
     run's dictionary) but a Zenoh id of its own matches no participant: none of its
     commands reaches the plant, while the controller's, sent in the same loop, all do."""
-    files = write_run_credentials(tmp_path / "auth", ["plant", "controller"], ROBOT)
+    files = write_run_credentials(tmp_path / "auth", ["plant", "controller"], (ROBOT,))
     thief_file = tmp_path / "thief.json"
     stolen = json.loads(files["controller"].read_text())
     thief_file.write_text(json.dumps({**stolen, "zid": new_zid()}))

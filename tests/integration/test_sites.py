@@ -107,7 +107,7 @@ def _send(publisher: bus.Publisher, first_seq: int) -> None:
 
 def test_streams_cross_both_routers_and_a_peer_still_sends_only_its_own(tmp_path):
     endpoint = free_endpoint("tls")
-    files = write_run_credentials(tmp_path / "auth", PARTICIPANTS, ROBOT, tls=True)
+    files = write_run_credentials(tmp_path / "auth", PARTICIPANTS, (ROBOT,), tls=True)
     sites = Sites(files, endpoint)
     try:
         sites.link()
@@ -132,8 +132,8 @@ def test_a_session_of_another_run_gets_no_link_at_the_routers(tmp_path):
     participant's name) dials the robot router's site endpoint while the sites carry
     records: no link, nothing received."""
     endpoint = free_endpoint("tls")
-    files = write_run_credentials(tmp_path / "auth", PARTICIPANTS, ROBOT, tls=True)
-    other = write_run_credentials(tmp_path / "other", [OPERATOR_ROUTER], ROBOT, tls=True)
+    files = write_run_credentials(tmp_path / "auth", PARTICIPANTS, (ROBOT,), tls=True)
+    other = write_run_credentials(tmp_path / "other", [OPERATOR_ROUTER], (ROBOT,), tls=True)
     sites = Sites(files, endpoint)
     stranger_bus = dataclasses.replace(
         BusConfig(endpoint=endpoint), gossip=False, credentials_file=str(other[OPERATOR_ROUTER])

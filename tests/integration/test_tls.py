@@ -107,9 +107,9 @@ def test_only_certificates_of_the_runs_authority_link(tmp_path, haptic_ca):
     """The haptic service holds this run's Zenoh id; only its certificate differs: signed
     by this run's authority, it links and its samples reach the controller; signed by
     another run's, it links to nobody."""
-    files = write_run_credentials(tmp_path / "auth", PARTICIPANTS, ROBOT, tls=True)
+    files = write_run_credentials(tmp_path / "auth", PARTICIPANTS, (ROBOT,), tls=True)
     if haptic_ca == "another":
-        other = write_run_credentials(tmp_path / "other", ["haptic"], ROBOT, tls=True)
+        other = write_run_credentials(tmp_path / "other", ["haptic"], (ROBOT,), tls=True)
         foreign_tls = json.loads(other["haptic"].read_text())["tls"]
         edit_credentials(files["haptic"], lambda content: content.update(tls=foreign_tls))
     run = Run(files)
@@ -136,7 +136,7 @@ def test_a_second_session_with_a_borrowed_certificate_gets_no_right(tmp_path, bo
     Zenoh id of its own, links to the plant (TLS accepts the certificate) but matches no
     participant of the access list: not one of its commands reaches the plant, while the
     real controller's, sent in the same loop, all do."""
-    files = write_run_credentials(tmp_path / "auth", [*PARTICIPANTS, "observer"], ROBOT, tls=True)
+    files = write_run_credentials(tmp_path / "auth", [*PARTICIPANTS, "observer"], (ROBOT,), tls=True)
     stolen = json.loads(files[borrowed].read_text())
     thief_file = tmp_path / "thief.json"
     thief_zid = new_zid()
@@ -173,7 +173,7 @@ def test_a_second_session_with_a_borrowed_certificate_gets_no_right(tmp_path, bo
 
 
 def test_a_process_holding_certificates_refuses_a_tcp_endpoint(tmp_path):
-    files = write_run_credentials(tmp_path / "auth", ["plant"], ROBOT, tls=True)
+    files = write_run_credentials(tmp_path / "auth", ["plant"], (ROBOT,), tls=True)
     config = BusConfig(endpoint=free_endpoint("tcp"), credentials_file=str(files["plant"]))
     with pytest.raises(ConfigError, match="must be tls/HOST:PORT, not tcp/127.0.0.1"):
         bus.open_session(config, listen=True)

@@ -160,10 +160,10 @@ class DeviceSent:
     def __init__(self) -> None:
         self.samples: collections.deque[np.ndarray] = collections.deque()
 
-    def sample(self, rec: np.ndarray) -> None:
+    def sample(self, rec: np.ndarray, robot: int = 0) -> None:
         self.samples.append(rec.copy())
 
-    def resend(self, rec: np.ndarray) -> None:
+    def resend(self, rec: np.ndarray, robot: int = 0) -> None:
         self.samples.append(rec.copy())
 
 

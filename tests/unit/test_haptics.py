@@ -196,12 +196,12 @@ class Sent:
         self.stop = threading.Event()
         self.stop_after = stop_after
 
-    def sample(self, rec: np.ndarray) -> None:
+    def sample(self, rec: np.ndarray, robot: int = 0) -> None:
         self.samples.append(rec.copy())
         if self.stop_after is not None and len(self.samples) >= self.stop_after:
             self.stop.set()
 
-    def resend(self, rec: np.ndarray) -> None:
+    def resend(self, rec: np.ndarray, robot: int = 0) -> None:
         self.resent.append(rec.copy())
 
 

@@ -54,7 +54,7 @@ def test_tls_credentials_name_private_certificate_files_and_the_acl_knows_their_
     tmp_path,
 ):
     directory = tmp_path / "auth"
-    files = write_run_credentials(directory, PARTICIPANTS, "arm0", tls=True)
+    files = write_run_credentials(directory, PARTICIPANTS, ("arm0",), tls=True)
     ca = x509.load_pem_x509_certificate((directory / CA_FILE).read_bytes())
     for name in PARTICIPANTS:
         certificate_file = directory / (name + CERTIFICATE_SUFFIX)
@@ -92,7 +92,7 @@ def test_each_tls_file_leads_to_its_own_key_and_no_password(tmp_path):
     another: no password, no dictionary, no other participant's key."""
     directory = tmp_path / "auth"
     participants = [*PARTICIPANTS, OBSERVER]
-    files = write_run_credentials(directory, participants, "arm0", tls=True)
+    files = write_run_credentials(directory, participants, ("arm0",), tls=True)
     assert not (directory / PASSWORDS_FILE).exists()
     for name in participants:
         content = json.loads(files[name].read_text())
@@ -110,7 +110,7 @@ def test_each_tls_file_leads_to_its_own_key_and_no_password(tmp_path):
 
 def test_without_tls_the_observer_is_not_given_the_password_dictionary(tmp_path):
     directory = tmp_path / "auth"
-    files = write_run_credentials(directory, [*PARTICIPANTS, OBSERVER], "arm0")
+    files = write_run_credentials(directory, [*PARTICIPANTS, OBSERVER], ("arm0",))
     observer = json.loads(files[OBSERVER].read_text())
     assert "dictionary_file" not in observer
     assert "dictionary_file" not in zenoh_entries(files[OBSERVER])["transport/auth/usrpwd"]
@@ -125,7 +125,7 @@ def test_without_tls_the_observer_is_not_given_the_password_dictionary(tmp_path)
 
 
 def test_credentials_without_tls_set_no_tls_entries(tmp_path):
-    files = write_run_credentials(tmp_path / "auth", PARTICIPANTS, "arm0")
+    files = write_run_credentials(tmp_path / "auth", PARTICIPANTS, ("arm0",))
     assert not any(path.startswith(TLS_CONFIG) for path in zenoh_entries(files["plant"]))
     assert list((tmp_path / "auth").glob("*.pem")) == []
 
