@@ -4,10 +4,12 @@ Inputs: TOOL_POSE and OBJECT_POSES (plant, every ``1 / scene_rate_hz``, stamped 
 ``sim_time_ns``; tick = sim_time_ns / timestep), HEAD_POSE (hmd, keyed by the tick its
 predicted yaw applies from), RUN_EVENT STARTED and the liveliness tokens of the HMD and
 the haptic device. Outputs: HAND_INPUT (to the haptic device) and RUN_EVENT PHASE /
-TASK_DONE.
+TASK_DONE. In a run of several robots (``run.robots``) each of these comes from, and
+goes to, every robot's keys: a loop per robot, the hand driving one at a time
+(:class:`teleop.devices.operator.OperatorStation`).
 
 The Zenoh callbacks only store samples in the loop's observation buffer and queue the
-tool-pose ticks; one run thread hands them to the loop in arrival order, so decisions
+tool-pose ticks; one run thread hands them to the station in arrival order, so decisions
 follow sim time only (see OperatorLoop for which decisions an arrival triggers).
 """
 
@@ -35,14 +37,22 @@ from teleop.bus.service import STOP_POLL_S, Service, service_main
 from teleop.bus.session import Publisher, RecordCallback, subscribe_events
 from teleop.bus.topics import Topics
 from teleop.core.clock import NS_PER_S
-from teleop.devices.operator import HandCommand, ObservationBuffer, OperatorLoop, Scenario
+from teleop.devices.operator import (
+    Arrival,
+    HandCommand,
+    ObservationBuffer,
+    OperatorLoop,
+    OperatorStation,
+    PoseArrival,
+    RunStarted,
+    Scenario,
+)
 
 logger = logging.getLogger(__name__)
 
 HMD_SERVICE = "hmd"  # liveliness name of the HMD service
 DEVICE_SERVICE = "haptic"  # liveliness name of the operator's device
 
-_NEW_RUN = "new_run"  # queue item: the plant's STARTED event
 # How many pose-to-decision delays the summary's percentiles take (the newest ones).
 LATENESS_SAMPLES = 1 << 15
 
@@ -73,10 +83,9 @@ class _RobotOutputs:
 
 
 class OperatorService(Service):
-    """The scripted operator. In a run of several robots (``run.robots``) one task per
-    robot, in turn: the hand drives robot 0 (its inputs go out on robot 0's keys) until
-    that task is done, then the next robot's task starts where the last decision left
-    off (:meth:`OperatorLoop.take_over`); every robot's scene is observed all along."""
+    """The scripted operator: an :class:`OperatorLoop` per robot of the run (one, or one
+    task per robot in turn: :class:`OperatorStation`), each robot's streams into its
+    loop, its decisions out on that robot's keys."""
 
     name = "operator"
 
@@ -91,12 +100,9 @@ class OperatorService(Service):
             OperatorLoop(cfg, self.scenario, _RobotOutputs(self, topics), lockstep=lockstep)
             for topics in self.robot_topics
         ]
-        self.active = 0  # the robot the hand drives
-        # Tool poses (robot, tick, the plant's sample stamp) and new-run markers (robot),
-        # in arrival order, for the run thread.
-        self._arrivals: queue.SimpleQueue[tuple[int, int, int] | tuple[str, int]] = (
-            queue.SimpleQueue()
-        )
+        self.station = OperatorStation(self.loops)
+        # Tool poses and new runs, in arrival order, for the run thread.
+        self._arrivals: queue.SimpleQueue[Arrival] = queue.SimpleQueue()
         # From a pose's sample on the plant to this operator's decisions on it (ns): how
         # late the hand is on top of its reaction delay (realtime; a starved operator).
         self._lateness_ns = np.zeros(LATENESS_SAMPLES, dtype=np.int64)
@@ -131,7 +137,7 @@ class OperatorService(Service):
             tick = self._tick_of(rec)
             braked = bool(int(rec["flags"]) & Flag.BRAKING)
             buffer.add_tool(tick, rec["world_p_tool_m"], braked)
-            self._arrivals.put((robot, tick, int(rec["t_source_ns"])))
+            self._arrivals.put(PoseArrival(robot, tick, int(rec["t_source_ns"])))
 
         return on_tool
 
@@ -152,7 +158,7 @@ class OperatorService(Service):
     def _on_event(self, robot: int) -> RecordCallback:
         def on_event(rec: np.ndarray, rx_ns: int) -> None:
             if int(rec["event"]) == Event.STARTED:
-                self._arrivals.put((_NEW_RUN, robot))
+                self._arrivals.put(RunStarted(robot))
 
         return on_event
 
@@ -172,11 +178,8 @@ class OperatorService(Service):
 
     # -- the run thread --------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
-        """Hand the driven robot's arrivals to its loop in order until stopped. A late
-        operator (realtime: poses queued behind a newer one; lockstep: a run that went on
-        without it, OperatorLoop.left_behind) decides on the newest pose only and skips
-        the rest: it catches up by skipping, never by a burst of late hand inputs.
-        Lockstep otherwise decides every one (the haptic device waits for each)."""
+        """Hand arrivals to the station in batches, in order, until stopped (what a batch
+        decides: OperatorStation.take)."""
         while not stop.is_set():
             try:
                 items = [self._arrivals.get(timeout=STOP_POLL_S)]
@@ -187,41 +190,11 @@ class OperatorService(Service):
                     items.append(self._arrivals.get_nowait())
                 except queue.Empty:
                     break
-            self._take(items)
+            self.station.take(items, self._decided)
 
-    def _take(self, items: list[tuple[int, int, int] | tuple[str, int]]) -> None:
-        """One batch of arrivals, in order: the driven robot's poses decided, a new run
-        started over on robot 0, the hand passed on once the driven robot's task is done."""
-        loop = self.loops[self.active]
-        poses = [item for item in items if item[0] == self.active]
-        newest_tick = int(poses[-1][1]) if poses else -1
-        behind = bool(poses) and loop.left_behind(newest_tick)
-        catch_up = behind and (len(poses) > 1 or loop.lockstep)
-        for i, item in enumerate(items):
-            if item[0] == _NEW_RUN:
-                robot = int(item[1])
-                self.loops[robot].on_started()
-                if robot == 0 and self.active:
-                    self.active = 0  # a new run: robot 0's task first again
-                    self._take(items[i + 1 :])
-                    return
-                continue
-            robot, tick, sampled_ns = (int(x) for x in item)
-            if robot != self.active:
-                continue  # observed (buffered), not driven
-            if behind and any(later[0] == robot for later in items[i + 1 :]):
-                continue  # a newer pose is queued behind it
-            self._lateness_ns[self._poses_decided % LATENESS_SAMPLES] = (
-                time.monotonic_ns() - sampled_ns
-            )
-            self._poses_decided += 1
-            loop.on_arrival(tick, catch_up=catch_up)
-            if loop.done_reported and self.active + 1 < len(self.loops):
-                self.active += 1
-                self.loops[self.active].take_over(tick)
-                logger.info("tick %d: the hand moves on to robot %d", tick, self.active)
-                self._take(items[i + 1 :])  # what came after, for the robot driven now
-                return
+    def _decided(self, sampled_ns: int) -> None:
+        self._lateness_ns[self._poses_decided % LATENESS_SAMPLES] = time.monotonic_ns() - sampled_ns
+        self._poses_decided += 1
 
     def summary(self) -> dict[str, Any]:
         lateness_ms = self._lateness_ns[: min(self._poses_decided, LATENESS_SAMPLES)] / 1e6
@@ -229,15 +202,7 @@ class OperatorService(Service):
         if len(lateness_ms):
             p50, p99 = np.percentile(lateness_ms, [50, 99])
             late = {"p50": round(p50, 3), "p99": round(p99, 3), "max": round(lateness_ms.max(), 3)}
-        if len(self.loops) == 1:
-            tasks = self.loops[0].summary()
-        else:  # one section per robot
-            tasks = {
-                "robots": {
-                    t.robot_id: loop.summary()
-                    for t, loop in zip(self.robot_topics, self.loops, strict=True)
-                }
-            }
+        tasks = self.station.summary([topics.robot_id for topics in self.robot_topics])
         return {**super().summary(), **tasks, "pose_to_decision_ms": late}
 
 

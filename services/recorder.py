@@ -24,7 +24,7 @@ from teleop.bus.service import Service, ServiceOptions, lower_priority_to, servi
 from teleop.bus.session import subscribe, subscribe_events, subscribe_frames
 from teleop.bus.topics import Topics
 from teleop.core.config import Config, ConfigError
-from teleop.core.rundir import RECORDER_SEGMENTS_FILE, RECORDING_FILE
+from teleop.core.rundir import RECORDER_SEGMENTS_FILE, RECORDING_FILE, robot_path
 from teleop.viz.recording import (
     BATCHED_STREAMS,
     BUFFER_CAPACITY_RECORDS,
@@ -178,12 +178,6 @@ class RecorderService(Service):
             t.robot_id: w.stats() for t, w in zip(self.robot_topics, self.writers, strict=True)
         }
         return {**super().summary(), "robots": robots}
-
-
-def robot_path(path: Path, robot_id: str) -> Path:
-    """``path`` with ``-<robot_id>`` before its suffix: a robot's own file in a run of
-    several robots (its recording, its segment ledger)."""
-    return path.with_name(f"{path.stem}-{robot_id}{path.suffix}")
 
 
 if __name__ == "__main__":

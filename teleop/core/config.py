@@ -1194,10 +1194,6 @@ class Config:
         many = f"run.robots={self.run.robots}"
         _require(self.run.teleoperated, f"{many}: a teleoperated scenario (grasp)")
         _require(
-            self.run.mode == "lockstep",
-            f"{many}: lockstep runs only (realtime: one robot per operator station)",
-        )
-        _require(
             self.run.operator == SCRIPTED,
             f"{many}: the scripted operator only (a person's device has no robot switch yet)",
         )

@@ -118,6 +118,12 @@ def segment_paths(rrd_path: Path) -> list[Path]:
     return paths
 
 
+def robot_path(path: Path, robot_id: str) -> Path:
+    """``path`` with ``-<robot_id>`` before its suffix: a robot's own file in a run of
+    several robots (its recording, its recorder's segment ledger)."""
+    return path.with_name(f"{path.stem}-{robot_id}{path.suffix}")
+
+
 def checkpoint_path(run_dir: Path, plant: str) -> Path:
     """Where the plant process ``plant`` (``plant``, or one robot's ``plant-<robot>``)
     keeps its checkpoint."""

@@ -224,7 +224,14 @@ class HapticLoop:
         self.trace_log = StampLog(N_STAGES)
         self.sample_log = StampLog(2)  # (HAPTIC_STATE seq, HAPTIC_SAMPLE ns)
         self._pending_trace: np.ndarray | None = None  # render at the next step
-        self.feedback_in = Inbound(Stage.FEEDBACK_TX, name="force_feedback")  # realtime
+        # Realtime: each robot's feedback stream checked on its own (its seq is its own),
+        # their shed loops in one log (the latency report counts loops, not streams).
+        self.feedback_in = Inbound(Stage.FEEDBACK_TX, name="force_feedback")
+        self.feedback_ins = [self.feedback_in] + [
+            Inbound(Stage.FEEDBACK_TX, name=f"force_feedback of robot {robot}",
+                    shed_log=self.feedback_in.shed_log)
+            for robot in range(1, len(config.robot_ids()))
+        ]  # fmt: skip
         self.feedback_superseded = 0  # replaced before the next step rendered it
         self._warned_oversized = False
         self._warned_no_operator = False
@@ -290,11 +297,10 @@ class HapticLoop:
             if robot in self._finished:
                 return
             self._finished.add(robot)
-            if len(self._finished) == self.robots:
+            if len(self._finished) == self.robots or not self.lockstep:
                 return
             self._state_seq = self._robots_state()
-            if self.lockstep:
-                self._try_steps()
+            self._try_steps()
 
     def on_feedback(self, rec: np.ndarray, rx_ns: int, robot: int = 0) -> None:
         """FORCE_FEEDBACK of ``robot`` received at ``rx_ns`` (the clock's time)."""
@@ -316,10 +322,7 @@ class HapticLoop:
             force = np.array(rec["wave_v"], dtype=np.float64)  # what the handle renders from
         with self.cond:
             if not self.lockstep:
-                if robot != self.selected:
-                    self.unselected_feedback += 1  # the handle feels the robot it drives
-                    return
-                self._feedback_realtime(rec, force, rx_ns)
+                self._feedback_realtime(rec, force, rx_ns, robot)
                 return
             tick = int(rec["tick"])
             if tick < self._last_tick:
@@ -338,11 +341,19 @@ class HapticLoop:
             if self.lockstep:
                 self._try_steps()
 
-    def _feedback_realtime(self, rec: np.ndarray, force: np.ndarray, rx_ns: int) -> None:
-        """Hold the force; render it now or at the next step; keep its trace (lock held)."""
-        if not self.feedback_in.accept(rec, self.clock.now_ns()):
+    def _feedback_realtime(
+        self, rec: np.ndarray, force: np.ndarray, rx_ns: int, robot: int = 0
+    ) -> None:
+        """Hold the force; render it now or at the next step; keep its trace (lock held).
+        Another robot's than the one driven: its tick noted (the clock when the handle
+        switches to it), nothing rendered."""
+        if not self.feedback_ins[robot].accept(rec, self.clock.now_ns()):
             return  # older than what the handle already feels, or shed as too old
         tick = int(rec["tick"])
+        self._robot_seq[robot] = tick
+        if robot != self.selected:
+            self.unselected_feedback += 1  # the handle feels the robot it drives
+            return
         if tick < self._state_seq:  # the plant started over: a new run
             self._new_run()
         elif self._state_seq < 0:  # this loop's first feedback: the run is under way
@@ -454,28 +465,37 @@ class HapticLoop:
         offset_m = math.hypot(*self.record["device_p_m"].tolist())
         if offset_m > self.deadband_m:
             self.switch_deferred_steps += 1
-            return rec
+            # The hand's motion brings the handle back; its buttons are the other
+            # robot's, so the robot still driven keeps its own (a held cube stays held).
+            kept = rec.copy()
+            kept["buttons"] = self._idle[self.selected]["buttons"]
+            return kept
         logger.info("tick %d: the handle drives robot %d (was %d)", tick, robot, self.selected)
         self.switches.append({"tick": tick, "robot": robot})
         self.selected = robot
         self.hold.clear()  # the feedback held is the other robot's
+        if not self.lockstep and self._robot_seq[robot] >= 0:
+            # Its ticks are the clock now (behind the other robot's: no new run).
+            self._state_seq = self._robot_seq[robot]
         return rec
 
     def _send(self, sent: np.ndarray) -> None:
         """``sent`` to the selected robot; to every other running one a centred handle
         with its own buttons held (lock held, or the realtime loop's thread)."""
-        self._robot_sent[self.selected] = sent
-        self.outputs.sample(sent, self.selected)
         if self.robots == 1:
+            self._robot_sent[0] = sent
+            self.outputs.sample(sent, 0)
             return
-        buttons = int(sent["buttons"])
         for robot, idle in enumerate(self._idle):
             if robot == self.selected:
-                idle["buttons"] = buttons  # held when it is not driven
-                continue
+                idle["buttons"] = sent["buttons"]  # held when it is not driven
             if robot in self._finished:
                 continue
-            held = idle["buttons"]
+            if robot == self.selected:
+                self._robot_sent[robot] = sent
+                self.outputs.sample(sent, robot)
+                continue
+            held = int(idle["buttons"])
             idle[...] = sent
             for field in ("device_p_m", "device_v_m_s", "device_f_n", "wave_u"):
                 idle[field] = 0.0
@@ -663,11 +683,13 @@ class HapticLoop:
             "hand_held_steps": self.hand_held_steps,
             "oversized_feedback": self.oversized_feedback,
             "republished_states": self.republished_states,
-            "feedback_lost": self.feedback_in.seq.lost,
-            "feedback_reordered": self.feedback_in.seq.reordered,
+            "feedback_lost": sum(inbound.seq.lost for inbound in self.feedback_ins),
+            "feedback_reordered": sum(inbound.seq.reordered for inbound in self.feedback_ins),
             "feedback_superseded": self.feedback_superseded,
-            "feedback_shed": self.feedback_in.shed,
-            "feedback_stream": self.feedback_in.counts(),  # lost, reordered, jumps, ...
+            "feedback_shed": sum(inbound.shed for inbound in self.feedback_ins),
+            # lost, reordered, jumps, ... (robot 0's stream; per robot in a run of several)
+            "feedback_stream": self.feedback_in.counts(),
+            "feedback_streams": [inbound.counts() for inbound in self.feedback_ins],
             "feedback_rendered": len(self.trace_log) + self.trace_log.overflow,
             "trace_rows_not_kept": self.trace_log.overflow,
             "rate_hz": self._rate_hz(),

@@ -70,10 +70,10 @@ import itertools
 import logging
 import math
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
@@ -1242,4 +1242,90 @@ class OperatorLoop:
             "skipped_decisions": self.skipped_decisions,
             "hand_holds": op.hand_holds,
             "device_gone_decisions": op.device_gone_decisions,
+        }
+
+
+# --- Several robots, one hand ---------------------------------------------------------------
+
+
+class PoseArrival(NamedTuple):
+    """A TOOL_POSE of ``robot`` at plant tick ``tick``, sampled at ``sampled_ns``."""
+
+    robot: int
+    tick: int
+    sampled_ns: int
+
+
+class RunStarted(NamedTuple):
+    """``robot``'s plant started a run (its STARTED event)."""
+
+    robot: int
+
+
+Arrival = PoseArrival | RunStarted
+
+
+class OperatorStation:
+    """One scripted operator's hand over the robots of a run (``run.robots``), one task
+    per robot, in turn: :class:`OperatorLoop` ``loops[i]`` plays robot i's task (its
+    outputs go out on robot i's keys). The hand drives robot 0 until its TASK_DONE is
+    out, then the next robot's task starts where the last decision left off
+    (:meth:`OperatorLoop.take_over`). Every robot's scene is observed all along (the
+    caller fills each loop's buffer); only the driven robot's poses trigger decisions.
+    With one robot it is that robot's loop, as the service always was.
+    """
+
+    def __init__(self, loops: Sequence[OperatorLoop]) -> None:
+        self.loops = list(loops)
+        self.active = 0  # the robot the hand drives
+
+    @property
+    def loop(self) -> OperatorLoop:
+        """The driven robot's loop."""
+        return self.loops[self.active]
+
+    def take(self, items: Sequence[Arrival], decided: Callable[[int], None] | None = None) -> None:
+        """One batch of arrivals, in order: the driven robot's poses decided (``decided``
+        gets each one's sample stamp), a new run started over on robot 0, the hand passed
+        on once the driven robot's task is done.
+
+        A late operator (realtime: poses queued behind a newer one; lockstep: a run that
+        went on without it, :meth:`OperatorLoop.left_behind`) decides on the newest pose
+        only and skips the rest: it catches up by skipping, never by a burst of late hand
+        inputs. Lockstep otherwise decides every one (the haptic device waits for each)."""
+        loop = self.loop
+        poses = [item for item in items if isinstance(item, PoseArrival)]
+        driven = [pose for pose in poses if pose.robot == self.active]
+        behind = bool(driven) and loop.left_behind(driven[-1].tick)
+        catch_up = behind and (len(driven) > 1 or loop.lockstep)
+        for i, item in enumerate(items):
+            if isinstance(item, RunStarted):
+                self.loops[item.robot].on_started()
+                if item.robot == 0 and self.active:
+                    self.active = 0  # a new run: robot 0's task first again
+                    self.take(items[i + 1 :], decided)
+                    return
+                continue
+            if item.robot != self.active:
+                continue  # observed (buffered), not driven
+            later = items[i + 1 :]
+            if behind and any(isinstance(x, PoseArrival) and x.robot == item.robot for x in later):
+                continue  # a newer pose is queued behind it
+            if decided is not None:
+                decided(item.sampled_ns)
+            loop.on_arrival(item.tick, catch_up=catch_up)
+            if loop.done_reported and self.active + 1 < len(self.loops):
+                self.active += 1
+                self.loop.take_over(item.tick)
+                logger.info("tick %d: the hand moves on to robot %d", item.tick, self.active)
+                self.take(later, decided)  # what came after, for the robot driven now
+                return
+
+    def summary(self, robot_ids: Sequence[str]) -> dict[str, Any]:
+        """The task's outcome (:meth:`OperatorLoop.summary`): with one robot its loop's;
+        with several, one section per robot id under ``robots``."""
+        if len(self.loops) == 1:
+            return self.loops[0].summary()
+        return {
+            "robots": {rid: loop.summary() for rid, loop in zip(robot_ids, self.loops, strict=True)}
         }

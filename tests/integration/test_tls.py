@@ -136,7 +136,9 @@ def test_a_second_session_with_a_borrowed_certificate_gets_no_right(tmp_path, bo
     Zenoh id of its own, links to the plant (TLS accepts the certificate) but matches no
     participant of the access list: not one of its commands reaches the plant, while the
     real controller's, sent in the same loop, all do."""
-    files = write_run_credentials(tmp_path / "auth", [*PARTICIPANTS, "observer"], (ROBOT,), tls=True)
+    files = write_run_credentials(
+        tmp_path / "auth", [*PARTICIPANTS, "observer"], (ROBOT,), tls=True
+    )
     stolen = json.loads(files[borrowed].read_text())
     thief_file = tmp_path / "thief.json"
     thief_zid = new_zid()

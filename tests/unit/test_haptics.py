@@ -544,3 +544,108 @@ def test_replay_device_plays_a_recording_of_haptic_states():
     sample = device.next_sample(None)
     np.testing.assert_array_equal(sample.p_m, records["device_p_m"][1])
     assert sample.buttons == Button.GRIPPER_CLOSE
+
+
+# --- several robots (run.robots): one handle, the robot it drives switched ----------------
+
+
+class SentPerRobot(Sent):
+    """HapticOutputs that keeps each robot's samples apart."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.by_robot: dict[int, list[np.ndarray]] = {}
+
+    def sample(self, rec: np.ndarray, robot: int = 0) -> None:
+        super().sample(rec, robot)
+        self.by_robot.setdefault(robot, []).append(rec.copy())
+
+
+def make_two_robot_loop() -> tuple[HapticLoop, SentPerRobot]:
+    config = load_config(None, ['run.mode="lockstep"', 'run.scenario="grasp"', "run.robots=2"])
+    device = EmulatedDevice(config.haptic, config.plant.timestep_s)
+    sent = SentPerRobot()
+    loop = HapticLoop(config, device, sent, FakeClock(start_ns=10 * NS_PER_S), lockstep=True)
+    return loop, sent
+
+
+def test_two_robots_step_together_and_the_idle_one_holds_a_centred_handle():
+    """Tick k steps once both robots' states k and feedbacks k-1 are in; the robot the
+    hand drives gets the handle, the other a centred handle with its buttons held."""
+    loop, sent = make_two_robot_loop()
+    lead = loop.lead_ticks
+    for k in range(300):
+        loop.on_state(plant_state(k), 0)
+        if k >= 1:
+            loop.on_feedback(feedback(k, k - 1, 0.0), 0, 0)
+        if k % lead == 0:
+            loop.on_hand(hand(k + lead, [0.02, 0.0, 0.0]), 0)
+        assert len(sent.by_robot.get(0, [])) == max(k, 0)  # robot 1's state k is missing
+        loop.on_state(plant_state(k), 1)
+        if k >= 1:
+            assert len(sent.by_robot[0]) == k  # and its feedback of k-1
+            loop.on_feedback(feedback(k, k - 1, 0.0), 0, 1)
+        assert len(sent.by_robot[0]) == len(sent.by_robot[1]) == k + 1
+    driven, idle = sent.by_robot[0][-1], sent.by_robot[1][-1]
+    assert driven["device_p_m"][0] == pytest.approx(0.02, abs=5e-4)
+    assert np.all(idle["device_p_m"] == 0.0) and np.all(idle["device_v_m_s"] == 0.0)
+    assert int(idle["tick"]) == int(driven["tick"]) == 299
+    assert int(idle["buttons"]) == Button.NONE  # robot 1 was never driven: nothing held
+    assert loop.summary()["robot_switches"] == []
+
+
+def test_the_handle_switches_robot_only_in_its_deadband():
+    """A hand input on robot 1's keys moves the handle to robot 1 once the handle rests
+    within the rate deadband; until then the hand still drives robot 0. Robot 0 then
+    holds a centred handle with the buttons it had (the gripper stays closed)."""
+    loop, sent = make_two_robot_loop()
+    lead = loop.lead_ticks
+    switch_from = 200
+
+    def step(k: int) -> None:
+        for robot in (0, 1):
+            loop.on_state(plant_state(k), robot)
+            if k >= 1:
+                loop.on_feedback(feedback(k, k - 1, 0.0), 0, robot)
+
+    for k in range(600):
+        if k % lead == 0:
+            # Robot 0: the handle out 2 cm, gripper closed; from switch_from on the hand
+            # means robot 1, the handle back at the centre.
+            if k + lead < switch_from:
+                loop.on_hand(hand(k + lead, [0.02, 0.0, 0.0]), 0)
+            else:
+                loop.on_hand(hand(k + lead, [0.0, 0.0, 0.0], Button.NONE), 1)
+        step(k)
+    switches = loop.summary()["robot_switches"]
+    assert len(switches) == 1 and switches[0]["robot"] == 1
+    switched_at = switches[0]["tick"]
+    assert switched_at > switch_from  # the handle had to come back first
+    assert loop.summary()["switch_deferred_steps"] == switched_at - switch_from
+    for rec in sent.by_robot[0][switched_at:]:  # robot 0, no longer driven
+        assert np.all(rec["device_p_m"] == 0.0)
+        assert int(rec["buttons"]) == Button.GRIPPER_CLOSE
+    offset_m = np.linalg.norm(sent.by_robot[0][switched_at - 1]["device_p_m"])
+    assert offset_m <= loop.deadband_m
+    assert np.all(sent.by_robot[1][switched_at - 1]["device_p_m"] == 0.0)  # idle before
+
+
+def test_a_finished_robot_leaves_the_clock():
+    """Robot 0's plant finished (its FINISHED): ticks go on with robot 1's state and
+    feedback alone, and robot 0 gets no more samples."""
+    loop, sent = make_two_robot_loop()
+    lead = loop.lead_ticks
+    for k in range(100):
+        for robot in (0, 1):
+            loop.on_state(plant_state(k), robot)
+            if k >= 1:
+                loop.on_feedback(feedback(k, k - 1, 0.0), 0, robot)
+        if k % lead == 0:
+            loop.on_hand(hand(k + lead, [0.0, 0.0, 0.0]), 0)
+    loop.on_finished(0)
+    for k in range(100, 200):
+        loop.on_state(plant_state(k), 1)
+        loop.on_feedback(feedback(k, k - 1, 0.0), 0, 1)
+        if k % lead == 0:
+            loop.on_hand(hand(k + lead, [0.0, 0.0, 0.0]), 0)
+    assert len(sent.by_robot[1]) == 200 and len(sent.by_robot[0]) == 100
