@@ -341,10 +341,11 @@ def graph_tables() -> str:
     lines += ["", *_table(("token", "meaning"), [(f"`{k}`", m) for k, m in TOKENS])]
     services = [
         (f"`{s.name}`", ", ".join(s.scenarios), str(s.start_priority), s.optional or "always",
-         s.site, s.what)
+         s.site, "one per robot" if s.per_robot else "one", s.what)
         for s in SERVICES
     ]  # fmt: skip
-    header = ("service", "scenarios", "start priority", "runs", "site", "what")
+    header = ("service", "scenarios", "start priority", "runs", "site", "processes (run.robots)",
+              "what")  # fmt: skip
     lines += ["", *_table(header, services)]
     return "\n".join(lines)
 

@@ -139,3 +139,55 @@ def test_without_tls_the_controllers_password_with_another_id_gets_no_right(tmp_
         for session in (thief, controller, plant):
             bus.close_session(session)
     assert sorted(commands.seqs) == list(range(1, RECORDS + 1))  # none from the thief
+
+
+def test_a_robots_controller_commands_its_own_robot_only(tmp_path):
+    """Two robots on one bus: each robot's plant takes the commands of its own robot's
+    controller. arm1's controller publishing on arm0's command key (a mistake, or a
+    compromised process) reaches no one, while its commands to arm1, sent in the same
+    loop, all arrive."""
+    robots = ("arm0", "arm1")
+    names = ["plant-arm0", "plant-arm1", "controller-arm1"]
+    files = write_run_credentials(tmp_path / "auth", names, robots)
+    arm0, arm1 = Topics("arm0"), Topics("arm1")
+    endpoint = free_endpoint()
+    own = {name: free_endpoint() for name in names[1:]}
+
+    def config(name: str) -> BusConfig:
+        before = [own[n] for n in names[1 : names.index(name)]]
+        return dataclasses.replace(
+            BusConfig(endpoint=endpoint),
+            gossip=False,
+            peer_listen_endpoint=own.get(name, ""),
+            peer_connect_endpoints=tuple(before),
+            credentials_file=str(files[name]),
+        )
+
+    drops = DropCounter()
+    plant0 = bus.open_session(config("plant-arm0"), listen=True)
+    plant1 = bus.open_session(config("plant-arm1"), listen=False)
+    controller1 = bus.open_session(config("controller-arm1"), listen=False)
+    at_arm0, at_arm1 = Seen(), Seen()
+    entities: list[object] = [
+        bus.subscribe(plant0, arm0.joint_command, JOINT_COMMAND, at_arm0, drops),
+        bus.subscribe(plant1, arm1.joint_command, JOINT_COMMAND, at_arm1, drops),
+        bus.declare_alive(plant0, arm0, "plant"),
+        bus.declare_alive(plant1, arm1, "plant"),
+        bus.declare_alive(controller1, arm1, "controller"),
+    ]
+    try:
+        bus.wait_alive(controller1, arm1, ["plant"], TIMEOUT_S)
+        bus.wait_alive(plant0, arm1, ["plant", "controller"], TIMEOUT_S)
+        own_robot = bus.Publisher.declare(controller1, arm1.joint_command, JOINT_COMMAND)
+        other_robot = bus.Publisher.declare(controller1, arm0.joint_command, JOINT_COMMAND)
+        entities += [own_robot, other_robot]
+        for i in range(1, RECORDS + 1):
+            for pub in (own_robot, other_robot):
+                rec = pub.schema.new()
+                rec["seq"] = i
+                pub.put(rec)
+        assert at_arm1.wait(RECORDS), "arm1's controller's commands did not reach arm1's plant"
+    finally:
+        for session in (controller1, plant1, plant0):
+            bus.close_session(session)
+    assert at_arm0.seqs == []
