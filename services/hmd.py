@@ -52,13 +52,19 @@ class HmdService(Service):
     def _on_clock(self, robot: int) -> RecordCallback:
         """Plant tick ``m`` of ``robot``: publish every HMD sample up to ``m``. Every
         robot's poses clock the HMD (one whose task is over stops sending); only robot
-        0's tick 0 starts a run (another robot's, late, would restart it)."""
+        0's tick 0 starts a run (another robot's, late, would restart it), and under
+        several robots a tick another robot brought first is no re-send (the loop's
+        ``resent_states`` counts none of them)."""
+        several = len(self.robot_topics) > 1
 
         def on_clock(rec: np.ndarray, rx_ns: int) -> None:
             tick = int(rec["sim_time_ns"]) // self.timestep_ns
             with self._lock:
-                if robot and (tick == 0 or tick <= self.loop.last_tick):
-                    return  # the clock's tick came from another robot first
+                if robot and tick == 0:
+                    return  # robot 0 starts a run
+                starts_run = robot == 0 and tick == 0
+                if several and not starts_run and tick <= self.loop.last_tick:
+                    return  # another robot brought this tick first: no re-send
                 for sample in self.loop.on_clock(tick):
                     fill_head_pose(
                         self._record, sample, self.published, time.monotonic_ns(), self.timestep_ns

@@ -271,20 +271,24 @@ class Service:
                 ", ".join(missing),
                 PEER_LINK_WAIT_S,
             )
-            self.keep(self._watch_late_links(started_ns))
+            for topics in self.robot_topics:
+                self.keep(self._watch_late_links(started_ns, topics))
         self.cpu_s_ready = time.process_time()
         for topics in self.robot_topics:
             self.keep(declare_alive(self.session, topics, self.name, ready=True))
         return True
 
-    def _watch_late_links(self, started_ns: int) -> Any:
-        """A liveliness subscriber that moves each peer of ``unlinked_peers`` to
-        ``peers_linked_late`` when its token comes after all (over this session's own
-        link to it: from then on what this service sends reaches it)."""
+    def _watch_late_links(self, started_ns: int, topics: Topics) -> Any:
+        """A liveliness subscriber (under robot ``topics``' keys) that moves each peer of
+        ``unlinked_peers`` to ``peers_linked_late`` when its token comes after all (over
+        this session's own link to it: from then on what this service sends reaches it)."""
         assert self.session is not None
+        several = len(self.robot_topics) > 1
 
         def on_token(sample: zenoh.Sample) -> None:
-            name = self.topics.service_of(str(sample.key_expr))
+            name = topics.service_of(str(sample.key_expr))
+            if several:  # as _wait_tokens names it
+                name = f"{name}@{topics.robot_id}"
             if sample.kind != zenoh.SampleKind.PUT or name not in self.unlinked_peers:
                 return
             late_s = (time.monotonic_ns() - started_ns) / NS_PER_S
@@ -293,7 +297,7 @@ class Service:
             logger.warning("linked to %s after all, %.1f s after the wait began", name, late_s)
 
         return self.session.liveliness().declare_subscriber(
-            self.topics.alive_all, on_token, history=True
+            topics.alive_all, on_token, history=True
         )
 
     def wait_for_peers(self, stop: threading.Event) -> bool:

@@ -39,6 +39,16 @@ k's seq, tick and stamps), and what the handle feels from tick k on is the feedb
 tick ``k - 1 - backward``. The device still waits for the feedback of tick k-1 before
 it steps tick k: that is the lockstep's order, whatever the link delays.
 
+Several robots (``run.robots``): the loop takes every robot's PLANT_STATE, FORCE_FEEDBACK
+and HAND_INPUT, each with the robot it came from. The handle drives one robot, the one
+the newest hand input was meant for (the robot whose keys it came on), and switches only
+while the handle rests in the rate deadband (meanwhile the hand still moves the robot
+driven before, with that robot's buttons); the handle feels that robot's feedback alone.
+Every other robot gets each sample as a centred handle (no rate: its tool holds still)
+with the buttons it last had. In lockstep tick k steps once every running robot's state
+k and feedback k-1 are in; a robot whose plant finished (FINISHED, :meth:`on_finished`)
+leaves that barrier and gets no more samples. Robot 0's plant starts a run.
+
 Lockstep: a PLANT_STATE seq 0 with a new ``t_source_ns`` (or as the first state) starts
 a new run: the device is reset and every stored input is forgotten. A state with a seq
 already seen is a plant re-send (the plant re-sends every state in flight byte for byte,

@@ -610,6 +610,11 @@ def run_on_services(
     A person's operator (``run.operator``) runs in this process's terminal, started once
     the stack is up and stopped when the run ends (teleop.run.foreground); the run fails
     if it ends first.
+
+    Several robots (``run.robots``): a plant and a controller per robot
+    (``<service>-<robot_id>``, graph.instances), the station's services once; the run
+    ends when every plant has finished, and the summary has a section per robot
+    (:func:`robot_view`, :func:`_robot_section`) under ``robots``.
     """
     if config.site.name:
         raise RunError(
