@@ -625,7 +625,9 @@ def run_on_services(
     services, outside = layout.started, layout.outside
     robot_ids = config.robot_ids()
     if len(robot_ids) > 1 and (kills or freezes):
-        raise RunError(f"--kill and --freeze: not in a run of several robots ({len(robot_ids)})")
+        raise ConfigError(
+            f"--kill and --freeze: not in a run of several robots (run.robots={len(robot_ids)})"
+        )
     fault_specs = parse_faults(kills, freezes, services, config.run.duration_s)
     run_dir = run_dir.absolute()
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -1282,7 +1284,7 @@ def start_detached(
     ``credentials`` from it. The plant waits for the other site's services as for its own.
     """
     if config.run.robots > 1:
-        raise RunError(
+        raise ConfigError(
             f"run.robots={config.run.robots}: teleop up runs one robot; several robots run "
             "with teleop run grasp --robots N"
         )

@@ -21,7 +21,7 @@ from teleop.core.rundir import (
     shed_path,
     summary_path,
 )
-from teleop.run.stack import Launch, StackServices, plan_stack
+from teleop.run.stack import Launch, StackServices, plan_stack, start_detached
 
 TWO = ['run.scenario="grasp"', 'run.mode="lockstep"', "run.robots=2", "bus.tls=false"]
 
@@ -116,3 +116,11 @@ def test_each_robots_files_are_its_own_and_a_new_run_clears_them(tmp_path):
     for path in paths:
         path.write_text("stale")
     assert sorted(clear_run_results(tmp_path)) == sorted(paths)
+
+
+def test_leaving_a_service_out_or_starting_detached_is_refused_with_several_robots(tmp_path):
+    config = load_config(None, TWO)
+    with pytest.raises(ConfigError, match="--without: not in a run of several robots"):
+        StackServices.of(config, ["haptic"])
+    with pytest.raises(ConfigError, match="teleop up runs one robot"):
+        start_detached(config, None, [], tmp_path)
