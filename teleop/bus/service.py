@@ -103,8 +103,6 @@ class Service:
         if self.name not in graph.PER_ROBOT:
             robot_ids = config.robot_ids()
         self.robot_topics = tuple(Topics(rid) for rid in robot_ids)
-        # The process's own name: its summary's and its participant's (graph.instance_name).
-        self.instance = graph.instance_name(self.name, config.robot.robot_id, config.run.robots)
         self.drops = DropCounter()
         self.session: zenoh.Session | None = None
         self._entities: list[Any] = []
@@ -133,6 +131,14 @@ class Service:
         # fills it in): {"sched_fifo": ..., "cpu_pinning": ...}, each "granted ...",
         # "refused: <why>" or "not requested".
         self.privileges: dict[str, str] = {}
+
+    @property
+    def instance(self) -> str:
+        """The process's own name: its summary's and its participant's
+        (graph.instance_name; read when needed, as a service may name itself in its own
+        constructor, a site's router)."""
+        config = self.config
+        return graph.instance_name(self.name, config.robot.robot_id, config.run.robots)
 
     # -- lifecycle ---------------------------------------------------------------------
     def open(self) -> None:

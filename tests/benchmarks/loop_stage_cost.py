@@ -153,7 +153,7 @@ class Loop:
         feedback = controller.core._feedback.tobytes()
         between()
         before = len(loop.trace_log)
-        deliver(feedback, time.monotonic_ns(), FORCE_FEEDBACK, haptic._on_feedback, haptic.drops)
+        deliver(feedback, time.monotonic_ns(), FORCE_FEEDBACK, haptic._on_feedback(0), haptic.drops)
         if len(loop.trace_log) == before:
             raise RuntimeError("the feedback was not rendered: a stage shed its input")
         return loop.trace_log.rows[-1]
