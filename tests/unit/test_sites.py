@@ -10,6 +10,7 @@ import stat
 import pytest
 from cryptography import x509
 
+from services.router import RouterService
 from teleop.bus import graph
 from teleop.bus.access import OPERATOR_OBSERVER, rights
 from teleop.cli import EXIT_USAGE, main
@@ -180,3 +181,8 @@ def test_up_refuses_site_options_that_do_not_go_together(tmp_path, capsys, args,
     assert main(["up", *args, "--run-dir", str(tmp_path / "run")]) == EXIT_USAGE
     assert message in capsys.readouterr().err
     assert not (tmp_path / "run").exists()  # nothing started
+
+
+def test_a_sites_router_writes_its_summary_under_its_participants_name():
+    config = load_config(None, ['site.name="robot"', 'site.listen="tls/127.0.0.1:7447"'])
+    assert RouterService(config).instance == "robot_router"
