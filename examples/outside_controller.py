@@ -82,6 +82,7 @@ class OutsideController:
         self.states = self.braking_states = self.bad_records = 0
         self.first_ns = self.last_ns = 0
         self.finished = threading.Event()
+        self.other_version = None  # the stack's protocol version, if not ours
         self.last_step = -1  # the step of the run's last state (FINISHED's step)
         self.newest_step = -1  # the step of the newest state handled
         self.lock = threading.Condition()  # notified when a state has been handled
@@ -100,7 +101,11 @@ class OutsideController:
         rx_ns = time.monotonic_ns()
         data = sample.payload.to_bytes()
         version, kind, flags, seq, t_source_ns, *trace = HEADER.unpack_from(data)
-        if len(data) != PLANT_STATE_SIZE or (version, kind) != (VERSION, PLANT_STATE):
+        if version != VERSION:  # another protocol: nothing it sends can be read here
+            self.other_version = version
+            self.finished.set()
+            return
+        if len(data) != PLANT_STATE_SIZE or kind != PLANT_STATE:
             self.bad_records += 1
             return
         with self.lock:
@@ -176,6 +181,12 @@ def main() -> None:
     wait_for_tokens(session, f"{key}/alive", set(args.peers.split(",")))
     tokens.append(session.liveliness().declare_token(f"{key}/ready/controller"))  # plant starts
     finished = controller.finished.wait(args.timeout)
+    if controller.other_version is not None:
+        session.close()
+        raise SystemExit(
+            f"the stack speaks protocol version {controller.other_version}, this client "
+            f"{VERSION}: take the example of the stack's own checkout (docs/protocol.md)"
+        )
     last_state = finished and controller.wait_for_last_state()
     summary = {"finished": finished, "last_state_handled": last_state, **controller.summary()}
     print(json.dumps(summary), flush=True)

@@ -18,6 +18,7 @@ import json
 import struct
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 import zenoh
@@ -41,10 +42,20 @@ WORKSPACE_HALF_M, PEAK_FORCE_N = 0.05, 8.0  # end stops at +-5 cm per axis; moto
 STALE_AFTER_S, FADE_S = 0.020, 0.020  # older feedback fades out to zero over FADE_S
 
 
+class OtherVersion(Exception):
+    """A record of another protocol version: nothing the stack sends can be read here."""
+
+
 def valid(sample: zenoh.Sample, kind: int, size: int) -> bytes | None:
-    """The record's bytes if it is one of ``kind`` of our version and size, else None."""
+    """The record's bytes if it is one of ``kind`` of our version and size, else None;
+    OtherVersion for a record of another version."""
     data = sample.payload.to_bytes()
-    return data if len(data) == size and HEADER.unpack_from(data)[:2] == (VERSION, kind) else None
+    if len(data) < HEADER.size:
+        return None
+    version, own_kind = HEADER.unpack_from(data)[:2]
+    if version != VERSION:
+        raise OtherVersion(version)
+    return data if len(data) == size and own_kind == kind else None
 
 
 class Handle:
@@ -100,15 +111,29 @@ class OutsideHaptic:
         self.feedback_n, self.hands, self.batch = np.zeros(3), {}, []  # hands: by valid_from
         self.seq = self.stale_periods = self.skipped_periods = 0
         self.observed_j = 0.0  # passivity observer: energy the force took from the hand
+        self.other_version = None  # the stack's protocol version, if not ours
         key = f"teleop/{robot}"
         self.pub = session.declare_publisher(
             f"{key}/haptic/state", priority=zenoh.Priority.REAL_TIME, express=True,
             congestion_control=zenoh.CongestionControl.BLOCK,
         )  # fmt: skip
         self.batch_pub = session.declare_publisher(f"{key}/haptic/state/batch")  # recorder's
-        self.subs = [session.declare_subscriber(f"{key}/{stream}", callback) for stream, callback
-                     in (("haptic/feedback", self.on_feedback), ("operator/hand", self.on_hand),
-                         ("events/plant", self.on_event))]  # fmt: skip
+        self.subs = [session.declare_subscriber(f"{key}/{stream}", self.checked(callback))
+                     for stream, callback in (("haptic/feedback", self.on_feedback),
+                                              ("operator/hand", self.on_hand),
+                                              ("events/plant", self.on_event))]  # fmt: skip
+
+    def checked(self, callback: Callable[[zenoh.Sample], None]) -> Callable[[zenoh.Sample], None]:
+        """``callback``, ending the run at a record of another protocol version."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                callback(sample)
+            except OtherVersion as exc:
+                self.other_version = exc.args[0]
+                self.finished.set()
+
+        return on_sample
 
     def on_feedback(self, sample: zenoh.Sample) -> None:
         if (data := valid(sample, FORCE_FEEDBACK, FORCE_FEEDBACK_SIZE)) is None:
@@ -209,6 +234,12 @@ def main() -> None:
         wait_for_tokens(session, f"{key}/alive", set(args.peers.split(",")))
         tokens.append(session.liveliness().declare_token(f"{key}/ready/haptic"))  # plant starts
         wall_s = haptic.run()
+    if haptic.other_version is not None:
+        session.close()
+        raise SystemExit(
+            f"the stack speaks protocol version {haptic.other_version}, this device "
+            f"{VERSION}: take the example of the stack's own checkout (docs/protocol.md)"
+        )
     print(json.dumps({"samples_sent": haptic.seq, "sample_rate_hz": haptic.seq / wall_s,
                       "skipped_periods": haptic.skipped_periods, "stale_periods":
                       haptic.stale_periods}), flush=True)  # fmt: skip
