@@ -62,8 +62,7 @@ class HmdService(Service):
             with self._lock:
                 if robot and tick == 0:
                     return  # robot 0 starts a run
-                starts_run = robot == 0 and tick == 0
-                if several and not starts_run and tick <= self.loop.last_tick:
+                if several and tick > 0 and tick <= self.loop.last_tick:
                     return  # another robot brought this tick first: no re-send
                 for sample in self.loop.on_clock(tick):
                     fill_head_pose(

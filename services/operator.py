@@ -96,11 +96,13 @@ class OperatorService(Service):
         self.timestep_ns = round(cfg.plant.timestep_s * NS_PER_S)
         self.scenario = Scenario.load(cfg.operator.scenario_path, cfg.robot.object_bodies)
         lockstep = cfg.run.mode == "lockstep"
-        self.loops = [
-            OperatorLoop(cfg, self.scenario, _RobotOutputs(self, topics), lockstep=lockstep)
-            for topics in self.robot_topics
-        ]
-        self.station = OperatorStation(self.loops)
+        self.station = OperatorStation(
+            [
+                OperatorLoop(cfg, self.scenario, _RobotOutputs(self, topics), lockstep=lockstep)
+                for topics in self.robot_topics
+            ]
+        )
+        loops = self.station.loops
         # Tool poses and new runs, in arrival order, for the run thread.
         self._arrivals: queue.SimpleQueue[Arrival] = queue.SimpleQueue()
         # From a pose's sample on the plant to this operator's decisions on it (ns): how
@@ -108,10 +110,10 @@ class OperatorService(Service):
         self._lateness_ns = np.zeros(LATENESS_SAMPLES, dtype=np.int64)
         self._poses_decided = 0
         for robot, topics in enumerate(self.robot_topics):
-            buffer = self.loops[robot].buffer
+            buffer = loops[robot].buffer
             self.subscribe_stream("tool_pose", self._on_tool(robot), topics)
             self.subscribe_stream("objects", self._on_objects(buffer), topics)
-            self.subscribe_stream("head_pose", self._on_head(self.loops[robot]), topics)
+            self.subscribe_stream("head_pose", self._on_head(loops[robot]), topics)
             on_event = self._on_event(robot)
             self.keep(subscribe_events(self.session, topics, "plant_events", on_event, self.drops))
         self.keep(
@@ -131,7 +133,7 @@ class OperatorService(Service):
         return round(int(rec["sim_time_ns"]) / self.timestep_ns)
 
     def _on_tool(self, robot: int) -> RecordCallback:
-        buffer = self.loops[robot].buffer
+        buffer = self.station.loops[robot].buffer
 
         def on_tool(rec: np.ndarray, rx_ns: int) -> None:
             tick = self._tick_of(rec)
@@ -164,16 +166,16 @@ class OperatorService(Service):
 
     def _on_hmd_token(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.PUT:
-            for loop in self.loops:
+            for loop in self.station.loops:
                 loop.hmd_seen()
 
     def _on_device_token(self, sample: zenoh.Sample) -> None:
         """The device's token: withdrawn while it is dead or restarting (the hand then
         moves nothing; ScriptedOperator.device_gone), back once it is up again."""
         gone = sample.kind == zenoh.SampleKind.DELETE
-        if gone != self.loops[0].operator.device_gone:
+        if gone != self.station.loops[0].operator.device_gone:
             logger.warning("the haptic device %s", "is gone" if gone else "is back")
-        for loop in self.loops:
+        for loop in self.station.loops:
             loop.operator.device_gone = gone
 
     # -- the run thread --------------------------------------------------------------------

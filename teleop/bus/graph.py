@@ -265,6 +265,11 @@ def instances(services: Iterable[str], robot_ids: Sequence[str]) -> tuple[str, .
     )
 
 
+def services_of(instances: Iterable[str]) -> tuple[str, ...]:
+    """The services ``instances`` run, each once, in order (a robot's tokens name these)."""
+    return tuple(dict.fromkeys(role_of(name) for name in instances))
+
+
 def role_of(instance: str) -> str:
     """The service an instance runs (:func:`instance_name`'s inverse)."""
     return instance.split(INSTANCE_SEPARATOR, 1)[0]

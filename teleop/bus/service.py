@@ -289,12 +289,9 @@ class Service:
         ``unlinked_peers`` to ``peers_linked_late`` when its token comes after all (over
         this session's own link to it: from then on what this service sends reaches it)."""
         assert self.session is not None
-        several = len(self.robot_topics) > 1
 
         def on_token(sample: zenoh.Sample) -> None:
-            name = topics.service_of(str(sample.key_expr))
-            if several:  # as _wait_tokens names it
-                name = f"{name}@{topics.robot_id}"
+            name = self._peer_label(topics.service_of(str(sample.key_expr)), topics)
             if sample.kind != zenoh.SampleKind.PUT or name not in self.unlinked_peers:
                 return
             late_s = (time.monotonic_ns() - started_ns) / NS_PER_S
@@ -339,10 +336,14 @@ class Service:
                     if waited_s >= PEER_WAIT_LOG_S and not warned:  # what it waits for
                         warned = True
                         logger.warning("still waiting (robot %s): %s", topics.robot_id, exc)
-            if len(self.robot_topics) > 1:
-                robot_missing = tuple(f"{name}@{topics.robot_id}" for name in robot_missing)
-            missing += robot_missing
+            missing += tuple(self._peer_label(name, topics) for name in robot_missing)
         return missing
+
+    def _peer_label(self, service: str, topics: Topics) -> str:
+        """How a peer is named in ``unlinked_peers`` and the like: its service, and
+        under several robots the robot whose keys it is missing from
+        (``service@robot``)."""
+        return f"{service}@{topics.robot_id}" if len(self.robot_topics) > 1 else service
 
     def write_summary(self) -> None:
         """``<run_dir>/<name>.summary.json``, atomically: this process's summary, and

@@ -199,6 +199,8 @@ class HapticLoop:
         self._finished: set[int] = set()
         self._robot_feedback: list[dict[int, np.ndarray]] = [{} for _ in range(self.robots)]
         self._idle = [HAPTIC_STATE.new() for _ in range(self.robots)]
+        self._buttons = [0] * self.robots  # each robot's buttons when it was last driven
+        # The last sample each robot was sent (what a re-sent state of its plant gets).
         self._robot_sent: list[np.ndarray | None] = [None] * self.robots
         self.switches: list[dict[str, Any]] = []  # (tick, robot) of each switch
         self.switch_deferred_steps = 0  # steps a switch waited for the handle's deadband
@@ -217,7 +219,6 @@ class HapticLoop:
         self._operator_absent = False
         self._last_missing_valid_from: int | None = None
         self.record = HAPTIC_STATE.new()  # the last sample taken
-        self.sent = self.record  # the last record sent (with a forward delay: an older sample)
         # Counters for the summary.
         self.steps = 0
         self.runs = 0
@@ -297,7 +298,7 @@ class HapticLoop:
         robot 0 alone, which starts the run."""
         running = [seq for r, seq in enumerate(self._robot_seq) if r not in self._finished]
         if not running or self._robot_seq[0] < 0:
-            return max(self._robot_seq[0], -1)
+            return self._robot_seq[0]
         return min(running)
 
     def on_finished(self, robot: int) -> None:
@@ -430,7 +431,7 @@ class HapticLoop:
             tick = self._last_tick + 1
             if tick > self._state_seq:
                 return
-            if tick > self._first_tick and not self._feedback_in(tick - 1):
+            if tick > self._first_tick and not self._feedback_complete(tick - 1):
                 return  # the feedback of the tick before is the barrier, delayed or not
             hand, waiting = self._hand_for(tick)
             if waiting:
@@ -454,7 +455,7 @@ class HapticLoop:
             self._account_sample(sample)
             self._last_tick = tick
 
-    def _feedback_in(self, tick: int) -> bool:
+    def _feedback_complete(self, tick: int) -> bool:
         """Whether the feedback of ``tick`` is in from every running robot (lock held)."""
         return all(
             tick in feedback
@@ -478,7 +479,7 @@ class HapticLoop:
             # The hand's motion brings the handle back; its buttons are the other
             # robot's, so the robot still driven keeps its own (a held cube stays held).
             kept = rec.copy()
-            kept["buttons"] = self._idle[self.selected]["buttons"]
+            kept["buttons"] = self._buttons[self.selected]
             return kept
         logger.info("tick %d: the handle drives robot %d (was %d)", tick, robot, self.selected)
         self.switches.append({"tick": tick, "robot": robot})
@@ -492,24 +493,20 @@ class HapticLoop:
     def _send(self, sent: np.ndarray) -> None:
         """``sent`` to the selected robot; to every other running one a centred handle
         with its own buttons held (lock held, or the realtime loop's thread)."""
+        driven = self.selected
+        if driven not in self._finished:
+            self._robot_sent[driven] = sent
+            self.outputs.sample(sent, driven)
         if self.robots == 1:
-            self._robot_sent[0] = sent
-            self.outputs.sample(sent, 0)
             return
+        self._buttons[driven] = int(sent["buttons"])  # held when it is not driven
         for robot, idle in enumerate(self._idle):
-            if robot == self.selected:
-                idle["buttons"] = sent["buttons"]  # held when it is not driven
-            if robot in self._finished:
+            if robot == driven or robot in self._finished:
                 continue
-            if robot == self.selected:
-                self._robot_sent[robot] = sent
-                self.outputs.sample(sent, robot)
-                continue
-            held = int(idle["buttons"])
             idle[...] = sent
             for field in ("device_p_m", "device_v_m_s", "device_f_n", "wave_u"):
                 idle[field] = 0.0
-            idle["buttons"] = held
+            idle["buttons"] = self._buttons[robot]
             self._robot_sent[robot] = idle
             self.outputs.sample(idle, robot)
 
@@ -518,13 +515,11 @@ class HapticLoop:
         sample taken ``forward_ticks`` ago (the run's first while the link fills), under
         this tick's seq, tick and stamps; with no delay, :attr:`record` itself."""
         if not self.forward_ticks:
-            self.sent = self.record
             return self.record
         self._in_flight.append(self.record.copy())
         sent = self._in_flight[0].copy()
         for name in ("seq", "t_source_ns", "trace_ns", "sim_time_ns", "tick"):
             sent[name] = self.record[name]
-        self.sent = sent
         return sent
 
     def poll_hand_wait(self) -> float:

@@ -272,8 +272,7 @@ def service_programs(
         if await_services.get(role):
             command += ["--await", ",".join(await_services[role])]
         # Tokens are per robot and by service: an instance's peers are the other services.
-        peers = list(dict.fromkeys(graph.role_of(other) for other in services))
-        peers = [other for other in peers if other != role]
+        peers = [other for other in graph.services_of(services) if other != role]
         if peers:
             command += ["--peers", ",".join(peers)]
         if continuous:
@@ -386,8 +385,7 @@ def _stderr(line: str) -> None:
 def _plant_awaits(stack: Sequence[str], *extra: str) -> list[str]:
     """What the plant waits for (ready tokens, under its robot's keys) before its first
     step: every other service (an instance of ``stack`` by its service)."""
-    roles = dict.fromkeys(graph.role_of(name) for name in stack)
-    return [name for name in roles if name != PLANT] + list(extra)
+    return [name for name in graph.services_of(stack) if name != PLANT] + list(extra)
 
 
 def prepare_outside(
@@ -1220,7 +1218,7 @@ def _wait_alive(
     service's own, a station service's for every robot)."""
     deadline = time.monotonic() + ALIVE_TIMEOUT_S
     waiting = list(robots)
-    roles = list(dict.fromkeys(graph.role_of(name) for name in services))
+    roles = graph.services_of(services)
     while True:
         check()
         try:
