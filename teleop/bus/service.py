@@ -55,6 +55,9 @@ logger = logging.getLogger(__name__)
 STOP_POLL_S = 0.25
 # After waiting this long for peers, say which ones are missing (once; s).
 PEER_WAIT_LOG_S = 5.0
+# A stop signal repeated this long after the first prints every thread's stack to the log
+# (the launcher repeats it every few seconds while a service is still there).
+STOP_AGAIN_DUMP_S = 4.0
 # A service declares itself ready after this long even if some peer of its stack is
 # still not seen (a pair of peers that never linked: an error in the log and the
 # summary, rather than a run that never starts; s).
@@ -593,6 +596,56 @@ def build_service_parser(name: str) -> argparse.ArgumentParser:
     return parser
 
 
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def stop_on_signals(stop: threading.Event) -> None:
+    """SIGINT and SIGTERM set ``stop``, from a thread of their own (call from the main
+    thread, once per process).
+
+    Python runs a signal's handler in the main thread between two bytecodes, which may
+    be inside ``stop.wait()`` while that thread holds the Event's lock: ``stop.set()``
+    in the handler then waits forever for its own thread (the signal module's warning on
+    handlers and threading primitives: the process hangs so until supervisord kills it,
+    its summary unwritten). So the handler does nothing: the
+    interpreter's C-level handler writes the signal's number to a pipe
+    (``signal.set_wakeup_fd``), and the thread reading it logs and sets ``stop``. It
+    does so even while the main thread is stuck in native code. A stop signal that
+    comes again, :data:`STOP_AGAIN_DUMP_S` or more after the first, while the process
+    is still there prints every thread's stack to the log: where a slow stop is.
+    """
+    read_fd, write_fd = os.pipe()
+    os.set_blocking(write_fd, False)
+    signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, _no_op_handler)
+
+    def watch() -> None:
+        first_ns = 0
+        while True:
+            for signum in os.read(read_fd, 64):
+                if signum not in STOP_SIGNALS:
+                    continue
+                name = signal.Signals(signum).name
+                now_ns = time.monotonic_ns()
+                if not first_ns:
+                    first_ns = now_ns
+                    logger.info("signal %s: stopping", name)
+                    stop.set()
+                    continue
+                waited_s = (now_ns - first_ns) / NS_PER_S
+                logger.info("signal %s again, %.1f s after the first: stopping", name, waited_s)
+                if waited_s >= STOP_AGAIN_DUMP_S:
+                    faulthandler.dump_traceback(all_threads=True)
+
+    threading.Thread(target=watch, name="signals", daemon=True).start()
+
+
+def _no_op_handler(signum: int, frame: FrameType | None) -> None:
+    """A Python-level handler must be installed for the wakeup fd to hear the signal;
+    the work is the ``signals`` thread's (:func:`stop_on_signals`)."""
+
+
 def service_main(service_class: type[Service], argv: list[str] | None = None) -> int:
     """Entry point of a service process: parse, build, run until stopped, close."""
     logging.basicConfig(
@@ -625,13 +678,7 @@ def service_main(service_class: type[Service], argv: list[str] | None = None) ->
         # it starts a thread (Zenoh's would keep the realtime policy for good).
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     stop = threading.Event()
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        logger.info("signal %s: stopping", signal.Signals(signum).name)
-        stop.set()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    stop_on_signals(stop)
     try:
         with fifo_scheduling(fifo_priority) as fifo, service_class(config, options) as service:
             service.privileges.update(sched_fifo=fifo, cpu_pinning=pinning)
@@ -650,6 +697,6 @@ def service_main(service_class: type[Service], argv: list[str] | None = None) ->
     logger.info("stopped")
     # The stop signal may come twice (the launcher and supervisord both send it); what
     # comes after this is the interpreter's exit.
-    for signum in (signal.SIGINT, signal.SIGTERM):
+    for signum in STOP_SIGNALS:
         signal.signal(signum, signal.SIG_IGN)
     return 0

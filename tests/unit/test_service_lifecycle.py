@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import logging
 import os
+import subprocess
+import sys
 import threading
 
 from teleop.bench.relay import FLOOR_STAND_INS, RELAYS, PlantRelay
@@ -180,3 +182,45 @@ def test_a_linked_session_that_is_no_participant_is_counted_logged_and_announced
     assert announced == [["cc03"]] and service.unknown_peers == ["cc03"]
     assert caplog.text.count("cc03") == 1
     assert service.summary()["unknown_peers"] == ["cc03"]
+
+
+# A process that takes the stop signal while its main thread holds the lock of the very
+# Event the signal sets (the main thread inside ``stop.wait()``, between two bytecodes).
+_SIGNAL_IN_WAIT = """
+import logging, os, signal, sys, threading, time
+from teleop.bus import service
+logging.basicConfig(level=logging.INFO, stream=sys.stderr)
+service.STOP_AGAIN_DUMP_S = float(sys.argv[1])
+stop = threading.Event()
+service.stop_on_signals(stop)
+with stop._cond:
+    os.kill(os.getpid(), signal.SIGINT)
+    time.sleep(0.2)
+    os.kill(os.getpid(), signal.SIGTERM)
+    time.sleep(0.2)
+print("stopped" if stop.wait(5.0) else "not stopped", flush=True)
+"""
+
+
+def _signal_in_wait(dump_after_s: float) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-c", _SIGNAL_IN_WAIT, str(dump_after_s)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+
+def test_a_stop_signal_in_the_middle_of_a_wait_stops_the_service():
+    done = _signal_in_wait(dump_after_s=60.0)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "stopped"
+    assert "signal SIGINT: stopping" in done.stderr
+    assert "signal SIGTERM again" in done.stderr and "Thread 0x" not in done.stderr
+
+
+def test_a_stop_signal_repeated_while_stopping_prints_where_each_thread_is():
+    done = _signal_in_wait(dump_after_s=0.0)
+    assert done.stdout.strip() == "stopped", done.stderr
+    assert "signal SIGTERM again" in done.stderr
+    assert "Thread 0x" in done.stderr and "in watch" in done.stderr
