@@ -13,7 +13,6 @@ import logging
 import sys
 import threading
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -24,7 +23,8 @@ from teleop.bus.service import Service, ServiceOptions, lower_priority_to, servi
 from teleop.bus.session import subscribe, subscribe_events, subscribe_frames
 from teleop.bus.topics import Topics
 from teleop.core.config import Config, ConfigError
-from teleop.core.rundir import RECORDER_SEGMENTS_FILE, RECORDING_FILE, robot_path
+from teleop.core.rundir import RECORDER_SEGMENTS_FILE, RECORDING_FILE
+from teleop.viz.entities import entity_roots
 from teleop.viz.recording import (
     BATCHED_STREAMS,
     BUFFER_CAPACITY_RECORDS,
@@ -32,15 +32,15 @@ from teleop.viz.recording import (
     LEVEL_WARN,
     STREAM_SCHEMAS,
     RecordingWriter,
-    claim_segment,
 )
+from teleop.viz.recording_file import RecordingFile, claim_segment
 
 logger = logging.getLogger(__name__)
 
 
 class RecorderService(Service):
     """Subscribes to every stream of each robot and hands it to that robot's
-    RecordingWriter."""
+    RecordingWriter, all of them writing one recording (a RecordingFile)."""
 
     name: ClassVar[str] = "recorder"
     writer_class: ClassVar[type[RecordingWriter]] = RecordingWriter
@@ -53,34 +53,26 @@ class RecorderService(Service):
         buffer_capacity: int = BUFFER_CAPACITY_RECORDS,
     ) -> None:
         super().__init__(config, options)
-        run_dir = self.options.run_dir
-        # One recording per robot (a run of several: <stem>-<robot_id>.rrd each, every one
-        # a whole single-robot recording that teleop view and teleop report read as is).
-        self.writers: list[RecordingWriter] = []
-        several = len(self.robot_topics) > 1
-        for i, topics in enumerate(self.robot_topics):
-            path, ledger = self._resolve_rrd_path(), None
-            if run_dir is not None:
-                ledger = run_dir / RECORDER_SEGMENTS_FILE
-            if several:
-                path = robot_path(path, topics.robot_id)
-                ledger = robot_path(ledger, topics.robot_id) if ledger is not None else None
-            own = config
-            if i:  # one live viewer at most: robot 0's
-                own = replace(config, recorder=replace(config.recorder, spawn=False))
-            segment = claim_segment(path, ledger)
-            self.writers.append(
-                self.writer_class(
-                    own, segment.path, self.drops, buffer_capacity=buffer_capacity, segment=segment
-                )
+        # One recording of every robot: a robot's entities under its id when there are
+        # several (teleop.viz.entities entity_roots), all in one 3D view.
+        ledger = None
+        if self.options.run_dir is not None:
+            ledger = self.options.run_dir / RECORDER_SEGMENTS_FILE
+        roots = entity_roots([t.robot_id for t in self.robot_topics])
+        self.file = RecordingFile(config, claim_segment(self._resolve_rrd_path(), ledger), roots)
+        self.writers: list[RecordingWriter] = [
+            self.writer_class(
+                config, self.file, self.drops, root=root, buffer_capacity=buffer_capacity
             )
+            for root in roots
+        ]
         self.writer = self.writers[0]
         self._subscribers: list[Any] = []
         self._recording_closed = False
 
     @property
     def rrd_path(self) -> Path:
-        return self.writer.rrd_path
+        return self.file.rrd_path
 
     def _resolve_rrd_path(self) -> Path:
         if self.config.recorder.rrd_path:
@@ -101,6 +93,7 @@ class RecorderService(Service):
             lower_priority_to(self.config.recorder.nice)
             super().open()
             assert self.session is not None
+            self.file.open()
             for topics, writer in zip(self.robot_topics, self.writers, strict=True):
                 self._subscribe_robot(topics, writer)
             self.announce()
@@ -163,11 +156,11 @@ class RecorderService(Service):
                     sub.undeclare()
                 except zenoh.ZError as exc:  # session already gone
                     logger.debug("undeclare %r: %s", sub, exc)
-            for writer in self.writers:
+            for close in (*(writer.close for writer in self.writers), self.file.close):
                 try:
-                    writer.close()
-                except Exception:  # the summary and the session close must still happen
-                    logger.exception("closing the Rerun recording %s failed", writer.rrd_path)
+                    close()
+                except Exception:  # the others, the summary and the session close go on
+                    logger.exception("closing the Rerun recording %s failed", self.file.rrd_path)
         super().close()
 
     def summary(self) -> dict[str, Any]:

@@ -315,7 +315,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="write the paper's figures (PNG) and a markdown summary of a recording",
         description=(
             "Read a .rrd back and write the paper's figures as PNG files and report.md "
-            "into <stem>_report/ next to it (or --out). With the run's summary (the "
+            "into <stem>_report/ next to it (or --out); a recording of several robots, "
+            "one report per robot in <stem>_report/<robot id>/. With the run's summary (the "
             "summary.json beside the recording, or --summary) the report opens with the "
             "run's verdict, judged by the same criteria as teleop run and teleop sweep."
         ),
@@ -602,15 +603,12 @@ def _run_and_report(
             return EXIT_FAILED
     _emit_summary(summary, _summary_path(args), args.json)
     if args.report:
-        from teleop.viz.report import write_report
+        from teleop.viz.report import write_reports
 
-        robots = summary.get("robots") or {}
-        # One report per recording: a robot's with its own section of the summary.
-        for section in [summary] if not robots else [{**summary, **s} for s in robots.values()]:
-            if section.get("rrd"):
-                report = write_report(
-                    Path(str(section["rrd"])), settle_s=config.run.settle_s, run_summary=section
-                )
+        if summary.get("rrd"):  # one report per robot, each with its section's verdict
+            for report in write_reports(
+                Path(str(summary["rrd"])), settle_s=config.run.settle_s, run_summary=summary
+            ):
                 print(f"report: {report.summary}", file=sys.stderr)
     if web is not None:
         print(f"web viewer: {web.url} (Ctrl-C to stop)", file=sys.stderr, flush=True)
@@ -725,19 +723,20 @@ def _view(args: argparse.Namespace) -> int:
 
 def _report(args: argparse.Namespace) -> int:
     from teleop.core.summary import SummaryError, read_run_summary
-    from teleop.viz.report import write_report
+    from teleop.viz.report import write_reports
     from teleop.viz.rrd import NotARecording
 
     settle_s = args.settle_s if args.settle_s is not None else load_config().run.settle_s
     try:
         run_summary = read_run_summary(args.summary) if args.summary is not None else None
-        report = write_report(args.rrd, args.out, settle_s=settle_s, run_summary=run_summary)
+        reports = write_reports(args.rrd, args.out, settle_s=settle_s, run_summary=run_summary)
     except (NotARecording, SummaryError) as exc:
         print(f"teleop: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    for figure in report.figures:
-        print(figure)
-    print(report.summary)
+    for report in reports:
+        for figure in report.figures:
+            print(figure)
+        print(report.summary)
     return 0
 
 

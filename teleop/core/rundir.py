@@ -72,9 +72,7 @@ _RUN_RESULT_GLOBS = (
     HAPTIC_SAMPLES_FILE,
     RECORDING_FILE,
     "recording.*.rrd",  # its later segments (segment_path)
-    "recording-*.rrd",  # each robot's in a run of several (and their segments)
     RECORDER_SEGMENTS_FILE,
-    "recorder.segments-*.json",
     f"*{CHECKPOINT_SUFFIX}",
     SUPERVISOR_LOG_FILE,
     SUPERVISOR_CONSOLE_FILE,
@@ -92,8 +90,8 @@ def clear_run_results(run_dir: Path) -> list[Path]:
     for path in removed:
         path.unlink(missing_ok=True)
     report = report_dir(run_dir / RECORDING_FILE)
-    if report.is_dir():
-        for path in report.iterdir():
+    if report.is_dir():  # its files, and each robot's of a run of several
+        for path in sorted(report.rglob("*")):
             if path.is_file():
                 path.unlink()
                 removed.append(path)
@@ -116,12 +114,6 @@ def segment_paths(rrd_path: Path) -> list[Path]:
     while (path := segment_path(rrd_path, len(paths))).is_file():
         paths.append(path)
     return paths
-
-
-def robot_path(path: Path, robot_id: str) -> Path:
-    """``path`` with ``-<robot_id>`` before its suffix: a robot's own file in a run of
-    several robots (its recording, its recorder's segment ledger)."""
-    return path.with_name(f"{path.stem}-{robot_id}{path.suffix}")
 
 
 def checkpoint_path(run_dir: Path, plant: str) -> Path:

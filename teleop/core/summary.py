@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 # Bumped when a field changes meaning or type or goes away (a new field does not bump it).
-SUMMARY_VERSION = 1
+SUMMARY_VERSION = 2
 VERSION_FIELD = "summary_version"
 
 # Which runs have a field.
@@ -172,13 +172,13 @@ SUMMARY_FIELDS: tuple[SummaryField, ...] = (
     F("eye_view", "object", SERVICES, "frames rendered and received, render time, latency",
       nullable=True),
     F("faults", "array", SERVICES, "what followed each injected fault (--kill, --freeze)"),
-    F("rrd", "string", SERVICES, "the Rerun recording", nullable=True),
+    F("rrd", "string", SERVICES, "the Rerun recording (of several robots: one of them "
+      "all, each robot's entities under its id)", nullable=True),
     F("cpu_s_per_sim_s", "object", SERVICES, "CPU seconds per simulated second of the "
       "robot's own processes (plant, controller, eye view), start-up included"),
     F("robots", "object", SERVICES, "a run of several robots (run.robots): a section per "
       "robot id with that robot's task, verdict and plant fields of this table, and its "
       "scenario (criteria.judge_summary judges a section as a run)"),
-    F("rrds", "array", SERVICES, "a run of several robots: every robot's recording"),
     F("run_dir", "string", SERVICES, "the run directory"),
     F("services", "object", SERVICES, "each service's own summary, by name"),
 )  # fmt: skip

@@ -910,7 +910,7 @@ def _robots_verdict(scenario: str, sections: Mapping[str, dict[str, Any]]) -> di
         "success": all(s.get("success") for s in sections.values()),
         "problems": [f"{rid}: {p}" for rid, s in sections.items() for p in s.get("problems", [])],
         "failure": next((s["failure"] for s in sections.values() if s.get("failure")), None),
-        "rrds": [s["rrd"] for s in sections.values() if s.get("rrd")],
+        "rrd": next((s["rrd"] for s in sections.values() if s.get("rrd")), None),
     }
 
 

@@ -6,7 +6,7 @@ read them) and the tests; nothing here imports Rerun.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 from teleop.bus.messages import Stage
 
@@ -83,6 +83,17 @@ ENTITY_TELEOP_SPEED_SCALE = "teleop/speed_scale"  # Scalars, 0 .. 1
 ENTITY_TELEOP_GRIPPER_CMD = "teleop/gripper_cmd"  # Scalars, 0 closed .. 1 open
 ENTITY_TELEOP_HOLDING = "teleop/holding"  # Scalars, 1 while an object is held
 AXES = ("x", "y", "z")  # suffixes of the per-coordinate scalar entities
+
+
+def entity_roots(robot_ids: Sequence[str]) -> tuple[str, ...]:
+    """The entity root of each robot of a recording: the empty root for one robot (its
+    entities as named above), each robot's id for several (``arm1/world/tool``)."""
+    return ("",) if len(robot_ids) <= 1 else tuple(robot_ids)
+
+
+def rooted(root: str, entity: str) -> str:
+    """``entity`` under a robot's entity root (the empty root: ``entity`` itself)."""
+    return f"{root}/{entity}" if root else entity
 
 
 def joint_entity(base: str, joint_name: str) -> str:

@@ -40,14 +40,10 @@ import io
 import json
 import logging
 import math
-import os
 import threading
 import time
-import uuid
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -70,11 +66,8 @@ from teleop.bus.stamps import SeqGaps
 from teleop.control.path import DesiredPath
 from teleop.control.teleop import view_to_world
 from teleop.core.config import Config, ModelError
-from teleop.core.rundir import segment_path
 from teleop.sim.stepping import Abort
-from teleop.viz.blueprint import build_blueprint
 from teleop.viz.entities import (
-    APPLICATION_ID,
     AXES,
     ENTITY_CONTACT_COUNT,
     ENTITY_CONTACT_FORCE,
@@ -130,16 +123,12 @@ from teleop.viz.entities import (
     object_entity,
     rate_entity,
 )
+from teleop.viz.recording_file import RecordingFile, RootedStream
 from teleop.viz.scene3d import SceneModel, ghost_entity, ghost_rgba
-from teleop.viz.viewer import grpc_url, listening
 
 logger = logging.getLogger(__name__)
 
 # --- Tuning -------------------------------------------------------------------------------
-# The port a spawned native viewer listens on (Rerun's default), and how long one attempt
-# to connect to it may take (s; the spawn has already waited for the viewer to start).
-VIEWER_PORT = 9876
-VIEWER_PROBE_S = 1.0
 # Per-stream buffer bound (records): 20 s of a 1 kHz stream, about 6 MB of PLANT_STATE.
 # A flush that falls further behind drops the oldest records and counts them.
 BUFFER_CAPACITY_RECORDS = 20_000
@@ -170,8 +159,6 @@ EYE_VIEW_BUFFER_FRAMES = 32
 EYE_VIEW_LATENCY_SAMPLES = 100_000
 NS_PER_MS = 1_000_000
 JPEG_MEDIA_TYPE = "image/jpeg"
-# How long close() waits for Rerun to write the last chunks to the file (s).
-RRD_FLUSH_TIMEOUT_S = 10.0
 # TextLog level of each run event; the watchdog braking is worth a warning.
 LEVEL_INFO = "INFO"  # Rerun TextLog level names
 LEVEL_WARN = "WARN"
@@ -256,47 +243,6 @@ def event_text(event: int, step: int, value: float) -> str:
     return f"{text} (value {value:g})" if value else text
 
 
-@dataclass(frozen=True)
-class Segment:
-    """The part of a run's recording one recorder process writes: the first, or the
-    next one after a restart; every segment of a run has the run's Rerun recording id, so
-    a viewer given them all shows one recording."""
-
-    index: int
-    path: Path  # this segment's file
-    recording_id: str
-    recording_path: Path  # the recording's (its first segment's): what a reader opens
-
-
-def claim_segment(rrd_path: Path, ledger: Path | None) -> Segment:
-    """This recorder's segment of the recording ``rrd_path``, from the run's ``ledger``
-    (None: a recorder without a run directory, always the first segment).
-
-    No ledger yet: the run's first recorder; it takes ``rrd_path`` itself and removes
-    stale later segments beside it (of an earlier run). A ledger: a restarted recorder;
-    it takes the next segment, never an existing file. The ledger is updated atomically.
-    """
-    segments: list[str] = []
-    recording_id = uuid.uuid4().hex
-    if ledger is not None and ledger.exists():
-        known = json.loads(ledger.read_text())
-        segments, recording_id = list(known["segments"]), str(known["recording_id"])
-    else:
-        index = 1
-        while (stale := segment_path(rrd_path, index)).exists():
-            stale.unlink()
-            index += 1
-    index = len(segments)
-    segment = Segment(index, segment_path(rrd_path, index), recording_id, rrd_path)
-    if ledger is not None:
-        ledger.parent.mkdir(parents=True, exist_ok=True)
-        tmp = ledger.with_name(ledger.name + ".tmp")
-        text = {"recording_id": recording_id, "segments": [*segments, str(segment.path)]}
-        tmp.write_text(json.dumps(text, indent=2) + "\n")
-        os.replace(tmp, ledger)
-    return segment
-
-
 class StreamBuffer:
     """Bounded FIFO of one stream's records, filled by a Zenoh callback.
 
@@ -376,7 +322,7 @@ class EyeViewFrames:
             latency["publish_to_received"].append(rx_ns - int(rec["publish_ns"]))
             self._cond.notify_all()
 
-    def write(self, stream: rr.RecordingStream) -> None:
+    def write(self, stream: RootedStream) -> None:
         """Log every buffered frame at its own times: one ``send_columns`` per flush.
 
         (``send_columns`` rather than ``log``: no wall-clock ``log_time`` column, like
@@ -432,40 +378,31 @@ class EyeViewFrames:
         return out
 
 
-VIEWER_SPAWNED = "spawned"
-VIEWER_NOT_REQUESTED = "not requested"
-
-
-def no_display_reason(environ: Mapping[str, str]) -> str | None:
-    """Why a native window cannot open in this environment (None: it may): no X11
-    display and no Wayland one."""
-    if any(environ.get(name) for name in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET")):
-        return None
-    return "no display (DISPLAY and WAYLAND_DISPLAY unset)"
-
-
 class RecordingWriter:
-    """Every stream of a robot, buffered as it arrives and logged to a Rerun recording.
+    """Every stream of one robot, buffered as it arrives and logged to the run's
+    recording (a :class:`~teleop.viz.recording_file.RecordingFile`), under the robot's
+    entity ``root``.
 
-    The recording is its own ``RecordingStream`` (no global Rerun state), saved to
-    ``rrd_path`` and streamed to a spawned native viewer as well when
-    ``recorder.spawn`` is set. Bus callbacks feed :attr:`buffers` (one per stream, a
-    :class:`StreamBuffer` is a record callback) and :attr:`eye_view`; :meth:`flush` logs
-    what they hold; ``drops`` is the receiver's count of bad records (for the event log).
+    Bus callbacks feed :attr:`buffers` (one per stream, a :class:`StreamBuffer` is a
+    record callback) and :attr:`eye_view`; :meth:`flush` logs what they hold; ``drops``
+    is the receiver's count of bad records (for the event log). The file is opened
+    before :meth:`open` and closed after :meth:`close`, by its owner.
     """
 
     def __init__(
         self,
         config: Config,
-        rrd_path: Path,
+        file: RecordingFile,
         drops: DropCounter,
         *,
+        root: str = "",
         buffer_capacity: int = BUFFER_CAPACITY_RECORDS,
-        segment: Segment | None = None,
     ) -> None:
         self.config = config
-        self.segment = segment or Segment(0, rrd_path, uuid.uuid4().hex, rrd_path)
-        self.rrd_path = self.segment.path
+        self.file = file
+        self.segment = file.segment
+        self.rrd_path = file.rrd_path
+        self.root = root
         self.drops = drops
         self._cond = threading.Condition()
         self.buffers = {
@@ -489,9 +426,7 @@ class RecordingWriter:
         }
         self._joint_names: Sequence[str] = config.robot.arm_joints[:MAX_JOINTS]
         self._object_names: Sequence[str] = config.robot.object_bodies[:MAX_OBJECTS]
-        self._rec: rr.RecordingStream | None = None
-        # The live viewer (recorder.spawn): VIEWER_SPAWNED, or why none was.
-        self.viewer = VIEWER_NOT_REQUESTED
+        self._rec: RootedStream | None = None
         self._logged = dict.fromkeys(STREAM_SCHEMAS, 0)
         self._flushes = 0
         self._flush_wall_s_max = 0.0
@@ -537,50 +472,12 @@ class RecordingWriter:
         self._lines_lock = threading.Lock()
 
     # -- lifecycle ---------------------------------------------------------------------
-    def _spawn_viewer(self, rec: rr.RecordingStream) -> str:
-        """Start the native viewer beside the file; VIEWER_SPAWNED, or why not.
-
-        A recording that also streams to a viewer that never came up (no display: it
-        exits at once) stalls on that sink, and the file got a tenth of the run. So
-        without a display no viewer is started, and one that does not listen after
-        Rerun's own start-up wait gets no stream: the file alone has the run."""
-        reason = no_display_reason(os.environ)
-        if reason is None:
-            rec.spawn(port=VIEWER_PORT, connect=False)
-            if not listening(VIEWER_PORT, VIEWER_PROBE_S):
-                reason = f"the spawned viewer does not listen on port {VIEWER_PORT}"
-        if reason is None:
-            return VIEWER_SPAWNED
-        logger.warning(
-            "recorder.spawn: %s: no live viewer; the whole run is in %s (teleop view)",
-            reason,
-            self.rrd_path,
-        )
-        return f"not spawned: {reason}"
-
     def open(self) -> None:
-        """Open the recording: the file (and viewer), the blueprint, the static scene."""
-        self._rec = self._open_recording()
+        """Log this robot's static entities (the scene, frames, plot styles) into the
+        open file."""
+        self._rec = rec = self.file.stream(self.root)
         # A later segment says so in the event log, at the sim time of its first states.
         self._segment_announced = self.segment.index == 0
-
-    def _open_recording(self) -> rr.RecordingStream:
-        self.rrd_path.parent.mkdir(parents=True, exist_ok=True)
-        rec = rr.RecordingStream(APPLICATION_ID, recording_id=self.segment.recording_id)
-        # No footer: a footer's manifest keeps every chunk's metadata in memory until the
-        # file closes, and the recorder's RSS grew with the file (about 1.3 MB/s of a
-        # realtime grasp); streamed without one it stays flat. The file is still a
-        # complete recording (rerun.chunk.RrdReader and the viewer read it in order).
-        sinks: list[Any] = [rr.FileSink(self.rrd_path, write_footer=False)]
-        if self.config.recorder.spawn:
-            self.viewer = self._spawn_viewer(rec)
-            if self.viewer == VIEWER_SPAWNED:
-                sinks.append(rr.GrpcSink(grpc_url(VIEWER_PORT)))
-        if self.config.recorder.grpc_url:
-            sinks.append(rr.GrpcSink(self.config.recorder.grpc_url))
-        rec.set_sinks(*sinks)
-
-        rec.send_blueprint(build_blueprint(self.config))
         self._log_static_scene(rec)
         # Frames are drawn as axes; these are static and never change during a run.
         for entity in (ENTITY_TOOL, *(object_entity(n) for n in self._object_names)):
@@ -602,9 +499,8 @@ class RecordingWriter:
                 rr.Arrows3D.from_fields(colors=[color]),
                 static=True,
             )
-        return rec
 
-    def _log_static_scene(self, rec: rr.RecordingStream) -> None:
+    def _log_static_scene(self, rec: RootedStream) -> None:
         """World axes, the model's geoms, the desired path and the plot series' styles."""
         rec.log(ENTITY_WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         if self._scene is not None:
@@ -646,7 +542,8 @@ class RecordingWriter:
             self._lines.append((time.monotonic_ns(), self._sim_time_ns, level, text))
 
     def close(self) -> None:
-        """Log what is left and the stats, then close the file. Safe to call twice."""
+        """Log what is left and the stats (the file stays open for its owner to close).
+        Safe to call twice."""
         if self._rec is None:
             return
         self.flush()
@@ -657,8 +554,6 @@ class RecordingWriter:
             rr.TextDocument(json.dumps(self.stats(), indent=2), media_type="text/markdown"),
             static=True,
         )
-        self._rec.flush(timeout_sec=RRD_FLUSH_TIMEOUT_S)
-        self._rec.disconnect()
         self._rec = None
 
     # -- flushing ----------------------------------------------------------------------
@@ -1172,7 +1067,7 @@ class RecordingWriter:
             "overflow_drops": overflow,
             "decode_drops": self.drops.total,
             "rerun_errors": self._rerun_errors,
-            "viewer": self.viewer,
+            "viewer": self.file.viewer,
             "flushes": self._flushes,
             "flush_wall_s_max": self._flush_wall_s_max,
             "flush_wall_s_total": self._flush_wall_s_total,

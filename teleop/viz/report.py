@@ -10,7 +10,8 @@ figures and a short markdown summary into ``<recording stem>_report/`` next to i
   passivity observer's energy;
 - both: loop rates and per-hop latency.
 
-Only figures whose data the recording holds are drawn.
+Only figures whose data the recording holds are drawn. A recording of several robots
+gets a report per robot, in ``<stem>_report/<robot id>/``.
 """
 
 from __future__ import annotations
@@ -60,7 +61,8 @@ FIG7_MIN_TIP_SPACING_M = 0.04
 
 @dataclass
 class Report:
-    """What :func:`write_report` produced: the directory, the figures, the summary."""
+    """What :func:`write_reports` produced for one robot: the directory, the figures,
+    the summary."""
 
     out_dir: Path
     figures: list[Path] = field(default_factory=list)
@@ -433,10 +435,10 @@ def _segments_text(rec: rrd.Recording) -> list[str]:
 
 
 def _summary_text(
-    path: Path, report: Report, events: Sequence[str], stats: dict, segments: Sequence[str] = ()
+    title: str, report: Report, events: Sequence[str], stats: dict, segments: Sequence[str] = ()
 ) -> str:
     m = report.metrics
-    lines = [f"# Run report: {path.name}", "", *segments]
+    lines = [f"# Run report: {title}", "", *segments]
     if "path_error_rms_mm" in m:
         lines += [
             "## Path following (paper experiment 1)",
@@ -510,25 +512,47 @@ def verdict_text(run_summary: Mapping[str, Any]) -> list[str]:
     return [*lines, ""] if verdict.problems else lines
 
 
-def write_report(
+def write_reports(
     rrd_path: str | Path,
     out_dir: str | Path | None = None,
     settle_s: float = DEFAULT_SETTLE_S,
     run_summary: Mapping[str, Any] | None = None,
-) -> Report:
-    """Read ``rrd_path`` back and write the figures and ``report.md`` into ``out_dir``;
-    with ``run_summary`` (the run's summary; default: the ``summary.json`` beside the
-    recording, if any) the report opens with the run's verdict. SummaryError if that
-    file is no run summary of this version."""
+) -> list[Report]:
+    """Read ``rrd_path`` back and write the figures and ``report.md`` of each robot it
+    holds: into ``out_dir`` (default: ``<stem>_report/`` beside it) for one robot, into
+    ``out_dir/<robot id>/`` each for several. With ``run_summary`` (the run's summary;
+    default: the ``summary.json`` beside the recording, if any) each report opens with
+    its robot's verdict. SummaryError if that file is no run summary of this version."""
     path = Path(rrd_path)
     if not path.is_file():
         raise FileNotFoundError(f"no recording {path}")
     beside = path.parent / RUN_SUMMARY_FILE
     if run_summary is None and beside.exists():
         run_summary = read_run_summary(beside)
-    report = Report(Path(out_dir) if out_dir is not None else default_out_dir(path))
-    report.out_dir.mkdir(parents=True, exist_ok=True)
+    out = Path(out_dir) if out_dir is not None else default_out_dir(path)
     rec = rrd.Recording(path)
+    roots = rec.robots or [""]
+    reports = []
+    for root in roots:
+        section = run_summary
+        if root and run_summary is not None and root in (run_summary.get("robots") or {}):
+            section = {**run_summary, **run_summary["robots"][root]}
+        own_out = out / root if root else out
+        reports.append(_write_report(path, rec.under(root), own_out, settle_s, section, root))
+    return reports
+
+
+def _write_report(
+    path: Path,
+    rec: rrd.Recording,
+    out_dir: Path,
+    settle_s: float,
+    run_summary: Mapping[str, Any] | None,
+    robot: str,
+) -> Report:
+    """One robot's report (``rec`` that robot's entities) into ``out_dir``."""
+    report = Report(out_dir)
+    report.out_dir.mkdir(parents=True, exist_ok=True)
     sim = rec.scalars(r.TIMELINE_SIM)
     t0 = _start_s(sim)
     _fig_stroboscopic(rec, report)
@@ -550,8 +574,9 @@ def write_report(
         _fig_passivity(sim, report, t0)
     _fig_timing(rec, report)
     verdict = verdict_text(run_summary) if run_summary is not None else []
+    title = f"{path.name}, robot {robot}" if robot else path.name
     summary = _summary_text(
-        path, report, _events(rec), _stats(rec), [*verdict, *_segments_text(rec)]
+        title, report, _events(rec), _stats(rec), [*verdict, *_segments_text(rec)]
     )
     report.summary = report.out_dir / REPORT_SUMMARY_FILE
     report.summary.write_text(summary)

@@ -5,11 +5,14 @@ and the later segments a restarted recorder wrote beside it (teleop.core.rundir
 ``segment_path``), are decoded once into Arrow record batches grouped by entity
 (:class:`Recording`): one timeline, with the gaps between segments known
 (:meth:`Recording.gaps`). The helpers then pick columns from memory. Duration and
-timestamp time columns come back as int nanoseconds.
+timestamp time columns come back as int nanoseconds. A recording of several robots
+holds each robot's entities under its id (:attr:`Recording.robots`); :meth:`Recording.under`
+reads one robot's as a one-robot recording's.
 """
 
 from __future__ import annotations
 
+import copy
 from collections import defaultdict
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -22,7 +25,7 @@ import pyarrow.compute as pc
 from rerun.chunk import RrdReader
 
 from teleop.core.rundir import segment_paths
-from teleop.viz.entities import TIMELINE_SIM
+from teleop.viz.entities import ENTITY_WORLD, TIMELINE_SIM
 
 SCALARS_COLUMN = "Scalars:scalars"  # the value column of a Scalars archetype
 
@@ -113,6 +116,31 @@ class Recording:
     @property
     def entities(self) -> list[str]:
         return sorted(self.batches)
+
+    @property
+    def robots(self) -> list[str]:
+        """The entity root of each robot recorded (teleop.viz.entities ``entity_roots``):
+        ``[""]`` for a one-robot recording, the robot ids for several ([]: no 3D scene
+        was logged, so no robot known)."""
+        if ENTITY_WORLD in self.batches:
+            return [""]
+        suffix = "/" + ENTITY_WORLD
+        return sorted(
+            e[: -len(suffix)] for e in self.batches if e.endswith(suffix) and e.count("/") == 1
+        )
+
+    def under(self, root: str) -> Recording:
+        """The entities under one robot's entity ``root``, named as in a one-robot
+        recording (the empty root: this recording). Shares this one's data."""
+        if not root:
+            return self
+        prefix = root + "/"
+        view = copy.copy(self)
+        view.batches = defaultdict(list)
+        for entity, batches in self.batches.items():
+            if entity.startswith(prefix):
+                view.batches[entity[len(prefix) :]] = batches
+        return view
 
     def lists(self, entities: Iterable[str] | None = None) -> dict[str, dict[str, list[Any]]]:
         """{entity: {column: values}} as Python lists, rows in chunk order.

@@ -31,7 +31,7 @@ from teleop.run.supervise import Stack
 from teleop.viz import entities as ent
 from teleop.viz import recording
 from teleop.viz.blueprint import view_specs
-from teleop.viz.report import write_report
+from teleop.viz.report import write_reports
 from teleop.viz.rrd import Recording
 from teleop.viz.scene3d import ENTITY_GHOSTS, SceneModel
 from tests.e2e.hosts import Host, HostsUnavailable, two_hosts
@@ -319,7 +319,7 @@ def test_grasp_recording_holds_every_entity_the_blueprint_shows(obstacle_run):
 def test_report_writes_the_paper_figures(obstacle_run, tmp_path):
     summary, run_dir = obstacle_run
     written = read_run_summary(run_dir.parent / "obstacle.json")  # the run's --summary-json
-    report = write_report(summary["rrd"], tmp_path / "report", run_summary=written)
+    (report,) = write_reports(summary["rrd"], tmp_path / "report", run_summary=written)
     names = {p.name for p in report.figures}
     assert names == {
         "fig7_stroboscopic.png",

@@ -3,9 +3,11 @@ two controllers under supervisord, each under its own robot id, one operator sta
 (haptic device, HMD, scripted operator, recorder) driving them in turn.
 
 One lockstep run (deterministic): both tasks succeed; the handle drives one robot at a
-time (the other's recording shows a centred handle); each robot's section of the summary
-is judged again the same way; each robot has its own recording. That a robot's processes
-are kept to its own keys is tests/integration/test_access.py's.
+time (each robot's handle is recorded centred while the other is driven); each robot's
+section of the summary is judged again the same way; one recording holds both robots,
+side by side in its 3D view, and ``--report`` writes a report per robot with its own
+verdict. That a robot's processes are kept to its own keys is
+tests/integration/test_access.py's.
 """
 
 from __future__ import annotations
@@ -15,7 +17,9 @@ import pytest
 
 from teleop.core.config import load_config
 from teleop.core.criteria import judge_summary
+from teleop.core.rundir import RECORDING_FILE, REPORT_SUMMARY_FILE, report_dir
 from teleop.viz import entities as ent
+from teleop.viz.blueprint import view_specs
 from teleop.viz.rrd import Recording
 from tests.e2e.test_grasp import assert_physical, grasp
 
@@ -25,7 +29,10 @@ ROBOTS = ("arm0", "arm1")
 @pytest.fixture(scope="module")
 def two_robots(tmp_path_factory) -> dict:
     tmp_path = tmp_path_factory.mktemp("robots")
-    return grasp(tmp_path, "two", "--mode", "lockstep", "--seed", "0", "--robots", "2")
+    summary = grasp(
+        tmp_path, "two", "--mode", "lockstep", "--seed", "0", "--robots", "2", "--report"
+    )
+    return {**summary, "report_dir": report_dir(tmp_path / "two" / RECORDING_FILE)}
 
 
 def test_both_robots_tasks_succeed_one_after_the_other(two_robots):
@@ -52,17 +59,27 @@ def test_both_robots_tasks_succeed_one_after_the_other(two_robots):
     assert summary["dropped_messages"] == 0 and summary["unlinked_peers"] == {}
 
 
-def test_each_robot_records_its_own_handle_centred_while_the_other_is_driven(two_robots):
+def test_one_recording_shows_both_robots_each_handle_centred_while_the_other_is_driven(
+    two_robots,
+):
     summary = two_robots
     switch_ns = round(
         summary["services"]["haptic"]["robot_switches"][0]["tick"]
         * load_config().plant.timestep_s * 1e9
     )  # fmt: skip
-    rrds = [summary["robots"][r]["rrd"] for r in ROBOTS]
-    assert summary["rrds"] == rrds and len(set(rrds)) == 2
+    assert all(summary["robots"][r]["rrd"] == summary["rrd"] for r in ROBOTS)
+    rec = Recording(summary["rrd"])
+    assert rec.robots == list(ROBOTS)
+    config = load_config(None, ['run.scenario="grasp"', "run.robots=2"])
+    for spec in view_specs(config):  # both worlds in the 3D view, every plot fed
+        for entity in spec.entities:
+            assert entity in rec.batches, entity
+        for root in spec.subtrees:
+            if not root.endswith(ent.ENTITY_EYE_VIEW):  # rendered in realtime runs only
+                assert any(e.startswith(root + "/") for e in rec.batches), root
     handles = []
-    for rrd in rrds:
-        series = Recording(rrd).scalars(ent.TIMELINE_SIM)
+    for robot_id in ROBOTS:
+        series = rec.under(robot_id).scalars(ent.TIMELINE_SIM)
         axes = [series[ent.axis_entity(ent.ENTITY_HAPTIC_P, a)] for a in ent.AXES]
         handles.append((axes[0].t_ns, np.abs(np.stack([s.values for s in axes])).max(axis=0)))
     (t0, handle0), (t1, handle1) = handles
@@ -70,3 +87,12 @@ def test_each_robot_records_its_own_handle_centred_while_the_other_is_driven(two
     assert handle0[t0 >= switch_ns].max() == 0.0  # then centred
     assert handle1[t1 < switch_ns].max() == 0.0  # arm1 waits, its handle centred
     assert handle1[t1 >= switch_ns].max() > 0.005  # then driven
+
+
+def test_the_report_has_a_part_per_robot_with_its_own_verdict(two_robots):
+    for robot_id in ROBOTS:
+        text = (two_robots["report_dir"] / robot_id / REPORT_SUMMARY_FILE).read_text()
+        assert text.startswith(f"# Run report: {RECORDING_FILE}, robot {robot_id}")
+        assert "- task: success (grasp" in text
+        figures = list((two_robots["report_dir"] / robot_id).glob("*.png"))
+        assert len(figures) >= 3, figures

@@ -38,7 +38,7 @@ from teleop.core.config import load_config
 from teleop.viz import entities as ent
 from teleop.viz import recording
 from teleop.viz.blueprint import view_specs
-from teleop.viz.report import write_report
+from teleop.viz.report import write_reports
 from teleop.viz.rrd import Recording
 
 RUN_TIMEOUT_S = 300.0  # the whole --web run, start-up included (a loaded 2-core machine)
@@ -245,7 +245,7 @@ def test_path_following_recording_holds_what_its_blueprint_shows(web_run):
 
 
 def test_report_draws_the_path_following_figures(web_run, tmp_path):
-    report = write_report(web_run["rrd"], tmp_path, settle_s=1.0)
+    (report,) = write_reports(web_run["rrd"], tmp_path, settle_s=1.0)
     assert {p.name for p in report.figures} == {
         "fig7_stroboscopic.png",
         "fig8_desired_vs_actual_path.png",

@@ -28,9 +28,10 @@ from teleop.bus import session as bus
 from teleop.bus.service import ServiceOptions
 from teleop.core.config import Config, ConfigError, load_config
 from teleop.core.rundir import RECORDER_SEGMENTS_FILE, RECORDING_FILE, summary_path
+from teleop.viz import blueprint, recording
 from teleop.viz import entities as ent
-from teleop.viz import recording
-from teleop.viz.report import write_report
+from teleop.viz.recording_file import RecordingFile, Segment, no_display_reason
+from teleop.viz.report import write_reports
 from teleop.viz.rrd import Recording, read_rrd
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")
@@ -218,12 +219,17 @@ class Rig:
     thread: threading.Thread
 
     def publish(
-        self, counts: dict[str, int], first: int = 0, received: dict[str, int] | None = None
+        self,
+        counts: dict[str, int],
+        first: int = 0,
+        received: dict[str, int] | None = None,
+        robot: int = 0,
     ) -> None:
         """Send records ``first .. first + counts[stream] - 1`` of each stream, interleaved,
-        then wait until the recorder has received them all (``received`` records per
-        stream in total; default ``first + counts[stream]``)."""
-        topics = self.service.topics
+        under the keys of the run's robot ``robot``, then wait until the recorder has
+        received them all (``received`` records per stream in total; default ``first +
+        counts[stream]``)."""
+        topics = self.service.robot_topics[robot]
         pubs = {  # plant states go on their observers' copy, here one record per message
             s: bus.Publisher.declare(
                 self.session,
@@ -240,7 +246,8 @@ class Rig:
                     if i < n:
                         pubs[stream].put(build(stream, first + i))
             expected = received or {s: first + n for s, n in counts.items()}
-            assert self.service.writer.wait_received(expected, TIMEOUT_S), "recorder missed records"
+            writer = self.service.writers[robot]
+            assert writer.wait_received(expected, TIMEOUT_S), "recorder missed records"
         finally:
             for pub in pubs.values():
                 pub.undeclare()
@@ -256,9 +263,9 @@ class Rig:
 def rig_factory(tmp_path: Path) -> Iterator[Any]:
     rigs: list[Rig] = []
 
-    def start(service_class: type[r.RecorderService] = r.RecorderService) -> Rig:
+    def start(service_class: type[r.RecorderService] = r.RecorderService, *overrides: str) -> Rig:
         endpoint = free_endpoint()
-        config = make_config(tmp_path / "out" / "rec.rrd", endpoint)
+        config = make_config(tmp_path / "out" / "rec.rrd", endpoint, *overrides)
         service = service_class(config, ServiceOptions(run_dir=tmp_path, listen=True))
         service.open()
         stop = threading.Event()
@@ -267,7 +274,8 @@ def rig_factory(tmp_path: Path) -> Iterator[Any]:
         session = bus.open_session(config.bus, listen=False)
         rig = Rig(service, session, stop, thread)
         rigs.append(rig)
-        bus.wait_alive(session, service.topics, [r.RecorderService.name], TIMEOUT_S)
+        for topics in service.robot_topics:
+            bus.wait_alive(session, topics, [r.RecorderService.name], TIMEOUT_S)
         return rig
 
     yield start
@@ -594,10 +602,12 @@ def test_a_restarted_recorder_writes_the_next_segment_and_the_reader_joins_them(
     for first, last in spans:
         service = r.RecorderService(config, options)
         writer = service.writer
+        service.file.open()
         writer.open()
         for i in range(first, last):
             writer.buffers["plant_state"](build("plant_state", i), 0)
         writer.close()  # a killed recorder flushed until its end: same files, less data
+        service.file.close()
         paths.append(service.rrd_path)
     assert paths == [tmp_path / RECORDING_FILE, tmp_path / "recording.1.rrd"]
     rec = Recording(tmp_path / RECORDING_FILE)
@@ -609,7 +619,7 @@ def test_a_restarted_recorder_writes_the_next_segment_and_the_reader_joins_them(
     texts = [t for rows in rec.column(ent.ENTITY_RECORDER_EVENTS, "TextLog:text").values()
              for row in rows for t in row]  # fmt: skip
     assert any("recorder restarted: segment 1" in t for t in texts)
-    report = write_report(tmp_path / RECORDING_FILE)
+    (report,) = write_reports(tmp_path / RECORDING_FILE)
     text = report.summary.read_text()
     assert "recording.1.rrd" in text and f"from sim {sim_ns(39) * 1e-9:.3f} s" in text
     # A new run (no ledger: the launcher clears it) starts over and drops stale segments.
@@ -618,11 +628,56 @@ def test_a_restarted_recorder_writes_the_next_segment_and_the_reader_joins_them(
     assert not paths[1].exists()
 
 
+def test_several_robots_are_recorded_side_by_side_in_one_recording(rig_factory, tmp_path):
+    """A run of two robots: one file, each robot's entities under its id, its world
+    placed beside the other's, the blueprint's views all fed, a report per robot."""
+    rig = rig_factory(r.RecorderService, "run.robots=2", 'run.scenario="grasp"')
+    robots = [t.robot_id for t in rig.service.robot_topics]
+    assert robots == [f"{ROBOT}0", f"{ROBOT}1"]
+    streams = ("plant_state", "teleop_status", "force_feedback", "haptic_state")
+    counts = (dict.fromkeys(streams, 40), dict.fromkeys(streams, 60))
+    for robot, sent in enumerate(counts):
+        rig.publish(sent, robot=robot)
+    rig.finish()
+
+    summary = json.loads(summary_path(tmp_path, "recorder").read_text())
+    for robot_id, sent in zip(robots, counts, strict=True):
+        logged = summary["robots"][robot_id]["samples_logged"]
+        assert {s: logged[s] for s in sent} == sent, robot_id
+        assert summary["robots"][robot_id]["rrd_path"] == str(rig.service.rrd_path)
+    rec = Recording(rig.service.rrd_path)
+    assert rec.robots == robots
+    q = ent.joint_entity(ent.ENTITY_JOINT_Q, JOINTS[0])
+    assert q not in rec.batches  # nothing of a robot outside its root
+    for robot_id, sent in zip(robots, counts, strict=True):
+        series_q = rec.under(robot_id).scalars(ent.TIMELINE_SIM)[q]
+        assert list(series_q.t_ns) == [sim_ns(i) for i in range(sent["plant_state"])]
+    for index, robot_id in enumerate(robots):  # each world beside the other
+        placed = np.reshape(rec.lists([robot_id])[robot_id]["Transform3D:translation"], -1)
+        assert placed == pytest.approx(blueprint.robot_offset_m(index))
+    assert blueprint.robot_offset_m(0) != blueprint.robot_offset_m(1)
+    specs = blueprint.view_specs(rig.service.config)
+    (scene,) = [spec for spec in specs if spec.kind == "3d"]
+    assert scene.subtrees == tuple(f"{r_id}/{ent.ENTITY_WORLD}" for r_id in robots)
+    for spec in specs:
+        for root in spec.subtrees:
+            if not root.endswith(ent.ENTITY_EYE_VIEW):  # no eye view in this test
+                assert any(e == root or e.startswith(root + "/") for e in rec.batches), root
+        for entity in spec.entities:
+            assert entity.split("/")[0] in robots and entity in rec.batches, entity
+
+    reports = write_reports(rig.service.rrd_path, tmp_path / "report")
+    assert [rep.out_dir for rep in reports] == [tmp_path / "report" / r_id for r_id in robots]
+    for robot_id, rep in zip(robots, reports, strict=True):
+        assert rep.summary is not None
+        assert rep.summary.read_text().startswith(f"# Run report: rec.rrd, robot {robot_id}")
+
+
 def test_no_display_reason_reads_the_x11_and_wayland_variables():
-    assert recording.no_display_reason({}) is not None
-    assert recording.no_display_reason({"DISPLAY": ""}) is not None
-    assert recording.no_display_reason({"DISPLAY": ":0"}) is None
-    assert recording.no_display_reason({"WAYLAND_DISPLAY": "wayland-0"}) is None
+    assert no_display_reason({}) is not None
+    assert no_display_reason({"DISPLAY": ""}) is not None
+    assert no_display_reason({"DISPLAY": ":0"}) is None
+    assert no_display_reason({"WAYLAND_DISPLAY": "wayland-0"}) is None
 
 
 def test_spawn_without_a_display_records_the_whole_run_to_the_file(tmp_path, monkeypatch):
@@ -632,11 +687,14 @@ def test_spawn_without_a_display_records_the_whole_run_to_the_file(tmp_path, mon
     for name in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"):
         monkeypatch.delenv(name, raising=False)
     config = make_config(tmp_path / "spawn.rrd", free_endpoint(), "recorder.spawn=true")
-    writer = recording.RecordingWriter(config, tmp_path / "spawn.rrd", m.DropCounter())
+    file = RecordingFile(config, Segment.only(tmp_path / "spawn.rrd"))
+    writer = recording.RecordingWriter(config, file, m.DropCounter())
+    file.open()
     writer.open()
     for i in range(50):
         writer.buffers["plant_state"](build("plant_state", i), 0)
     writer.close()
+    file.close()
     assert writer.stats()["viewer"].startswith("not spawned: no display")
     rec = Recording(tmp_path / "spawn.rrd")
     q = rec.scalars(ent.TIMELINE_SIM)[ent.joint_entity(ent.ENTITY_JOINT_Q, JOINTS[0])]

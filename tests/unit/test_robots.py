@@ -13,11 +13,10 @@ from teleop.bus.access import Credentials, access_control, participant_robots
 from teleop.core.config import ConfigError, load_config
 from teleop.core.net import LoopbackPorts
 from teleop.core.rundir import (
-    RECORDER_SEGMENTS_FILE,
     RECORDING_FILE,
     checkpoint_path,
     clear_run_results,
-    robot_path,
+    report_dir,
     shed_path,
     summary_path,
 )
@@ -109,11 +108,11 @@ def test_each_robots_files_are_its_own_and_a_new_run_clears_them(tmp_path):
         checkpoint_path(tmp_path, "plant-arm1"),
         shed_path(tmp_path, "controller-arm1"),
         summary_path(tmp_path, "plant-arm1"),
-        robot_path(tmp_path / RECORDING_FILE, "arm1"),
-        robot_path(tmp_path / RECORDER_SEGMENTS_FILE, "arm1"),
+        report_dir(tmp_path / RECORDING_FILE) / "arm1" / "report.md",
     ]
     assert checkpoint_path(tmp_path, "plant") != paths[0]
     for path in paths:
+        path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text("stale")
     assert sorted(clear_run_results(tmp_path)) == sorted(paths)
 

@@ -1,0 +1,190 @@
+"""The Rerun recording a recorder writes: its file (and live viewer), its segments, and
+the entity root each robot's writer logs under.
+
+One :class:`RecordingFile` per recorder process, whatever the number of robots: the
+file, the sinks (a spawned viewer, a gRPC URL), the blueprint and, in a run of several
+robots, where each robot stands in the 3D scene. Each robot's
+:class:`~teleop.viz.recording.RecordingWriter` logs through :meth:`RecordingFile.stream`,
+under its robot's entity root (teleop.viz.entities ``entity_roots``): a one-robot
+recording has the entity paths of entities.py as they are, a recording of several has
+them under each robot's id (``arm1/world/tool``), every robot in one 3D view.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import uuid
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import rerun as rr
+
+from teleop.core.config import Config
+from teleop.core.rundir import segment_path
+from teleop.viz.blueprint import build_blueprint, robot_offset_m
+from teleop.viz.entities import APPLICATION_ID, rooted
+from teleop.viz.viewer import grpc_url, listening
+
+logger = logging.getLogger(__name__)
+
+# The port a spawned native viewer listens on (Rerun's default), and how long one attempt
+# to connect to it may take (s; the spawn has already waited for the viewer to start).
+VIEWER_PORT = 9876
+VIEWER_PROBE_S = 1.0
+# How long close() waits for Rerun to write the last chunks to the file (s).
+RRD_FLUSH_TIMEOUT_S = 10.0
+VIEWER_SPAWNED = "spawned"
+VIEWER_NOT_REQUESTED = "not requested"
+
+
+@dataclass(frozen=True)
+class Segment:
+    """The part of a run's recording one recorder process writes: the first, or the
+    next one after a restart; every segment of a run has the run's Rerun recording id, so
+    a viewer given them all shows one recording."""
+
+    index: int
+    path: Path  # this segment's file
+    recording_id: str
+    recording_path: Path  # the recording's (its first segment's): what a reader opens
+
+    @classmethod
+    def only(cls, rrd_path: Path) -> Segment:
+        """The one segment of a recording written by one process, never restarted."""
+        return cls(0, rrd_path, uuid.uuid4().hex, rrd_path)
+
+
+def claim_segment(rrd_path: Path, ledger: Path | None) -> Segment:
+    """This recorder's segment of the recording ``rrd_path``, from the run's ``ledger``
+    (None: a recorder without a run directory, always the first segment).
+
+    No ledger yet: the run's first recorder; it takes ``rrd_path`` itself and removes
+    stale later segments beside it (of an earlier run). A ledger: a restarted recorder;
+    it takes the next segment, never an existing file. The ledger is updated atomically.
+    """
+    segments: list[str] = []
+    recording_id = uuid.uuid4().hex
+    if ledger is not None and ledger.exists():
+        known = json.loads(ledger.read_text())
+        segments, recording_id = list(known["segments"]), str(known["recording_id"])
+    else:
+        index = 1
+        while (stale := segment_path(rrd_path, index)).exists():
+            stale.unlink()
+            index += 1
+    index = len(segments)
+    segment = Segment(index, segment_path(rrd_path, index), recording_id, rrd_path)
+    if ledger is not None:
+        ledger.parent.mkdir(parents=True, exist_ok=True)
+        tmp = ledger.with_name(ledger.name + ".tmp")
+        text = {"recording_id": recording_id, "segments": [*segments, str(segment.path)]}
+        tmp.write_text(json.dumps(text, indent=2) + "\n")
+        os.replace(tmp, ledger)
+    return segment
+
+
+def no_display_reason(environ: Mapping[str, str]) -> str | None:
+    """Why a native window cannot open in this environment (None: it may): no X11
+    display and no Wayland one."""
+    if any(environ.get(name) for name in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET")):
+        return None
+    return "no display (DISPLAY and WAYLAND_DISPLAY unset)"
+
+
+class RootedStream:
+    """A recording stream seen from one robot's entity root: ``log`` and
+    ``send_columns`` as Rerun's, every entity path under the root (the empty root: as
+    given)."""
+
+    def __init__(self, stream: rr.RecordingStream, root: str) -> None:
+        self._stream = stream
+        self.root = root
+
+    def log(self, entity: str, *archetypes: Any, static: bool = False) -> None:
+        self._stream.log(rooted(self.root, entity), *archetypes, static=static)
+
+    def send_columns(self, entity: str, **kwargs: Any) -> None:
+        self._stream.send_columns(rooted(self.root, entity), **kwargs)
+
+
+class RecordingFile:
+    """One Rerun recording of every robot of a run: saved to ``segment.path``, streamed
+    to a spawned native viewer as well when ``recorder.spawn`` is set, and to
+    ``recorder.grpc_url`` when given. Its own ``RecordingStream`` (no global Rerun
+    state). ``roots``: one entity root per robot (teleop.viz.entities ``entity_roots``).
+    """
+
+    def __init__(self, config: Config, segment: Segment, roots: Sequence[str] = ("",)) -> None:
+        self.config = config
+        self.segment = segment
+        self.roots = tuple(roots)
+        self._rec: rr.RecordingStream | None = None
+        # The live viewer (recorder.spawn): VIEWER_SPAWNED, or why none was.
+        self.viewer = VIEWER_NOT_REQUESTED
+
+    @property
+    def rrd_path(self) -> Path:
+        """This process's file (its segment's)."""
+        return self.segment.path
+
+    def open(self) -> None:
+        """The file (and viewer), the blueprint, and where each robot stands."""
+        self.rrd_path.parent.mkdir(parents=True, exist_ok=True)
+        rec = rr.RecordingStream(APPLICATION_ID, recording_id=self.segment.recording_id)
+        # No footer: a footer's manifest keeps every chunk's metadata in memory until the
+        # file closes, and the recorder's RSS grew with the file (about 1.3 MB/s of a
+        # realtime grasp); streamed without one it stays flat. The file is still a
+        # complete recording (rerun.chunk.RrdReader and the viewer read it in order).
+        sinks: list[Any] = [rr.FileSink(self.rrd_path, write_footer=False)]
+        if self.config.recorder.spawn:
+            self.viewer = self._spawn_viewer(rec)
+            if self.viewer == VIEWER_SPAWNED:
+                sinks.append(rr.GrpcSink(grpc_url(VIEWER_PORT)))
+        if self.config.recorder.grpc_url:
+            sinks.append(rr.GrpcSink(self.config.recorder.grpc_url))
+        rec.set_sinks(*sinks)
+        rec.send_blueprint(build_blueprint(self.config))
+        if len(self.roots) > 1:  # side by side, in a scene whose "up" is every world's
+            rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+            for index, root in enumerate(self.roots):
+                rec.log(root, rr.Transform3D(translation=robot_offset_m(index)), static=True)
+        self._rec = rec
+
+    def stream(self, root: str) -> RootedStream:
+        """What one robot's writer logs through (the file open)."""
+        assert self._rec is not None, "RecordingFile.open() first"
+        return RootedStream(self._rec, root)
+
+    def close(self) -> None:
+        """Wait for Rerun to write what it holds to the file, then close it. Safe to call
+        twice."""
+        if self._rec is None:
+            return
+        self._rec.flush(timeout_sec=RRD_FLUSH_TIMEOUT_S)
+        self._rec.disconnect()
+        self._rec = None
+
+    def _spawn_viewer(self, rec: rr.RecordingStream) -> str:
+        """Start the native viewer beside the file; VIEWER_SPAWNED, or why not.
+
+        A recording that also streams to a viewer that never came up (no display: it
+        exits at once) stalls on that sink, and the file got a tenth of the run. So
+        without a display no viewer is started, and one that does not listen after
+        Rerun's own start-up wait gets no stream: the file alone has the run."""
+        reason = no_display_reason(os.environ)
+        if reason is None:
+            rec.spawn(port=VIEWER_PORT, connect=False)
+            if not listening(VIEWER_PORT, VIEWER_PROBE_S):
+                reason = f"the spawned viewer does not listen on port {VIEWER_PORT}"
+        if reason is None:
+            return VIEWER_SPAWNED
+        logger.warning(
+            "recorder.spawn: %s: no live viewer; the whole run is in %s (teleop view)",
+            reason,
+            self.rrd_path,
+        )
+        return f"not spawned: {reason}"
