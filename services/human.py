@@ -23,20 +23,17 @@ from typing import Any
 
 import numpy as np
 
+from services.operator import RobotOutputs
 from teleop.bus.messages import (
     FORCE_FEEDBACK,
-    HAND_INPUT,
-    RUN_EVENT,
     Button,
     Event,
-    next_hand_input,
-    next_run_event,
 )
 from teleop.bus.service import Service
-from teleop.bus.session import Publisher, subscribe, subscribe_events
+from teleop.bus.session import RecordCallback, subscribe, subscribe_events
 from teleop.core.clock import NS_PER_S
 from teleop.devices.human import HandIntent
-from teleop.devices.human_loop import HumanOperatorLoop
+from teleop.devices.human_loop import HumanOperatorLoop, HumanStation
 from teleop.devices.routing import SceneKnowledge
 
 logger = logging.getLogger(__name__)
@@ -58,61 +55,96 @@ class HumanOperatorService(Service):
         self.timestep_ns = round(cfg.plant.timestep_s * NS_PER_S)
         self._force_scale = cfg.teleop.force_scale
         self.lock = threading.Lock()
-        self.loop = HumanOperatorLoop(
-            cfg, self, SceneKnowledge.from_config(cfg), lockstep=cfg.run.mode == "lockstep"
-        )
-        self.hand_pub = self.keep(Publisher.for_stream(self.session, self.topics, "hand_input"))
-        self.events_pub = self.keep(
-            Publisher.for_stream(self.session, self.topics, "operator_events")
-        )
-        self._hand = HAND_INPUT.new()
-        self._event = RUN_EVENT.new()
-        self.run_over = threading.Event()  # the plant finished or aborted the run
+        scene = SceneKnowledge.from_config(cfg)
+        lockstep = cfg.run.mode == "lockstep"
+        # One task loop per robot, its outputs on that robot's keys; the station says
+        # which robot the hand drives (teleop.devices.human_loop.HumanStation).
+        loops = []
+        for topics in self.robot_topics:
+            outputs = RobotOutputs(self, topics, self.timestep_ns)
+            loops.append(HumanOperatorLoop(cfg, outputs, scene, lockstep=lockstep))
+        self.station = HumanStation(loops)
+        self.run_over = threading.Event()  # every robot's plant finished or aborted its run
+        self._finished: set[int] = set()
         self._wake = threading.Event()  # the pacer: a run started, or the input changed
         # From a device input (a key press) to the first hand input that carries it (ns).
         self._input_latency_ns = np.zeros(LATENCY_SAMPLES, dtype=np.int64)
         self._inputs_timed = 0
         self._pending_input_ns: int | None = None
-        self.subscribe_stream("tool_pose", self._on_tool)
-        self.subscribe_stream("objects", self._on_objects)
-        self.keep(subscribe_events(self.session, self.topics, "plant_events", self._on_event,
-                                   self.drops))  # fmt: skip
-        self.keep(
-            subscribe(self.session, self.topics.force_feedback_batch, FORCE_FEEDBACK,
-                      self._on_feedback, self.drops, batched=True)
-        )  # fmt: skip
+        for robot, topics in enumerate(self.robot_topics):
+            self.subscribe_stream("tool_pose", self._on_tool(robot), topics)
+            self.subscribe_stream("objects", self._on_objects(robot), topics)
+            self.keep(subscribe_events(self.session, topics, "plant_events",
+                                       self._on_event(robot), self.drops))  # fmt: skip
+            self.keep(
+                subscribe(self.session, topics.force_feedback_batch, FORCE_FEEDBACK,
+                          self._on_feedback(robot), self.drops, batched=True)
+            )  # fmt: skip
         self.announce()
+
+    @property
+    def loop(self) -> HumanOperatorLoop:
+        """The driven robot's task loop (its view is what the device shows)."""
+        return self.station.loop
+
+    @property
+    def robot_id(self) -> str:
+        """The id of the robot the hand drives."""
+        return self.robot_topics[self.station.active].robot_id
 
     # -- callbacks (Zenoh threads) -------------------------------------------------------
     def _tick_of(self, rec: np.ndarray) -> int:
         return round(int(rec["sim_time_ns"]) / self.timestep_ns)
 
-    def _on_tool(self, rec: np.ndarray, rx_ns: int) -> None:
-        with self.lock:
-            self.loop.on_tool(self._tick_of(rec), rec["world_p_tool_m"], rx_ns)
-        self._wake.set()  # lockstep: the run moved on, inputs held back may go
+    def _on_tool(self, robot: int) -> RecordCallback:
+        loop = self.station.loops[robot]
 
-    def _on_objects(self, rec: np.ndarray, rx_ns: int) -> None:
-        n = int(rec["n_objects"])
-        with self.lock:
-            self.loop.on_objects(self._tick_of(rec), list(rec["world_p_m"][:n]))
+        def on_tool(rec: np.ndarray, rx_ns: int) -> None:
+            with self.lock:
+                loop.on_tool(self._tick_of(rec), rec["world_p_tool_m"], rx_ns)
+            self._wake.set()  # lockstep: the run moved on, inputs held back may go
 
-    def _on_feedback(self, rec: np.ndarray, rx_ns: int) -> None:
-        weight_f_n = self._force_scale * rec["world_f_weight_n"]  # as the handle renders it
-        with self.lock:
-            self.loop.on_force(rec["device_f_n"], weight_f_n)
+        return on_tool
 
-    def _on_event(self, rec: np.ndarray, rx_ns: int) -> None:
-        event = int(rec["event"])
-        with self.lock:
-            if event == Event.STARTED:
-                self.run_over.clear()
-                self.loop.on_started(time.monotonic_ns())
-            elif event in (Event.GRASP, Event.RELEASE):
-                self.loop.on_hold(event == Event.GRASP, self._tick_of(rec))
-            elif event in (Event.FINISHED, Event.ABORTED):
-                self.run_over.set()
-        self._wake.set()
+    def _on_objects(self, robot: int) -> RecordCallback:
+        loop = self.station.loops[robot]
+
+        def on_objects(rec: np.ndarray, rx_ns: int) -> None:
+            n = int(rec["n_objects"])
+            with self.lock:
+                loop.on_objects(self._tick_of(rec), list(rec["world_p_m"][:n]))
+
+        return on_objects
+
+    def _on_feedback(self, robot: int) -> RecordCallback:
+        loop = self.station.loops[robot]
+
+        def on_feedback(rec: np.ndarray, rx_ns: int) -> None:
+            weight_f_n = self._force_scale * rec["world_f_weight_n"]  # as the handle renders it
+            with self.lock:
+                loop.on_force(rec["device_f_n"], weight_f_n)
+
+        return on_feedback
+
+    def _on_event(self, robot: int) -> RecordCallback:
+        loop = self.station.loops[robot]
+
+        def on_event(rec: np.ndarray, rx_ns: int) -> None:
+            event = int(rec["event"])
+            with self.lock:
+                if event == Event.STARTED:
+                    self._finished.discard(robot)
+                    self.run_over.clear()
+                    loop.on_started(time.monotonic_ns())
+                elif event in (Event.GRASP, Event.RELEASE):
+                    loop.on_hold(event == Event.GRASP, self._tick_of(rec))
+                elif event in (Event.FINISHED, Event.ABORTED):
+                    self._finished.add(robot)
+                    if len(self._finished) == len(self.station.loops):
+                        self.run_over.set()
+            self._wake.set()
+
+        return on_event
 
     # -- the person's device -------------------------------------------------------------
     def intent(self, now_ns: int) -> HandIntent:
@@ -131,9 +163,20 @@ class HumanOperatorService(Service):
         self._wake.set()
 
     def end_task(self) -> None:
-        """The person ends the run: TASK_DONE, not a success."""
+        """The person ends the run: TASK_DONE of every robot's task, not a success."""
         with self.lock:
-            self.loop.end_task()
+            self.station.end_task()
+
+    def switch_robot(self) -> Button | None:
+        """The device's robot switch: the hand drives the next robot whose task is not
+        done. The buttons the hand last gave that robot (its gripper as the hand left
+        it), for the device to take up; None: no other robot to drive."""
+        with self.lock:
+            if not self.station.switch():
+                return None
+            buttons = self.station.loop.last_buttons
+        self._wake.set()
+        return buttons
 
     # -- threads -------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
@@ -153,9 +196,9 @@ class HumanOperatorService(Service):
             self._wake.clear()
             now_ns = time.monotonic_ns()
             with self.lock:
-                sent_before = self.loop.inputs_sent
-                next_ns = self.loop.due(now_ns, self.intent(now_ns))
-                sent = self.loop.inputs_sent > sent_before
+                sent_before = self.station.inputs_sent
+                next_ns = self.station.due(now_ns, self.intent(now_ns))
+                sent = self.station.inputs_sent > sent_before
             if sent and self._pending_input_ns is not None:
                 self._time_input(now_ns - self._pending_input_ns)
                 self._pending_input_ns = None
@@ -165,19 +208,9 @@ class HumanOperatorService(Service):
         self._input_latency_ns[self._inputs_timed % LATENCY_SAMPLES] = latency_ns
         self._inputs_timed += 1
 
-    # -- HumanOutputs: the loop's decisions onto the bus -----------------------------------
-    def hand(self, valid_from_tick: int, target_p_m: np.ndarray, buttons: Button) -> None:
-        now_ns = time.monotonic_ns()
-        self.hand_pub.put(next_hand_input(self._hand, now_ns, valid_from_tick, target_p_m, buttons))
-
-    def event(self, event: Event, tick: int, step: int, value: float) -> None:
-        now_ns = time.monotonic_ns()
-        rec = next_run_event(self._event, event, now_ns, tick * self.timestep_ns, step, value)
-        self.events_pub.put(rec)
-
     def summary(self) -> dict[str, Any]:
         with self.lock:
-            task = self.loop.summary()
+            task = self.station.summary([t.robot_id for t in self.robot_topics])
         timed = self._input_latency_ns[: min(self._inputs_timed, LATENCY_SAMPLES)] / 1e6
         latency: dict[str, Any] = {"inputs": int(self._inputs_timed)}
         if len(timed):

@@ -7,7 +7,8 @@ The screen (curses, redrawn ``keyboard.screen_rate_hz`` times a second) shows th
 phase (read from the world), the tool's position and speed, the objects, the force the
 handle renders as a bar (the emulated handle feels it; the keyboard cannot), the speed
 step, gripper and clutch, and the keys. The keys are those of
-:data:`teleop.devices.human.DEFAULT_KEYS` (also under ``?``).
+:data:`teleop.devices.human.DEFAULT_KEYS` (also under ``?``). In a run of several robots
+(``--robots``) the screen shows the driven robot's world and tab drives the next one.
 """
 
 from __future__ import annotations
@@ -27,6 +28,9 @@ from teleop.devices.human import (
     PAGE_DOWN,
     PAGE_UP,
     RIGHT,
+    SWITCH,
+    SWITCH_HELP,
+    TAB,
     UP,
     HandIntent,
     KeyboardIntent,
@@ -41,6 +45,7 @@ _SPECIAL_KEYS = {
     curses.KEY_RIGHT: RIGHT,
     curses.KEY_PPAGE: PAGE_UP,
     curses.KEY_NPAGE: PAGE_DOWN,
+    ord("\t"): TAB,
 }
 # The force bar's width (characters); its full scale is haptic.peak_force_n.
 BAR_WIDTH = 30
@@ -74,10 +79,19 @@ class KeyboardOperatorService(HumanOperatorService):
                 with self.lock:
                     action = self.keys.press(key.lower() if len(key) == 1 else key, now_ns)
                 if action is not None:
+                    if action.kind == SWITCH:
+                        self._switch_robot()
                     self.input_changed(now_ns)
                     if action.kind == "quit":
                         self.end_task()
             self._draw(window, now_ns)
+
+    def _switch_robot(self) -> None:
+        """Tab: drive the next robot, the keys as the hand left it (the gripper)."""
+        buttons = self.switch_robot()
+        if buttons is not None:
+            with self.lock:
+                self.keys.take_robot(buttons)
 
     def _draw(self, window: Any, now_ns: int) -> None:
         with self.lock:
@@ -95,9 +109,10 @@ def screen_lines(service: KeyboardOperatorService, now_ns: int) -> list[str]:
     view, keys = service.loop.view, service.keys
     intent = keys.intent(now_ns)
     sim_s = max(view.tick, 0) * cfg.plant.timestep_s
+    robots = len(service.robot_topics)
+    driving = f"robot {service.robot_id}" + (f" ({robots} robots)" if robots > 1 else "")
     lines = [
-        f"zenoh-teleop keyboard operator   robot {cfg.robot.robot_id}   {cfg.run.mode}   "
-        f"sim {sim_s:6.1f} s",
+        f"zenoh-teleop keyboard operator   {driving}   {cfg.run.mode}   sim {sim_s:6.1f} s",
     ]
     if view.tick < 0:
         lines.append("waiting for the run to start...")
@@ -132,7 +147,7 @@ def screen_lines(service: KeyboardOperatorService, now_ns: int) -> list[str]:
         f"clutch {'ON' if keys.clutch else 'off'}   moving: {' '.join(moving) or 'no'}"
     )
     if keys.show_help:
-        lines += ["", *KEY_HELP]
+        lines += ["", *KEY_HELP, *([SWITCH_HELP] if robots > 1 else [])]
     return lines
 
 

@@ -28,6 +28,7 @@ import zenoh
 from teleop.bus.messages import (
     HAND_INPUT,
     RUN_EVENT,
+    Button,
     Event,
     Flag,
     next_hand_input,
@@ -57,12 +58,14 @@ DEVICE_SERVICE = "haptic"  # liveliness name of the operator's device
 LATENESS_SAMPLES = 1 << 15
 
 
-class _RobotOutputs:
-    """One robot's end of the operator: its hand stream and its events (OperatorOutputs)."""
+class RobotOutputs:
+    """One robot's end of an operator, scripted or a person's: its hand stream and its
+    task events, on that robot's keys (OperatorOutputs, and HumanOutputs of
+    teleop.devices.human_loop)."""
 
-    def __init__(self, service: OperatorService, topics: Topics) -> None:
+    def __init__(self, service: Service, topics: Topics, timestep_ns: int) -> None:
         assert service.session is not None
-        self.service = service
+        self.timestep_ns = timestep_ns
         self.hand_pub = service.keep(Publisher.for_stream(service.session, topics, "hand_input"))
         self.events_pub = service.keep(
             Publisher.for_stream(service.session, topics, "operator_events")
@@ -71,14 +74,15 @@ class _RobotOutputs:
         self._event = RUN_EVENT.new()
 
     def hand(self, valid_from_tick: int, command: HandCommand) -> None:
-        rec = next_hand_input(self._hand, time.monotonic_ns(), valid_from_tick,
-                              command.target_p_m, command.buttons)  # fmt: skip
+        self.put_hand(valid_from_tick, command.target_p_m, command.buttons)
+
+    def put_hand(self, valid_from_tick: int, target_p_m: np.ndarray, buttons: Button) -> None:
+        rec = next_hand_input(self._hand, time.monotonic_ns(), valid_from_tick, target_p_m, buttons)
         self.hand_pub.put(rec)
 
     def event(self, event: Event, tick: int, step: int, value: float) -> None:
         now_ns = time.monotonic_ns()
-        timestep_ns = self.service.timestep_ns
-        rec = next_run_event(self._event, event, now_ns, tick * timestep_ns, step, value)
+        rec = next_run_event(self._event, event, now_ns, tick * self.timestep_ns, step, value)
         self.events_pub.put(rec)
 
 
@@ -98,7 +102,12 @@ class OperatorService(Service):
         lockstep = cfg.run.mode == "lockstep"
         self.station = OperatorStation(
             [
-                OperatorLoop(cfg, self.scenario, _RobotOutputs(self, topics), lockstep=lockstep)
+                OperatorLoop(
+                    cfg,
+                    self.scenario,
+                    RobotOutputs(self, topics, self.timestep_ns),
+                    lockstep=lockstep,
+                )
                 for topics in self.robot_topics
             ]
         )

@@ -77,6 +77,7 @@ from teleop.devices.human import (
     PAGE_DOWN,
     PAGE_UP,
     RIGHT,
+    SWITCH,
     UP,
     HandIntent,
     KeyAction,
@@ -207,8 +208,13 @@ class PageIntent:
 
 
 def browser_key_map(keys: Mapping[str, KeyAction]) -> dict[str, list[Any]]:
-    """The key map for the page: by the browser's key name, ``[kind, axis, sign]``."""
-    return {BROWSER_KEYS.get(k, k): [a.kind, a.axis, a.sign] for k, a in keys.items()}
+    """The key map for the page: by the browser's key name, ``[kind, axis, sign]``. The
+    robot switch is the terminal's (the page drives one robot)."""
+    return {
+        BROWSER_KEYS.get(k, k): [a.kind, a.axis, a.sign]
+        for k, a in keys.items()
+        if a.kind != SWITCH
+    }
 
 
 def page_settings(config: Config, keys: Mapping[str, KeyAction]) -> dict[str, Any]:

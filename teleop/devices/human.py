@@ -88,21 +88,23 @@ def hand_command(intent: HandIntent, teleop: TeleopConfig) -> tuple[np.ndarray, 
     return fraction / norm * offset_m, intent.buttons
 
 
-# What a key does: move along an axis (+1 / -1), a speed step, a toggle, stop or quit.
+# What a key does: move along an axis (+1 / -1), a speed step, a toggle, stop, quit, or
+# switch robots.
 @dataclass(frozen=True)
 class KeyAction:
-    kind: str  # "move", "faster", "slower", "gripper", "clutch", "stop", "quit", "help"
+    kind: str  # "move", "faster", "slower", "gripper", "clutch", "stop", "quit", "help", "switch"
     axis: int = -1  # move: 0 x forward, 1 y left, 2 z up
     sign: float = 0.0  # move: +1 or -1
 
 
-MOVE, FASTER, SLOWER, GRIPPER, CLUTCH, STOP, QUIT, HELP = (
-    "move", "faster", "slower", "gripper", "clutch", "stop", "quit", "help"
+MOVE, FASTER, SLOWER, GRIPPER, CLUTCH, STOP, QUIT, HELP, SWITCH = (
+    "move", "faster", "slower", "gripper", "clutch", "stop", "quit", "help", "switch"
 )  # fmt: skip
 
 # Key names: a printable character as itself; the terminal's special keys by these names
 # (teleop.devices.terminal reads them from their escape sequences).
 UP, DOWN, LEFT, RIGHT, PAGE_UP, PAGE_DOWN = "up", "down", "left", "right", "pgup", "pgdn"
+TAB = "tab"
 
 DEFAULT_KEYS: Mapping[str, KeyAction] = {
     "w": KeyAction(MOVE, 0, 1.0), UP: KeyAction(MOVE, 0, 1.0),
@@ -114,6 +116,7 @@ DEFAULT_KEYS: Mapping[str, KeyAction] = {
     "+": KeyAction(FASTER), "=": KeyAction(FASTER), "-": KeyAction(SLOWER),
     "g": KeyAction(GRIPPER), "c": KeyAction(CLUTCH), " ": KeyAction(STOP),
     "q": KeyAction(QUIT), "?": KeyAction(HELP), "h": KeyAction(HELP),
+    TAB: KeyAction(SWITCH),
 }  # fmt: skip
 
 # The help the terminal shows, one line per group of keys.
@@ -122,6 +125,8 @@ KEY_HELP = (
     "+/-: speed step    g: gripper close/open    c: clutch (move the handle, not the arm)",
     "space: stop    ?: this help    q: end the run",
 )
+# The robot switch's help, in a run of several robots.
+SWITCH_HELP = "tab: drive the next robot (its gripper as you left it)"
 
 
 @dataclass
@@ -179,6 +184,14 @@ class KeyboardIntent:
         elif action.kind == HELP:
             self.show_help = not self.show_help
         return action
+
+    def take_robot(self, buttons: Button) -> None:
+        """The hand moved to another robot (the robot switch): every axis stops (the
+        handle comes to rest, which the haptic device waits for to switch), and the
+        gripper and clutch are as the hand last left that robot (``buttons``)."""
+        self._axes = [(0.0, 0)] * 3
+        self.gripper_closed = bool(buttons & Button.GRIPPER_CLOSE)
+        self.clutch = bool(buttons & Button.CLUTCH)
 
     def intent(self, now_ns: int) -> HandIntent:
         """What the keys ask of the hand at ``now_ns``."""

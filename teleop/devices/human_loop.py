@@ -78,7 +78,7 @@ PHASES = ("reach", "carry", "placed")
 class HumanOutputs(Protocol):
     """Where the loop's decisions go (the bus adapter publishes them)."""
 
-    def hand(self, valid_from_tick: int, target_p_m: np.ndarray, buttons: Button) -> None: ...
+    def put_hand(self, valid_from_tick: int, target_p_m: np.ndarray, buttons: Button) -> None: ...
 
     def event(self, event: Event, tick: int, step: int, value: float) -> None: ...
 
@@ -233,6 +233,9 @@ class HumanOperatorLoop:
         self.view = WorldView()
         self.runs = 0
         self.inputs_sent = 0
+        # The buttons of the newest hand input sent: the gripper as the hand left this
+        # robot, for a device to take up again when the hand comes back to it.
+        self.last_buttons = Button(0)
         self.inputs_held_back = 0  # lockstep: inputs due by the wall clock the run lagged
         self._start_ns: int | None = None
         self._next_sample_tick = 0
@@ -343,8 +346,20 @@ class HumanOperatorLoop:
             self._next_sample_tick = next_sample_tick(s, self.rate_hz, self.timestep_s)
 
     def _send(self, valid_from_tick: int, target_p_m: np.ndarray, buttons: Button) -> None:
-        self.outputs.hand(valid_from_tick, target_p_m, buttons)
+        self.outputs.put_hand(valid_from_tick, target_p_m, buttons)
         self.inputs_sent += 1
+        self.last_buttons = buttons
+
+    def take_over(self, previous: HumanOperatorLoop) -> None:
+        """The hand comes to this robot from ``previous``'s: the hand inputs go on from
+        where that loop's left off (its run start, its next sample tick or decision time),
+        so the haptic device's stream of hand inputs has no gap and no repeat. A loop
+        whose robot's run has not started yet starts with ``previous``'s."""
+        if previous._start_ns is None:
+            return
+        self._start_ns = previous._start_ns
+        self._next_sample_tick = previous._next_sample_tick
+        self._next_realtime_ns = previous._next_realtime_ns
 
     def summary(self) -> dict[str, Any]:
         """The task's outcome and phase times, as the scripted operator reports them."""
@@ -371,3 +386,76 @@ class HumanOperatorLoop:
 
 def _listed(p_m: np.ndarray | None) -> list[float] | None:
     return None if p_m is None else [round(float(v), 6) for v in p_m]
+
+
+class HumanStation:
+    """A person's hand over the robots of a run (``run.robots``), one
+    :class:`HumanOperatorLoop` per robot (``loops[i]`` plays robot i's task, its outputs
+    on robot i's keys): the hand drives one robot at a time, robot 0 first.
+
+    The person switches robots (:meth:`switch`: the device's robot switch); the hand also
+    moves on by itself once the driven robot's task is done, to the next robot whose task
+    is not. Hand inputs go out from the driven robot's loop only, on the sample-tick grid
+    the previous one left off at (:meth:`HumanOperatorLoop.take_over`), so the haptic
+    device (which drives the robot whose keys the input comes on) sees one unbroken
+    stream. Ending the run ends every robot's task. With one robot it is that robot's
+    loop.
+    """
+
+    def __init__(self, loops: Sequence[HumanOperatorLoop]) -> None:
+        if not loops:
+            raise ValueError("HumanStation needs a loop per robot")
+        self.loops = list(loops)
+        self.active = 0  # the robot the hand drives
+        self.switches: list[dict[str, int]] = []  # each: the robot left, the one taken, tick
+
+    @property
+    def loop(self) -> HumanOperatorLoop:
+        """The driven robot's loop."""
+        return self.loops[self.active]
+
+    def switch(self) -> bool:
+        """The person's robot switch: drive the next robot whose task is not done (in
+        order, around). False if there is none other."""
+        count = len(self.loops)
+        for step in range(1, count):
+            robot = (self.active + step) % count
+            if not self.loops[robot].task.done:
+                self._drive(robot)
+                return True
+        return False
+
+    def _drive(self, robot: int) -> None:
+        previous = self.loop
+        self.switches.append({"from": self.active, "to": robot, "tick": max(previous.view.tick, 0)})
+        logger.info("the hand moves from robot %d to robot %d", self.active, robot)
+        self.active = robot
+        self.loop.take_over(previous)
+
+    def due(self, now_ns: int, intent: HandIntent) -> int:
+        """:meth:`HumanOperatorLoop.due` of the driven robot; first the hand moves on if
+        that robot's task is done and another's is not."""
+        if self.loop.task.done:
+            self.switch()
+        return self.loop.due(now_ns, intent)
+
+    def end_task(self) -> None:
+        """The person ends the run: every robot's task ends (not a success)."""
+        for loop in self.loops:
+            loop.end_task()
+
+    @property
+    def inputs_sent(self) -> int:
+        return sum(loop.inputs_sent for loop in self.loops)
+
+    def summary(self, robot_ids: Sequence[str]) -> dict[str, Any]:
+        """The task's outcome (:meth:`HumanOperatorLoop.summary`): with one robot its
+        loop's; with several, a section per robot id under ``robots`` and the switches."""
+        if len(self.loops) == 1:
+            return self.loops[0].summary()
+        return {
+            "robots": {
+                rid: loop.summary() for rid, loop in zip(robot_ids, self.loops, strict=True)
+            },
+            "robot_switches": list(self.switches),
+        }

@@ -218,3 +218,61 @@ def test_a_device_that_cannot_be_read_is_refused_in_one_line(tmp_path, args, mes
     assert result.returncode == 2, result.stderr
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and message in lines[0], result.stderr
+
+
+def test_a_person_switches_robots_with_tab_and_each_moves_only_while_driven(tmp_path):
+    """Two robots, one keyboard: the keys move arm0; tab, and the same keys move arm1
+    while arm0 holds still; q ends both tasks (not a success)."""
+    run_dir = tmp_path / "two"
+    command = [sys.executable, "-m", "teleop.cli", "run", "grasp", "--operator", "keyboard",
+               "--robots", "2", "--mode", "lockstep", "--duration", "60",
+               "--run-dir", str(run_dir)]  # fmt: skip
+    with Terminal(command, REPO) as terminal:
+        first = terminal.wait_for(
+            where(lambda s: s.tool is not None and "robot arm0 (2 robots)" in s.text),
+            120.0,
+            "arm0's tool on the screen",
+        )
+        assert "tab: drive the next robot" in first.text
+        for _ in range(8):  # forward, arm0
+            terminal.press("w")
+            time.sleep(0.1)
+        terminal.press(" ")
+        moved = terminal.wait_for(
+            where(lambda s: s.tool is not None and s.tool[0] > first.tool[0] + 0.01),
+            20.0,
+            "arm0's tool forward",
+        )
+        (run_dir / "arm0.txt").write_text(moved.text)
+        time.sleep(0.5)  # the handle comes to rest: the haptic device switches there
+        terminal.press("\t")
+        second = terminal.wait_for(
+            where(lambda s: s.tool is not None and "robot arm1 (2 robots)" in s.text),
+            20.0,
+            "arm1 driven",
+        )
+        for _ in range(8):  # left, arm1
+            terminal.press("a")
+            time.sleep(0.1)
+        terminal.press(" ")
+        terminal.wait_for(
+            where(lambda s: s.tool is not None and s.tool[1] > second.tool[1] + 0.01),
+            20.0,
+            "arm1's tool to the left",
+        )
+        terminal.press("q")
+        code = terminal.wait_for(lambda _: terminal.exited(), 60.0, "the run's end")
+        final = terminal.screen()
+    assert code == 1, final  # ended by the person: no success
+    summary = json.loads((run_dir / "summary.json").read_text())
+    operator = summary["services"]["operator"]
+    assert operator["device"] == "keyboard"
+    assert [(s["from"], s["to"]) for s in operator["robot_switches"]] == [(0, 1)]
+    assert [s["robot"] for s in summary["services"]["haptic"]["robot_switches"]] == [1]
+    arm0, arm1 = (operator["robots"][r] for r in ("arm0", "arm1"))
+    assert arm0["failure"] == arm1["failure"] == "ended by the person"
+    # Each tool moved along its own robot's keys only: arm0 forward, arm1 left.
+    d0 = [e - s for e, s in zip(arm0["tool_end_m"], arm0["tool_start_m"], strict=True)]
+    d1 = [e - s for e, s in zip(arm1["tool_end_m"], arm1["tool_start_m"], strict=True)]
+    assert d0[0] > 0.01 and abs(d0[1]) < 0.005, d0
+    assert d1[1] > 0.01 and abs(d1[0]) < 0.005, d1

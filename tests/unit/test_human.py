@@ -15,6 +15,8 @@ from teleop.core.config import ConfigError, load_config
 from teleop.core.ticks import expected_valid_from
 from teleop.devices.human import (
     DEFAULT_KEYS,
+    SWITCH,
+    TAB,
     UP,
     HandIntent,
     KeyboardIntent,
@@ -28,6 +30,7 @@ from teleop.devices.human_loop import (
     REACH,
     TASK_DONE_AHEAD_TICKS,
     HumanOperatorLoop,
+    HumanStation,
     WorldTask,
 )
 from teleop.devices.routing import SceneKnowledge
@@ -43,7 +46,7 @@ class Outputs:
         self.hands: list[tuple[int, np.ndarray, Button]] = []
         self.events: list[tuple[Event, int, int, float]] = []
 
-    def hand(self, valid_from_tick: int, target_p_m: np.ndarray, buttons: Button) -> None:
+    def put_hand(self, valid_from_tick: int, target_p_m: np.ndarray, buttons: Button) -> None:
         self.hands.append((valid_from_tick, np.array(target_p_m), buttons))
 
     def event(self, event: Event, tick: int, step: int, value: float) -> None:
@@ -280,3 +283,70 @@ def test_the_person_ending_the_run_is_no_success_and_said_once():
     summary = loop.summary()
     assert summary["task_done"] and summary["success"] is False
     assert summary["failure"] == "ended by the person"
+
+
+# -- several robots: one hand, the person's robot switch --------------------------------------
+def _station(lockstep: bool, robots: int = 2) -> tuple[HumanStation, list[Outputs]]:
+    outputs = [Outputs() for _ in range(robots)]
+    loops = [HumanOperatorLoop(CONFIG, out, SCENE, lockstep=lockstep) for out in outputs]
+    return HumanStation(loops), outputs
+
+
+def test_the_switch_moves_the_hand_to_the_next_robot_on_one_unbroken_grid():
+    station, (out0, out1) = _station(lockstep=True)
+    for loop in station.loops:
+        loop.on_started(0)
+        for tick in range(0, 200, 10):
+            loop.on_tool(tick, np.zeros(3), 0)
+    station.due(45 * MS, HandIntent((0.0, 0.0, 0.0), gripper_closed=True))
+    assert [h[0] for h in out0.hands] == [10, 20, 30, 40, 50] and out1.hands == []
+    assert station.switch() and station.active == 1
+    station.due(95 * MS, HandIntent())
+    # robot 1 takes up the next sample tick: no gap, no repeat, nothing more to robot 0
+    assert [h[0] for h in out1.hands] == [60, 70, 80, 90, 100]
+    assert len(out0.hands) == 5
+    assert station.loops[0].last_buttons == Button.GRIPPER_CLOSE  # as the hand left it
+    assert station.loops[1].last_buttons == Button.NONE
+    assert station.switches == [{"from": 0, "to": 1, "tick": 190}]
+    assert station.switch() and station.active == 0  # around
+
+
+@pytest.mark.parametrize("lockstep", [True, False])
+def test_the_hand_moves_on_by_itself_once_the_driven_robots_task_is_done(lockstep):
+    station, (out0, out1) = _station(lockstep=lockstep)
+    for loop in station.loops:
+        loop.on_started(0)
+        loop.on_tool(100, np.zeros(3), 0)
+    station.due(0, HandIntent())
+    station.loops[0].task.finish(True, 100, station.loops[0]._emit)
+    station.due(20 * MS, HandIntent())
+    assert station.active == 1 and out1.hands
+    assert not station.switch()  # the only other robot's task is done: nowhere to go
+    assert station.active == 1
+
+
+def test_ending_the_run_ends_every_robots_task_and_the_summary_has_a_section_each():
+    station, outputs = _station(lockstep=True)
+    for loop in station.loops:
+        loop.on_started(0)
+        loop.on_tool(50, np.zeros(3), 0)
+    station.end_task()
+    for out in outputs:
+        assert [e[0] for e in out.events if e[0] == Event.TASK_DONE] == [Event.TASK_DONE]
+    summary = station.summary(["arm0", "arm1"])
+    assert set(summary["robots"]) == {"arm0", "arm1"}
+    assert all(s["failure"] == "ended by the person" for s in summary["robots"].values())
+    alone, _ = _station(lockstep=True, robots=1)
+    assert "robots" not in alone.summary(["arm0"]) and not alone.switch()
+
+
+def test_the_keys_take_up_the_robot_the_hand_comes_to():
+    keys = KeyboardIntent(CONFIG.keyboard)
+    keys.press("w", 0)
+    keys.press("g", 0)
+    assert keys.press(TAB, 0).kind == SWITCH  # the service switches; the keys then:
+    keys.take_robot(Button.NONE)
+    intent = keys.intent(1)
+    assert intent.velocity_fraction == (0.0, 0.0, 0.0) and not intent.gripper_closed
+    keys.take_robot(Button.GRIPPER_CLOSE | Button.CLUTCH)
+    assert keys.gripper_closed and keys.clutch

@@ -21,7 +21,7 @@ from services import web
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import ConfigError, load_config
 from teleop.core.net import LoopbackPorts
-from teleop.devices.human import DEFAULT_KEYS, HandIntent
+from teleop.devices.human import DEFAULT_KEYS, SWITCH, HandIntent
 from teleop.devices.human_loop import WorldView
 from teleop.run import web_operator
 
@@ -117,7 +117,9 @@ def test_the_page_gets_the_terminals_keys_by_the_browsers_names():
     assert keys["w"] == ["move", 0, 1.0] and keys["ArrowUp"] == ["move", 0, 1.0]
     assert keys["PageDown"] == ["move", 2, -1.0] and keys["f"] == ["move", 2, -1.0]
     assert keys[" "][0] == "stop" and keys["q"][0] == "quit" and keys["g"][0] == "gripper"
-    assert len(keys) == len(DEFAULT_KEYS)
+    # every key of the terminal's but the robot switch (the page drives one robot)
+    assert len(keys) == len([a for a in DEFAULT_KEYS.values() if a.kind != SWITCH])
+    assert "Tab" not in keys and "tab" not in keys
 
 
 def test_the_page_file_takes_its_settings_safely():
@@ -181,9 +183,13 @@ def test_the_web_config_checks_its_rates():
 
 
 # -- the page's server, its bus side stubbed -------------------------------------------
-class _Loop:
+class _Station:
+    """A one-robot HumanStation stand-in: its loop's view is fixed, ending is counted."""
+
     def __init__(self) -> None:
         self.view = WorldView(tick=10, tool_p_m=np.array([0.3, 0.1, 0.2]))
+        self.loop = self
+        self.active = 0
         self.ended = 0
 
     def end_task(self) -> None:
@@ -208,7 +214,7 @@ def served(tmp_path) -> Iterator[SimpleNamespace]:
     service.stopping = threading.Event()
     service._streams = 0
     service.lock = threading.Lock()
-    service.loop = _Loop()
+    service.station = _Station()
     service.run_over = threading.Event()
     service._pending_input_ns = None
     service._wake = threading.Event()
