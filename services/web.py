@@ -14,9 +14,9 @@ Endpoints:
 
 - ``GET /?token=...``: the page, with the key map, speed steps and rates filled in.
 - ``GET /state``: Server-Sent Events, ``web.state_rate_hz``: what the terminal's screen
-  shows (services/keyboard.py's ``screen_lines``) as JSON: tick, phase, tool position and
-  speed, objects, holding, the force the handle renders (N), done and success, the intent
-  applied, the newest eye-view frame's number.
+  shows (services/keyboard.py's ``screen_lines``) as JSON: the robot driven, tick, phase,
+  tool position and speed, objects, holding, the force the handle renders (N), done and
+  success, the intent applied, the newest eye-view frame's number.
 - ``GET /frame``: the newest eye-view frame (EYE_VIEW, services/eyeview.py), as JPEG
   (``web.jpeg_quality``), encoded once per frame when first asked for. JPEG rather than
   raw pixels to a canvas: a small fraction of a raw frame's 230 kB, so the view keeps up
@@ -26,6 +26,10 @@ Endpoints:
   (a body too large, not JSON, another key, a NaN, a value outside [-1, 1]) gets 400,
   is counted and logged once; the intent stays as it was.
 - ``POST /end``: the person ends the run (TASK_DONE, not a success).
+- ``POST /switch``: a run of several robots: the hand drives the next robot whose task is
+  not done; the answer, ``{"switched": bool, "robot": id, "gripper": bool, "clutch":
+  bool}``, gives the page the gripper and clutch as the hand last left that robot. The
+  state and the eye view are the driven robot's.
 
 The page sends its intent at once on a change and, while it asks for motion,
 ``web.input_rate_hz`` times a second; ``web.input_expiry_s`` after its newest input the
@@ -51,7 +55,7 @@ import stat
 import sys
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -63,7 +67,7 @@ import numpy as np
 import PIL.Image
 
 from services.human import HumanOperatorService
-from teleop.bus.messages import EYE_VIEW
+from teleop.bus.messages import EYE_VIEW, Button
 from teleop.bus.service import service_main
 from teleop.bus.session import subscribe_frames
 from teleop.core.clock import NS_PER_S
@@ -77,7 +81,8 @@ from teleop.devices.human import (
     PAGE_DOWN,
     PAGE_UP,
     RIGHT,
-    SWITCH,
+    SWITCH_HELP,
+    TAB,
     UP,
     HandIntent,
     KeyAction,
@@ -110,6 +115,7 @@ BROWSER_KEYS: Mapping[str, str] = {
     RIGHT: "ArrowRight",
     PAGE_UP: "PageUp",
     PAGE_DOWN: "PageDown",
+    TAB: "Tab",
 }
 # The page's own controls, after the terminal's keys.
 PAGE_HELP = (
@@ -193,6 +199,15 @@ class PageIntent:
         self._expired = False
         return changed
 
+    def take_robot(self, buttons: Button) -> None:
+        """The hand moved to another robot: no motion until the page's next input, the
+        gripper and clutch as the hand last left that robot (``buttons``)."""
+        self.newest = HandIntent(
+            gripper_closed=bool(buttons & Button.GRIPPER_CLOSE),
+            clutch=bool(buttons & Button.CLUTCH),
+        )
+        self.received_ns, self._expired = None, True
+
     def live(self, now_ns: int) -> bool:
         """Whether the newest input still holds at ``now_ns``."""
         return self.received_ns is not None and now_ns - self.received_ns <= self.expiry_ns
@@ -208,13 +223,8 @@ class PageIntent:
 
 
 def browser_key_map(keys: Mapping[str, KeyAction]) -> dict[str, list[Any]]:
-    """The key map for the page: by the browser's key name, ``[kind, axis, sign]``. The
-    robot switch is the terminal's (the page drives one robot)."""
-    return {
-        BROWSER_KEYS.get(k, k): [a.kind, a.axis, a.sign]
-        for k, a in keys.items()
-        if a.kind != SWITCH
-    }
+    """The key map for the page: by the browser's key name, ``[kind, axis, sign]``."""
+    return {BROWSER_KEYS.get(k, k): [a.kind, a.axis, a.sign] for k, a in keys.items()}
 
 
 def page_settings(config: Config, keys: Mapping[str, KeyAction]) -> dict[str, Any]:
@@ -222,7 +232,7 @@ def page_settings(config: Config, keys: Mapping[str, KeyAction]) -> dict[str, An
     scale and the gamepad's dead zone."""
     return {
         "keys": browser_key_map(keys),
-        "help": [*KEY_HELP, *PAGE_HELP],
+        "help": [*KEY_HELP, *PAGE_HELP, *([SWITCH_HELP] if config.run.robots > 1 else [])],
         "speed_steps": list(config.keyboard.speed_steps),
         "start_speed_step": config.keyboard.start_speed_step,
         "input_rate_hz": config.web.input_rate_hz,
@@ -231,6 +241,7 @@ def page_settings(config: Config, keys: Mapping[str, KeyAction]) -> dict[str, An
         "dead_zone_fraction": config.gamepad.dead_zone_fraction,
         "token_header": TOKEN_HEADER,
         "robot_id": config.robot.robot_id,
+        "robots": list(config.robot_ids()),
         "mode": config.run.mode,
         "phases": list(PHASES),
     }
@@ -258,12 +269,15 @@ def state_message(
     intent_live: bool,
     run_over: bool,
     frame_seq: int,
+    robot_id: str,
 ) -> dict[str, Any]:
     """What the page shows, as the state stream sends it (units in the names; positions
-    in the world frame, the force in the device frame)."""
+    in the world frame, the force in the device frame): the world of ``robot_id``, the
+    robot the hand drives."""
     force_n = view.force_n
     phase = view.phase_name
     return {
+        "robot": robot_id,
         "tick": view.tick,
         "sim_s": round(max(view.tick, 0) * config.plant.timestep_s, 3),
         "started": view.tick >= 0,
@@ -342,6 +356,7 @@ class RequestCounts:
     state_streams_refused: int = 0  # over MAX_STATE_STREAMS
     frames: int = 0
     ends: int = 0
+    switches: int = 0  # robot switches asked for (a run of several robots)
     by_status: dict[int, int] = field(default_factory=dict)
 
 
@@ -366,10 +381,20 @@ class WebOperatorService(HumanOperatorService):
         self.port = int(self.server.server_address[1])
         super().open()
         assert self.session is not None
-        self.keep(subscribe_frames(self.session, self.topics.eye_view, EYE_VIEW, self.frames,
-                                   self.drops))  # fmt: skip
+        for robot, topics in enumerate(self.robot_topics):  # the driven robot's frames shown
+            self.keep(subscribe_frames(self.session, topics.eye_view, EYE_VIEW,
+                                       self._frames_of(robot), self.drops))  # fmt: skip
         logger.info("the page is served on http://%s:%d/ (token in %s)", LOOPBACK, self.port,
                     web.token_file)  # fmt: skip
+
+    def _frames_of(self, robot: int) -> Callable[[np.ndarray, np.ndarray, int, bool], None]:
+        """Robot ``robot``'s eye-view frames into the page's, while the hand drives it."""
+
+        def on_frame(rec: np.ndarray, pixels: np.ndarray, rx_ns: int, via_shm: bool) -> None:
+            if self.station.active == robot:
+                self.frames(rec, pixels, rx_ns, via_shm)
+
+        return on_frame
 
     def intent(self, now_ns: int) -> HandIntent:
         return self.page_intent.intent(now_ns)  # the caller holds self.lock
@@ -427,6 +452,22 @@ class WebOperatorService(HumanOperatorService):
         if changed:
             self.input_changed(now_ns)
 
+    def switch_from_page(self) -> dict[str, Any]:
+        """The page's robot switch: the next robot driven, the page's held input as the
+        hand last left that robot (no motion; its gripper and clutch), and what the page
+        is to take up: ``switched``, the ``robot`` driven, its ``gripper`` and ``clutch``."""
+        self.count("switches")
+        buttons = self.switch_robot()
+        with self.lock:
+            out: dict[str, Any] = {"switched": buttons is not None, "robot": self.robot_id}
+            if buttons is not None:
+                self.page_intent.take_robot(buttons)
+                held = self.page_intent.newest
+                out.update(gripper=held.gripper_closed, clutch=held.clutch)
+        if buttons is not None:
+            self.input_changed(time.monotonic_ns())
+        return out
+
     def state(self) -> dict[str, Any]:
         now_ns = time.monotonic_ns()
         frame_seq = self.frames.newest
@@ -438,6 +479,7 @@ class WebOperatorService(HumanOperatorService):
                 intent_live=self.page_intent.live(now_ns),
                 run_over=self.run_over.is_set(),
                 frame_seq=frame_seq,
+                robot_id=self.robot_id,
             )
 
     def open_stream(self) -> bool:
@@ -540,6 +582,9 @@ class _PageHandler(BaseHTTPRequestHandler):
             self.service.count("ends")
             self.service.end_task()
             self._send(HTTPStatus.NO_CONTENT)
+        elif path == "/switch":
+            body = json.dumps(self.service.switch_from_page()).encode()
+            self._send(HTTPStatus.OK, body, "application/json")
         else:
             self.close_connection = True  # its body, if any, is not read
             self.service.count("not_found")

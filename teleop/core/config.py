@@ -1189,15 +1189,15 @@ class Config:
 
     def _check_robots(self) -> None:
         """What a run of several robots (``run.robots``) supports: the scripted operator
-        drives them in turn, or a person at the keyboard (tab switches robots), in the
-        teleoperation scenario, on one host, each with its own model of the operator's
-        link."""
+        drives them in turn, or a person at the keyboard or the web page (tab switches
+        robots), in the teleoperation scenario, on one host, each with its own model of
+        the operator's link."""
         many = f"run.robots={self.run.robots}"
         _require(self.run.teleoperated, f"{many}: a teleoperated scenario (grasp)")
         _require(
-            self.run.operator in (SCRIPTED, *TERMINAL_OPERATORS),
-            f"{many}: the scripted operator or the keyboard (the robot switch is tab; the "
-            f"{self.run.operator} has none yet)",
+            self.run.operator in (SCRIPTED, *TERMINAL_OPERATORS, *VIEWING_OPERATORS),
+            f"{many}: the scripted operator, the keyboard or the web page (their robot "
+            f"switch: tab, a button); the {self.run.operator} has none yet",
         )
         _require(not self.site.name, f"{many}: one host only (not with site.name)")
         _require(

@@ -13,6 +13,7 @@ TELEOP_REQUIRE_CHROMIUM=1 makes that a failure."""
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import queue
 import re
@@ -67,6 +68,7 @@ KEYS = {
     "q": ("q", "KeyQ", 81),
     "+": ("+", "Equal", 187),
     "-": ("-", "Minus", 189),
+    "Tab": ("Tab", "Tab", 9),
 }
 
 
@@ -105,7 +107,7 @@ class Page:
         key, code, vk = KEYS[name]
         event: dict[str, Any] = {"type": "keyDown" if down else "keyUp", "key": key,
                                  "code": code, "windowsVirtualKeyCode": vk}  # fmt: skip
-        if down:
+        if down and len(key) == 1:
             event["text"] = key
         self.tools.call("Input.dispatchKeyEvent", **event)
 
@@ -125,14 +127,13 @@ def _moved(before: list[float], after: list[float], axis: int, sign: float) -> t
     return sign * delta[axis], (abs(delta[axis]) / norm if norm else 0.0)
 
 
-@pytest.fixture
-def web_run(tmp_path) -> Iterator[dict[str, Any]]:
-    """``teleop run grasp --operator web`` (lockstep, the eye view on), its URL read from
-    its stderr; stopped if the test leaves it running."""
-    run_dir = tmp_path / "run"
+@contextlib.contextmanager
+def _web_run(run_dir: Path, *extra: str) -> Iterator[dict[str, Any]]:
+    """``teleop run grasp --operator web`` (lockstep, the eye view on) with ``extra``
+    arguments, its URL read from its stderr; stopped if the test leaves it running."""
     command = [sys.executable, "-m", "teleop.cli", "run", "grasp", "--operator", "web",
                "--mode", "lockstep", "--duration", "60",
-               "--run-dir", str(run_dir), "--quiet"]  # fmt: skip
+               "--run-dir", str(run_dir), "--quiet", *extra]  # fmt: skip
     process = subprocess.Popen(
         command, cwd=REPO, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE, text=True,
@@ -146,6 +147,12 @@ def web_run(tmp_path) -> Iterator[dict[str, Any]]:
         if process.poll() is None:  # Ctrl-C: the launcher stops the stack it started
             process.send_signal(signal.SIGINT)
             process.wait(EXIT_TIMEOUT_S)
+
+
+@pytest.fixture
+def web_run(tmp_path) -> Iterator[dict[str, Any]]:
+    with _web_run(tmp_path / "run") as run:
+        yield run
 
 
 def test_a_person_at_the_web_page_moves_the_arm_and_feels_the_table(web_run):
@@ -265,3 +272,60 @@ def _drive(page: Page, shot: Path) -> None:
     page.press("q")
     done = page.wait("the task's end", lambda s: s["done"], PAGE_TIMEOUT_S)
     assert done["success"] is False
+
+
+def _hold(page: Page, name: str, moving: Callable[[list[float]], bool]) -> list[float]:
+    """Hold key ``name`` for HOLD_S (its motion seen in the page's intent), let go, wait
+    for the stop; the tool's position before (world frame)."""
+    before = page.state()["tool_p_m"]
+    page.key(name, True)
+    page.wait(f"motion by {name!r}", lambda s: moving(s["intent"]["v"]), PAGE_TIMEOUT_S)
+    time.sleep(HOLD_S)
+    page.key(name, False)
+    page.wait("the stop", lambda s: s["intent"]["v"] == [0, 0, 0], PAGE_TIMEOUT_S)
+    time.sleep(0.3)
+    return before
+
+
+def test_a_person_at_the_web_page_drives_two_robots_in_turn(tmp_path):
+    """``--robots 2``: the keys move arm0; tab (the page's robot switch), and they move
+    arm1 while arm0 holds still; 'q' ends both tasks."""
+    _requires_chromium()
+    with _web_run(tmp_path / "two", "--robots", "2") as run, headless_browser() as tools:
+        tools.call("Emulation.setFocusEmulationEnabled", enabled=True)
+        tools.call("Page.navigate", url=run["url"])
+        page = Page(tools)
+        page.wait(
+            "arm0's run under way and its view",
+            lambda s: (
+                s.get("tool_p_m") is not None
+                and s["robot"] == "arm0"
+                and s["sim_s"] > 0.5
+                and page.evaluate("window.teleop.framesShown") > 0
+            ),
+            START_TIMEOUT_S,
+        )
+        assert page.evaluate("document.getElementById('next').hidden") is False
+        arm0_before = _hold(page, "s", lambda v: v[0] < 0)  # back, arm0
+        arm0_after = page.state()["tool_p_m"]
+        page.press("Tab")
+        page.wait("arm1 driven", lambda s: s["robot"] == "arm1", PAGE_TIMEOUT_S)
+        assert "arm1 (2 robots)" in page.evaluate("document.getElementById('run').textContent")
+        arm1_before = _hold(page, "s", lambda v: v[0] < 0)  # back, arm1
+        arm1_after = page.state()["tool_p_m"]
+        assert page.evaluate("window.teleop.switches") == 1
+        page.press("q")
+        code = run["process"].wait(EXIT_TIMEOUT_S)
+    assert code == 1  # ended by the person: no success
+    for before, after in ((arm0_before, arm0_after), (arm1_before, arm1_after)):
+        along, share = _moved(before, after, 0, -1.0)
+        assert along > MIN_MOVE_M and share > MIN_AXIS_SHARE, (before, after)
+    summary = json.loads((run["run_dir"] / "summary.json").read_text())
+    operator = summary["services"]["operator"]
+    assert [(s["from"], s["to"]) for s in operator["robot_switches"]] == [(0, 1)]
+    assert [s["robot"] for s in summary["services"]["haptic"]["robot_switches"]] == [1]
+    assert operator["web"]["switches"] == 1
+    arm0, arm1 = (operator["robots"][r] for r in ("arm0", "arm1"))
+    # arm0 held still once the hand left it; arm1 had held still until the hand came.
+    assert max(abs(e - a) for e, a in zip(arm0["tool_end_m"], arm0_after, strict=True)) < 0.003
+    assert max(abs(s - b) for s, b in zip(arm1["tool_start_m"], arm1_before, strict=True)) < 0.003

@@ -18,6 +18,8 @@ import numpy as np
 import pytest
 
 from services import web
+from teleop.bus.messages import Button
+from teleop.bus.topics import Topics
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import ConfigError, load_config
 from teleop.core.net import LoopbackPorts
@@ -117,9 +119,8 @@ def test_the_page_gets_the_terminals_keys_by_the_browsers_names():
     assert keys["w"] == ["move", 0, 1.0] and keys["ArrowUp"] == ["move", 0, 1.0]
     assert keys["PageDown"] == ["move", 2, -1.0] and keys["f"] == ["move", 2, -1.0]
     assert keys[" "][0] == "stop" and keys["q"][0] == "quit" and keys["g"][0] == "gripper"
-    # every key of the terminal's but the robot switch (the page drives one robot)
-    assert len(keys) == len([a for a in DEFAULT_KEYS.values() if a.kind != SWITCH])
-    assert "Tab" not in keys and "tab" not in keys
+    assert keys["Tab"][0] == SWITCH
+    assert len(keys) == len(DEFAULT_KEYS)
 
 
 def test_the_page_file_takes_its_settings_safely():
@@ -139,7 +140,8 @@ def test_the_state_names_what_the_screen_shows():
                      device_f_n=np.array([0.0, 3.0, 4.0]),
                      objects_p_m={"cube": np.zeros(3)})  # fmt: skip
     state = web.state_message(view, config, HandIntent((0.1, 0, 0)), intent_live=True,
-                              run_over=False, frame_seq=7)  # fmt: skip
+                              run_over=False, frame_seq=7, robot_id="arm1")  # fmt: skip
+    assert state["robot"] == "arm1"
     assert state["phase"] == "carry" and state["holding"] is True
     assert math.isclose(state["force_n"], 5.0) and state["tool_p_m"] == [0.4, 0.0, 0.2]
     assert state["sim_s"] == round(250 * config.plant.timestep_s, 3)
@@ -184,16 +186,22 @@ def test_the_web_config_checks_its_rates():
 
 # -- the page's server, its bus side stubbed -------------------------------------------
 class _Station:
-    """A one-robot HumanStation stand-in: its loop's view is fixed, ending is counted."""
+    """A two-robot HumanStation stand-in: its loop's view is fixed, ending is counted,
+    the switch goes to the other robot, whose gripper the hand left closed."""
 
     def __init__(self) -> None:
         self.view = WorldView(tick=10, tool_p_m=np.array([0.3, 0.1, 0.2]))
         self.loop = self
         self.active = 0
         self.ended = 0
+        self.last_buttons = Button.GRIPPER_CLOSE
 
     def end_task(self) -> None:
         self.ended += 1
+
+    def switch(self) -> bool:
+        self.active = 1 - self.active
+        return True
 
 
 @pytest.fixture
@@ -215,6 +223,7 @@ def served(tmp_path) -> Iterator[SimpleNamespace]:
     service._streams = 0
     service.lock = threading.Lock()
     service.station = _Station()
+    service.robot_topics = (Topics("arm0"), Topics("arm1"))
     service.run_over = threading.Event()
     service._pending_input_ns = None
     service._wake = threading.Event()
@@ -254,6 +263,23 @@ def test_every_request_without_the_token_is_forbidden_and_counted(served):
         assert response.headers["Cache-Control"] == "no-store"
     assert served.service.counts.forbidden == 7
     assert served.service.loop.ended == 0
+
+
+def test_the_robot_switch_drives_the_next_robot_with_its_gripper_as_left(served):
+    port, service = served.port, served.service
+    assert (
+        _request(port, "POST", "/input", _body(v=[0.5, 0.0, 0.0], gripper=False, clutch=False))[0]
+        == 204
+    )
+    service._wake.clear()
+    status, body, _ = _request(port, "POST", "/switch")
+    assert status == 200
+    assert json.loads(body) == {"switched": True, "robot": "arm1", "gripper": True, "clutch": False}
+    # the page's motion stops; the hand holds the new robot's gripper as it left it
+    assert service.page_intent.intent(time.monotonic_ns()) == HandIntent(gripper_closed=True)
+    assert service._wake.is_set() and service.counts.switches == 1
+    assert service.state()["robot"] == "arm1"
+    assert _request(port, "POST", "/switch", token="wrong")[0] == 403
 
 
 def test_inputs_are_taken_or_refused_and_end_ends(served):
