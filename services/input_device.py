@@ -8,6 +8,8 @@ loop waits on the device (``poll``, no busy loop) and hands each intent to the p
 gamepad that can rumble renders the force the emulated handle feels
 (``gamepad.rumble*``), and the force is in the recording as for every run. A device that
 goes away mid-run ends the task (not a success) rather than leaving the hand where it was.
+In a run of several robots a press of one of the device's ``switch_buttons`` drives the
+next robot, the gripper as the hand last left it.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ class InputDeviceOperatorService(HumanOperatorService):
         self.device = self.config.run.operator
         self.reader: HumanInputDevice = open_input_device(self.device, self.config)
         self._intent = HandIntent()
+        self._switch_presses = 0  # the reader's robot-switch presses acted on
         self.device_lost = ""
         super().open()
 
@@ -54,6 +57,11 @@ class InputDeviceOperatorService(HumanOperatorService):
                     stop.wait()
                     return
                 now_ns = time.monotonic_ns()
+                if self.reader.switch_presses > self._switch_presses:  # the robot switch
+                    self._switch_presses = self.reader.switch_presses
+                    buttons = self.switch_robot()
+                    if buttons is not None:
+                        intent = self.reader.take_robot(buttons)
                 with self.lock:
                     changed = intent != self._intent
                     self._intent = intent

@@ -649,7 +649,7 @@ BUTTON_MODES = ("toggle", "hold")
 def _check_human_device(section: str, axes: tuple[str, ...], dead_zone_fraction: float,
                         gain: float, gripper_buttons: tuple[str, ...],
                         clutch_buttons: tuple[str, ...], gripper_mode: str,
-                        clutch_mode: str) -> None:  # fmt: skip
+                        clutch_mode: str, switch_buttons: tuple[str, ...]) -> None:  # fmt: skip
     """The checks a gamepad's and a SpaceMouse's sections share (names checked against the
     kernel's tables when the device opens, teleop/devices/input_events.py)."""
     _require(
@@ -659,11 +659,17 @@ def _check_human_device(section: str, axes: tuple[str, ...], dead_zone_fraction:
     _require(0 <= dead_zone_fraction < 1, f"{section}.dead_zone_fraction in [0, 1)")
     _require(gain > 0, f"{section}.gain > 0")
     _require(len(gripper_buttons) > 0, f"{section}.gripper_buttons: at least one button")
-    for name, buttons in (("gripper_buttons", gripper_buttons), ("clutch_buttons", clutch_buttons)):
+    roles = {"gripper_buttons": gripper_buttons, "clutch_buttons": clutch_buttons,
+             "switch_buttons": switch_buttons}  # fmt: skip
+    for name, buttons in roles.items():
         _require(
             all(_BUTTON_NAME.fullmatch(b) for b in buttons),
             f"{section}.{name}: kernel button names like BTN_SOUTH, BTN_0",
         )
+    for name, buttons in roles.items():  # one role per button
+        for other, others in roles.items():
+            shared = sorted(set(buttons) & set(others)) if name < other else []
+            _require(not shared, f"{section}.{name} and {section}.{other} share {shared}")
     for name, mode in (("gripper_mode", gripper_mode), ("clutch_mode", clutch_mode)):
         _require(mode in BUTTON_MODES, f"{section}.{name}: one of {', '.join(BUTTON_MODES)}")
 
@@ -697,6 +703,8 @@ class GamepadConfig:
     gripper_mode: str = "toggle"
     clutch_buttons: tuple[str, ...] = ("BTN_TL", "BTN_TR")
     clutch_mode: str = "hold"
+    # A press of any of these drives the next robot (a run of several robots).
+    switch_buttons: tuple[str, ...] = ("BTN_NORTH",)
     # Rumble (where the pad has it, FF_RUMBLE): the feedback force's magnitude as strength,
     # 0 below rumble_min_force_n, full at rumble_full_force_n (N).
     rumble: bool = True
@@ -710,7 +718,7 @@ class GamepadConfig:
     def __post_init__(self) -> None:
         _check_human_device("gamepad", self.axes, self.dead_zone_fraction, self.gain,
                             self.gripper_buttons, self.clutch_buttons, self.gripper_mode,
-                            self.clutch_mode)  # fmt: skip
+                            self.clutch_mode, self.switch_buttons)  # fmt: skip
         _require(
             all(_DEVICE_AXIS_NAME.fullmatch(a) for a in self.trigger_axes),
             "gamepad.trigger_axes: axis names like Z, RZ",
@@ -749,6 +757,9 @@ class SpaceMouseConfig:
     gripper_mode: str = "toggle"
     clutch_buttons: tuple[str, ...] = ("BTN_1",)
     clutch_mode: str = "hold"
+    # A press of any of these drives the next robot (a run of several robots). None by
+    # default: the two buttons of most SpaceMice are the gripper's and the clutch's.
+    switch_buttons: tuple[str, ...] = ()
     # Through the kernel's relative axes (REL_X..REL_RZ) a return to 0 is never reported
     # (the kernel drops zero relative events): an axis not reported for this long (s)
     # reads 0. The devices report about every 8-16 ms while deflected.
@@ -757,7 +768,7 @@ class SpaceMouseConfig:
     def __post_init__(self) -> None:
         _check_human_device("spacemouse", self.axes, self.dead_zone_fraction, self.gain,
                             self.gripper_buttons, self.clutch_buttons, self.gripper_mode,
-                            self.clutch_mode)  # fmt: skip
+                            self.clutch_mode, self.switch_buttons)  # fmt: skip
         _require(self.device != "", 'spacemouse.device: "auto" or a path')
         _require(self.full_scale_counts > 0, "spacemouse.full_scale_counts > 0")
         _require(0 < self.rel_hold_s <= 1, "spacemouse.rel_hold_s in (0, 1]")
@@ -1189,16 +1200,21 @@ class Config:
 
     def _check_robots(self) -> None:
         """What a run of several robots (``run.robots``) supports: the scripted operator
-        drives them in turn, or a person at the keyboard or the web page (tab switches
-        robots), in the teleoperation scenario, on one host, each with its own model of
-        the operator's link."""
+        drives them in turn, or a person with a robot switch (tab on the keyboard and the
+        web page, a device's switch_buttons), in the teleoperation scenario, on one host,
+        each with its own model of the operator's link."""
         many = f"run.robots={self.run.robots}"
         _require(self.run.teleoperated, f"{many}: a teleoperated scenario (grasp)")
-        _require(
-            self.run.operator in (SCRIPTED, *TERMINAL_OPERATORS, *VIEWING_OPERATORS),
-            f"{many}: the scripted operator, the keyboard or the web page (their robot "
-            f"switch: tab, a button); the {self.run.operator} has none yet",
-        )
+        if self.run.operator in INPUT_DEVICE_OPERATORS:
+            device = self.gamepad if self.run.operator == "gamepad" else self.spacemouse
+            section = self.run.operator
+            _require(
+                len(device.switch_buttons) > 0,
+                f"{many}: {section}.switch_buttons is empty: name the button that drives "
+                "the next robot (a SpaceMouse's two are the gripper's and the clutch's by "
+                f"default: e.g. --set '{section}.switch_buttons=[\"BTN_1\"]' "
+                f"--set '{section}.clutch_buttons=[]')",
+            )
         _require(not self.site.name, f"{many}: one host only (not with site.name)")
         _require(
             not self.site.emulated_round_trip_ms,

@@ -42,6 +42,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
+from teleop.bus.messages import Button
 from teleop.core.clock import Clock, MonotonicClock
 from teleop.core.config import Config, GamepadConfig, SpaceMouseConfig
 from teleop.devices.human import HandIntent
@@ -379,7 +380,12 @@ class HumanInputDevice(Protocol):
 
     def fileno(self) -> int: ...
 
+    @property
+    def switch_presses(self) -> int: ...
+
     def read(self, timeout_s: float) -> HandIntent: ...
+
+    def take_robot(self, buttons: Button) -> HandIntent: ...
 
     def rumble(self, force_n: float) -> None: ...
 
@@ -410,6 +416,17 @@ class _Reader:
         """Whether the device's axes have been seen at rest since it was opened (until then
         it asks for no motion: a user interface says "centre the stick")."""
         return self.state.mapper.armed
+
+    @property
+    def switch_presses(self) -> int:
+        """Presses of a robot-switch button (``switch_buttons``) since it was opened."""
+        return self.state.mapper.switch_presses
+
+    def take_robot(self, buttons: Button) -> HandIntent:
+        """The hand moved to another robot: the gripper as the hand left it
+        (:meth:`IntentMapper.take_robot`); the intent now."""
+        self.state.mapper.take_robot(buttons)
+        return self.intent()
 
     def read(self, timeout_s: float) -> HandIntent:
         """Wait up to ``timeout_s`` for input, apply all there is, return the intent now."""

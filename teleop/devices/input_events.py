@@ -48,6 +48,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
+from teleop.bus.messages import Button
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import ConfigError, GamepadConfig, SpaceMouseConfig
 from teleop.devices.human import AXES, HandIntent
@@ -348,11 +349,14 @@ class IntentMapper:
         gain: float,
         gripper: ButtonRole,
         clutch: ButtonRole,
+        switch_codes: frozenset[int] = frozenset(),
     ) -> None:
         self.sources = tuple(sources)
         self.gain = gain
         self.gripper = gripper
         self.clutch = clutch
+        self.switch_codes = switch_codes
+        self.switch_presses = 0  # presses of a robot-switch button so far
         self.armed = False
         self._held: frozenset[int] = frozenset()
 
@@ -364,7 +368,16 @@ class IntentMapper:
         """The buttons held after a frame; press edges against the previous frame's."""
         for role in (self.gripper, self.clutch):
             role.update(self._held, held_now)
+        if self.switch_codes & (held_now - self._held):
+            self.switch_presses += 1
         self._held = held_now
+
+    def take_robot(self, buttons: Button) -> None:
+        """The hand moved to another robot: the gripper (and a toggled clutch) as the
+        hand last left that robot; a held clutch follows the buttons held."""
+        self.gripper.on = bool(buttons & Button.GRIPPER_CLOSE)
+        if isinstance(self.clutch, ToggleRole):
+            self.clutch.on = bool(buttons & Button.CLUTCH)
 
     def intent(self, fractions: Mapping[int, float], dead_zones: Mapping[int, float]) -> HandIntent:
         """What the device asks for, ``fractions`` per device axis code (absent: 0) after
@@ -394,6 +407,7 @@ def _mapper(config: GamepadConfig | SpaceMouseConfig, section: str,
                     button_codes(config.gripper_buttons, f"{section}.gripper_buttons")),
         button_role(config.clutch_mode,
                     button_codes(config.clutch_buttons, f"{section}.clutch_buttons")),
+        button_codes(config.switch_buttons, f"{section}.switch_buttons"),
     )  # fmt: skip
 
 

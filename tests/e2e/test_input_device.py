@@ -123,3 +123,38 @@ def test_a_killed_spacemouse_service_comes_back_and_drives_again(tmp_path):
     moved = [e - s for s, e in zip(start, end, strict=True)]
     print(f"after the restart the tool moved {moved} m")
     assert moved[0] > 0.05 and abs(moved[1]) < 0.5 * moved[0], moved
+
+
+def _buttons(fd: int, mask: int) -> None:
+    """A buttons report (report 3: bit i is BTN_0 + i held), alone in the FIFO: the reads
+    before and after it take whole reports (a hidraw node gives one report per read)."""
+    time.sleep(0.5)
+    os.write(fd, struct.pack("<BB", 3, mask))
+    time.sleep(0.5)
+
+
+def test_a_spacemouse_button_switches_robots_and_each_moves_only_while_driven(tmp_path):
+    """``--robots 2`` with BTN_1 as the robot switch: the cap pushed left moves arm0;
+    a press of BTN_1, and the cap pushed left moves arm1 while arm0 holds still."""
+    switch = ("--robots", "2", "--set", 'spacemouse.switch_buttons=["BTN_1"]',
+              "--set", "spacemouse.clutch_buttons=[]")  # fmt: skip
+    with spacemouse_run(tmp_path, "--duration", "10", *switch) as (process, fd, run_dir):
+        _push(fd, 0, 0, 0, 0.3)  # at rest: the device arms
+        _push(fd, -250, 0, 0, 1.5)  # left (-X): arm0
+        _push(fd, 0, 0, 0, 0.5)
+        _buttons(fd, 0b10)  # BTN_1 pressed ...
+        _buttons(fd, 0)  # ... and released
+        _push(fd, -250, 0, 0, 1.5)  # left: arm1
+        _push(fd, 0, 0, 0, 0.5)
+        _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 1, stderr  # no task done: the run ends at its duration
+    summary = json.loads((run_dir / "summary.json").read_text())
+    operator = summary["services"]["operator"]
+    assert [(s["from"], s["to"]) for s in operator["robot_switches"]] == [(0, 1)]
+    assert [s["robot"] for s in summary["services"]["haptic"]["robot_switches"]] == [1]
+    for robot_id in ("arm0", "arm1"):
+        section = operator["robots"][robot_id]
+        moved = [e - s for s, e in zip(section["tool_start_m"], section["tool_end_m"], strict=True)]
+        print(f"{robot_id}'s tool moved {moved} m")
+        # A robot not driven gets a centred handle: it holds still (0 mm).
+        assert moved[1] > 0.02 and abs(moved[0]) < 0.5 * moved[1], (robot_id, moved)

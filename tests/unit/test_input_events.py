@@ -9,6 +9,7 @@ import struct
 
 import pytest
 
+from teleop.bus.messages import Button
 from teleop.core.clock import NS_PER_S, FakeClock
 from teleop.core.config import Config, ConfigError, GamepadConfig, SpaceMouseConfig, load_config
 from teleop.devices.input_devices import (
@@ -395,6 +396,32 @@ def test_spacemouse_buttons_left_toggles_gripper_right_holds_clutch():
     assert state.intent(0).gripper_closed and not state.intent(0).clutch
     state.apply_report(bytes([3, 0b01, 0]), 0)
     assert not state.intent(0).gripper_closed
+
+
+def test_a_switch_button_counts_presses_and_the_keys_take_up_the_next_robots_gripper():
+    state = spacemouse(SpaceMouseConfig(switch_buttons=("BTN_1",), clutch_buttons=()))
+    state.apply_report(bytes([3, 0b01, 0]), 0)  # the gripper closed on robot 0
+    for mask in (0b10, 0b10, 0, 0b10, 0):  # pressed, held (one press), released, again
+        state.apply_report(bytes([3, mask, 0]), 0)
+    assert state.mapper.switch_presses == 2
+    assert state.intent(0).gripper_closed and not state.intent(0).clutch
+    state.mapper.take_robot(Button.NONE)  # the next robot's gripper was left open
+    assert not state.intent(0).gripper_closed
+    state.mapper.take_robot(Button.GRIPPER_CLOSE | Button.CLUTCH)
+    assert state.intent(0).gripper_closed and not state.intent(0).clutch  # no clutch role
+
+
+@pytest.mark.parametrize(
+    ("settings", "message"),
+    [
+        (['gamepad.switch_buttons=["BTN_SOUTH"]'], "gripper_buttons and gamepad.switch"),
+        (['spacemouse.switch_buttons=["BTN_1"]'], "clutch_buttons and spacemouse.switch"),
+        (['gamepad.switch_buttons=["north"]'], "kernel button names"),
+    ],
+)
+def test_a_button_has_one_role(settings, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(None, settings)
 
 
 def test_spacemouse_through_relative_events_returns_to_zero():

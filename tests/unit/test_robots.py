@@ -38,7 +38,7 @@ def test_robot_ids_number_the_stem_of_robot_id():
     ("extra", "message"),
     [
         (['run.scenario="path-following"'], "teleoperated"),
-        (['run.operator="gamepad"'], "the gamepad has none yet"),
+        (['run.operator="spacemouse"'], "spacemouse.switch_buttons is empty"),
         (['site.name="robot"'], "one host"),
         (["site.emulated_round_trip_ms=20"], "emulated_round_trip_ms"),
         (['teleop.stabiliser="wave"'], "wave"),
