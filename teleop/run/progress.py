@@ -84,9 +84,11 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
             f"{summary.get('scenario')} ({summary.get('mode')}), {len(robots)} robots: {outcome}"
         ]
         shared = {k: v for k, v in summary.items() if k != "robots"}
-        for robot_id, section in robots.items():
+        for robot_id, section in robots.items():  # the one recording of all: said once
             lines.append(f"robot {robot_id}:")
-            lines += ["  " + line for line in _task_lines({**shared, **section})]
+            lines += ["  " + line for line in _task_lines({**shared, **section, "rrd": None})]
+        if summary.get("rrd"):
+            lines.append(f"  recording          {summary['rrd']} (every robot)")
     else:
         lines = _task_lines(summary)
     lockstep = summary.get("mode") == "lockstep"

@@ -13,6 +13,7 @@ reads one robot's as a one-robot recording's.
 from __future__ import annotations
 
 import copy
+import warnings
 from collections import defaultdict
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -85,7 +86,9 @@ class Recording:
 
     def _read_segment(self, path: Path) -> None:
         try:
-            reader = RrdReader(path)
+            with warnings.catch_warnings():  # written so on purpose (recording_file.py)
+                warnings.filterwarnings("ignore", message="RRD file has no footer")
+                reader = RrdReader(path)
         except RuntimeError as exc:  # Rerun's reader: not an .rrd, or a damaged one
             raise NotARecording(f"{path} is not a readable Rerun recording: {exc}") from None
         self.has_blueprint = self.has_blueprint or bool(reader.blueprints)

@@ -100,3 +100,15 @@ def test_the_short_summary_names_every_protective_stop():
     assert "released at 5.000 s" in text and "tool speed 0.34" in text
     assert "still held at the end" in text
     assert "PROTECTIVE" not in "\n".join(human_summary({**summary, "protective_stop": None}, None))
+
+
+def test_a_run_of_several_robots_shows_each_robot_and_names_its_one_recording_once():
+    section = {"success": True, "rrd": "/r/recording.rrd", "max_contact_force_n": 1.0}
+    summary = {
+        "scenario": "grasp", "mode": "lockstep", "success": True, "rrd": "/r/recording.rrd",
+        "robots": {"arm0": section, "arm1": {**section, "max_contact_force_n": 2.5}},
+    }  # fmt: skip
+    text = "\n".join(human_summary(summary, None))
+    assert "2 robots: success" in text and "robot arm0:" in text and "robot arm1:" in text
+    assert "2.50 N" in text
+    assert text.count("/r/recording.rrd") == 1 and "(every robot)" in text
