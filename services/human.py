@@ -167,16 +167,22 @@ class HumanOperatorService(Service):
         with self.lock:
             self.station.end_task()
 
-    def switch_robot(self) -> Button | None:
+    def switch_robot(self) -> bool:
         """The device's robot switch: the hand drives the next robot whose task is not
-        done. The buttons the hand last gave that robot (its gripper as the hand left
-        it), for the device to take up; None: no other robot to drive."""
+        done, the device taking up its gripper (:meth:`take_robot`). False: no other
+        robot to drive."""
         with self.lock:
             if not self.station.switch():
-                return None
-            buttons = self.station.loop.last_buttons
+                return False
+            self.take_robot(self.station.loop.last_buttons)
         self._wake.set()
-        return buttons
+        return True
+
+    def take_robot(self, buttons: Button) -> None:
+        """The hand came to another robot (the switch, or the move-on after a task): the
+        device stops its motion and takes up ``buttons``, the gripper and clutch as the
+        hand last left that robot. Called with :attr:`lock` held; the device's subclass
+        says how."""
 
     # -- threads -------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
@@ -196,6 +202,8 @@ class HumanOperatorService(Service):
             self._wake.clear()
             now_ns = time.monotonic_ns()
             with self.lock:
+                if self.station.move_on():  # the driven robot's task is done
+                    self.take_robot(self.station.loop.last_buttons)
                 sent_before = self.station.inputs_sent
                 next_ns = self.station.due(now_ns, self.intent(now_ns))
                 sent = self.station.inputs_sent > sent_before

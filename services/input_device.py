@@ -20,6 +20,7 @@ import threading
 import time
 
 from services.human import HumanOperatorService
+from teleop.bus.messages import Button
 from teleop.bus.service import service_main
 from teleop.devices.human import HandIntent
 from teleop.devices.input_devices import DeviceUnavailable, HumanInputDevice, open_input_device
@@ -59,9 +60,8 @@ class InputDeviceOperatorService(HumanOperatorService):
                 now_ns = time.monotonic_ns()
                 if self.reader.switch_presses > self._switch_presses:  # the robot switch
                     self._switch_presses = self.reader.switch_presses
-                    buttons = self.switch_robot()
-                    if buttons is not None:
-                        intent = self.reader.take_robot(buttons)
+                    if self.switch_robot():
+                        intent = self._intent  # as take_robot left it
                 with self.lock:
                     changed = intent != self._intent
                     self._intent = intent
@@ -71,6 +71,9 @@ class InputDeviceOperatorService(HumanOperatorService):
                 self.reader.rumble(force_n)
         finally:
             self.reader.close()
+
+    def take_robot(self, buttons: Button) -> None:
+        self._intent = self.reader.take_robot(buttons)  # the caller holds self.lock
 
     def summary(self) -> dict[str, object]:
         return {**super().summary(), "device_lost": self.device_lost or None}

@@ -20,6 +20,7 @@ import time
 from typing import Any
 
 from services.human import HumanOperatorService
+from teleop.bus.messages import Button
 from teleop.bus.service import service_main
 from teleop.devices.human import (
     DOWN,
@@ -80,18 +81,14 @@ class KeyboardOperatorService(HumanOperatorService):
                     action = self.keys.press(key.lower() if len(key) == 1 else key, now_ns)
                 if action is not None:
                     if action.kind == SWITCH:
-                        self._switch_robot()
+                        self.switch_robot()
                     self.input_changed(now_ns)
                     if action.kind == "quit":
                         self.end_task()
             self._draw(window, now_ns)
 
-    def _switch_robot(self) -> None:
-        """Tab: drive the next robot, the keys as the hand left it (the gripper)."""
-        buttons = self.switch_robot()
-        if buttons is not None:
-            with self.lock:
-                self.keys.take_robot(buttons)
+    def take_robot(self, buttons: Button) -> None:
+        self.keys.take_robot(buttons)  # the caller holds self.lock
 
     def _draw(self, window: Any, now_ns: int) -> None:
         with self.lock:

@@ -22,7 +22,9 @@ Endpoints:
   raw pixels to a canvas: a small fraction of a raw frame's 230 kB, so the view keeps up
   through an ``ssh -L`` tunnel too, and the browser decodes it natively.
 - ``POST /input``: the page's intent, ``{"v": [x, y, z], "gripper": bool, "clutch":
-  bool}`` (velocity fractions in the view frame, as :class:`HandIntent`). Anything else
+  bool}`` (velocity fractions in the view frame, as :class:`HandIntent`), and
+  optionally the ``"robot"`` it was meant for (one meant for a robot the hand has left
+  is dropped and counted). Anything else
   (a body too large, not JSON, another key, a NaN, a value outside [-1, 1]) gets 400,
   is counted and logged once; the intent stays as it was.
 - ``POST /end``: the person ends the run (TASK_DONE, not a success).
@@ -101,6 +103,10 @@ MIN_TOKEN_CHARS = 16
 # The largest input body taken (bytes): an intent is about 60.
 MAX_INPUT_BYTES = 1024
 INPUT_KEYS = frozenset({"v", "gripper", "clutch"})
+# An input may name the robot it was meant for: one for another robot than the one driven
+# (sent before the page saw a switch) is dropped, so its buttons never reach the next.
+ROBOT_KEY = "robot"
+MAX_ROBOT_ID_CHARS = 64
 # State streams served at once (one per open page; more is a page left open twice over).
 MAX_STATE_STREAMS = 8
 # A connection that sends nothing for this long is closed (s): keep-alive and dead peers.
@@ -155,17 +161,21 @@ def read_token(path: Path) -> str:
     return token
 
 
-def parse_input(body: bytes) -> HandIntent:
-    """The page's intent from a POST body; :class:`BadInput` says what is wrong with it."""
+def parse_input(body: bytes) -> tuple[HandIntent, str | None]:
+    """The page's intent from a POST body, and the robot it was meant for (None: not
+    said); :class:`BadInput` says what is wrong with it."""
     if len(body) > MAX_INPUT_BYTES:
         raise BadInput(f"body of {len(body)} bytes (at most {MAX_INPUT_BYTES})")
     try:
         message = json.loads(body)
     except (ValueError, UnicodeDecodeError) as exc:
         raise BadInput(f"not JSON ({exc})") from None
-    if not isinstance(message, dict) or set(message) != INPUT_KEYS:
+    if not isinstance(message, dict) or not INPUT_KEYS <= set(message) <= INPUT_KEYS | {ROBOT_KEY}:
         keys = sorted(message) if isinstance(message, dict) else type(message).__name__
-        raise BadInput(f"expected the keys {sorted(INPUT_KEYS)}, got {keys}")
+        raise BadInput(f"expected the keys {sorted(INPUT_KEYS)} (and {ROBOT_KEY!r}), got {keys}")
+    robot = message.get(ROBOT_KEY)
+    if robot is not None and not (isinstance(robot, str) and 0 < len(robot) <= MAX_ROBOT_ID_CHARS):
+        raise BadInput(f"{ROBOT_KEY}: a robot id, got {robot!r}")
     v, gripper, clutch = message["v"], message["gripper"], message["clutch"]
     if not isinstance(v, list) or len(v) != 3:
         raise BadInput(f"v: a list of 3 numbers, got {v!r}")
@@ -175,7 +185,7 @@ def parse_input(body: bytes) -> HandIntent:
         raise BadInput(f"v: finite values in [-1, 1], got {v!r}")
     if not isinstance(gripper, bool) or not isinstance(clutch, bool):
         raise BadInput(f"gripper, clutch: true or false, got {gripper!r}, {clutch!r}")
-    return HandIntent((float(v[0]), float(v[1]), float(v[2])), gripper, clutch)
+    return HandIntent((float(v[0]), float(v[1]), float(v[2])), gripper, clutch), robot
 
 
 class PageIntent:
@@ -357,6 +367,7 @@ class RequestCounts:
     frames: int = 0
     ends: int = 0
     switches: int = 0  # robot switches asked for (a run of several robots)
+    other_robot_inputs: int = 0  # inputs meant for a robot the hand had left: dropped
     by_status: dict[int, int] = field(default_factory=dict)
 
 
@@ -445,9 +456,15 @@ class WebOperatorService(HumanOperatorService):
             logger.warning("an input from the page was refused (400): %s; further ones "
                            "are counted in the summary", reason)  # fmt: skip
 
-    def take_input(self, intent: HandIntent) -> None:
+    def take_input(self, intent: HandIntent, robot: str | None = None) -> None:
+        """The page's input, meant for ``robot`` (None: whichever is driven). One for
+        another robot than the one driven now is dropped and counted."""
         now_ns = time.monotonic_ns()
         with self.lock:
+            if robot is not None and robot != self.robot_id:
+                with self._counts_lock:
+                    self.counts.other_robot_inputs += 1
+                return
             changed = self.page_intent.update(intent, now_ns)
         if changed:
             self.input_changed(now_ns)
@@ -457,16 +474,16 @@ class WebOperatorService(HumanOperatorService):
         hand last left that robot (no motion; its gripper and clutch), and what the page
         is to take up: ``switched``, the ``robot`` driven, its ``gripper`` and ``clutch``."""
         self.count("switches")
-        buttons = self.switch_robot()
+        switched = self.switch_robot()
         with self.lock:
-            out: dict[str, Any] = {"switched": buttons is not None, "robot": self.robot_id}
-            if buttons is not None:
-                self.page_intent.take_robot(buttons)
+            out: dict[str, Any] = {"switched": switched, "robot": self.robot_id}
+            if switched:
                 held = self.page_intent.newest
                 out.update(gripper=held.gripper_closed, clutch=held.clutch)
-        if buttons is not None:
-            self.input_changed(time.monotonic_ns())
         return out
+
+    def take_robot(self, buttons: Button) -> None:
+        self.page_intent.take_robot(buttons)  # the caller holds self.lock
 
     def state(self) -> dict[str, Any]:
         now_ns = time.monotonic_ns()
@@ -611,12 +628,12 @@ class _PageHandler(BaseHTTPRequestHandler):
             return
         body = self.rfile.read(length)
         try:
-            intent = parse_input(body)
+            intent, robot = parse_input(body)
         except BadInput as exc:
             self.service.bad_input(str(exc))
             self._send(HTTPStatus.BAD_REQUEST, f"bad input: {exc}\n".encode(), "text/plain")
             return
-        self.service.take_input(intent)
+        self.service.take_input(intent, robot)
         self._send(HTTPStatus.NO_CONTENT)
 
     def _frame(self) -> None:

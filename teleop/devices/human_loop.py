@@ -395,11 +395,12 @@ class HumanStation:
 
     The person switches robots (:meth:`switch`: the device's robot switch); the hand also
     moves on by itself once the driven robot's task is done, to the next robot whose task
-    is not. Hand inputs go out from the driven robot's loop only, on the sample-tick grid
-    the previous one left off at (:meth:`HumanOperatorLoop.take_over`), so the haptic
-    device (which drives the robot whose keys the input comes on) sees one unbroken
-    stream. Ending the run ends every robot's task. With one robot it is that robot's
-    loop.
+    is not (:meth:`move_on`). Either way the device then takes up the gripper as the hand
+    last left that robot (:attr:`HumanOperatorLoop.last_buttons`). Hand inputs go out
+    from the driven robot's loop only, on the sample-tick grid the previous one left off
+    at (:meth:`HumanOperatorLoop.take_over`), so the haptic device (which drives the
+    robot whose keys the input comes on) sees one unbroken stream. Ending the run ends
+    every robot's task. With one robot it is that robot's loop.
     """
 
     def __init__(self, loops: Sequence[HumanOperatorLoop]) -> None:
@@ -432,11 +433,14 @@ class HumanStation:
         self.active = robot
         self.loop.take_over(previous)
 
+    def move_on(self) -> bool:
+        """The hand moves on if the driven robot's task is done and another's is not
+        (True: it did). Call before reading the device's intent, so the device takes up
+        the next robot's gripper first."""
+        return self.loop.task.done and self.switch()
+
     def due(self, now_ns: int, intent: HandIntent) -> int:
-        """:meth:`HumanOperatorLoop.due` of the driven robot; first the hand moves on if
-        that robot's task is done and another's is not."""
-        if self.loop.task.done:
-            self.switch()
+        """:meth:`HumanOperatorLoop.due` of the driven robot."""
         return self.loop.due(now_ns, intent)
 
     def end_task(self) -> None:

@@ -5,10 +5,12 @@ from the world (teleop.devices.human_loop), on a fake clock."""
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 import pytest
 
+from services.keyboard import KeyboardOperatorService
 from teleop.bus.messages import Button, Event
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import ConfigError, load_config
@@ -318,11 +320,13 @@ def test_the_hand_moves_on_by_itself_once_the_driven_robots_task_is_done(lockste
         loop.on_started(0)
         loop.on_tool(100, np.zeros(3), 0)
     station.due(0, HandIntent())
+    assert not station.move_on()  # robot 0's task goes on
     station.loops[0].task.finish(True, 100, station.loops[0]._emit)
+    assert station.move_on() and station.active == 1
     station.due(20 * MS, HandIntent())
-    assert station.active == 1 and out1.hands
+    assert out1.hands
     assert not station.switch()  # the only other robot's task is done: nowhere to go
-    assert station.active == 1
+    assert not station.move_on() and station.active == 1
 
 
 def test_ending_the_run_ends_every_robots_task_and_the_summary_has_a_section_each():
@@ -350,3 +354,30 @@ def test_the_keys_take_up_the_robot_the_hand_comes_to():
     assert intent.velocity_fraction == (0.0, 0.0, 0.0) and not intent.gripper_closed
     keys.take_robot(Button.GRIPPER_CLOSE | Button.CLUTCH)
     assert keys.gripper_closed and keys.clutch
+
+
+def test_the_hand_moving_on_by_itself_gives_the_keys_the_next_robots_gripper():
+    """The keys drove arm1 (it kept the cube, gripper closed), then arm0 until its task
+    was done: the move-on to arm1 takes its gripper up before the next input goes out,
+    so arm1 is never told to open and drop what it holds."""
+    station, (_, out1) = _station(lockstep=False)
+    for loop in station.loops:
+        loop.on_started(0)
+        loop.on_tool(100, np.zeros(3), 0)
+    station.loops[1].last_buttons = Button.GRIPPER_CLOSE  # as the hand left arm1
+    station.loops[0].task.finish(True, 100, station.loops[0]._emit)
+    service = KeyboardOperatorService.__new__(KeyboardOperatorService)
+    service.station, service.lock = station, threading.Lock()
+    service.keys = KeyboardIntent(CONFIG.keyboard)  # the gripper open, as arm0 left it
+    service._wake, service._pending_input_ns = threading.Event(), None
+    stop = threading.Event()
+    intent = service.intent
+
+    def one_round(now_ns: int) -> HandIntent:
+        stop.set()
+        return intent(now_ns)
+
+    service.intent = one_round  # type: ignore[method-assign]
+    service._pace(stop)
+    assert station.active == 1 and service.keys.gripper_closed
+    assert out1.hands and out1.hands[0][2] == Button.GRIPPER_CLOSE

@@ -58,9 +58,11 @@ def _body(**message: object) -> bytes:
     return json.dumps(message).encode()
 
 
-def test_a_well_formed_input_is_the_intent_it_says():
-    intent = web.parse_input(_body(v=[0.5, -1, 0], gripper=True, clutch=False))
-    assert intent == HandIntent((0.5, -1.0, 0.0), True, False)
+def test_a_well_formed_input_is_the_intent_it_says_and_may_name_its_robot():
+    intent, robot = web.parse_input(_body(v=[0.5, -1, 0], gripper=True, clutch=False))
+    assert intent == HandIntent((0.5, -1.0, 0.0), True, False) and robot is None
+    _, robot = web.parse_input(_body(v=[0, 0, 0], gripper=False, clutch=False, robot="arm1"))
+    assert robot == "arm1"
 
 
 @pytest.mark.parametrize(
@@ -81,6 +83,8 @@ def test_a_well_formed_input_is_the_intent_it_says():
         (_body(v=[1.5, 0, 0], gripper=False, clutch=False), "in \\[-1, 1\\]"),
         (_body(v=[0, 0, -1.01], gripper=False, clutch=False), "in \\[-1, 1\\]"),
         (_body(v=[0, 0, 0], gripper=1, clutch=False), "true or false"),
+        (_body(v=[0, 0, 0], gripper=False, clutch=False, robot=7), "a robot id"),
+        (_body(v=[0, 0, 0], gripper=False, clutch=False, robot=""), "a robot id"),
         (b" " * (web.MAX_INPUT_BYTES + 1), "bytes"),
     ],
 )
@@ -280,6 +284,14 @@ def test_the_robot_switch_drives_the_next_robot_with_its_gripper_as_left(served)
     assert service._wake.is_set() and service.counts.switches == 1
     assert service.state()["robot"] == "arm1"
     assert _request(port, "POST", "/switch", token="wrong")[0] == 403
+    # An input the page sent for arm0 before it saw the switch: dropped, counted.
+    stale = _body(v=[0.5, 0.0, 0.0], gripper=False, clutch=False, robot="arm0")
+    assert _request(port, "POST", "/input", stale)[0] == 204
+    assert service.page_intent.newest == HandIntent(gripper_closed=True)
+    assert service.counts.other_robot_inputs == 1
+    fresh = _body(v=[0.5, 0.0, 0.0], gripper=True, clutch=False, robot="arm1")
+    assert _request(port, "POST", "/input", fresh)[0] == 204
+    assert service.page_intent.newest == HandIntent((0.5, 0.0, 0.0), True, False)
 
 
 def test_inputs_are_taken_or_refused_and_end_ends(served):
