@@ -120,6 +120,8 @@ def screen_lines(service: KeyboardOperatorService, now_ns: int) -> list[str]:
         phase = view.phase_name or "-"
         lines.append(f"phase: {phase} ({view.phase + 1}/{len(PHASES)})   "
                      f"holding: {'yes' if view.holding else 'no'}")  # fmt: skip
+    if service.station.settling:
+        lines.append(f"switching to robot {service.robot_id}: the handle comes to rest")
     if service.run_over.is_set():
         lines.append("the run has ended")
     if view.tool_p_m is not None:

@@ -280,6 +280,7 @@ def state_message(
     run_over: bool,
     frame_seq: int,
     robot_id: str,
+    settling: bool = False,
 ) -> dict[str, Any]:
     """What the page shows, as the state stream sends it (units in the names; positions
     in the world frame, the force in the device frame): the world of ``robot_id``, the
@@ -288,6 +289,7 @@ def state_message(
     phase = view.phase_name
     return {
         "robot": robot_id,
+        "settling": settling,  # after a switch: no motion until the handle rests
         "tick": view.tick,
         "sim_s": round(max(view.tick, 0) * config.plant.timestep_s, 3),
         "started": view.tick >= 0,
@@ -497,6 +499,7 @@ class WebOperatorService(HumanOperatorService):
                 run_over=self.run_over.is_set(),
                 frame_seq=frame_seq,
                 robot_id=self.robot_id,
+                settling=self.station.settling,
             )
 
     def open_stream(self) -> bool:

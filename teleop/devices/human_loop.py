@@ -67,6 +67,10 @@ HOLD_SETTLE_S = 0.05
 # TASK_DONE names a tick this far ahead of the tick that ends the task: the plant ends the
 # run there (the same margin as the scripted operator's).
 TASK_DONE_AHEAD_TICKS = 100
+# After a robot switch the hand asks for no motion this long (sim s): the handle comes to
+# rest, where the haptic device makes the switch (teleop.devices.haptic_loop), before the
+# person's motion goes out; motion sooner would still move the robot left behind.
+SWITCH_SETTLE_S = 0.25
 
 # Where the task's events go: (event, tick, step, value) as the RUN_EVENT record has them.
 Emit = Callable[[Event, int, int, float], None]
@@ -396,7 +400,8 @@ class HumanStation:
     The person switches robots (:meth:`switch`: the device's robot switch); the hand also
     moves on by itself once the driven robot's task is done, to the next robot whose task
     is not (:meth:`move_on`). Either way the device then takes up the gripper as the hand
-    last left that robot (:attr:`HumanOperatorLoop.last_buttons`). Hand inputs go out
+    last left that robot (:attr:`HumanOperatorLoop.last_buttons`), and the hand asks for
+    no motion for ``SWITCH_SETTLE_S`` (:attr:`settling`). Hand inputs go out
     from the driven robot's loop only, on the sample-tick grid the previous one left off
     at (:meth:`HumanOperatorLoop.take_over`), so the haptic device (which drives the
     robot whose keys the input comes on) sees one unbroken stream. Ending the run ends
@@ -409,6 +414,7 @@ class HumanStation:
         self.loops = list(loops)
         self.active = 0  # the robot the hand drives
         self.switches: list[dict[str, int]] = []  # each: the robot left, the one taken, tick
+        self._settle_until_tick = -1  # after a switch: no motion before this tick
 
     @property
     def loop(self) -> HumanOperatorLoop:
@@ -428,10 +434,17 @@ class HumanStation:
 
     def _drive(self, robot: int) -> None:
         previous = self.loop
-        self.switches.append({"from": self.active, "to": robot, "tick": max(previous.view.tick, 0)})
+        tick = max(previous.view.tick, 0)
+        self.switches.append({"from": self.active, "to": robot, "tick": tick})
         logger.info("the hand moves from robot %d to robot %d", self.active, robot)
         self.active = robot
         self.loop.take_over(previous)
+        self._settle_until_tick = tick + round(SWITCH_SETTLE_S / previous.timestep_s)
+
+    @property
+    def settling(self) -> bool:
+        """After a switch, while the hand asks for no motion (``SWITCH_SETTLE_S``)."""
+        return max(self.loop.view.tick, 0) < self._settle_until_tick
 
     def move_on(self) -> bool:
         """The hand moves on if the driven robot's task is done and another's is not
@@ -440,7 +453,10 @@ class HumanStation:
         return self.loop.task.done and self.switch()
 
     def due(self, now_ns: int, intent: HandIntent) -> int:
-        """:meth:`HumanOperatorLoop.due` of the driven robot."""
+        """:meth:`HumanOperatorLoop.due` of the driven robot; while :attr:`settling`,
+        with the intent's buttons and no motion."""
+        if self.settling:
+            intent = HandIntent(gripper_closed=intent.gripper_closed, clutch=intent.clutch)
         return self.loop.due(now_ns, intent)
 
     def end_task(self) -> None:

@@ -138,12 +138,13 @@ def test_a_spacemouse_button_switches_robots_and_each_moves_only_while_driven(tm
     a press of BTN_1, and the cap pushed left moves arm1 while arm0 holds still."""
     switch = ("--robots", "2", "--set", 'spacemouse.switch_buttons=["BTN_1"]',
               "--set", "spacemouse.clutch_buttons=[]")  # fmt: skip
-    with spacemouse_run(tmp_path, "--duration", "10", *switch) as (process, fd, run_dir):
+    with spacemouse_run(tmp_path, "--duration", "12", *switch) as (process, fd, run_dir):
         _push(fd, 0, 0, 0, 0.3)  # at rest: the device arms
         _push(fd, -250, 0, 0, 1.5)  # left (-X): arm0
         _push(fd, 0, 0, 0, 0.5)
         _buttons(fd, 0b10)  # BTN_1 pressed ...
         _buttons(fd, 0)  # ... and released
+        time.sleep(1.5)  # the hand asks for no motion until the handle rests (0.25 s sim)
         _push(fd, -250, 0, 0, 1.5)  # left: arm1
         _push(fd, 0, 0, 0, 0.5)
         _, stderr = process.communicate(timeout=120)

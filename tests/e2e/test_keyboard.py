@@ -247,9 +247,15 @@ def test_a_person_switches_robots_with_tab_and_each_moves_only_while_driven(tmp_
         time.sleep(0.5)  # the handle comes to rest: the haptic device switches there
         terminal.press("\t")
         second = terminal.wait_for(
-            where(lambda s: s.tool is not None and "robot arm1 (2 robots)" in s.text),
-            20.0,
-            "arm1 driven",
+            where(
+                lambda s: (
+                    s.tool is not None
+                    and "robot arm1 (2 robots)" in s.text
+                    and "switching" not in s.text
+                )
+            ),
+            30.0,
+            "arm1 driven, the handle at rest",
         )
         for _ in range(8):  # left, arm1
             terminal.press("a")

@@ -309,7 +309,11 @@ def test_a_person_at_the_web_page_drives_two_robots_in_turn(tmp_path):
         arm0_before = _hold(page, "s", lambda v: v[0] < 0)  # back, arm0
         arm0_after = page.state()["tool_p_m"]
         page.press("Tab")
-        page.wait("arm1 driven", lambda s: s["robot"] == "arm1", PAGE_TIMEOUT_S)
+        page.wait(
+            "arm1 driven, the handle at rest",
+            lambda s: s["robot"] == "arm1" and not s["settling"],
+            PAGE_TIMEOUT_S,
+        )
         assert "arm1 (2 robots)" in page.evaluate("document.getElementById('run').textContent")
         arm1_before = _hold(page, "s", lambda v: v[0] < 0)  # back, arm1
         arm1_after = page.state()["tool_p_m"]

@@ -30,6 +30,7 @@ from teleop.devices.human_loop import (
     MAX_AHEAD_TICKS,
     PLACED,
     REACH,
+    SWITCH_SETTLE_S,
     TASK_DONE_AHEAD_TICKS,
     HumanOperatorLoop,
     HumanStation,
@@ -381,3 +382,19 @@ def test_the_hand_moving_on_by_itself_gives_the_keys_the_next_robots_gripper():
     service._pace(stop)
     assert station.active == 1 and service.keys.gripper_closed
     assert out1.hands and out1.hands[0][2] == Button.GRIPPER_CLOSE
+
+
+def test_after_a_switch_the_hand_asks_for_no_motion_until_the_handle_has_settled():
+    station, (_, out1) = _station(lockstep=False)
+    for loop in station.loops:
+        loop.on_started(0)
+        loop.on_tool(1000, np.zeros(3), 0)
+    assert station.switch() and station.settling
+    moving = HandIntent((1.0, 0.0, 0.0), gripper_closed=True)
+    station.due(0, moving)
+    settle_ticks = round(SWITCH_SETTLE_S / CONFIG.plant.timestep_s)
+    assert not out1.hands[-1][1].any() and out1.hands[-1][2] == Button.GRIPPER_CLOSE
+    station.loops[1].on_tool(1000 + settle_ticks, np.zeros(3), 0)
+    assert not station.settling
+    station.due(20 * MS, moving)
+    assert out1.hands[-1][1][0] > 0  # the person's motion, now on robot 1

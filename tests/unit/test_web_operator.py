@@ -199,6 +199,7 @@ class _Station:
         self.active = 0
         self.ended = 0
         self.last_buttons = Button.GRIPPER_CLOSE
+        self.settling = False
 
     def end_task(self) -> None:
         self.ended += 1
