@@ -212,10 +212,7 @@ class PageIntent:
     def take_robot(self, buttons: Button) -> None:
         """The hand moved to another robot: no motion until the page's next input, the
         gripper and clutch as the hand last left that robot (``buttons``)."""
-        self.newest = HandIntent(
-            gripper_closed=bool(buttons & Button.GRIPPER_CLOSE),
-            clutch=bool(buttons & Button.CLUTCH),
-        )
+        self.newest = HandIntent.at_rest(buttons)
         self.received_ns, self._expired = None, True
 
     def live(self, now_ns: int) -> bool:

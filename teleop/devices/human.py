@@ -64,6 +64,15 @@ class HandIntent:
             bits |= Button.CLUTCH
         return bits
 
+    @classmethod
+    def at_rest(cls, buttons: Button) -> HandIntent:
+        """No motion, the gripper and clutch as the HAND_INPUT bits ``buttons`` hold them
+        (the inverse of :attr:`buttons`)."""
+        return cls(
+            gripper_closed=bool(buttons & Button.GRIPPER_CLOSE),
+            clutch=bool(buttons & Button.CLUTCH),
+        )
+
     @property
     def moving(self) -> bool:
         return any(v != 0.0 for v in self.velocity_fraction)
@@ -190,8 +199,8 @@ class KeyboardIntent:
         handle comes to rest, which the haptic device waits for to switch), and the
         gripper and clutch are as the hand last left that robot (``buttons``)."""
         self._axes = [(0.0, 0)] * 3
-        self.gripper_closed = bool(buttons & Button.GRIPPER_CLOSE)
-        self.clutch = bool(buttons & Button.CLUTCH)
+        held = HandIntent.at_rest(buttons)
+        self.gripper_closed, self.clutch = held.gripper_closed, held.clutch
 
     def intent(self, now_ns: int) -> HandIntent:
         """What the keys ask of the hand at ``now_ns``."""

@@ -375,9 +375,10 @@ class IntentMapper:
     def take_robot(self, buttons: Button) -> None:
         """The hand moved to another robot: the gripper (and a toggled clutch) as the
         hand last left that robot; a held clutch follows the buttons held."""
-        self.gripper.on = bool(buttons & Button.GRIPPER_CLOSE)
+        held = HandIntent.at_rest(buttons)
+        self.gripper.on = held.gripper_closed
         if isinstance(self.clutch, ToggleRole):
-            self.clutch.on = bool(buttons & Button.CLUTCH)
+            self.clutch.on = held.clutch
 
     def intent(self, fractions: Mapping[int, float], dead_zones: Mapping[int, float]) -> HandIntent:
         """What the device asks for, ``fractions`` per device axis code (absent: 0) after
