@@ -28,10 +28,10 @@ import numpy as np
 import zenoh
 
 # -- the wire format (docs/protocol.md, "Records") --------------------------------------
-VERSION = 7
+VERSION = 8
 HEADER = struct.Struct("<HHIQq10q")  # version, kind, flags, seq, t_source_ns, trace_ns[10]
 PLANT_STATE, JOINT_COMMAND, RUN_EVENT = 1, 2, 7  # kinds
-PLANT_STATE_SIZE, RUN_EVENT_SIZE = 483, 130
+PLANT_STATE_SIZE, RUN_EVENT_SIZE = 491, 130
 COMMAND_BODY = struct.Struct("<Qq8ddB")  # state_seq, device_deadline_ns, qd_ref[8], gripper, n
 MAX_JOINTS = 8
 BRAKING = 1  # header flag of PLANT_STATE
@@ -117,7 +117,7 @@ class OutsideController:
             self.states += 1
             self.braking_states += flags & BRAKING
             sim_time_ns = struct.unpack_from("<q", data, 104)[0]
-            n = data[482]  # n_joints
+            n = data[490]  # n_joints
             q_rad = np.frombuffer(data, "<f8", n, 160)
             qd_ref = np.zeros(MAX_JOINTS)
             qd_ref[:n] = self.law.command(sim_time_ns * 1e-9, q_rad)

@@ -24,10 +24,10 @@ import numpy as np
 import zenoh
 
 # -- the wire format (docs/protocol.md, "Records") --------------------------------------
-VERSION = 7
+VERSION = 8
 HEADER = struct.Struct("<HHIQq10q")  # version, kind, flags, seq, t_source_ns, trace_ns[10]
 HAPTIC_STATE, HAND_INPUT, FORCE_FEEDBACK, RUN_EVENT = 8, 9, 10, 7  # kinds
-HAND_INPUT_SIZE, FORCE_FEEDBACK_SIZE, RUN_EVENT_SIZE = 137, 312, 130
+HAND_INPUT_SIZE, FORCE_FEEDBACK_SIZE, RUN_EVENT_SIZE = 137, 408, 130
 # sim_time_ns, tick, device_deadline_ns, p, v, f, passivity_observed_j,
 # passivity_dissipated_j, wave_u (3: zero, no wave variables here), buttons
 STATE_BODY = struct.Struct("<qQq14dB")

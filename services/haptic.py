@@ -42,7 +42,7 @@ class HapticService(Service):
         assert self.session is not None
         cfg = self.config
         self.lockstep = cfg.run.mode == "lockstep"
-        self.device = EmulatedDevice(cfg.haptic, cfg.plant.timestep_s)
+        self.device = EmulatedDevice(cfg.haptic, cfg.haptic.render_period_s)
         self.device.connect()
         self.loop = HapticLoop(cfg, self.device, self, MonotonicClock(), lockstep=self.lockstep)
         # Per robot (Config.robot_ids; one but in a run of several): its sample stream,
@@ -71,7 +71,7 @@ class HapticService(Service):
         logger.info(
             "%s mode; stiffness a feedback law may render: K_max = 2 b / T = %.0f N/m",
             cfg.run.mode,
-            max_stable_stiffness_n_per_m(cfg.haptic, cfg.plant.timestep_s),
+            max_stable_stiffness_n_per_m(cfg.haptic, cfg.haptic.render_period_s),
         )
         self.announce()
 

@@ -35,7 +35,7 @@ class HmdService(Service):
         super().open()
         assert self.session is not None
         self.loop = HmdLoop(self.config)
-        self.timestep_ns = round(self.config.plant.timestep_s * NS_PER_S)
+        self.timestep_ns = round(self.config.tick_s * NS_PER_S)
         # One head, every robot's keys (a run of several robots): each robot's controller
         # and operator take the head pose from their own robot's stream.
         self.pose_pubs = [

@@ -52,7 +52,7 @@ class HumanOperatorService(Service):
         super().open()
         assert self.session is not None
         cfg = self.config
-        self.timestep_ns = round(cfg.plant.timestep_s * NS_PER_S)
+        self.timestep_ns = round(cfg.tick_s * NS_PER_S)
         self._force_scale = cfg.teleop.force_scale
         self.lock = threading.Lock()
         scene = SceneKnowledge.from_config(cfg)

@@ -105,7 +105,7 @@ def screen_lines(service: KeyboardOperatorService, now_ns: int) -> list[str]:
     cfg = service.config
     view, keys = service.loop.view, service.keys
     intent = keys.intent(now_ns)
-    sim_s = max(view.tick, 0) * cfg.plant.timestep_s
+    sim_s = max(view.tick, 0) * cfg.tick_s
     robots = len(service.robot_topics)
     driving = f"robot {service.robot_id}" + (f" ({robots} robots)" if robots > 1 else "")
     lines = [

@@ -97,7 +97,7 @@ class OperatorService(Service):
         super().open()
         assert self.session is not None
         cfg = self.config
-        self.timestep_ns = round(cfg.plant.timestep_s * NS_PER_S)
+        self.timestep_ns = round(cfg.tick_s * NS_PER_S)
         self.scenario = Scenario.load(cfg.operator.scenario_path, cfg.robot.object_bodies)
         lockstep = cfg.run.mode == "lockstep"
         self.station = OperatorStation(

@@ -95,7 +95,7 @@ class PlantService(Service):
             return
         steps = None
         if not self.options.continuous:
-            steps = round(self.config.run.duration_s / self.config.plant.timestep_s)
+            steps = round(self.config.run.duration_s / self.config.tick_s)
         self.loop.run(stop, steps)
         core = self.loop.core
         if core.finished or core.aborted:

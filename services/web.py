@@ -288,7 +288,7 @@ def state_message(
         "robot": robot_id,
         "settling": settling,  # after a switch: no motion until the handle rests
         "tick": view.tick,
-        "sim_s": round(max(view.tick, 0) * config.plant.timestep_s, 3),
+        "sim_s": round(max(view.tick, 0) * config.tick_s, 3),
         "started": view.tick >= 0,
         "phase": phase,
         "phase_index": view.phase,

@@ -465,7 +465,7 @@ def run_floor(
     relay_overrides = [*overrides, f'bus.endpoint="{endpoint}"']
     bus = replace(config.bus, endpoint=endpoint, gossip=False)  # the mesh's listener
     topics = Topics(config.robot.robot_id)
-    period_ns = round(config.plant.timestep_s * NS_PER_S)
+    period_ns = round(config.tick_s * NS_PER_S)
     payload_bytes = PLANT_STATE.size  # the loop's largest record
     # The origin plays the haptic service: same scheduling (its Zenoh threads too).
     fifo_priority = config.cpu.fifo_priority_for("haptic", config.run.mode)

@@ -43,9 +43,11 @@ logger = logging.getLogger(__name__)
 # device's clock; 5: FORCE_FEEDBACK carries the scene's and the arm's own limits' push-back;
 # 6: HAPTIC_STATE carries the passivity observer's energy and what its controller
 # dissipated; 7: HAPTIC_STATE and FORCE_FEEDBACK carry the wave variables of
-# teleop.stabiliser "wave"). examples/ speak the protocol without this package: a
+# teleop.stabiliser "wave"; 8: one record per bus period (loop.rate_hz): PLANT_STATE
+# carries its physics steps' peak contact force, FORCE_FEEDBACK the local contact model
+# the handle renders from between two feedbacks). examples/ speak the protocol without this package: a
 # new version changes their VERSION and layouts too (tests/e2e/test_outside.py runs them).
-PROTOCOL_VERSION = 7
+PROTOCOL_VERSION = 8
 MAX_JOINTS = 8  # joint arrays are padded with zeros to this length; n_joints says how many count
 MAX_OBJECTS = 8  # object pose arrays are padded to this length; n_objects says how many count
 N_STAGES = 10  # length of the header's trace_ns array (one slot per Stage)
@@ -67,6 +69,8 @@ POSITION_LIMIT_M = 100.0  # |coordinate| of any point in the world frame
 QUAT_COMPONENT_LIMIT = 1.0 + 1e-6  # unit quaternion components, with rounding slack
 GRIPPER_OPENING_LIMIT_M = 1.0
 FORCE_LIMIT_N = 1.0e6
+# Stiffness of a local contact model (N/m): far above any device's (a Falcon: ~3000).
+STIFFNESS_LIMIT_N_PER_M = 1.0e6
 SPEED_LIMIT_M_S = 100.0  # |component| of any linear velocity
 MANIPULABILITY_LIMIT = 1.0e6
 PATH_PARAMETER_LIMIT = 1.0e12  # path_s grows with time; this only rules out garbage
@@ -413,7 +417,7 @@ PLANT_STATE = Schema(
     Kind.PLANT_STATE,
     [
         _sim_time(),
-        Field("step", "u8", doc="plant physics step counter"),
+        Field("step", "u8", doc="plant tick counter (bus periods stepped)"),
         Field("cmd_seq_applied", "u8", doc="seq of the JOINT_COMMAND applied in this step"),
         Field(
             "interaction_step",
@@ -473,6 +477,14 @@ PLANT_STATE = Schema(
             hi=1.0,
             unit="1",
             doc="unit direction from the obstacle to the arm point",
+        ),
+        Field(
+            "peak_contact_force_n",
+            "f8",
+            lo=0.0,
+            hi=FORCE_LIMIT_N,
+            unit="N",
+            doc="largest net contact force on the gripper over the tick's physics steps",
         ),
         Field("n_contacts", "u2", doc="number of active gripper contacts"),
         _n_joints(),
@@ -672,6 +684,23 @@ FORCE_FEEDBACK = Schema(
             (3,),
             **_WAVE,
             doc='wave variable back to the handle, device frame (teleop.stabiliser "wave"; else 0)',
+        ),
+        Field(
+            "device_p_ref_m",
+            "f8",
+            (3,),
+            **_POS,
+            doc="local contact model: the handle position device_f_n was computed at",
+        ),
+        Field(
+            "device_k_n_per_m",
+            "f8",
+            (9,),
+            lo=-STIFFNESS_LIMIT_N_PER_M,
+            hi=STIFFNESS_LIMIT_N_PER_M,
+            unit="N/m",
+            doc="local contact model: dF/dp about device_p_ref_m, row-major 3x3 (the device "
+            "renders device_f_n + K (p - device_p_ref_m) at its own rate until the next)",
         ),
     ],
 )

@@ -56,6 +56,7 @@ from teleop.control.feedback import (
     check_stability,
     device_force,
     feedback_components,
+    workspace_stiffness_n_per_m,
 )
 from teleop.control.kinematics import ArmModel
 from teleop.control.path import (
@@ -107,7 +108,7 @@ class ControllerCore:
         self.arm = arm
         self.outputs = outputs
         self.clock = clock
-        self.timestep_s = config.plant.timestep_s
+        self.timestep_s = config.tick_s
         self.status_every_steps = max(
             1, round(1.0 / (config.control.status_rate_hz * self.timestep_s))
         )
@@ -305,7 +306,10 @@ class BilateralCycle(ControllerCore):
     ) -> None:
         super().__init__(config, arm, outputs, clock)
         self.lockstep = config.run.mode == "lockstep"
-        self.stability = check_stability(config.teleop, config.haptic, self.timestep_s)
+        # The device renders the springs from the local model every servo period.
+        self.stability = check_stability(
+            config.teleop, config.haptic, config.haptic.render_period_s
+        )
         mj_model = mujoco.MjModel.from_xml_path(str(config.robot.scene_path))
         self.controller = TeleopController(
             arm,
@@ -499,7 +503,9 @@ class BilateralCycle(ControllerCore):
             state, obstacle, handle_d_m, yaw_rad, previous_terms, live=haptic is not None
         )
         self.compute_ns_total += self.clock.now_ns() - t0
-        self._send_feedback(tick, state, components, device_f_n, state["trace_ns"])
+        self._send_feedback(
+            tick, state, components, device_f_n, state["trace_ns"], handle_d_m, haptic is not None
+        )
         if self._last_output is not None:
             self._measure(self._last_output, components, device_f_n, held_mass)
         # Off the loop's critical path: the next handle sample will be answered on this
@@ -643,7 +649,9 @@ class BilateralCycle(ControllerCore):
         trace = state["trace_ns"].copy()
         if haptic is not None:
             trace[Stage.HAPTIC_SAMPLE] = haptic["trace_ns"][Stage.HAPTIC_SAMPLE]
-        self._send_feedback(tick, state, components, device_f_n, trace)
+        self._send_feedback(
+            tick, state, components, device_f_n, trace, handle_d_m, haptic is not None
+        )
         self.send_command(state, output.qd_ref_rad_s, gripper_cmd, trace)
         self._measure(output, components, device_f_n, held_mass)
         self._watch(state, terms)
@@ -658,7 +666,13 @@ class BilateralCycle(ControllerCore):
         components: FeedbackComponents,
         device_f_n: np.ndarray,
         trace: np.ndarray,
+        handle_d_m: np.ndarray,
+        live: bool,
     ) -> None:
+        """The FORCE_FEEDBACK of ``tick``: the device force at the handle position it was
+        computed at (``handle_d_m``) and, as its local contact model, how the force
+        changes about it (the workspace spring's stiffness; none with wave variables,
+        whose handle renders its own spring, nor for a handle that is not ``live``)."""
         rec = self._feedback
         with self._out_lock:
             self.feedback_count += 1  # a Python int: += on a record field is far slower
@@ -674,6 +688,12 @@ class BilateralCycle(ControllerCore):
             rec["world_f_limits_n"] = components.world_limits_f_n
             if self.wave is not None:
                 rec["wave_v"] = self.wave.wave_back()
+            rec["device_p_ref_m"] = handle_d_m
+            if live and self.wave is None:
+                stiffness = workspace_stiffness_n_per_m(handle_d_m, self.config.teleop)
+                rec["device_k_n_per_m"] = stiffness.ravel()
+            else:
+                rec["device_k_n_per_m"] = 0.0
             rec["trace_ns"][:] = trace
             now_ns = self.clock.now_ns()
             rec["trace_ns"][Stage.FEEDBACK_TX] = now_ns

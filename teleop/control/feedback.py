@@ -101,6 +101,20 @@ def workspace_force(device_d_m: np.ndarray, cfg: TeleopConfig) -> np.ndarray:
     return -cfg.workspace_stiffness_n_per_m * (norm - cfg.workspace_free_m) * (d / norm)
 
 
+def workspace_stiffness_n_per_m(device_d_m: np.ndarray, cfg: TeleopConfig) -> np.ndarray:
+    """The workspace spring's stiffness about ``device_d_m`` (3, 3), N/m: the Jacobian of
+    :func:`workspace_force`, -K ((1 - r / |d|) I + (r / |d|) u u^T) outside the free radius
+    r (u = d / |d|), zero inside. The device renders the spring between two feedbacks
+    from it (the local contact model of FORCE_FEEDBACK)."""
+    d = np.asarray(device_d_m, dtype=float)
+    norm = math.hypot(*d.tolist())
+    if norm <= cfg.workspace_free_m:
+        return np.zeros((3, 3))
+    u = d / norm
+    inside = cfg.workspace_free_m / norm
+    return -cfg.workspace_stiffness_n_per_m * ((1.0 - inside) * np.eye(3) + inside * np.outer(u, u))
+
+
 def feedback_components(
     world_f_gripper_n: np.ndarray,
     held_mass: float,

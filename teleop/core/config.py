@@ -114,6 +114,30 @@ class RobotConfig:
         return REPO_ROOT / candidate
 
 
+# The bus rates a run may use (Hz): below the lowest the watchdog and the hand's 100 Hz
+# decisions no longer fit in a few periods.
+MIN_LOOP_RATE_HZ = 50.0
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """The bilateral loop's bus rate: one plant state, one joint command, one handle sample
+    and one force feedback (with its local contact model) cross the bus per period.
+
+    Physics and the arm's drives (``plant.timestep_s``, 1 kHz) and the haptic device's
+    force rendering (``haptic.render_period_s``, 1 kHz) stay inside their processes: the
+    plant takes ``1 / (rate_hz * plant.timestep_s)`` physics steps per exchange, the
+    device renders as many times from the newest local contact model. 1000 Hz exchanges
+    every physics step (for comparisons); the default is the rate the rate sweep picked
+    (docs/realtime.md, "Two rates").
+    """
+
+    rate_hz: float = 1000.0
+
+    def __post_init__(self) -> None:
+        _require(self.rate_hz >= MIN_LOOP_RATE_HZ, f"loop.rate_hz >= {MIN_LOOP_RATE_HZ:g}")
+
+
 # More states in flight than this gains nothing (two stages: plant and controller).
 MAX_LOCKSTEP_DELAY_STEPS = 4
 # Lockstep: the plant re-sends a state left unanswered this long (s).
@@ -192,10 +216,7 @@ class PlantConfig:
             0 <= self.lockstep_delay_steps <= MAX_LOCKSTEP_DELAY_STEPS,
             f"plant.lockstep_delay_steps in [0, {MAX_LOCKSTEP_DELAY_STEPS}]",
         )
-        _require(
-            0 < self.scene_rate_hz <= 1 / self.timestep_s, "plant.scene_rate_hz in (0, 1/timestep]"
-        )
-        _require(self.watchdog_s >= self.timestep_s, "plant.watchdog_s >= plant.timestep_s")
+        _require(self.scene_rate_hz > 0, "plant.scene_rate_hz > 0")
         _require(self.tool_speed_limit_m_s > 0, "plant.tool_speed_limit_m_s > 0")
         _require(self.contact_force_limit_n > 0, "plant.contact_force_limit_n > 0")
         _require(
@@ -383,6 +404,12 @@ class HapticConfig:
     encoder_resolution_m: float = 2e-5  # position quantisation of the encoders
     # Kalman velocity estimate: white-acceleration process noise (m/s^2) of the model.
     kf_accel_noise_m_s2: float = 3.0  # 30 made it noisier than finite differences (tested)
+    # The device's servo period (s): it renders the newest local contact model this often,
+    # whatever the bus rate (loop.rate_hz; a bus period is a whole number of these).
+    render_period_s: float = 0.001
+    # The rendered force changes at most this fast (N/s): a new local model ramps in
+    # instead of knocking the handle once per bus period (teleop.devices.haptic.ForceSlew).
+    max_force_rate_n_per_s: float = 2000.0
     # Feedback older than this is stale: the rendered force fades to zero over fade_s.
     stale_feedback_s: float = 0.020
     fade_s: float = 0.020
@@ -410,6 +437,8 @@ class HapticConfig:
             "stale_feedback_s",
             "fade_s",
             "hand_input_stale_s",
+            "render_period_s",
+            "max_force_rate_n_per_s",
         ):
             _require(getattr(self, name) > 0, f"haptic.{name} > 0")
 
@@ -1157,6 +1186,7 @@ class RunConfig:
 class Config:
     robot: RobotConfig = field(default_factory=RobotConfig)
     plant: PlantConfig = field(default_factory=PlantConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
     path: PathConfig = field(default_factory=PathConfig)
     control: ControlConfig = field(default_factory=ControlConfig)
     clearance: ClearanceConfig = field(default_factory=ClearanceConfig)
@@ -1177,6 +1207,7 @@ class Config:
     site: SiteConfig = field(default_factory=SiteConfig)
 
     def __post_init__(self) -> None:
+        self._check_loop_rate()
         if self.site.emulated_round_trip_ms:
             _require(
                 self.run.mode == "lockstep",
@@ -1188,15 +1219,64 @@ class Config:
                 "site.emulated_round_trip_ms: the scripted operator only (a person's screen "
                 "would show the scene undelayed)",
             )
-            ticks = self.site.emulated_round_trip_ms / (self.plant.timestep_s * 1e3)
+            ticks = self.site.emulated_round_trip_ms / (self.tick_s * 1e3)
             _require(
                 abs(ticks - round(ticks)) < 1e-6,
-                f"site.emulated_round_trip_ms: a whole number of plant steps "
-                f"({self.plant.timestep_s * 1e3:g} ms each)",
+                f"site.emulated_round_trip_ms: a whole number of bus periods "
+                f"({self.tick_s * 1e3:g} ms each at loop.rate_hz = {self.loop.rate_hz:g})",
             )
 
         if self.run.robots > 1:
             self._check_robots()
+
+    @property
+    def tick_s(self) -> float:
+        """The bus period (s): one tick of the run, one plant state, command, handle
+        sample and feedback (``1 / loop.rate_hz``)."""
+        return 1.0 / self.loop.rate_hz
+
+    @property
+    def renders_per_tick(self) -> int:
+        """Servo periods (``haptic.render_period_s``) the haptic device renders per bus
+        period from one local contact model."""
+        return round(self.tick_s / self.haptic.render_period_s)
+
+    @property
+    def physics_steps_per_tick(self) -> int:
+        """Physics steps (``plant.timestep_s``) the plant takes per bus period."""
+        return round(self.tick_s / self.plant.timestep_s)
+
+    def _check_loop_rate(self) -> None:
+        """``loop.rate_hz``: a whole number of physics steps per bus period, and no
+        stream that runs per tick asked to run faster than the ticks come."""
+        rate = self.loop.rate_hz
+        physics_hz = 1.0 / self.plant.timestep_s
+        steps = physics_hz / rate
+        _require(
+            rate <= physics_hz * (1 + 1e-9) and abs(steps - round(steps)) < 1e-6,
+            f"loop.rate_hz = {rate:g}: must divide the physics rate {physics_hz:g} Hz "
+            f"(plant.timestep_s = {self.plant.timestep_s:g}) into a whole number of steps, "
+            f"e.g. {', '.join(f'{physics_hz / n:g}' for n in (1, 2, 4, 5, 10) if physics_hz / n >= MIN_LOOP_RATE_HZ)}",
+        )
+        for name, value in (
+            ("plant.scene_rate_hz", self.plant.scene_rate_hz),
+            ("control.status_rate_hz", self.control.status_rate_hz),
+            ("operator.decision_rate_hz", self.operator.decision_rate_hz),
+            ("hmd.rate_hz", self.hmd.rate_hz),
+        ):
+            _require(value <= rate * (1 + 1e-9), f"{name} = {value:g}: at most loop.rate_hz ({rate:g})")
+        renders = self.tick_s / self.haptic.render_period_s
+        _require(
+            renders >= 1 - 1e-9 and abs(renders - round(renders)) < 1e-6,
+            f"haptic.render_period_s = {self.haptic.render_period_s:g}: a bus period "
+            f"({self.tick_s:g} s) must be a whole number of them",
+        )
+        watchdog_ticks = self.plant.watchdog_s * rate
+        _require(
+            watchdog_ticks >= 2 - 1e-9,
+            f"plant.watchdog_s = {self.plant.watchdog_s:g}: at least two bus periods "
+            f"({2 / rate:g} s at loop.rate_hz = {rate:g})",
+        )
 
     def _check_robots(self) -> None:
         """What a run of several robots (``run.robots``) supports: the scripted operator
@@ -1245,7 +1325,7 @@ class Config:
     def link_delay_ticks(self) -> tuple[int, int]:
         """The emulated link's delay (plant ticks) from the operator's site to the
         robot's and back (``site.emulated_round_trip_ms``; (0, 0): none)."""
-        round_trip = round(self.site.emulated_round_trip_ms / (self.plant.timestep_s * 1e3))
+        round_trip = round(self.site.emulated_round_trip_ms / (self.tick_s * 1e3))
         return round_trip // 2, round_trip - round_trip // 2
 
 

@@ -22,6 +22,7 @@ The operator's hand adds damping, but the bound must hold without it (a released
 from __future__ import annotations
 
 import abc
+import collections
 import math
 from dataclasses import dataclass
 
@@ -372,15 +373,91 @@ class EmulatedDevice(HapticDevice):
         return self._v_m_s.copy()
 
 
-class FeedbackHold:
-    """The last received feedback force, faded out when it gets old; never held stale.
+@dataclass(frozen=True)
+class LocalContactModel:
+    """What the handle feels between two feedback records (device frame, SI).
 
-    A force older than ``stale_after_s`` no longer describes the robot (the controller
+    The controller computes the feedback once per bus period, at the handle position it
+    last received; the device renders at its own servo rate (``haptic.render_period_s``)
+    ``force_n + k_n_per_m (p - p_ref_m)`` at the handle's position ``p`` now: the
+    feedback's force held, plus how it changes with the handle about where it was
+    computed (the workspace spring's Jacobian: model-mediated teleoperation, the
+    "intermediate representation" of haptic rendering). ``k_n_per_m`` (3, 3): dF/dp,
+    N/m, negative definite for a spring that pushes back.
+    """
+
+    force_n: np.ndarray  # (3,) N at p_ref_m
+    p_ref_m: np.ndarray  # (3,) m
+    k_n_per_m: np.ndarray  # (3, 3) N/m
+
+    @classmethod
+    def constant(cls, force_n: np.ndarray) -> LocalContactModel:
+        """A force that does not change with the handle's position."""
+        return cls(np.array(force_n, dtype=np.float64), np.zeros(N_AXES), np.zeros((N_AXES, N_AXES)))
+
+    def force_at(self, p_m: np.ndarray) -> np.ndarray:
+        """The force (3,), N, at handle position ``p_m`` (3,), m."""
+        return self.force_n + self.k_n_per_m @ (np.asarray(p_m, dtype=np.float64) - self.p_ref_m)
+
+    def scaled(self, factor: float) -> LocalContactModel:
+        """The same model with force and stiffness times ``factor`` (a fade)."""
+        return LocalContactModel(self.force_n * factor, self.p_ref_m, self.k_n_per_m * factor)
+
+
+ZERO_MODEL = LocalContactModel.constant(np.zeros(N_AXES))
+
+
+class ForceSlew:
+    """The rendered force's rate limit: a new local model (or a fade) never jumps the
+    force on the handle faster than ``max_rate_n_per_s``.
+
+    A feedback record comes once per bus period; rendered as it comes, each one would
+    be a step of up to the device's peak force, which the hand feels as a knock at the
+    bus rate (and which puts energy into a stiff contact, the chatter a passivity
+    controller then has to take out). Limited to ``max_rate_n_per_s`` the force ramps
+    over a few servo periods instead; the default (haptic.max_force_rate_n_per_s) lets
+    the peak force come within one 4 ms bus period.
+    """
+
+    def __init__(self, max_rate_n_per_s: float, period_s: float) -> None:
+        if max_rate_n_per_s <= 0 or period_s <= 0:
+            raise ValueError("max_rate_n_per_s and period_s must be > 0")
+        self.max_step_n = max_rate_n_per_s * period_s
+        self._last_n = np.zeros(N_AXES)
+        self.limited_steps = 0  # servo periods whose force change was cut
+
+    def reset(self) -> None:
+        self._last_n = np.zeros(N_AXES)
+
+    def limit(self, force_n: np.ndarray) -> np.ndarray:
+        """``force_n`` (3,), N, moved from the last one by at most the step (direction of
+        the change kept)."""
+        change = np.asarray(force_n, dtype=np.float64) - self._last_n
+        size = math.hypot(*change.tolist())
+        if size > self.max_step_n:
+            change = change * (self.max_step_n / size)
+            self.limited_steps += 1
+        self._last_n = self._last_n + change
+        return self._last_n.copy()
+
+
+# Local models FeedbackHold keeps by arrival time: the device's renders of one bus period
+# look up the newest received before each render (a few arrive per period at most).
+MODEL_HISTORY = 8
+
+
+class FeedbackHold:
+    """The received local contact models by arrival time, the newest one faded out when
+    it gets old; never held stale.
+
+    A model older than ``stale_after_s`` no longer describes the robot (the controller
     stalled or the link dropped): holding it would push the operator's hand with a force
     nothing produces any more, and an abrupt cut to zero would kick the handle. So it
     fades linearly to zero over ``fade_s``, then stays zero until fresh feedback arrives.
     Times are integer ns of one clock: monotonic arrival time in realtime, sim time in
-    lockstep. Not thread-safe: the service holds its own lock around it.
+    lockstep. A device that renders a bus period's servo periods in one go (the emulator)
+    asks for each render's time and gets the model that had arrived by then, as a 1 kHz
+    servo thread would have. Not thread-safe: the service holds its own lock around it.
     """
 
     def __init__(self, stale_after_s: float, fade_s: float) -> None:
@@ -388,36 +465,47 @@ class FeedbackHold:
             raise ValueError("stale_after_s and fade_s must be > 0")
         self.stale_after_ns = round(stale_after_s * NS_PER_S)
         self.fade_ns = round(fade_s * NS_PER_S)
-        self._force_n = np.zeros(N_AXES)
-        self._t_ns: int | None = None
+        self._models: collections.deque[tuple[int, LocalContactModel]] = collections.deque(
+            maxlen=MODEL_HISTORY
+        )
+        # What was rendered before the oldest model kept came: (received at, model).
+        self._before: tuple[int | None, LocalContactModel] = (None, ZERO_MODEL)
         self._stale = False
         self.stale_events = 0  # fresh -> stale transitions
 
-    def receive(self, force_n: np.ndarray, t_ns: int) -> None:
-        """Store a fresh force (3,), N, received at ``t_ns``."""
-        self._force_n = np.array(force_n, dtype=np.float64)
-        self._t_ns = t_ns
+    def receive(self, model: LocalContactModel, t_ns: int) -> None:
+        """Store a fresh model, received at ``t_ns`` (not before the last one's)."""
+        if self._models and t_ns < self._models[-1][0]:
+            t_ns = self._models[-1][0]
+        if len(self._models) == self._models.maxlen:
+            self._before = self._models[0]
+        self._models.append((t_ns, model))
         self._stale = False
 
     def clear(self) -> None:
-        """Forget the held force (a new run); counters are kept."""
-        self._force_n = np.zeros(N_AXES)
-        self._t_ns = None
+        """Forget the models held (a new run); counters are kept."""
+        self._models.clear()
+        self._before = (None, ZERO_MODEL)
         self._stale = False
 
-    def force_at(self, t_ns: int) -> tuple[np.ndarray, bool]:
-        """(force (3,) N, stale) to render at ``t_ns``; zero before the first receive.
+    def model_at(self, t_ns: int) -> tuple[LocalContactModel, bool, int | None]:
+        """(model to render at ``t_ns``, stale, when it was received): the newest received
+        by ``t_ns``; a zero force before the first.
 
-        ``stale`` is True once the force is older than ``stale_after_s`` (fading, or faded
+        ``stale`` is True once the model is older than ``stale_after_s`` (fading, or faded
         out to zero); its first occurrence after a receive counts one stale event.
         """
-        if self._t_ns is None:
-            return np.zeros(N_AXES), False
-        overdue_ns = t_ns - self._t_ns - self.stale_after_ns
+        received_ns, model = self._before
+        for at_ns, candidate in self._models:
+            if at_ns > t_ns:
+                break
+            received_ns, model = at_ns, candidate
+        if received_ns is None:
+            return model, False, None
+        overdue_ns = t_ns - received_ns - self.stale_after_ns
         if overdue_ns <= 0:
-            return self._force_n.copy(), False
-        if not self._stale:
+            return model, False, received_ns
+        if not self._stale and received_ns == self._models[-1][0]:
             self._stale = True
             self.stale_events += 1
-        scale = max(0.0, 1.0 - overdue_ns / self.fade_ns)
-        return self._force_n * scale, True
+        return model.scaled(max(0.0, 1.0 - overdue_ns / self.fade_ns)), True, received_ns

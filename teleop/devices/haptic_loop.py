@@ -1,4 +1,13 @@
-"""The haptic service's loop as pure code: one device period per plant tick, with feedback.
+"""The haptic service's loop as pure code: one bus period per plant tick, with feedback.
+
+Per tick (``Config.tick_s``, the bus period) the loop sends one HAPTIC_STATE and takes one
+FORCE_FEEDBACK, which brings a local contact model (:class:`LocalContactModel`: the force
+at a reference handle position and its stiffness about it); the device renders that model
+every servo period (``haptic.render_period_s``, 1 kHz) at the handle's position then,
+rate-limited (:class:`ForceSlew`), with the passivity observer and controller on the
+servo periods. A real device's driver renders in its own 1 kHz thread; the emulator
+renders a tick's servo periods in one go at the tick's end, each with the model that had
+arrived by its time, as that thread would have.
 
 :class:`HapticLoop` takes the records the service receives (FORCE_FEEDBACK, HAND_INPUT
 and, in lockstep, PLANT_STATE), drives any :class:`teleop.devices.haptic.HapticDevice`
@@ -78,8 +87,10 @@ from teleop.core.ticks import TickedInputs, expected_valid_from, lead_ticks
 from teleop.devices.haptic import (
     DeviceSample,
     FeedbackHold,
+    ForceSlew,
     HandInput,
     HapticDevice,
+    LocalContactModel,
     max_stable_stiffness_n_per_m,
     saturate_force,
 )
@@ -158,8 +169,20 @@ class HapticLoop:
         self.outputs = outputs
         self.clock = clock
         self.lockstep = lockstep
-        self.period_s = config.plant.timestep_s
+        self.period_s = config.tick_s  # one tick: one sample out, one feedback in
         self.period_ns = round(self.period_s * NS_PER_S)
+        # The device's servo: it renders the local contact model this often, a bus
+        # period's renders in one go (the emulator integrates its handle at that rate).
+        self.render_period_s = config.haptic.render_period_s
+        self.render_period_ns = round(self.render_period_s * NS_PER_S)
+        self.renders_per_tick = config.renders_per_tick
+        # A local model stiffer than the device renders passively (Colgate, at the servo
+        # period) is cut down to it: the sender does not decide what the hand feels.
+        self.max_model_stiffness_n_per_m = max_stable_stiffness_n_per_m(
+            config.haptic, self.render_period_s
+        )
+        self.models_softened = 0
+        self.slew = ForceSlew(config.haptic.max_force_rate_n_per_s, self.render_period_s)
         self.hand_rate_hz = config.operator.decision_rate_hz
         self.lead_ticks = lead_ticks(self.hand_rate_hz, self.period_s)
         self.hand_stale_ticks = round(config.haptic.hand_input_stale_s / self.period_s)
@@ -183,9 +206,9 @@ class HapticLoop:
             config.teleop.stabiliser == "tdpa",
             min(
                 config.teleop.tdpa_max_damping_n_s_m,
-                max_stable_damping_n_s_m(config.haptic.handle_mass_kg, self.period_s),
+                max_stable_damping_n_s_m(config.haptic.handle_mass_kg, self.render_period_s),
             ),
-            self.period_s,
+            self.render_period_s,
         )
         self.hand_inputs: TickedInputs[HandFor] = TickedInputs()
         # Several robots (run.robots): the handle drives the selected one; the others
@@ -207,6 +230,7 @@ class HapticLoop:
         self.unselected_feedback = 0  # realtime: feedback of a robot not driven, not rendered
         self.timer: LoopTimer | None = None
         self._first_wake_ns = 0
+        self._last_deadline_ns = 0  # realtime: the newest tick's start (the render grid)
         # Everything below is shared by the input methods and the run thread.
         self.cond = threading.Condition()
         self._state_seq = -1  # newest plant tick of this run; -1: none yet
@@ -329,20 +353,32 @@ class HapticLoop:
                     OVERSIZED_FEEDBACK_FACTOR,
                 )
             return
-        if self.wave_b:
-            force = np.array(rec["wave_v"], dtype=np.float64)  # what the handle renders from
         with self.cond:
+            model = self._local_model(rec, force)
             if not self.lockstep:
-                self._feedback_realtime(rec, force, rx_ns, robot)
+                self._feedback_realtime(rec, model, rx_ns, robot)
                 return
             tick = int(rec["tick"])
             if tick < self._last_tick:
                 return  # late: its step has been taken
             feedback = self._robot_feedback[robot]
-            feedback[tick] = force
+            feedback[tick] = model
             if len(feedback) > self.feedback_keep:
                 del feedback[min(feedback)]
             self._try_steps()
+
+    def _local_model(self, rec: np.ndarray, force: np.ndarray) -> LocalContactModel:
+        """The local contact model a FORCE_FEEDBACK brings (lock held): its force at its
+        reference handle position with its stiffness, cut to the stiffest the device
+        renders passively (counted); with wave variables the robot's wave, held."""
+        if self.wave_b:  # the handle renders its own spring; the wave is what comes
+            return LocalContactModel.constant(np.array(rec["wave_v"], dtype=np.float64))
+        k_n_per_m = np.array(rec["device_k_n_per_m"], dtype=np.float64).reshape(3, 3)
+        size = float(np.linalg.norm(k_n_per_m, 2))
+        if size > self.max_model_stiffness_n_per_m:
+            self.models_softened += 1
+            k_n_per_m *= self.max_model_stiffness_n_per_m / size
+        return LocalContactModel(force, np.array(rec["device_p_ref_m"], dtype=np.float64), k_n_per_m)
 
     def on_hand(self, rec: np.ndarray, robot: int = 0) -> None:
         """HAND_INPUT meant for ``robot``, keyed by the plant tick it applies from."""
@@ -353,11 +389,12 @@ class HapticLoop:
                 self._try_steps()
 
     def _feedback_realtime(
-        self, rec: np.ndarray, force: np.ndarray, rx_ns: int, robot: int = 0
+        self, rec: np.ndarray, model: LocalContactModel, rx_ns: int, robot: int = 0
     ) -> None:
-        """Hold the force; render it now or at the next step; keep its trace (lock held).
-        Another robot's than the one driven: its tick noted (the clock when the handle
-        switches to it), nothing rendered."""
+        """Hold the model: rendered from the device's first servo period after it came
+        (or from the next tick's, without ``render_on_arrival``); keep its trace (lock
+        held). Another robot's than the one driven: its tick noted (the clock when the
+        handle switches to it), nothing rendered."""
         if not self.feedback_ins[robot].accept(rec, self.clock.now_ns()):
             return  # older than what the handle already feels, or shed as too old
         tick = int(rec["tick"])
@@ -371,14 +408,19 @@ class HapticLoop:
             self.runs += 1
         self._state_seq = tick
         self._state_sim_ns = int(rec["sim_time_ns"])
-        self.hold.receive(force, rx_ns)
         trace = np.array(rec["trace_ns"])
         trace[Stage.FEEDBACK_RX] = rx_ns
         if self.render_on_arrival:
-            self.device.send_force(self._render(force))
-            trace[Stage.FEEDBACK_RENDERED] = self.clock.now_ns()
+            # The servo period it is first rendered in begins at the next boundary of the
+            # device's render grid (the device renders a tick's periods when it ends).
+            grid_ns = self._last_deadline_ns
+            periods = -(-(rx_ns - grid_ns) // self.render_period_ns) if grid_ns else 0
+            rendered_ns = grid_ns + periods * self.render_period_ns if grid_ns else rx_ns
+            self.hold.receive(model, rendered_ns)
+            trace[Stage.FEEDBACK_RENDERED] = rendered_ns
             self.trace_log.append(trace)
         else:
+            self.hold.receive(model, self._last_deadline_ns + self.period_ns)
             if self._pending_trace is not None:
                 self.feedback_superseded += 1
             self._pending_trace = trace
@@ -388,6 +430,7 @@ class HapticLoop:
         """Device reset, inputs forgotten (caller holds the lock)."""
         self.device.reset()
         self.hold.clear()
+        self.slew.reset()
         self.passivity.reset()
         self.hand_inputs.clear()
         for feedback in self._robot_feedback:
@@ -567,27 +610,32 @@ class HapticLoop:
             self.step_realtime(deadline_ns)
 
     def step_realtime(self, deadline_ns: int) -> None:
-        """One device period that started at ``deadline_ns``, with the newest inputs."""
+        """The bus period that ends at ``deadline_ns``: its servo periods rendered with
+        the models as they arrived, the handle sampled at its end, with the newest inputs."""
         with self.cond:
             tick = max(self._state_seq, 0)
             hand = self.hand_inputs.latest_at(tick) if self._state_seq >= 0 else None
             rec = self._select(hand, tick)
-            sample = self._step(tick, self._state_sim_ns, rec, self.clock.now_ns(), deadline_ns)
+            sample = self._step(
+                tick, self._state_sim_ns, rec, deadline_ns - self.period_ns, deadline_ns
+            )
+            self._last_deadline_ns = deadline_ns
         # Outside the lock: a feedback that arrives meanwhile is rendered at once. Only
         # this thread steps in realtime, so the record stays as filled.
         self._send(self.record)
         self._account_sample(sample)
 
     # -- shared ------------------------------------------------------------------------
-    def _render(self, received: np.ndarray) -> np.ndarray:
-        """The force to send the motors from what the feedback brought (lock held): the
-        force, stabilised (:meth:`_stabilised`); with wave variables the robot's wave,
-        decoded against the handle's rate at its last sample (teleop/control/wave.py)
-        into the channel's resistance, rendered with the handle's own workspace spring,
-        and the wave toward the robot that goes with it kept for the next sample."""
+    def _render(self, model: LocalContactModel, handle_d_m: np.ndarray) -> np.ndarray:
+        """The force to send the motors for one servo period from the local model held
+        and the handle's position (lock held): the model's force there, stabilised
+        (:meth:`_stabilised`); with wave variables the robot's wave, decoded against the
+        handle's rate (teleop/control/wave.py) into the channel's resistance, rendered
+        with the handle's own workspace spring, and the wave toward the robot that goes
+        with it kept for the next sample."""
+        received = model.force_at(handle_d_m)
         if not self.wave_b:
             return self._stabilised(received)
-        handle_d_m = self.record["device_p_m"]
         clutch = bool(int(self.record["buttons"]) & _CLUTCH)
         rate = handle_rate_m_s(handle_d_m, clutch, self.teleop_cfg)
         self._wave_u = handle_wave(rate, received, self.wave_b)
@@ -599,8 +647,8 @@ class HapticLoop:
         """The force to send the motors: the stabiliser's correction of the force the
         device can render (saturated at its peak first: a correction of a force above
         the peak would be clipped away with it, and a saturated push would go on giving
-        energy out)."""
-        return self.passivity.control(saturate_force(force_n, self.peak_force_n))
+        energy out), after the rate limit (:class:`ForceSlew`)."""
+        return self.passivity.control(self.slew.limit(saturate_force(force_n, self.peak_force_n)))
 
     def _step(
         self,
@@ -610,16 +658,16 @@ class HapticLoop:
         t_ns: int,
         deadline_ns: int = 0,
     ) -> DeviceSample:
-        """Send the held force, advance the device one period, fill :attr:`record` (caller
-        holds the lock; the caller sends the record, then :meth:`_account_sample` counts
-        the returned sample: the statistics wait until the sample is on its way).
+        """One bus period of the device: each of its servo periods renders the local
+        model held then at the handle's position and advances the device; then fill
+        :attr:`record` with the sample at the period's end (caller holds the lock; the
+        caller sends the record, then :meth:`_account_sample` counts the returned
+        sample: the statistics wait until the sample is on its way).
 
-        ``t_ns`` is the feedback clock (monotonic in realtime, sim time in lockstep);
-        ``deadline_ns`` the device period's start in realtime (the plant steps on it),
-        0 in lockstep.
+        ``t_ns`` is the start of the period rendered, on the feedback clock (monotonic
+        in realtime, sim time in lockstep); ``deadline_ns`` the tick's deadline in
+        realtime (the plant steps on it), 0 in lockstep.
         """
-        force, stale = self.hold.force_at(t_ns)
-        self.device.send_force(self._render(force))
         if self._pending_trace is not None:
             self._pending_trace[Stage.FEEDBACK_RENDERED] = self.clock.now_ns()
             self.trace_log.append(self._pending_trace)
@@ -637,8 +685,15 @@ class HapticLoop:
                     self.hand_inputs.newest_tick(),
                 )
         self._hand_stale = hand_stale
-        sample = self.device.next_sample(held)
-        self.passivity.observe(sample.f_n, sample.v_m_s)
+        handle_d_m = self.record["device_p_m"].copy()  # where the last sample left it
+        stale = False
+        for render in range(self.renders_per_tick):
+            model, render_stale, _ = self.hold.model_at(t_ns + render * self.render_period_ns)
+            stale |= render_stale
+            self.device.send_force(self._render(model, handle_d_m))
+            sample = self.device.next_sample(held)
+            self.passivity.observe(sample.f_n, sample.v_m_s)
+            handle_d_m = sample.p_m
         sample_ns = self.clock.now_ns()
         self.steps += 1
         rec = self.record
@@ -706,8 +761,11 @@ class HapticLoop:
             "switch_deferred_steps": self.switch_deferred_steps,
             "unselected_feedback": self.unselected_feedback,
             "passivity": self.passivity.summary(self.config.teleop.stabiliser),
-            "max_stable_stiffness_n_per_m": max_stable_stiffness_n_per_m(
-                self.config.haptic, self.period_s
-            ),
+            "max_stable_stiffness_n_per_m": self.max_model_stiffness_n_per_m,
+            # the local contact model: servo periods rendered per bus period, models whose
+            # stiffness was cut to the passive bound, servo periods the rate limit cut
+            "renders_per_tick": self.renders_per_tick,
+            "models_softened": self.models_softened,
+            "force_rate_limited_renders": self.slew.limited_steps,
             "loop": self.timer.summary() if self.timer is not None else {},
         }

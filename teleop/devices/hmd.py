@@ -276,8 +276,8 @@ class HmdSchedule:
     def from_config(cls, config: Config) -> HmdSchedule:
         return cls(
             rate_hz=config.hmd.rate_hz,
-            timestep_s=config.plant.timestep_s,
-            lead_ticks=lead_ticks(config.hmd, config.plant.timestep_s),
+            timestep_s=config.tick_s,
+            lead_ticks=lead_ticks(config.hmd, config.tick_s),
         )
 
     @property
@@ -429,9 +429,8 @@ class HmdLoop:
     """
 
     def __init__(self, config: Config) -> None:
-        plant = config.plant
-        scene_period_ticks = max(1, round(1.0 / (plant.scene_rate_hz * plant.timestep_s)))
-        if lead_ticks(config.hmd, plant.timestep_s) < scene_period_ticks:
+        scene_period_ticks = max(1, round(1.0 / (config.plant.scene_rate_hz * config.tick_s)))
+        if lead_ticks(config.hmd, config.tick_s) < scene_period_ticks:
             raise ConfigError(
                 f"hmd.prediction_s ({config.hmd.prediction_s} s) must be at least one "
                 f"scene period (1 / plant.scene_rate_hz = {scene_period_ticks} ticks)"

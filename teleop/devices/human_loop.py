@@ -226,7 +226,7 @@ class HumanOperatorLoop:
         self.config = config
         self.outputs = outputs
         self.lockstep = lockstep
-        self.timestep_s = config.plant.timestep_s
+        self.timestep_s = config.tick_s
         self.period_ns = round(self.timestep_s * NS_PER_S)
         self.rate_hz = config.operator.decision_rate_hz
         self.lead_ticks = lead_ticks(self.rate_hz, self.timestep_s)

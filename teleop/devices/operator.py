@@ -1054,11 +1054,11 @@ class OperatorLoop:
         # takes the gain of the longer delay, as a person slows down to a late picture.
         _, back_ticks = config.link_delay_ticks()
         if back_ticks:
-            seen_s = config.operator.reaction_delay_s + back_ticks * config.plant.timestep_s
+            seen_s = config.operator.reaction_delay_s + back_ticks * config.tick_s
             config = dataclasses.replace(
                 config, operator=dataclasses.replace(config.operator, reaction_delay_s=seen_s)
             )
-        self.timestep_s = config.plant.timestep_s
+        self.timestep_s = config.tick_s
         self.rate_hz = config.operator.decision_rate_hz
         if self.rate_hz > config.plant.scene_rate_hz:
             raise ConfigError(

@@ -43,11 +43,11 @@ def run_path_following_inprocess(
         arm,
         config.control,
         config.path,
-        period_s=config.plant.timestep_s,
+        period_s=config.tick_s,
         clearance=ClearanceModel(config, arm),
     )
     metrics = PathMetrics.for_config(config)
-    steps = round(config.run.duration_s / config.plant.timestep_s)
+    steps = round(config.run.duration_s / config.tick_s)
     report_every = max(1, int(steps * PROGRESS_FRACTION))
     wall_start = time.perf_counter()
     # Step k applies the command answering state k - delay, as the lockstep plant does.

@@ -870,7 +870,7 @@ def _robot_section(
     # The task's criteria (teleop.core.criteria) and the problems: the one verdict, which
     # the summary holds enough to give again (criteria.judge_summary).
     verdict = judge_task(config.run.scenario, figures, problems).summary()
-    sim_s = (plant.get("steps") or 0) * config.plant.timestep_s
+    sim_s = (plant.get("steps") or 0) * config.tick_s
     return {
         **figures,
         **verdict,

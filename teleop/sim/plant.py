@@ -2,7 +2,10 @@
 
 The plant knows nothing about controllers or the bus: it takes joint velocity
 references for the arm's velocity loops (and a gripper opening), advances physics
-one step, and exposes what a real robot's drives and sensors would report. The
+one tick (one bus period, ``Config.physics_steps_per_tick`` physics steps of
+``plant.timestep_s``: the drives hold the reference in between, the robot's limits and
+the protective stop act on every physics step), and exposes what a real robot's drives
+and sensors would report. The
 plant service and the in-process runner both drive it through the same methods,
 which is what makes their results bit-identical.
 """
@@ -113,7 +116,9 @@ class Plant:
             )
         apply_scene_overrides(self.model, config.scene, config.robot)
         self.data = mujoco.MjData(self.model)
-        self.timestep_ns = round(self.model.opt.timestep * 1e9)
+        self.timestep_ns = round(self.model.opt.timestep * 1e9)  # one physics step
+        self.steps_per_tick = config.physics_steps_per_tick
+        self.tick_ns = self.steps_per_tick * self.timestep_ns  # one bus period
         self._config = config
         self._step1_done = False  # prepare_step ran for the next step
         # prepare_step's gripper contacts (see _find_gripper_contacts); None: not known.
@@ -184,7 +189,13 @@ class Plant:
         self.measured_tool_speed_m_s = 0.0
         self.protective = self._new_protective_stop()
         self._jacp = np.zeros((3, self.model.nv))
-        self.step_count = 0
+        self.step_count = 0  # ticks (bus periods) stepped
+        self.physics_steps = 0  # physics steps taken (steps_per_tick per tick)
+        # The tick's extremes over its physics steps (the state after a tick reports its
+        # last step; a contact peak inside it must not go unseen): the largest net contact
+        # force on the gripper (N) and tool speed (m/s).
+        self.tick_peak_contact_force_n = 0.0
+        self.tick_peak_tool_speed_m_s = 0.0
         self.gripper_cmd = 1.0  # the gripper command in effect (0 closed .. 1 open)
         self._hold_q_rad: np.ndarray | None = None
 
@@ -213,9 +224,11 @@ class Plant:
         self._gripper_contacts = None
         self.gripper_cmd = min(max(gripper_open, 0.0), 1.0)
         self.step_count = 0
+        self.physics_steps = 0
         self._hold_q_rad = None
         self.protective = self._new_protective_stop()
         self._measure()
+        self._start_tick()
 
     def integration_state(self) -> np.ndarray:
         """MuJoCo's full integration state now (teleop.sim.checkpoint.get_state)."""
@@ -229,11 +242,12 @@ class Plant:
         hold_q_rad: np.ndarray | None = None,
     ) -> None:
         """Continue from a checkpoint: ``mujoco_state`` (:meth:`integration_state` of this
-        model), the step count at ``step`` (sim time ``step * timestep``), the gripper
+        model), the tick count at ``step`` (sim time ``step`` ticks), the gripper
         command and the brake's hold (None: not braking) as they were. The next steps
         are those the checkpointed plant would have taken (same state, same warm start)."""
         set_state(self.model, self.data, mujoco_state)
-        self.data.time = step * self.model.opt.timestep
+        self.physics_steps = step * self.steps_per_tick
+        self.data.time = self.physics_steps * self.model.opt.timestep
         mujoco.mj_forward(self.model, self.data)  # poses and contacts for the next sample
         self._step1_done = False
         self._gripper_contacts = None
@@ -241,6 +255,7 @@ class Plant:
         self.gripper_cmd = min(max(gripper_cmd, 0.0), 1.0)
         self._hold_q_rad = None if hold_q_rad is None else np.array(hold_q_rad, dtype=float)
         self._measure()
+        self._start_tick()
 
     @property
     def hold_q_rad(self) -> np.ndarray | None:
@@ -276,10 +291,23 @@ class Plant:
         self.prepare_step()
         mujoco.mj_step2(self.model, self.data)
         self._step1_done = False
-        self.step_count += 1
+        self.physics_steps += 1
         self._measure()
         scene_n = self.scene_contact_force_n.tolist()
-        self.protective.measure(self.step_count, math.hypot(*scene_n), self.measured_tool_speed_m_s)
+        self.protective.measure(
+            self.physics_steps, math.hypot(*scene_n), self.measured_tool_speed_m_s
+        )
+        self.tick_peak_contact_force_n = max(
+            self.tick_peak_contact_force_n, math.hypot(*self.contact_force_n.tolist())
+        )
+        self.tick_peak_tool_speed_m_s = max(
+            self.tick_peak_tool_speed_m_s, self.measured_tool_speed_m_s
+        )
+
+    def _start_tick(self) -> None:
+        """The next tick's extremes start from the state now."""
+        self.tick_peak_contact_force_n = math.hypot(*self.contact_force_n.tolist())
+        self.tick_peak_tool_speed_m_s = self.measured_tool_speed_m_s
 
     def _measure(self) -> None:
         """The contact forces on the gripper and the tool's speed in the state now."""
@@ -359,30 +387,42 @@ class Plant:
         return scale
 
     def step(self, qd_ref_rad_s: np.ndarray, gripper_cmd: float) -> None:
-        """Apply velocity references (rad/s, within :meth:`limit`) and advance one step;
-        while a protective stop holds (teleop.sim.protective) the gripper follows the
-        command and the arm is held, until a command asks for no motion."""
-        qd = self.limit(qd_ref_rad_s)
-        self.data.ctrl[self.gripper_actuator] = self._gripper_ctrl(gripper_cmd)
+        """Apply velocity references (rad/s) for one tick: each physics step holds them,
+        within :meth:`limit` at the state it starts from; while a protective stop holds
+        (teleop.sim.protective) the gripper follows the command and the arm is held,
+        until a command asks for no motion."""
+        self._start_tick()
         self.gripper_cmd = min(max(gripper_cmd, 0.0), 1.0)
-        if self.protective.holds(self.step_count + 1, self.commanded_tool_speed_m_s):
-            self._brake()
-            return
-        self._hold_q_rad = None
-        self.data.ctrl[self._ctrl_at] = qd
-        self._advance()
+        gripper_ctrl = self._gripper_ctrl(gripper_cmd)
+        for _ in range(self.steps_per_tick):
+            qd = self.limit(qd_ref_rad_s)
+            self.data.ctrl[self.gripper_actuator] = gripper_ctrl
+            if self.protective.holds(self.physics_steps + 1, self.commanded_tool_speed_m_s):
+                self._brake()
+                continue
+            self._hold_q_rad = None
+            self.data.ctrl[self._ctrl_at] = qd
+            self._advance()
+        self.step_count += 1
 
     def step_before_commands(self) -> None:
-        """A step before the first command applies (lockstep delay): the drives are asked
+        """A tick before the first command applies (lockstep delay): the drives are asked
         for zero joint velocity, the gripper keeps its opening from :meth:`reset`."""
+        self._start_tick()
         self._hold_q_rad = None
-        self.data.ctrl[self.actuator_index] = 0.0
-        self._advance()
+        for _ in range(self.steps_per_tick):
+            self.data.ctrl[self.actuator_index] = 0.0
+            self._advance()
+        self.step_count += 1
 
     def step_braking(self) -> None:
-        """Hold the arm where braking began (watchdog): no drift, gravity held by the drives."""
-        self.protective.held()
-        self._brake()
+        """A tick holding the arm where braking began (watchdog): no drift, gravity held
+        by the drives."""
+        self._start_tick()
+        for _ in range(self.steps_per_tick):
+            self.protective.held()
+            self._brake()
+        self.step_count += 1
 
     def _brake(self) -> None:
         self.prepare_step()  # the bias forces of the state now, however the caller got here
@@ -408,7 +448,7 @@ class Plant:
         fingers_m = self.data.qpos[self._fingers_at].tolist()  # a numpy sum costs ~7 us cold
         return JointSample(
             step=self.step_count,
-            sim_time_ns=self.step_count * self.timestep_ns,
+            sim_time_ns=self.physics_steps * self.timestep_ns,
             q_rad=self.data.qpos[self._q_at].copy(),
             qd_rad_s=self.data.qvel[self._qd_at].copy(),
             gripper_opening_m=sum(fingers_m) / len(fingers_m),

@@ -14,9 +14,11 @@ it brakes (holds the arm where it is) when the command to apply answers a state 
 ``plant.watchdog_s``, and resumes as soon as a fresh command arrives. Lockstep applies the
 answer to the pending state as it is (:meth:`PlantStepCore.apply`).
 
-Published every step: PLANT_STATE, one record that also carries the contact on the
-gripper and the closest obstacle. In teleoperation those are computed every step (they
-feed the 1 kHz force feedback); otherwise only every ``1 / scene_rate_hz`` (their cost),
+A step of the core is one tick (a bus period, ``loop.rate_hz``): the plant's
+``Config.physics_steps_per_tick`` physics steps, its limits and protective stop acting
+on each. Published every tick: PLANT_STATE, one record that also carries the contact on
+the gripper (and its peak over the tick's physics steps) and the closest obstacle. In
+teleoperation those are computed every tick (they feed the force feedback); otherwise only every ``1 / scene_rate_hz`` (their cost),
 and ``interaction_step`` says when. Every ``1 / scene_rate_hz``: TOOL_POSE,
 OBJECT_POSES. On start, finish, grasp, release and watchdog changes: RUN_EVENT.
 """
@@ -88,7 +90,7 @@ class Judgement(NamedTuple):
     value: float = 0.0
 
 
-# States whose send time the watchdog remembers (a ring): 4 s at 1 kHz, far beyond any
+# States whose send time the watchdog remembers (a ring): 4 s at 1 kHz or more, far beyond any
 # watchdog limit; a command answering an older state is stale whatever the limit.
 STATE_HISTORY = 4096
 
@@ -258,11 +260,9 @@ class PlantStepCore:
         self.clock = clock
         plant_cfg = config.plant
         self.plant = Plant(config)
-        self.period_ns = self.plant.timestep_ns
-        self.scene_every_steps = max(
-            1, round(1.0 / (plant_cfg.scene_rate_hz * plant_cfg.timestep_s))
-        )
-        # Contact and obstacle proximity feed the 1 kHz force feedback of teleoperation;
+        self.period_ns = self.plant.tick_ns  # one step of the core: one bus period
+        self.scene_every_steps = max(1, round(1.0 / (plant_cfg.scene_rate_hz * config.tick_s)))
+        # Contact and obstacle proximity feed the force feedback of teleoperation every tick;
         # otherwise only the recorder reads them, at the scene rate (computing them costs
         # the plant a contact scan and a narrow-phase distance query per step).
         self.interaction_every_steps = 1 if config.run.teleoperated else self.scene_every_steps
@@ -303,7 +303,7 @@ class PlantStepCore:
         self.marks = store.marks if store is not None else np.array(FRESH_HEADER, dtype=np.int64)
         self.checkpoint_every_steps = 0
         if store is not None and plant_cfg.checkpoint_s > 0:
-            period_steps = round(plant_cfg.checkpoint_s / plant_cfg.timestep_s)
+            period_steps = round(plant_cfg.checkpoint_s / config.tick_s)
             self.checkpoint_every_steps = max(1, period_steps)
         self.checkpoint_cost = CheckpointCost()
         self.resumes: list[dict[str, Any]] = []  # one per restart this run went through
@@ -519,7 +519,7 @@ class PlantStepCore:
         gap_ns = now_ns - previous.state_ns if previous and previous.state_ns else None
         record = {
             "step": step,
-            "sim_time_s": step * self.config.plant.timestep_s,
+            "sim_time_s": step * self.config.tick_s,
             "checkpoint_step": snapshot.step,
             "steps_lost": steps_lost,
             "wall_gap_s": None if gap_ns is None else gap_ns / NS_PER_S,
@@ -628,6 +628,7 @@ class PlantStepCore:
         rec["qd_ref_applied_rad_s"][:n] = self.plant.applied_qd_ref_rad_s()
         rec["gripper_cmd_applied"] = self.plant.gripper_cmd
         rec["gripper_opening_m"] = sample.gripper_opening_m
+        rec["peak_contact_force_n"] = self.plant.tick_peak_contact_force_n
         grasp_event = None
         if sample.step % self.interaction_every_steps == 0:
             grasp_event = self._sample_interaction(sample.step)
@@ -655,9 +656,9 @@ class PlantStepCore:
             self._publish_scene(sample.sim_time_ns, now_ns)
         figures = self.figures
         plant = self.plant
-        figures.max_tool_speed_m_s = max(figures.max_tool_speed_m_s, plant.measured_tool_speed_m_s)
+        figures.max_tool_speed_m_s = max(figures.max_tool_speed_m_s, plant.tick_peak_tool_speed_m_s)
         figures.max_contact_force_n = max(
-            figures.max_contact_force_n, math.hypot(*plant.contact_force_n.tolist())
+            figures.max_contact_force_n, plant.tick_peak_contact_force_n
         )
         for stop, released in self.plant.protective.take_transitions():
             self._announce(stop, released)
@@ -725,7 +726,7 @@ class PlantStepCore:
         """The run's figures (the plant service's summary, less the service's own), with
         the ``pacing`` figures of the run's pacer."""
         plant_cfg = self.config.plant
-        sim_time_s = self.plant.step_count * plant_cfg.timestep_s
+        sim_time_s = self.plant.step_count * self.config.tick_s
         figures = self.figures
         summary: dict[str, Any] = {
             "mode": self.config.run.mode,

@@ -10,7 +10,7 @@ Every sample is logged at its own time, never at its arrival time:
 
 - ``sim_time`` (duration): the record's ``sim_time_ns`` (plant simulation time), for
   every kind that carries it (all but HAND_INPUT); HAND_INPUT is
-  logged at the start of the tick it applies to, ``valid_from_tick * plant.timestep_s``;
+  logged at the start of the tick it applies to, ``valid_from_tick * Config.tick_s``;
 - ``source_time`` (duration): the header's ``t_source_ns``, the producer's monotonic
   clock, for every record.
 
@@ -435,7 +435,7 @@ class RecordingWriter:
         self._rerun_error_logged: set[str] = set()
         self._trace: deque[np.ndarray] = deque(maxlen=TOOL_TRACE_MAX_POINTS)
         self._trace_bucket: int | None = None  # sim-time bucket of the newest trace point
-        self._timestep_ns = round(config.plant.timestep_s * 1e9)  # plant tick (HAND_INPUT)
+        self._timestep_ns = round(config.tick_s * 1e9)  # plant tick (HAND_INPUT)
         self._tool_p_m: np.ndarray | None = None  # newest tool position (world), for arrows
         self._cpu_start_s = time.process_time()
         self._wall_start_ns = time.monotonic_ns()

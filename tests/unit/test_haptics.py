@@ -25,6 +25,8 @@ from teleop.core.config import ConfigError, HapticConfig, load_config
 from teleop.devices.haptic import (
     EmulatedDevice,
     FeedbackHold,
+    ForceSlew,
+    LocalContactModel,
     HapticDevice,
     KalmanVelocityEstimator,
     max_stable_stiffness_n_per_m,
@@ -161,14 +163,20 @@ def test_device_reports_kalman_velocity_of_quantised_motion():
 def test_feedback_fades_to_zero_when_stale_and_is_never_held():
     hold = FeedbackHold(stale_after_s=0.020, fade_s=0.020)
     force_n = np.array([1.0, -2.0, 0.5])
-    assert np.allclose(hold.force_at(0)[0], 0.0)  # nothing received yet
-    hold.receive(force_n, 5 * NS_PER_MS)
+
+    def force_at(t_ns: int) -> tuple[np.ndarray, bool]:
+        model, stale, _ = hold.model_at(t_ns)
+        return model.force_at(np.zeros(3)), stale
+
+    assert np.allclose(force_at(0)[0], 0.0)  # nothing received yet
+    hold.receive(LocalContactModel.constant(force_n), 5 * NS_PER_MS)
+    assert np.allclose(force_at(4 * NS_PER_MS)[0], 0.0)  # not yet arrived then
     for t_ms in (5, 15, 25):
-        force, stale = hold.force_at(t_ms * NS_PER_MS)
+        force, stale = force_at(t_ms * NS_PER_MS)
         assert np.allclose(force, force_n) and not stale
     norms = []
     for t_ms in range(26, 100):
-        force, stale = hold.force_at(t_ms * NS_PER_MS)
+        force, stale = force_at(t_ms * NS_PER_MS)
         assert stale
         assert float(force @ force_n) >= 0.0  # same direction, never reversed
         norms.append(np.linalg.norm(force))
@@ -177,11 +185,34 @@ def test_feedback_fades_to_zero_when_stale_and_is_never_held():
     assert norms[35 - 26] == pytest.approx(0.5 * np.linalg.norm(force_n))  # half way
     assert np.all(norms[45 - 26 :] == 0.0)  # gone after stale + fade
     assert hold.stale_events == 1
-    hold.receive(-force_n, 100 * NS_PER_MS)  # fresh again: rendered in full
-    force, stale = hold.force_at(101 * NS_PER_MS)
+    hold.receive(LocalContactModel.constant(-force_n), 100 * NS_PER_MS)  # fresh again
+    force, stale = force_at(101 * NS_PER_MS)
     assert np.allclose(force, -force_n) and not stale
-    hold.force_at(200 * NS_PER_MS)
+    force_at(200 * NS_PER_MS)
     assert hold.stale_events == 2
+
+
+def test_each_render_takes_the_model_that_had_arrived_by_its_time():
+    """A bus period rendered in one go renders each servo period with the model received
+    by then, as a 1 kHz servo thread would have; the model's stiffness acts about its
+    reference position; old models beyond the history still answer for their time."""
+    hold = FeedbackHold(stale_after_s=0.020, fade_s=0.020)
+    k = -100.0 * np.eye(3)
+    for i in range(20):
+        hold.receive(LocalContactModel(np.array([float(i), 0, 0]), np.zeros(3), k), i * NS_PER_MS)
+    for i in range(12, 20):
+        model, stale, received_ns = hold.model_at(i * NS_PER_MS + NS_PER_MS // 2)
+        assert received_ns == i * NS_PER_MS and not stale
+        assert model.force_at(np.array([0.01, 0.0, 0.0]))[0] == pytest.approx(i - 1.0)
+
+
+def test_the_force_rate_limit_ramps_a_step_and_keeps_its_direction():
+    slew = ForceSlew(max_rate_n_per_s=2000.0, period_s=0.001)  # 2 N per servo period
+    forces = [slew.limit(np.array([0.0, 6.0, 8.0])) for _ in range(6)]
+    norms = [float(np.linalg.norm(f)) for f in forces]
+    assert norms[:5] == pytest.approx([2, 4, 6, 8, 10])
+    assert np.allclose(forces[-1], [0.0, 6.0, 8.0]) and slew.limited_steps == 4
+    assert all(abs(f[1] * 8.0 - f[2] * 6.0) < 1e-9 for f in forces)  # along the change
 
 
 # --- the service's loop, on a fake clock ---------------------------------------------
@@ -446,12 +477,15 @@ def test_realtime_renders_feedback_on_arrival_and_checks_its_order_and_age():
     loop.on_feedback(rec, clock.now_ns())
     trace = loop.trace_log.rows[-1]
     assert trace[Stage.FEEDBACK_RX] == clock.now_ns() == trace[Stage.FEEDBACK_RENDERED]
+    # The bus period that ends a period after it came renders it (the one before not).
     loop.step_realtime(deadline_ns=clock.now_ns())
+    assert np.allclose(sent.samples[-1]["device_f_n"], 0.0)
+    loop.step_realtime(deadline_ns=clock.now_ns() + loop.period_ns)
     sample = sent.samples[-1]
     assert int(sample["tick"]) == 500 and int(sample["sim_time_ns"]) == 500 * NS_PER_MS
     assert np.allclose(sample["device_f_n"], force_n) and sample["flags"] == Flag.NONE
     # Stale after haptic.stale_feedback_s: flagged, fading.
-    clock.advance(round(loop.config.haptic.stale_feedback_s * NS_PER_S) + NS_PER_MS)
+    clock.advance(round(loop.config.haptic.stale_feedback_s * NS_PER_S) + 2 * NS_PER_MS)
     loop.step_realtime(deadline_ns=clock.now_ns())
     assert sent.samples[-1]["flags"] == Flag.STALE
     # Older than the newest: dropped; too old on arrival: shed and logged; a lower tick
