@@ -132,7 +132,7 @@ class LoopConfig:
     (docs/realtime.md, "Two rates").
     """
 
-    rate_hz: float = 1000.0
+    rate_hz: float = 250.0
 
     def __post_init__(self) -> None:
         _require(self.rate_hz >= MIN_LOOP_RATE_HZ, f"loop.rate_hz >= {MIN_LOOP_RATE_HZ:g}")

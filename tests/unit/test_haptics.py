@@ -548,7 +548,9 @@ def test_the_loop_drives_a_replay_device_through_the_interface_alone(lockstep):
     velocities = np.array([s["device_v_m_s"] for s in sent.samples])
     np.testing.assert_allclose(velocities, np.diff(path_m, axis=0) / period_s)
     forces = np.array([s["device_f_n"] for s in sent.samples])
-    first_fed = 1 if lockstep else 0  # lockstep: tick 0 has no feedback to render yet
+    # Lockstep: tick 0 has no feedback to render yet; realtime: a feedback is rendered
+    # from the servo period after it came, in the next bus period.
+    first_fed = 1
     np.testing.assert_allclose(forces[first_fed:], np.tile(force_n, (len(forces) - first_fed, 1)))
     assert [int(s["buttons"]) for s in sent.samples] == [int(b) for b in buttons[1:]]
     assert loop.summary()["max_rendered_force_n"] == pytest.approx(1.5)
