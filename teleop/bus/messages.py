@@ -45,8 +45,9 @@ logger = logging.getLogger(__name__)
 # dissipated; 7: HAPTIC_STATE and FORCE_FEEDBACK carry the wave variables of
 # teleop.stabiliser "wave"; 8: one record per bus period (loop.rate_hz): PLANT_STATE
 # carries its physics steps' peak contact force, FORCE_FEEDBACK the local contact model
-# the handle renders from between two feedbacks). examples/ speak the protocol without this package: a
-# new version changes their VERSION and layouts too (tests/e2e/test_outside.py runs them).
+# the handle renders from between two feedbacks). examples/ speak the protocol without
+# this package: a new version changes their VERSION and layouts too
+# (tests/e2e/test_outside.py runs them).
 PROTOCOL_VERSION = 8
 MAX_JOINTS = 8  # joint arrays are padded with zeros to this length; n_joints says how many count
 MAX_OBJECTS = 8  # object pose arrays are padded to this length; n_objects says how many count

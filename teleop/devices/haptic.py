@@ -393,7 +393,8 @@ class LocalContactModel:
     @classmethod
     def constant(cls, force_n: np.ndarray) -> LocalContactModel:
         """A force that does not change with the handle's position."""
-        return cls(np.array(force_n, dtype=np.float64), np.zeros(N_AXES), np.zeros((N_AXES, N_AXES)))
+        force = np.array(force_n, dtype=np.float64)
+        return cls(force, np.zeros(N_AXES), np.zeros((N_AXES, N_AXES)))
 
     def force_at(self, p_m: np.ndarray) -> np.ndarray:
         """The force (3,), N, at handle position ``p_m`` (3,), m."""

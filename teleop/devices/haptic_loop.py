@@ -378,7 +378,8 @@ class HapticLoop:
         if size > self.max_model_stiffness_n_per_m:
             self.models_softened += 1
             k_n_per_m *= self.max_model_stiffness_n_per_m / size
-        return LocalContactModel(force, np.array(rec["device_p_ref_m"], dtype=np.float64), k_n_per_m)
+        p_ref_m = np.array(rec["device_p_ref_m"], dtype=np.float64)
+        return LocalContactModel(force, p_ref_m, k_n_per_m)
 
     def on_hand(self, rec: np.ndarray, robot: int = 0) -> None:
         """HAND_INPUT meant for ``robot``, keyed by the plant tick it applies from."""

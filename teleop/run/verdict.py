@@ -28,12 +28,10 @@ NOT_REQUESTED = "not requested"
 # A run's verdict (realtime_health): "clean" when it kept real time and lost no data,
 # "degraded" when it lost some real time but stayed within the bounds below, or some of
 # its data is missing (a warning, exit code 0), "lost" when its loop went past one of
-# the bounds (exit code teleop.cli.EXIT_REALTIME_LOST). On the 2-core machine the
-# realtime grasp is lost even quiet and with SCHED_FIFO (3-6 % of its steps braked: the
-# stack takes about 2.5 cores, docs/realtime.md, CPU budget).
+# the bounds (exit code teleop.cli.EXIT_REALTIME_LOST).
 CLEAN, DEGRADED, LOST = "clean", "degraded", "lost"
-# Fraction of the plant's 1 ms deadlines missed (skipped ticks after a stall): degraded
-# above the first, lost above the second.
+# Fraction of the plant's deadlines (one per bus period) missed (ticks skipped after a
+# stall): degraded above the first, lost above the second.
 OVERRUN_DEGRADED = 0.001
 OVERRUN_LOST = 0.02
 # Simulated time per wall-clock second: degraded below the first, lost below the second.

@@ -18,9 +18,9 @@ A step of the core is one tick (a bus period, ``loop.rate_hz``): the plant's
 ``Config.physics_steps_per_tick`` physics steps, its limits and protective stop acting
 on each. Published every tick: PLANT_STATE, one record that also carries the contact on
 the gripper (and its peak over the tick's physics steps) and the closest obstacle. In
-teleoperation those are computed every tick (they feed the force feedback); otherwise only every ``1 / scene_rate_hz`` (their cost),
-and ``interaction_step`` says when. Every ``1 / scene_rate_hz``: TOOL_POSE,
-OBJECT_POSES. On start, finish, grasp, release and watchdog changes: RUN_EVENT.
+teleoperation those are computed every tick (they feed the force feedback); otherwise
+only every ``1 / scene_rate_hz`` (their cost), and ``interaction_step`` says when.
+Every ``1 / scene_rate_hz``: TOOL_POSE, OBJECT_POSES. On start, finish, grasp, release and watchdog changes: RUN_EVENT.
 """
 
 from __future__ import annotations

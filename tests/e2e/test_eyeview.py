@@ -57,7 +57,7 @@ def test_frames_reach_the_recorder_over_shared_memory_and_land_in_the_rrd(tmp_pa
     # Logged at the plant's sim time of the state each frame shows (whole plant ticks,
     # within the run), not at arrival time.
     sim_ns = np.array(cols[ent.TIMELINE_SIM])
-    step_ns = round(config.plant.timestep_s * 1e9)
+    step_ns = round(config.tick_s * 1e9)
     assert np.all(sim_ns % step_ns == 0) and sim_ns.max() <= 2 * 10**9
     assert len(set(cols[ent.TIMELINE_SOURCE])) == len(blobs)
 

@@ -12,10 +12,12 @@ from pathlib import Path
 
 import pytest
 
+from teleop.core.config import load_config
+
 # A run that neither fails nor finishes within this long is a hang (s).
 HANG_S = 600
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_REALTIME_LOST = 0, 1, 2, 3
-STEPS_PER_S = 1000  # plant.timestep_s = 1 ms
+STEPS_PER_S = round(1 / load_config().tick_s)  # the plant steps one tick per bus period
 
 
 def _teleop(run_dir: Path, *args: str) -> tuple[int, str, dict]:

@@ -51,7 +51,7 @@ def test_a_plant_then_an_operator_killed_mid_grasp_both_take_the_task_up(tmp_pat
     assert killed_operator["running"] and killed_operator["decisions"] > 0
     (resume,) = summary["plant_resumes"]
     # Lost: the steps since the newest checkpoint on file (its writer may be one behind).
-    period_steps = round(config.plant.checkpoint_s / config.plant.timestep_s)
+    period_steps = round(config.plant.checkpoint_s / config.tick_s)
     assert 0 <= resume["steps_lost"] <= 2 * period_steps
     assert resume["wall_gap_s"] > 0
     # Sim time went on: the run's steps count on past the restart, none twice.

@@ -54,7 +54,7 @@ def test_both_robots_tasks_succeed_one_after_the_other(two_robots):
     # arm1's task starts where arm0's ended: one hand, one task at a time
     switches = services["haptic"]["robot_switches"]
     assert [s["robot"] for s in switches] == [1]
-    switch_s = switches[0]["tick"] * load_config().plant.timestep_s
+    switch_s = switches[0]["tick"] * load_config().tick_s
     assert first[-1]["sim_time_s"] < switch_s <= second[0]["sim_time_s"] + 0.1
     assert summary["dropped_messages"] == 0 and summary["unlinked_peers"] == {}
 
@@ -65,7 +65,7 @@ def test_one_recording_shows_both_robots_each_handle_centred_while_the_other_is_
     summary = two_robots
     switch_ns = round(
         summary["services"]["haptic"]["robot_switches"][0]["tick"]
-        * load_config().plant.timestep_s * 1e9
+        * load_config().tick_s * 1e9
     )  # fmt: skip
     assert all(summary["robots"][r]["rrd"] == summary["rrd"] for r in ROBOTS)
     rec = Recording(summary["rrd"])

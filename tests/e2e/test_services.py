@@ -76,15 +76,15 @@ def test_lockstep_is_deterministic_and_equals_the_inprocess_run(tmp_path):
     assert first["final_state_sha256"] == second["final_state_sha256"]
     assert first["final_state_sha256"] == reference["final_state_sha256"]
     assert first["path_error_rms_m"] == pytest.approx(reference["path_error_rms_m"], rel=1e-12)
-    assert first["steps"] == 3000 and first["mode"] == "lockstep"
+    assert first["steps"] == round(3 / load_config().tick_s) and first["mode"] == "lockstep"
     assert first["dropped_messages"] == 0 and first["stale_commands"] == 0
     assert first["unlinked_peers"] == {}
     assert Path(first["rrd"]).stat().st_size > 0
     # Outside teleoperation the plant computes contact and proximity at the scene rate
     # only: the recording has them for those states alone, at their own sim times.
     config = load_config()
-    every = round(1 / (config.plant.scene_rate_hz * config.plant.timestep_s))
-    timestep_ns = round(config.plant.timestep_s * 1e9)
+    every = round(1 / (config.plant.scene_rate_hz * config.tick_s))
+    timestep_ns = round(config.tick_s * 1e9)
     q_entity = ent.joint_entity(ent.ENTITY_JOINT_Q, config.robot.arm_joints[0])
     data = Recording(first["rrd"]).lists((ent.ENTITY_OBSTACLE_DISTANCE, q_entity))
     state_sims = set(data[q_entity][ent.TIMELINE_SIM])
@@ -106,7 +106,8 @@ def test_lockstep_delay_is_the_same_in_services_and_in_process(tmp_path, delay_s
     assert services["final_state_sha256"] == reference["final_state_sha256"]
     assert reference["final_state_sha256"] != default["final_state_sha256"]
     assert services["services"]["plant"]["unanswered_commands"] == 0
-    assert services["services"]["plant"]["commands_applied"] == 1000 - delay_steps
+    ticks = round(1 / load_config().tick_s)
+    assert services["services"]["plant"]["commands_applied"] == ticks - delay_steps
     assert reference["path_error_max_m"] < 1e-3
 
 
@@ -122,7 +123,7 @@ def test_a_tls_run_links_only_by_tls_and_equals_the_inprocess_run(tmp_path):
         load_config(None, ["run.duration_s=2", "run.seed=4", "run.settle_s=1"]), progress=None
     )
     assert summary["final_state_sha256"] == reference["final_state_sha256"]
-    assert summary["steps"] == 2000 and summary["unlinked_peers"] == {}
+    assert summary["steps"] == round(2 / load_config().tick_s) and summary["unlinked_peers"] == {}
     assert summary["dropped_messages"] == 0 and summary["stale_commands"] == 0
     run_dir = tmp_path / "tls"
     commands = (run_dir / "supervisord.conf").read_text()
@@ -135,7 +136,7 @@ def test_realtime_run_keeps_time_and_accuracy(tmp_path):
     summary = run_services(
         tmp_path, "rt", "--mode", "realtime", "--duration", "4", "--set", "run.settle_s=2"
     )
-    assert summary["mode"] == "realtime" and summary["steps"] == 4000
+    assert summary["mode"] == "realtime" and summary["steps"] == round(4 / load_config().tick_s)
     # Realtime pacing never runs ahead of the wall clock (a loaded machine can only make
     # it slower); how close to 1.0 it keeps is measured by tests/benchmarks/lockstep_speed.py
     # and `teleop latency`, not asserted on a shared machine.
