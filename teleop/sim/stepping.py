@@ -20,7 +20,8 @@ on each. Published every tick: PLANT_STATE, one record that also carries the con
 the gripper (and its peak over the tick's physics steps) and the closest obstacle. In
 teleoperation those are computed every tick (they feed the force feedback); otherwise
 only every ``1 / scene_rate_hz`` (their cost), and ``interaction_step`` says when.
-Every ``1 / scene_rate_hz``: TOOL_POSE, OBJECT_POSES. On start, finish, grasp, release and watchdog changes: RUN_EVENT.
+Every ``1 / scene_rate_hz``: TOOL_POSE, OBJECT_POSES. On start, finish, grasp, release
+and watchdog changes: RUN_EVENT.
 """
 
 from __future__ import annotations

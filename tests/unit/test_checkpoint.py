@@ -28,7 +28,9 @@ from teleop.sim.stepping import Abort
 
 from .test_stepping import Recorded
 
-LOCKSTEP = ('run.mode="lockstep"', "plant.checkpoint_s=0.01")  # a checkpoint every 10 steps
+# A checkpoint every 10 ticks (bus periods) of the default loop rate.
+CHECKPOINT_S = 10 * load_config(None).tick_s
+LOCKSTEP = ('run.mode="lockstep"', f"plant.checkpoint_s={CHECKPOINT_S!r}")
 
 
 def store_in(tmp_path: Path) -> CheckpointStore:
@@ -131,6 +133,7 @@ def test_a_restarted_plant_resumes_its_run_where_the_stream_stopped(tmp_path):
     first.kill()  # stopped, as if killed: the next incarnation finds its files
     states = {int(r["seq"]): r for r in first.out.records["plant_state"]}
     last = max(states)
+    assert first.loop.core.checkpoint_every_steps == 10
     assert last == 35 and first.loop.core.checkpoint_cost.taken == 4  # steps 0, 10, 20, 30
 
     second = Incarnation(tmp_path, 200)
@@ -139,7 +142,7 @@ def test_a_restarted_plant_resumes_its_run_where_the_stream_stopped(tmp_path):
     resumed = second.out.records["plant_state"]
     # The stream goes on: next seq, step and sim time; no restart, no gap.
     assert [int(r["seq"]) for r in resumed[:3]] == [36, 37, 38]
-    assert int(resumed[0]["sim_time_ns"]) == 36 * 1_000_000
+    assert int(resumed[0]["sim_time_ns"]) == 36 * second.loop.core.period_ns
     # The world is the checkpoint's (step 30): 5 steps of physics lost.
     assert np.array_equal(resumed[0]["q_rad"], states[30]["q_rad"])
     events = second.out.records["plant_events"]

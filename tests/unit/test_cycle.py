@@ -9,11 +9,12 @@ import threading
 import numpy as np
 import pytest
 
-from teleop.bus.messages import HAPTIC_STATE, HEAD_POSE, PLANT_STATE, Stage
+from teleop.bus.messages import HAND_INPUT, HAPTIC_STATE, HEAD_POSE, PLANT_STATE, Stage
 from teleop.control.cycle import BilateralCycle, PathCycle
 from teleop.control.kinematics import build_arm_model, tool_position_and_jacobian
 from teleop.core.clock import FakeClock
 from teleop.core.config import load_config
+from teleop.core.ticks import is_sample_tick
 from teleop.devices.haptic import EmulatedDevice
 from teleop.devices.haptic_loop import HapticLoop
 from teleop.run.experiments import run_path_following_inprocess
@@ -58,7 +59,7 @@ def state(config, seq: int, now_ns: int, start_ns: int = 1) -> np.ndarray:
     rec["step"] = seq
     rec["n_joints"] = n
     rec["q_rad"][:n] = config.robot.home_q_rad
-    rec["sim_time_ns"] = seq * 1_000_000
+    rec["sim_time_ns"] = seq * round(config.tick_s * 1e9)
     rec["t_source_ns"] = start_ns if seq == 0 else now_ns
     rec["obstacle_geom"] = -1
     rec["trace_ns"][Stage.PLANT_STATE_TX] = now_ns
@@ -177,7 +178,7 @@ def test_a_lost_feedback_is_sent_again_when_the_plant_re_sends_its_states():
     device = DeviceSent()
     loop = HapticLoop(
         config,
-        EmulatedDevice(config.haptic, config.plant.timestep_s),
+        EmulatedDevice(config.haptic, config.haptic.render_period_s),
         device,
         clock,
         lockstep=True,
@@ -203,10 +204,16 @@ def test_a_lost_feedback_is_sent_again_when_the_plant_re_sends_its_states():
     def answered() -> list[int]:
         return [int(rec["state_seq"]) for s, rec in sent.log if s == "joint_command"]
 
-    def publish(seq: int) -> None:  # the plant's state, to both
+    def publish(seq: int, resent: bool = False) -> None:  # the plant's state, to both
         rec = state(config, seq, clock.now_ns())
         cycle.on_state(rec, clock.now_ns())
         loop.on_state(rec.copy())
+        # The operator: on its sample ticks, an input for `lead_ticks` later (a hand at
+        # rest). The device waits for it from tick `lead_ticks` on (2 at 250 Hz).
+        if not resent and is_sample_tick(seq, loop.hand_rate_hz, loop.period_s):
+            hand = HAND_INPUT.new()
+            hand["valid_from_tick"] = seq + loop.lead_ticks
+            loop.on_hand(hand)
         pump()
 
     for seq in range(lost_tick + 3):  # states 0..4: the answer to 2 lets the plant send 4
@@ -214,7 +221,7 @@ def test_a_lost_feedback_is_sent_again_when_the_plant_re_sends_its_states():
     assert len(lost) == 1
     assert max(answered()) == lost_tick  # state 3 waits for the device's tick 3
     for seq in (lost_tick + 1, lost_tick + 2):  # a second without an answer: re-sent
-        publish(seq)
+        publish(seq, resent=True)
     assert cycle.commands_resent == 1
     assert lost_tick + 1 in answered()
 
@@ -389,7 +396,7 @@ def test_the_path_cycle_converges_on_the_in_process_plant_like_the_in_process_ru
     wire, clock = Wire(), FakeClock(start_ns=10**12)
     loop = PlantLoop(config, wire, clock)
     cycle = PathCycle(config, build_arm_model(config.robot), wire, clock)
-    steps = round(config.run.duration_s / config.plant.timestep_s)
+    steps = round(config.run.duration_s / config.tick_s)
     stop = threading.Event()
     runner = threading.Thread(target=loop.run, args=(stop, steps))
     runner.start()

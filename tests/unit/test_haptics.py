@@ -22,6 +22,7 @@ from teleop.bus.service import STOP_POLL_S
 from teleop.control.wave import handle_rate_m_s
 from teleop.core.clock import FakeClock
 from teleop.core.config import ConfigError, HapticConfig, load_config
+from teleop.core.ticks import is_sample_tick
 from teleop.devices.haptic import (
     EmulatedDevice,
     FeedbackHold,
@@ -34,9 +35,11 @@ from teleop.devices.haptic import (
 from teleop.devices.haptic_loop import HAND_INPUT_WAIT_S, HapticLoop
 from teleop.devices.replay import ReplayDevice
 
-PERIOD_S = 0.001  # the plant period the device steps at
+PERIOD_S = 0.001  # the servo period the device steps at (haptic.render_period_s)
 NS_PER_MS = 1_000_000
 NS_PER_S = 1_000_000_000
+# One tick: the bus period (loop.rate_hz) the plant's states and the feedback come at.
+TICK_NS = round(load_config().tick_s * NS_PER_S)
 # The velocity-filter tuning these tests recommend (m/s^2); see KalmanVelocityEstimator.
 KF_ACCEL_NOISE_M_S2 = 3.0
 
@@ -241,15 +244,23 @@ def make_loop(
 ) -> tuple[HapticLoop, Sent, FakeClock]:
     mode = "lockstep" if lockstep else "realtime"
     config = load_config(None, [f'run.mode="{mode}"'])
-    device = device or EmulatedDevice(config.haptic, config.plant.timestep_s)
+    device = device or EmulatedDevice(config.haptic, config.haptic.render_period_s)
     sent, clock = Sent(stop_after), FakeClock(start_ns=10 * NS_PER_S)
     return HapticLoop(config, device, sent, clock, lockstep=lockstep), sent, clock
+
+
+def hand_sample_ticks(loop: HapticLoop, ticks: int) -> list[int]:
+    """The ticks below ``ticks`` the operator decides on (operator.decision_rate_hz on
+    the loop's ticks): each one's hand input applies from ``lead_ticks`` later, exactly
+    the inputs the lockstep device waits for."""
+    rate_hz = loop.config.operator.decision_rate_hz
+    return [k for k in range(ticks) if is_sample_tick(k, rate_hz, loop.period_s)]
 
 
 def plant_state(tick: int, t_source_ns: int = 1) -> np.ndarray:
     state = PLANT_STATE.new()
     state["seq"] = state["step"] = tick
-    state["sim_time_ns"] = tick * NS_PER_MS
+    state["sim_time_ns"] = tick * TICK_NS
     state["t_source_ns"] = t_source_ns
     return state
 
@@ -258,7 +269,7 @@ def feedback(seq: int, tick: int, force_n, tx_ns: int = 0) -> np.ndarray:
     rec = FORCE_FEEDBACK.new()
     rec["seq"] = seq
     rec["tick"] = tick
-    rec["sim_time_ns"] = tick * NS_PER_MS
+    rec["sim_time_ns"] = tick * TICK_NS
     rec["device_f_n"] = force_n
     rec["trace_ns"][Stage.FEEDBACK_TX] = tx_ns
     return rec
@@ -279,6 +290,7 @@ def test_loop_steps_once_per_tick_in_lockstep():
     lead = loop.lead_ticks
     target_m, push_n = np.array([0.02, 0.0, 0.0]), np.array([0.0, 2.0, 0.0])
     ticks, push_from = 600, 300
+    decided = set(hand_sample_ticks(loop, ticks))
     for k in range(ticks):
         loop.on_state(plant_state(k))
         if k >= 1:
@@ -288,10 +300,10 @@ def test_loop_steps_once_per_tick_in_lockstep():
         assert len(sent.samples) == k + 1
         reply = sent.samples[k]
         assert int(reply["tick"]) == k and int(reply["seq"]) == k + 1
-        assert int(reply["sim_time_ns"]) == k * NS_PER_MS
+        assert int(reply["sim_time_ns"]) == k * TICK_NS
         if k < lead:
             assert np.all(reply["device_p_m"] == 0.0)
-        if k % lead == 0:
+        if k in decided:
             loop.on_hand(hand(k + lead, target_m))
     assert sent.samples[push_from - 1]["device_p_m"][0] == pytest.approx(0.02, abs=5e-4)
     assert np.allclose(sent.samples[push_from]["device_f_n"], push_n)
@@ -319,11 +331,12 @@ def run_lockstep_push(loop: HapticLoop, ticks: int, push_from: int, push_n) -> N
     """Drive a lockstep loop: a hand 2 cm along x from the start, a feedback force
     ``push_n`` from the feedback of tick ``push_from - 1`` on."""
     lead = loop.lead_ticks
+    decided = set(hand_sample_ticks(loop, ticks))
     for k in range(ticks):
         loop.on_state(plant_state(k))
         if k >= 1:
             loop.on_feedback(feedback(k, k - 1, push_n if k >= push_from else 0.0), 0)
-        if k % lead == 0:
+        if k in decided:
             loop.on_hand(hand(k + lead, [0.02, 0.0, 0.0]))
 
 

@@ -143,7 +143,8 @@ def test_unknown_names_fail_clearly(config):
 
 
 def test_prepared_steps_equal_mujoco_steps_bit_for_bit(config):
-    """Plant.prepare_step (mj_step1 ahead of the command) changes no bit of the motion."""
+    """Plant.prepare_step (mj_step1 ahead of the command) changes no bit of the motion:
+    a tick of the plant is its physics steps, each one mj_step with the command held."""
     from dataclasses import replace
 
     # No tool-speed cut or approach limit (Plant.limit) and no protective stop, so the
@@ -171,12 +172,14 @@ def test_prepared_steps_equal_mujoco_steps_bit_for_bit(config):
         for plant in (plain, no_gap):
             plant.data.ctrl[plant.actuator_index] = qd_ref
             plant.data.ctrl[plant.gripper_actuator] = plant._gripper_ctrl(gripper)
-            mujoco.mj_step(plant.model, plant.data)
+            for _ in range(config.physics_steps_per_tick):
+                mujoco.mj_step(plant.model, plant.data)
         assert np.array_equal(no_gap.data.qpos, plain.data.qpos), k
         assert np.array_equal(no_gap.data.qvel, plain.data.qvel), k
         assert np.array_equal(prepared.data.qpos, plain.data.qpos), k
         assert np.array_equal(prepared.data.qvel, plain.data.qvel), k
     assert prepared.step_count == 600
+    assert prepared.physics_steps == 600 * config.physics_steps_per_tick
 
 
 def test_the_tool_speed_limit_cuts_the_motion_not_what_holds_the_arm(config):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from teleop.bus.messages import PLANT_STATE, RUN_EVENT, Event, Flag, Stage
-from teleop.core.clock import FakeClock
+from teleop.core.clock import NS_PER_S, FakeClock
 from teleop.core.config import load_config
 from teleop.sim.pacing import (
     CATCH_UP_MAX_PERIODS,
@@ -24,9 +24,11 @@ from teleop.sim.pacing import (
 )
 from teleop.sim.plant_loop import PlantLoop
 
-from .test_stepping import PERIOD_NS, Recorded, command
+from .test_stepping import Recorded, command
 
 TELEOP = ('run.scenario="grasp"', 'run.mode="realtime"')
+# DeviceClockGrid alone: pure arithmetic, on any period.
+PERIOD_NS = 1_000_000
 
 
 def make(*overrides: str):
@@ -61,17 +63,19 @@ def test_plant_tick_pacing_brakes_on_a_stale_command_and_resumes():
     assert isinstance(pacer, TickPacer)
     core = pacer.core
     pacer.start()
-    limit_ms = round(core.config.plant.watchdog_s * 1000)
+    period_ns = core.period_ns  # one tick (bus period)
+    limit_ticks = round(core.config.plant.watchdog_s * NS_PER_S / period_ns)
+    assert limit_ticks * period_ns == core.watchdog.limit_ns
     pacer.tick()  # no command yet: braking, no event
     assert out.records["plant_state"][-1]["flags"] == Flag.BRAKING and out.events() == []
     pacer.on_command(command(1, state_seq=1, now_ns=clock.now_ns()), clock.now_ns())
     # Applied while state 1 (the one answered) went out less than the limit ago.
-    for _ in range(limit_ms - 1):
-        clock.advance(PERIOD_NS)
+    for _ in range(limit_ticks - 1):
+        clock.advance(period_ns)
         pacer.tick()
     assert core.commands_applied == 1 and out.events() == []
     assert out.records["plant_state"][-1]["flags"] == Flag.NONE
-    clock.advance(PERIOD_NS)
+    clock.advance(period_ns)
     pacer.tick()  # the command now answers a state sent the limit ago
     assert out.events() == [Event.WATCHDOG_BRAKE]
     assert out.records["plant_state"][-1]["flags"] == Flag.BRAKING
@@ -100,17 +104,19 @@ class Stalling(Recorded):
 def test_plant_tick_pacing_steps_once_a_period_and_skips_a_stall_never_bursting():
     config = load_config(None, ['run.mode="realtime"'])
     clock = FakeClock(start_ns=10**12)
-    out = Stalling(clock, stall_seq=5, stall_ns=7 * PERIOD_NS // 2)  # 3.5 periods
+    period_ns = round(config.tick_s * NS_PER_S)  # one tick (bus period)
+    out = Stalling(clock, stall_seq=5, stall_ns=7 * period_ns // 2)  # 3.5 periods
     pacer = TickPacer(make_pacer(config, out, clock).core)
+    assert pacer.core.period_ns == period_ns
     pacer.core.begin_run(20)
     start_ns = clock.now_ns()
     pacer.run(threading.Event(), resumed=False)
     sent_ns = np.array([int(s["t_source_ns"]) for s in out.records["plant_state"]])
     assert pacer.core.plant.step_count == 20 and len(sent_ns) == 21
-    assert np.diff(sent_ns).min() == PERIOD_NS  # never two steps in one period
+    assert np.diff(sent_ns).min() == period_ns  # never two steps in one period
     figures = pacer.figures()
     assert figures.skipped_ticks == 3  # the periods the stall took, given up
-    assert clock.now_ns() - start_ns == (20 + 3) * PERIOD_NS
+    assert clock.now_ns() - start_ns == (20 + 3) * period_ns
     assert figures.loop["skipped"] == 3 and figures.arrival is None
 
 
@@ -147,10 +153,11 @@ def test_device_clock_pacing_steps_once_per_device_period_and_never_runs_ahead()
     """Commands step at once; a late one merges, a gap is filled, sim time = device time."""
     pacer, out, clock = begun()
     core = pacer.core
+    period_ns = core.period_ns  # the device's period: one tick (bus period)
     t0_ns = clock.now_ns()
 
     def arrive(seq: int, periods: int) -> None:
-        deadline_ns = t0_ns + periods * PERIOD_NS
+        deadline_ns = t0_ns + periods * period_ns
         rec = command(seq, max(core.state_seq, 0), clock.now_ns(), deadline_ns=deadline_ns)
         pacer.on_command(rec, clock.now_ns())
 
@@ -166,7 +173,7 @@ def test_device_clock_pacing_steps_once_per_device_period_and_never_runs_ahead()
     assert core.plant.step_count == 5 + CATCH_UP_MAX_PERIODS
     assert pacer.grid is not None
     assert pacer.grid.skipped == 20 - 4 - CATCH_UP_MAX_PERIODS
-    assert pacer.grid.periods_ahead(t0_ns + 21 * PERIOD_NS) == 0  # sim time = device time
+    assert pacer.grid.periods_ahead(t0_ns + 21 * period_ns) == 0  # sim time = device time
     arrive(6, 2 * RELOCK_PERIODS)  # a restarted device: the grid re-locks to its clock
     assert pacer.grid.locks == 2
     arrive(6, 2 * RELOCK_PERIODS + 1)  # not newer than the last: dropped, counted
@@ -178,14 +185,15 @@ def test_device_clock_pacing_steps_once_per_device_period_and_never_runs_ahead()
 def test_device_clock_pacing_steps_periods_without_commands_itself_and_skips_stalls():
     pacer, out, clock = begun()
     core = pacer.core
-    assert pacer.own_step_due(clock.now_ns()) == OWN_STEP_AFTER_PERIODS * PERIOD_NS
-    clock.advance(OWN_STEP_AFTER_PERIODS * PERIOD_NS)
+    period_ns = core.period_ns  # one tick (bus period)
+    assert pacer.own_step_due(clock.now_ns()) == OWN_STEP_AFTER_PERIODS * period_ns
+    clock.advance(OWN_STEP_AFTER_PERIODS * period_ns)
     pacer.own_step(clock.now_ns())
     assert core.plant.step_count == 1 and pacer.counts.stalls == 0
-    clock.advance(50 * PERIOD_NS)  # a stall: skip, never burst
+    clock.advance(50 * period_ns)  # a stall: skip, never burst
     pacer.own_step(clock.now_ns())
     assert core.plant.step_count == 2 and pacer.counts.stalls == 1
-    assert pacer.own_step_due(clock.now_ns()) > -CATCH_UP_MAX_PERIODS * PERIOD_NS
+    assert pacer.own_step_due(clock.now_ns()) > -CATCH_UP_MAX_PERIODS * period_ns
     figures = pacer.figures()
     assert figures.overrun_fraction == 0.5 and figures.skipped_ticks == pacer.grid.skipped
 
@@ -230,7 +238,7 @@ def test_lockstep_steps_only_on_the_answer_to_the_pending_state():
     assert core.state_seq == 1 and pacer.pending_state == 0 and pacer.running
     pacer.on_command(command(1, state_seq=1, now_ns=clock.now_ns()), clock.now_ns())
     assert core.plant.step_count == 1 and core.unanswered_commands == 1
-    clock.advance(PERIOD_NS)
+    clock.advance(core.period_ns)
     answer = command(2, state_seq=0, now_ns=clock.now_ns())
     state_0 = out.records["plant_state"][0]
     answer["trace_ns"][Stage.PLANT_STATE_TX] = state_0["trace_ns"][Stage.PLANT_STATE_TX]
@@ -244,22 +252,33 @@ def test_lockstep_steps_only_on_the_answer_to_the_pending_state():
 
 def test_lockstep_re_sends_the_states_in_flight_byte_for_byte():
     pacer, out, clock = started("plant.lockstep_delay_steps=1")
+    every = pacer.core.scene_every_steps
+
+    def tick_streams(tick: int) -> list[str]:
+        """A tick's records: its state, then its scene on the scene ticks."""
+        scene = ["tool_pose", "objects"] if tick % every == 0 else []
+        return ["plant_state", *scene]
+
+    def sent() -> set[tuple[str, bytes]]:
+        return {
+            (stream, rec.tobytes())
+            for stream in ("plant_state", "tool_pose", "objects")
+            for rec in out.records.get(stream, [])
+        }
+
+    assert every > 1  # state 1 has no scene of its own
     pacer.core.publish_event(Event.GRASP, 1.0)
     pacer.republish_pending()
     # States 0 and 1 are in flight, state 0 with its tick's scene; no event is re-sent.
-    sent = {
-        (stream, rec.tobytes())
-        for stream in ("plant_state", "tool_pose", "objects")
-        for rec in out.records[stream]
-    }
-    assert [stream for stream, _ in out.resent] == [
-        "plant_state", "tool_pose", "objects", "plant_state"
-    ]  # fmt: skip
-    assert set(out.resent) == sent
+    assert [stream for stream, _ in out.resent] == tick_streams(0) + tick_streams(1)
+    assert set(out.resent) == sent()
     out.resent.clear()
     pacer.on_command(command(1, state_seq=0, now_ns=clock.now_ns()), clock.now_ns())
-    pacer.republish_pending()  # states 1 and 2 now
-    assert [int(np.frombuffer(d, PLANT_STATE.dtype)["seq"][0]) for _, d in out.resent] == [1, 2]
+    pacer.republish_pending()  # states 1 and 2 now, each with its tick's scene if any
+    assert [stream for stream, _ in out.resent] == tick_streams(1) + tick_streams(2)
+    states = [d for stream, d in out.resent if stream == "plant_state"]
+    assert [int(np.frombuffer(d, PLANT_STATE.dtype)["seq"][0]) for d in states] == [1, 2]
+    assert set(out.resent) <= sent()  # byte for byte as first sent
 
 
 def test_lockstep_without_an_answer_re_sends_then_ends_the_run_after_its_bound():
