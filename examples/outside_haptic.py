@@ -9,8 +9,11 @@ without its haptic service; it prints the Zenoh config file to use:
 fills them with its hardware calls). It emulates a Falcon-like handle: a damped 0.15 kg
 mass pulled by a hand (a spring-damper towards where the hand is) and pushed by the
 feedback force. The hand is the scripted operator's: it publishes HAND_INPUT (where it
-pulls, which buttons). Every millisecond this publishes HAPTIC_STATE; it renders each
-FORCE_FEEDBACK on arrival; at the plant's FINISHED event it prints a summary and exits.
+pulls, which buttons). Its servo runs every millisecond: it renders the newest
+FORCE_FEEDBACK's local contact model (the force at a reference handle position plus its
+stiffness about it) at the handle's position, and once per bus period (the stack's
+loop rate, the config file's metadata/loop_rate_hz) it publishes HAPTIC_STATE; at the
+plant's FINISHED event it prints a summary and exits.
 """
 
 import argparse
@@ -36,6 +39,7 @@ BATCH_RECORDS = 10  # the recorder's batched copy: this many records per message
 
 # -- the device --------------------------------------------------------------------------
 PERIOD_S = 0.001  # servo period: 1 kHz
+DEFAULT_BUS_RATE_HZ = 250.0  # the stack's loop.rate_hz unless its config file says
 MASS_KG, DAMPING_N_S_PER_M = 0.15, 3.0  # the handle, and its own viscous damping
 HAND_STIFFNESS_N_PER_M, HAND_DAMPING_N_S_PER_M = 200.0, 8.0  # the hand holding it
 WORKSPACE_HALF_M, PEAK_FORCE_N = 0.05, 8.0  # end stops at +-5 cm per axis; motors' peak
@@ -109,6 +113,7 @@ class OutsideHaptic:
         self.device, self.lock, self.finished = device, threading.Lock(), threading.Event()
         self.tick, self.sim_time_ns, self.feedback_rx_ns = 0, 0, None  # newest feedback's
         self.feedback_n, self.hands, self.batch = np.zeros(3), {}, []  # hands: by valid_from
+        self.p_ref_m, self.k_n_per_m = np.zeros(3), np.zeros((3, 3))  # the local model
         self.seq = self.stale_periods = self.skipped_periods = 0
         self.observed_j = 0.0  # passivity observer: energy the force took from the hand
         self.other_version = None  # the stack's protocol version, if not ours
@@ -143,8 +148,9 @@ class OutsideHaptic:
             if tick >= self.tick:  # not older than the force the handle already feels
                 self.tick, self.sim_time_ns = tick, sim_time_ns
                 self.feedback_n = np.frombuffer(data, "<f8", 3, 120).copy()
+                self.p_ref_m = np.frombuffer(data, "<f8", 3, 312).copy()
+                self.k_n_per_m = np.frombuffer(data, "<f8", 9, 336).reshape(3, 3).copy()
                 self.feedback_rx_ns = time.monotonic_ns()
-                self.device.send_force(self.feedback_n)  # rendered the moment it arrives
 
     def on_hand(self, sample: zenoh.Sample) -> None:
         if (data := valid(sample, HAND_INPUT, HAND_INPUT_SIZE)) is None:
@@ -159,18 +165,25 @@ class OutsideHaptic:
         if data is not None and struct.unpack_from("<H", data, 128)[0] == FINISHED:
             self.finished.set()
 
-    def step(self, deadline_ns: int) -> None:
-        """One device period (begun at ``deadline_ns``) under the newest inputs."""
+    def step(self, deadline_ns: int, publish: bool) -> None:
+        """One servo period (begun at ``deadline_ns``) under the newest inputs; with
+        ``publish``, the HAPTIC_STATE of the bus period that begins with it."""
         with self.lock:
             flags, rx_ns = 0, self.feedback_rx_ns
             overdue_s = (time.monotonic_ns() - (rx_ns or 0)) * 1e-9 - STALE_AFTER_S
+            fade = 1.0
             if rx_ns is not None and overdue_s > 0:
                 flags, self.stale_periods = STALE, self.stale_periods + 1
-                self.device.send_force(self.feedback_n * max(0.0, 1 - overdue_s / FADE_S))
+                fade = max(0.0, 1 - overdue_s / FADE_S)
+            # The local model at the handle's position now, faded out when stale.
+            model_n = self.feedback_n + self.k_n_per_m @ (self.device.p_m - self.p_ref_m)
+            self.device.send_force(model_n * fade)
             hand = max((k for k in self.hands if k <= self.tick), default=None)  # applies now
             p, v, f, buttons = self.device.next_sample(self.hands.get(hand))
             # The energy the force took from the hand, net (no controller here: none dissipated).
             self.observed_j -= sum(fi * vi for fi, vi in zip(f, v, strict=True)) * PERIOD_S
+            if not publish:
+                return
             body = STATE_BODY.pack(
                 self.sim_time_ns,
                 self.tick,
@@ -195,10 +208,12 @@ class OutsideHaptic:
             self.batch_pub.put(b"".join(self.batch))
             self.batch = []
 
-    def run(self) -> float:
-        """Step on absolute deadlines until FINISHED, skipping (not bursting) after a stall."""
+    def run(self, servo_per_bus: int) -> float:
+        """Step on absolute deadlines until FINISHED, skipping (not bursting) after a
+        stall; publish every ``servo_per_bus`` servo periods (one bus period)."""
         period_ns = round(PERIOD_S * 1e9)
         start_ns = deadline_ns = time.monotonic_ns()
+        servo = 0
         while not self.finished.is_set():
             now_ns = time.monotonic_ns()
             if now_ns < deadline_ns:
@@ -206,7 +221,8 @@ class OutsideHaptic:
             elif (missed := (now_ns - deadline_ns) // period_ns) > 0:
                 self.skipped_periods += missed
                 deadline_ns += missed * period_ns
-            self.step(deadline_ns)
+            self.step(deadline_ns, publish=servo % servo_per_bus == 0)
+            servo += 1
             deadline_ns += period_ns
         return (time.monotonic_ns() - start_ns) * 1e-9
 
@@ -225,7 +241,10 @@ def main() -> None:
     parser.add_argument("--peers", default="plant,controller,hmd,operator,recorder")
     args = parser.parse_args()
     conf = zenoh.Config.from_file(args.zenoh_config)
-    robot = args.robot or json.loads(str(conf))["metadata"]["robot_id"]  # the launcher's
+    metadata = json.loads(str(conf))["metadata"]  # the launcher's
+    robot = args.robot or metadata["robot_id"]
+    # The stack's bus rate (its default where the file does not say).
+    servo_per_bus = round(1.0 / (metadata.get("loop_rate_hz", DEFAULT_BUS_RATE_HZ) * PERIOD_S))
     session = zenoh.open(conf)
     with Handle() as device:
         haptic = OutsideHaptic(session, robot, device)
@@ -233,7 +252,7 @@ def main() -> None:
         tokens = [session.liveliness().declare_token(f"{key}/alive/haptic")]  # dropped: gone
         wait_for_tokens(session, f"{key}/alive", set(args.peers.split(",")))
         tokens.append(session.liveliness().declare_token(f"{key}/ready/haptic"))  # plant starts
-        wall_s = haptic.run()
+        wall_s = haptic.run(servo_per_bus)
     if haptic.other_version is not None:
         session.close()
         raise SystemExit(

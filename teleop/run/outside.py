@@ -76,11 +76,16 @@ def _differences(value: Any, default: Any) -> Any:
     return None if value == default else value
 
 
-def outside_metadata(config: Config, service: str) -> dict[str, str]:
+def outside_metadata(config: Config, service: str) -> dict[str, str | float]:
     """What the outside config file tells its program besides Zenoh's settings, under
     Zenoh's ``metadata`` (free-form JSON that Zenoh does not interpret: it only shows it
-    in its admin space): the robot id of the run's keys and the service's name."""
-    return {"robot_id": config.robot.robot_id, "service": service}
+    in its admin space): the robot id of the run's keys, the service's name and the bus
+    rate (``loop.rate_hz``: one record of each loop stream per period)."""
+    return {
+        "robot_id": config.robot.robot_id,
+        "service": service,
+        "loop_rate_hz": config.loop.rate_hz,
+    }
 
 
 def write_outside_config(run_dir: Path, service: str, config: Config) -> Path:
@@ -107,6 +112,8 @@ def write_outside_config(run_dir: Path, service: str, config: Config) -> Path:
         "// Written by the launcher for this run only: its ports change every run.\n"
         f"// Robot id: {config.robot.robot_id} (also metadata/robot_id below, which Zenoh\n"
         "// does not interpret): every key is teleop/<robot id>/...\n"
+        f"// Bus rate: {config.loop.rate_hz:g} Hz (metadata/loop_rate_hz): one HAPTIC_STATE,\n"
+        "// JOINT_COMMAND, PLANT_STATE and FORCE_FEEDBACK per period.\n"
     )
     path.touch(mode=0o600)
     path.write_text(header + json.dumps(wanted, indent=2) + "\n")

@@ -341,14 +341,17 @@ def run_lockstep_push(loop: HapticLoop, ticks: int, push_from: int, push_n) -> N
 
 
 def test_an_emulated_link_delays_the_handle_forward_and_the_force_back():
-    """site.emulated_round_trip_ms = 25: the controller takes at tick k the handle as it
-    was 12 ticks before (under tick k's seq and tick), the handle feels the feedback of
-    tick k-1 only 13 ticks later; the barrier still waits for feedback k-1."""
+    """site.emulated_round_trip_ms = 25 ticks: the controller takes at tick k the handle
+    as it was 12 ticks before (under tick k's seq and tick), the handle feels the feedback
+    of tick k-1 only 13 ticks later; the barrier still waits for feedback k-1."""
     plain, plain_sent, _ = make_loop(lockstep=True)
-    config = load_config(None, ['run.mode="lockstep"', "site.emulated_round_trip_ms=25"])
+    round_trip_ms = 25 * plain.period_s * 1e3  # 25 bus periods (loop.rate_hz)
+    config = load_config(
+        None, ['run.mode="lockstep"', f"site.emulated_round_trip_ms={round_trip_ms:g}"]
+    )
     assert config.link_delay_ticks() == (12, 13)
     delayed_sent, clock = Sent(), FakeClock(start_ns=10 * NS_PER_S)
-    device = EmulatedDevice(config.haptic, config.plant.timestep_s)
+    device = EmulatedDevice(config.haptic, config.haptic.render_period_s)
     delayed = HapticLoop(config, device, delayed_sent, clock, lockstep=True)
     ticks, push_from, push_n = 400, 200, np.array([0.0, 0.0, 1.5])
     run_lockstep_push(plain, ticks, push_from, push_n)
@@ -356,7 +359,7 @@ def test_an_emulated_link_delays_the_handle_forward_and_the_force_back():
     assert len(delayed_sent.samples) == ticks
     for k, rec in enumerate(delayed_sent.samples):
         assert int(rec["tick"]) == k and int(rec["seq"]) == k + 1
-        assert int(rec["sim_time_ns"]) == k * NS_PER_MS
+        assert int(rec["sim_time_ns"]) == k * TICK_NS
         if k < push_from:  # no force yet: the same handle, 12 ticks late
             sampled = plain_sent.samples[max(k - 12, 0)]
             assert np.array_equal(rec["device_p_m"], sampled["device_p_m"])
@@ -372,22 +375,40 @@ def test_an_emulated_link_delays_the_handle_forward_and_the_force_back():
     assert delayed.summary()["link_delay_ticks"] == {"forward": 12, "backward": 13}
 
 
+class RenderLog(EmulatedDevice):
+    """The emulator, keeping each servo period's force sent and the handle position
+    (encoders) it was rendered at."""
+
+    def __init__(self, config: HapticConfig, period_s: float) -> None:
+        super().__init__(config, period_s)
+        self.renders: list[tuple[np.ndarray, np.ndarray]] = []  # (at p_m, force sent)
+
+    def send_force(self, force_n: np.ndarray) -> None:
+        self.renders.append((self.read().p_m, np.array(force_n, dtype=np.float64)))
+        super().send_force(force_n)
+
+
 def test_with_wave_variables_the_handle_renders_the_channels_resistance():
-    """teleop.stabiliser "wave", nothing coming back (wave 0): the handle feels the
-    matching drag -b r of its own rate, and each sample carries its wave sqrt(2 b) r of
-    the rate it rendered against (teleop/control/wave.py)."""
+    """teleop.stabiliser "wave", nothing coming back (wave 0): every servo period the
+    handle feels the matching drag -b r of its own rate there, and each sample carries
+    the force and the wave sqrt(2 b) r of the rate its tick's last render was against
+    (teleop/control/wave.py)."""
     config = load_config(None, ['run.mode="lockstep"', 'teleop.stabiliser="wave"'])
     sent, clock = Sent(), FakeClock(start_ns=10 * NS_PER_S)
-    device = EmulatedDevice(config.haptic, config.plant.timestep_s)
+    device = RenderLog(config.haptic, config.haptic.render_period_s)
     loop = HapticLoop(config, device, sent, clock, lockstep=True)
     plain, plain_sent, _ = make_loop(lockstep=True)
     run_lockstep_push(loop, 600, 600, 0.0)
     run_lockstep_push(plain, 600, 600, 0.0)
     b, teleop = config.teleop.wave_impedance_n_s_m, config.teleop
-    for before, rec in zip(sent.samples[-50:-1], sent.samples[-49:], strict=True):
-        rate = handle_rate_m_s(before["device_p_m"], False, teleop)
-        assert np.allclose(rec["device_f_n"], -b * rate)
-        assert np.allclose(rec["wave_u"], math.sqrt(2 * b) * rate)
+    renders = config.renders_per_tick
+    assert len(device.renders) == renders * len(sent.samples)
+    for at_m, force_n in device.renders:
+        assert np.allclose(force_n, -b * handle_rate_m_s(at_m, False, teleop))
+    for k, rec in enumerate(sent.samples):
+        at_m, force_n = device.renders[(k + 1) * renders - 1]  # the tick's last render
+        assert np.allclose(rec["device_f_n"], force_n)
+        assert np.allclose(rec["wave_u"], math.sqrt(2 * b) * handle_rate_m_s(at_m, False, teleop))
     # The drag holds the handle back from where the plain one goes (the hand's 2 cm).
     held_back_m = plain_sent.samples[-1]["device_p_m"][0] - sent.samples[-1]["device_p_m"][0]
     assert held_back_m > 0.002
@@ -433,16 +454,18 @@ def test_lockstep_does_not_wait_for_a_hand_input_a_later_one_overtook():
     effect (its predecessor's), without the hand wait."""
     loop, sent, _ = make_loop(lockstep=True)
     lead = loop.lead_ticks
+    # The hand inputs' first three valid_from ticks: decisions 0, 1 and 2, a lead later.
+    first, waited, later = (s + lead for s in hand_sample_ticks(loop, 100)[:3])
     target_m = np.array([0.0, 0.02, 0.0])
-    for k in range(3 * lead + 1):
+    for k in range(later + 1):
         loop.on_state(plant_state(k))
         if k == 0:  # the run has begun: the old operator's last input
-            loop.on_hand(hand(lead, target_m))
+            loop.on_hand(hand(first, target_m))
         if k >= 1:
             loop.on_feedback(feedback(k, k - 1, 0.0), 0)
-    assert len(sent.samples) == 2 * lead  # tick 2 lead waits for its hand input
-    loop.on_hand(hand(3 * lead, -target_m))  # the new operator's first: a later tick
-    assert len(sent.samples) == 3 * lead + 1  # stepped through, no wait
+    assert len(sent.samples) == waited  # tick `waited` waits for its hand input
+    loop.on_hand(hand(later, -target_m))  # the new operator's first: a later tick
+    assert len(sent.samples) == later + 1  # stepped through, no wait
     assert loop.missing_hand_inputs == 1
 
 
@@ -495,7 +518,7 @@ def test_realtime_renders_feedback_on_arrival_and_checks_its_order_and_age():
     assert np.allclose(sent.samples[-1]["device_f_n"], 0.0)
     loop.step_realtime(deadline_ns=clock.now_ns() + loop.period_ns)
     sample = sent.samples[-1]
-    assert int(sample["tick"]) == 500 and int(sample["sim_time_ns"]) == 500 * NS_PER_MS
+    assert int(sample["tick"]) == 500 and int(sample["sim_time_ns"]) == 500 * TICK_NS
     assert np.allclose(sample["device_f_n"], force_n) and sample["flags"] == Flag.NONE
     # Stale after haptic.stale_feedback_s: flagged, fading.
     clock.advance(round(loop.config.haptic.stale_feedback_s * NS_PER_S) + 2 * NS_PER_MS)

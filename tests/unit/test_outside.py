@@ -39,7 +39,11 @@ def test_the_outside_config_is_the_stacks_own_session_config(tmp_path):
     assert path.stat().st_mode & 0o777 == 0o600
     loaded = json.loads(str(zenoh.Config.from_file(str(path))))
     # The robot id is in the file, where Zenoh takes it (metadata: not interpreted).
-    assert loaded.pop("metadata") == {"robot_id": "arm7", "service": "controller"}
+    assert loaded.pop("metadata") == {
+        "robot_id": "arm7",
+        "service": "controller",
+        "loop_rate_hz": config.loop.rate_hz,
+    }
     assert "// Robot id: arm7 " in path.read_text()
     own_session = json.loads(str(session_config(config.bus, listen=False)))
     assert own_session.pop("metadata") is None  # Zenoh's default: nothing
@@ -122,7 +126,11 @@ def test_an_observer_finds_every_endpoint_of_a_stack_from_its_run_dir(tmp_path, 
     path = outside.write_observer_config(tmp_path)
     assert path == tmp_path / "outside" / "observer.json5"
     loaded = json.loads(str(zenoh.Config.from_file(str(path))))
-    assert loaded["metadata"] == {"robot_id": "arm3", "service": OBSERVER}
+    assert loaded["metadata"] == {
+        "robot_id": "arm3",
+        "service": OBSERVER,
+        "loop_rate_hz": load_config().loop.rate_hz,
+    }
     assert loaded["connect"]["endpoints"] == ["tcp/127.0.0.1:7000", *own]
     assert loaded["listen"]["endpoints"] not in ([], own)  # a port of its own choice
     assert loaded["transport"]["shared_memory"]["enabled"] is False  # the run's settings

@@ -4,15 +4,16 @@ core's events and summary."""
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from teleop.bus.messages import Event, Flag
+from teleop.control.kinematics import build_arm_model
+from teleop.control.teleop import TeleopController
 from teleop.core.clock import FakeClock
-from teleop.core.config import ConfigError, load_config
+from teleop.core.config import Config, ConfigError, load_config
 from teleop.sim.protective import ProtectiveStop, StopCause, allowed_approach_m_s
 from teleop.sim.stepping import PlantStepCore
 from tests.unit.test_feedback import GraspRig
@@ -61,26 +62,46 @@ def test_the_stop_speed_must_lie_above_the_command_limit():
         load_config(None, ["plant.contact_force_limit_n=0"])
 
 
+def ticks(config: Config, seconds: float) -> int:
+    """The plant ticks (bus periods, one controller cycle each) in ``seconds``."""
+    return round(seconds / config.tick_s)
+
+
+def physics_steps(config: Config, seconds: float) -> int:
+    """The plant's physics steps (what the protective stop counts) in ``seconds``."""
+    return round(seconds / config.plant.timestep_s)
+
+
+def rig_on_ticks(config: Config) -> GraspRig:
+    """A GraspRig whose controller runs once per tick, as the controller's cycle does
+    (teleop.control.cycle: one cycle per bus period, ``config.tick_s``)."""
+    rig = GraspRig(config)
+    rig.ctl = TeleopController(
+        build_arm_model(config.robot), config.teleop, config.control, config.tick_s
+    )
+    return rig
+
+
 def press(rig: GraspRig, steps: int, speed_m_s: float = PRESS_SPEED_M_S) -> list[float]:
-    """The handle held down: ``steps`` steps commanding the tool down at ``speed_m_s``;
-    the net contact force after each (N)."""
+    """The handle held down: ``steps`` ticks commanding the tool down at ``speed_m_s``;
+    the largest net contact force over each tick's physics steps (N)."""
     forces = []
     for _ in range(steps):
         sample = rig.plant.sample()
         v_ref = np.array([0.0, 0.0, -speed_m_s])
         out = rig.ctl.update(sample.q_rad, sample.qd_rad_s, v_ref, None, 1.0)
         rig.plant.step(out.qd_ref_rad_s, out.gripper_cmd)
-        forces.append(math.hypot(*rig.plant.contact_force_n.tolist()))
+        forces.append(rig.plant.tick_peak_contact_force_n)
     return forces
 
 
 def above_the_table(config) -> GraspRig:
     """The open gripper moved above a free spot of the table (away from the cube and the
     bin), 10 cm up."""
-    rig = GraspRig(config)
+    rig = rig_on_ticks(config)
     above = rig.plant.tool_pose()[0] + [0.0, -0.15, 0.0]
     above[2] = 0.10
-    rig.move(above, 1.0, 2500)
+    rig.move(above, 1.0, ticks(config, 2.5))
     assert rig.plant.contact_force_n.tolist() == [0.0, 0.0, 0.0]
     return rig
 
@@ -89,30 +110,35 @@ def above_the_table(config) -> GraspRig:
 def pressed():
     """The gripper above the table pressed down onto it until well after the stop; the
     rig and the forces of the press."""
-    rig = above_the_table(load_config())
-    forces = press(rig, round(0.15 / PRESS_SPEED_M_S * 1000))  # 15 cm: far into the table
+    config = load_config()
+    rig = above_the_table(config)
+    forces = press(rig, ticks(config, 0.15 / PRESS_SPEED_M_S))  # 15 cm: far into the table
     return rig, forces
 
 
 def test_pressed_into_the_table_the_plant_stops_and_holds_while_pushed(pressed):
     rig, forces = pressed
+    config = load_config()
     stops = rig.plant.protective.stops
     assert [s.cause for s in stops] == [StopCause.CONTACT_FORCE]  # one stop, on force
-    tripped = stops[0].step
+    tripped = stops[0].step  # a physics step
     assert max(forces) <= 1.1 * LIMIT_N  # the approach limit makes it a touch, not an impact
     assert forces[-1] > 0  # still touching, still reported (the operator feels it)
     assert rig.plant.protective.latched and rig.plant.braking  # the handle still pushes
     # Held: the tool no longer goes down, the force settles below the limit.
     z_held = rig.plant.tool_pose()[0][2]
-    after = press(rig, 200)
+    after = press(rig, ticks(config, 0.2))
     assert rig.plant.tool_pose()[0][2] == pytest.approx(z_held, abs=1e-4)
-    assert max(after) < load_config().plant.contact_force_limit_n
-    assert stops[0].steps_held > 200 and rig.plant.step_count - tripped > 200
+    assert max(after) < config.plant.contact_force_limit_n
+    # Held on every physics step since it tripped (0.2 s of them at least).
+    held_min = physics_steps(config, 0.2)
+    assert stops[0].steps_held > held_min and rig.plant.physics_steps - tripped > held_min
+    assert stops[0].steps_held == rig.plant.physics_steps - tripped
     # Unguarded (no stop, no approach limit), the same press goes on pushing: tens of
     # newtons.
-    config = replace_limits(load_config(), contact_force_limit_n=1e9, approach_time_s=0.0)
-    free = press(above_the_table(config), len(forces))
-    assert max(free[-200:]) > 3 * load_config().plant.contact_force_limit_n
+    free_config = replace_limits(config, contact_force_limit_n=1e9, approach_time_s=0.0)
+    free = press(above_the_table(free_config), len(forces))
+    assert max(free[-ticks(config, 0.2) :]) > 3 * config.plant.contact_force_limit_n
 
 
 @pytest.mark.parametrize("approach_limit", [True, False], ids=["approach-limit", "none"])
@@ -124,7 +150,7 @@ def test_a_fast_press_meets_the_table_slowly_enough_for_the_force_limit(approach
     if not approach_limit:
         config = replace_limits(config, approach_time_s=0.0)
     rig = above_the_table(config)
-    forces = press(rig, 1500, speed_m_s=config.plant.tool_speed_limit_m_s)
+    forces = press(rig, ticks(config, 1.5), speed_m_s=config.plant.tool_speed_limit_m_s)
     assert forces[-1] > 0  # it reached the table
     if approach_limit:
         assert max(forces) <= 1.1 * LIMIT_N
@@ -145,7 +171,7 @@ def test_a_command_that_stops_releases_the_stop(pressed):
     rig, _ = pressed
     assert rig.plant.protective.latched
     rig.ctl.reset()  # the handle let go: no motion asked for
-    for _ in range(60):
+    for _ in range(ticks(load_config(), 0.06)):
         sample = rig.plant.sample()
         out = rig.ctl.update(sample.q_rad, sample.qd_rad_s, np.zeros(3), None, 1.0)
         rig.plant.step(out.qd_ref_rad_s, out.gripper_cmd)
@@ -164,43 +190,47 @@ def test_the_core_announces_each_stop_and_lists_it_in_the_summary():
     core.begin_run(None)
     core.publish_state()
     # Tripped through the bookkeeping the plant feeds after a step (a tool this fast).
-    core.plant.protective.measure(core.plant.step_count, 0.0, 1.0)
+    core.plant.protective.measure(core.plant.physics_steps, 0.0, 1.0)
+    period_ns, per_tick = core.period_ns, config.physics_steps_per_tick
     for seq in range(1, 4):
-        clock.advance(1_000_000)
+        clock.advance(period_ns)
         core.step(command(seq, core.state_seq, clock.now_ns(), qd=0.5), clock.now_ns())
     assert Event.PROTECTIVE_STOP in outputs.events()
     assert int(outputs.records["plant_state"][-1]["flags"]) & Flag.BRAKING
     # Commands that ask for no motion (the drives' references that hold the arm against
     # gravity: Plant.limit counts the motion beyond them), plant.protective_release_s
-    # of them in a row: the last one releases the stop.
+    # of them in a row (physics steps: the ticks that hold them): the last releases it.
     plant = core.plant
     release_steps = round(config.plant.protective_release_s / config.plant.timestep_s)
-    for seq in range(4, 4 + release_steps):
-        still = command(seq, core.state_seq, clock.now_ns() + 1_000_000)
+    release_ticks = -(-release_steps // per_tick)
+    for seq in range(4, 4 + release_ticks):
+        still = command(seq, core.state_seq, clock.now_ns() + period_ns)
         still["qd_ref_rad_s"][:6] = plant.data.qfrc_bias[plant.dof_index] / plant.kv
-        clock.advance(1_000_000)
+        clock.advance(period_ns)
         assert outputs.events()[-1] is Event.PROTECTIVE_STOP  # not yet released
         core.step(still, clock.now_ns())
     assert outputs.events()[-1] is Event.PROTECTIVE_RELEASE
     assert not int(outputs.records["plant_state"][-1]["flags"]) & Flag.BRAKING
     summary = core.plant.protective.summary(config.plant.timestep_s)
     assert summary["count"] == 1 and summary["stops"][0]["cause"] == "tool_speed"
-    assert summary["stops"][0]["steps_held"] == 3 + release_steps - 1
+    # Every physics step of the 3 ticks pushing, and of the still ones before the last.
+    assert summary["stops"][0]["steps_held"] == 3 * per_tick + release_steps - 1
 
 
 def test_a_held_cube_braked_hard_is_no_press_on_the_scene():
     """The cube in hand, carried at speed and then braked: its inertia pulls on the
     fingers well past the limit, but that is no contact with the scene: no stop."""
     config = load_config()
-    rig = GraspRig(config)
-    rig.move(rig.cube_p + [0.0, 0.0, 0.12], 1.0, 1500)  # above, open
-    rig.move(rig.cube_p.copy(), 1.0, 1000)  # around it
-    rig.move(rig.cube_p.copy(), 0.0, 500)  # closed on it
+    rig = rig_on_ticks(config)
+    rig.move(rig.cube_p + [0.0, 0.0, 0.12], 1.0, ticks(config, 1.5))  # above, open
+    rig.move(rig.cube_p.copy(), 1.0, ticks(config, 1.0))  # around it
+    rig.move(rig.cube_p.copy(), 0.0, ticks(config, 0.5))  # closed on it
     assert rig.held() == rig.cube
     total_n = []
-    rig.move(rig.cube_p + [0.0, -0.3, 0.15], 0.0, 600)  # carried off at the speed limit
-    for _ in range(300):
+    # Carried off at the speed limit.
+    rig.move(rig.cube_p + [0.0, -0.3, 0.15], 0.0, ticks(config, 0.6))
+    for _ in range(ticks(config, 0.3)):
         rig.plant.step_braking()  # a hard stop (as the watchdog's)
-        total_n.append(math.hypot(*rig.plant.contact_force_n.tolist()))
+        total_n.append(rig.plant.tick_peak_contact_force_n)
     assert max(total_n) > config.plant.contact_force_limit_n  # the cube's inertia
     assert rig.plant.protective.stops == [] and rig.held() == rig.cube
