@@ -41,7 +41,8 @@ def test_a_stiff_contact_across_200_ms_is_active_plain_and_passive_with_tdpa_or_
     )
     for name, summary in runs.items():
         delay = summary["services"]["haptic"]["link_delay_ticks"]
-        assert delay == {"forward": ROUND_TRIP_MS // 2, "backward": ROUND_TRIP_MS // 2}, name
+        half_ticks = round(ROUND_TRIP_MS / 2 / (load_config().tick_s * 1e3))
+        assert delay == {"forward": half_ticks, "backward": half_ticks}, name
         assert summary["passivity"]["stabiliser"] == name
         assert summary["max_device_force_n"] <= load_config().haptic.peak_force_n + 1e-9
     active, damped = runs["none"]["passivity"], runs["tdpa"]["passivity"]

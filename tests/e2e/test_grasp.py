@@ -40,10 +40,12 @@ from tests.e2e.users import HANG_S, USER, UserEnv
 
 # Tolerance on the held weight the operator feels, as a fraction of m g.
 WEIGHT_TOLERANCE = 0.10
-# Measured tool speed over the 0.25 m/s cap, as a fraction of it. Lockstep: 1 %. Realtime:
-# a command may reach its step a few ms after the state it answers (the drives lag), and a
-# clean-clone CI run saw 1.3 % once; 3 % still catches a cap that is not enforced.
-SPEED_TOLERANCE_LOCKSTEP = 0.01
+# Measured tool speed over the 0.25 m/s cap, as a fraction of it, measured on every physics
+# step. Lockstep: 2 % (each command holds for a bus period of physics steps while the drives
+# settle on it: 1.2 % seen at 250 Hz). Realtime: a command may reach its step a few ms
+# after the state it answers (the drives lag), and a clean-clone CI run saw 1.3 % once;
+# 3 % still catches a cap that is not enforced.
+SPEED_TOLERANCE_LOCKSTEP = 0.02
 SPEED_TOLERANCE_REALTIME = 0.03
 # An obstacle beside the default cube (0.45, -0.25): the descent to the cube passes inside
 # its influence (the operator routes around obstacles, but not away from its own target),
@@ -340,10 +342,12 @@ def test_report_writes_the_paper_figures(obstacle_run, tmp_path):
         summary["held_weight_n"], rel=WEIGHT_TOLERANCE
     )
     assert report.metrics["ghost_poses"] >= 2
-    # The passivity observer's least energy, as the haptic service itself counted it.
-    assert report.metrics["passivity_observer_min_j"] == pytest.approx(
-        summary["passivity"]["observer_min_j"], abs=1e-9
-    )
+    # The passivity observer's least energy, as the haptic service itself counted it: the
+    # service observes every servo period, the recording the samples at each bus period's
+    # end, so the recording's least is never below the service's, and close to it.
+    service_min_j = summary["passivity"]["observer_min_j"]
+    assert report.metrics["passivity_observer_min_j"] >= service_min_j - 1e-12
+    assert report.metrics["passivity_observer_min_j"] == pytest.approx(service_min_j, rel=0.05)
 
 
 class TwoSites:

@@ -96,9 +96,10 @@ def test_lockstep_is_deterministic_and_equals_the_inprocess_run(tmp_path):
 @pytest.mark.parametrize("delay_steps", [0, 2])
 def test_lockstep_delay_is_the_same_in_services_and_in_process(tmp_path, delay_steps):
     """Step k applies the answer to state k - delay on the services as in process; the
-    delay changes the trajectory (so the setting is really applied) but not its accuracy."""
-    overrides = ["run.duration_s=1", "run.seed=3", "run.settle_s=0.5"]
-    settings = ["--duration", "1", "--seed", "3", "--set", "run.settle_s=0.5"]
+    delay changes the trajectory (so the setting is really applied) but not its accuracy
+    once settled (two bus periods of delay take about a second to settle)."""
+    overrides = ["run.duration_s=2", "run.seed=3", "run.settle_s=1"]
+    settings = ["--duration", "2", "--seed", "3", "--set", "run.settle_s=1"]
     delayed = f"plant.lockstep_delay_steps={delay_steps}"
     services = run_services(tmp_path, "s", "--mode", "lockstep", *settings, "--set", delayed)
     reference = run_path_following_inprocess(load_config(None, [*overrides, delayed]), None)
@@ -106,7 +107,7 @@ def test_lockstep_delay_is_the_same_in_services_and_in_process(tmp_path, delay_s
     assert services["final_state_sha256"] == reference["final_state_sha256"]
     assert reference["final_state_sha256"] != default["final_state_sha256"]
     assert services["services"]["plant"]["unanswered_commands"] == 0
-    ticks = round(1 / load_config().tick_s)
+    ticks = round(2 / load_config().tick_s)
     assert services["services"]["plant"]["commands_applied"] == ticks - delay_steps
     assert reference["path_error_max_m"] < 1e-3
 

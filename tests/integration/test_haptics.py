@@ -33,8 +33,8 @@ from teleop.bus.session import Publisher, close_session, open_session, subscribe
 from teleop.bus.topics import Topics
 from teleop.core.config import REPO_ROOT, Config, load_config
 from teleop.core.net import free_loopback_port
+from teleop.core.ticks import is_sample_tick, lead_ticks
 
-NS_PER_MS = 1_000_000
 NS_PER_S = 1_000_000_000
 
 # --- the service as a process, in lockstep ----------------------------------------------
@@ -118,7 +118,9 @@ def haptic_service(tmp_path: Path, mode: str) -> Iterator[HapticRig]:
 def test_service_steps_once_per_tick_in_lockstep(tmp_path):
     with haptic_service(tmp_path, "lockstep") as rig:
         config, topics, replies = rig.config, rig.topics, rig.replies
-        lead_ticks = round(1.0 / (config.operator.decision_rate_hz * config.plant.timestep_s))
+        tick_ns = round(config.tick_s * NS_PER_S)  # one bus period (loop.rate_hz)
+        hand_rate_hz = config.operator.decision_rate_hz
+        hand_lead = lead_ticks(hand_rate_hz, config.tick_s)
         state_pub = rig.publisher(topics.plant_state, PLANT_STATE)
         feedback_pub = rig.publisher(topics.force_feedback, FORCE_FEEDBACK)
         hand_pub = rig.publisher(topics.hand_input, HAND_INPUT)
@@ -132,7 +134,7 @@ def test_service_steps_once_per_tick_in_lockstep(tmp_path):
             # State first, then the feedback it needs: most ticks k >= 1 wait for it (Zenoh
             # does not order deliveries across keys, so the feedback may still come first).
             state["seq"] = state["step"] = k
-            state["sim_time_ns"] = k * NS_PER_MS
+            state["sim_time_ns"] = k * tick_ns
             state_pub.put(state)
             if k >= 1:
                 if k == push_from:  # garbage first: oversized, then NaN; both dropped
@@ -147,13 +149,13 @@ def test_service_steps_once_per_tick_in_lockstep(tmp_path):
                 feedback_pub.put(feedback)
             reply = replies.wait_count(k + 1)
             assert int(reply["tick"]) == k and int(reply["seq"]) == k + 1
-            assert int(reply["sim_time_ns"]) == k * NS_PER_MS
+            assert int(reply["sim_time_ns"]) == k * tick_ns
             assert reply["trace_ns"][Stage.HAPTIC_SAMPLE] > 0
-            if k < lead_ticks:  # no hand input applies yet: the handle rests at the centre
+            if k < hand_lead:  # no hand input applies yet: the handle rests at the centre
                 assert np.all(reply["device_p_m"] == 0.0)
-            if k % lead_ticks == 0:  # the operator's decision, valid lead_ticks later
-                hand["seq"] = k // lead_ticks + 1
-                hand["valid_from_tick"] = k + lead_ticks
+            if is_sample_tick(k, hand_rate_hz, config.tick_s):  # a decision, valid hand_lead later
+                hand["seq"] += 1
+                hand["valid_from_tick"] = k + hand_lead
                 hand["target_p_m"] = hand_target_m
                 hand["buttons"] = Button.GRIPPER_CLOSE
                 hand_pub.put(hand)
@@ -161,6 +163,11 @@ def test_service_steps_once_per_tick_in_lockstep(tmp_path):
         before_push = replies.records[push_from - 1]
         assert before_push["device_p_m"][0] == pytest.approx(0.02, abs=5e-4)
         assert abs(before_push["device_p_m"][1]) < 1e-4
+        # The push ramps in at haptic.max_force_rate_n_per_s (ForceSlew), one step per
+        # servo period: it is all there by the end of its first tick's renders.
+        slew_step_n = config.haptic.max_force_rate_n_per_s * config.haptic.render_period_s
+        assert math.ceil(np.linalg.norm(push_n) / slew_step_n) <= config.renders_per_tick
+        assert not replies.records[push_from - 1]["device_f_n"].any()
         assert np.allclose(replies.records[push_from]["device_f_n"], push_n)
         last = replies.records[-1]
         assert last["device_p_m"][0] == pytest.approx(0.02, abs=5e-4)
@@ -199,14 +206,14 @@ def test_service_in_realtime_takes_its_clock_from_the_feedback(tmp_path):
     time and the device period's deadline; a feedback tick that goes back is a new run."""
     feedback = FORCE_FEEDBACK.new()
     with haptic_service(tmp_path, "realtime") as rig:
-        period_ns = round(rig.config.plant.timestep_s * NS_PER_S)
+        period_ns = round(rig.config.tick_s * NS_PER_S)  # one bus period (loop.rate_hz)
         feedback_pub = rig.publisher(rig.topics.force_feedback, FORCE_FEEDBACK)
         replies = rig.replies
 
         def send(seq: int, tick: int) -> None:
             feedback["seq"] = seq
             feedback["tick"] = tick
-            feedback["sim_time_ns"] = tick * NS_PER_MS
+            feedback["sim_time_ns"] = tick * period_ns
             feedback["device_f_n"] = [0.0, 0.5, 0.0]
             feedback["trace_ns"][Stage.FEEDBACK_TX] = time.monotonic_ns()
             feedback_pub.put(feedback)
@@ -223,7 +230,7 @@ def test_service_in_realtime_takes_its_clock_from_the_feedback(tmp_path):
 
         send(1, 500)
         first = reply_with_tick(500)
-        assert int(first["sim_time_ns"]) == 500 * NS_PER_MS
+        assert int(first["sim_time_ns"]) == 500 * period_ns
         send(2, 501)
         reply_with_tick(501)
         with replies.cond:

@@ -35,6 +35,8 @@ def test_hmd_process_publishes_on_the_sample_ticks(tmp_path):
     config = load_config(None, overrides)
     topics = Topics(config.robot.robot_id)
     schedule = HmdSchedule.from_config(config)
+    assert schedule.timestep_s == config.tick_s  # the HMD samples on bus ticks
+    tick_ns = round(config.tick_s * 1e9)
     last_tick = 300
     sample_ticks = [k for k in range(last_tick + 1) if schedule.is_sample(k)]
     assert last_sample_tick(last_tick, schedule.rate_hz, schedule.timestep_s) == sample_ticks[-1]
@@ -64,12 +66,13 @@ def test_hmd_process_publishes_on_the_sample_ticks(tmp_path):
         wait_alive(session, topics, ["hmd"], ALIVE_TIMEOUT_S)
         assert state_pub.wait_matched(ALIVE_TIMEOUT_S)
         state = TOOL_POSE.new()
-        scene_period = round(1 / (config.plant.scene_rate_hz * config.plant.timestep_s))
+        # The plant's TOOL_POSE period (ticks of loop.rate_hz), as PlantStepCore sends them.
+        scene_period = max(1, round(1 / (config.plant.scene_rate_hz * config.tick_s)))
         resent_tick = scene_period * 2  # a re-sent clock tick must not give more records
         for run in range(2):  # the second run (tick 0 again) must reset the filter
             for k in range(0, last_tick + 1, scene_period):
                 state["seq"] += 1
-                state["sim_time_ns"] = k * round(config.plant.timestep_s * 1e9)
+                state["sim_time_ns"] = k * tick_ns
                 state_pub.put(state)
                 if k == resent_tick:
                     state_pub.put(state)
@@ -84,9 +87,8 @@ def test_hmd_process_publishes_on_the_sample_ticks(tmp_path):
 
     n = len(sample_ticks)
     assert len(received) == 2 * n and drops.total == 0
-    timestep_ns = round(config.plant.timestep_s * 1e9)
     first, second = received[:n], received[n:]
-    assert [int(r["sim_time_ns"]) // timestep_ns for r in first] == sample_ticks
+    assert [int(r["sim_time_ns"]) // tick_ns for r in first] == sample_ticks
     assert [int(r["valid_from_tick"]) for r in first] == [
         k + schedule.lead_ticks for k in sample_ticks
     ]

@@ -23,10 +23,12 @@ from teleop.bus.session import Publisher, close_session, open_session, subscribe
 from teleop.bus.topics import Topics
 from teleop.core.config import REPO_ROOT, load_config
 from teleop.core.net import free_loopback_port
-from tests.unit.test_operator import BIN_M, CUBE_M, HOME_TOOL_M, TIMESTEP_S
+from teleop.core.ticks import is_sample_tick, lead_ticks
+from tests.unit.test_operator import BIN_M, CUBE_M, HOME_TOOL_M
 
 ALIVE_TIMEOUT_S = 60.0
 RECORD_TIMEOUT_S = 10.0
+RUN_S = 0.6  # sim time the test feeds the operator
 
 
 # --- the service as a real process -------------------------------------------------------
@@ -36,6 +38,8 @@ class Bus:
     """The test's own session: the run's listener, feeding poses and collecting outputs."""
 
     def __init__(self, config) -> None:
+        self.config = config
+        self.tick_ns = round(config.tick_s * 1e9)  # one plant tick: one bus period
         self.topics = Topics(config.robot.robot_id)
         self.session = open_session(config.bus, listen=True)
         self.drops = DropCounter()
@@ -63,7 +67,7 @@ class Bus:
 
     def publish_scene(self, tick: int, tool_m: np.ndarray) -> None:
         objects = OBJECT_POSES.new()
-        objects["sim_time_ns"] = tick * round(TIMESTEP_S * 1e9)
+        objects["sim_time_ns"] = tick * self.tick_ns
         objects["n_objects"] = 2
         objects["world_p_m"][:2] = [CUBE_M, BIN_M]
         objects["world_q_wxyz"][:2, 0] = 1.0
@@ -109,25 +113,39 @@ def operator_process(tmp_path: Path):
 
 def test_operator_service_answers_each_scene_tick_toward_the_cube(operator_process):
     bus, proc, run_dir = operator_process
+    config = bus.config
+    tick_s, rate_hz = config.tick_s, config.operator.decision_rate_hz
+    # The plant's TOOL_POSE period (ticks), as PlantStepCore sends them.
+    scene_period = max(1, round(1 / (config.plant.scene_rate_hz * tick_s)))
+    lead = lead_ticks(rate_hz, tick_s)  # a decision at s is valid from s + lead
+    seen_from = round(config.operator.reaction_delay_s / tick_s)  # first tick it sees tick 0
+    last_tick = round(RUN_S / tick_s)
     tool_m = HOME_TOOL_M.copy()
-    last_tick = 600
-    for tick in range(0, last_tick + 1, 10):
+    decided: list[int] = []  # the sample ticks decided so far
+    for tick in range(0, last_tick + 1, scene_period):
         bus.publish_scene(tick, tool_m)
-        hand = bus.wait_hand(tick + 10)  # lockstep: one record per sample tick, lead 10
-        assert int(hand["buttons"]) == Button.NONE  # approach: gripper open, no clutch
-        if tick < 200:  # nothing seen yet (0.2 s reaction delay): the hand rests
-            assert not hand["target_p_m"].any()
-    assert sorted(bus.hands) == list(range(10, last_tick + 11, 10))
+        # Lockstep: one record per sample tick up to this pose, each valid lead ticks on.
+        first = decided[-1] + 1 if decided else 0
+        for s in (s for s in range(first, tick + 1) if is_sample_tick(s, rate_hz, tick_s)):
+            decided.append(s)
+            hand = bus.wait_hand(s + lead)
+            assert int(hand["buttons"]) == Button.NONE  # approach: gripper open, no clutch
+            if s < seen_from:  # nothing seen yet (the reaction delay): the hand rests
+                assert not hand["target_p_m"].any()
+    assert sorted(bus.hands) == [s + lead for s in decided]
+    assert decided[0] == 0 and any(s > seen_from for s in decided)
     # Toward the approach point above the cube (yaw 0 without an HMD: device = world).
     goal = CUBE_M + [0.0, 0.0, 0.12] - tool_m
-    offsets = [bus.hands[t + 10]["target_p_m"] for t in range(210, last_tick + 1, 10)]
+    offsets = [bus.hands[s + lead]["target_p_m"] for s in decided if s > seen_from]
     for offset in offsets:
         cosine = offset @ goal / (np.linalg.norm(offset) * np.linalg.norm(goal))
         assert cosine > 0.999
     norms = [np.linalg.norm(o) for o in offsets]
     assert np.all(np.diff(norms) > 0)  # the hand moves out smoothly (low-pass)
+    # The task began at the first sample tick that saw anything.
+    began = next(s for s in decided if s >= seen_from)
     with bus.cond:
-        assert (Event.PHASE, 200, 0.0) in bus.events  # the task began once seen
+        assert (Event.PHASE, began, 0.0) in bus.events
     proc.terminate()
     assert proc.wait(timeout=30) == 0
     summary = (run_dir / "operator.summary.json").read_text()

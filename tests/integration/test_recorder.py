@@ -44,7 +44,7 @@ ROBOT = "rectest"
 JOINTS = ("j1", "j2", "j3", "j4", "j5", "j6")
 OBJECTS = ("cube", "ball")
 SIM_T0_NS = 5_000_000_000  # sim times far from any monotonic arrival time
-SIM_STEP_NS = 1_000_000  # 1 kHz
+SIM_STEP_NS = 1_000_000  # between two records (any: each is logged at its own sim time)
 F32_TOLERANCE = 1e-6  # positions go through float32 in Rerun
 SOURCE_T0_NS = 123_000_000_000  # producer clock values, also far from arrival times
 N = {  # records sent per stream
@@ -390,17 +390,17 @@ def test_bilateral_streams_are_logged_at_their_own_time(rig_factory, tmp_path):
     assert series(data, ent.axis_entity(ent.ENTITY_HAPTIC_F, "z"))[sim_ns(7)] == pytest.approx(0.07)
     assert series(data, ent.ENTITY_HAPTIC_BUTTONS)[sim_ns(3)] == 3.0
 
-    # Hand input: sim_time from valid_from_tick and the plant timestep.
-    timestep_ns = round(rig.service.config.plant.timestep_s * 1e9)
+    # Hand input: sim_time from valid_from_tick and the tick (the bus period, loop.rate_hz).
+    tick_ns = round(rig.service.config.tick_s * 1e9)
     hand_x = series(data, ent.axis_entity(ent.ENTITY_HAND_TARGET, "x"))
     ticks = range(HAND_TICK0, HAND_TICK0 + N_BILATERAL["hand_input"])
-    assert sorted(hand_x) == [t * timestep_ns for t in ticks]
-    assert hand_x[(HAND_TICK0 + 5) * timestep_ns] == pytest.approx(0.005)
+    assert sorted(hand_x) == [t * tick_ns for t in ticks]
+    assert hand_x[(HAND_TICK0 + 5) * tick_ns] == pytest.approx(0.005)
     hand_cols = data[ent.ENTITY_HAND_BUTTONS]
     assert sorted(hand_cols[ent.TIMELINE_SOURCE]) == [
         source_ns(i) for i in range(N_BILATERAL["hand_input"])
     ]
-    assert series(data, ent.ENTITY_HAND_BUTTONS)[(HAND_TICK0 + 1) * timestep_ns] == 1.0
+    assert series(data, ent.ENTITY_HAND_BUTTONS)[(HAND_TICK0 + 1) * tick_ns] == 1.0
 
     # Force feedback: each component and its norm per sample.
     for _, base in ent.FEEDBACK_COMPONENTS.values():

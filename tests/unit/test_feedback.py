@@ -43,9 +43,7 @@ class GraspRig:
     def __init__(self, cfg: Config) -> None:
         self.plant = Plant(cfg)
         self.plant.reset(np.array(cfg.robot.home_q_rad), gripper_open=1.0)
-        self.ctl = TeleopController(
-            build_arm_model(cfg.robot), cfg.teleop, cfg.control, cfg.plant.timestep_s
-        )
+        self.ctl = TeleopController(build_arm_model(cfg.robot), cfg.teleop, cfg.control, cfg.tick_s)
         self.fingers = finger_bodies(self.plant.model, cfg.robot)
         self.cube = int(self.plant.object_bodies[0])
         self.cube_p = self.plant.object_poses()[0][0].copy()

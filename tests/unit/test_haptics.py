@@ -27,9 +27,9 @@ from teleop.devices.haptic import (
     EmulatedDevice,
     FeedbackHold,
     ForceSlew,
-    LocalContactModel,
     HapticDevice,
     KalmanVelocityEstimator,
+    LocalContactModel,
     max_stable_stiffness_n_per_m,
 )
 from teleop.devices.haptic_loop import HAND_INPUT_WAIT_S, HapticLoop
@@ -558,20 +558,24 @@ def recorded_path(n: int) -> np.ndarray:
 @pytest.mark.parametrize("lockstep", [True, False], ids=["lockstep", "realtime"])
 def test_the_loop_drives_a_replay_device_through_the_interface_alone(lockstep):
     """ReplayDevice in place of the emulator, the loop's code unchanged: its recorded
-    positions come out as samples, and the feedback comes out as rendered force."""
-    n, period_s = 200, PERIOD_S
+    positions come out as samples (one row per servo period, a tick's last one per
+    sample), and the feedback comes out as rendered force."""
+    config = load_config()
+    ticks, renders, period_s = 199, config.renders_per_tick, config.haptic.render_period_s
+    n = ticks * renders + 1  # the rest position, then a tick's servo periods per tick
     path_m = recorded_path(n)
     buttons = [Button.GRIPPER_CLOSE if i >= n // 2 else Button.NONE for i in range(n)]
     device = ReplayDevice(path_m, period_s, HapticConfig().peak_force_n, buttons)
     loop, sent, clock = make_loop(device, lockstep=lockstep)
+    assert loop.renders_per_tick == renders
     force_n = np.array([0.0, 0.0, -1.5])
     with device:
-        for k in range(n - 1):
+        for k in range(ticks):
             if lockstep:
                 loop.on_state(plant_state(k))
                 if k == 0:  # the run started: the operator's inputs (a replay ignores them)
-                    for valid_from in range(loop.lead_ticks, n, loop.lead_ticks):
-                        loop.on_hand(hand(valid_from, np.full(3, 0.04)))
+                    for s in hand_sample_ticks(loop, ticks):
+                        loop.on_hand(hand(s + loop.lead_ticks, np.full(3, 0.04)))
                 if k >= 1:
                     loop.on_feedback(feedback(k, k - 1, force_n), 0)
             else:
@@ -579,16 +583,18 @@ def test_the_loop_drives_a_replay_device_through_the_interface_alone(lockstep):
                 loop.step_realtime(clock.now_ns())
                 clock.advance(loop.period_ns)
     assert not device.connected and device.samples_left == 0
+    assert len(sent.samples) == ticks
     positions = np.array([s["device_p_m"] for s in sent.samples])
-    np.testing.assert_array_equal(positions, path_m[1:])  # one recorded row per period
+    np.testing.assert_array_equal(positions, path_m[renders::renders])  # each tick's last row
     velocities = np.array([s["device_v_m_s"] for s in sent.samples])
-    np.testing.assert_allclose(velocities, np.diff(path_m, axis=0) / period_s)
+    last_steps_m = path_m[renders::renders] - path_m[renders - 1 : -1 : renders]
+    np.testing.assert_allclose(velocities, last_steps_m / period_s)
     forces = np.array([s["device_f_n"] for s in sent.samples])
     # Lockstep: tick 0 has no feedback to render yet; realtime: a feedback is rendered
     # from the servo period after it came, in the next bus period.
     first_fed = 1
     np.testing.assert_allclose(forces[first_fed:], np.tile(force_n, (len(forces) - first_fed, 1)))
-    assert [int(s["buttons"]) for s in sent.samples] == [int(b) for b in buttons[1:]]
+    assert [int(s["buttons"]) for s in sent.samples] == [int(b) for b in buttons[renders::renders]]
     assert loop.summary()["max_rendered_force_n"] == pytest.approx(1.5)
 
 

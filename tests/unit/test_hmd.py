@@ -176,13 +176,17 @@ def test_tracker_noise_has_the_configured_spread():
 def test_schedule_says_which_record_applies_at_a_tick():
     config = load_config()
     schedule = HmdSchedule.from_config(config)
-    assert schedule.lead_ticks == 20  # 20 ms at 1 ms per tick
-    sample_ticks = [k for k in range(2000) if schedule.is_sample(k)]
-    assert len(sample_ticks) == 180  # 90 Hz
-    assert set(np.diff(sample_ticks)) == {11, 12}
+    tick_s = config.tick_s  # one tick: a bus period (loop.rate_hz)
+    # hmd.prediction_s (20 ms) in whole ticks
+    assert schedule.lead_ticks * tick_s == pytest.approx(config.hmd.prediction_s)
+    two_s = round(2.0 / tick_s)
+    sample_ticks = [k for k in range(two_s) if schedule.is_sample(k)]
+    assert len(sample_ticks) == round(2.0 * config.hmd.rate_hz)  # 180: 90 Hz
+    ticks_per_sample = 1.0 / (config.hmd.rate_hz * tick_s)  # not a whole number
+    assert set(np.diff(sample_ticks)) == {math.floor(ticks_per_sample), math.ceil(ticks_per_sample)}
     valid_from = [k + schedule.lead_ticks for k in sample_ticks]
     assert schedule.valid_from_for(schedule.lead_ticks - 1) is None  # no record yet
-    for tick in range(schedule.lead_ticks, 1900):
+    for tick in range(schedule.lead_ticks, two_s - schedule.lead_ticks):
         chosen = schedule.valid_from_for(tick)
         # The newest record whose prediction is for a tick not after this one.
         assert chosen == max(v for v in valid_from if v <= tick)
@@ -202,10 +206,10 @@ def test_hmd_loop_on_scene_ticks_gives_the_per_tick_samples_and_restarts_on_tick
     clock tick, nothing for a re-sent tick, a fresh filter for a new run."""
     config = load_config(None, ["run.seed=9"])
     loop = HmdLoop(config)
-    scene_period = round(1 / (config.plant.scene_rate_hz * config.plant.timestep_s))
-    last_tick = 300
-    reference = run_emulator(HmdEmulator(config), sim_s=(last_tick + 1) * config.plant.timestep_s)
-    timestep_ns = round(config.plant.timestep_s * 1e9)
+    scene_period = round(1 / (config.plant.scene_rate_hz * config.tick_s))
+    last_tick = 30 * scene_period
+    reference = run_emulator(HmdEmulator(config), sim_s=(last_tick + 1) * config.tick_s)
+    timestep_ns = round(config.tick_s * 1e9)
     rec = HEAD_POSE.new()
     for _run in range(2):
         samples = []

@@ -14,7 +14,7 @@ from services.keyboard import KeyboardOperatorService
 from teleop.bus.messages import Button, Event
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import ConfigError, load_config
-from teleop.core.ticks import expected_valid_from
+from teleop.core.ticks import expected_valid_from, is_sample_tick, next_sample_tick
 from teleop.devices.human import (
     DEFAULT_KEYS,
     SWITCH,
@@ -40,6 +40,10 @@ from teleop.devices.routing import SceneKnowledge
 
 MS = 1_000_000  # ns
 CONFIG = load_config()
+TICK_S = CONFIG.tick_s  # one tick: a bus period (loop.rate_hz)
+TICK_NS = round(TICK_S * NS_PER_S)
+RATE_HZ = CONFIG.operator.decision_rate_hz  # the hand's decisions
+SCENE_TICKS = round(1.0 / (CONFIG.plant.scene_rate_hz * TICK_S))  # TOOL_POSE's period
 BIN = np.array([0.35, 0.35, 0.0])
 SCENE = SceneKnowledge(bin_low_m=(-0.09, -0.09, 0.0), bin_high_m=(0.09, 0.09, 0.08))
 
@@ -152,6 +156,13 @@ def _loop(lockstep: bool) -> tuple[HumanOperatorLoop, Outputs]:
     return HumanOperatorLoop(CONFIG, outputs, SCENE, lockstep=lockstep), outputs
 
 
+def _sample_ticks(after_ns: int, until_ns: int) -> list[int]:
+    """The hand's sample ticks (RATE_HZ on the run's ticks) whose time from the run's
+    start is in (``after_ns``, ``until_ns``]."""
+    ticks = range(until_ns // TICK_NS + 1)
+    return [s for s in ticks if s * TICK_NS > after_ns and is_sample_tick(s, RATE_HZ, TICK_S)]
+
+
 def test_nothing_goes_out_before_the_run_starts():
     loop, out = _loop(lockstep=True)
     assert loop.due(5 * MS, HandIntent()) > 5 * MS and out.hands == []
@@ -159,18 +170,23 @@ def test_nothing_goes_out_before_the_run_starts():
 
 def test_lockstep_inputs_follow_the_wall_clock_on_the_grid_the_haptic_device_waits_on():
     loop, out = _loop(lockstep=True)
+    lead = loop.lead_ticks
     t0 = 1_000 * MS
     loop.on_started(t0)
     next_ns = loop.due(t0, HandIntent())
-    assert [h[0] for h in out.hands] == [10] and next_ns == t0 + 10 * MS
-    for tick in range(0, 60, 10):  # the run keeps up: poses come as it steps
+    # Tick 0's input now; the next when the wall clock reaches the next sample tick.
+    assert [h[0] for h in out.hands] == [lead]
+    assert next_ns == t0 + next_sample_tick(0, RATE_HZ, TICK_S) * TICK_NS
+    for tick in range(0, 60 * MS // TICK_NS, SCENE_TICKS):  # the run keeps up: poses come
         loop.on_tool(tick, np.zeros(3), t0)
-    loop.due(t0 + 45 * MS, HandIntent())  # sample ticks 10..40 are due by now
+    loop.due(t0 + 45 * MS, HandIntent())  # the sample ticks of the first 45 ms are due
     sent = [h[0] for h in out.hands]
-    assert sent == [10, 20, 30, 40, 50]
+    due = _sample_ticks(-1, 45 * MS)
+    assert len(due) == math.floor(0.045 * RATE_HZ) + 1  # 5: 0, 10, ... 40 ms at 100 Hz
+    assert sent == [s + lead for s in due]
     # The haptic device's expected input at every tick up to the last is among them.
-    for tick in range(10, 60):
-        assert expected_valid_from(tick, 100.0, CONFIG.plant.timestep_s, 10) in sent
+    for tick in range(lead, next_sample_tick(due[-1], RATE_HZ, TICK_S) + lead):
+        assert expected_valid_from(tick, RATE_HZ, TICK_S, lead) in sent
 
 
 def test_lockstep_holds_inputs_back_while_the_run_lags_and_never_bursts_past_it():
@@ -191,7 +207,7 @@ def test_realtime_sends_one_input_per_decision_period_ahead_of_the_newest_tick()
     loop.on_tool(500, np.zeros(3), 0)
     assert loop.due(0, HandIntent()) == 10 * MS
     assert loop.due(5 * MS, HandIntent()) == 10 * MS and len(out.hands) == 1
-    assert out.hands[0][0] == 510
+    assert out.hands[0][0] == 500 + loop.lead_ticks
     loop.due(2 * NS_PER_S, HandIntent())  # after a stall: one input, not two hundred
     assert len(out.hands) == 2
 
@@ -297,20 +313,24 @@ def _station(lockstep: bool, robots: int = 2) -> tuple[HumanStation, list[Output
 
 def test_the_switch_moves_the_hand_to_the_next_robot_on_one_unbroken_grid():
     station, (out0, out1) = _station(lockstep=True)
+    lead = station.loop.lead_ticks
+    poses = range(0, 200 * MS // TICK_NS, SCENE_TICKS)
     for loop in station.loops:
         loop.on_started(0)
-        for tick in range(0, 200, 10):
+        for tick in poses:
             loop.on_tool(tick, np.zeros(3), 0)
     station.due(45 * MS, HandIntent((0.0, 0.0, 0.0), gripper_closed=True))
-    assert [h[0] for h in out0.hands] == [10, 20, 30, 40, 50] and out1.hands == []
+    before = _sample_ticks(-1, 45 * MS)  # 0, 10, ... 40 ms
+    assert [h[0] for h in out0.hands] == [s + lead for s in before] and out1.hands == []
     assert station.switch() and station.active == 1
     station.due(95 * MS, HandIntent())
     # robot 1 takes up the next sample tick: no gap, no repeat, nothing more to robot 0
-    assert [h[0] for h in out1.hands] == [60, 70, 80, 90, 100]
-    assert len(out0.hands) == 5
+    after = _sample_ticks(45 * MS, 95 * MS)  # 50, 60, ... 90 ms
+    assert [h[0] for h in out1.hands] == [s + lead for s in after]
+    assert len(out0.hands) == len(before)
     assert station.loops[0].last_buttons == Button.GRIPPER_CLOSE  # as the hand left it
     assert station.loops[1].last_buttons == Button.NONE
-    assert station.switches == [{"from": 0, "to": 1, "tick": 190}]
+    assert station.switches == [{"from": 0, "to": 1, "tick": poses[-1]}]
     assert station.switch() and station.active == 0  # around
 
 

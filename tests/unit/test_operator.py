@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from teleop.bus.messages import Button, Event
-from teleop.core.config import DEPLOY_DIR, ConfigError, load_config
-from teleop.core.ticks import expected_valid_from
+from teleop.core.config import DEPLOY_DIR, Config, ConfigError, load_config
+from teleop.core.ticks import expected_valid_from, is_sample_tick, next_sample_tick
 from teleop.devices.operator import (
     HandCommand,
     Observation,
@@ -494,6 +494,19 @@ def test_observation_buffer_returns_what_was_seen_a_delay_ago():
 # --- the service's decision loop, without a bus -----------------------------------------
 
 
+def scene_tick_at(config: Config, t_s: float) -> tuple[int, int]:
+    """(the scene tick nearest ``t_s`` of sim time, the scene period), in the run's ticks
+    (loop.rate_hz): TOOL_POSE comes every ``1 / plant.scene_rate_hz``."""
+    period = round(1.0 / (config.plant.scene_rate_hz * config.tick_s))
+    return period * round(t_s / (period * config.tick_s)), period
+
+
+def decision_ticks(loop: OperatorLoop, first: int, last: int) -> list[int]:
+    """The operator's sample ticks (operator.decision_rate_hz) in [first, last]."""
+    ticks = range(first, last + 1)
+    return [s for s in ticks if is_sample_tick(s, loop.rate_hz, loop.timestep_s)]
+
+
 class Outputs:
     """OperatorOutputs that keeps what the loop sends."""
 
@@ -510,29 +523,35 @@ class Outputs:
 
 def test_operator_loop_answers_each_scene_tick_toward_the_cube():
     """The operator service's decisions (tests/integration/test_operator.py runs the same
-    through a process): one HAND_INPUT per scene tick, valid a decision period later."""
+    through a process): the scene ticks' arrivals give one HAND_INPUT per decision sample
+    tick (operator.decision_rate_hz), valid a lead later."""
     config = load_config(None, ['run.mode="lockstep"'])
     outputs = Outputs()
     loop = OperatorLoop(config, Scenario.load(GRASP_FILE), outputs, lockstep=True)
     lead = loop.lead_ticks
-    last_tick = 600
-    for tick in range(0, last_tick + 1, 10):
+    last_tick, scene_period = scene_tick_at(config, 0.6)
+    for tick in range(0, last_tick + 1, scene_period):
         loop.buffer.add_objects(tick, np.array([CUBE_M, BIN_M]))
         loop.buffer.add_tool(tick, HOME_TOOL_M)
         loop.on_arrival(tick)
-    assert sorted(outputs.hands) == list(range(lead, last_tick + lead + 1, 10))
-    assert not any(outputs.hands[t + lead].target_p_m.any() for t in range(0, 200, 10))
+    decided = decision_ticks(loop, 0, last_tick)
+    assert len(decided) == round(0.6 * config.operator.decision_rate_hz) + 1  # 100 Hz
+    assert sorted(outputs.hands) == [s + lead for s in decided]
+    # Nothing seen before one reaction delay: no target; then toward the cube.
+    seen_from = next_sample_tick(loop.delay_ticks - 1, loop.rate_hz, loop.timestep_s)
+    assert not any(outputs.hands[s + lead].target_p_m.any() for s in decided if s < seen_from)
     goal = CUBE_M + [0.0, 0.0, 0.12] - HOME_TOOL_M
-    offsets = [outputs.hands[t + lead].target_p_m for t in range(210, last_tick + 1, 10)]
+    offsets = [outputs.hands[s + lead].target_p_m for s in decided if s > seen_from]
     for offset in offsets:
         assert offset @ goal / (np.linalg.norm(offset) * np.linalg.norm(goal)) > 0.999
     assert np.all(np.diff([np.linalg.norm(o) for o in offsets]) > 0)
-    assert outputs.events == [(int(Event.PHASE), 200, 200, 0.0)]
+    assert outputs.events == [(int(Event.PHASE), seen_from, seen_from, 0.0)]
     loop.on_arrival(last_tick)  # a re-send
     loop.on_started()  # the plant's STARTED after this run's poses: a new run
     summary = loop.summary()
     assert summary["duplicate_poses"] == 1 and summary["runs"] == 2  # tick 0, then STARTED
-    assert summary["decisions"] == last_tick // 10 + 1 and summary["phases"] == []
+    assert summary["decisions"] == len(decided) and summary["phases"] == []
+    assert summary["late_observations"] == 0
 
 
 def test_operator_loop_refuses_decisions_faster_than_the_scene():
@@ -622,17 +641,19 @@ def test_the_operator_loop_joining_a_run_sends_nothing_until_it_has_seen_the_wor
     loop = OperatorLoop(
         config, Scenario.load(GRASP_FILE), outputs, lockstep=True, scene=restart_scene()
     )
-    joined, last_tick = 8000, 8400
+    (joined, scene_period), (last_tick, _) = (scene_tick_at(config, t_s) for t_s in (8.0, 8.4))
     lifted = CUBE_M + [0.0, 0.0, 0.05]
-    for tick in range(joined, last_tick + 1, 10):
+    for tick in range(joined, last_tick + 1, scene_period):
         loop.buffer.add_objects(tick, np.array([lifted, BIN_M]))
         loop.buffer.add_tool(tick, lifted)
         loop.on_arrival(tick)
-    delay = loop.delay_ticks
-    first_sent = joined + delay
+    # The first decision that sees a pose of this run: one reaction delay after the join.
+    first_sent = next_sample_tick(joined + loop.delay_ticks - 1, loop.rate_hz, loop.timestep_s)
     assert min(outputs.hands) == first_sent + loop.lead_ticks
     summary = loop.summary()
-    assert summary["withheld_inputs"] == delay // 10
+    # The decisions of one reaction delay (20: 0.2 s at 100 Hz), all withheld.
+    withheld = round(config.operator.reaction_delay_s * config.operator.decision_rate_hz)
+    assert summary["withheld_inputs"] == withheld
     assert summary["resumed"]["name"] == "lift" and summary["late_observations"] == 0
     lift = 4
     assert outputs.events[0] == (int(Event.PHASE), first_sent, first_sent, float(lift))
@@ -693,14 +714,17 @@ def test_a_late_operator_loop_catches_up_by_skipping_not_by_a_burst():
     config = load_config(None, ['run.mode="realtime"'])
     outputs = Outputs()
     loop = OperatorLoop(config, Scenario.load(GRASP_FILE), outputs, lockstep=False)
-    for tick in range(0, 1001, 10):
+    one_s, scene_period = scene_tick_at(config, 1.0)
+    for tick in range(0, one_s + 1, scene_period):
         loop.buffer.add_objects(tick, np.array([CUBE_M, BIN_M]))
         loop.buffer.add_tool(tick, HOME_TOOL_M)
     loop.on_arrival(0)
-    loop.on_arrival(1000, catch_up=True)  # 99 poses in between were skipped
+    loop.on_arrival(one_s, catch_up=True)  # the poses of the second in between were skipped
     lead = loop.lead_ticks
-    assert sorted(outputs.hands) == [0 + lead, 1000 + lead]
-    assert loop.summary()["skipped_decisions"] == 99
+    assert sorted(outputs.hands) == [0 + lead, one_s + lead]
+    # The decisions strictly inside that second (99 at 100 Hz).
+    skipped = round(1.0 * config.operator.decision_rate_hz) - 1
+    assert loop.summary()["skipped_decisions"] == skipped
 
 
 def test_a_lockstep_operator_left_behind_catches_up_and_waits_for_nothing_it_missed():
@@ -714,23 +738,26 @@ def test_a_lockstep_operator_left_behind_catches_up_and_waits_for_nothing_it_mis
         config, Scenario.load(GRASP_FILE), outputs, lockstep=True, scene=restart_scene()
     )
     loop.hmd_seen()
-    joined = 8000
-    for tick in range(joined, joined + 3001, 10):
+    joined, scene_period = scene_tick_at(config, 8.0)
+    later, _ = scene_tick_at(config, 8.0 + 3.0)  # 3 s on
+    for tick in range(joined, later + 1, scene_period):
         loop.buffer.add_objects(tick, np.array([CUBE_M, BIN_M]))
         loop.buffer.add_tool(tick, HOME_TOOL_M)
     hmd = config.hmd
-    for tick in range(joined + 30, joined + 3001):  # the HMD's, from after the join only
+    head_from = joined + round(0.030 / loop.timestep_s)  # the HMD's, from after the join only
+    for tick in range(head_from, later + 1):
         valid_from = expected_valid_from(tick, hmd.rate_hz, loop.timestep_s, loop.hmd_lead_ticks)
         loop.buffer.add_head(valid_from, 0.0)
     assert not loop.left_behind(joined)  # nothing decided yet: the join decides the newest
     loop.on_arrival(joined)
     assert not loop.left_behind(joined + loop.lockstep_lag_ticks)
     assert loop.left_behind(joined + loop.lockstep_lag_ticks + 1)
-    loop.on_arrival(joined + 3000, catch_up=True)
+    loop.on_arrival(later, catch_up=True)
     summary = loop.summary()
-    assert summary["decisions"] == 2 and summary["skipped_decisions"] == 299
+    skipped = round(3.0 * config.operator.decision_rate_hz) - 1  # 299: those in between
+    assert summary["decisions"] == 2 and summary["skipped_decisions"] == skipped
     assert summary["late_observations"] == 0  # waited for no head pose it could not get
-    assert max(outputs.hands) == joined + 3000 + loop.lead_ticks
+    assert max(outputs.hands) == later + loop.lead_ticks
     realtime = OperatorLoop(config, Scenario.load(GRASP_FILE), Outputs(), lockstep=False)
     assert realtime.left_behind(0)  # realtime: always on the newest pose
 

@@ -10,8 +10,6 @@ import numpy as np
 import pytest
 
 from teleop.bus.messages import Event, Flag
-from teleop.control.kinematics import build_arm_model
-from teleop.control.teleop import TeleopController
 from teleop.core.clock import FakeClock
 from teleop.core.config import Config, ConfigError, load_config
 from teleop.sim.protective import ProtectiveStop, StopCause, allowed_approach_m_s
@@ -72,16 +70,6 @@ def physics_steps(config: Config, seconds: float) -> int:
     return round(seconds / config.plant.timestep_s)
 
 
-def rig_on_ticks(config: Config) -> GraspRig:
-    """A GraspRig whose controller runs once per tick, as the controller's cycle does
-    (teleop.control.cycle: one cycle per bus period, ``config.tick_s``)."""
-    rig = GraspRig(config)
-    rig.ctl = TeleopController(
-        build_arm_model(config.robot), config.teleop, config.control, config.tick_s
-    )
-    return rig
-
-
 def press(rig: GraspRig, steps: int, speed_m_s: float = PRESS_SPEED_M_S) -> list[float]:
     """The handle held down: ``steps`` ticks commanding the tool down at ``speed_m_s``;
     the largest net contact force over each tick's physics steps (N)."""
@@ -98,7 +86,7 @@ def press(rig: GraspRig, steps: int, speed_m_s: float = PRESS_SPEED_M_S) -> list
 def above_the_table(config) -> GraspRig:
     """The open gripper moved above a free spot of the table (away from the cube and the
     bin), 10 cm up."""
-    rig = rig_on_ticks(config)
+    rig = GraspRig(config)
     above = rig.plant.tool_pose()[0] + [0.0, -0.15, 0.0]
     above[2] = 0.10
     rig.move(above, 1.0, ticks(config, 2.5))
@@ -109,19 +97,34 @@ def above_the_table(config) -> GraspRig:
 @pytest.fixture(scope="module")
 def pressed():
     """The gripper above the table pressed down onto it until well after the stop; the
-    rig and the forces of the press."""
+    rig, the forces of the press, and what the stop judged: (physics step, scene force)
+    as the plant measured it after each."""
     config = load_config()
     rig = above_the_table(config)
+    judged: list[tuple[int, float]] = []
+    measure = rig.plant.protective.measure
+
+    def judging(step: int, contact_force_n: float, tool_speed_m_s: float) -> bool:
+        judged.append((step, contact_force_n))
+        return measure(step, contact_force_n, tool_speed_m_s)
+
+    rig.plant.protective.measure = judging
     forces = press(rig, ticks(config, 0.15 / PRESS_SPEED_M_S))  # 15 cm: far into the table
-    return rig, forces
+    rig.plant.protective.measure = measure
+    return rig, forces, judged
 
 
 def test_pressed_into_the_table_the_plant_stops_and_holds_while_pushed(pressed):
-    rig, forces = pressed
+    rig, forces, judged = pressed
     config = load_config()
     stops = rig.plant.protective.stops
     assert [s.cause for s in stops] == [StopCause.CONTACT_FORCE]  # one stop, on force
     tripped = stops[0].step  # a physics step
+    # Judged after every physics step of the press's ticks, and tripped by the first
+    # beyond the limit (not at the end of its tick).
+    steps = [step for step, _ in judged]
+    assert steps == list(range(steps[0], steps[0] + len(forces) * config.physics_steps_per_tick))
+    assert tripped == next(step for step, force_n in judged if force_n > LIMIT_N)
     assert max(forces) <= 1.1 * LIMIT_N  # the approach limit makes it a touch, not an impact
     assert forces[-1] > 0  # still touching, still reported (the operator feels it)
     assert rig.plant.protective.latched and rig.plant.braking  # the handle still pushes
@@ -168,7 +171,7 @@ def test_the_allowed_approach_speed_falls_with_the_separation_to_the_touch_speed
 
 
 def test_a_command_that_stops_releases_the_stop(pressed):
-    rig, _ = pressed
+    rig, _, _ = pressed
     assert rig.plant.protective.latched
     rig.ctl.reset()  # the handle let go: no motion asked for
     for _ in range(ticks(load_config(), 0.06)):
@@ -221,7 +224,7 @@ def test_a_held_cube_braked_hard_is_no_press_on_the_scene():
     """The cube in hand, carried at speed and then braked: its inertia pulls on the
     fingers well past the limit, but that is no contact with the scene: no stop."""
     config = load_config()
-    rig = rig_on_ticks(config)
+    rig = GraspRig(config)
     rig.move(rig.cube_p + [0.0, 0.0, 0.12], 1.0, ticks(config, 1.5))  # above, open
     rig.move(rig.cube_p.copy(), 1.0, ticks(config, 1.0))  # around it
     rig.move(rig.cube_p.copy(), 0.0, ticks(config, 0.5))  # closed on it

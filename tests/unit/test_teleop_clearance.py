@@ -40,7 +40,7 @@ def drive_down(*overrides: str) -> tuple[dict[str, Any], list[np.ndarray]]:
     wire, clock = Wire(), FakeClock(start_ns=10**12)
     loop = PlantLoop(config, wire, clock)
     cycle = BilateralCycle(config, build_arm_model(config.robot), wire, clock)
-    steps = round(config.run.duration_s / config.plant.timestep_s)
+    steps = round(config.run.duration_s / config.tick_s)  # ticks (bus periods)
     stop = threading.Event()
     runner = threading.Thread(target=loop.run, args=(stop, steps))
     runner.start()
@@ -56,9 +56,7 @@ def drive_down(*overrides: str) -> tuple[dict[str, Any], list[np.ndarray]]:
         while states:  # each command steps the plant, which publishes the next state
             state = states.popleft()
             tick = int(state["seq"])
-            valid_from = expected_valid_from(
-                tick, hmd.rate_hz, config.plant.timestep_s, cycle.hmd_lead_ticks
-            )
+            valid_from = expected_valid_from(tick, hmd.rate_hz, config.tick_s, cycle.hmd_lead_ticks)
             if valid_from is not None:  # the HMD pose the cycle waits for at this tick
                 pose["valid_from_tick"] = valid_from
                 cycle.on_head_pose(pose.copy(), clock.now_ns())
@@ -74,6 +72,7 @@ def drive_down(*overrides: str) -> tuple[dict[str, Any], list[np.ndarray]]:
         stop.set()
         runner.join(timeout=60)
     assert loop.core.finished
+    assert cycle.missing_head_poses == 0  # the poses sent on the cycle's own schedule
     return cycle.summary(), list(wire.queues["force_feedback"])
 
 

@@ -148,7 +148,7 @@ def test_the_state_names_what_the_screen_shows():
     assert state["robot"] == "arm1"
     assert state["phase"] == "carry" and state["holding"] is True
     assert math.isclose(state["force_n"], 5.0) and state["tool_p_m"] == [0.4, 0.0, 0.2]
-    assert state["sim_s"] == round(250 * config.plant.timestep_s, 3)
+    assert state["sim_s"] == round(250 * config.tick_s, 3)  # tick 250 of loop.rate_hz ticks
     assert state["intent"] == {"v": [0.1, 0, 0], "gripper": False, "clutch": False, "live": True}
     assert state["frame_seq"] == 7 and state["objects_p_m"] == {"cube": [0.0, 0.0, 0.0]}
     json.dumps(state)  # plain data
