@@ -410,7 +410,7 @@ class BilateralCycle(ControllerCore):
         logged). A busy controller thus never makes a Zenoh thread wait, no backlog
         builds up behind a slow cycle, and with a free controller an input costs no
         hand-off. One pass only: what arrives during it waits for the next callback
-        (each stream comes at 1 kHz), so no thread loops forever under overload.
+        (each stream comes once per bus period), so no thread loops forever under overload.
         """
         with self._rt_lock:
             if kind == "haptic" and not self.haptic_in.accept_seq(int(item[0]["seq"])):

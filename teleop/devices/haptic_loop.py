@@ -17,16 +17,17 @@ so a test drives it on a fake clock without Zenoh; ``services/haptic.py`` is the
 adapter around it.
 
 - realtime: :meth:`HapticLoop.run_realtime` steps the device on the clock's deadlines
-  (a :class:`LoopTimer` at the plant period) with the newest feedback (faded out by
+  (a :class:`LoopTimer` at the bus period) with the newest feedback (faded out by
   :class:`FeedbackHold` when stale) and the hand input valid at the newest plant tick
   seen. The tick and sim time are those of the newest feedback (the state it answers, at
-  most a period or two old): a 1 kHz PLANT_STATE subscription only for that would cost
+  most a period or two old): a PLANT_STATE subscription only for that would cost
   this service and the plant a message each per period. A feedback tick below the last
   one means the plant started over (a new run). The feedback stream's order and age are
   checked by a :class:`teleop.bus.stamps.Inbound` (older than the newest: dropped; too
-  old on arrival: shed and logged). Each feedback force is sent to the motors the moment
-  it arrives (``haptic.render_on_arrival``; else at the next step) and its trace,
-  completed with FEEDBACK_RX and FEEDBACK_RENDERED, is kept for the latency report.
+  old on arrival: shed and logged). Each feedback's model is rendered from the first
+  servo period after it arrived (``haptic.render_on_arrival``; else from the next tick)
+  and its trace, completed with FEEDBACK_RX and FEEDBACK_RENDERED (that servo period's
+  start), is kept for the latency report.
 - lockstep: deterministic and event driven. Tick k steps once PLANT_STATE k, the
   FORCE_FEEDBACK of tick k-1 (k >= 1) and the HAND_INPUT that applies at k (if any) are
   all in; the input that completes the set does the step (no thread hand-off). A hand
@@ -602,7 +603,7 @@ class HapticLoop:
 
     # -- realtime ----------------------------------------------------------------------
     def run_realtime(self, stop: threading.Event) -> None:
-        """One device period per deadline of the clock until ``stop``."""
+        """One bus period per deadline of the clock until ``stop``."""
         self.timer = LoopTimer(self.period_ns, self.clock)
         while not stop.is_set():
             deadline_ns = self.timer.deadline_ns(self.timer.wait())

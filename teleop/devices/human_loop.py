@@ -14,7 +14,7 @@ its sample tick plus one decision period):
 - lockstep: the haptic device steps tick ``k`` only once the input that applies at ``k``
   is in, so this loop paces the run by the person's clock. The input of sample tick
   ``s`` goes out once ``s`` plant periods of wall time have passed since the run started,
-  and never more than ``MAX_AHEAD_TICKS`` ahead of the newest tick seen: the run goes no
+  and never more than ``MAX_AHEAD_S`` ahead of the newest tick seen: the run goes no
   faster than real time, slows down with a busy machine rather than braking, and a key
   takes effect in the next input, at most a decision period and the run's lag later.
 - realtime: once per decision period of wall time, valid from the newest tick seen plus
@@ -56,9 +56,9 @@ from teleop.sim.proximity import BIN_BODY
 
 logger = logging.getLogger(__name__)
 
-# Lockstep: inputs go out at most this many ticks ahead of the newest tick seen (a run
+# Lockstep: inputs go out at most this far (sim s) ahead of the newest tick seen (a run
 # slower than real time does not let a key wait behind a queue of older inputs).
-MAX_AHEAD_TICKS = 20
+MAX_AHEAD_S = 0.02
 # The object counts as placed once it has lain in the bin, not held, this long (sim s).
 PLACED_SETTLE_S = 0.5
 # A grasp or release counts once it has held this long (sim s): fingers that close on or
@@ -230,6 +230,7 @@ class HumanOperatorLoop:
         self.period_ns = round(self.timestep_s * NS_PER_S)
         self.rate_hz = config.operator.decision_rate_hz
         self.lead_ticks = lead_ticks(self.rate_hz, self.timestep_s)
+        self.max_ahead_ticks = max(self.lead_ticks, round(MAX_AHEAD_S / self.timestep_s))
         self.decision_ns = round(NS_PER_S / self.rate_hz)
         self.hand_stiffness_n_per_m = config.haptic.hand_stiffness_n_per_m
         self.weight_f_n: np.ndarray | None = None  # the held weight the handle renders
@@ -341,7 +342,7 @@ class HumanOperatorLoop:
             due_ns = self._start_ns + s * self.period_ns
             if due_ns > now_ns:
                 return due_ns
-            if s + self.lead_ticks > newest + MAX_AHEAD_TICKS:
+            if s + self.lead_ticks > newest + self.max_ahead_ticks:
                 if s != self._held_back_tick:
                     self._held_back_tick = s
                     self.inputs_held_back += 1

@@ -8,7 +8,8 @@ step, publish, checkpoint) and keeps its own state under its own lock:
   step applies the newest command.
 - :class:`DeviceClockPacer`, realtime teleoperation with ``plant.apply_on_arrival``:
   each command enters a step the moment it arrives, in the Zenoh callback; the steps
-  follow the haptic device's clock, one per device period (:class:`DeviceClockGrid`), so
+  follow the haptic device's clock, one per device period (:class:`DeviceClockGrid`; the
+  device samples once per bus period, ``loop.rate_hz``: a device period is a tick), so
   a command never waits for the plant's tick, and a period without a command is stepped
   with the last one.
 - :class:`LockstepPacer`: the plant publishes a state and steps when the command that

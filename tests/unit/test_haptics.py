@@ -253,8 +253,9 @@ def hand_sample_ticks(loop: HapticLoop, ticks: int) -> list[int]:
     """The ticks below ``ticks`` the operator decides on (operator.decision_rate_hz on
     the loop's ticks): each one's hand input applies from ``lead_ticks`` later, exactly
     the inputs the lockstep device waits for."""
-    rate_hz = loop.config.operator.decision_rate_hz
-    return [k for k in range(ticks) if is_sample_tick(k, rate_hz, loop.period_s)]
+    config = loop.config
+    rate_hz, tick_s = config.operator.decision_rate_hz, config.tick_s
+    return [k for k in range(ticks) if is_sample_tick(k, rate_hz, tick_s)]
 
 
 def plant_state(tick: int, t_source_ns: int = 1) -> np.ndarray:

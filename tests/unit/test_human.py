@@ -14,7 +14,7 @@ from services.keyboard import KeyboardOperatorService
 from teleop.bus.messages import Button, Event
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import ConfigError, load_config
-from teleop.core.ticks import expected_valid_from, is_sample_tick, next_sample_tick
+from teleop.core.ticks import expected_valid_from, is_sample_tick, lead_ticks, next_sample_tick
 from teleop.devices.human import (
     DEFAULT_KEYS,
     SWITCH,
@@ -27,7 +27,6 @@ from teleop.devices.human import (
 )
 from teleop.devices.human_loop import (
     CARRY,
-    MAX_AHEAD_TICKS,
     PLACED,
     REACH,
     SWITCH_SETTLE_S,
@@ -194,10 +193,10 @@ def test_lockstep_holds_inputs_back_while_the_run_lags_and_never_bursts_past_it(
     loop.on_started(0)
     loop.due(10 * NS_PER_S, HandIntent())  # ten seconds of wall clock, no pose seen yet
     newest = max(h[0] for h in out.hands)
-    assert newest <= MAX_AHEAD_TICKS and loop.inputs_held_back == 1
+    assert newest <= loop.max_ahead_ticks and loop.inputs_held_back == 1
     loop.on_tool(100, np.zeros(3), 10 * NS_PER_S)
     loop.due(10 * NS_PER_S + MS, HandIntent())
-    assert max(h[0] for h in out.hands) <= 100 + MAX_AHEAD_TICKS
+    assert max(h[0] for h in out.hands) <= 100 + loop.max_ahead_ticks
     assert [h[0] for h in out.hands] == sorted({h[0] for h in out.hands})  # in order, once
 
 
@@ -207,7 +206,7 @@ def test_realtime_sends_one_input_per_decision_period_ahead_of_the_newest_tick()
     loop.on_tool(500, np.zeros(3), 0)
     assert loop.due(0, HandIntent()) == 10 * MS
     assert loop.due(5 * MS, HandIntent()) == 10 * MS and len(out.hands) == 1
-    assert out.hands[0][0] == 500 + loop.lead_ticks
+    assert out.hands[0][0] == 500 + lead_ticks(RATE_HZ, TICK_S)  # a decision period ahead
     loop.due(2 * NS_PER_S, HandIntent())  # after a stall: one input, not two hundred
     assert len(out.hands) == 2
 

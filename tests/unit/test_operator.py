@@ -11,7 +11,7 @@ import pytest
 
 from teleop.bus.messages import Button, Event
 from teleop.core.config import DEPLOY_DIR, Config, ConfigError, load_config
-from teleop.core.ticks import expected_valid_from, is_sample_tick, next_sample_tick
+from teleop.core.ticks import expected_valid_from, is_sample_tick
 from teleop.devices.operator import (
     HandCommand,
     Observation,
@@ -501,10 +501,11 @@ def scene_tick_at(config: Config, t_s: float) -> tuple[int, int]:
     return period * round(t_s / (period * config.tick_s)), period
 
 
-def decision_ticks(loop: OperatorLoop, first: int, last: int) -> list[int]:
-    """The operator's sample ticks (operator.decision_rate_hz) in [first, last]."""
-    ticks = range(first, last + 1)
-    return [s for s in ticks if is_sample_tick(s, loop.rate_hz, loop.timestep_s)]
+def decision_ticks(config: Config, first: int, last: int) -> list[int]:
+    """The operator's sample ticks (operator.decision_rate_hz on the run's ticks) in
+    [first, last]."""
+    rate_hz, tick_s = config.operator.decision_rate_hz, config.tick_s
+    return [s for s in range(first, last + 1) if is_sample_tick(s, rate_hz, tick_s)]
 
 
 class Outputs:
@@ -534,11 +535,12 @@ def test_operator_loop_answers_each_scene_tick_toward_the_cube():
         loop.buffer.add_objects(tick, np.array([CUBE_M, BIN_M]))
         loop.buffer.add_tool(tick, HOME_TOOL_M)
         loop.on_arrival(tick)
-    decided = decision_ticks(loop, 0, last_tick)
+    decided = decision_ticks(config, 0, last_tick)
     assert len(decided) == round(0.6 * config.operator.decision_rate_hz) + 1  # 100 Hz
     assert sorted(outputs.hands) == [s + lead for s in decided]
     # Nothing seen before one reaction delay: no target; then toward the cube.
-    seen_from = next_sample_tick(loop.delay_ticks - 1, loop.rate_hz, loop.timestep_s)
+    delay = round(config.operator.reaction_delay_s / config.tick_s)
+    seen_from = decision_ticks(config, delay, last_tick)[0]
     assert not any(outputs.hands[s + lead].target_p_m.any() for s in decided if s < seen_from)
     goal = CUBE_M + [0.0, 0.0, 0.12] - HOME_TOOL_M
     offsets = [outputs.hands[s + lead].target_p_m for s in decided if s > seen_from]
@@ -648,7 +650,8 @@ def test_the_operator_loop_joining_a_run_sends_nothing_until_it_has_seen_the_wor
         loop.buffer.add_tool(tick, lifted)
         loop.on_arrival(tick)
     # The first decision that sees a pose of this run: one reaction delay after the join.
-    first_sent = next_sample_tick(joined + loop.delay_ticks - 1, loop.rate_hz, loop.timestep_s)
+    delay = round(config.operator.reaction_delay_s / config.tick_s)
+    first_sent = decision_ticks(config, joined + delay, last_tick)[0]
     assert min(outputs.hands) == first_sent + loop.lead_ticks
     summary = loop.summary()
     # The decisions of one reaction delay (20: 0.2 s at 100 Hz), all withheld.
