@@ -416,7 +416,9 @@ class HapticLoop:
             # The servo period it is first rendered in begins at the next boundary of the
             # device's render grid (the device renders a tick's periods when it ends).
             grid_ns = self._last_deadline_ns
-            periods = -(-(rx_ns - grid_ns) // self.render_period_ns) if grid_ns else 0
+            # (one that came before the tick last rendered, but after it was rendered: from
+            # that tick's end on)
+            periods = max(0, -(-(rx_ns - grid_ns) // self.render_period_ns)) if grid_ns else 0
             rendered_ns = grid_ns + periods * self.render_period_ns if grid_ns else rx_ns
             self.hold.receive(model, rendered_ns)
             trace[Stage.FEEDBACK_RENDERED] = rendered_ns
@@ -712,7 +714,7 @@ class HapticLoop:
         rec["device_f_n"] = sample.f_n
         rec["passivity_observed_j"] = self.passivity.observed_j
         rec["passivity_dissipated_j"] = self.passivity.dissipated_j
-        rec["wave_u"] = self._wave_u
+        rec["wave_u"] = self._wave_u  # the last servo period's
         rec["buttons"] = int(sample.buttons)
         return sample
 
