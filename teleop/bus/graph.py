@@ -97,14 +97,14 @@ class Stream:
 PATH, TELEOP = AUTONOMOUS, TELEOPERATED  # streams of one kind of stack only
 STREAMS: tuple[Stream, ...] = (
     Stream("plant_state", "state/plant", PLANT_STATE, ("plant",), ("controller", "haptic"),
-           "1 kHz, one per plant step", newest_for=("controller",), newest_in=PATH,
+           "`loop.rate_hz`, one per plant tick", newest_for=("controller",), newest_in=PATH,
            note="contact and proximity fields computed every step in teleoperation, else "
            "every `1 / plant.scene_rate_hz` (`interaction_step`); the haptic service "
            "takes it in lockstep only; realtime teleoperation takes every state and sheds "
            "one older than 5 ms itself, logged for the latency report's loop accounting "
            "(`shed`)"),
     Stream("plant_state_batch", "state/plant/batch", PLANT_STATE, ("plant",),
-           ("recorder", "eyeview", "launcher"), "1 kHz / `bus.observer_batch_records`",
+           ("recorder", "eyeview", "launcher"), "`loop.rate_hz` / `bus.observer_batch_records`",
            qos=OBSERVER_QOS, batch_of="plant_state"),
     Stream("tool_pose", "state/tool_pose", TOOL_POSE, ("plant",),
            ("recorder", "operator", "hmd", "launcher"),
@@ -113,7 +113,7 @@ STREAMS: tuple[Stream, ...] = (
            ("recorder", "operator", "eyeview"), "`plant.scene_rate_hz` (100 Hz)",
            newest_for=("operator", "eyeview")),
     Stream("joint_command", "cmd/joint_velocity", JOINT_COMMAND, ("controller",), ("plant",),
-           "1 kHz: one per state (lockstep, path following) or per haptic sample",
+           "`loop.rate_hz`: one per state (lockstep, path following) or per haptic sample",
            note="realtime teleoperation: carries its sample's `device_deadline_ns`; the "
            "plant steps once per device period"),
     Stream("control_status", "control/status", CONTROL_STATUS, ("controller",), ("recorder",),
@@ -132,20 +132,21 @@ STREAMS: tuple[Stream, ...] = (
            ("recorder", "launcher"), "on change", periodic=False,
            note="STALL, CONTACT, SINGULARITY: the motion is not safe or not progressing"),
     Stream("haptic_state", "haptic/state", HAPTIC_STATE, ("haptic",), ("controller",),
-           "1 kHz, one per device period", scenarios=TELEOP,
+           "`loop.rate_hz`, one per bus period", scenarios=TELEOP,
            note="realtime: taken in order, a sample older than 5 ms or superseded while the "
            "controller is busy is shed and logged (`haptic_shed`)"),
     Stream("haptic_state_batch", "haptic/state/batch", HAPTIC_STATE, ("haptic",),
-           ("recorder",), "1 kHz / `bus.observer_batch_records`", qos=OBSERVER_QOS,
+           ("recorder",), "`loop.rate_hz` / `bus.observer_batch_records`", qos=OBSERVER_QOS,
            batch_of="haptic_state", scenarios=TELEOP),
     Stream("hand_input", "operator/hand", HAND_INPUT, ("operator",), ("haptic", "recorder"),
            "100 Hz", note="published ahead of its `valid_from_tick`", scenarios=TELEOP),
     Stream("force_feedback", "haptic/feedback", FORCE_FEEDBACK, ("controller",), ("haptic",),
-           "1 kHz, one per plant state", scenarios=TELEOP,
+           "`loop.rate_hz`, one per plant state", scenarios=TELEOP,
            note="realtime: taken in order, one older than 5 ms or than the newest rendered "
            "is dropped and logged"),
     Stream("force_feedback_batch", "haptic/feedback/batch", FORCE_FEEDBACK, ("controller",),
-           ("recorder", "operator"), "1 kHz / `bus.observer_batch_records`", qos=OBSERVER_QOS,
+           ("recorder", "operator"), "`loop.rate_hz` / `bus.observer_batch_records`",
+           qos=OBSERVER_QOS,
            batch_of="force_feedback", scenarios=TELEOP,
            note="a person's operator shows the force felt (`run.operator`)"),
     Stream("head_pose", "hmd/pose", HEAD_POSE, ("hmd",),
@@ -227,7 +228,8 @@ class ServiceSpec:
 ROBOT, OPERATOR = ROBOT_SITE, OPERATOR_SITE
 SERVICES: tuple[ServiceSpec, ...] = (
     # The plant comes first in every stack's list and starts last: it waits for the others.
-    ServiceSpec("plant", SCENARIOS, 30, ROBOT, "MuJoCo at 1 kHz", per_robot=True),
+    ServiceSpec("plant", SCENARIOS, 30, ROBOT, "MuJoCo at 1 kHz, one tick per bus period",
+                per_robot=True),
     ServiceSpec("controller", SCENARIOS, 20, ROBOT, "control law, force feedback",
                 per_robot=True),
     ServiceSpec("haptic", TELEOPERATED, 20, OPERATOR, "haptic device (emulated Falcon)"),

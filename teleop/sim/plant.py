@@ -158,6 +158,8 @@ class Plant:
             g for g in range(self.model.ngeom) if self.model.geom_bodyid[g] in self.gripper_bodies
         )
         self.approach_slowed_steps = 0  # steps whose command the approach limit slowed
+        self._limit_clamped = False  # the last limit() cut the command to the limits
+        self._limit_slowed = False  # the last limit() slowed it for the approach
         self._jac_other = np.zeros((3, self.model.nv))
         # The objects that move freely (the cube; not the bin, welded to the world): the
         # gripper may hold them, and what they push is not a press on the scene.
@@ -341,12 +343,14 @@ class Plant:
             scale = self.tool_speed_limit_m_s / speed_m_s
             clamped = True
         approach_scale = self._approach_scale(motion * scale)
-        if approach_scale < 1.0:
+        self._limit_slowed = approach_scale < 1.0
+        if self._limit_slowed:
             scale *= approach_scale
             self.approach_slowed_steps += 1
         if scale < 1.0:
             qd = hold + motion * scale
             qd = np.minimum(np.maximum(qd, self.ctrl_low), self.ctrl_high)
+        self._limit_clamped = clamped
         if clamped:
             self.clamped_steps += 1
         return qd
@@ -394,8 +398,19 @@ class Plant:
         self._start_tick()
         self.gripper_cmd = min(max(gripper_cmd, 0.0), 1.0)
         gripper_ctrl = self._gripper_ctrl(gripper_cmd)
+        qd = None
         for _ in range(self.steps_per_tick):
-            qd = self.limit(qd_ref_rad_s)
+            self.prepare_step()  # this step's contacts (collision detection)
+            if qd is None or self._gripper_contacts:
+                # The tick's first step, or the gripper near the scene (the approach
+                # limit's contacts, or touching): the limits at this step's own state.
+                qd = self.limit(qd_ref_rad_s)
+            else:
+                # Free of the scene: the limited command holds (the tool-speed limit on
+                # the motion it asks for; the arm moves well under a millimetre per step,
+                # and the protective stop judges the measured speed after every step).
+                self.clamped_steps += self._limit_clamped
+                self.approach_slowed_steps += self._limit_slowed
             self.data.ctrl[self.gripper_actuator] = gripper_ctrl
             if self.protective.holds(self.physics_steps + 1, self.commanded_tool_speed_m_s):
                 self._brake()

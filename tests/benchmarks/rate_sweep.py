@@ -4,7 +4,7 @@ Per rate (``--rates``, default 100 200 250 500 1000 Hz; physics and force render
 at 1 kHz), rounds alternating over the rates so a drifting machine touches all alike:
 
 - the **realtime grasp** on the services (``teleop run grasp --mode realtime``), as this
-  user or as ``--user`` (``runuser -u USER``: an ordinary user, no SCHED_FIFO): each
+  user or, ``--ordinary-user``, as ``nobody`` (no SCHED_FIFO, default limits): each
   service's CPU seconds per simulated second while running (its summary's ``cpu_s``
   less ``cpu_s_ready``, over the plant's sim time) and at start-up (``cpu_s_ready``),
   the sum, the verdict and the task's success;
@@ -18,13 +18,14 @@ Writes JSON (``--json``) and a markdown table (``--markdown``); prints both. A m
 with other work on it gives other figures: run it alone, and note the load average it
 prints with each round.
 
-    .venv/bin/python tests/benchmarks/rate_sweep.py --rounds 2 --user nobody \\
+    .venv/bin/python -m tests.benchmarks.rate_sweep --rounds 2 --ordinary-user \\
         --json runs/bench/rate_sweep.json --markdown runs/bench/rate_sweep.md
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import statistics
@@ -39,6 +40,7 @@ import mujoco
 
 from teleop.core.config import load_config
 from teleop.run.experiments import run_path_following_inprocess
+from tests.e2e.users import UserEnv, ordinary_user
 
 ROOT = Path(__file__).resolve().parents[2]
 TELEOP = Path(sys.executable).with_name("teleop")
@@ -50,20 +52,24 @@ def load_average() -> float:
     return os.getloadavg()[0]
 
 
-def run_grasp(rate_hz: float, mode: str, seed: int, user: str | None) -> dict[str, Any]:
-    """One grasp on the services at ``rate_hz``; its summary and wall time."""
-    run_dir = Path(tempfile.mkdtemp(prefix=f"rate{int(rate_hz)}_", dir="/tmp"))
-    os.chmod(run_dir, 0o777)
+def run_grasp(rate_hz: float, mode: str, seed: int, user: UserEnv | None) -> dict[str, Any]:
+    """One grasp on the services at ``rate_hz`` (as ``user``, or as this process's
+    user); its summary and wall time."""
+    parent = user.home if user is not None else Path(tempfile.gettempdir())
+    run_dir = Path(tempfile.mkdtemp(prefix=f"rate{int(rate_hz)}_", dir=parent))
     out = run_dir / "summary.json"
-    command = [
-        str(TELEOP), "run", "grasp", "--mode", mode, "--seed", str(seed),
+    args = [
+        "run", "grasp", "--mode", mode, "--seed", str(seed),
         "--run-dir", str(run_dir / "run"), "--summary-json", str(out),
         "--set", f"loop.rate_hz={rate_hz:g}",
     ]  # fmt: skip
     if user is not None:
-        command = ["runuser", "-u", user, "--", *command]
+        run_dir.chmod(0o777)
+        command = user.argv(["-m", "teleop.cli", *args])
+    else:
+        command = [str(TELEOP), *args]
     start = time.monotonic()
-    subprocess.run(command, cwd=ROOT, capture_output=True, timeout=RUN_TIMEOUT_S, check=False)
+    subprocess.run(command, cwd=parent, capture_output=True, timeout=RUN_TIMEOUT_S, check=False)
     wall_s = time.monotonic() - start
     summary = json.loads(out.read_text()) if out.exists() else {}
     return {"summary": summary, "wall_s": wall_s}
@@ -112,11 +118,11 @@ def path_figures(rate_hz: float, seconds: float) -> dict[str, Any]:
     }
 
 
-def one_round(rates: list[float], args: argparse.Namespace) -> dict[str, Any]:
+def one_round(rates: list[float], args: argparse.Namespace, user: UserEnv | None) -> dict[str, Any]:
     found: dict[str, Any] = {}
     for rate in rates:
         load = load_average()
-        realtime = run_grasp(rate, "realtime", args.seed, args.user)
+        realtime = run_grasp(rate, "realtime", args.seed, user)
         lockstep = run_grasp(rate, "lockstep", 0, None)
         summary = realtime["summary"]
         lock_summary = lockstep["summary"]
@@ -188,12 +194,18 @@ def main() -> int:
     parser.add_argument("--rates", type=float, nargs="+", default=[100, 200, 250, 500, 1000])
     parser.add_argument("--rounds", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0, help="the realtime grasp's seed")
-    parser.add_argument("--user", help="run the realtime grasp as this user (runuser -u)")
+    parser.add_argument(
+        "--ordinary-user",
+        action="store_true",
+        help="run the realtime grasp as nobody (no SCHED_FIFO, default limits)",
+    )
     parser.add_argument("--path-s", type=float, default=30.0, help="in-process path (sim s)")
     parser.add_argument("--json", type=Path, default=ROOT / "runs/bench/rate_sweep.json")
     parser.add_argument("--markdown", type=Path, default=ROOT / "runs/bench/rate_sweep.md")
     args = parser.parse_args()
-    rounds = [one_round(args.rates, args) for _ in range(args.rounds)]
+    with contextlib.ExitStack() as stack:
+        user = stack.enter_context(ordinary_user()) if args.ordinary_user else None
+        rounds = [one_round(args.rates, args, user) for _ in range(args.rounds)]
     table = median_table(rounds, args.rates)
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps({"rounds": rounds, "median": table}, indent=2) + "\n")
