@@ -46,8 +46,8 @@ from tests.conftest import ARM7_OVERRIDES
 
 # Tool speed cap: the measured speed may exceed it by the drives' tracking error only.
 SPEED_TOLERANCE = 1.005
-# Steps (1 ms) the orientation hold takes to straighten the start pose's tilt.
-STRAIGHTEN_STEPS = 300
+# Sim time (ms) the orientation hold takes to straighten the start pose's tilt.
+STRAIGHTEN_MS = 300
 # A stretched arm, tool pointing outward along -x (wrist_2 = 0), at condition number ~8.
 STRETCHED_Q_RAD = (0.0, -1.5708, 0.8, -0.8, 0.0, 0.0)
 
@@ -70,19 +70,23 @@ def make_plant(cfg: Config, q_rad=None, scene: SceneConfig | None = None) -> Pla
     return plant
 
 
-def run_teleop(cfg, arm, plant, v_ref_of_t, steps, proximity=None, clutch=False, avoid=True):
-    """Step plant and controller together; return per-step records.
+def ticks(cfg: Config, ms: float) -> int:
+    """Ticks (bus periods) in ``ms`` milliseconds of sim time."""
+    return round(ms * 1e-3 / cfg.tick_s)
+
+
+def run_teleop(cfg, arm, plant, v_ref_of_t, ms, proximity=None, clutch=False, avoid=True):
+    """Step plant and controller together for ``ms`` milliseconds of sim time, one
+    controller cycle per tick as the controller service runs; return per-tick records.
 
     With ``avoid=False`` the proximity is recorded but not given to the controller.
     """
-    ctl = TeleopController(
-        arm, cfg.teleop, cfg.control, cfg.plant.timestep_s, body_names(plant.model)
-    )
+    ctl = TeleopController(arm, cfg.teleop, cfg.control, cfg.tick_s, body_names(plant.model))
     records = []
-    for k in range(steps):
+    for k in range(ticks(cfg, ms)):
         sample = plant.sample()
         obstacle = proximity.closest() if proximity is not None else None
-        v_ref = np.asarray(v_ref_of_t(k * cfg.plant.timestep_s), dtype=float)
+        v_ref = np.asarray(v_ref_of_t(k * cfg.tick_s), dtype=float)
         seen = obstacle if avoid else None
         out = ctl.update(sample.q_rad, sample.qd_rad_s, v_ref, seen, 1.0, clutch=clutch)
         plant.step(out.qd_ref_rad_s, out.gripper_cmd)
@@ -129,8 +133,23 @@ def test_clutch_zeroes_the_reference_and_the_tool_stays(cfg, arm):
 # --- closed loop in the plant --------------------------------------------------------------
 
 
-def test_orientation_hold_tracking_and_speed_cap_during_teleop_motion(cfg, arm):
-    """2 s of a 3D figure: tool axis within 1 deg, velocity tracked, speed capped."""
+# The orientation hold's worst tilt (deg) in a circle at the speed cap, per bus rate: the
+# controller corrects the tilt once per period (measured: 0.6 deg at 1000 Hz, 2.1 deg at
+# 250 Hz, periodic, not growing over 5 s).
+WORST_TILT_DEG = {1000: 1.0, 250: 2.5}
+# Sim time (ms) until the tool follows the constant reference within 3 % after the start
+# pose's tilt is straightened out, per bus rate (measured: under 3 % from 0.2 s at
+# 1000 Hz, from 0.5 s at 250 Hz).
+TRACKING_FROM_MS = {1000: STRAIGHTEN_MS, 250: 600}
+# The measured tool speed over the cap, per bus rate: each command holds for a period
+# while the drives settle on it (measured: 1.3 % over at 250 Hz).
+SPEED_OVER_CAP = {1000: SPEED_TOLERANCE, 250: 1.02}
+
+
+@pytest.mark.parametrize("rate_hz", sorted(WORST_TILT_DEG))
+def test_orientation_hold_tracking_and_speed_cap_during_teleop_motion(rate_hz, arm):
+    """2 s of a 3D figure: tool axis within a degree or so, velocity tracked, speed capped."""
+    cfg = load_config(None, [f"loop.rate_hz={rate_hz}"])
     plant = make_plant(cfg)
 
     def v_ref(t: float) -> list[float]:
@@ -143,16 +162,16 @@ def test_orientation_hold_tracking_and_speed_cap_during_teleop_motion(cfg, arm):
     # teleop.approach_down: the start pose's small tilt is straightened out at once, then
     # the approach axis stays vertical.
     down = np.array([0.0, 0.0, -1.0])
-    settled = records[STRAIGHTEN_STEPS:]
+    settled = records[ticks(cfg, STRAIGHTEN_MS) :]
     worst_deg = max(math.degrees(math.acos(min(1.0, float(a @ down)))) for _, _, a in settled)
-    assert worst_deg < 1.0
+    assert worst_deg < WORST_TILT_DEG[rate_hz]
     # After the transient (straightening included) the tool follows the constant
     # reference within 3 %.
-    for out, _, _ in records[STRAIGHTEN_STEPS:1000]:
+    for out, _, _ in records[ticks(cfg, TRACKING_FROM_MS[rate_hz]) : ticks(cfg, 1000)]:
         error = np.linalg.norm(out.world_v_tool_m_s - out.world_v_ref_m_s)
         assert error <= 0.03 * np.linalg.norm(out.world_v_ref_m_s)
     speeds = [np.linalg.norm(out.world_v_tool_m_s) for out, _, _ in records]
-    assert max(speeds) <= cfg.teleop.max_tool_speed_m_s * SPEED_TOLERANCE
+    assert max(speeds) <= cfg.teleop.max_tool_speed_m_s * SPEED_OVER_CAP[rate_hz]
     assert max(speeds) > 0.95 * cfg.teleop.max_tool_speed_m_s  # the cap was reached
 
 
