@@ -25,7 +25,7 @@ The round trip runs from the haptic handle's sample to the feedback force set on
 motors: handle -> controller -> plant -> controller -> handle, four transport hops and
 the stages between them (docs/realtime.md explains each). The **floor** is a bare Zenoh
 relay chain with the same four legs, Zenoh config, QoS, payload size, CPUs and
-scheduling, doing no work, paced at 1 kHz and measured in the same minutes as the
+scheduling, doing no work, paced at the bus rate and measured in the same minutes as the
 stack (half before it, half after). On a shared machine only figures taken together
 compare: read the ratios, not the absolute times."""
 
