@@ -114,9 +114,9 @@ class RobotConfig:
         return REPO_ROOT / candidate
 
 
-# The bus rates a run may use (Hz): below the lowest the watchdog and the hand's 100 Hz
-# decisions no longer fit in a few periods.
-MIN_LOOP_RATE_HZ = 50.0
+# The lowest bus rate a run may use (Hz): the operator's 100 Hz decisions and the scene
+# streams run no faster than the bus.
+MIN_LOOP_RATE_HZ = 100.0
 
 
 @dataclass(frozen=True)

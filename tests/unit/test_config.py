@@ -79,3 +79,24 @@ def test_the_recorder_flushes_often_only_while_a_live_viewer_watches():
     for live in ("recorder.spawn=true", 'recorder.grpc_url="rerun+http://127.0.0.1:9876/proxy"'):
         recorder = load_config(None, [live]).recorder
         assert recorder.flush_every_s == recorder.live_flush_period_s < recorder.flush_period_s
+
+
+@pytest.mark.parametrize(
+    ("rate_hz", "message"),
+    [
+        ("300", "loop.rate_hz = 300: must divide the physics rate 1000 Hz"),
+        ("2000", "loop.rate_hz = 2000: must divide the physics rate 1000 Hz"),
+        ("20", "loop.rate_hz >= 100"),
+    ],
+)
+def test_a_bus_rate_that_does_not_divide_the_physics_rate_is_refused(rate_hz, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(None, [f"loop.rate_hz={rate_hz}"])
+
+
+@pytest.mark.parametrize("rate_hz", [100, 200, 250, 500, 1000])
+def test_each_bus_rate_takes_whole_physics_steps_and_servo_periods(rate_hz):
+    config = load_config(None, [f"loop.rate_hz={rate_hz}"])
+    assert config.physics_steps_per_tick * config.plant.timestep_s == pytest.approx(config.tick_s)
+    assert config.renders_per_tick * config.haptic.render_period_s == pytest.approx(config.tick_s)
+    assert config.plant.watchdog_s >= 2 * config.tick_s
