@@ -76,7 +76,7 @@ from teleop.control.teleop import (
 from teleop.control.wave import RobotWavePort
 from teleop.core.clock import Clock
 from teleop.core.config import Config
-from teleop.core.ticks import TickBarrier, TickedInputs, expected_valid_from
+from teleop.core.ticks import TickBarrier, TickedInputs, expected_valid_from, period_ticks
 from teleop.sim.proximity import ProximitySample, body_names
 
 # The path-following task keeps the gripper open (fraction of full opening).
@@ -109,9 +109,7 @@ class ControllerCore:
         self.outputs = outputs
         self.clock = clock
         self.timestep_s = config.tick_s
-        self.status_every_steps = max(
-            1, round(1.0 / (config.control.status_rate_hz * self.timestep_s))
-        )
+        self.status_every_steps = period_ticks(config.control.status_rate_hz, self.timestep_s)
         self._command = JOINT_COMMAND.new()
         self._lock = threading.Lock()  # the state gate: callbacks of several Zenoh threads
         # Held while a record of the last cycle is filled and sent, and while it is sent

@@ -49,10 +49,16 @@ def next_sample_tick(tick: int, rate_hz: float, timestep_s: float) -> int:
     return j
 
 
+def period_ticks(rate_hz: float, timestep_s: float) -> int:
+    """The period of a stream at ``rate_hz`` in plant ticks of ``timestep_s``, rounded to
+    the nearest whole tick (at least one)."""
+    return max(1, round(1.0 / (rate_hz * timestep_s)))
+
+
 def lead_ticks(rate_hz: float, timestep_s: float) -> int:
     """How far ahead a producer at ``rate_hz`` publishes (plant ticks): one of its periods,
     so a record is in before the first tick it applies to."""
-    return round(1.0 / (rate_hz * timestep_s))
+    return period_ticks(rate_hz, timestep_s)
 
 
 def expected_valid_from(

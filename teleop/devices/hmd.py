@@ -25,7 +25,7 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 
 from teleop.core.config import SCRIPTED, Config, ConfigError, HmdConfig
-from teleop.core.ticks import expected_valid_from, is_sample_tick
+from teleop.core.ticks import expected_valid_from, is_sample_tick, period_ticks
 
 # Head pitch nod of the scripted motion: amplitude (rad, about 3 degrees) and its period
 # as a fraction of hmd.motion_period_s (a nod twice per yaw sway).
@@ -429,7 +429,7 @@ class HmdLoop:
     """
 
     def __init__(self, config: Config) -> None:
-        scene_period_ticks = max(1, round(1.0 / (config.plant.scene_rate_hz * config.tick_s)))
+        scene_period_ticks = period_ticks(config.plant.scene_rate_hz, config.tick_s)
         if lead_ticks(config.hmd, config.tick_s) < scene_period_ticks:
             raise ConfigError(
                 f"hmd.prediction_s ({config.hmd.prediction_s} s) must be at least one "

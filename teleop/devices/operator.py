@@ -88,7 +88,13 @@ from teleop.core.config import (
     build,
     read_toml,
 )
-from teleop.core.ticks import expected_valid_from, is_sample_tick, last_sample_tick, lead_ticks
+from teleop.core.ticks import (
+    expected_valid_from,
+    is_sample_tick,
+    last_sample_tick,
+    lead_ticks,
+    period_ticks,
+)
 from teleop.devices.routing import KeepOut, SceneKnowledge, plan_route, route_length_m
 from teleop.sim.proximity import BIN_BODY
 
@@ -1072,7 +1078,7 @@ class OperatorLoop:
         # for a decision period from a decision period ahead, and poses come every scene
         # period), with a scene period to spare. A pose further ahead means the run went
         # on without this operator (a restart, or the device gave up waiting for it).
-        scene_ticks = round(1.0 / (config.plant.scene_rate_hz * self.timestep_s))
+        scene_ticks = period_ticks(config.plant.scene_rate_hz, self.timestep_s)
         self.lockstep_lag_ticks = 3 * self.lead_ticks + 2 * scene_ticks
         self.delay_ticks = round(config.operator.reaction_delay_s / self.timestep_s)
         self.hmd_rate_hz = config.hmd.rate_hz

@@ -137,7 +137,9 @@ def realtime_health(
     lost: list[str] = []
     degraded: list[str] = []
     if mode == "realtime":
-        overruns = f"the plant's loop overran {overrun_fraction:.2%} of its 1 ms deadlines"
+        overruns = (
+            f"the plant's loop overran {overrun_fraction:.2%} of its deadlines (one per bus period)"
+        )
         if overrun_fraction > OVERRUN_LOST:
             lost.append(f"{overruns} (bound {OVERRUN_LOST:.0%})")
         elif overrun_fraction > OVERRUN_DEGRADED:

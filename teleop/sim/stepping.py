@@ -51,6 +51,7 @@ from teleop.bus.messages import (
 from teleop.bus.stamps import Inbound
 from teleop.core.clock import NS_PER_S, Clock
 from teleop.core.config import Config
+from teleop.core.ticks import period_ticks
 from teleop.sim.checkpoint import (
     FRESH_HEADER,
     SLOT_COMMAND_SEQ,
@@ -262,7 +263,7 @@ class PlantStepCore:
         plant_cfg = config.plant
         self.plant = Plant(config)
         self.period_ns = self.plant.tick_ns  # one step of the core: one bus period
-        self.scene_every_steps = max(1, round(1.0 / (plant_cfg.scene_rate_hz * config.tick_s)))
+        self.scene_every_steps = period_ticks(plant_cfg.scene_rate_hz, config.tick_s)
         # Contact and obstacle proximity feed the force feedback of teleoperation every tick;
         # otherwise only the recorder reads them, at the scene rate (computing them costs
         # the plant a contact scan and a narrow-phase distance query per step).
