@@ -66,12 +66,11 @@ from teleop.control.path import (
     PathFollowingController,
     PathMetrics,
 )
+from teleop.control.rate import rate_to_world, teleop_reference
 from teleop.control.teleop import (
     JointStateTerms,
     TeleopController,
     TeleopOutput,
-    rate_to_world,
-    teleop_reference,
 )
 from teleop.control.wave import RobotWavePort
 from teleop.core.clock import Clock

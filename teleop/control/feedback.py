@@ -31,11 +31,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from teleop.core.config import HapticConfig, TeleopConfig
-from teleop.sim.proximity import ProximitySample
+
+if TYPE_CHECKING:  # the haptic device imports this module without MuJoCo
+    from teleop.sim.proximity import ProximitySample
 
 # Gravity (m/s^2) along -z, as in the scene's <option gravity>.
 STANDARD_GRAVITY_M_S2 = 9.81

@@ -40,7 +40,7 @@ import math
 
 import numpy as np
 
-from teleop.control.teleop import device_rate
+from teleop.control.rate import device_rate
 from teleop.core.config import TeleopConfig
 
 

@@ -64,7 +64,7 @@ from teleop.bus.messages import (
 )
 from teleop.bus.stamps import SeqGaps
 from teleop.control.path import DesiredPath
-from teleop.control.teleop import view_to_world
+from teleop.control.rate import view_to_world
 from teleop.core.config import Config, ModelError
 from teleop.sim.stepping import Abort
 from teleop.viz.entities import (

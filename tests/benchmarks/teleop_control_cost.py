@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from teleop.control import feedback
+from teleop.control import feedback, rate
 from teleop.control import teleop as teleop_control
 from teleop.control.kinematics import ArmModel, build_arm_model, tool_position_and_jacobian
 from teleop.core.config import Config, SceneConfig, load_config
@@ -97,6 +97,12 @@ class Implementation:
     teleop_control: types.ModuleType
     feedback: types.ModuleType
     prepared: bool = False  # prepare() then update(terms=...), timed apart
+    # Where its teleop_reference lives (the baseline's teleop_control module has it).
+    rate: types.ModuleType | None = None
+
+    @property
+    def reference(self) -> Callable[..., np.ndarray]:
+        return (self.rate or self.teleop_control).teleop_reference
 
 
 def output_fields(out: Any) -> dict[str, Any]:
@@ -284,7 +290,7 @@ class Replay:
         self.outputs: list[dict] = []
 
     def run(self, steps: list[Step]) -> None:
-        tc, fb, cfg, ctl = self.impl.teleop_control, self.impl.feedback, self.cfg, self.controller
+        fb, cfg, ctl = self.impl.feedback, self.cfg, self.controller
         clock = time.perf_counter_ns
         prepared = self.impl.prepared
         for s in steps:
@@ -293,7 +299,7 @@ class Replay:
                 terms = ctl.prepare(s.q_rad, s.qd_rad_s)
                 self.times[PREPARE].append(clock() - t_prepare)
             t0 = clock()
-            v_ref = tc.teleop_reference(s.handle_d_m, s.yaw_rad, s.clutch, cfg.teleop)
+            v_ref = self.impl.reference(s.handle_d_m, s.yaw_rad, s.clutch, cfg.teleop)
             t1 = clock()
             if prepared:
                 out = ctl.update(s.q_rad, s.qd_rad_s, v_ref, s.obstacle, 1.0, s.clutch, terms)
@@ -376,8 +382,8 @@ def main() -> int:
     cfg = load_config(None, ["run.scenario=grasp"])
     arm = build_arm_model(cfg.robot)
     baseline = load_baseline(args.baseline_rev)
-    fast = Implementation("fast", teleop_control, feedback)
-    prepared = Implementation("prepared", teleop_control, feedback, prepared=True)
+    fast = Implementation("fast", teleop_control, feedback, rate=rate)
+    prepared = Implementation("prepared", teleop_control, feedback, prepared=True, rate=rate)
     impls = (baseline, fast, prepared)
     trajectories = record_trajectories(cfg, arm, baseline)
     names = body_names(Plant(cfg).model)

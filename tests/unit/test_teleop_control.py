@@ -17,6 +17,7 @@ import pytest
 from scipy.linalg import lapack
 
 from teleop.control.kinematics import ArmModel, build_arm_model, tool_position_and_jacobian
+from teleop.control.rate import rate_command, teleop_reference, view_to_world
 from teleop.control.teleop import (
     SINGULAR_DAMPING,
     SINGULAR_VALUE_THRESHOLD,
@@ -28,10 +29,7 @@ from teleop.control.teleop import (
     joint_limit_scale,
     point_jacobian_along,
     position_condition_number,
-    rate_command,
     singularity_scale,
-    teleop_reference,
-    view_to_world,
 )
 from teleop.core.config import Config, SceneConfig, TeleopConfig, load_config
 from teleop.sim.plant import Plant
