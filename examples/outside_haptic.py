@@ -234,6 +234,12 @@ def wait_for_tokens(session: zenoh.Session, key: str, names: set) -> None:
         time.sleep(0.1)
 
 
+def stack_versions(session: zenoh.Session, key: str) -> set:
+    """The protocol versions the stack's services declare (tokens ``key/protocol/<n>``)."""
+    return {int(str(r.ok.key_expr).rsplit("/", 1)[-1])
+            for r in session.liveliness().get(f"{key}/protocol/*") if r.ok}  # fmt: skip
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("zenoh_config", help="the file teleop run/up --without printed")
@@ -251,6 +257,13 @@ def main() -> None:
         key = f"teleop/{robot}"
         tokens = [session.liveliness().declare_token(f"{key}/alive/haptic")]  # dropped: gone
         wait_for_tokens(session, f"{key}/alive", set(args.peers.split(",")))
+        versions = stack_versions(session, key)  # before any record: can we talk at all?
+        if versions and VERSION not in versions:
+            session.close()
+            raise SystemExit(
+                f"the stack speaks protocol version {min(versions)}, this device {VERSION}: "
+                "take the example of the stack's own checkout (docs/protocol.md)"
+            )
         tokens.append(session.liveliness().declare_token(f"{key}/ready/haptic"))  # plant starts
         wall_s = haptic.run(servo_per_bus)
     if haptic.other_version is not None:

@@ -43,7 +43,8 @@ from pathlib import Path
 from typing import Any
 
 from teleop.bus import graph
-from teleop.bus.graph import ALIVE_TOKEN, READY_TOKEN, ROOT
+from teleop.bus.graph import ALIVE_TOKEN, PROTOCOL_TOKEN, READY_TOKEN, ROOT
+from teleop.bus.messages import PROTOCOL_VERSION
 from teleop.bus.tls import Issued, RunAuthority
 from teleop.core.config import OPERATOR_SITE
 
@@ -145,7 +146,9 @@ def access_control(
     common name (the participant's name) in the same subject: both must match.
     """
     prefixes = [f"{ROOT}/{robot_id}" for robot_id in robot_ids]
-    tokens = [f"{p}/{kind}/*" for p in prefixes for kind in (ALIVE_TOKEN, READY_TOKEN)]
+    tokens = [
+        f"{p}/{kind}/*" for p in prefixes for kind in (ALIVE_TOKEN, READY_TOKEN, PROTOCOL_TOKEN)
+    ]
     rules, subjects, policies = [], [], []
     for name, cred in credentials.items():
         role, robots = participant_robots(name, robot_ids)
@@ -155,6 +158,8 @@ def access_control(
         consumed = [f"{p}/{key}" for p in own for key in consumes]
         own_tokens = [f"{p}/{kind}/{graph.role_of(role)}" for p in own
                       for kind in (ALIVE_TOKEN, READY_TOKEN)]  # fmt: skip
+        # The version this stack speaks, and no other: a client that reads it can trust it.
+        own_tokens += [f"{p}/{PROTOCOL_TOKEN}/{PROTOCOL_VERSION}" for p in own]
         mine = [
             _rule(f"{name}-tokens", ["liveliness_token"], "ingress", own_tokens),
             _rule(f"{name}-peer-tokens", ["liveliness_token"], "egress", tokens),

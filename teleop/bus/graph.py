@@ -202,11 +202,15 @@ def event_on_own_stream(stream_name: str, event: int) -> bool:
 # Liveliness tokens under ``teleop/<robot_id>/``: (key with <service>, meaning).
 ALIVE_TOKEN = "alive"
 READY_TOKEN = "ready"
+PROTOCOL_TOKEN = "protocol"
 TOKENS: tuple[tuple[str, str], ...] = (
     (f"{ALIVE_TOKEN}/<service>", "declared once the service's publishers and subscribers "
      "exist; gone when it ends (killed: milliseconds; frozen: after the link lease)"),
     (f"{READY_TOKEN}/<service>", "declared once the service sees every peer of its stack "
      "alive (its links are up); the plant starts the run when all are ready"),
+    (f"{PROTOCOL_TOKEN}/<version>", "the protocol version the stack speaks (every service "
+     "declares it with its alive token, the access list lets none declare another): a "
+     "client reads it with a liveliness get before its first record"),
 )  # fmt: skip
 
 

@@ -31,23 +31,17 @@ import sys
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 logger = logging.getLogger(__name__)
 
-# Bumped on any incompatible change of a layout below (2: 10 trace stages; 3: CONTACT and
-# OBSTACLE_PROXIMITY folded into the plant's state record, JOINT_STATE renamed PLANT_STATE
-# with the same kind value and on key state/plant: one plant record per step; 4:
-# device_deadline_ns in HAPTIC_STATE and JOINT_COMMAND, the plant's steps on the haptic
-# device's clock; 5: FORCE_FEEDBACK carries the scene's and the arm's own limits' push-back;
-# 6: HAPTIC_STATE carries the passivity observer's energy and what its controller
-# dissipated; 7: HAPTIC_STATE and FORCE_FEEDBACK carry the wave variables of
-# teleop.stabiliser "wave"; 8: one record per bus period (loop.rate_hz): PLANT_STATE
-# carries its physics steps' peak contact force, FORCE_FEEDBACK the local contact model
-# the handle renders from between two feedbacks). examples/ speak the protocol without
-# this package: a new version changes their VERSION and layouts too
-# (tests/e2e/test_outside.py runs them).
+# Bumped on any incompatible change of a layout or code below; each version says what it
+# changed in PROTOCOL_HISTORY (docs/protocol.md, Versioning), and a test fails when the
+# records differ from the fingerprint of the version this names (unversioned_change).
+# examples/ speak the protocol without this package: a new version changes their VERSION
+# and layouts too (tests/e2e/test_outside.py runs them).
 PROTOCOL_VERSION = 8
 MAX_JOINTS = 8  # joint arrays are padded with zeros to this length; n_joints says how many count
 MAX_OBJECTS = 8  # object pose arrays are padded to this length; n_objects says how many count
@@ -222,6 +216,7 @@ HEADER_FIELDS: tuple[Field, ...] = (
 
 _STRUCT_CODES = {"u1": "B", "u2": "H", "u4": "I", "u8": "Q", "i8": "q"}  # standard sizes
 _HEADER_PREFIX = struct.Struct("<HH")  # version, kind: enough to dispatch a raw buffer
+_VERSION_PREFIX = struct.Struct("<H")
 
 
 def _numpy_dtype(fields: Sequence[Field]) -> np.dtype:
@@ -302,14 +297,18 @@ class Schema:
     def decode(self, buf: bytes | bytearray | memoryview) -> np.ndarray:
         """Parse and validate one record; a read-only view of ``buf`` when it is bytes.
 
-        Raises DecodeError on wrong size, version or kind, a count above its maximum,
-        a non-finite float anywhere, or a value outside its declared limits.
+        Raises DecodeError on another version (judged first: a record of another
+        version usually has another size too, and its version is what its sender must
+        hear), wrong size or kind, a count above its maximum, a non-finite float
+        anywhere, or a value outside its declared limits.
         """
+        if len(buf) >= _HEADER_PREFIX.size:
+            (version,) = _VERSION_PREFIX.unpack_from(buf, 0)
+            if version != self.version:
+                raise DecodeError(self.kind, Reason.VERSION, f"{version}, expected {self.version}")
         if len(buf) != self.size:
             raise DecodeError(self.kind, Reason.SIZE, f"{len(buf)} B, expected {self.size} B")
-        version, kind = _HEADER_PREFIX.unpack_from(buf, 0)
-        if version != self.version:
-            raise DecodeError(self.kind, Reason.VERSION, f"{version}, expected {self.version}")
+        _, kind = _HEADER_PREFIX.unpack_from(buf, 0)
         if kind != self.kind:
             raise DecodeError(self.kind, Reason.KIND, f"got kind {kind}")
         for name, offset, fmt, lo, hi in self._int_checks:
@@ -790,6 +789,7 @@ class DropCounter:
         self._log = log or logger
         self._lock = threading.Lock()
         self._counts: dict[tuple[int, str], int] = {}
+        self._first_details: dict[tuple[int, str], str] = {}
         self._logged: set[int] = set()
 
     def record(self, err: DecodeError) -> None:
@@ -797,6 +797,7 @@ class DropCounter:
         key = (int(err.kind), str(err.reason))
         with self._lock:
             self._counts[key] = self._counts.get(key, 0) + 1
+            self._first_details.setdefault(key, err.detail)
             first = key[0] not in self._logged
             self._logged.add(key[0])
         if first:
@@ -806,6 +807,21 @@ class DropCounter:
         """Snapshot of {(kind, reason): count}."""
         with self._lock:
             return dict(self._counts)
+
+    def first_details(self) -> dict[tuple[int, str], str]:
+        """Snapshot of {(kind, reason): the first such drop's detail} (a version drop's:
+        "<its version>, expected <ours>")."""
+        with self._lock:
+            return dict(self._first_details)
+
+    def by_key(self) -> dict[str, dict[str, Any]]:
+        """What a summary reports: ``counts`` and the ``first`` one's detail by
+        ``"KIND:reason"`` (the record kind's name and :class:`Reason`)."""
+        counts, details = self.counts(), self.first_details()
+        return {
+            "counts": {f"{Kind(k).name}:{r}": n for (k, r), n in sorted(counts.items())},
+            "first": {f"{Kind(k).name}:{r}": d for (k, r), d in sorted(details.items())},
+        }
 
     @property
     def total(self) -> int:
@@ -956,10 +972,117 @@ def version_text() -> str:
     )
 
 
+def layout_fingerprint(schemas: Mapping[Kind, Schema] | None = None) -> str:
+    """sha256 (hex) of everything a client's bytes depend on: the header and each
+    record's kind, size and fields in order (name, type, shape, limits), and the codes of
+    the kinds, trace stages, flags, buttons and events; not the docs' wording.
+    ``schemas``: the records (default :data:`SCHEMAS`)."""
+    import hashlib  # only the drift test and the docs' generator ask
+
+    parts = []
+    for schema in (SCHEMAS if schemas is None else schemas).values():
+        fields = [(f.name, f.dtype, f.shape, f.lo, f.hi) for f in schema.fields]
+        parts.append(repr((int(schema.kind), schema.size, fields)))
+    for codes in (Kind, Stage, Flag, Button, Event):
+        parts.append(repr(sorted((m.name, int(m.value)) for m in codes)))
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()
+
+
+@dataclass(frozen=True)
+class ProtocolVersion:
+    """One protocol version: what changed from the one before, and what a client of
+    that one must change besides the number in its headers."""
+
+    version: int
+    changed: str  # which records changed layout or meaning
+    client: str  # what a client of the version before needs beyond the new number
+    # layout_fingerprint() of this version (the current one's; older ones not kept).
+    fingerprint: str = ""
+
+
+PROTOCOL_HISTORY: tuple[ProtocolVersion, ...] = (
+    ProtocolVersion(1, "the first published records", "-"),
+    ProtocolVersion(
+        2,
+        "the header's `trace_ns` grew to 10 latency stages: every header is 104 bytes",
+        "every body's offsets move with the header; the new stages may stay 0",
+    ),
+    ProtocolVersion(
+        3,
+        "CONTACT (kind 4) and OBSTACLE_PROXIMITY (kind 12) folded into the plant's state; "
+        "JOINT_STATE renamed PLANT_STATE (same kind value) on key `state/plant`",
+        "read the contact and proximity fields from PLANT_STATE; the retired kinds never "
+        "come again",
+    ),
+    ProtocolVersion(
+        4,
+        "HAPTIC_STATE and JOINT_COMMAND gained `device_deadline_ns` (the haptic device's "
+        "clock, which the realtime plant steps on)",
+        "the new sizes; a haptic device stamps its deadline, a controller copies its sample's",
+    ),
+    ProtocolVersion(
+        5,
+        "FORCE_FEEDBACK gained `world_f_scene_n` and `world_f_limits_n` (the push-back of "
+        "the scene and of the arm's own limits, docs/clearance.md)",
+        "the new size; a device that renders `device_f_n` needs nothing else",
+    ),
+    ProtocolVersion(
+        6,
+        "HAPTIC_STATE gained the passivity observer's energies and what its stabiliser dissipated",
+        "the new size; a device without an observer sends zeros",
+    ),
+    ProtocolVersion(
+        7,
+        "HAPTIC_STATE and FORCE_FEEDBACK gained the wave variables `wave_u`, `wave_v` "
+        '(teleop.stabiliser "wave")',
+        "the new sizes; zeros unless the run's stabiliser is wave",
+    ),
+    ProtocolVersion(
+        8,
+        "one record of each loop stream per bus period (`loop.rate_hz`), not per physics "
+        "step: PLANT_STATE's `step` counts ticks and it gained `peak_contact_force_n` "
+        "(before `n_contacts`: 491 bytes); FORCE_FEEDBACK gained the local contact model "
+        "`device_p_ref_m`, `device_k_n_per_m` at its end (408 bytes)",
+        "the new sizes and PLANT_STATE's `n_contacts` and `n_joints` offsets; answer once "
+        "per bus period; a device renders `f + K (p - p_ref)` between two feedbacks",
+        fingerprint="15029e6d45d856b24f58b8167f7efe65f6478e2a12f4934532e72875e508bb3d",
+    ),
+)
+
+
+def unversioned_change(schemas: Mapping[Kind, Schema] | None = None) -> str | None:
+    """Why the records ``schemas`` (default :data:`SCHEMAS`) are not the version
+    :data:`PROTOCOL_VERSION` says (None: they are): a layout or a code changed without a
+    new version and its :data:`PROTOCOL_HISTORY` entry."""
+    latest = PROTOCOL_HISTORY[-1]
+    if latest.version != PROTOCOL_VERSION:
+        return (
+            f"PROTOCOL_VERSION is {PROTOCOL_VERSION} but PROTOCOL_HISTORY ends at "
+            f"{latest.version}: add its entry"
+        )
+    fingerprint = layout_fingerprint(schemas)
+    if fingerprint != latest.fingerprint:
+        return (
+            f"the records differ from version {latest.version}'s (fingerprint "
+            f"{fingerprint[:12]}, its {latest.fingerprint[:12]}): bump PROTOCOL_VERSION, "
+            "add a PROTOCOL_HISTORY entry with the new fingerprint, change examples/"
+        )
+    return None
+
+
+def changelog_text() -> str:
+    """docs/protocol.md's table of versions (embedded verbatim; a test checks it)."""
+    out = ["| version | what changed | a client of the version before also needs |",
+           "| ---: | --- | --- |"]  # fmt: skip
+    out += [f"| {v.version} | {v.changed} | {v.client} |" for v in PROTOCOL_HISTORY]
+    return "\n".join(out) + "\n"
+
+
 DOC_TEXTS: Mapping[str, Callable[[], str]] = {
     "layouts": layout_table,
     "codes": code_tables,
     "version": version_text,
+    "changelog": changelog_text,
 }
 
 

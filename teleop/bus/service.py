@@ -33,13 +33,14 @@ import zenoh
 
 from teleop.bus import graph
 from teleop.bus.access import participant_zids, strangers
-from teleop.bus.messages import DropCounter, Kind
+from teleop.bus.messages import DropCounter
 from teleop.bus.session import (
     NewestSubscriber,
     RecordCallback,
     ServicesMissing,
     close_session,
     declare_alive,
+    declare_protocol,
     session_config,
     subscribe_stream,
     wait_alive,
@@ -156,9 +157,11 @@ class Service:
         return session_config(self.config.bus, listen=self.options.listen)
 
     def announce(self) -> None:
-        """Declare this service alive: call once its subscribers are in place."""
+        """Declare this service alive, and the protocol version it speaks: call once its
+        subscribers are in place."""
         assert self.session is not None
         for topics in self.robot_topics:
+            self.keep(declare_protocol(self.session, topics))
             self.keep(declare_alive(self.session, topics, self.name))
 
     def subscribe_stream(
@@ -201,14 +204,14 @@ class Service:
         ``cpu_s``: CPU time (user + system, all threads) this process used so far: what
         the service costs the machine, unlike wall-clock figures not inflated by others.
         """
+        drops = self.drops.by_key()
         return {
             "service": self.name,
             "dropped_messages": self.drops.total,
-            # every rejected record, by record kind and reason (DecodeError / Reason)
-            "dropped_by_reason": {
-                f"{Kind(kind).name}:{reason}": count
-                for (kind, reason), count in sorted(self.drops.counts().items())
-            },
+            # every rejected record, by record kind and reason (DecodeError / Reason), and
+            # the first of each: what it was (a version drop: its version and ours)
+            "dropped_by_reason": drops["counts"],
+            "dropped_first": drops["first"],
             "cpu_s": time.process_time(),
             "cpu_s_ready": self.cpu_s_ready,
             # per stream taken newest-only (realtime): records taken, and skipped because

@@ -26,7 +26,16 @@ from zenoh.shm import ShmProvider
 from shm.provider import SHM_THRESHOLD_BYTES, configure_session, put_by_size, took_shm_path
 from teleop.bus import graph
 from teleop.bus.access import TLS_CONFIG, zenoh_entries
-from teleop.bus.messages import DecodeError, DropCounter, Event, FrameSchema, Kind, Reason, Schema
+from teleop.bus.messages import (
+    PROTOCOL_VERSION,
+    DecodeError,
+    DropCounter,
+    Event,
+    FrameSchema,
+    Kind,
+    Reason,
+    Schema,
+)
 from teleop.bus.stamps import SeqGaps
 from teleop.bus.topics import Topics
 from teleop.core.config import BusConfig, ConfigError, SiteConfig
@@ -579,6 +588,12 @@ def declare_alive(
     """Announce ``service`` as up (``ready``: as ready, see :meth:`Topics.alive`); the
     token disappears when undeclared or the session dies."""
     return session.liveliness().declare_token(topics.alive(service, ready=ready))
+
+
+def declare_protocol(session: zenoh.Session, topics: Topics) -> zenoh.LivelinessToken:
+    """Announce the protocol version this process speaks (``PROTOCOL_VERSION``) under
+    ``topics``' robot: what a client reads before its first record."""
+    return session.liveliness().declare_token(topics.protocol(PROTOCOL_VERSION))
 
 
 class ServicesMissing(TimeoutError):

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 
-from teleop.bus.graph import ALIVE_TOKEN, READY_TOKEN, ROOT, STREAMS
+from teleop.bus.graph import ALIVE_TOKEN, PROTOCOL_TOKEN, READY_TOKEN, ROOT, STREAMS
 
 __all__ = ["ROOT", "Topics"]
 
@@ -43,6 +43,7 @@ class Topics:
     eye_view: str = field(init=False)
     alive_all: str = field(init=False)  # every service's liveliness token
     ready_all: str = field(init=False)  # every service's "ready" token
+    protocol_all: str = field(init=False)  # the protocol version tokens
 
     def __post_init__(self) -> None:
         if not self.robot_id or any(c in self.robot_id for c in "/*$?#"):
@@ -51,6 +52,7 @@ class Topics:
             object.__setattr__(self, stream.name, _key(self.robot_id, stream.key))
         object.__setattr__(self, "alive_all", _key(self.robot_id, f"{ALIVE_TOKEN}/*"))
         object.__setattr__(self, "ready_all", _key(self.robot_id, f"{READY_TOKEN}/*"))
+        object.__setattr__(self, "protocol_all", _key(self.robot_id, f"{PROTOCOL_TOKEN}/*"))
 
     @property
     def all_streams(self) -> str:
@@ -65,11 +67,20 @@ class Topics:
             raise ValueError(f"service name {service!r}: non-empty, one key chunk")
         return _key(self.robot_id, f"{READY_TOKEN if ready else ALIVE_TOKEN}/{service}")
 
+    def protocol(self, version: int) -> str:
+        """Liveliness token key of a protocol version, e.g. ``teleop/arm0/protocol/8``."""
+        return _key(self.robot_id, f"{PROTOCOL_TOKEN}/{int(version)}")
+
     def service_of(self, alive_key: str) -> str:
         """The service name of a liveliness key (inverse of :meth:`alive`)."""
         return str(alive_key).rsplit("/", 1)[-1]
 
 
 # Every stream of the graph has its attribute, and every attribute its stream.
-_ATTRIBUTES = {f.name for f in fields(Topics)} - {"robot_id", "alive_all", "ready_all"}
+_ATTRIBUTES = {f.name for f in fields(Topics)} - {
+    "robot_id",
+    "alive_all",
+    "ready_all",
+    "protocol_all",
+}
 assert _ATTRIBUTES == {s.name for s in STREAMS}, sorted(_ATTRIBUTES ^ {s.name for s in STREAMS})

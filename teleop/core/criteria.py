@@ -7,7 +7,10 @@ one without running anything:
 - path following: path error RMS <= 1 mm and max <= 3 mm after settling,
   ``path_progress`` >= 0.95, no unintended contact (``arm_contacts`` == 0);
 - grasp: the cube in the bin, no unintended contact, device force below the device's
-  8 N peak (it saturates there: a run that reached it asked for more).
+  8 N peak (it saturates there: a run that reached it asked for more);
+- both: the plant applied commands of its controller (``commands_applied`` > 0): a run
+  whose arm was never driven (a controller that sent nothing the plant could take) is
+  no success, whatever else it measured.
 
 A criterion whose figure the run does not report is *unavailable*: a short run (before
 ``run.settle_s``), or one whose controller ran outside the stack, has no path error. A
@@ -66,17 +69,23 @@ class TaskVerdict:
         return not self.failed and not self.problems
 
     @property
+    def reasons(self) -> list[str]:
+        """Why the run failed, one line each: the failed criteria, then the problems."""
+        return [*self.failed, *self.problems]
+
+    @property
     def complete(self) -> bool:
         """Every criterion was measured."""
         return not self.unmeasured
 
     def summary(self) -> dict[str, Any]:
-        """The summary's ``success``, ``criteria`` and ``problems``: with the figures, all
-        :func:`judge_summary` needs to judge the run again, the same way."""
+        """The summary's ``success``, ``criteria``, ``problems`` and ``reasons``: with the
+        figures, all :func:`judge_summary` needs to judge the run again, the same way."""
         return {
             "success": self.success,
             "criteria": [asdict(c) for c in self.criteria],
             "problems": list(self.problems),
+            "reasons": self.reasons,
         }
 
 
@@ -107,6 +116,23 @@ def _no_contact(summary: Mapping[str, Any]) -> Criterion:
     )
 
 
+def _commands_applied(summary: Mapping[str, Any]) -> Criterion:
+    name = "commands applied"
+    applied = summary.get("commands_applied")
+    if applied is None:
+        return Criterion(name, UNAVAILABLE, "commands_applied not reported")
+    if int(applied) > 0:
+        return Criterion(name, PASS, f"{int(applied)}")
+    received = summary.get("commands_received")
+    if received is None:
+        got = ""
+    elif int(received) == 0:
+        got = ": none it could read reached it (see the records dropped)"
+    else:
+        got = f": {int(received)} reached it, none admitted"
+    return Criterion(name, FAIL, f"the plant applied no command of its controller{got}")
+
+
 def judge_path(summary: Mapping[str, Any]) -> list[Criterion]:
     """The path-following criteria on a run's summary."""
     progress = _figure(summary, "path_progress")
@@ -123,6 +149,7 @@ def judge_path(summary: Mapping[str, Any]) -> list[Criterion]:
         _at_most(summary, "path_error_max_m", MAX_PATH_ERROR_M, "mm", 1e3, "path error max"),
         progress_c,
         _no_contact(summary),
+        _commands_applied(summary),
     ]
 
 
@@ -134,7 +161,9 @@ def judge_grasp(summary: Mapping[str, Any]) -> list[Criterion]:
     elif in_bin:
         bin_c = Criterion("cube in the bin", PASS, "yes")
     else:
-        bin_c = Criterion("cube in the bin", FAIL, "the cube is not in the bin")
+        away = _figure(summary, "object_bin_distance_m")
+        where = "" if away is None else f": {away * 100:.1f} cm from its inside (bound 0)"
+        bin_c = Criterion("cube in the bin", FAIL, f"the cube is not in the bin{where}")
     force = _figure(summary, "max_device_force_n")
     if force is None:
         force_c = Criterion("device force", UNAVAILABLE, "max_device_force_n not reported")
@@ -144,7 +173,7 @@ def judge_grasp(summary: Mapping[str, Any]) -> list[Criterion]:
         force_c = Criterion(
             "device force", FAIL, f"device force at its {MAX_DEVICE_FORCE_N:g} N peak (saturated)"
         )
-    return [bin_c, _no_contact(summary), force_c]
+    return [bin_c, _no_contact(summary), force_c, _commands_applied(summary)]
 
 
 def judge_task(

@@ -82,6 +82,8 @@ SUMMARY_FIELDS: tuple[SummaryField, ...] = (
       "unavailable: no figure for it) and detail; teleop.core.criteria"),
     F("problems", "array", ALL, "what the run itself said went wrong: the motion's stalls "
       "and contacts, an operator that did not finish, a plant that ended the run"),
+    F("reasons", "array", ALL, "why the run failed, one line each: the failed criteria's "
+      "details, then the problems (empty on a success)"),
     F("motion_problems", "array", ALL, "the controller's own account of the motion's "
       "problems (a part of problems)"),
     # The motion, measured by the controller.
@@ -105,6 +107,8 @@ SUMMARY_FIELDS: tuple[SummaryField, ...] = (
     F("commands_clamped", "integer", ALL, "commands the plant cut to the robot's limits "
       "(each joint's drive range, the tool's speed at plant.tool_speed_limit_m_s)",
       nullable=True),
+    F("commands_applied", "integer", ALL, "commands of its controller the plant applied "
+      "(none: the run failed)", nullable=True),
     # Path following.
     F("settle_s", "number", PATH, "the path error counts from here (run.settle_s)",
       nullable=True),
@@ -119,6 +123,8 @@ SUMMARY_FIELDS: tuple[SummaryField, ...] = (
       nullable=True),
     # Grasp.
     F("object_in_box", "boolean", GRASP, "the cube ended in the bin", nullable=True),
+    F("object_bin_distance_m", "number", GRASP, "how far the cube's centre ended from "
+      "the inside of the bin (m; 0: in it)", nullable=True),
     F("max_device_force_n", "number", GRASP, "largest force rendered on the handle (N; "
       "the device saturates at 8 N)", nullable=True),
     F("passivity", "object", GRASP, "the energy the force feedback exchanged with the "
@@ -150,7 +156,6 @@ SUMMARY_FIELDS: tuple[SummaryField, ...] = (
     F("stale_commands", "integer", SERVICES, "watchdog brakes", nullable=True),
     F("commands_received", "integer", SERVICES, "commands that reached the plant",
       nullable=True),
-    F("commands_applied", "integer", SERVICES, "commands the plant applied", nullable=True),
     F("command_stream", "object", SERVICES, "commands not admitted, by reason "
       "(docs/protocol.md, Where every command goes)", nullable=True),
     F("protective_stop", "object", SERVICES, "the plant's stops on contact force and tool "

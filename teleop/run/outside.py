@@ -32,6 +32,7 @@ import zenoh
 
 from teleop.bus import graph
 from teleop.bus.access import LAUNCHER, OBSERVER
+from teleop.bus.messages import PROTOCOL_VERSION
 from teleop.bus.session import ServicesMissing, session_config, wait_alive
 from teleop.bus.topics import Topics
 from teleop.core.config import SCENARIOS, Config, ConfigError, load_config
@@ -79,11 +80,13 @@ def _differences(value: Any, default: Any) -> Any:
 def outside_metadata(config: Config, service: str) -> dict[str, str | float]:
     """What the outside config file tells its program besides Zenoh's settings, under
     Zenoh's ``metadata`` (free-form JSON that Zenoh does not interpret: it only shows it
-    in its admin space): the robot id of the run's keys, the service's name and the bus
-    rate (``loop.rate_hz``: one record of each loop stream per period)."""
+    in its admin space): the robot id of the run's keys, the service's name, the protocol
+    version every record's header must carry, and the bus rate (``loop.rate_hz``: one
+    record of each loop stream per period)."""
     return {
         "robot_id": config.robot.robot_id,
         "service": service,
+        "protocol_version": PROTOCOL_VERSION,
         "loop_rate_hz": config.loop.rate_hz,
     }
 
@@ -112,6 +115,8 @@ def write_outside_config(run_dir: Path, service: str, config: Config) -> Path:
         "// Written by the launcher for this run only: its ports change every run.\n"
         f"// Robot id: {config.robot.robot_id} (also metadata/robot_id below, which Zenoh\n"
         "// does not interpret): every key is teleop/<robot id>/...\n"
+        f"// Protocol version: {PROTOCOL_VERSION} (metadata/protocol_version): every record's\n"
+        "// header starts with it; the stack drops a record of any other version.\n"
         f"// Bus rate: {config.loop.rate_hz:g} Hz (metadata/loop_rate_hz): one HAPTIC_STATE,\n"
         "// JOINT_COMMAND, PLANT_STATE and FORCE_FEEDBACK per period.\n"
     )
@@ -205,6 +210,8 @@ def join_instructions(
         f"  it connects to {', '.join([bus.endpoint, *bus.peer_connect_endpoints])}",
         f"  robot id:      {config.robot.robot_id}   mode: {config.run.mode}   "
         f"scenario: {config.run.scenario}",
+        f"  protocol:      version {PROTOCOL_VERSION} in every record's header (also the "
+        f"token {topics.protocol(PROTOCOL_VERSION)}); docs/protocol.md, Versioning",
         f"  declare        {topics.alive(service)}  (once its publishers and subscribers exist)",
         f"  then           {topics.alive(service, ready=True)}  (once it sees the alive "
         f"tokens of: {', '.join(others)})",

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from teleop.core.config import TELEOPERATED
-from teleop.core.criteria import FAIL
+from teleop.core.criteria import judge_summary
 from teleop.sim.proximity import FAR_DISTANCE_M
 
 # A progress line at least every this many seconds of sim time, and at each new phase.
@@ -113,15 +113,26 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
     return lines
 
 
+def _reason_lines(summary: Mapping[str, Any]) -> list[str]:
+    """Why a failed run failed, a line each (the summary's ``reasons``: its failed
+    criteria, then its problems); none for a success."""
+    if summary.get("success") is not False:
+        return []
+    reasons = summary.get("reasons")
+    if reasons is None:  # a summary written before it had reasons: judge it again
+        reasons = judge_summary(summary).reasons if "scenario" in summary else []
+    reasons = reasons or ["no reason recorded: see the full summary"]
+    return [f"  {'why' if i == 0 else '':18s} {reason}" for i, reason in enumerate(reasons)]
+
+
 def _task_lines(summary: Mapping[str, Any]) -> list[str]:
     """One robot's lines: outcome, task, timing, stops, its recording."""
     lines = []
     scenario, mode = summary.get("scenario"), summary.get("mode")
     if scenario in TELEOPERATED:
         outcome = "success: the cube is in the bin" if summary.get("success") else "FAILED"
-        if not summary.get("success") and summary.get("operator_failure"):
-            outcome += f": {summary['operator_failure']}"
         lines.append(f"{scenario} ({mode}): {outcome}")
+        lines += _reason_lines(summary)
         lines.append(
             f"  task time          {_num(summary.get('duration_s'), '.1f', ' s')}"
             f"   phases {_phases_reached(summary.get('phases'))}"
@@ -139,11 +150,9 @@ def _task_lines(summary: Mapping[str, Any]) -> list[str]:
     else:
         outcome = f"{scenario} ({mode}): {summary.get('duration_s')} s simulated"
         if summary.get("success") is False:
-            failed = [c["detail"] for c in summary.get("criteria") or [] if c["status"] == FAIL]
-            outcome += ", FAILED: " + "; ".join(
-                [*failed, *(summary.get("motion_problems") or [])] or ["see the summary"]
-            )
+            outcome += ", FAILED"
         lines.append(outcome)
+        lines += _reason_lines(summary)
         lines.append(
             f"  path error         RMS {_num(_mm(summary.get('path_error_rms_m')), '.3f', ' mm')}, "
             f"max {_num(_mm(summary.get('path_error_max_m')), '.3f', ' mm')} "

@@ -55,6 +55,7 @@ from teleop.bus.session import (
     ServicesMissing,
     close_session,
     declare_alive,
+    declare_protocol,
     open_session,
     subscribe,
     subscribe_events,
@@ -113,7 +114,7 @@ from teleop.run.outside import (
 from teleop.run.progress import RunProgress
 from teleop.run.sites import SiteError, check_site, write_operator_bundle
 from teleop.run.supervise import Program, Stack, StackError
-from teleop.run.verdict import machine_section, realtime_health, refused_privileges
+from teleop.run.verdict import drop_lines, machine_section, realtime_health, refused_privileges
 from teleop.run.web_operator import WebAccess, prepare_web_operator, web_overrides
 
 # The operator's eye view renders in a process of its own (see services/eyeview.py for
@@ -703,6 +704,7 @@ def run_on_services(
                     scenario=config.run.scenario,
                 )
             )
+            entities.append(declare_protocol(session, robot))
             entities.append(declare_alive(session, robot, LAUNCHER))
             entities.append(declare_alive(session, robot, LAUNCHER, ready=True))
         for text, _ in plan.joins:
@@ -768,6 +770,14 @@ def run_on_services(
         for s in summaries.values()
         for incarnation in (s, *s.get("earlier_incarnations", []))
     )
+    dropped_by: dict[str, dict[str, Any]] = {"launcher": drops.by_key()}
+    for name, s in summaries.items():
+        for incarnation in (*s.get("earlier_incarnations", []), s):
+            mine = dropped_by.setdefault(name, {"counts": {}, "first": {}})
+            for key, count in (incarnation.get("dropped_by_reason") or {}).items():
+                mine["counts"][key] = mine["counts"].get(key, 0) + count
+            for key, detail in (incarnation.get("dropped_first") or {}).items():
+                mine["first"].setdefault(key, detail)
     restarted = {
         name: len(s["earlier_incarnations"])
         for name, s in summaries.items()
@@ -801,7 +811,7 @@ def run_on_services(
         - (faults.brakes() if faults else 0),
         braked_steps=max(0, sum(p.get("stale_steps", 0) for p in plant_summaries) - fault_braked),
         steps=sum(p.get("steps", 0) for p in plant_summaries),
-        dropped_messages=dropped,
+        drops=drop_lines(dropped_by),
         unlinked_peers=unlinked,
     )
     summary.update(
@@ -867,6 +877,8 @@ def _robot_section(
         # The plant ended the run on a failure: whatever the task's figures say, it did
         # not go on to its end.
         problems = [*problems, f"plant: {plant.get('failure') or 'aborted'}"]
+    figures["commands_received"] = plant.get("commands_received")
+    figures["commands_applied"] = plant.get("commands_applied")
     # The task's criteria (teleop.core.criteria) and the problems: the one verdict, which
     # the summary holds enough to give again (criteria.judge_summary).
     verdict = judge_task(config.run.scenario, figures, problems).summary()
@@ -878,8 +890,6 @@ def _robot_section(
         "wall_s": plant.get("wall_s"),
         "realtime_factor": plant.get("realtime_factor"),
         "overrun_fraction": plant.get("overrun_fraction"),
-        "commands_received": plant.get("commands_received"),
-        "commands_applied": plant.get("commands_applied"),
         "commands_clamped": plant.get("commands_clamped"),
         "command_stream": plant.get("command_stream"),
         "stale_commands": plant.get("stale_commands"),
@@ -909,6 +919,7 @@ def _robots_verdict(scenario: str, sections: Mapping[str, dict[str, Any]]) -> di
         "robots": {rid: {"scenario": scenario, **s} for rid, s in sections.items()},
         "success": all(s.get("success") for s in sections.values()),
         "problems": [f"{rid}: {p}" for rid, s in sections.items() for p in s.get("problems", [])],
+        "reasons": [f"{rid}: {r}" for rid, s in sections.items() for r in s.get("reasons", [])],
         "failure": next((s["failure"] for s in sections.values() if s.get("failure")), None),
         "rrd": next((s["rrd"] for s in sections.values() if s.get("rrd")), None),
     }
@@ -972,6 +983,7 @@ def _grasp_figures(
         "motion_problems": problems,
         **{key: controller.get(key) for key in TELEOP_MOTION_KEYS},
         "object_in_box": plant.get("object_in_box"),
+        "object_bin_distance_m": plant.get("object_bin_distance_m"),
         "duration_s": operator.get("task_duration_s"),
         "max_device_force_n": haptic.get("max_rendered_force_n"),
         # The energy the force exchanged with the hand, and what the stabiliser dissipated.
@@ -986,7 +998,8 @@ def _grasp_figures(
         "phases": operator.get("phases"),
         "operator_failure": operator.get("failure") or None,  # why the operator gave up
     }
-    said = [] if said_success else ["the operator did not finish the task"]
+    gave_up = f": {figures['operator_failure']}" if figures["operator_failure"] else ""
+    said = [] if said_success else [f"the operator did not finish the task{gave_up}"]
     return figures, [*problems, *said]
 
 

@@ -21,6 +21,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from teleop.bus import graph
+from teleop.bus.messages import PROTOCOL_VERSION, Reason
+
 # Service.privileges outcomes start with one of these (teleop.bus.service).
 GRANTED = "granted"
 NOT_REQUESTED = "not requested"
@@ -104,6 +107,39 @@ def refused_privileges(machine: Mapping[str, Any]) -> list[str]:
     return lines
 
 
+def senders_of(kind_name: str, receiver: str) -> tuple[str, ...]:
+    """The services whose streams of record kind ``kind_name`` (a ``Kind`` name)
+    ``receiver`` (a service, or ``launcher``) takes (teleop.bus.graph); empty if none."""
+    role = graph.role_of(receiver)
+    found: list[str] = []
+    for stream in graph.STREAMS:
+        if stream.schema.kind.name == kind_name and role in stream.consumers:
+            found += [p for p in stream.producers if p not in found]
+    return tuple(found)
+
+
+def drop_lines(dropped: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    """One line per receiver, record kind and reason of the bad records a run dropped,
+    naming the sender and, for another protocol version, both versions. ``dropped``:
+    receiver -> ``{"counts": ..., "first": ...}`` (:meth:`DropCounter.by_key`: a
+    service summary's ``dropped_by_reason`` and ``dropped_first``)."""
+    lines = []
+    for receiver, drops in dropped.items():
+        first = drops.get("first") or {}
+        for key, count in (drops.get("counts") or {}).items():
+            kind_name, _, reason = key.partition(":")
+            senders = senders_of(kind_name, receiver)
+            source = f" from {' or '.join(senders)}" if senders else ""
+            detail = str(first.get(key) or "")
+            if reason == Reason.VERSION:
+                theirs = detail.split(",")[0] or "another"
+                why = f"protocol version {theirs}, this stack speaks {PROTOCOL_VERSION}"
+            else:
+                why = reason + (f" ({detail})" if detail else "")
+            lines.append(f"{receiver} dropped {count} {kind_name} record(s){source}: {why}")
+    return lines
+
+
 @dataclass(frozen=True)
 class Health:
     """A run's real-time verdict (CLEAN, DEGRADED or LOST) and one line per bound missed."""
@@ -123,15 +159,16 @@ def realtime_health(
     watchdog_brakes: int,
     braked_steps: int,
     steps: int,
-    dropped_messages: int,
+    drops: Sequence[str],
     unlinked_peers: Mapping[str, Any],
 ) -> Health:
     """Judge whether a run kept real time (the bounds above) and got all of its data.
 
-    Bad records dropped and services that never linked (``unlinked_peers``: service ->
-    the peers it never saw; what they would have sent each other is missing) make a run
-    DEGRADED, never LOST: the loop's timing is judged by the plant's own figures, which a
-    missing peer (say the recorder) does not touch, and a peer the loop itself needs
+    Bad records dropped (``drops``: a line each, :func:`drop_lines`) and services that
+    never linked (``unlinked_peers``: service -> the peers it never saw; what they would
+    have sent each other is missing) make a run DEGRADED, never LOST: the loop's timing
+    is judged by the plant's own figures, which a missing peer (say the recorder) does
+    not touch, and a peer the loop itself needs
     shows there (a plant without its controller brakes). A lockstep run has no real time
     to keep: only the missing data counts."""
     lost: list[str] = []
@@ -158,8 +195,7 @@ def realtime_health(
             lost.append(f"{brakes} (bound {BRAKED_STEPS_LOST:.0%})")
         elif watchdog_brakes:
             degraded.append(brakes)
-    if dropped_messages:
-        degraded.append(f"{dropped_messages} message(s) dropped as bad records")
+    degraded += drops
     if unlinked_peers:
         pairs = "; ".join(
             f"{name} never saw {', '.join(map(str, peers))}"

@@ -585,17 +585,26 @@ class Plant:
     def object_in_bin(self, object_body: str = "cube", bin_body: str = "bin") -> bool:
         """True when the object's centre lies inside the bin: within its floor's x-y
         extent and below the top of its walls (the bin's geoms, world frame)."""
+        return self.object_bin_distance_m(object_body, bin_body) == 0.0
+
+    def object_bin_distance_m(self, object_body: str = "cube", bin_body: str = "bin") -> float:
+        """How far (m) the object's centre is from the inside of the bin: 0 within its
+        floor's x-y extent and below the top of its walls, else the distance to that box
+        (the bin's geoms, axis-aligned boxes in this scene, world frame)."""
         obj = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, object_body)
         container = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, bin_body)
         if obj < 0 or container < 0:
             raise ModelError(f"no body {object_body!r} or {bin_body!r} in the scene")
         geoms = np.flatnonzero(self.model.geom_bodyid == container)
         centres = self.data.geom_xpos[geoms]
-        half = self.model.geom_size[geoms]  # boxes, axis-aligned in this scene
+        half = self.model.geom_size[geoms]
         low, high = (centres - half).min(axis=0), (centres + half).max(axis=0)
         p = self.data.xpos[obj]
-        inside_xy = low[0] < p[0] < high[0] and low[1] < p[1] < high[1]
-        return bool(inside_xy and low[2] < p[2] < high[2])
+        if bool(np.all((low < p) & (p < high))):
+            return 0.0
+        outside = np.maximum(low - p, 0.0) + np.maximum(p - high, 0.0)
+        # On a face exactly (outside by 0 on every axis): not inside, the least distance.
+        return max(float(np.linalg.norm(outside)), float(np.finfo(float).tiny))
 
     def state_sha256(self) -> str:
         """sha256 of the full qpos and qvel bytes: equal hashes mean identical runs."""

@@ -761,6 +761,7 @@ class PlantStepCore:
                 "approach_slowed_steps": self.plant.approach_slowed_steps,
             },
             "object_in_box": self.plant.object_in_bin(),
+            "object_bin_distance_m": self.plant.object_bin_distance_m(),
             "rate_hz": self.plant.step_count / self.wall_s if self.wall_s > 0 else None,
             "aborted": self.aborted,
             "failure": self.failure,

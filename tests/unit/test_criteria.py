@@ -22,6 +22,7 @@ def test_missing_figures_are_unavailable_never_passed() -> None:
         "path error max": criteria.PASS,
         "path progress": criteria.UNAVAILABLE,
         "no unintended contact": criteria.UNAVAILABLE,
+        "commands applied": criteria.UNAVAILABLE,
     }
 
 
@@ -40,7 +41,7 @@ def test_path_criteria_fail_with_their_reason() -> None:
         "unintended contact: 40 steps in contact",
     ]
     ok = {"path_error_rms_m": 1e-5, "path_error_max_m": 2e-5, "path_progress": 0.99,
-          "arm_contacts": 0}  # fmt: skip
+          "arm_contacts": 0, "commands_applied": 5000}  # fmt: skip
     assert all(c.status == criteria.PASS for c in criteria.judge_path(ok))
 
 
@@ -56,9 +57,11 @@ def test_grasp_criteria_and_the_operators_reason() -> None:
         "cube in the bin": criteria.FAIL,
         "no unintended contact": criteria.PASS,
         "device force": criteria.FAIL,
+        "commands applied": criteria.UNAVAILABLE,
     }
     assert criteria.event_reasons(summary) == ["operator: timeout in carry"]
-    light = {"object_in_box": True, "arm_contacts": 0, "max_device_force_n": 1.2}
+    light = {"object_in_box": True, "arm_contacts": 0, "max_device_force_n": 1.2,
+             "commands_applied": 6000}  # fmt: skip
     assert all(c.status == criteria.PASS for c in criteria.judge_grasp(light))
 
 
@@ -66,7 +69,7 @@ def test_a_run_off_its_path_is_no_success_however_it_ended():
     """A path near a singularity: no stall, no contact, the run went to its end; 2.2 mm
     RMS and 93 % progress fail the criteria, so the run is not a success either."""
     summary = {"path_error_rms_m": 2.2e-3, "path_error_max_m": 2.9e-3, "path_progress": 0.93,
-               "arm_contacts": 0}  # fmt: skip
+               "arm_contacts": 0, "commands_applied": 5000}  # fmt: skip
     verdict = criteria.judge_task("path-following", summary)
     assert not verdict.success and verdict.complete
     assert verdict.failed == ["path error RMS: 2.2 mm > 1 mm", "path progress 0.930 < 0.95"]
@@ -76,15 +79,38 @@ def test_a_run_off_its_path_is_no_success_however_it_ended():
 def test_a_short_run_is_judged_on_what_it_measured_and_a_problem_fails_it():
     """Before run.settle_s there is no path error: unavailable, which fails a sweep's task
     (complete is False) but not the run; a problem the run reported fails it."""
-    short = {"path_progress": None, "arm_contacts": 0}
+    short = {"path_progress": None, "arm_contacts": 0, "commands_applied": 400}
     verdict = criteria.judge_task("path-following", short)
     assert verdict.success and not verdict.complete
     assert verdict.unmeasured == ["path error RMS", "path error max", "path progress"]
     stalled = criteria.judge_task("path-following", short, ["the tool stalled 1.0 s"])
     assert not stalled.success
     grasp = criteria.judge_task("grasp", {"object_in_box": True, "arm_contacts": 0,
-                                          "max_device_force_n": 1.2})  # fmt: skip
+                                          "max_device_force_n": 1.2,
+                                          "commands_applied": 6000})  # fmt: skip
     assert grasp.success and grasp.complete
+
+
+@pytest.mark.parametrize("scenario", ["path-following", "grasp"])
+def test_a_run_whose_plant_applied_no_command_fails_and_says_so(scenario):
+    """A controller that sent nothing the plant could take (another protocol version, a
+    wrong key): whatever the run's other figures, it is a failure with that reason."""
+    figures = {**(GOOD_PATH if scenario != "grasp" else GOOD_GRASP), "commands_applied": 0,
+               "commands_received": 0}  # fmt: skip
+    verdict = criteria.judge_task(scenario, figures)
+    assert not verdict.success
+    assert verdict.reasons == [
+        "the plant applied no command of its controller: none it could read reached it "
+        "(see the records dropped)"
+    ]
+    assert verdict.summary()["reasons"] == verdict.reasons
+
+
+def test_a_cube_beside_the_bin_says_how_far():
+    verdict = criteria.judge_task(
+        "grasp", {**GOOD_GRASP, "object_in_box": False, "object_bin_distance_m": 0.132}
+    )
+    assert verdict.reasons == ["the cube is not in the bin: 13.2 cm from its inside (bound 0)"]
 
 
 def _written(scenario: str, figures: dict, problems: list[str]) -> dict:
@@ -93,9 +119,10 @@ def _written(scenario: str, figures: dict, problems: list[str]) -> dict:
             **criteria.judge_task(scenario, figures, problems).summary()}  # fmt: skip
 
 
-GOOD_GRASP = {"object_in_box": True, "arm_contacts": 0, "max_device_force_n": 1.2}
+GOOD_GRASP = {"object_in_box": True, "arm_contacts": 0, "max_device_force_n": 1.2,
+              "commands_applied": 6000}  # fmt: skip
 GOOD_PATH = {"path_error_rms_m": 1e-5, "path_error_max_m": 2e-5, "path_progress": 0.99,
-             "arm_contacts": 0}  # fmt: skip
+             "arm_contacts": 0, "commands_applied": 5000}  # fmt: skip
 
 
 @pytest.mark.parametrize(
@@ -115,7 +142,9 @@ def test_run_sweep_and_report_give_a_summary_one_verdict(scenario, figures, prob
     summary = _written(scenario, figures, problems)
     again = criteria.judge_summary(json.loads(json.dumps(summary)))  # as read from file
     assert again.success is summary["success"]
-    assert again.summary() == {k: summary[k] for k in ("success", "criteria", "problems")}
+    assert again.summary() == {
+        k: summary[k] for k in ("success", "criteria", "problems", "reasons")
+    }
     record = sweep.judge_record(summary)
     assert record["success"] is (summary["success"] and again.complete)
     if not record["success"]:

@@ -11,6 +11,7 @@ import zenoh
 from teleop import cli
 from teleop.bus import graph
 from teleop.bus.access import LAUNCHER, OBSERVER
+from teleop.bus.messages import PROTOCOL_VERSION
 from teleop.bus.session import session_config
 from teleop.core.config import SCENARIOS, ConfigError, load_config
 from teleop.core.net import LoopbackPorts
@@ -43,6 +44,7 @@ def test_the_outside_config_is_the_stacks_own_session_config(tmp_path):
         "robot_id": "arm7",
         "service": "controller",
         "loop_rate_hz": config.loop.rate_hz,
+        "protocol_version": PROTOCOL_VERSION,
     }
     assert "// Robot id: arm7 " in path.read_text()
     own_session = json.loads(str(session_config(config.bus, listen=False)))
@@ -130,6 +132,7 @@ def test_an_observer_finds_every_endpoint_of_a_stack_from_its_run_dir(tmp_path, 
         "robot_id": "arm3",
         "service": OBSERVER,
         "loop_rate_hz": load_config().loop.rate_hz,
+        "protocol_version": PROTOCOL_VERSION,
     }
     assert loaded["connect"]["endpoints"] == ["tcp/127.0.0.1:7000", *own]
     assert loaded["listen"]["endpoints"] not in ([], own)  # a port of its own choice

@@ -2,12 +2,26 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from pathlib import Path
 
 import pytest
 
-from teleop.bus.messages import PROTOCOL_VERSION, Stage, version_text
+from teleop.bus.messages import (
+    HEADER_FIELDS,
+    PLANT_STATE,
+    PROTOCOL_HISTORY,
+    PROTOCOL_VERSION,
+    SCHEMAS,
+    Field,
+    Kind,
+    Schema,
+    Stage,
+    changelog_text,
+    unversioned_change,
+    version_text,
+)
 from teleop.bus.stamps import Inbound
 from teleop.core.config import Config, load_config
 
@@ -81,6 +95,30 @@ def test_protocol_doc_states_the_protocol_version():
         "the markers"
     )
     assert f"**{PROTOCOL_VERSION}**" in embedded
+
+
+def test_the_records_are_the_version_they_say_and_the_changelog_lists_every_version():
+    assert unversioned_change() is None
+    assert [v.version for v in PROTOCOL_HISTORY] == list(range(1, PROTOCOL_VERSION + 1))
+    embedded = _embedded(PROTOCOL_DOC, "changelog_text")
+    assert embedded.strip() == changelog_text().strip(), (
+        "docs/protocol.md's version table is out of date: replace it with "
+        "python -m teleop.bus.messages changelog"
+    )
+
+
+def test_a_layout_change_without_a_new_version_is_caught():
+    """A field added to PLANT_STATE, or a limit moved: each is a change a client must
+    hear of, so each fails the check until a new version says it."""
+    body = PLANT_STATE.fields[len(HEADER_FIELDS) :]
+    assert unversioned_change({**SCHEMAS, Kind.PLANT_STATE: Schema(Kind.PLANT_STATE, body)}) is None
+    grown = Schema(Kind.PLANT_STATE, [*body, Field("extra", "u1")])
+    problem = unversioned_change({**SCHEMAS, Kind.PLANT_STATE: grown})
+    assert problem is not None and "bump PROTOCOL_VERSION" in problem
+    bounded = next(i for i, f in enumerate(body) if f.hi is not None)
+    moved = [*body]
+    moved[bounded] = dataclasses.replace(body[bounded], hi=body[bounded].hi + 1)
+    assert unversioned_change({**SCHEMAS, Kind.PLANT_STATE: Schema(Kind.PLANT_STATE, moved)})
 
 
 def test_protocol_doc_accounts_every_counter_of_the_command_stream():

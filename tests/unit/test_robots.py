@@ -10,6 +10,7 @@ import pytest
 
 from teleop.bus import graph
 from teleop.bus.access import Credentials, access_control, participant_robots
+from teleop.bus.messages import PROTOCOL_VERSION
 from teleop.core.config import ConfigError, load_config
 from teleop.core.net import LoopbackPorts
 from teleop.core.rundir import (
@@ -96,8 +97,11 @@ def test_a_robots_processes_may_use_that_robots_keys_only():
     assert rules["controller-arm1-publishes"] == sorted(
         f"teleop/arm1/{s.key}" for s in graph.STREAMS if "controller" in s.producers
     )
-    assert rules["controller-arm1-tokens"] == ["teleop/arm1/alive/controller",
-                                              "teleop/arm1/ready/controller"]  # fmt: skip
+    assert rules["controller-arm1-tokens"] == [
+        "teleop/arm1/alive/controller",
+        f"teleop/arm1/protocol/{PROTOCOL_VERSION}",  # the stack's version, no other
+        "teleop/arm1/ready/controller",
+    ]
     assert {key.split("/")[1] for key in rules["haptic-publishes"]} == {"arm0", "arm1"}
     assert {key.split("/")[1] for key in rules["haptic-tokens"]} == {"arm0", "arm1"}
     assert {key.split("/")[1] for key in rules["observer-subscribes"]} == {"arm0", "arm1"}

@@ -191,6 +191,14 @@ import logging, os, signal, sys, threading, time
 from teleop.bus import service
 logging.basicConfig(level=logging.INFO, stream=sys.stderr)
 service.STOP_AGAIN_DUMP_S = float(sys.argv[1])
+# The signals thread takes the second signal once stop.set() gets the lock the block below
+# held: wait for its line (the process would otherwise exit first, that thread a daemon).
+again = threading.Event()
+class Again(logging.Handler):
+    def emit(self, record):
+        if " again" in record.getMessage():
+            again.set()
+logging.getLogger("teleop.bus.service").addHandler(Again())
 stop = threading.Event()
 service.stop_on_signals(stop)
 with stop._cond:
@@ -199,6 +207,7 @@ with stop._cond:
     os.kill(os.getpid(), signal.SIGTERM)
     time.sleep(0.2)
 print("stopped" if stop.wait(5.0) else "not stopped", flush=True)
+again.wait(5.0)
 """
 
 

@@ -193,6 +193,7 @@ def test_a_stack_that_did_not_come_up_is_started_again(
         "object_in_box": True,
         "arm_contacts": 0,
         "max_device_force_n": 1.0,
+        "commands_applied": 6000,
     }
 
     def run(job: sweep.Job) -> dict:

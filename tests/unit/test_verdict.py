@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from teleop.bus.messages import PROTOCOL_VERSION
 from teleop.run.verdict import (
     CLEAN,
     DEGRADED,
     LOST,
+    drop_lines,
     machine_section,
     realtime_health,
     refused_privileges,
@@ -17,7 +19,7 @@ QUIET = {
     "watchdog_brakes": 0,
     "braked_steps": 0,
     "steps": 20_000,
-    "dropped_messages": 0,
+    "drops": [],
     "unlinked_peers": {},
 }
 
@@ -66,6 +68,24 @@ def test_services_that_never_linked_degrade_a_run_as_missing_data_not_lost_real_
     health = realtime_health("realtime", **starved)
     assert health.verdict == LOST and len(health.problems) == 2
     assert "x real time" in health.problems[0]
+
+
+def test_a_dropped_record_of_another_version_names_its_sender_and_both_versions():
+    dropped = {
+        "plant": {
+            "counts": {"JOINT_COMMAND:version": 5001},
+            "first": {"JOINT_COMMAND:version": "5, expected 8"},
+        },
+        "haptic": {"counts": {"FORCE_FEEDBACK:range": 2}, "first": {}},
+    }
+    lines = drop_lines(dropped)
+    assert lines[0] == (
+        "plant dropped 5001 JOINT_COMMAND record(s) from controller: protocol version 5, "
+        f"this stack speaks {PROTOCOL_VERSION}"
+    )
+    assert lines[1] == "haptic dropped 2 FORCE_FEEDBACK record(s) from controller: range"
+    health = realtime_health("lockstep", **{**QUIET, "drops": lines})
+    assert health.verdict == DEGRADED and list(health.problems) == lines
 
 
 def test_the_machine_section_says_which_privileges_were_granted_and_refused():
