@@ -107,6 +107,9 @@ SUMMARY_FIELDS: tuple[SummaryField, ...] = (
     F("commands_clamped", "integer", ALL, "commands the plant cut to the robot's limits "
       "(each joint's drive range, the tool's speed at plant.tool_speed_limit_m_s)",
       nullable=True),
+    F("commands_clamped_by_reason", "object", ALL, "physics steps the plant cut or slowed a "
+      "command in, by reason: joint_range, tool_speed, approach (a step may count under "
+      "several); docs/running.md, The limits a controller meets", nullable=True),
     F("commands_applied", "integer", ALL, "commands of its controller the plant applied "
       "(none: the run failed)", nullable=True),
     # Path following.

@@ -88,6 +88,7 @@ def run_path_following_inprocess(
         ],
         "steps": steps,
         "commands_clamped": plant.clamped_steps,
+        "commands_clamped_by_reason": plant.clamped_by_reason(),
         "wall_s": wall_s,
         "realtime_factor": config.run.duration_s / wall_s,
         "final_state_sha256": plant.state_sha256(),

@@ -251,10 +251,44 @@ def wait_for_outside(
     """
     if not services:
         return
+    left: list[str] = []  # came alive, then went before it was ready
+
+    def on_alive(sample: zenoh.Sample) -> None:
+        name = topics.service_of(str(sample.key_expr))
+        if sample.kind == zenoh.SampleKind.DELETE and name in services:
+            left.append(name)
+
+    watch = session.liveliness().declare_subscriber(topics.alive_all, on_alive)
+    try:
+        _wait_ready(session, topics, services, timeout_s, report, stop, still_running, left)
+    finally:
+        watch.undeclare()
+
+
+def _wait_ready(
+    session: zenoh.Session,
+    topics: Topics,
+    services: Sequence[str],
+    timeout_s: float,
+    report: Callable[[str], None],
+    stop: threading.Event | None,
+    still_running: Callable[[], None] | None,
+    left: list[str],
+) -> None:
+    """:func:`wait_for_outside`'s loop; ``left``: services whose alive token went (each
+    reported once, as it happens)."""
     start = time.monotonic()
     next_report = 0.0
     missing = tuple(services)
+    told = 0
     while True:
+        while told < len(left):
+            report(
+                f"{left[told]} came and left before it was ready: its own output says why "
+                f"(a client of another protocol version leaves so; this stack speaks "
+                f"version {PROTOCOL_VERSION}, token {topics.protocol(PROTOCOL_VERSION)})"
+            )
+            told += 1
         waited_s = time.monotonic() - start
         left_s = timeout_s - waited_s
         if left_s <= 0 or (stop is not None and stop.is_set()):

@@ -891,6 +891,7 @@ def _robot_section(
         "realtime_factor": plant.get("realtime_factor"),
         "overrun_fraction": plant.get("overrun_fraction"),
         "commands_clamped": plant.get("commands_clamped"),
+        "commands_clamped_by_reason": plant.get("commands_clamped_by_reason"),
         "command_stream": plant.get("command_stream"),
         "stale_commands": plant.get("stale_commands"),
         # The plant's own stops on contact force and tool speed (teleop.sim.protective).

@@ -131,6 +131,7 @@ class Plant:
             return index
 
         joints = [lookup(mujoco.mjtObj.mjOBJ_JOINT, n) for n in robot.arm_joints]
+        self.joint_ids = np.array(joints)  # the arm's joints in the model
         self.qpos_index = np.array([self.model.jnt_qposadr[j] for j in joints])
         self.dof_index = np.array([self.model.jnt_dofadr[j] for j in joints])
         self.actuator_index = np.array(
@@ -158,7 +159,6 @@ class Plant:
             g for g in range(self.model.ngeom) if self.model.geom_bodyid[g] in self.gripper_bodies
         )
         self.approach_slowed_steps = 0  # steps whose command the approach limit slowed
-        self._limit_clamped = False  # the last limit() cut the command to the limits
         self._limit_slowed = False  # the last limit() slowed it for the approach
         self._jacr = np.zeros((3, self.model.nv))
         # The objects that move freely (the cube; not the bin, welded to the world): the
@@ -179,6 +179,10 @@ class Plant:
         # within its drive's range, the tool point's commanded speed within this.
         self.tool_speed_limit_m_s = config.plant.tool_speed_limit_m_s
         self.clamped_steps = 0  # steps whose command was cut down to the limits
+        # ... by reason: a joint beyond its drive's range, the tool's speed over its limit
+        self.joint_range_steps = 0
+        self.tool_speed_steps = 0
+        self._limit_cuts = (False, False)  # the last limit()'s (joint range, tool speed)
         # The tool speed the last command asked for (m/s, its motion before any cut).
         self.commanded_tool_speed_m_s = 0.0
         # Measured after every step (what the state reports and the protective stop
@@ -320,7 +324,8 @@ class Plant:
         """``qd_ref_rad_s`` within the robot's limits: each joint clipped to its drive's
         range (the velocity actuator's ctrlrange), then the motion it asks for scaled
         down (the direction kept) so the tool point's commanded speed is at most
-        ``plant.tool_speed_limit_m_s``. Counts the steps it cut (``clamped_steps``).
+        ``plant.tool_speed_limit_m_s``. Counts the steps it cut (``clamped_steps``; by
+        reason ``joint_range_steps`` and ``tool_speed_steps``).
 
         A velocity servo's reference also carries the torque that holds the arm: its
         drive settles where kv (q'_ref - q') = the bias forces (gravity, Coriolis), so
@@ -331,7 +336,7 @@ class Plant:
         (q'_ref - qfrc_bias / kv); cutting the holding part too would let the arm sag
         and bend the tool's path while it is commanded up."""
         qd = np.minimum(np.maximum(qd_ref_rad_s, self.ctrl_low), self.ctrl_high)
-        clamped = not np.array_equal(qd, qd_ref_rad_s)
+        range_cut = not np.array_equal(qd, qd_ref_rad_s)
         self.prepare_step()  # positions-dependent data of the state the step starts from
         mujoco.mj_jacSite(self.model, self.data, self._jacp, None, self.tool_site)
         hold = self.data.qfrc_bias[self.dof_index] / self.kv  # references that hold still
@@ -339,9 +344,9 @@ class Plant:
         speed_m_s = math.hypot(*(self._jacp[:, self.dof_index] @ motion).tolist())
         self.commanded_tool_speed_m_s = speed_m_s
         scale = 1.0
-        if speed_m_s > self.tool_speed_limit_m_s:
+        speed_cut = speed_m_s > self.tool_speed_limit_m_s
+        if speed_cut:
             scale = self.tool_speed_limit_m_s / speed_m_s
-            clamped = True
         approach_scale = self._approach_scale(motion * scale)
         self._limit_slowed = approach_scale < 1.0
         if self._limit_slowed:
@@ -350,10 +355,50 @@ class Plant:
         if scale < 1.0:
             qd = hold + motion * scale
             qd = np.minimum(np.maximum(qd, self.ctrl_low), self.ctrl_high)
-        self._limit_clamped = clamped
-        if clamped:
-            self.clamped_steps += 1
+        self._limit_cuts = (range_cut, speed_cut)
+        self._count_cuts()
         return qd
+
+    def joint_reach_m(self) -> np.ndarray:
+        """For each arm joint, the farthest the tool point can be from its axis (m), in
+        any configuration: the joint's anchor offset in its body plus every rigid offset
+        down the chain to the tool site (the triangle inequality; rotations keep
+        lengths). A joint turning at q'_i moves the tool at most |q'_i| times this, so
+
+            tool speed <= sum_i |q'_i| reach_i
+
+        is a bound a controller without the robot's model can keep under
+        ``plant.tool_speed_limit_m_s``."""
+        model = self.model
+        site_body = int(model.site_bodyid[self.tool_site])
+        reach = []
+        for joint in self.joint_ids.tolist():
+            body = int(model.jnt_bodyid[joint])
+            length = float(np.linalg.norm(model.jnt_pos[joint]))
+            length += float(np.linalg.norm(model.site_pos[self.tool_site]))
+            chain = site_body
+            while chain != body:  # the site's body up to the joint's own
+                length += float(np.linalg.norm(model.body_pos[chain]))
+                chain = int(model.body_parentid[chain])
+            reach.append(length)
+        return np.array(reach)
+
+    def clamped_by_reason(self) -> dict[str, int]:
+        """Physics steps whose command the plant cut or slowed, by reason (a step may
+        count under several): a joint beyond its drive's range, the tool's commanded
+        speed over ``plant.tool_speed_limit_m_s``, the approach to the scene."""
+        return {
+            "joint_range": self.joint_range_steps,
+            "tool_speed": self.tool_speed_steps,
+            "approach": self.approach_slowed_steps,
+        }
+
+    def _count_cuts(self) -> None:
+        """Count the last :meth:`limit`'s cuts for one more physics step."""
+        range_cut, speed_cut = self._limit_cuts
+        self.clamped_steps += range_cut or speed_cut
+        self.joint_range_steps += range_cut
+        self.tool_speed_steps += speed_cut
 
     def _approach_scale(self, motion_rad_s: np.ndarray) -> float:
         """How much ``motion_rad_s`` (the arm's joint velocities) must be slowed (a
@@ -431,7 +476,7 @@ class Plant:
                 # tool-speed limit on the motion it asks for; the arm moves well under a
                 # millimetre per step, and the protective stop judges the measured speed
                 # after every step).
-                self.clamped_steps += self._limit_clamped
+                self._count_cuts()
                 self.approach_slowed_steps += self._limit_slowed
             self.data.ctrl[self.gripper_actuator] = gripper_ctrl
             if self.protective.holds(self.physics_steps + 1, self.commanded_tool_speed_m_s):

@@ -453,6 +453,8 @@ class PlantStepCore:
                     "commands_future_state": self.commands_future_state,
                     "unanswered_commands": self.unanswered_commands,
                     "clamped_steps": plant.clamped_steps,
+                    "joint_range_steps": plant.joint_range_steps,
+                    "tool_speed_steps": plant.tool_speed_steps,
                     "approach_slowed_steps": plant.approach_slowed_steps,
                     "watchdog_brakes": self.watchdog.brakes,
                     "stale_steps": self.watchdog.stale_steps,
@@ -493,8 +495,11 @@ class PlantStepCore:
         self.plant.restore(
             snapshot.mujoco_state, step, float(loop["gripper_cmd"]), snapshot.hold_q_rad
         )
-        self.plant.clamped_steps = int(loop["counts"]["clamped_steps"])
-        self.plant.approach_slowed_steps = int(loop["counts"]["approach_slowed_steps"])
+        counts = loop["counts"]
+        self.plant.clamped_steps = int(counts["clamped_steps"])
+        self.plant.joint_range_steps = int(counts["joint_range_steps"])
+        self.plant.tool_speed_steps = int(counts["tool_speed_steps"])
+        self.plant.approach_slowed_steps = int(counts["approach_slowed_steps"])
         self.state_seq = last_seq
         self._steps = steps
         finish = max(int(loop["finish_tick"]), previous.finish_tick if previous else -1)
@@ -743,6 +748,7 @@ class PlantStepCore:
             "commands_received": self.commands_received,
             "commands_applied": self.commands_applied,
             "commands_clamped": self.plant.clamped_steps,
+            "commands_clamped_by_reason": self.plant.clamped_by_reason(),
             "command_stream": {
                 **self.command_in.counts(),
                 "future_state": self.commands_future_state,

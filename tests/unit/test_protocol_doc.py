@@ -6,6 +6,7 @@ import dataclasses
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from teleop.bus.messages import (
@@ -24,6 +25,8 @@ from teleop.bus.messages import (
 )
 from teleop.bus.stamps import Inbound
 from teleop.core.config import Config, load_config
+from teleop.sim.plant import Plant
+from tests.conftest import ARM7_OVERRIDES
 
 ROOT = Path(__file__).resolve().parents[2]
 PROTOCOL_DOC = ROOT / "docs" / "protocol.md"
@@ -129,6 +132,41 @@ def test_protocol_doc_accounts_every_counter_of_the_command_stream():
     counters = {*Inbound(Stage.CONTROLLER_TX).counts(), "future_state"}
     for name in sorted(counters):
         assert f"`{name}`" in section or f"command_stream.{name}" in section, name
+
+
+def joint_reach_table() -> str:
+    """The table of docs/running.md "The limits a controller meets": each shipped arm's
+    joint reach (Plant.joint_reach_m) and the uniform joint-speed budget it gives."""
+    lines = ["| arm | reach per joint, base to wrist (m) | sum of joint speeds at most |",
+             "| --- | --- | ---: |"]  # fmt: skip
+    for name, overrides in (("6-DOF (default)", ()), ("7-DOF", ARM7_OVERRIDES)):
+        config = load_config(None, overrides)
+        reach = Plant(config).joint_reach_m()
+        budget = config.plant.tool_speed_limit_m_s / reach.max()
+        shown = ", ".join(f"{r:.3f}" for r in reach)
+        lines.append(f"| {name} | {shown} | {budget:.3f} rad/s |")
+    return "\n".join(lines)
+
+
+def test_running_doc_gives_each_arms_joint_reach():
+    expected = joint_reach_table()
+    assert _embedded(RUNNING_DOC, "joint_reach").strip() == expected, (
+        f"docs/running.md is stale: put this table between the markers:\n{expected}"
+    )
+
+
+def test_the_joint_reach_bounds_the_tool_speed_in_any_configuration(any_arm_config):
+    """|J q'| <= sum |q'_i| reach_i for random configurations and joint speeds: the rule
+    of thumb holds wherever the arm is."""
+    plant = Plant(any_arm_config)
+    reach = plant.joint_reach_m()
+    rng = np.random.default_rng(7)
+    home = plant.data.qpos[plant.qpos_index].copy()
+    for _ in range(300):
+        plant.set_arm_configuration(home + rng.uniform(-3.0, 3.0, home.shape))
+        qd = rng.normal(0.0, 1.0, home.shape)
+        speed = float(np.linalg.norm(plant.tool_jacobian() @ qd))
+        assert speed <= float(np.abs(qd) @ reach) + 1e-12
 
 
 def test_running_doc_gives_the_configs_tool_speed_figures():
