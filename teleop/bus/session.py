@@ -149,6 +149,10 @@ def router_config(bus: BusConfig, site: SiteConfig, *, listen: bool) -> zenoh.Co
     return conf
 
 
+# How long Publisher.undeclare waits for a put under way, s.
+UNDECLARE_WAIT_S = 1.0
+
+
 def _undeclare(entity: Any) -> None:
     try:
         entity.undeclare()
@@ -191,6 +195,11 @@ class Publisher:
         # A DROP stream never waits for room in the SHM pool: such a record is dropped.
         self._block = block
         self.dropped_pool_full = 0
+        # A put and the undeclare never overlap: zenoh-python refuses to undeclare a
+        # publisher another thread is putting on ("Already borrowed"), which a service's
+        # callback may do while it closes. After undeclare a put sends nothing.
+        self._lock = threading.Lock()
+        self._undeclared = False
 
     @classmethod
     def declare(
@@ -248,7 +257,10 @@ class Publisher:
     def put_bytes(self, data: bytes) -> bool:
         """Send raw bytes (already encoded) on the path their size calls for; False when
         a DROP stream's record was dropped for a full SHM pool (``dropped_pool_full``)."""
-        sent = put_by_size(self._pub, data, self._shm, block=self._block)
+        with self._lock:
+            if self._undeclared:
+                return False
+            sent = put_by_size(self._pub, data, self._shm, block=self._block)
         self.dropped_pool_full += not sent
         return sent
 
@@ -269,7 +281,15 @@ class Publisher:
             _undeclare(listener)
 
     def undeclare(self) -> None:
-        _undeclare(self._pub)
+        """Undeclare once no put is under way (a put blocked on a full link: after
+        :data:`UNDECLARE_WAIT_S`, undeclared anyway)."""
+        locked = self._lock.acquire(timeout=UNDECLARE_WAIT_S)
+        try:
+            self._undeclared = True
+            _undeclare(self._pub)
+        finally:
+            if locked:
+                self._lock.release()
 
 
 def subscribe(

@@ -445,3 +445,37 @@ def test_a_newest_only_subscriber_that_falls_behind_takes_the_newest_and_counts_
         bus.close_session(session, pub)
         bus.close_session(listener, fifo, newest)
     assert not newest._thread.is_alive()  # undeclare ended and joined its thread
+
+
+def test_a_publisher_undeclared_while_another_thread_puts_closes_cleanly():
+    """A service closes while a callback still publishes (the HMD did at shutdown): the
+    undeclare waits for the put under way instead of failing ("Already borrowed"), and a
+    put after it sends nothing."""
+    session = bus.open_session(_bus(free_endpoint()), listen=False)
+    errors: list[str] = []
+    data = m.TOOL_POSE.encode(m.TOOL_POSE.new())
+    try:
+        for _ in range(50):
+            pub = bus.Publisher.declare(session, "teleop/test/undeclare", m.TOOL_POSE)
+            done = threading.Event()
+
+            def spam(pub: bus.Publisher = pub, done: threading.Event = done) -> None:
+                try:
+                    while not done.is_set():
+                        pub.put_bytes(data)
+                except Exception as exc:  # what the close must never cause
+                    errors.append(repr(exc))
+
+            thread = threading.Thread(target=spam)
+            thread.start()
+            time.sleep(0.001)
+            try:
+                pub.undeclare()
+            except Exception as exc:
+                errors.append(f"undeclare: {exc!r}")
+            assert pub.put_bytes(data) is False
+            done.set()
+            thread.join()
+    finally:
+        bus.close_session(session)
+    assert errors == []
