@@ -28,6 +28,8 @@ import zenoh
 
 # -- the wire format (docs/protocol.md, "Records") --------------------------------------
 VERSION = 8
+# How long to wait for a first link to the stack before giving up (s).
+LINK_TIMEOUT_S = 10.0
 HEADER = struct.Struct("<HHIQq10q")  # version, kind, flags, seq, t_source_ns, trace_ns[10]
 HAPTIC_STATE, HAND_INPUT, FORCE_FEEDBACK, RUN_EVENT = 8, 9, 10, 7  # kinds
 HAND_INPUT_SIZE, FORCE_FEEDBACK_SIZE, RUN_EVENT_SIZE = 137, 408, 130
@@ -228,9 +230,22 @@ class OutsideHaptic:
 
 
 def wait_for_tokens(session: zenoh.Session, key: str, names: set) -> None:
-    """Poll until the liveliness tokens ``key/<name>`` of all ``names`` are present."""
-    while names - {str(r.ok.key_expr).rsplit("/", 1)[-1]
-                   for r in session.liveliness().get(f"{key}/*") if r.ok}:  # fmt: skip
+    """Poll until the liveliness tokens ``key/<name>`` of all ``names`` are present.
+
+    A session with the wrong credentials opens all the same and never links: no token
+    of a peer after LINK_TIMEOUT_S ends the program with that cause."""
+    start = time.monotonic()
+    while True:
+        seen = {str(r.ok.key_expr).rsplit("/", 1)[-1]
+                for r in session.liveliness().get(f"{key}/*") if r.ok}  # fmt: skip
+        if not names - seen:
+            return
+        if not seen & names and time.monotonic() - start > LINK_TIMEOUT_S:
+            session.close()
+            raise SystemExit(
+                f"no link to the stack after {LINK_TIMEOUT_S:g} s: is the stack up, and is "
+                "this the config file it printed for this run (its certificates)?"
+            )
         time.sleep(0.1)
 
 

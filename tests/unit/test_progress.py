@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from teleop.core.criteria import judge_task
 from teleop.run.progress import PROGRESS_PERIOD_S, RunProgress, human_summary
 
 PHASES = ("approach", "open", "descend")
@@ -112,3 +113,21 @@ def test_a_run_of_several_robots_shows_each_robot_and_names_its_one_recording_on
     assert "2 robots: success" in text and "robot arm0:" in text and "robot arm1:" in text
     assert "2.50 N" in text
     assert text.count("/r/recording.rrd") == 1 and "(every robot)" in text
+
+
+def test_a_failed_run_says_why_a_line_each():
+    """A person's cube released beside the bin: the short summary gives the reason, with
+    the distance and the bound, and the problems after it; a success gives none."""
+    figures = {"object_in_box": False, "object_bin_distance_m": 0.131, "arm_contacts": 0,
+               "max_device_force_n": 2.0, "commands_applied": 5000}  # fmt: skip
+    verdict = judge_task("grasp", figures, ["the operator did not finish the task"])
+    summary = {"scenario": "grasp", "mode": "realtime", **figures, **verdict.summary()}
+    lines = human_summary(summary, None)
+    assert lines[0] == "grasp (realtime): FAILED"
+    assert lines[1].split() == [
+        "why", "the", "cube", "is", "not", "in", "the", "bin:", "13.1", "cm", "from", "its",
+        "inside", "(bound", "0)",
+    ]  # fmt: skip
+    assert lines[2].strip() == "the operator did not finish the task"
+    good = {**summary, **judge_task("grasp", {**figures, "object_in_box": True}).summary()}
+    assert not any(line.lstrip().startswith("why") for line in human_summary(good, None))
