@@ -23,7 +23,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType, TracebackType
@@ -128,6 +128,7 @@ class Service:
         # access list gives them no right; they are counted, and logged once each.
         self.unknown_peers: list[str] = []
         self._participants: frozenset[str] = frozenset()  # the run's Zenoh ids
+        self._strangers_lock = threading.Lock()  # transport events and the summaries
         # Peers become_ready gave up on that linked after all: name -> seconds after the
         # start of the wait (on a starved machine start-up can outlast PEER_LINK_WAIT_S).
         self.peers_linked_late: dict[str, float] = {}
@@ -150,6 +151,16 @@ class Service:
         self.session = zenoh.open(self.zenoh_config())
         if self.config.bus.credentials_file:
             self._participants = participant_zids(Path(self.config.bus.credentials_file))
+            # Every link as it opens, however short its stay (the running summaries'
+            # check alone would miss a session gone before the next one); those open
+            # already, from the session's list. (The listener's own history panics in
+            # zenoh-python 1.x when a TLS link exists: "no reactor running".)
+            self.keep(self.session.info.declare_transport_events_listener(self._on_transport))
+            self.check_peers()
+
+    def _on_transport(self, event: zenoh.TransportEvent) -> None:
+        if event.kind == zenoh.SampleKind.PUT:
+            self._note_strangers([event.transport.zid])
 
     def zenoh_config(self) -> zenoh.Config:
         """This service's session config: a peer of the run's mesh (a site's router
@@ -378,16 +389,23 @@ class Service:
         running summary."""
         if not self._participants or self.session is None or self.session.is_closed():
             return []
+        return self._note_strangers(self.session.info.peers_zid())
+
+    def _note_strangers(self, linked: Iterable[object]) -> list[str]:
+        """Of the Zenoh ids ``linked``, those no participant of the run and not yet
+        noted: logged, added to :attr:`unknown_peers`, announced (on_strangers)."""
         new = []
-        for zid in strangers(self.session.info.peers_zid(), self._participants):
-            if zid not in self.unknown_peers:
-                self.unknown_peers.append(zid)
-                new.append(zid)
-                logger.warning(
-                    "a session that is no participant of this run linked (Zenoh id %s): "
-                    "it holds a run certificate or password; the access list gives it "
-                    "nothing", zid,
-                )  # fmt: skip
+        with self._strangers_lock:
+            for zid in strangers(linked, self._participants):
+                if zid not in self.unknown_peers:
+                    self.unknown_peers.append(zid)
+                    new.append(zid)
+        for zid in new:
+            logger.warning(
+                "a session that is no participant of this run linked (Zenoh id %s): "
+                "it holds a run certificate or password; the access list gives it "
+                "nothing", zid,
+            )  # fmt: skip
         if new:
             self.on_strangers(new)
         return new

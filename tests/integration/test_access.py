@@ -14,11 +14,14 @@ import stat
 import time
 from pathlib import Path
 
+import pytest
+
 from teleop.bus import session as bus
 from teleop.bus.access import PASSWORDS_FILE, new_zid, write_run_credentials
 from teleop.bus.messages import HAPTIC_STATE, JOINT_COMMAND, PLANT_STATE, DropCounter
+from teleop.bus.service import Service, ServiceOptions
 from teleop.bus.topics import Topics
-from teleop.core.config import BusConfig
+from teleop.core.config import BusConfig, load_config
 from tests.integration.receiving import TIMEOUT_S, Seen, free_endpoint
 
 ROBOT = "testarm"
@@ -191,3 +194,43 @@ def test_a_robots_controller_commands_its_own_robot_only(tmp_path):
         for session in (controller1, plant1, plant0):
             bus.close_session(session)
     assert at_arm0.seqs == []
+
+
+@pytest.mark.parametrize("tls", [False, True], ids=["password", "tls"])
+def test_a_stranger_linked_for_a_moment_is_reported_all_the_same(tmp_path, tls):
+    """A session that is no participant (the controller's password, or certificate,
+    under an id of its own) links to a running service and leaves within a few
+    milliseconds, long before the service's next running summary: the service lists it
+    all the same, as the link opens (Zenoh's transport events)."""
+    files = write_run_credentials(tmp_path / "auth", ["plant", "controller"], (ROBOT,), tls=tls)
+    thief_file = tmp_path / "thief.json"
+    thief_zid = new_zid()
+    stolen = json.loads(files["controller"].read_text())
+    thief_file.write_text(json.dumps({**stolen, "zid": thief_zid}))
+    endpoint = free_endpoint("tls" if tls else "tcp")
+    config = load_config(
+        None,
+        [f'bus.endpoint="{endpoint}"', f"bus.tls={str(tls).lower()}", "bus.gossip=false",
+         f'bus.credentials_file="{files["plant"]}"', f'robot.robot_id="{ROBOT}"'],
+    )  # fmt: skip
+
+    class Watching(Service):
+        name = "plant"
+
+    service = Watching(config, ServiceOptions(listen=True))
+    service.open()
+    try:
+        thief_config = dataclasses.replace(
+            config.bus, credentials_file=str(thief_file), peer_connect_endpoints=()
+        )
+        thief = bus.open_session(thief_config, listen=False)
+        deadline = time.monotonic() + TIMEOUT_S
+        while not thief.info.peers_zid():
+            assert time.monotonic() < deadline, "the thief's password did not link"
+            time.sleep(0.001)
+        bus.close_session(thief)
+        while thief_zid.lower() not in [z.lower() for z in service.unknown_peers]:
+            assert time.monotonic() < deadline, "the stranger went unreported"
+            time.sleep(0.01)
+    finally:
+        service.close()
