@@ -55,11 +55,12 @@ class RecorderService(Service):
         super().__init__(config, options)
         # One recording of every robot: a robot's entities under its id when there are
         # several (teleop.viz.entities entity_roots), all in one 3D view.
-        ledger = None
+        self._ledger: Path | None = None  # the run's segments (None: no run directory)
         if self.options.run_dir is not None:
-            ledger = self.options.run_dir / RECORDER_SEGMENTS_FILE
+            self._ledger = self.options.run_dir / RECORDER_SEGMENTS_FILE
         roots = entity_roots([t.robot_id for t in self.robot_topics])
-        self.file = RecordingFile(config, claim_segment(self._resolve_rrd_path(), ledger), roots)
+        segment = claim_segment(self._resolve_rrd_path(), self._ledger)
+        self.file = RecordingFile(config, segment, roots)
         self.writers: list[RecordingWriter] = [
             self.writer_class(
                 config, self.file, self.drops, root=root, buffer_capacity=buffer_capacity
@@ -138,11 +139,15 @@ class RecorderService(Service):
 
     def run(self, stop: threading.Event) -> None:
         """Flush every ``recorder.flush_every_s`` until ``stop`` is set, then flush the
-        rest."""
+        rest; a segment that reached ``recorder.segment_mb`` is closed and the next one
+        begun between two flushes (the writers log only in them)."""
         period_s = self.config.recorder.flush_every_s
         while not stop.wait(period_s):
             for writer in self.writers:
                 writer.flush()
+            if self.file.full():
+                current = self.file.segment
+                self.file.rotate(claim_segment(current.recording_path, self._ledger, current))
         for writer in self.writers:
             writer.flush()
 

@@ -1088,6 +1088,11 @@ class RecorderConfig:
     # The same while a live viewer watches (``spawn`` or ``grpc_url``): its plots move on
     # at every flush.
     live_flush_period_s: float = 0.1
+    # A segment's file is closed, its footer written, once it holds this much (MB), and
+    # the recording goes on in the next (teleop.viz.recording_file): Rerun keeps a
+    # file's chunk index, about as large as the file, in memory until its footer, so
+    # this bounds the recorder's memory whatever the run's length.
+    segment_mb: float = 16.0
     # Scheduling niceness (0 normal .. 19 lowest): a logger must not delay the loops.
     # Measured, realtime grasp on 2 cores: 10 gave realtime factor 0.82-0.87 and 40-45 %
     # plant overruns against 0.61-0.79 and 55-73 % at 0; lockstep unchanged (1.8x).
@@ -1104,6 +1109,7 @@ class RecorderConfig:
         _require(0 < self.flush_period_s <= 5, "recorder.flush_period_s in (0, 5]")
         _require(0 < self.live_flush_period_s <= 5, "recorder.live_flush_period_s in (0, 5]")
         _require(0 <= self.nice <= 19, "recorder.nice in [0, 19]")
+        _require(0 < self.segment_mb <= 4096, "recorder.segment_mb in (0, 4096]")
         _require(self.scene_rate_hz > 0, "recorder.scene_rate_hz > 0")
         _require(self.ghost_period_s > 0, "recorder.ghost_period_s > 0")
         _require(self.rate_window_s > 0, "recorder.rate_window_s > 0")

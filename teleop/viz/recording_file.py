@@ -58,25 +58,27 @@ class Segment:
         return cls(0, rrd_path, uuid.uuid4().hex, rrd_path)
 
 
-def claim_segment(rrd_path: Path, ledger: Path | None) -> Segment:
-    """This recorder's segment of the recording ``rrd_path``, from the run's ``ledger``
-    (None: a recorder without a run directory, always the first segment).
+def claim_segment(rrd_path: Path, ledger: Path | None, after: Segment | None = None) -> Segment:
+    """The next segment of the recording ``rrd_path`` for this recorder, from the run's
+    ``ledger`` (None: a recorder without a run directory) and the segment it closes
+    (``after``: it goes on in the next one, :meth:`RecordingFile.rotate`).
 
-    No ledger yet: the run's first recorder; it takes ``rrd_path`` itself and removes
-    stale later segments beside it (of an earlier run). A ledger: a restarted recorder;
-    it takes the next segment, never an existing file. The ledger is updated atomically.
+    No ledger and no segment before: the run's first recorder; it takes ``rrd_path``
+    itself and removes stale later segments beside it (of an earlier run). A ledger: a
+    restarted or rotating recorder; it takes the next segment, never an existing file.
+    The ledger is updated atomically.
     """
     segments: list[str] = []
-    recording_id = uuid.uuid4().hex
+    recording_id = after.recording_id if after is not None else uuid.uuid4().hex
     if ledger is not None and ledger.exists():
         known = json.loads(ledger.read_text())
         segments, recording_id = list(known["segments"]), str(known["recording_id"])
-    else:
+    elif after is None:
         index = 1
         while (stale := segment_path(rrd_path, index)).exists():
             stale.unlink()
             index += 1
-    index = len(segments)
+    index = max(len(segments), after.index + 1 if after is not None else 0)
     segment = Segment(index, segment_path(rrd_path, index), recording_id, rrd_path)
     if ledger is not None:
         ledger.parent.mkdir(parents=True, exist_ok=True)
@@ -96,19 +98,19 @@ def no_display_reason(environ: Mapping[str, str]) -> str | None:
 
 
 class RootedStream:
-    """A recording stream seen from one robot's entity root: ``log`` and
-    ``send_columns`` as Rerun's, every entity path under the root (the empty root: as
-    given)."""
+    """A recording seen from one robot's entity root: ``log`` and ``send_columns`` as
+    Rerun's, every entity path under the root (the empty root: as given), into the
+    file's current segment."""
 
-    def __init__(self, stream: rr.RecordingStream, root: str) -> None:
-        self._stream = stream
+    def __init__(self, file: RecordingFile, root: str) -> None:
+        self._file = file
         self.root = root
 
     def log(self, entity: str, *archetypes: Any, static: bool = False) -> None:
-        self._stream.log(rooted(self.root, entity), *archetypes, static=static)
+        self._file.log(rooted(self.root, entity), archetypes, static=static)
 
     def send_columns(self, entity: str, **kwargs: Any) -> None:
-        self._stream.send_columns(rooted(self.root, entity), **kwargs)
+        self._file.current.send_columns(rooted(self.root, entity), **kwargs)
 
 
 class RecordingFile:
@@ -125,6 +127,10 @@ class RecordingFile:
         self._rec: rr.RecordingStream | None = None
         # The live viewer (recorder.spawn): VIEWER_SPAWNED, or why none was.
         self.viewer = VIEWER_NOT_REQUESTED
+        # Every static entity logged, by path and archetypes: each segment gets them
+        # again, so the newest segment opens alone with the scene and the series' names.
+        self._statics: dict[tuple[str, tuple[str, ...]], tuple[Any, ...]] = {}
+        self.segments_closed = 0
 
     @property
     def rrd_path(self) -> Path:
@@ -133,42 +139,83 @@ class RecordingFile:
 
     def open(self) -> None:
         """The file (and viewer), the blueprint, and where each robot stands."""
+        if self.config.recorder.spawn:
+            self.viewer = self._spawn_viewer()
+        self._open_segment()
+        if len(self.roots) > 1:  # side by side, in a scene whose "up" is every world's
+            self.log("/", (rr.ViewCoordinates.RIGHT_HAND_Z_UP,), static=True)
+            for index, root in enumerate(self.roots):
+                self.log(root, (rr.Transform3D(translation=robot_offset_m(index)),), static=True)
+
+    def _open_segment(self) -> None:
+        """A Rerun stream into this segment's file (and the live sinks) with the
+        blueprint. The file gets its footer when the segment closes: Rerun keeps the
+        chunk index it writes there in memory until then, which ``recorder.segment_mb``
+        bounds."""
         self.rrd_path.parent.mkdir(parents=True, exist_ok=True)
         rec = rr.RecordingStream(APPLICATION_ID, recording_id=self.segment.recording_id)
-        # No footer: a footer's manifest keeps every chunk's metadata in memory until the
-        # file closes, and the recorder's RSS grew with the file (about 1.3 MB/s of a
-        # realtime grasp); streamed without one it stays flat. The file is still a
-        # complete recording (rerun.chunk.RrdReader and the viewer read it in order).
-        sinks: list[Any] = [rr.FileSink(self.rrd_path, write_footer=False)]
-        if self.config.recorder.spawn:
-            self.viewer = self._spawn_viewer(rec)
-            if self.viewer == VIEWER_SPAWNED:
-                sinks.append(rr.GrpcSink(grpc_url(VIEWER_PORT)))
+        sinks: list[Any] = [rr.FileSink(self.rrd_path, write_footer=True)]
+        if self.viewer == VIEWER_SPAWNED:
+            sinks.append(rr.GrpcSink(grpc_url(VIEWER_PORT)))
         if self.config.recorder.grpc_url:
             sinks.append(rr.GrpcSink(self.config.recorder.grpc_url))
         rec.set_sinks(*sinks)
         rec.send_blueprint(build_blueprint(self.config))
-        if len(self.roots) > 1:  # side by side, in a scene whose "up" is every world's
-            rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-            for index, root in enumerate(self.roots):
-                rec.log(root, rr.Transform3D(translation=robot_offset_m(index)), static=True)
         self._rec = rec
+
+    @property
+    def current(self) -> rr.RecordingStream:
+        """The Rerun stream of the segment being written."""
+        assert self._rec is not None, "RecordingFile.open() first"
+        return self._rec
+
+    def log(self, entity_path: str, archetypes: tuple[Any, ...], *, static: bool) -> None:
+        """Log into the current segment; a static entity is kept for the next ones."""
+        if static:
+            kinds = tuple(type(a).__name__ for a in archetypes)
+            self._statics[(entity_path, kinds)] = archetypes
+        self.current.log(entity_path, *archetypes, static=static)
 
     def stream(self, root: str) -> RootedStream:
         """What one robot's writer logs through (the file open)."""
         assert self._rec is not None, "RecordingFile.open() first"
-        return RootedStream(self._rec, root)
+        return RootedStream(self, root)
+
+    def segment_bytes(self) -> int:
+        """What the current segment's file holds on disk so far (bytes)."""
+        try:
+            return self.rrd_path.stat().st_size
+        except FileNotFoundError:
+            return 0
+
+    def full(self) -> bool:
+        """The current segment reached ``recorder.segment_mb``: time to :meth:`rotate`."""
+        return self.segment_bytes() >= self.config.recorder.segment_mb * 1e6
+
+    def rotate(self, segment: Segment) -> None:
+        """Close the current segment (its footer written) and go on in ``segment`` (the
+        run's next, :func:`claim_segment`): the blueprint and every static entity
+        logged again, so the newest segment opens alone in a viewer."""
+        self._close_segment()
+        self.segments_closed += 1
+        self.segment = segment
+        self._open_segment()
+        for (entity_path, _), archetypes in self._statics.items():
+            self.current.log(entity_path, *archetypes, static=True)
 
     def close(self) -> None:
-        """Wait for Rerun to write what it holds to the file, then close it. Safe to call
-        twice."""
+        """Wait for Rerun to write what it holds to the file, then close it (its footer
+        written). Safe to call twice."""
+        self._close_segment()
+
+    def _close_segment(self) -> None:
         if self._rec is None:
             return
         self._rec.flush(timeout_sec=RRD_FLUSH_TIMEOUT_S)
         self._rec.disconnect()
         self._rec = None
 
-    def _spawn_viewer(self, rec: rr.RecordingStream) -> str:
+    def _spawn_viewer(self) -> str:
         """Start the native viewer beside the file; VIEWER_SPAWNED, or why not.
 
         A recording that also streams to a viewer that never came up (no display: it
@@ -177,7 +224,7 @@ class RecordingFile:
         Rerun's own start-up wait gets no stream: the file alone has the run."""
         reason = no_display_reason(os.environ)
         if reason is None:
-            rec.spawn(port=VIEWER_PORT, connect=False)
+            rr.spawn(port=VIEWER_PORT, connect=False)
             if not listening(VIEWER_PORT, VIEWER_PROBE_S):
                 reason = f"the spawned viewer does not listen on port {VIEWER_PORT}"
         if reason is None:

@@ -74,14 +74,16 @@ class Gap:
 class Recording:
     """Every chunk of a recording, all its segments, grouped by entity (no leading '/')."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, *, one_segment: bool = False) -> None:
+        """The recording whose first segment is ``path``, all its segments; with
+        ``one_segment``, ``path`` alone (a viewer opening one segment sees that)."""
         self.path = Path(path)
         if not self.path.is_file():
             raise NotARecording(f"no recording {self.path}")
         self.batches: dict[str, list[pa.RecordBatch]] = defaultdict(list)
         self.segments: list[Segment] = []
         self.has_blueprint = False
-        for segment in segment_paths(self.path):
+        for segment in [self.path] if one_segment else segment_paths(self.path):
             self._read_segment(segment)
 
     def _read_segment(self, path: Path) -> None:

@@ -37,6 +37,7 @@ from teleop.viz.scene3d import ENTITY_GHOSTS, SceneModel
 from tests.e2e.hosts import Host, HostsUnavailable, two_hosts
 from tests.e2e.outcome import assert_ran, needs_realtime_stack
 from tests.e2e.users import HANG_S, USER, UserEnv
+from tests.rerun_check import rerun_verify_problems
 
 # Tolerance on the held weight the operator feels, as a fraction of m g.
 WEIGHT_TOLERANCE = 0.10
@@ -141,6 +142,7 @@ def test_realtime_grasp_puts_the_cube_in_the_bin(tmp_path):
     assert [p["name"] for p in summary["phases"]][-1] == "retreat"
     assert_physical(summary, SPEED_TOLERANCE_REALTIME)
     assert Path(summary["rrd"]).stat().st_size > 0
+    assert rerun_verify_problems(Path(summary["rrd"])) == []  # footers: Rerun's own check
 
 
 OBSTACLE_SETS = tuple(item for override in OBSTACLE for item in ("--set", override))

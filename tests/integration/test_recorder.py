@@ -27,12 +27,18 @@ from teleop.bus import messages as m
 from teleop.bus import session as bus
 from teleop.bus.service import ServiceOptions
 from teleop.core.config import Config, ConfigError, load_config
-from teleop.core.rundir import RECORDER_SEGMENTS_FILE, RECORDING_FILE, summary_path
+from teleop.core.rundir import (
+    RECORDER_SEGMENTS_FILE,
+    RECORDING_FILE,
+    segment_paths,
+    summary_path,
+)
 from teleop.viz import blueprint, recording
 from teleop.viz import entities as ent
 from teleop.viz.recording_file import RecordingFile, Segment, no_display_reason
 from teleop.viz.report import write_reports
 from teleop.viz.rrd import Recording, read_rrd
+from tests.rerun_check import rerun_verify_problems
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")
 os.environ.setdefault("TELEMETRY_ENABLED", "false")
@@ -699,3 +705,29 @@ def test_spawn_without_a_display_records_the_whole_run_to_the_file(tmp_path, mon
     rec = Recording(tmp_path / "spawn.rrd")
     q = rec.scalars(ent.TIMELINE_SIM)[ent.joint_entity(ent.ENTITY_JOINT_Q, JOINTS[0])]
     assert len(q.t_ns) == 50
+
+
+def test_a_long_recording_goes_on_in_segments_each_one_whole(rig_factory, tmp_path):
+    """Past ``recorder.segment_mb`` the recorder closes its file (footer written: Rerun's
+    own check passes) and goes on in the next segment, which carries the blueprint and
+    every static entity again (it opens alone); the segments together hold every record."""
+    rig = rig_factory(r.RecorderService, "recorder.segment_mb=0.02")
+    rounds = 4
+    per_round = {"plant_state": 100, "tool_pose": 100}
+    for k in range(rounds):
+        flushes = rig.service.writer.flushes
+        rig.publish(per_round, first=k * 100)
+        assert rig.service.writer.wait_flushes(flushes + 2, TIMEOUT_S)
+    rig.finish()
+    segments = segment_paths(rig.service.file.segment.recording_path)
+    assert len(segments) >= 2 and rig.service.file.segments_closed == len(segments) - 1
+    assert rerun_verify_problems(segments[0]) == []
+    ledger = json.loads((tmp_path / RECORDER_SEGMENTS_FILE).read_text())
+    assert ledger["segments"] == [str(p) for p in segments]
+    whole = read_rrd(segments[0])
+    q = series(whole, ent.joint_entity(ent.ENTITY_JOINT_Q, JOINTS[0]))
+    assert sorted(q) == [sim_ns(i) for i in range(rounds * 100)]  # nothing lost between
+    newest = Recording(segments[-1], one_segment=True)
+    assert newest.has_blueprint
+    statics = [e for e in newest.entities if e.startswith(ent.ENTITY_WORLD)]
+    assert statics, "the scene's static entities are in the newest segment too"
