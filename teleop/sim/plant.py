@@ -467,15 +467,14 @@ class Plant:
         qd = None
         for _ in range(self.steps_per_tick):
             self.prepare_step()  # this step's contacts (collision detection)
-            if qd is None or self._near_scene:
-                # The tick's first step, or the gripper near the scene (the approach
-                # limit's contacts): the limits at this step's own state.
+            if qd is None or self._gripper_contacts:
+                # The tick's first step, or the gripper near something (the approach
+                # limit's contacts, a held object's): the limits at this step's own state.
                 qd = self.limit(qd_ref_rad_s)
             else:
-                # Free of the scene (a held cube apart): the limited command holds (the
-                # tool-speed limit on the motion it asks for; the arm moves well under a
-                # millimetre per step, and the protective stop judges the measured speed
-                # after every step).
+                # Free of everything: the limited command holds (the tool-speed limit on
+                # the motion it asks for; the arm moves well under a millimetre per step,
+                # and the protective stop judges the measured speed after every step).
                 self._count_cuts()
                 self.approach_slowed_steps += self._limit_slowed
             self.data.ctrl[self.gripper_actuator] = gripper_ctrl
@@ -574,12 +573,6 @@ class Plant:
             if not with_object:
                 scene += on_gripper
         return total, touching, scene
-
-    @property
-    def _near_scene(self) -> bool:
-        """The gripper touches, or is within the approach range of, something other than
-        a free object (in the state the next step starts from)."""
-        return any(not contact.with_object for contact in self._gripper_contacts or ())
 
     def _find_gripper_contacts(self) -> list[GripperContact]:
         """The contacts between the gripper and anything else, in ``data.contact``

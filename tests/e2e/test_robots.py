@@ -46,7 +46,7 @@ def test_both_robots_tasks_succeed_one_after_the_other(two_robots):
         assert section["success"] and section["object_in_box"], robot_id
         assert [p["name"] for p in section["phases"]][-1] == "retreat", robot_id
         assert judge_summary(section).summary() == {
-            key: section[key] for key in ("success", "criteria", "problems")
+            key: section[key] for key in ("success", "criteria", "problems", "reasons")
         }  # the one verdict, given again the same way
         assert_physical({**summary, **section})
         assert set(section["cpu_s_per_sim_s"]) == {"plant", "controller"}
