@@ -6,7 +6,7 @@ recorder writing its .rrd), samples each service's resident memory (VmRSS of its
 process, from /proc) every --sample-every seconds for --duration seconds, and watches
 the plant's loop at the start and at the end: a window of its states from the bus (the
 run's read-only observer credentials), the lateness of each state being the gap since
-the previous one beyond the 1 ms period. Then `teleop down`, and checks that no process
+the previous one beyond the bus period (`loop.rate_hz`). Then `teleop down`, and checks that no process
 of the stack and no shared-memory segment it made is left. Reports, per service, the
 RSS slope after the warm-up (least squares, KB/s; the goal is under 50 KB/s) and the
 p99 lateness at start and end. Writes JSON.
@@ -42,7 +42,6 @@ DEFAULT_WARMUP_S = 60.0
 # The plant's loop is watched for this long at the start (after the warm-up) and the end.
 LATENESS_WINDOW_S = 10.0
 SLOPE_GOAL_KB_S = 50.0
-PERIOD_NS = 1_000_000  # plant.timestep_s
 SHM_DIR = Path("/dev/shm")
 UP_TIMEOUT_S = 300
 
@@ -93,7 +92,8 @@ def plant_lateness_p99_ms(endpoint: str, observer: Path, window_s: float) -> dic
     finally:
         close_session(session, sub)
     gaps = np.diff(np.sort(np.array(stamps, np.int64)))
-    late_ms = np.maximum(gaps - PERIOD_NS, 0) / 1e6
+    period_ns = round(config.tick_s * 1e9)  # one state per bus period
+    late_ms = np.maximum(gaps - period_ns, 0) / 1e6
     if not len(late_ms):
         return {"states": len(stamps)}
     return {
