@@ -6,10 +6,10 @@ recorder writing its .rrd), samples each service's resident memory (VmRSS of its
 process, from /proc) every --sample-every seconds for --duration seconds, and watches
 the plant's loop at the start and at the end: a window of its states from the bus (the
 run's read-only observer credentials), the lateness of each state being the gap since
-the previous one beyond the bus period (`loop.rate_hz`). Then `teleop down`, and checks that no process
-of the stack and no shared-memory segment it made is left. Reports, per service, the
-RSS slope after the warm-up (least squares, KB/s; the goal is under 50 KB/s) and the
-p99 lateness at start and end. Writes JSON.
+the previous one beyond the bus period (`loop.rate_hz`). Then `teleop down`, and
+checks that no process of the stack and no shared-memory segment it made is left.
+Reports, per service, the RSS slope after the warm-up (least squares, KB/s; the goal is
+under 50 KB/s) and the p99 lateness at start and end. Writes JSON.
 
     .venv/bin/python tests/benchmarks/memory_soak.py --duration 600 --json runs/soak.json
 """
