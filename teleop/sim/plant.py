@@ -160,7 +160,7 @@ class Plant:
         )
         self.approach_slowed_steps = 0  # steps whose command the approach limit slowed
         self._limit_slowed = False  # the last limit() slowed it for the approach
-        self._jacr = np.zeros((3, self.model.nv))
+        self._jac_other = np.zeros((3, self.model.nv))
         # The objects that move freely (the cube; not the bin, welded to the world): the
         # gripper may hold them, and what they push is not a press on the scene.
         free = {b for b in self.object_bodies.tolist() if self.model.body_weldid[b] != 0}
@@ -405,56 +405,35 @@ class Plant:
         factor in (0, 1]) so that no point of the gripper closes in on the scene (not a
         free object) faster than :func:`allowed_approach_m_s` at its separation: over
         the gripper's contacts of the state the step starts from, touching or within
-        ``approach_range_m``, the relative speed of the contact point along the normal.
-
-        All contacts at once: each body's twist under the motion (MuJoCo's body
-        Jacobian, one per body) moves its contact points rigidly, ``v + w x (p - x)``.
-        """
+        ``approach_range_m``, the relative speed of the contact point along the normal."""
         if self.approach_time_s <= 0:
             return 1.0
-        scene = [c for c in self._gripper_contacts or () if not c.with_object]
-        if not scene:
-            return 1.0
-        model, data = self.model, self.data
-        rows = np.fromiter((c.index for c in scene), dtype=np.intp, count=len(scene))
-        on_geom2 = np.fromiter((c.on_geom2 for c in scene), dtype=bool, count=len(scene))
-        geoms = data.contact.geom[rows]
-        gripper_geom = np.where(on_geom2, geoms[:, 1], geoms[:, 0])
-        other_geom = np.where(on_geom2, geoms[:, 0], geoms[:, 1])
-        points = data.contact.pos[rows]
-        relative = self._point_velocities(model.geom_bodyid[gripper_geom], points, motion_rad_s)
-        other_body = model.geom_bodyid[other_geom]
-        moving = model.body_weldid[other_body] != 0  # the arm itself: relative speed
-        if moving.any():
-            relative[moving] -= self._point_velocities(
-                other_body[moving], points[moving], motion_rad_s
-            )
-        # The normal points from geom1 to geom2: from the scene towards the gripper when
-        # the gripper is geom2. Closing in = moving against it.
-        along_normal = np.einsum("ij,ij->i", data.contact.frame[rows, :3], relative)
-        closing_m_s = np.where(on_geom2, -along_normal, along_normal)
-        allowed_m_s = allowed_approach_m_s(
-            data.contact.dist[rows], self.approach_touch_m_s, self.approach_time_s
-        )
-        fast = closing_m_s > allowed_m_s
-        if not fast.any():
-            return 1.0
-        return float(np.min(allowed_m_s[fast] / closing_m_s[fast]))
-
-    def _point_velocities(
-        self, bodies: np.ndarray, points_m: np.ndarray, motion_rad_s: np.ndarray
-    ) -> np.ndarray:
-        """World velocities (n, 3), m/s, of ``points_m`` (n, 3) fixed to ``bodies`` (n,)
-        when the arm's joints move at ``motion_rad_s`` (the state's kinematics)."""
-        velocities = np.empty_like(points_m)
+        contacts = self._gripper_contacts or ()
+        scale = 1.0
         dofs = self.dof_index
-        for body in np.unique(bodies).tolist():
-            mujoco.mj_jacBody(self.model, self.data, self._jacp, self._jacr, body)
-            linear = self._jacp[:, dofs] @ motion_rad_s  # of the body frame's origin
-            angular = self._jacr[:, dofs] @ motion_rad_s
-            on = bodies == body
-            velocities[on] = linear + np.cross(angular, points_m[on] - self.data.xpos[body])
-        return velocities
+        model, data = self.model, self.data
+        for contact in contacts:
+            if contact.with_object:
+                continue
+            i = contact.index
+            point = data.contact.pos[i]
+            gripper_geom, other_geom = data.contact.geom[i][:: -1 if contact.on_geom2 else 1]
+            mujoco.mj_jac(model, data, self._jacp, None, point, model.geom_bodyid[gripper_geom])
+            relative = self._jacp[:, dofs] @ motion_rad_s
+            other_body = model.geom_bodyid[other_geom]
+            if model.body_weldid[other_body] != 0:  # a moving body (the arm): relative speed
+                mujoco.mj_jac(model, data, self._jac_other, None, point, other_body)
+                relative -= self._jac_other[:, dofs] @ motion_rad_s
+            # The normal points from geom1 to geom2: from the scene towards the gripper
+            # when the gripper is geom2. Closing in = moving against it.
+            normal = data.contact.frame[i][:3]
+            closing_m_s = float(-(normal @ relative) if contact.on_geom2 else normal @ relative)
+            allowed = allowed_approach_m_s(
+                float(data.contact.dist[i]), self.approach_touch_m_s, self.approach_time_s
+            )
+            if closing_m_s > allowed:
+                scale = min(scale, allowed / closing_m_s)
+        return scale
 
     def step(self, qd_ref_rad_s: np.ndarray, gripper_cmd: float) -> None:
         """Apply velocity references (rad/s) for one tick: each physics step holds them,

@@ -30,19 +30,15 @@ import enum
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
-import numpy as np
 
-
-def allowed_approach_m_s(
-    separation_m: float | np.ndarray, touch_m_s: float, time_s: float
-) -> float | np.ndarray:
+def allowed_approach_m_s(separation_m: float, touch_m_s: float, time_s: float) -> float:
     """The speed (m/s) at which the gripper may close in on the scene ``separation_m``
     away (speed and separation monitoring): ``touch_m_s`` plus the separation covered in
     ``time_s``. Commanded at it, the gap closes exponentially with time constant
     ``time_s`` (slow beside the velocity loops, which follow it) until the gripper meets
     the scene at ``touch_m_s``: a contact the force limit stops within its margin,
-    instead of an impact it cannot. Elementwise for an array of separations."""
-    return touch_m_s + np.maximum(separation_m, 0.0) / time_s
+    instead of an impact it cannot."""
+    return touch_m_s + max(separation_m, 0.0) / time_s
 
 
 class StopCause(enum.IntEnum):
