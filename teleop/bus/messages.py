@@ -216,7 +216,6 @@ HEADER_FIELDS: tuple[Field, ...] = (
 
 _STRUCT_CODES = {"u1": "B", "u2": "H", "u4": "I", "u8": "Q", "i8": "q"}  # standard sizes
 _HEADER_PREFIX = struct.Struct("<HH")  # version, kind: enough to dispatch a raw buffer
-_VERSION_PREFIX = struct.Struct("<H")
 
 
 def _numpy_dtype(fields: Sequence[Field]) -> np.dtype:
@@ -302,13 +301,13 @@ class Schema:
         hear), wrong size or kind, a count above its maximum, a non-finite float
         anywhere, or a value outside its declared limits.
         """
-        if len(buf) >= _HEADER_PREFIX.size:
-            (version,) = _VERSION_PREFIX.unpack_from(buf, 0)
-            if version != self.version:
-                raise DecodeError(self.kind, Reason.VERSION, f"{version}, expected {self.version}")
+        if len(buf) < _HEADER_PREFIX.size:
+            raise DecodeError(self.kind, Reason.SIZE, f"{len(buf)} B, expected {self.size} B")
+        version, kind = _HEADER_PREFIX.unpack_from(buf, 0)
+        if version != self.version:
+            raise DecodeError(self.kind, Reason.VERSION, f"{version}, expected {self.version}")
         if len(buf) != self.size:
             raise DecodeError(self.kind, Reason.SIZE, f"{len(buf)} B, expected {self.size} B")
-        _, kind = _HEADER_PREFIX.unpack_from(buf, 0)
         if kind != self.kind:
             raise DecodeError(self.kind, Reason.KIND, f"got kind {kind}")
         for name, offset, fmt, lo, hi in self._int_checks:
@@ -808,16 +807,12 @@ class DropCounter:
         with self._lock:
             return dict(self._counts)
 
-    def first_details(self) -> dict[tuple[int, str], str]:
-        """Snapshot of {(kind, reason): the first such drop's detail} (a version drop's:
-        "<its version>, expected <ours>")."""
-        with self._lock:
-            return dict(self._first_details)
-
     def by_key(self) -> dict[str, dict[str, Any]]:
-        """What a summary reports: ``counts`` and the ``first`` one's detail by
-        ``"KIND:reason"`` (the record kind's name and :class:`Reason`)."""
-        counts, details = self.counts(), self.first_details()
+        """What a summary reports: ``counts`` and the ``first`` one's detail (a version
+        drop's: "<its version>, expected <ours>") by ``"KIND:reason"`` (the record
+        kind's name and :class:`Reason`), one snapshot."""
+        with self._lock:
+            counts, details = dict(self._counts), dict(self._first_details)
         return {
             "counts": {f"{Kind(k).name}:{r}": n for (k, r), n in sorted(counts.items())},
             "first": {f"{Kind(k).name}:{r}": d for (k, r), d in sorted(details.items())},

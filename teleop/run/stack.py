@@ -764,12 +764,8 @@ def run_on_services(
     }
     # A pair of peers that never linked: what one sent the other is lost (Service.become_ready).
     unlinked = {n: s["unlinked_peers"] for n, s in summaries.items() if s.get("unlinked_peers")}
-    # Restarted services: their earlier processes' drops count too.
-    dropped = drops.total + sum(
-        incarnation.get("dropped_messages", 0)
-        for s in summaries.values()
-        for incarnation in (s, *s.get("earlier_incarnations", []))
-    )
+    # The bad records each receiver dropped (restarted services: their earlier
+    # processes' too), by kind and reason, and their total.
     dropped_by: dict[str, dict[str, Any]] = {"launcher": drops.by_key()}
     for name, s in summaries.items():
         for incarnation in (*s.get("earlier_incarnations", []), s):
@@ -778,6 +774,7 @@ def run_on_services(
                 mine["counts"][key] = mine["counts"].get(key, 0) + count
             for key, detail in (incarnation.get("dropped_first") or {}).items():
                 mine["first"].setdefault(key, detail)
+    dropped = sum(sum(d["counts"].values()) for d in dropped_by.values())
     restarted = {
         name: len(s["earlier_incarnations"])
         for name, s in summaries.items()
