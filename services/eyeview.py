@@ -47,6 +47,7 @@ from teleop.bus.service import Service, lower_priority_to, service_main
 from teleop.bus.session import Latest, Publisher, open_session, subscribe
 from teleop.core.clock import NS_PER_S, LoopTimer, MonotonicClock
 from teleop.core.config import ConfigError
+from teleop.core.ring import Ring
 from teleop.viz.eyeview import EyeRenderer
 
 logger = logging.getLogger(__name__)
@@ -139,7 +140,7 @@ class EyeViewService(Service):
         self.frames_published = 0
         self.frames_without_state = 0  # ticks before the first PLANT_STATE
         self.frames_from_hmd = 0
-        self._render_ns = np.zeros(RENDER_TIME_SAMPLES, dtype=np.int64)
+        self._render_ns = Ring(RENDER_TIME_SAMPLES)
         self.timer: LoopTimer | None = None
         self._cpu_start_s = time.process_time()
         self._wall_start_ns = time.monotonic_ns()
@@ -209,7 +210,7 @@ class EyeViewService(Service):
             rec["head_rx_ns"] = 0
         pixels = self.renderer.render(p_m, yaw, pitch)
         end_ns = time.monotonic_ns()
-        self._render_ns[self.frames_published % RENDER_TIME_SAMPLES] = end_ns - start_ns
+        self._render_ns.append(end_ns - start_ns)
         rec["seq"] = self.frames_published
         rec["t_source_ns"] = start_ns
         rec["sim_time_ns"] = state["sim_time_ns"]
@@ -236,8 +237,8 @@ class EyeViewService(Service):
 
     def summary(self) -> dict[str, Any]:
         """Frames, render time (ms), the loop's statistics and this process's CPU share."""
-        filled = self._render_ns[: min(self.frames_published, RENDER_TIME_SAMPLES)]
-        p50, p99 = np.percentile(filled, [50, 99]) / NS_PER_MS if filled.size else (0.0, 0.0)
+        p50_ns, p99_ns = self._render_ns.percentiles([50, 99]) or (0.0, 0.0)
+        p50, p99 = p50_ns / NS_PER_MS, p99_ns / NS_PER_MS
         wall_s = (time.monotonic_ns() - self._wall_start_ns) / NS_PER_S
         cpu_s = time.process_time() - self._cpu_start_s
         eye = self.config.eyeview

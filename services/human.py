@@ -32,6 +32,7 @@ from teleop.bus.messages import (
 from teleop.bus.service import Service
 from teleop.bus.session import RecordCallback, subscribe, subscribe_events
 from teleop.core.clock import NS_PER_S
+from teleop.core.ring import Ring
 from teleop.devices.human import HandIntent
 from teleop.devices.human_loop import HumanOperatorLoop, HumanStation
 from teleop.devices.routing import SceneKnowledge
@@ -68,8 +69,7 @@ class HumanOperatorService(Service):
         self._finished: set[int] = set()
         self._wake = threading.Event()  # the pacer: a run started, or the input changed
         # From a device input (a key press) to the first hand input that carries it (ns).
-        self._input_latency_ns = np.zeros(LATENCY_SAMPLES, dtype=np.int64)
-        self._inputs_timed = 0
+        self._input_latency_ns = Ring(LATENCY_SAMPLES)
         self._pending_input_ns: int | None = None
         for robot, topics in enumerate(self.robot_topics):
             self.subscribe_stream("tool_pose", self._on_tool(robot), topics)
@@ -213,17 +213,17 @@ class HumanOperatorService(Service):
             self._wake.wait(max(0.0, (next_ns - time.monotonic_ns()) / NS_PER_S))
 
     def _time_input(self, latency_ns: int) -> None:
-        self._input_latency_ns[self._inputs_timed % LATENCY_SAMPLES] = latency_ns
-        self._inputs_timed += 1
+        self._input_latency_ns.append(latency_ns)
 
     def summary(self) -> dict[str, Any]:
         with self.lock:
             task = self.station.summary([t.robot_id for t in self.robot_topics])
-        timed = self._input_latency_ns[: min(self._inputs_timed, LATENCY_SAMPLES)] / 1e6
-        latency: dict[str, Any] = {"inputs": int(self._inputs_timed)}
+        timed = self._input_latency_ns
+        latency: dict[str, Any] = {"inputs": timed.count}
         if len(timed):
-            p50, p99 = np.percentile(timed, [50, 99])
-            latency.update(p50=round(p50, 3), p99=round(p99, 3), max=round(timed.max(), 3))
+            p50, p99 = timed.percentiles([50, 99])
+            latency.update(p50=round(p50 / 1e6, 3), p99=round(p99 / 1e6, 3),
+                           max=round(timed.max() / 1e6, 3))  # fmt: skip
         return {
             **super().summary(),
             **task,

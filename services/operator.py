@@ -38,6 +38,7 @@ from teleop.bus.service import STOP_POLL_S, Service, service_main
 from teleop.bus.session import Publisher, RecordCallback, subscribe_events
 from teleop.bus.topics import Topics
 from teleop.core.clock import NS_PER_S
+from teleop.core.ring import Ring
 from teleop.devices.operator import (
     Arrival,
     HandCommand,
@@ -116,8 +117,7 @@ class OperatorService(Service):
         self._arrivals: queue.SimpleQueue[Arrival] = queue.SimpleQueue()
         # From a pose's sample on the plant to this operator's decisions on it (ns): how
         # late the hand is on top of its reaction delay (realtime; a starved operator).
-        self._lateness_ns = np.zeros(LATENESS_SAMPLES, dtype=np.int64)
-        self._poses_decided = 0
+        self._lateness_ns = Ring(LATENESS_SAMPLES)
         for robot, topics in enumerate(self.robot_topics):
             buffer = loops[robot].buffer
             self.subscribe_stream("tool_pose", self._on_tool(robot), topics)
@@ -204,15 +204,14 @@ class OperatorService(Service):
             self.station.take(items, self._decided)
 
     def _decided(self, sampled_ns: int) -> None:
-        self._lateness_ns[self._poses_decided % LATENESS_SAMPLES] = time.monotonic_ns() - sampled_ns
-        self._poses_decided += 1
+        self._lateness_ns.append(time.monotonic_ns() - sampled_ns)
 
     def summary(self) -> dict[str, Any]:
-        lateness_ms = self._lateness_ns[: min(self._poses_decided, LATENESS_SAMPLES)] / 1e6
         late: dict[str, Any] = {}
-        if len(lateness_ms):
-            p50, p99 = np.percentile(lateness_ms, [50, 99])
-            late = {"p50": round(p50, 3), "p99": round(p99, 3), "max": round(lateness_ms.max(), 3)}
+        if len(self._lateness_ns):
+            p50, p99 = self._lateness_ns.percentiles([50, 99])
+            late = {"p50": round(p50 / 1e6, 3), "p99": round(p99 / 1e6, 3),
+                    "max": round(self._lateness_ns.max() / 1e6, 3)}  # fmt: skip
         tasks = self.station.summary([topics.robot_id for topics in self.robot_topics])
         return {**super().summary(), **tasks, "pose_to_decision_ms": late}
 

@@ -2,28 +2,26 @@
 
 The latency report (:mod:`teleop.bench.latency`) is computed from these raw samples, never
 from summaries of them, so every percentile it prints can be recomputed from the files.
-A :class:`StampLog` is an append-only ``int64`` table: appending a row costs a slice
-assignment (no allocation until the table doubles), cheap enough for a 1 kHz loop.
+A :class:`StampLog` is a ring of ``int64`` rows (:class:`teleop.core.ring.Ring`): appending
+a row costs a slice assignment, cheap enough for a 1 kHz loop, and its memory is the same
+at the end of an hour as at the start.
 """
 
 from __future__ import annotations
 
 import logging
-import os
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from teleop.bus.messages import Stage
+from teleop.core.ring import Ring
 
 logger = logging.getLogger(__name__)
 
-# Rows allocated up front: about 65 s at 1 kHz before the first doubling.
-DEFAULT_CAPACITY_ROWS = 65_536
-# Rows kept at most (10 min at 1 kHz, 48 MB for a trace log): a long-running stack
-# (`teleop up`) must not grow without bound; later rows are only counted.
-DEFAULT_MAX_ROWS = 600_000
+# Rows a stamp log keeps, the newest: 65 s of a 1 kHz stream, 4.4 min at 250 Hz (5 MB for
+# a trace log of 10 stamps a row); older rows are only counted.
+STAMP_LOG_ROWS = 65_536
 # Realtime teleoperation: an input of the loop (haptic sample, state, feedback) older than
 # this when its callback runs (its producer's stamp to now) is shed, not answered: the
 # service is behind (a CPU stall), its answer would be late anyway, and answering every
@@ -32,55 +30,12 @@ DEFAULT_MAX_ROWS = 600_000
 SHED_AGE_NS = 5_000_000
 
 
-class StampLog:
-    """Append-only table of ``n_columns`` int64 values per row (nanoseconds, seqs).
+class StampLog(Ring):
+    """The newest ``max_rows`` rows of ``n_columns`` int64 stamps (ns, seqs); ``dropped``
+    counts the older rows no longer kept."""
 
-    Keeps the first ``max_rows`` rows; later ones are counted in ``overflow``. Not
-    thread-safe: the owning service appends under its own lock.
-    """
-
-    def __init__(
-        self,
-        n_columns: int,
-        capacity_rows: int = DEFAULT_CAPACITY_ROWS,
-        max_rows: int = DEFAULT_MAX_ROWS,
-    ) -> None:
-        if n_columns <= 0 or capacity_rows <= 0 or max_rows <= 0:
-            raise ValueError("n_columns, capacity_rows and max_rows must be > 0")
-        self._table = np.zeros((min(capacity_rows, max_rows), n_columns), dtype=np.int64)
-        self._n = 0
-        self.max_rows = max_rows
-        self.overflow = 0
-
-    def __len__(self) -> int:
-        return self._n
-
-    def append(self, row: np.ndarray | Sequence[int]) -> None:
-        """Add one row (``n_columns`` integers); only counted once ``max_rows`` are kept."""
-        if self._n >= self.max_rows:
-            self.overflow += 1
-            return
-        if self._n == self._table.shape[0]:
-            rows = min(2 * self._table.shape[0], self.max_rows)
-            grown = np.zeros((rows, self._table.shape[1]), dtype=np.int64)
-            grown[: self._n] = self._table
-            self._table = grown
-        self._table[self._n] = row
-        self._n += 1
-
-    @property
-    def rows(self) -> np.ndarray:
-        """The rows appended so far, shape (n, n_columns) (a view: copy to keep it)."""
-        return self._table[: self._n]
-
-    def save(self, path: Path) -> None:
-        """Write the rows as a ``.npy`` file, atomically (a reader never sees half a file)."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        with open(tmp, "wb") as f:
-            np.save(f, self.rows)
-        os.replace(tmp, path)
+    def __init__(self, n_columns: int, max_rows: int = STAMP_LOG_ROWS) -> None:
+        super().__init__(max_rows, n_columns, np.int64)
 
 
 # Sequence window: a record more than this many seqs ahead of the newest accepted one is

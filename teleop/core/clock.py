@@ -15,7 +15,7 @@ import os
 import time
 from typing import Protocol, runtime_checkable
 
-import numpy as np
+from teleop.core.ring import Ring
 
 NS_PER_S = 1_000_000_000  # nanoseconds per second
 NS_PER_US = 1_000  # nanoseconds per microsecond
@@ -159,7 +159,7 @@ class LoopTimer:
         self.period_ns = period_ns
         self.max_lateness_ns = max_lateness_ns
         self.clock: Clock = clock if clock is not None else MonotonicClock()
-        self._lateness_ring_ns = np.zeros(lateness_samples, dtype=np.int64)
+        self._lateness_ns = Ring(lateness_samples)
         self.count = 0  # ticks returned by wait()
         self.overruns = 0  # cycles whose work ended after the next deadline
         self.skipped = 0  # deadlines never returned (stalls, very late wake-ups)
@@ -218,7 +218,7 @@ class LoopTimer:
         return tick
 
     def _record(self, lateness_ns: int) -> None:
-        self._lateness_ring_ns[self.count % self._lateness_ring_ns.size] = lateness_ns
+        self._lateness_ns.append(lateness_ns)
         self.count += 1
         self._lateness_max_ns = max(self._lateness_max_ns, lateness_ns)
 
@@ -228,11 +228,7 @@ class LoopTimer:
         Lateness is wake-up time minus deadline of returned ticks, in us; p50/p99 cover the
         most recent ``lateness_samples`` ticks, ``lateness_max_us`` all of them.
         """
-        filled = self._lateness_ring_ns[: min(self.count, self._lateness_ring_ns.size)]
-        if filled.size:
-            p50_ns, p99_ns = np.percentile(filled, [50.0, 99.0])
-        else:
-            p50_ns = p99_ns = 0.0
+        p50_ns, p99_ns = self._lateness_ns.percentiles([50.0, 99.0]) or (0.0, 0.0)
         return {
             "period_us": self.period_ns / NS_PER_US,
             "count": self.count,

@@ -759,8 +759,8 @@ class HapticLoop:
             # lost, reordered, jumps, ... (robot 0's stream; per robot in a run of several)
             "feedback_stream": self.feedback_in.counts(),
             "feedback_streams": [inbound.counts() for inbound in self.feedback_ins],
-            "feedback_rendered": len(self.trace_log) + self.trace_log.overflow,
-            "trace_rows_not_kept": self.trace_log.overflow,
+            "feedback_rendered": len(self.trace_log) + self.trace_log.dropped,
+            "trace_rows_not_kept": self.trace_log.dropped,
             "rate_hz": self._rate_hz(),
             # the emulated link's delay each way (site.emulated_round_trip_ms)
             "link_delay_ticks": {"forward": self.forward_ticks, "backward": self.backward_ticks},

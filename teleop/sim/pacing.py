@@ -22,6 +22,7 @@ All three run on an injected clock: the tests drive each on the fake clock.
 from __future__ import annotations
 
 import collections
+import itertools
 import threading
 from dataclasses import asdict, dataclass
 from typing import Protocol
@@ -32,6 +33,7 @@ from teleop.bus.messages import Stage
 from teleop.bus.session import Latest
 from teleop.core.clock import NS_PER_S, Clock, LoopTimer
 from teleop.core.config import LOCKSTEP_RESEND_S, Config
+from teleop.core.ring import Ring
 from teleop.sim.checkpoint import CheckpointStore
 from teleop.sim.stepping import Abort, PacingFigures, PlantOutputs, PlantStepCore
 
@@ -333,8 +335,8 @@ class DeviceClockPacer:
 
 
 # -- lockstep ----------------------------------------------------------------------------
-# Lockstep cycle breakdown: the newest cycles kept (a ring; 60 s of lockstep fits).
-CYCLE_STATS_CAPACITY = 1 << 16
+# Lockstep cycle breakdown: the newest cycles kept (a ring; 65 simulated s at 250 Hz).
+CYCLE_STATS_CAPACITY = 1 << 14
 
 
 class LockstepCycleStats:
@@ -352,32 +354,38 @@ class LockstepCycleStats:
     SEGMENTS = ("to_controller", "controller", "to_plant", "plant_rx", "plant_step")
 
     def __init__(self, capacity: int = CYCLE_STATS_CAPACITY) -> None:
-        self._stamps_ns = np.zeros((capacity, len(self.SEGMENTS) + 1), dtype=np.int64)
-        self._count = 0
+        # Per cycle: each segment's duration, then the whole cycle's (ns).
+        self._durations_ns = Ring(capacity, len(self.SEGMENTS) + 1)
+        self._periods_ns = Ring(capacity)  # between two consecutive states sent
+        self._last_sent_ns = 0
 
     _STAGES = [Stage.CONTROLLER_RX, Stage.CONTROLLER_TX, Stage.PLANT_RX, Stage.PLANT_APPLIED,
                Stage.PLANT_STATE_TX]  # fmt: skip
 
     def add(self, answered_state_tx_ns: int, trace_ns: np.ndarray) -> None:
-        """Record one cycle from the new state's stamps (they include the command's)."""
-        row = self._stamps_ns[self._count % len(self._stamps_ns)]
-        row[0] = answered_state_tx_ns
-        row[1:] = trace_ns[self._STAGES]
-        self._count += 1
+        """Record one cycle from the new state's stamps (they include the command's); a
+        cycle with a stamp missing is left out."""
+        stamps = [answered_state_tx_ns, *(int(trace_ns[s]) for s in self._STAGES)]
+        if min(stamps) <= 0:
+            return
+        self._durations_ns.append([b - a for a, b in itertools.pairwise(stamps)] +
+                                  [stamps[-1] - stamps[0]])  # fmt: skip
+        if self._last_sent_ns:
+            self._periods_ns.append(stamps[-1] - self._last_sent_ns)
+        self._last_sent_ns = stamps[-1]
 
     def summary(self) -> dict[str, float]:
-        """Median microseconds of each segment and of the whole cycle ({} if none)."""
-        rows = self._stamps_ns[: min(self._count, len(self._stamps_ns))]
-        rows = rows[(rows > 0).all(axis=1)]
-        if not len(rows):
+        """Median microseconds of each segment and of the whole cycle over the newest
+        cycles kept ({} if none)."""
+        if not len(self._durations_ns):
             return {}
-        segments_us = np.diff(rows, axis=1) / 1e3
-        medians = np.median(segments_us, axis=0)
-        result = {name: round(float(m), 1) for name, m in zip(self.SEGMENTS, medians, strict=True)}
-        result["cycle"] = round(float(np.median(rows[:, -1] - rows[:, 0]) / 1e3), 1)
-        if len(rows) > 1:
-            sent_ns = np.sort(rows[:, -1])
-            result["period"] = round(float(np.median(np.diff(sent_ns))) / 1e3, 1)
+        names = (*self.SEGMENTS, "cycle")
+        result = {
+            name: round(self._durations_ns.percentiles([50.0], column)[0] / 1e3, 1)
+            for column, name in enumerate(names)
+        }
+        if len(self._periods_ns):
+            result["period"] = round(self._periods_ns.percentiles([50.0])[0] / 1e3, 1)
         return result
 
 

@@ -103,12 +103,12 @@ def test_overhead_is_a_ratio_to_the_floor_and_none_without_a_floor_stage():
     assert result["plant_wait"]["p50_extra_us"] == pytest.approx(4.999)
 
 
-def test_stamp_log_grows_saves_and_stays_bounded(tmp_path):
-    log = StampLog(3, capacity_rows=2, max_rows=5)
+def test_stamp_log_keeps_the_newest_rows_and_saves_them_oldest_first(tmp_path):
+    log = StampLog(3, max_rows=5)
     for i in range(7):
         log.append((i, 2 * i, 3 * i))
-    np.testing.assert_array_equal(log.rows[:, 1], [0, 2, 4, 6, 8])
-    assert log.overflow == 2
+    np.testing.assert_array_equal(log.rows[:, 1], [4, 6, 8, 10, 12])
+    assert log.dropped == 2 and log.count == 7
     log.save(tmp_path / "x.npy")
     np.testing.assert_array_equal(np.load(tmp_path / "x.npy"), log.rows)
 
