@@ -97,6 +97,48 @@ def no_display_reason(environ: Mapping[str, str]) -> str | None:
     return "no display (DISPLAY and WAYLAND_DISPLAY unset)"
 
 
+class BlueprintSender:
+    """Sends one blueprint into a recording stream, again at each segment, through one
+    blueprint stream kept for the process.
+
+    Rerun's ``send_blueprint`` builds a new blueprint stream at every call that is never
+    freed (its two batcher threads and about 0.5-1.6 MB stay; rerun-sdk 0.41): a day of
+    segments would leave thousands of threads. Rerun offers no public way to re-send a
+    blueprint, so this uses the calls ``send_blueprint`` itself makes; where a Rerun
+    release lacks them it falls back to ``send_blueprint`` (correct files, that leak).
+    """
+
+    def __init__(self, blueprint: Any) -> None:
+        self.blueprint = blueprint.to_blueprint()
+        self._stream: rr.RecordingStream | None = None
+        self.fell_back = False  # Rerun's own send_blueprint in use (see above)
+
+    def send(self, rec: rr.RecordingStream) -> None:
+        try:
+            from rerun import bindings
+
+            if self._stream is None:
+                self._stream = rr.RecordingStream._from_native(
+                    bindings.new_blueprint(
+                        application_id=APPLICATION_ID,
+                        make_default=False,
+                        make_thread_default=False,
+                        default_enabled=True,
+                    )
+                )
+            storage = self._stream.memory_recording()  # a fresh sink for this send
+            self._stream.set_time("blueprint", sequence=0)
+            self.blueprint._log_to_stream(self._stream)
+            bindings.send_blueprint(storage.storage, True, True, recording=rec.to_native())
+        except (ImportError, AttributeError, TypeError):
+            if not self.fell_back:
+                logger.warning("this Rerun release lacks the calls to re-send a blueprint: "
+                               "each segment's costs a blueprint stream Rerun never frees",
+                               exc_info=True)  # fmt: skip
+            self.fell_back = True
+            rec.send_blueprint(self.blueprint)
+
+
 class RootedStream:
     """A recording seen from one robot's entity root: ``log`` and ``send_columns`` as
     Rerun's, every entity path under the root (the empty root: as given), into the
@@ -125,6 +167,7 @@ class RecordingFile:
         self.segment = segment
         self.roots = tuple(roots)
         self._rec: rr.RecordingStream | None = None
+        self._blueprint = BlueprintSender(build_blueprint(config))
         # The live viewer (recorder.spawn): VIEWER_SPAWNED, or why none was.
         self.viewer = VIEWER_NOT_REQUESTED
         # Every static entity logged, by path and archetypes: each segment gets them
@@ -148,20 +191,21 @@ class RecordingFile:
                 self.log(root, (rr.Transform3D(translation=robot_offset_m(index)),), static=True)
 
     def _open_segment(self) -> None:
-        """A Rerun stream into this segment's file (and the live sinks) with the
+        """The stream's sinks into this segment's file (and the live sinks), then the
         blueprint. The file gets its footer when the segment closes: Rerun keeps the
         chunk index it writes there in memory until then, which ``recorder.segment_mb``
-        bounds."""
+        bounds. One stream for the whole run: a stream per segment would leave Rerun's
+        native state of every closed one behind (about 4 MB each)."""
         self.rrd_path.parent.mkdir(parents=True, exist_ok=True)
-        rec = rr.RecordingStream(APPLICATION_ID, recording_id=self.segment.recording_id)
+        if self._rec is None:
+            self._rec = rr.RecordingStream(APPLICATION_ID, recording_id=self.segment.recording_id)
         sinks: list[Any] = [rr.FileSink(self.rrd_path, write_footer=True)]
         if self.viewer == VIEWER_SPAWNED:
             sinks.append(rr.GrpcSink(grpc_url(VIEWER_PORT)))
         if self.config.recorder.grpc_url:
             sinks.append(rr.GrpcSink(self.config.recorder.grpc_url))
-        rec.set_sinks(*sinks)
-        rec.send_blueprint(build_blueprint(self.config))
-        self._rec = rec
+        self._rec.set_sinks(*sinks)  # the previous sinks closed: its file's footer written
+        self._blueprint.send(self._rec)
 
     @property
     def current(self) -> rr.RecordingStream:
@@ -196,7 +240,7 @@ class RecordingFile:
         """Close the current segment (its footer written) and go on in ``segment`` (the
         run's next, :func:`claim_segment`): the blueprint and every static entity
         logged again, so the newest segment opens alone in a viewer."""
-        self._close_segment()
+        self.current.flush(timeout_sec=RRD_FLUSH_TIMEOUT_S)
         self.segments_closed += 1
         self.segment = segment
         self._open_segment()

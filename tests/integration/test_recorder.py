@@ -727,7 +727,7 @@ def test_a_long_recording_goes_on_in_segments_each_one_whole(rig_factory, tmp_pa
     whole = read_rrd(segments[0])
     q = series(whole, ent.joint_entity(ent.ENTITY_JOINT_Q, JOINTS[0]))
     assert sorted(q) == [sim_ns(i) for i in range(rounds * 100)]  # nothing lost between
+    assert all(Recording(p, one_segment=True).has_blueprint for p in segments)
     newest = Recording(segments[-1], one_segment=True)
-    assert newest.has_blueprint
     statics = [e for e in newest.entities if e.startswith(ent.ENTITY_WORLD)]
     assert statics, "the scene's static entities are in the newest segment too"
