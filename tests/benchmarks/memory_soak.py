@@ -1,22 +1,30 @@
-"""Benchmark: a long realtime `teleop up`, its services' memory over time, and what
-`teleop down` leaves behind.
+"""Benchmark: an hour of `teleop up`: each service's memory and CPU, the loop's round
+trip, the records lost and the recording's size, minute by minute; then what `teleop
+down` leaves behind.
 
 Starts `teleop up --mode realtime` (path following until stopped, every service and the
-recorder writing its .rrd), samples each service's resident memory (VmRSS of its main
-process, from /proc) every --sample-every seconds for --duration seconds, and watches
-the plant's loop at the start and at the end: a window of its states from the bus (the
-run's read-only observer credentials), the lateness of each state being the gap since
-the previous one beyond the bus period (`loop.rate_hz`). Then `teleop down`, and
-checks that no process of the stack and no shared-memory segment it made is left.
-Reports, per service, the RSS slope after the warm-up (least squares, KB/s; the goal is
-under 50 KB/s) and the p99 lateness at start and end. Writes JSON.
+recorder writing its segments). Every --sample-every seconds: each service's anonymous
+resident memory (RssAnon of its main process, /proc). Every minute: each service's CPU
+(/proc utime + stime) over the simulated time the plant advanced (its running summary),
+the records its running summary counts as dropped, the plant's stale commands, and the
+recording's bytes on disk (every segment). All along, an observer on the bus (the run's
+read-only credentials) takes every plant state: its round trip is the plant's state sent
+-> the controller's command for it back at the plant (one host clock: the state the
+controller answered is the newest one sent before the command's CONTROLLER_RX stamp);
+p50/p99 per minute, and each state's lateness beyond the bus period. At the end `teleop
+down`, Rerun's check of every segment, and no process or shared-memory segment left.
+Reports per service the memory at 1, 10, 30 and 60 minutes (or the run's quarters) and
+the slope after the warm-up (least squares, KB/s; the goal is under 10 KB/s). Writes
+JSON and a plot (PNG beside it).
 
-    .venv/bin/python tests/benchmarks/memory_soak.py --duration 600 --json runs/soak.json
+    .venv/bin/python tests/benchmarks/memory_soak.py --duration 3600 --json runs/soak.json
 """
 
 from __future__ import annotations
 
 import argparse
+import bisect
+import collections
 import json
 import os
 import re
@@ -29,21 +37,26 @@ from pathlib import Path
 
 import numpy as np
 
-from teleop.bus.messages import PLANT_STATE, DropCounter
+from teleop.bus.messages import PLANT_STATE, DropCounter, Stage
 from teleop.bus.session import close_session, open_session, subscribe
 from teleop.bus.topics import Topics
 from teleop.core.config import load_config
+from teleop.core.rundir import incarnation_paths, segment_paths
+from teleop.run.stack import IDLE_POLL
 from teleop.run.supervise import Stack, StackError
+from tests.rerun_check import rerun_verify_problems
 
-DEFAULT_DURATION_S = 600.0
+DEFAULT_DURATION_S = 3600.0
 DEFAULT_SAMPLE_EVERY_S = 5.0
 # Samples before this are the warm-up (imports, first allocations, caches): not in the slope.
 DEFAULT_WARMUP_S = 60.0
-# The plant's loop is watched for this long at the start (after the warm-up) and the end.
-LATENESS_WINDOW_S = 10.0
-SLOPE_GOAL_KB_S = 50.0
+SLOPE_GOAL_KB_S = 10.0
+MINUTE_S = 60.0
+MARKS_MIN = (1, 10, 30, 60)
 SHM_DIR = Path("/dev/shm")
 UP_TIMEOUT_S = 300
+CLOCK_TICKS_S = os.sysconf("SC_CLK_TCK")
+SENT_KEPT = 256  # the newest states' send stamps an answer is matched against
 
 
 def teleop(*args: str) -> subprocess.CompletedProcess:
@@ -53,55 +66,86 @@ def teleop(*args: str) -> subprocess.CompletedProcess:
     )  # fmt: skip
 
 
-def rss_kb(pid: int) -> int | None:
-    """VmRSS of ``pid`` in KB (None: gone)."""
+def anon_kb(pid: int) -> int | None:
+    """RssAnon of ``pid`` in KB (None: gone)."""
     try:
         text = Path(f"/proc/{pid}/status").read_text()
     except OSError:
         return None
-    match = re.search(r"^VmRSS:\s+(\d+) kB", text, re.MULTILINE)
+    match = re.search(r"^RssAnon:\s+(\d+) kB", text, re.MULTILINE)
     return int(match[1]) if match else None
 
 
+def cpu_s(pid: int) -> float | None:
+    """User + system CPU of ``pid`` so far (s; None: gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS_S  # utime, stime
+
+
 def slope_kb_s(t_s: list[float], kb: list[int]) -> float | None:
-    """Least-squares slope of RSS over time (KB/s)."""
+    """Least-squares slope of memory over time (KB/s)."""
     if len(t_s) < 2:
         return None
     return float(np.polyfit(np.array(t_s), np.array(kb, float), 1)[0])
 
 
-def plant_lateness_p99_ms(endpoint: str, observer: Path, window_s: float) -> dict:
-    """p50/p99/max of the plant states' lateness (ms) over ``window_s``: each state's gap
-    since the previous one beyond the period (its t_source_ns, the plant's clock)."""
-    overrides = [f'bus.endpoint="{endpoint}"', "bus.gossip=false",
-                 f'bus.credentials_file="{observer}"']  # fmt: skip
-    config = load_config(None, overrides)
-    stamps: list[int] = []
-    lock = threading.Lock()
+def running_summary(run_dir: Path, service: str) -> dict:
+    """The newest running summary of ``service`` ({} if none yet)."""
+    for path in reversed(incarnation_paths(run_dir, service)):
+        try:
+            return json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue  # replaced meanwhile
+    return {}
 
-    def on_state(rec: np.ndarray, rx_ns: int) -> None:
-        with lock:
-            stamps.append(int(rec["t_source_ns"]))
 
-    session = open_session(config.bus, listen=False)
-    topics = Topics(config.robot.robot_id)
-    sub = subscribe(session, topics.plant_state_batch, PLANT_STATE, on_state, DropCounter(),
-                    batched=True)  # fmt: skip
-    try:
-        time.sleep(window_s)  # a measurement window, not a wait for an event
-    finally:
-        close_session(session, sub)
-    gaps = np.diff(np.sort(np.array(stamps, np.int64)))
-    period_ns = round(config.tick_s * 1e9)  # one state per bus period
-    late_ms = np.maximum(gaps - period_ns, 0) / 1e6
-    if not len(late_ms):
-        return {"states": len(stamps)}
-    return {
-        "states": len(stamps),
-        "p50_ms": round(float(np.percentile(late_ms, 50)), 3),
-        "p99_ms": round(float(np.percentile(late_ms, 99)), 3),
-        "max_ms": round(float(late_ms.max()), 3),
-    }
+class RoundTrips:
+    """Every plant state from the bus: its round trip (state sent -> the command that
+    answers it back at the plant) and its lateness beyond the bus period, by minute of
+    the observer's clock."""
+
+    def __init__(self, period_ns: int) -> None:
+        self.period_ns = period_ns
+        self.lock = threading.Lock()
+        self.sent_ns: collections.deque[int] = collections.deque(maxlen=SENT_KEPT)
+        self.round_trip_ns: dict[int, list[int]] = collections.defaultdict(list)
+        self.late_ns: dict[int, list[int]] = collections.defaultdict(list)
+        self.start_ns = time.monotonic_ns()
+        self.states = 0
+
+    def __call__(self, rec: np.ndarray, rx_ns: int) -> None:
+        trace = rec["trace_ns"]
+        tx_ns, rx_controller_ns, rx_plant_ns = (
+            int(trace[Stage.PLANT_STATE_TX]), int(trace[Stage.CONTROLLER_RX]),
+            int(trace[Stage.PLANT_RX]),
+        )  # fmt: skip
+        minute = int((rx_ns - self.start_ns) // (MINUTE_S * 1e9))
+        with self.lock:
+            self.states += 1
+            if self.sent_ns:
+                self.late_ns[minute].append(max(tx_ns - self.sent_ns[-1] - self.period_ns, 0))
+            if rx_controller_ns > 0 and rx_plant_ns > 0:
+                i = bisect.bisect_right(self.sent_ns, rx_controller_ns)
+                if i:
+                    self.round_trip_ns[minute].append(rx_plant_ns - self.sent_ns[i - 1])
+            if tx_ns > 0 and (not self.sent_ns or tx_ns > self.sent_ns[-1]):
+                self.sent_ns.append(tx_ns)
+
+    def minute(self, m: int) -> dict:
+        with self.lock:
+            trips = np.array(self.round_trip_ns.get(m, []), float) / 1e6
+            late = np.array(self.late_ns.get(m, []), float) / 1e6
+        out: dict = {"states": int(late.size + (m == 0))}
+        if trips.size:
+            out["round_trip_p50_ms"] = round(float(np.percentile(trips, 50)), 3)
+            out["round_trip_p99_ms"] = round(float(np.percentile(trips, 99)), 3)
+        if late.size:
+            out["late_p99_ms"] = round(float(np.percentile(late, 99)), 3)
+            out["late_max_ms"] = round(float(late.max()), 3)
+        return out
 
 
 def mapped_shm() -> set[str]:
@@ -114,6 +158,67 @@ def mapped_shm() -> set[str]:
             continue
         names.update(re.findall(r"/dev/shm/(\S+)", text))
     return names
+
+
+def minute_row(
+    run_dir: Path, pids: dict[str, int], before: dict, trips: RoundTrips, m: int
+) -> dict:
+    """One minute's figures: CPU per simulated s per service, drops, stale commands,
+    recording bytes, round trip; ``before`` (the last minute's counters) is updated."""
+    sim_s = running_summary(run_dir, "plant").get("sim_time_s", 0.0)
+    row: dict = {"minute": m + 1, "sim_s": round(sim_s, 1), **trips.minute(m)}
+    sim_step = sim_s - before.get("sim_s", 0.0)
+    cpu: dict[str, float | None] = {}
+    dropped = 0
+    for name, pid in pids.items():
+        now = cpu_s(pid)
+        last = before.get(("cpu", name))
+        known = now is not None and last is not None and sim_step > 0
+        cpu[name] = round((now - last) / sim_step, 3) if known else None
+        before[("cpu", name)] = now
+        dropped += int(running_summary(run_dir, name).get("dropped_messages", 0) or 0)
+    row["cpu_s_per_sim_s"] = cpu
+    # The idle pollers run at SCHED_IDLE: they take only CPU nothing else wants.
+    row["cpu_all"] = round(
+        sum(v for name, v in cpu.items() if v is not None and not name.startswith(IDLE_POLL)), 3
+    )
+    row["dropped_records"] = dropped
+    row["stale_commands"] = running_summary(run_dir, "plant").get("stale_commands")
+    paths = segment_paths(run_dir / "recording.rrd")
+    row["recording_mb"] = round(sum(p.stat().st_size for p in paths if p.exists()) / 1e6, 1)
+    row["segments"] = len(paths)
+    before["sim_s"] = sim_s
+    return row
+
+
+def plot(report: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(3, 1, figsize=(9, 10), sharex=True)
+    for name, figures in report["services"].items():
+        rows = figures["samples"]
+        if rows:
+            t, kb = zip(*rows, strict=True)
+            axes[0].plot(np.array(t) / 60, np.array(kb) / 1024, label=name)
+    axes[0].set_ylabel("anonymous memory (MB)")
+    axes[0].legend(fontsize=7, ncol=3)
+    minutes = report["minutes"]
+    m = [r["minute"] for r in minutes]
+    for key in ("round_trip_p50_ms", "round_trip_p99_ms"):
+        axes[1].plot(m, [r.get(key, np.nan) for r in minutes], marker=".", label=key)
+    axes[1].set_ylabel("round trip (ms)")
+    axes[1].legend(fontsize=7)
+    axes[2].plot(m, [r["recording_mb"] for r in minutes], marker=".", label="recording (MB)")
+    axes[2].plot(m, [r["cpu_all"] for r in minutes], marker=".", label="CPU s per sim s (all)")
+    axes[2].set_xlabel("minute")
+    axes[2].legend(fontsize=7)
+    fig.suptitle("teleop up, realtime path following")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
 
 
 def main() -> int:
@@ -131,48 +236,65 @@ def main() -> int:
         print(up.stderr, file=sys.stderr)
         return 1
     endpoint = re.search(r"bus: (\S+)", up.stdout)[1]
-    observer = run_dir / "auth" / "observer.json"
     stack = Stack.attach(run_dir)
     pids = {info["name"]: int(info["pid"]) for info in stack.process_infos()}
+    observer = run_dir / "auth" / "observer.json"
+    config = load_config(None, [f'bus.endpoint="{endpoint}"', "bus.gossip=false",
+                                f'bus.credentials_file="{observer}"'])  # fmt: skip
+    trips = RoundTrips(round(config.tick_s * 1e9))
+    session = open_session(config.bus, listen=False)
+    sub = subscribe(session, Topics(config.robot.robot_id).plant_state_batch, PLANT_STATE,
+                    trips, DropCounter(), batched=True)  # fmt: skip
     samples: dict[str, list[tuple[float, int]]] = {name: [] for name in pids}
-    report: dict = {"duration_s": args.duration, "warmup_s": args.warmup, "run_dir": str(run_dir)}
+    report: dict = {"duration_s": args.duration, "warmup_s": args.warmup, "run_dir": str(run_dir),
+                    "load_average_start": os.getloadavg()}  # fmt: skip
+    minutes: list[dict] = []
+    before: dict = {}
+    for name, pid in pids.items():
+        before[("cpu", name)] = cpu_s(pid)
     start = time.monotonic()
-    lateness_start: dict = {}
-
-    def watch_start() -> None:
-        lateness_start.update(plant_lateness_p99_ms(endpoint, observer, LATENESS_WINDOW_S))
-
-    watcher = threading.Timer(args.warmup, watch_start)
-    watcher.start()
     try:
-        while (elapsed := time.monotonic() - start) < args.duration - LATENESS_WINDOW_S:
+        while (elapsed := time.monotonic() - start) < args.duration:
             for name, pid in pids.items():
-                kb = rss_kb(pid)
+                kb = anon_kb(pid)
                 if kb is not None:
-                    samples[name].append((elapsed, kb))
+                    samples[name].append((round(elapsed, 1), kb))
+            if elapsed >= (len(minutes) + 1) * MINUTE_S:
+                minutes.append(minute_row(run_dir, pids, before, trips, len(minutes)))
+                last = minutes[-1]
+                print(f"minute {last['minute']}: CPU {last['cpu_all']} s/sim s, round trip "
+                      f"p50 {last.get('round_trip_p50_ms')} p99 {last.get('round_trip_p99_ms')} "
+                      f"ms, recording {last['recording_mb']} MB, dropped "
+                      f"{last['dropped_records']}", flush=True)  # fmt: skip
             time.sleep(args.sample_every)  # the sampling period of a measurement
-        watcher.join()
-        report["lateness_start"] = lateness_start
-        report["lateness_end"] = plant_lateness_p99_ms(endpoint, observer, LATENESS_WINDOW_S)
         report["restarts"] = {
             info["name"]: int(info["pid"]) != pids[info["name"]] for info in stack.process_infos()
         }
+        report["load_average_end"] = os.getloadavg()
     finally:
+        close_session(session, sub)
         down = teleop("down", "--run-dir", str(run_dir))
     report["down_exit_code"] = down.returncode
+    report["minutes"] = minutes
+    report["rerun_verify"] = rerun_verify_problems(run_dir / "recording.rrd")
     services = {}
     for name, rows in samples.items():
         warm = [(t, kb) for t, kb in rows if t >= args.warmup]
         slope = slope_kb_s([t for t, _ in warm], [kb for _, kb in warm])
+        at = {}
+        for mark in MARKS_MIN:
+            taken = [kb for t, kb in rows if t <= mark * MINUTE_S]
+            if taken and rows[-1][0] >= mark * MINUTE_S - args.sample_every:
+                at[f"{mark}_min_mb"] = round(taken[-1] / 1024, 1)
         services[name] = {
-            "rss_start_mb": round(rows[0][1] / 1024, 1) if rows else None,
-            "rss_end_mb": round(rows[-1][1] / 1024, 1) if rows else None,
+            **at,
+            "end_mb": round(rows[-1][1] / 1024, 1) if rows else None,
             "slope_kb_s": None if slope is None else round(slope, 2),
             "within_goal": slope is not None and slope < SLOPE_GOAL_KB_S,
             "samples": rows,
         }
     report["services"] = services
-    left = [name for name, pid in pids.items() if rss_kb(pid) is not None]
+    left = [name for name, pid in pids.items() if anon_kb(pid) is not None]
     try:
         Stack.attach(run_dir)
         supervisord_left = True
@@ -182,13 +304,14 @@ def main() -> int:
     new_shm = set(os.listdir(SHM_DIR)) - shm_before
     # Another run on the machine may own new segments too: ours are those nobody maps.
     report["shm_segments_left"] = sorted(new_shm - mapped_shm())
-    report["shm_segments_new_but_mapped"] = sorted(new_shm & mapped_shm())
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(report, indent=2) + "\n")
+    plot(report, args.json.with_suffix(".png"))
     for name, figures in services.items():
-        print(f"{name:14s} RSS {figures['rss_start_mb']} -> {figures['rss_end_mb']} MB, "
-              f"slope {figures['slope_kb_s']} KB/s")  # fmt: skip
-    print(f"plant lateness start {report['lateness_start']}, end {report['lateness_end']}")
+        marks = ", ".join(f"{k.removesuffix('_mb')} {v}" for k, v in figures.items()
+                          if k.endswith("_min_mb"))  # fmt: skip
+        print(f"{name:14s} MB at {marks}; slope {figures['slope_kb_s']} KB/s")
+    print(f"rerun rrd verify: {report['rerun_verify'] or 'every segment passes'}")
     print(f"left after down: processes {report['processes_left']}, "
           f"shm {report['shm_segments_left']}")  # fmt: skip
     return 0
