@@ -108,12 +108,20 @@ def segment_path(rrd_path: Path, index: int) -> Path:
 
 
 def segment_paths(rrd_path: Path) -> list[Path]:
-    """The segments of the recording ``rrd_path`` on disk, in order (the first one and
-    each next one while it exists)."""
-    paths = []
-    while (path := segment_path(rrd_path, len(paths))).is_file():
-        paths.append(path)
-    return paths
+    """The segments of the recording ``rrd_path`` on disk, in order: the newest run of
+    consecutive ones (the oldest may have been deleted: ``recorder.keep_mb``)."""
+    rrd_path = Path(rrd_path)
+    indexes = {0} if rrd_path.is_file() else set()
+    for path in rrd_path.parent.glob(f"{rrd_path.stem}.*{rrd_path.suffix}"):
+        index = path.name[len(rrd_path.stem) + 1 : -len(rrd_path.suffix)]
+        if index.isdigit() and int(index) > 0:
+            indexes.add(int(index))
+    run: list[int] = []
+    for index in sorted(indexes, reverse=True):
+        if run and index != run[-1] - 1:
+            break
+        run.append(index)
+    return [segment_path(rrd_path, index) for index in reversed(run)]
 
 
 def checkpoint_path(run_dir: Path, plant: str) -> Path:

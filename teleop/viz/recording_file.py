@@ -24,7 +24,7 @@ from typing import Any
 import rerun as rr
 
 from teleop.core.config import Config
-from teleop.core.rundir import segment_path
+from teleop.core.rundir import segment_path, segment_paths
 from teleop.viz.blueprint import build_blueprint, robot_offset_m
 from teleop.viz.entities import APPLICATION_ID, rooted
 from teleop.viz.viewer import grpc_url, listening
@@ -174,6 +174,7 @@ class RecordingFile:
         # again, so the newest segment opens alone with the scene and the series' names.
         self._statics: dict[tuple[str, tuple[str, ...]], tuple[Any, ...]] = {}
         self.segments_closed = 0
+        self.segments_deleted = 0  # oldest segments deleted (recorder.keep_mb)
 
     @property
     def rrd_path(self) -> Path:
@@ -244,8 +245,24 @@ class RecordingFile:
         self.segments_closed += 1
         self.segment = segment
         self._open_segment()
+        self._delete_oldest()
         for (entity_path, _), archetypes in self._statics.items():
             self.current.log(entity_path, *archetypes, static=True)
+
+    def _delete_oldest(self) -> None:
+        """Past ``recorder.keep_mb`` on disk, the oldest closed segments go (never the
+        one being written)."""
+        keep_bytes = self.config.recorder.keep_mb * 1e6
+        if not keep_bytes:
+            return
+        paths = [p for p in segment_paths(self.segment.recording_path) if p != self.rrd_path]
+        sizes = [p.stat().st_size for p in paths] + [self.segment_bytes()]
+        while paths and sum(sizes) > keep_bytes:
+            oldest = paths.pop(0)
+            sizes.pop(0)
+            oldest.unlink(missing_ok=True)
+            self.segments_deleted += 1
+            logger.info("recorder.keep_mb: deleted the oldest segment %s", oldest)
 
     def close(self) -> None:
         """Wait for Rerun to write what it holds to the file, then close it (its footer
