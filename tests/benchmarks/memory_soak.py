@@ -2,16 +2,20 @@
 trip, the records lost and the recording's size, minute by minute; then what `teleop
 down` leaves behind.
 
-Starts `teleop up --mode realtime` (path following until stopped, every service and the
-recorder writing its segments). Every --sample-every seconds: each service's anonymous
-resident memory (RssAnon of its main process, /proc). Every minute: each service's CPU
-(/proc utime + stime) over the simulated time the plant advanced (its running summary),
-the records its running summary counts as dropped, the plant's stale commands, and the
-recording's bytes on disk (every segment). All along, an observer on the bus (the run's
-read-only credentials) takes every plant state: its round trip is the plant's state sent
--> the controller's command for it back at the plant (one host clock: the state the
-controller answered is the newest one sent before the command's CONTROLLER_RX stamp);
-p50/p99 per minute, and each state's lateness beyond the bus period. At the end `teleop
+Starts `teleop up --mode realtime`: path following until stopped, or with --scenario
+grasp the teleoperated stack (haptic device, HMD, scripted operator, eye view) playing
+deploy/scenarios/grasp_loop.toml (the cube into the bin and back, over and over); every
+service and the recorder writing its segments. Every --sample-every seconds: each
+service's anonymous resident memory (RssAnon of its main process, /proc). Every minute:
+each service's CPU (/proc utime + stime) over the simulated time the plant advanced (its
+running summary), the records its running summary counts as dropped, the plant's stale
+commands, and the recording's bytes on disk (every segment). All along, an observer on
+the bus (the run's read-only credentials) takes every plant state: its lateness beyond
+the bus period; in path following its round trip is the plant's state sent -> the
+controller's command for it back at the plant (one host clock: the state the controller
+answered is the newest one sent before the command's CONTROLLER_RX stamp); in the grasp,
+every force feedback: its round trip is the handle's sample -> the feedback computed
+from it sent (FEEDBACK_TX - HAPTIC_SAMPLE). p50/p99 per minute. At the end `teleop
 down`, Rerun's check of every segment, and no process or shared-memory segment left.
 Reports per service the memory at 1, 10, 30 and 60 minutes (or the run's quarters) and
 the slope after the warm-up (least squares, KB/s; the goal is under 10 KB/s). Writes
@@ -37,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from teleop.bus.messages import PLANT_STATE, DropCounter, Stage
+from teleop.bus.messages import FORCE_FEEDBACK, PLANT_STATE, DropCounter, Stage
 from teleop.bus.session import close_session, open_session, subscribe
 from teleop.bus.topics import Topics
 from teleop.core.config import load_config
@@ -56,6 +60,7 @@ MARKS_MIN = (1, 10, 30, 60)
 SHM_DIR = Path("/dev/shm")
 UP_TIMEOUT_S = 300
 CLOCK_TICKS_S = os.sysconf("SC_CLK_TCK")
+GRASP_LOOP = "grasp_loop.toml"  # deploy/scenarios/
 SENT_KEPT = 256  # the newest states' send stamps an answer is matched against
 
 
@@ -107,14 +112,24 @@ class RoundTrips:
     answers it back at the plant) and its lateness beyond the bus period, by minute of
     the observer's clock."""
 
-    def __init__(self, period_ns: int) -> None:
+    def __init__(self, period_ns: int, path_following: bool) -> None:
         self.period_ns = period_ns
+        self.path_following = path_following
         self.lock = threading.Lock()
         self.sent_ns: collections.deque[int] = collections.deque(maxlen=SENT_KEPT)
         self.round_trip_ns: dict[int, list[int]] = collections.defaultdict(list)
         self.late_ns: dict[int, list[int]] = collections.defaultdict(list)
         self.start_ns = time.monotonic_ns()
         self.states = 0
+
+    def on_feedback(self, rec: np.ndarray, rx_ns: int) -> None:
+        """A force feedback: the bilateral loop's handle sample -> feedback sent."""
+        trace = rec["trace_ns"]
+        sampled_ns, sent_ns = int(trace[Stage.HAPTIC_SAMPLE]), int(trace[Stage.FEEDBACK_TX])
+        if 0 < sampled_ns <= sent_ns:
+            minute = int((rx_ns - self.start_ns) // (MINUTE_S * 1e9))
+            with self.lock:
+                self.round_trip_ns[minute].append(sent_ns - sampled_ns)
 
     def __call__(self, rec: np.ndarray, rx_ns: int) -> None:
         trace = rec["trace_ns"]
@@ -127,7 +142,7 @@ class RoundTrips:
             self.states += 1
             if self.sent_ns:
                 self.late_ns[minute].append(max(tx_ns - self.sent_ns[-1] - self.period_ns, 0))
-            if rx_controller_ns > 0 and rx_plant_ns > 0:
+            if self.path_following and rx_controller_ns > 0 and rx_plant_ns > 0:
                 i = bisect.bisect_right(self.sent_ns, rx_controller_ns)
                 if i:
                     self.round_trip_ns[minute].append(rx_plant_ns - self.sent_ns[i - 1])
@@ -215,7 +230,7 @@ def plot(report: dict, path: Path) -> None:
     axes[2].plot(m, [r["cpu_all"] for r in minutes], marker=".", label="CPU s per sim s (all)")
     axes[2].set_xlabel("minute")
     axes[2].legend(fontsize=7)
-    fig.suptitle("teleop up, realtime path following")
+    fig.suptitle(f"teleop up, realtime {report['scenario']}")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -228,10 +243,20 @@ def main() -> int:
     parser.add_argument("--warmup", type=float, default=DEFAULT_WARMUP_S, help="s")
     parser.add_argument("--json", type=Path, required=True)
     parser.add_argument("--run-dir", type=Path)
+    parser.add_argument("--scenario", choices=("path-following", "grasp"), default="path-following",
+                        help="grasp: the grasp loop, teleoperated")  # fmt: skip
     args = parser.parse_args()
     run_dir = args.run_dir or Path(tempfile.mkdtemp(prefix="soak-"))
     shm_before = set(os.listdir(SHM_DIR))
-    up = teleop("up", "--mode", "realtime", "--run-dir", str(run_dir))
+    scenario = []
+    if args.scenario == "grasp":
+        scenario = [
+            "--set",
+            'run.scenario="grasp"',
+            "--set",
+            f'operator.scenario_file="{GRASP_LOOP}"',
+        ]
+    up = teleop("up", "--mode", "realtime", "--run-dir", str(run_dir), *scenario)
     if up.returncode != 0:
         print(up.stderr, file=sys.stderr)
         return 1
@@ -241,12 +266,17 @@ def main() -> int:
     observer = run_dir / "auth" / "observer.json"
     config = load_config(None, [f'bus.endpoint="{endpoint}"', "bus.gossip=false",
                                 f'bus.credentials_file="{observer}"'])  # fmt: skip
-    trips = RoundTrips(round(config.tick_s * 1e9))
+    trips = RoundTrips(round(config.tick_s * 1e9), args.scenario == "path-following")
     session = open_session(config.bus, listen=False)
-    sub = subscribe(session, Topics(config.robot.robot_id).plant_state_batch, PLANT_STATE,
-                    trips, DropCounter(), batched=True)  # fmt: skip
+    topics = Topics(config.robot.robot_id)
+    subs = [subscribe(session, topics.plant_state_batch, PLANT_STATE, trips, DropCounter(),
+                      batched=True)]  # fmt: skip
+    if args.scenario == "grasp":
+        subs.append(subscribe(session, topics.force_feedback_batch, FORCE_FEEDBACK,
+                              trips.on_feedback, DropCounter(), batched=True))  # fmt: skip
     samples: dict[str, list[tuple[float, int]]] = {name: [] for name in pids}
-    report: dict = {"duration_s": args.duration, "warmup_s": args.warmup, "run_dir": str(run_dir),
+    report: dict = {"scenario": args.scenario, "duration_s": args.duration,
+                    "warmup_s": args.warmup, "run_dir": str(run_dir),
                     "load_average_start": os.getloadavg()}  # fmt: skip
     minutes: list[dict] = []
     before: dict = {}
@@ -272,7 +302,7 @@ def main() -> int:
         }
         report["load_average_end"] = os.getloadavg()
     finally:
-        close_session(session, sub)
+        close_session(session, *subs)
         down = teleop("down", "--run-dir", str(run_dir))
     report["down_exit_code"] = down.returncode
     report["minutes"] = minutes
