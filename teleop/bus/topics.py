@@ -54,11 +54,6 @@ class Topics:
         object.__setattr__(self, "ready_all", _key(self.robot_id, f"{READY_TOKEN}/*"))
         object.__setattr__(self, "protocol_all", _key(self.robot_id, f"{PROTOCOL_TOKEN}/*"))
 
-    @property
-    def all_streams(self) -> str:
-        """Every key of this robot (for a recorder that logs everything)."""
-        return _key(self.robot_id, "**")
-
     def alive(self, service: str, *, ready: bool = False) -> str:
         """Liveliness token key of one service, e.g. ``teleop/arm0/alive/plant``;
         ``ready``: its second token, ``teleop/arm0/ready/plant``, declared once it sees

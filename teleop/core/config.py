@@ -1513,8 +1513,3 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -
         return _build(Config, table, "")
     except TypeError as exc:
         raise ConfigError(str(exc)) from exc
-
-
-def to_dict(config: Config) -> dict[str, Any]:
-    """The config as plain data (for summaries and for handing to child processes)."""
-    return dataclasses.asdict(config)

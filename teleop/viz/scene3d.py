@@ -20,7 +20,7 @@ into the primitive's centre and rotation (Rerun quaternions are x, y, z, w).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import mujoco
@@ -351,8 +351,3 @@ def ghost_rgba(fraction: float) -> tuple[int, int, int, int]:
 def ghost_entity(index: int) -> str:
     """Entity of ghost pose ``index``, e.g. ``world/ghosts/003``."""
     return f"{ENTITY_GHOSTS}/{index:03d}"
-
-
-def body_entities(scene: SceneModel) -> Mapping[int, str]:
-    """{moving body id: entity} in the order of ``frames``' columns."""
-    return {b: scene.body_entity(b) for b in scene.moving_bodies}
