@@ -101,7 +101,7 @@ def human_summary(summary: Mapping[str, Any], summary_path: str | None) -> list[
         lines.append(f"  fault              {fault_line(fault)}")
     refused = summary.get("refused_privileges") or []
     if refused:
-        lines.append("  privileges refused (README, Privileges):")
+        lines.append("  privileges refused (docs/running.md, Privileges):")
         lines += [f"    - {line}" for line in refused]
     viewer = (summary.get("services") or {}).get("recorder", {}).get("viewer", "")
     if viewer.startswith("not spawned"):  # --spawn asked for one

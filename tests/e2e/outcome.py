@@ -49,7 +49,7 @@ def _realtime_stack_skip_reason() -> str | None:
         return None
     return (
         f"the realtime stack's clean timing needs SCHED_FIFO on {cpus} CPUs ({refusal}); "
-        "run as root or with CAP_SYS_NICE (README, Privileges)"
+        "run as root or with CAP_SYS_NICE (docs/running.md, Privileges)"
     )
 
 
