@@ -773,3 +773,24 @@ def test_the_observation_buffer_waits_for_no_head_pose_older_than_it_holds():
     buffer.add_head(490, 0.2)
     assert buffer.ready(500, 480)  # older than the first one held: never coming
     assert not buffer.ready(500, 501) and buffer.ready(500, 490)
+
+
+def test_the_grasp_loop_plays_the_grasp_then_puts_the_cube_back_round_after_round():
+    """deploy/scenarios/grasp_loop.toml (the soak's teleoperated task): each round is
+    grasp.toml's phases into the bin, then the cube out of the bin and set down at its
+    place on the table; a round ends with the gripper open, clear of the cube."""
+    grasp = Scenario.load(GRASP_FILE)
+    loop = Scenario.load(DEPLOY_DIR / "scenarios" / "grasp_loop.toml")
+    per_round = 2 * len(grasp.phases) + 1  # out and back (+ the lower before set-down)
+    assert len(loop.phases) % per_round == 0 and len(loop.phases) // per_round >= 60
+    first = loop.phases[: len(grasp.phases)]
+    assert [p.target for p in first] == [p.target for p in grasp.phases]
+    assert [p.gripper for p in first] == [p.gripper for p in grasp.phases]
+    back = loop.phases[len(grasp.phases) : per_round]
+    lowered = next(p for p in back if p.name.startswith("lower"))
+    assert lowered.target.relative_to == "bin" and lowered.carrying
+    # teleop/assets/scene_arm6.xml: the bin's origin at (0.35, 0.35), the cube at (0.45, -0.25)
+    cube_home_m = np.array([0.35, 0.35, 0.0]) + np.array(lowered.target.offset_m)
+    assert cube_home_m[:2] == pytest.approx([0.45, -0.25])
+    assert back[-1].gripper == "open" and back[-1].target.offset_m[2] > 0
+    assert loop.phases[per_round].target == grasp.phases[0].target  # the next round
