@@ -17,9 +17,10 @@ answered is the newest one sent before the command's CONTROLLER_RX stamp); in th
 every force feedback: its round trip is the handle's sample -> the feedback computed
 from it sent (FEEDBACK_TX - HAPTIC_SAMPLE). p50/p99 per minute. At the end `teleop
 down`, Rerun's check of every segment, and no process or shared-memory segment left.
-Reports per service the memory at 1, 10, 30 and 60 minutes (or the run's quarters) and
-the slope after the warm-up (least squares, KB/s; the goal is under 10 KB/s). Writes
-JSON and a plot (PNG beside it).
+Reports per service the memory at 1, 10, 30 and 60 minutes and the slope after the
+warm-up (least squares, KB/s; the goal is under 10 KB/s). Writes JSON, its tables as
+markdown and a plot (.md and .png beside it); `--markdown-from FILE.json` renders the
+tables of an earlier report.
 
     .venv/bin/python tests/benchmarks/memory_soak.py --duration 3600 --json runs/soak.json
 """
@@ -29,6 +30,7 @@ from __future__ import annotations
 import argparse
 import bisect
 import collections
+import itertools
 import json
 import os
 import re
@@ -206,6 +208,51 @@ def minute_row(
     return row
 
 
+def _mean(values: list[float | None]) -> float | None:
+    known = [v for v in values if v is not None]
+    return round(float(np.mean(known)), 3) if known else None
+
+
+def markdown(report: dict) -> str:
+    """The report's two tables: each service's memory and CPU, the loop's figures over
+    the first and the last ten minutes (or the run's first and last tenth)."""
+    minutes = report["minutes"]
+    span = max(1, min(10, len(minutes) // 2))
+    first, last = minutes[:span], minutes[-span:]
+    marks = [f"{m}_min_mb" for m in MARKS_MIN]
+    lines = [
+        "| service | " + " | ".join(f"{m} min" for m in MARKS_MIN)
+        + " | slope after warm-up | CPU s per sim s, first / last "
+        + f"{span} min |",
+        "| --- |" + " ---: |" * (len(MARKS_MIN) + 2),
+    ]  # fmt: skip
+    for name, figures in report["services"].items():
+        cpu_first = _mean([r["cpu_s_per_sim_s"].get(name) for r in first])
+        cpu_last = _mean([r["cpu_s_per_sim_s"].get(name) for r in last])
+        cells = [f"{figures[m]} MB" if m in figures else "-" for m in marks]
+        lines.append(f"| {name} | " + " | ".join(cells)
+                     + f" | {figures['slope_kb_s']} KB/s | {cpu_first} / {cpu_last} |")  # fmt: skip
+    lines += ["", f"| | first {span} min | last {span} min |", "| --- | ---: | ---: |"]
+
+    def row(label: str, key: str) -> str:
+        return f"| {label} | {_mean([r.get(key) for r in first])} | " \
+               f"{_mean([r.get(key) for r in last])} |"  # fmt: skip
+
+    lines += [
+        row("CPU s per simulated s, every service (idle pollers apart)", "cpu_all"),
+        row("round trip p50 (ms, mean of the minutes)", "round_trip_p50_ms"),
+        row("round trip p99 (ms, mean of the minutes)", "round_trip_p99_ms"),
+        row("plant state lateness p99 (ms)", "late_p99_ms"),
+    ]
+    per_min = [b["recording_mb"] - a["recording_mb"] for a, b in itertools.pairwise(minutes)]
+    lines.append(f"| recording written (MB per minute) | {_mean(per_min[:span])} | "
+                 f"{_mean(per_min[-span:])} |")  # fmt: skip
+    end = minutes[-1] if minutes else {}
+    lines.append(f"| records dropped, stale commands (whole run) | "
+                 f"{end.get('dropped_records')}, {end.get('stale_commands')} | |")  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
 def plot(report: dict, path: Path) -> None:
     import matplotlib
 
@@ -241,11 +288,19 @@ def main() -> int:
     parser.add_argument("--duration", type=float, default=DEFAULT_DURATION_S, help="s")
     parser.add_argument("--sample-every", type=float, default=DEFAULT_SAMPLE_EVERY_S, help="s")
     parser.add_argument("--warmup", type=float, default=DEFAULT_WARMUP_S, help="s")
-    parser.add_argument("--json", type=Path, required=True)
+    parser.add_argument("--json", type=Path, help="where the report goes (required to run)")
     parser.add_argument("--run-dir", type=Path)
     parser.add_argument("--scenario", choices=("path-following", "grasp"), default="path-following",
                         help="grasp: the grasp loop, teleoperated")  # fmt: skip
+    parser.add_argument(
+        "--markdown-from", type=Path, help="print this report's tables, run nothing"
+    )
     args = parser.parse_args()
+    if args.markdown_from:
+        print(markdown(json.loads(args.markdown_from.read_text())), end="")
+        return 0
+    if args.json is None:
+        parser.error("--json FILE is required to run the soak")
     run_dir = args.run_dir or Path(tempfile.mkdtemp(prefix="soak-"))
     shm_before = set(os.listdir(SHM_DIR))
     scenario = []
@@ -337,6 +392,7 @@ def main() -> int:
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(report, indent=2) + "\n")
     plot(report, args.json.with_suffix(".png"))
+    args.json.with_suffix(".md").write_text(markdown(report))
     for name, figures in services.items():
         marks = ", ".join(f"{k.removesuffix('_mb')} {v}" for k, v in figures.items()
                           if k.endswith("_min_mb"))  # fmt: skip
