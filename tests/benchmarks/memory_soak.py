@@ -14,13 +14,14 @@ the bus (the run's read-only credentials) takes every plant state: its lateness 
 the bus period; in path following its round trip is the plant's state sent -> the
 controller's command for it back at the plant (one host clock: the state the controller
 answered is the newest one sent before the command's CONTROLLER_RX stamp); in the grasp,
-every force feedback: its round trip is the handle's sample -> the feedback computed
-from it sent (FEEDBACK_TX - HAPTIC_SAMPLE). p50/p99 per minute. At the end `teleop
+the handle's sample -> the plant's state with the command made from it applied, sent
+(PLANT_STATE_TX - HAPTIC_SAMPLE: the loop but its way back to the handle, which an
+observer linked to the plant alone cannot see). p50/p99 per minute. At the end `teleop
 down`, Rerun's check of every segment, and no process or shared-memory segment left.
-Reports per service the memory at 1, 10, 30 and 60 minutes and the slope after the
-warm-up (least squares, KB/s; the goal is under 10 KB/s). Writes JSON, its tables as
-markdown and a plot (.md and .png beside it); `--markdown-from FILE.json` renders the
-tables of an earlier report.
+Reports per service the memory at 1, 10, 30 and 60 minutes and the slope after the warm-
+up (least squares, KB/s; the goal is under 10 KB/s). Writes JSON, its tables as markdown
+and a plot (.md and .png beside it); `--markdown-from FILE.json` renders the tables of
+an earlier report.
 
     .venv/bin/python tests/benchmarks/memory_soak.py --duration 3600 --json runs/soak.json
 """
@@ -43,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from teleop.bus.messages import FORCE_FEEDBACK, PLANT_STATE, DropCounter, Stage
+from teleop.bus.messages import PLANT_STATE, DropCounter, Stage
 from teleop.bus.session import close_session, open_session, subscribe
 from teleop.bus.topics import Topics
 from teleop.core.config import load_config
@@ -124,15 +125,6 @@ class RoundTrips:
         self.start_ns = time.monotonic_ns()
         self.states = 0
 
-    def on_feedback(self, rec: np.ndarray, rx_ns: int) -> None:
-        """A force feedback: the bilateral loop's handle sample -> feedback sent."""
-        trace = rec["trace_ns"]
-        sampled_ns, sent_ns = int(trace[Stage.HAPTIC_SAMPLE]), int(trace[Stage.FEEDBACK_TX])
-        if 0 < sampled_ns <= sent_ns:
-            minute = int((rx_ns - self.start_ns) // (MINUTE_S * 1e9))
-            with self.lock:
-                self.round_trip_ns[minute].append(sent_ns - sampled_ns)
-
     def __call__(self, rec: np.ndarray, rx_ns: int) -> None:
         trace = rec["trace_ns"]
         tx_ns, rx_controller_ns, rx_plant_ns = (
@@ -144,6 +136,9 @@ class RoundTrips:
             self.states += 1
             if self.sent_ns:
                 self.late_ns[minute].append(max(tx_ns - self.sent_ns[-1] - self.period_ns, 0))
+            sampled_ns = int(trace[Stage.HAPTIC_SAMPLE])
+            if not self.path_following and 0 < sampled_ns <= tx_ns:
+                self.round_trip_ns[minute].append(tx_ns - sampled_ns)
             if self.path_following and rx_controller_ns > 0 and rx_plant_ns > 0:
                 i = bisect.bisect_right(self.sent_ns, rx_controller_ns)
                 if i:
@@ -331,9 +326,6 @@ def main() -> int:
     topics = Topics(config.robot.robot_id)
     subs = [subscribe(session, topics.plant_state_batch, PLANT_STATE, trips, DropCounter(),
                       batched=True)]  # fmt: skip
-    if args.scenario == "grasp":
-        subs.append(subscribe(session, topics.force_feedback_batch, FORCE_FEEDBACK,
-                              trips.on_feedback, DropCounter(), batched=True))  # fmt: skip
     samples: dict[str, list[tuple[float, int]]] = {name: [] for name in pids}
     report: dict = {"scenario": args.scenario, "duration_s": args.duration,
                     "warmup_s": args.warmup, "run_dir": str(run_dir),
