@@ -33,10 +33,6 @@ class Ring:
         self._scratch: np.ndarray | None = None  # made by the first percentiles(), then kept
         self.count = 0
 
-    @property
-    def capacity(self) -> int:
-        return len(self._data)
-
     def __len__(self) -> int:
         """Rows kept: the newest ``min(count, capacity)``."""
         return min(self.count, len(self._data))

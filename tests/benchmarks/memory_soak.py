@@ -177,7 +177,8 @@ def minute_row(
 ) -> dict:
     """One minute's figures: CPU per simulated s per service, drops, stale commands,
     recording bytes, round trip; ``before`` (the last minute's counters) is updated."""
-    sim_s = running_summary(run_dir, "plant").get("sim_time_s", 0.0)
+    plant = running_summary(run_dir, "plant")
+    sim_s = plant.get("sim_time_s", 0.0)
     row: dict = {"minute": m + 1, "sim_s": round(sim_s, 1), **trips.minute(m)}
     sim_step = sim_s - before.get("sim_s", 0.0)
     cpu: dict[str, float | None] = {}
@@ -195,7 +196,7 @@ def minute_row(
         sum(v for name, v in cpu.items() if v is not None and not name.startswith(IDLE_POLL)), 3
     )
     row["dropped_records"] = dropped
-    row["stale_commands"] = running_summary(run_dir, "plant").get("stale_commands")
+    row["stale_commands"] = plant.get("stale_commands")
     paths = segment_paths(run_dir / "recording.rrd")
     row["recording_mb"] = round(sum(p.stat().st_size for p in paths if p.exists()) / 1e6, 1)
     row["segments"] = len(paths)
