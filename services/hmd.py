@@ -8,7 +8,7 @@ the same records at a tenth of the wake-ups. Being driven by plant ticks, the sa
 serves realtime and lockstep, and the output depends only on the config and the seed.
 
 Consumers pick the record that applies at their tick with
-:meth:`teleop.devices.hmd.HmdSchedule.valid_from_for`, e.g. stored in a
+``valid_from_for`` of :func:`teleop.core.ticks.head_schedule`, e.g. stored in a
 :class:`teleop.core.ticks.TickedInputs`.
 """
 

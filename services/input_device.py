@@ -1,7 +1,8 @@
 """A person on a gamepad or a SpaceMouse drives the arm (``teleop run grasp --operator
-gamepad|spacemouse``): the operator's place in the stack (services/human.py), read from a
-Linux input device (teleop/devices/input_devices.py: evdev or hidraw, found through
-sysfs, decoded by teleop/devices/input_events.py).
+gamepad|spacemouse``): the operator's place in the stack
+(teleop/devices/human_service.py), read from a Linux input device
+(teleop/devices/input_devices.py: evdev or hidraw, found through sysfs, decoded by
+teleop/devices/input_events.py).
 
 It runs under supervisord like every service (the device is not the terminal's). Its
 loop waits on the device (``poll``, no busy loop) and hands each intent to the pacer; a
@@ -19,10 +20,10 @@ import sys
 import threading
 import time
 
-from services.human import HumanOperatorService
 from teleop.bus.messages import Button
 from teleop.bus.service import service_main
 from teleop.devices.human import HandIntent
+from teleop.devices.human_service import HumanOperatorService
 from teleop.devices.input_devices import DeviceUnavailable, HumanInputDevice, open_input_device
 
 logger = logging.getLogger(__name__)

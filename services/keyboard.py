@@ -1,6 +1,6 @@
 """A person at the terminal's keyboard drives the arm (``teleop run grasp --operator
-keyboard``): the operator's place in the stack (services/human.py), read from the keys of
-the terminal the launcher runs in. No X server, no input group: it works over SSH
+keyboard``): the operator's place in the stack (teleop/devices/human_service.py), read
+from the keys of the terminal the launcher runs in. No X server, no input group: it works over SSH
 (``ssh -t``) and in tmux.
 
 The screen (curses, redrawn ``keyboard.screen_rate_hz`` times a second) shows the run's
@@ -19,7 +19,6 @@ import threading
 import time
 from typing import Any
 
-from services.human import HumanOperatorService
 from teleop.bus.messages import Button
 from teleop.bus.service import service_main
 from teleop.devices.human import (
@@ -37,6 +36,7 @@ from teleop.devices.human import (
     KeyboardIntent,
 )
 from teleop.devices.human_loop import PHASES
+from teleop.devices.human_service import HumanOperatorService
 
 # curses' codes of the special keys, by the names of the key map.
 _SPECIAL_KEYS = {

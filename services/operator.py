@@ -26,22 +26,15 @@ import numpy as np
 import zenoh
 
 from teleop.bus.messages import (
-    HAND_INPUT,
-    RUN_EVENT,
-    Button,
     Event,
     Flag,
-    next_hand_input,
-    next_run_event,
 )
 from teleop.bus.service import STOP_POLL_S, Service, service_main
-from teleop.bus.session import Publisher, RecordCallback, subscribe_events
-from teleop.bus.topics import Topics
+from teleop.bus.session import RecordCallback, subscribe_events
 from teleop.core.clock import NS_PER_S
 from teleop.core.ring import Ring
 from teleop.devices.operator import (
     Arrival,
-    HandCommand,
     ObservationBuffer,
     OperatorLoop,
     OperatorStation,
@@ -49,6 +42,7 @@ from teleop.devices.operator import (
     RunStarted,
     Scenario,
 )
+from teleop.devices.robot_outputs import RobotOutputs
 
 logger = logging.getLogger(__name__)
 
@@ -57,34 +51,6 @@ DEVICE_SERVICE = "haptic"  # liveliness name of the operator's device
 
 # How many pose-to-decision delays the summary's percentiles take (the newest ones).
 LATENESS_SAMPLES = 1 << 15
-
-
-class RobotOutputs:
-    """One robot's end of an operator, scripted or a person's: its hand stream and its
-    task events, on that robot's keys (OperatorOutputs, and HumanOutputs of
-    teleop.devices.human_loop)."""
-
-    def __init__(self, service: Service, topics: Topics, timestep_ns: int) -> None:
-        assert service.session is not None
-        self.timestep_ns = timestep_ns
-        self.hand_pub = service.keep(Publisher.for_stream(service.session, topics, "hand_input"))
-        self.events_pub = service.keep(
-            Publisher.for_stream(service.session, topics, "operator_events")
-        )
-        self._hand = HAND_INPUT.new()  # each stream's seq counts its own records
-        self._event = RUN_EVENT.new()
-
-    def hand(self, valid_from_tick: int, command: HandCommand) -> None:
-        self.put_hand(valid_from_tick, command.target_p_m, command.buttons)
-
-    def put_hand(self, valid_from_tick: int, target_p_m: np.ndarray, buttons: Button) -> None:
-        rec = next_hand_input(self._hand, time.monotonic_ns(), valid_from_tick, target_p_m, buttons)
-        self.hand_pub.put(rec)
-
-    def event(self, event: Event, tick: int, step: int, value: float) -> None:
-        now_ns = time.monotonic_ns()
-        rec = next_run_event(self._event, event, now_ns, tick * self.timestep_ns, step, value)
-        self.events_pub.put(rec)
 
 
 class OperatorService(Service):

@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from teleop.core.config import (
+    AUTONOMOUS,
     INPUT_DEVICE_OPERATORS,
     OPERATOR_SITE,
     OPERATORS,
@@ -42,6 +43,7 @@ from teleop.core.config import (
     ConfigError,
     ModelError,
     load_config,
+    scenario_spec,
 )
 from teleop.core.rundir import (
     LATENCY_RECORDING_FILE,
@@ -491,8 +493,11 @@ def _summary_path(args: argparse.Namespace) -> Path:
 def _run(args: argparse.Namespace) -> int:
     overrides = [*_overrides(args), f'run.scenario="{args.scenario}"']
     if args.inprocess:
-        if args.scenario != "path-following":
-            raise ConfigError(f"--inprocess runs path-following only, not {args.scenario}")
+        if scenario_spec(args.scenario).teleoperated:
+            autonomous = ", ".join(AUTONOMOUS)
+            raise ConfigError(
+                f"--inprocess runs autonomous scenarios only ({autonomous}), not {args.scenario}"
+            )
         if args.rrd is not None:
             raise ConfigError("--rrd needs the services run (drop --inprocess)")
     else:
@@ -743,10 +748,10 @@ def _report(args: argparse.Namespace) -> int:
 def _sweep(args: argparse.Namespace) -> int:
     from teleop.run import sweep
 
-    count_flag = "--paths" if args.kind == "path-following" else "--scenes"
-    other = args.scenes if args.kind == "path-following" else args.paths
-    count = args.paths if args.kind == "path-following" else args.scenes
-    if other is not None:
+    tasks = sweep.kind_of(args.kind).tasks
+    count_flag = f"--{tasks}"
+    count = getattr(args, tasks)
+    if any(getattr(args, k.tasks) is not None for k in sweep.SWEEP_KINDS if k.tasks != tasks):
         raise ConfigError(f"sweep {args.kind}: the number of tasks is {count_flag}")
     if count is None or count < 1:
         raise ConfigError(f"sweep {args.kind}: {count_flag} N (N >= 1) is required")

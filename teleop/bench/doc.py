@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from teleop.bench.latency import HOPS
+from teleop.core import markdown
 
 HEADER = """# Latency of the bilateral loop
 
@@ -38,12 +39,8 @@ def _ratio(value: Any) -> str:
     return "n/a" if value is None else f"{float(value):.2f}x"
 
 
-def _row(cells: list[str]) -> str:
-    return "| " + " | ".join(cells) + " |"
-
-
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
-    return [_row(header), "|" + " ---: |" * len(header), *(_row(r) for r in rows)]
+    return markdown.table(header, rows, "r" * len(header))  # figures, every column
 
 
 def render(report: Mapping[str, Any]) -> str:

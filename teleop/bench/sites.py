@@ -38,6 +38,7 @@ from teleop.bus import graph
 from teleop.bus import session as bus
 from teleop.bus.access import write_run_credentials
 from teleop.bus.topics import Topics
+from teleop.core import markdown
 from teleop.core.config import OPERATOR_SITE, ROBOT_SITE, BusConfig, SiteConfig
 from teleop.core.net import free_loopback_port
 
@@ -214,20 +215,21 @@ def table(report: dict[str, Any]) -> list[str]:
         f"Round trip across two sites on this host: {report['pings']} samples per path at "
         f"{report['rate_hz']:g} Hz, load average {report['load_average_start'][0]:.2f} before",
         "",
-        "| path | one-way delay | round trip p50 | p99 | p50 / (floor + 2 x delay) |",
-        "| --- | ---: | ---: | ---: | ---: |",
     ]
+    rows = []
     for path in (DIRECT, ROUTERS):
         runs = [r[path] for r in report["rounds"]]
         if runs:
             p50 = float(np.median([r["p50_ms"] for r in runs]))
             p99 = float(np.median([r["p99_ms"] for r in runs]))
-            lines.append(f"| {path} | 0 ms | {p50:.3f} ms | {p99:.3f} ms | |")
-    for entry in report["delays"]:
-        lines.append(
-            f"| routers + netem | {entry['delay_ms']:g} ms | {entry['p50_ms']:.2f} ms "
-            f"| {entry['p99_ms']:.2f} ms | {entry['p50_over_floor_plus_2_delays']:.2f} |"
-        )
+            rows.append((path, "0 ms", f"{p50:.3f} ms", f"{p99:.3f} ms", ""))
+    rows += [
+        ("routers + netem", f"{e['delay_ms']:g} ms", f"{e['p50_ms']:.2f} ms",
+         f"{e['p99_ms']:.2f} ms", f"{e['p50_over_floor_plus_2_delays']:.2f}")
+        for e in report["delays"]
+    ]  # fmt: skip
+    header = ("path", "one-way delay", "round trip p50", "p99", "p50 / (floor + 2 x delay)")
+    lines += markdown.table(header, rows, "lrrrr")
     if report.get("routers_over_direct_p50") is not None:
         lines += [
             "",

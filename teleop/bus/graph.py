@@ -30,6 +30,7 @@ from teleop.bus.messages import (
     Event,
     Schema,
 )
+from teleop.core import markdown
 from teleop.core.config import AUTONOMOUS, OPERATOR_SITE, ROBOT_SITE, SCENARIOS, SITES, TELEOPERATED
 
 ROOT = "teleop"  # first chunk of every key expression of the project
@@ -324,11 +325,6 @@ def scenario_services(scenario: str) -> tuple[str, ...]:
     return tuple(s.name for s in SERVICES if scenario in s.scenarios and not s.optional)
 
 
-def _table(header: tuple[str, ...], rows: list[tuple[str, ...]]) -> list[str]:
-    lines = ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
-    return lines + ["| " + " | ".join(row) + " |" for row in rows]
-
-
 def graph_tables() -> str:
     """The stream, token and service tables of docs/protocol.md (Markdown)."""
     streams = [
@@ -348,8 +344,8 @@ def graph_tables() -> str:
     ]
     header = ("stream", "key", "record", "from -> to", "rate", "QoS", "scenarios",
               "newest only (realtime)", "note")  # fmt: skip
-    lines = _table(header, streams)
-    lines += ["", *_table(("token", "meaning"), [(f"`{k}`", m) for k, m in TOKENS])]
+    lines = markdown.table(header, streams)
+    lines += ["", *markdown.table(("token", "meaning"), [(f"`{k}`", m) for k, m in TOKENS])]
     services = [
         (f"`{s.name}`", ", ".join(s.scenarios), str(s.start_priority), s.optional or "always",
          s.site, "one per robot" if s.per_robot else "one", s.what)
@@ -357,7 +353,7 @@ def graph_tables() -> str:
     ]  # fmt: skip
     header = ("service", "scenarios", "start priority", "runs", "site", "processes (run.robots)",
               "what")  # fmt: skip
-    lines += ["", *_table(header, services)]
+    lines += ["", *markdown.table(header, services)]
     return "\n".join(lines)
 
 

@@ -35,6 +35,8 @@ from typing import Any
 
 import numpy as np
 
+from teleop.core import markdown
+
 logger = logging.getLogger(__name__)
 
 # Bumped on any incompatible change of a layout or code below; each version says what it
@@ -824,7 +826,7 @@ class DropCounter:
             return sum(self._counts.values())
 
 
-def _field_rows(dtype: np.dtype, fields: Sequence[Field]) -> list[str]:
+def _field_rows(dtype: np.dtype, fields: Sequence[Field]) -> list[tuple[object, ...]]:
     rows = []
     for f in fields:
         sub, offset = dtype.fields[f.name][:2]
@@ -837,10 +839,7 @@ def _field_rows(dtype: np.dtype, fields: Sequence[Field]) -> list[str]:
             limits = f"<= {f.hi:.10g}"
         else:
             limits = f"[{f.lo:.10g}, {f.hi:.10g}]"
-        rows.append(
-            f"| {offset} | {sub.itemsize} | `{f.name}` | {f.dtype} | {shape} | {f.unit} "
-            f"| {limits} | {f.doc} |"
-        )
+        rows.append((offset, sub.itemsize, f"`{f.name}`", f.dtype, shape, f.unit, limits, f.doc))
     return rows
 
 
@@ -849,16 +848,16 @@ def layout_table() -> str:
 
     ``docs/protocol.md`` embeds this text verbatim; a test checks they match.
     """
-    head = [
-        "| offset | size | field | type | shape | unit | limits | meaning |",
-        "| ---: | ---: | --- | --- | --- | --- | --- | --- |",
-    ]
-    out = [f"### Header ({HEADER_SIZE} bytes)", "", *head]
-    out += _field_rows(HEADER_DTYPE, HEADER_FIELDS)
+    head = ("offset", "size", "field", "type", "shape", "unit", "limits", "meaning")
+
+    def fields_table(dtype: np.dtype, fields: Sequence[Field]) -> list[str]:
+        return markdown.table(head, _field_rows(dtype, fields), "rr")
+
+    out = [f"### Header ({HEADER_SIZE} bytes)", "", *fields_table(HEADER_DTYPE, HEADER_FIELDS)]
     for schema in SCHEMAS.values():
         body = schema.fields[len(HEADER_FIELDS) :]
         out += ["", f"### {schema.kind.name} (kind {int(schema.kind)}, {schema.size} bytes)"]
-        out += ["", *head, *_field_rows(schema.dtype, body)]
+        out += ["", *fields_table(schema.dtype, body)]
         if isinstance(schema, FrameSchema):
             out += [
                 "",
@@ -943,15 +942,26 @@ BUTTON_MEANINGS: Mapping[Button, str] = {
 def code_tables() -> str:
     """Markdown tables of the trace stages, RUN_EVENT codes, flag bits and button bits
     (``docs/protocol.md`` embeds this text verbatim; a test checks they match)."""
-    out = ["| index | stage | stamped by |", "| ---: | --- | --- |"]
-    out += [f"| {int(s)} | {s.name} | {STAGE_STAMPED_BY[s]} |" for s in Stage]
-    out += ["", "| event | code | sent by | meaning |", "| --- | ---: | --- | --- |"]
-    out += [f"| {e.name} | {int(e)} | {EVENT_MEANINGS[e][0]} | {EVENT_MEANINGS[e][1]} |"
-            for e in Event]  # fmt: skip
-    out += ["", "| flag | bit value | meaning |", "| --- | ---: | --- |"]
-    out += [f"| {f.name} | {int(f)} | {FLAG_MEANINGS[f]} |" for f in Flag if f]
-    out += ["", "| button | bit value | meaning |", "| --- | ---: | --- |"]
-    out += [f"| {b.name} | {int(b)} | {BUTTON_MEANINGS[b]} |" for b in Button if b]
+    stages = [(int(s), s.name, STAGE_STAMPED_BY[s]) for s in Stage]
+    events = [(e.name, int(e), *EVENT_MEANINGS[e]) for e in Event]
+    out = markdown.table(("index", "stage", "stamped by"), stages, "rl")
+    out += ["", *markdown.table(("event", "code", "sent by", "meaning"), events, "lr")]
+    out += [
+        "",
+        *markdown.table(
+            ("flag", "bit value", "meaning"),
+            [(f.name, int(f), FLAG_MEANINGS[f]) for f in Flag if f],
+            "lr",
+        ),
+    ]
+    out += [
+        "",
+        *markdown.table(
+            ("button", "bit value", "meaning"),
+            [(b.name, int(b), BUTTON_MEANINGS[b]) for b in Button if b],
+            "lr",
+        ),
+    ]
     return "\n".join(out) + "\n"
 
 
@@ -1067,10 +1077,9 @@ def unversioned_change(schemas: Mapping[Kind, Schema] | None = None) -> str | No
 
 def changelog_text() -> str:
     """docs/protocol.md's table of versions (embedded verbatim; a test checks it)."""
-    out = ["| version | what changed | a client of the version before also needs |",
-           "| ---: | --- | --- |"]  # fmt: skip
-    out += [f"| {v.version} | {v.changed} | {v.client} |" for v in PROTOCOL_HISTORY]
-    return "\n".join(out) + "\n"
+    header = ("version", "what changed", "a client of the version before also needs")
+    rows = [(v.version, v.changed, v.client) for v in PROTOCOL_HISTORY]
+    return "\n".join(markdown.table(header, rows, "r")) + "\n"
 
 
 DOC_TEXTS: Mapping[str, Callable[[], str]] = {

@@ -25,8 +25,8 @@ STAMP_LOG_ROWS = 65_536
 # Realtime teleoperation: an input of the loop (haptic sample, state, feedback) older than
 # this when its callback runs (its producer's stamp to now) is shed, not answered: the
 # service is behind (a CPU stall), its answer would be late anyway, and answering every
-# queued input in order would keep it behind (measured on an overloaded host: backlogs of
-# 0.3-0.5 s). Far above a healthy hop (0.1-0.3 ms), below the plant's 20 ms watchdog.
+# queued input in order would keep it behind for as long as the backlog lasts. Many times a
+# healthy hop (a fraction of a ms), well below the plant's command watchdog.
 SHED_AGE_NS = 5_000_000
 
 
@@ -54,50 +54,6 @@ MAX_RESYNC_RUNS = 4
 # A record stamped more than this far in this host's future did not come from a clock of
 # this host: rejected (it would otherwise never be judged stale).
 FUTURE_STAMP_TOLERANCE_NS = 1_000_000
-
-
-class SeqGaps:
-    """The one rule for what a receiver makes of a stream's ``seq`` (records that go up by
-    one each): a seq ahead of the previous one by ``step`` in ``1..SEQ_WINDOW`` leaves
-    ``step - 1`` records ``missing`` (lost on the way, or skipped by a newest-only
-    consumer that was behind); one not ahead (or further ahead than the window) is the
-    producer starting over (a restart, a new run, or a counter nobody can trust): counted
-    in ``restarts``, no gap. Used record by record (:meth:`add`) by a newest-only
-    subscription, and batch by batch (:meth:`add_batch`) by the recorder: the same
-    counts either way. Not thread-safe: its owner calls it from one thread.
-    """
-
-    def __init__(self) -> None:
-        self.previous: int | None = None  # the newest seq seen; None: none yet
-        self.missing = 0
-        self.restarts = 0
-
-    def add(self, seq: int) -> int:
-        """One record's seq; the records missing before it (0 for a restart)."""
-        previous, self.previous = self.previous, seq
-        if previous is None:
-            return 0
-        step = seq - previous
-        if 1 <= step <= SEQ_WINDOW:
-            self.missing += step - 1
-            return step - 1
-        self.restarts += 1
-        return 0
-
-    def add_batch(self, seqs: np.ndarray) -> tuple[int, int]:
-        """Seqs of several records in arrival order; (missing, restarts) among them."""
-        if len(seqs) == 0:
-            return 0, 0
-        seqs = np.asarray(seqs, dtype=np.int64)
-        first = seqs[0] - 1 if self.previous is None else self.previous
-        steps = np.diff(seqs, prepend=first)
-        self.previous = int(seqs[-1])
-        gaps = (steps >= 1) & (steps <= SEQ_WINDOW)
-        missing = int((steps[gaps] - 1).sum())
-        restarts = int(len(steps) - np.count_nonzero(gaps))
-        self.missing += missing
-        self.restarts += restarts
-        return missing, restarts
 
 
 class SeqCheck:
@@ -162,6 +118,48 @@ class SeqCheck:
             "jumps": self.jumps,
             "restarts": self.restarts,
         }
+
+
+class SeqGaps:
+    """:class:`SeqCheck`'s rule for a receiver that keeps every record anyway (an
+    observer: the recorder, a newest-only subscription): it only counts. ``missing`` are
+    the gaps (records lost on the way, or skipped by a newest-only consumer that was
+    behind), ``restarts`` the producer starting over, ``out_of_order`` the records the
+    rule would not have used (behind the newest, or too far ahead: a producer starting
+    over until its run re-anchors the check, or a counter nobody can trust). Record by
+    record (:meth:`add`) or batch by batch (:meth:`add_batch`): the same counts either
+    way. Not thread-safe: its owner calls it from one thread.
+    """
+
+    def __init__(self) -> None:
+        self.check = SeqCheck()
+        self.previous: int | None = None  # the newest seq seen; None: none yet
+
+    @property
+    def missing(self) -> int:
+        return self.check.lost
+
+    @property
+    def restarts(self) -> int:
+        return self.check.restarts
+
+    @property
+    def out_of_order(self) -> int:
+        return self.check.reordered + self.check.jumps - self.check.restarts
+
+    def add(self, seq: int) -> int:
+        """One record's seq; the records missing before it."""
+        lost = self.check.lost
+        self.check.accept(seq)
+        self.previous = seq
+        return self.check.lost - lost
+
+    def add_batch(self, seqs: np.ndarray) -> tuple[int, int]:
+        """Seqs of several records in arrival order; (missing, restarts) among them."""
+        lost, restarts = self.check.lost, self.check.restarts
+        for seq in np.asarray(seqs, dtype=np.int64).tolist():
+            self.add(seq)
+        return self.check.lost - lost, self.check.restarts - restarts
 
 
 class Inbound:

@@ -75,7 +75,7 @@ from teleop.control.teleop import (
 from teleop.control.wave import RobotWavePort
 from teleop.core.clock import Clock
 from teleop.core.config import Config
-from teleop.core.ticks import TickBarrier, TickedInputs, expected_valid_from, period_ticks
+from teleop.core.ticks import TickBarrier, TickedInputs, head_schedule, period_ticks
 from teleop.sim.proximity import ProximitySample, body_names
 
 # The path-following task keeps the gripper open (fraction of full opening).
@@ -316,7 +316,7 @@ class BilateralCycle(ControllerCore):
             mj_body_names=body_names(mj_model),
             clearance=ClearanceModel(config, arm),
         )
-        self.hmd_lead_ticks = round(config.hmd.prediction_s / self.timestep_s)
+        self.head_schedule = head_schedule(config)
         self.stale_ticks = round(config.haptic.stale_feedback_s / self.timestep_s)
         # Realtime: a newest plant state older than this on the clock means the plant went
         # silent; a command answering it would only be braked on (plant.watchdog_s).
@@ -607,12 +607,10 @@ class BilateralCycle(ControllerCore):
     def _head_yaw_rad(self, tick: int) -> float:
         """The HMD's predicted view yaw that applies at ``tick`` (config yaw before any)."""
         hmd = self.config.hmd
-        if tick < self.hmd_lead_ticks:  # before the first HMD record can apply
+        valid_from = self.head_schedule.valid_from_for(tick)
+        if valid_from is None:  # before the first HMD record can apply
             return hmd.head_yaw_rad
         if self.lockstep:
-            valid_from = expected_valid_from(tick, hmd.rate_hz, self.timestep_s,
-                                             self.hmd_lead_ticks)  # fmt: skip
-            assert valid_from is not None
             rec = self.head_poses.wait_for(valid_from, HEAD_POSE_WAIT_S)
         else:  # the newest record: no need to know which one the schedule expects
             rec = self.head_poses.latest_at(tick)

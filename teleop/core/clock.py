@@ -21,10 +21,10 @@ NS_PER_S = 1_000_000_000  # nanoseconds per second
 NS_PER_US = 1_000  # nanoseconds per microsecond
 
 # How long before a deadline MonotonicClock stops trusting one long time.sleep and switches to
-# short sleeps, ns. A long sleep on a 2-core VM wakes about 60 us late (median, kernel timer
-# slack plus scheduling); ending with short sleeps brings the lateness to about 12 us p50 /
-# 60 us p99 (against 65 / 216-360 us) for about 2 % of a core at 1 kHz. A 100 us margin
-# leaves a p99 of about 137 us; 300 us adds wake-ups without lowering it.
+# short sleeps, ns. A long sleep wakes late by the kernel's timer slack plus scheduling;
+# ending with short sleeps takes most of that away for a few wake-ups per deadline. A
+# shorter margin lets more of a long sleep's lateness through; a longer one only adds
+# wake-ups.
 FINE_SLEEP_MARGIN_NS = 200_000
 # Upper bound of one short sleep inside that margin, ns. Each short sleep still overshoots by
 # up to the kernel timer slack (50 us by default), so smaller values only add wake-ups.

@@ -1152,6 +1152,14 @@ TELEOPERATED = tuple(s.name for s in SCENARIO_SPECS if s.teleoperated)
 AUTONOMOUS = tuple(s.name for s in SCENARIO_SPECS if not s.teleoperated)
 
 
+def scenario_spec(name: str) -> ScenarioSpec:
+    """The spec of the scenario ``name`` (ConfigError naming the scenarios otherwise)."""
+    for spec in SCENARIO_SPECS:
+        if spec.name == name:
+            return spec
+    raise ConfigError(f"scenario {name!r}: one of {', '.join(SCENARIOS)}")
+
+
 # Characters of a robot id that names services of a run of several robots (their
 # participants' names, teleop.bus.access).
 ROBOT_ID_ALPHABET = frozenset("abcdefghijklmnopqrstuvwxyz0123456789_")
@@ -1186,6 +1194,12 @@ class RunConfig:
     def teleoperated(self) -> bool:
         """Whether this run's scenario is teleoperation (ScenarioSpec.teleoperated)."""
         return self.scenario in TELEOPERATED
+
+    @property
+    def follows_path(self) -> bool:
+        """Whether the controller drives the tool along ``config.path``'s desired path
+        (the autonomous scenarios): the run has a desired path to draw and to judge."""
+        return not self.teleoperated
 
     def __post_init__(self) -> None:
         _require(self.duration_s > 0, "run.duration_s > 0")

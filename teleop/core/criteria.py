@@ -25,6 +25,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
+from teleop.core.config import scenario_spec
+
 # Path following.
 MAX_PATH_ERROR_RMS_M = 1e-3
 MAX_PATH_ERROR_M = 3e-3
@@ -181,7 +183,8 @@ def judge_task(
 ) -> TaskVerdict:
     """``summary`` of a ``scenario`` run judged by its criteria; ``problems``: what the
     run itself said went wrong."""
-    criteria = judge_grasp(summary) if scenario == "grasp" else judge_path(summary)
+    teleoperated = scenario_spec(scenario).teleoperated
+    criteria = judge_grasp(summary) if teleoperated else judge_path(summary)
     return TaskVerdict(tuple(criteria), tuple(problems))
 
 

@@ -16,11 +16,10 @@ class LoopbackPorts(ExitStack):
     A port is handed out seconds before the process given it listens there. Meanwhile
     it stays bound here (with SO_REUSEADDR, not listening), so nothing else binds it:
     not the next port taken here (every port taken is distinct), not another launcher's
-    pick, not any program's bind to port 0 (the kernel skips a bound port: 0 of 3000
-    such binds landed on 5000 held ports on this machine, kernel 6.18). Released at
-    once, the 8 picks of a stack held a repeat in 36 of 20000 tries (1 in 550: the
-    kernel draws from about 14000 odd ports), and one of the run's services then could
-    not listen. The process given the port can still listen on it: Zenoh's listeners
+    pick, not any program's bind to port 0 (the kernel skips a bound port). Released at
+    once, the picks of one stack could repeat (the kernel draws each from its ephemeral
+    range, so 8 picks among its ports meet about 28 / ports of the time), and one of the
+    run's services then could not listen. The process given the port can still listen on it: Zenoh's listeners
     and Rust's set SO_REUSEADDR too. Close once the processes listen, or when the run
     ends (an :class:`~contextlib.ExitStack` of the held sockets).
     """

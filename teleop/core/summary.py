@@ -21,6 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from teleop.core import markdown
+
 # Bumped when a field changes meaning or type or goes away (a new field does not bump it).
 SUMMARY_VERSION = 2
 VERSION_FIELD = "summary_version"
@@ -31,6 +33,8 @@ SERVICES = "on the services"  # teleop run (not --inprocess), teleop sweep grasp
 PATH = "path following"
 GRASP = "grasp"
 INPROCESS = "in process"  # teleop run path-following --inprocess, teleop sweep path-following
+# A service a field is copied from (SummaryField.by).
+CONTROLLER = "controller"
 
 # JSON types, as Python's json module reads them.
 _TYPES: Mapping[str, tuple[type, ...]] = {
@@ -56,6 +60,9 @@ class SummaryField:
     runs: str  # which runs have it: ALL, SERVICES, PATH, GRASP, INPROCESS
     doc: str
     nullable: bool = False  # null where the run has no figure for it
+    # The service whose summary gives it, copied as it is by the launcher ("": another
+    # source, or assembled); :func:`copied_fields`.
+    by: str = ""
 
     def accepts(self, value: Any) -> bool:
         if value is None:
@@ -88,17 +95,19 @@ SUMMARY_FIELDS: tuple[SummaryField, ...] = (
       "problems (a part of problems)"),
     # The motion, measured by the controller.
     F("arm_contacts", "integer", ALL, "steps with an unintended contact of the arm or "
-      "gripper (any makes success false)", nullable=True),
+      "gripper (any makes success false)", nullable=True, by=CONTROLLER),
     F("min_clearance_m", "number", ALL, "the arm's least clearance to the scene, itself "
-      "and its fingers (m)", nullable=True),
+      "and its fingers (m)", nullable=True, by=CONTROLLER),
     F("min_clearance_scene_m", "number", ALL, "... to the table, bin and obstacles (m)",
-      nullable=True),
-    F("min_clearance_self_m", "number", ALL, "... to its own links (m)", nullable=True),
-    F("min_clearance_finger_m", "number", ALL, "... of the fingers (m)", nullable=True),
+      nullable=True, by=CONTROLLER),
+    F("min_clearance_self_m", "number", ALL, "... to its own links (m)", nullable=True,
+      by=CONTROLLER),
+    F("min_clearance_finger_m", "number", ALL, "... of the fingers (m)", nullable=True,
+      by=CONTROLLER),
     F("singularity_crossings", "integer", ALL, "times the arm went near a singularity",
-      nullable=True),
+      nullable=True, by=CONTROLLER),
     F("events", "array", ALL, "the controller's events (STALL, CONTACT, SINGULARITY) with "
-      "their sim time", nullable=True),
+      "their sim time", nullable=True, by=CONTROLLER),
     F("final_state_sha256", "string", ALL, "hash of the plant's final state: equal for "
       "equal lockstep runs", nullable=True),
     F("realtime_factor", "number", ALL, "sim time over wall time", nullable=True),
@@ -114,16 +123,18 @@ SUMMARY_FIELDS: tuple[SummaryField, ...] = (
       "(none: the run failed)", nullable=True),
     # Path following.
     F("settle_s", "number", PATH, "the path error counts from here (run.settle_s)",
-      nullable=True),
-    F("compensation", "boolean", PATH, "dynamic compensation on", nullable=True),
+      nullable=True, by=CONTROLLER),
+    F("compensation", "boolean", PATH, "dynamic compensation on", nullable=True, by=CONTROLLER),
     F("path_error_rms_m", "number", PATH, "distance to the path after settle_s, RMS (m)",
-      nullable=True),
-    F("path_error_max_m", "number", PATH, "... its largest value (m)", nullable=True),
-    F("path_progress", "number", PATH, "share of the path travelled", nullable=True),
-    F("stalled_s", "number", PATH, "time the tool made no progress (s)", nullable=True),
+      nullable=True, by=CONTROLLER),
+    F("path_error_max_m", "number", PATH, "... its largest value (m)", nullable=True,
+      by=CONTROLLER),
+    F("path_progress", "number", PATH, "share of the path travelled", nullable=True, by=CONTROLLER),
+    F("stalled_s", "number", PATH, "time the tool made no progress (s)", nullable=True,
+      by=CONTROLLER),
     F("stalls", "integer", INPROCESS, "STALL events", nullable=True),
     F("min_manipulability", "number", PATH, "the arm's least manipulability",
-      nullable=True),
+      nullable=True, by=CONTROLLER),
     # Grasp.
     F("object_in_box", "boolean", GRASP, "the cube ended in the bin", nullable=True),
     F("object_bin_distance_m", "number", GRASP, "how far the cube's centre ended from "
@@ -239,13 +250,19 @@ def read_run_summary(path: Path) -> dict[str, Any]:
     return content
 
 
+def copied_fields(service: str, runs: str) -> tuple[str, ...]:
+    """The fields a run of ``runs`` (PATH or GRASP) copies as they are from ``service``'s
+    summary (SummaryField.by), in the table's order."""
+    return tuple(f.name for f in SUMMARY_FIELDS if f.by == service and f.runs in (ALL, runs))
+
+
 def summary_table() -> str:
     """The fields table of docs/running.md (Markdown)."""
-    lines = ["| field | type | runs | what |", "| --- | --- | --- | --- |"]
-    for f in SUMMARY_FIELDS:
-        kind = f.type + (" or null" if f.nullable else "")
-        lines.append(f"| `{f.name}` | {kind} | {f.runs} | {f.doc} |")
-    return "\n".join(lines)
+    rows = [
+        (f"`{f.name}`", f.type + (" or null" if f.nullable else ""), f.runs, f.doc)
+        for f in SUMMARY_FIELDS
+    ]
+    return "\n".join(markdown.table(("field", "type", "runs", "what"), rows))
 
 
 if __name__ == "__main__":

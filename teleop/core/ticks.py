@@ -14,9 +14,13 @@ import bisect
 import math
 import threading
 from collections.abc import Callable
-from typing import Generic, TypeVar
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Generic, TypeVar
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from teleop.core.config import Config
 
 # What a TickedInputs holds per tick (a record, or a record with where it came from).
 Held = TypeVar("Held")
@@ -68,6 +72,71 @@ def expected_valid_from(
     if tick < lead_ticks:
         return None
     return last_sample_tick(tick - lead_ticks, rate_hz, timestep_s) + lead_ticks
+
+
+@dataclass(frozen=True)
+class SampleSchedule:
+    """A producer slower than the bus on the run's ticks: it samples at ``rate_hz`` on
+    ticks of ``tick_s`` (``Config.tick_s``, the bus period), and each record is valid from
+    ``lead_ticks`` after its sample tick. The one timing helper of the device loops (the
+    haptic device's hand inputs, the HMD, the scripted and the person's operators) and of
+    their consumers, who pick the record that applies at a tick with :meth:`valid_from_for`.
+    """
+
+    rate_hz: float
+    tick_s: float
+    lead_ticks: int
+
+    @classmethod
+    def of(cls, rate_hz: float, tick_s: float, lead_ticks: int | None = None) -> SampleSchedule:
+        """The schedule at ``rate_hz``, leading by one of its periods unless told."""
+        lead = period_ticks(rate_hz, tick_s) if lead_ticks is None else lead_ticks
+        return cls(rate_hz, tick_s, lead)
+
+    @property
+    def tick_ns(self) -> int:
+        return round(self.tick_s * 1e9)
+
+    @property
+    def lead_s(self) -> float:
+        """The lead in s (whole ticks)."""
+        return self.lead_ticks * self.tick_s
+
+    def ticks(self, duration_s: float) -> int:
+        """``duration_s`` in whole ticks (rounded)."""
+        return round(duration_s / self.tick_s)
+
+    def is_sample(self, tick: int) -> bool:
+        return is_sample_tick(tick, self.rate_hz, self.tick_s)
+
+    def last_sample(self, tick: int) -> int:
+        return last_sample_tick(tick, self.rate_hz, self.tick_s)
+
+    def next_sample(self, tick: int) -> int:
+        return next_sample_tick(tick, self.rate_hz, self.tick_s)
+
+    def valid_from_for(self, tick: int) -> int | None:
+        """``valid_from_tick`` of the record that applies at ``tick`` (None: none yet)."""
+        return expected_valid_from(tick, self.rate_hz, self.tick_s, self.lead_ticks)
+
+
+def hand_schedule(config: Config) -> SampleSchedule:
+    """HAND_INPUT's schedule: the operator (scripted or a person's) samples at
+    ``operator.decision_rate_hz``, each input valid one of its periods later; the haptic
+    device takes the one valid at its tick."""
+    return SampleSchedule.of(config.operator.decision_rate_hz, config.tick_s)
+
+
+def head_schedule(config: Config) -> SampleSchedule:
+    """HEAD_POSE's schedule: the HMD samples at ``hmd.rate_hz``; a record sampled at tick
+    ``k`` carries the pose predicted ``hmd.prediction_s`` ahead (in whole ticks), valid from
+    ``k + lead_ticks``. A consumer at tick ``n`` uses the record whose ``valid_from_tick``
+    is ``valid_from_for(n)``: in lockstep it waits for exactly that record
+    (:meth:`TickedInputs.wait_for`), in realtime it takes the newest one not after ``n``
+    (:meth:`TickedInputs.latest_at`). Before the first record applies (``n < lead_ticks``)
+    there is none: the configured rest pose (``hmd.head_p_m``, ``hmd.head_yaw_rad``)."""
+    lead = round(config.hmd.prediction_s / config.tick_s)
+    return SampleSchedule.of(config.hmd.rate_hz, config.tick_s, lead)
 
 
 class TickedInputs(Generic[Held]):

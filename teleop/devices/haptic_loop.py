@@ -84,7 +84,7 @@ from teleop.control.feedback import workspace_force
 from teleop.control.wave import handle_rate_m_s, handle_resistance_n, handle_wave
 from teleop.core.clock import NS_PER_S, Clock, LoopTimer
 from teleop.core.config import Config
-from teleop.core.ticks import TickedInputs, expected_valid_from, lead_ticks
+from teleop.core.ticks import SampleSchedule, TickedInputs
 from teleop.devices.haptic import (
     DeviceSample,
     FeedbackHold,
@@ -170,8 +170,8 @@ class HapticLoop:
         self.outputs = outputs
         self.clock = clock
         self.lockstep = lockstep
-        self.period_s = config.tick_s  # one tick: one sample out, one feedback in
-        self.period_ns = round(self.period_s * NS_PER_S)
+        self.tick_s = config.tick_s  # one tick: one sample out, one feedback in
+        self.tick_ns = round(self.tick_s * NS_PER_S)
         # The device's servo: it renders the local contact model this often, a bus
         # period's renders in one go (the emulator integrates its handle at that rate).
         self.render_period_s = config.haptic.render_period_s
@@ -184,9 +184,8 @@ class HapticLoop:
         )
         self.models_softened = 0
         self.slew = ForceSlew(config.haptic.max_force_rate_n_per_s, self.render_period_s)
-        self.hand_rate_hz = config.operator.decision_rate_hz
-        self.lead_ticks = lead_ticks(self.hand_rate_hz, self.period_s)
-        self.hand_stale_ticks = round(config.haptic.hand_input_stale_s / self.period_s)
+        self.hand_schedule = SampleSchedule.of(config.operator.decision_rate_hz, self.tick_s)
+        self.hand_stale_ticks = self.hand_schedule.ticks(config.haptic.hand_input_stale_s)
         self.peak_force_n = config.haptic.peak_force_n
         self.max_feedback_n = OVERSIZED_FEEDBACK_FACTOR * self.peak_force_n
         self.render_on_arrival = config.haptic.render_on_arrival
@@ -292,7 +291,7 @@ class HapticLoop:
                 self._first_tick = seq
                 self._last_tick = seq - 1
             self._robot_seq[0] = seq
-            self._sim_offset_ns = int(rec["sim_time_ns"]) - seq * self.period_ns
+            self._sim_offset_ns = int(rec["sim_time_ns"]) - seq * self.tick_ns
             self._state_seq = self._robots_state()
             if self.lockstep:
                 self._try_steps()
@@ -429,7 +428,7 @@ class HapticLoop:
             trace[Stage.FEEDBACK_RENDERED] = rendered_ns
             self.trace_log.append(trace)
         else:
-            self.hold.receive(model, self._last_deadline_ns + self.period_ns)
+            self.hold.receive(model, self._last_deadline_ns + self.tick_ns)
             if self._pending_trace is not None:
                 self.feedback_superseded += 1
             self._pending_trace = trace
@@ -461,7 +460,7 @@ class HapticLoop:
     # -- lockstep ----------------------------------------------------------------------
     def _hand_for(self, tick: int) -> tuple[HandFor | None, bool]:
         """(hand input that applies at ``tick`` or None, still waiting for it)."""
-        valid_from = expected_valid_from(tick, self.hand_rate_hz, self.period_s, self.lead_ticks)
+        valid_from = self.hand_schedule.valid_from_for(tick)
         if valid_from is None:
             return None, False  # before the operator's first input can apply
         rec = self.hand_inputs.wait_for(valid_from, 0.0)
@@ -493,15 +492,15 @@ class HapticLoop:
                 return
             self._hand_blocked_since_ns = None
             rec = self._select(hand, tick)
-            t_ns = tick * self.period_ns
+            t_ns = tick * self.tick_ns
             delivered = None
             for robot, feedback in enumerate(self._robot_feedback):
                 force = feedback.pop(tick - 1 - self.backward_ticks, None)
                 if robot == self.selected:
                     delivered = force
             if delivered is not None:
-                self.hold.receive(delivered, t_ns - self.period_ns)
-            sim_ns = self._sim_offset_ns + tick * self.period_ns
+                self.hold.receive(delivered, t_ns - self.tick_ns)
+            sim_ns = self._sim_offset_ns + tick * self.tick_ns
             sample = self._step(tick, sim_ns, rec, t_ns)
             self._send(self._over_the_link())
             self._account_sample(sample)
@@ -611,7 +610,7 @@ class HapticLoop:
     # -- realtime ----------------------------------------------------------------------
     def run_realtime(self, stop: threading.Event) -> None:
         """One bus period per deadline of the clock until ``stop``."""
-        self.timer = LoopTimer(self.period_ns, self.clock)
+        self.timer = LoopTimer(self.tick_ns, self.clock)
         while not stop.is_set():
             deadline_ns = self.timer.deadline_ns(self.timer.wait())
             if self.timer.count == 1:
@@ -626,7 +625,7 @@ class HapticLoop:
             hand = self.hand_inputs.latest_at(tick) if self._state_seq >= 0 else None
             rec = self._select(hand, tick)
             sample = self._step(
-                tick, self._state_sim_ns, rec, deadline_ns - self.period_ns, deadline_ns
+                tick, self._state_sim_ns, rec, deadline_ns - self.tick_ns, deadline_ns
             )
             self._last_deadline_ns = deadline_ns
         # Outside the lock: a feedback that arrives meanwhile is rendered at once. Only

@@ -13,7 +13,8 @@ right-hand rule with x forward and z up). Roll is not modelled. Yaw is reported 
 Timing: the HMD samples on the plant ticks where a ``rate_hz`` clock advances
 (:func:`teleop.core.ticks.is_sample_tick`), so sample intervals are whole plant steps (at
 90 Hz on a 1 ms plant: 11 or 12 ms). Each sample's pose is predicted ``lead_ticks`` plant
-steps ahead and is valid from ``sample_tick + lead_ticks`` (see :class:`HmdSchedule`).
+steps ahead and is valid from ``sample_tick + lead_ticks``
+(:func:`teleop.core.ticks.head_schedule`).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 
 from teleop.core.config import SCRIPTED, Config, ConfigError, HmdConfig
-from teleop.core.ticks import expected_valid_from, is_sample_tick, period_ticks
+from teleop.core.ticks import head_schedule, period_ticks
 
 # Head pitch nod of the scripted motion: amplitude (rad, about 3 degrees) and its period
 # as a fraction of hmd.motion_period_s (a nod twice per yaw sway).
@@ -250,50 +251,6 @@ class HeadFilter:
         return HeadPose.from_vector(x[:POSE_DIM])
 
 
-def lead_ticks(hmd: HmdConfig, timestep_s: float) -> int:
-    """Plant ticks between a sample and the tick its prediction is for (and valid from)."""
-    return round(hmd.prediction_s / timestep_s)
-
-
-@dataclass(frozen=True)
-class HmdSchedule:
-    """When the HMD samples and which HEAD_POSE record a consumer uses at a plant tick.
-
-    A record sampled at tick ``k`` carries ``valid_from_tick = k + lead_ticks`` and a pose
-    predicted for that tick. A consumer at tick ``n`` uses the record whose
-    ``valid_from_tick`` is :meth:`valid_from_for` ``(n)``: in lockstep it waits for exactly
-    that record (``TickedInputs.wait_for``), in realtime it takes the newest one not after
-    ``n`` (``TickedInputs.latest_at``). Before the first record applies
-    (``n < lead_ticks``) there is none: use the configured rest pose (``head_p_m``,
-    ``head_yaw_rad``).
-    """
-
-    rate_hz: float
-    timestep_s: float
-    lead_ticks: int
-
-    @classmethod
-    def from_config(cls, config: Config) -> HmdSchedule:
-        return cls(
-            rate_hz=config.hmd.rate_hz,
-            timestep_s=config.tick_s,
-            lead_ticks=lead_ticks(config.hmd, config.tick_s),
-        )
-
-    @property
-    def horizon_s(self) -> float:
-        """Prediction horizon: ``hmd.prediction_s`` rounded to whole plant ticks (s)."""
-        return self.lead_ticks * self.timestep_s
-
-    def is_sample(self, tick: int) -> bool:
-        """True on the plant ticks where the HMD takes a sample."""
-        return is_sample_tick(tick, self.rate_hz, self.timestep_s)
-
-    def valid_from_for(self, tick: int) -> int | None:
-        """``valid_from_tick`` of the HEAD_POSE record that applies at plant tick ``tick``."""
-        return expected_valid_from(tick, self.rate_hz, self.timestep_s, self.lead_ticks)
-
-
 @dataclass(frozen=True)
 class HeadSample:
     """One HMD output: what the service publishes as a HEAD_POSE record."""
@@ -348,7 +305,7 @@ class HmdEmulator:
     """
 
     def __init__(self, config: Config) -> None:
-        self.schedule = HmdSchedule.from_config(config)
+        self.schedule = head_schedule(config)
         # A person's operator drives from a screen: no scripted head (run.operator).
         self.motion = HeadMotion(config.hmd, still=config.run.operator != SCRIPTED)
         self.tracker = Tracker(config.hmd, config.run.seed)
@@ -372,7 +329,7 @@ class HmdEmulator:
         """Process plant tick ``tick``; a sample on the HMD's sample ticks, else None."""
         if not self.schedule.is_sample(tick):
             return None
-        timestep_s = self.schedule.timestep_s
+        timestep_s = self.schedule.tick_s
         t_s = tick * timestep_s
         truth = self.motion.pose(t_s)
         measured = self.tracker.measure(truth, tick)
@@ -381,7 +338,7 @@ class HmdEmulator:
             dt_s = (tick - self._last_sample_tick) * timestep_s
         self._last_sample_tick = tick
         filtered = self.filter.update(measured, dt_s)
-        horizon_s = self.schedule.horizon_s
+        horizon_s = self.schedule.lead_s
         predicted = self.filter.predict_ahead(horizon_s)
         future = self.motion.pose(t_s + horizon_s)
         self.measured_error.add(measured, truth)
@@ -403,7 +360,7 @@ class HmdEmulator:
         """Sample count and RMS errors (m, rad) of each stage against the truth."""
         return {
             "samples": self.samples,
-            "horizon_s": self.schedule.horizon_s,
+            "horizon_s": self.schedule.lead_s,
             "measured_error": self.measured_error.summary(),
             "filtered_error": self.filtered_error.summary(),
             "predicted_error": self.predicted_error.summary(),
@@ -430,7 +387,7 @@ class HmdLoop:
 
     def __init__(self, config: Config) -> None:
         scene_period_ticks = period_ticks(config.plant.scene_rate_hz, config.tick_s)
-        if lead_ticks(config.hmd, config.tick_s) < scene_period_ticks:
+        if head_schedule(config).lead_ticks < scene_period_ticks:
             raise ConfigError(
                 f"hmd.prediction_s ({config.hmd.prediction_s} s) must be at least one "
                 f"scene period (1 / plant.scene_rate_hz = {scene_period_ticks} ticks)"

@@ -144,7 +144,9 @@ class KeyboardIntent:
 
     A motion key sets its axis to its sign at the current speed step for ``hold_s`` after
     its press; a repeat of the key extends it, the opposite key takes the axis over, space
-    stops every axis. ``speed_steps`` are fractions of the top speed."""
+    stops every axis. ``speed_steps`` are fractions of the top speed. The hold runs on the
+    person's clock, as a hand does: a lockstep run that lags takes the keys as they are
+    when it catches up (a tap it lagged past is gone, as in any live view)."""
 
     config: KeyboardConfig
     keys: Mapping[str, KeyAction] = field(default_factory=lambda: dict(DEFAULT_KEYS))

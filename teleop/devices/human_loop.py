@@ -4,8 +4,8 @@ out, and the task's phases read from the world.
 :class:`HumanOperatorLoop` takes what the service receives (the plant's STARTED, GRASP and
 RELEASE events, TOOL_POSE and OBJECT_POSES), asks a device for the person's
 :class:`teleop.devices.human.HandIntent` and hands HAND_INPUT and RUN_EVENT decisions to
-:class:`HumanOutputs`. Clock-injected: each call takes the time; ``services/human.py`` is
-the bus adapter.
+:class:`HumanOutputs`. Clock-injected: each call takes the time;
+:mod:`teleop.devices.human_service` is the bus adapter.
 
 When hand inputs go out (:meth:`HumanOperatorLoop.due`), on the grid of sample ticks the
 haptic device expects (teleop.core.ticks: ``operator.decision_rate_hz``, each valid from
@@ -49,7 +49,7 @@ import numpy as np
 from teleop.bus.messages import Button, Event
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import Config
-from teleop.core.ticks import last_sample_tick, lead_ticks, next_sample_tick
+from teleop.core.ticks import SampleSchedule
 from teleop.devices.human import HandIntent, hand_command
 from teleop.devices.routing import SceneKnowledge
 from teleop.sim.proximity import BIN_BODY
@@ -116,13 +116,11 @@ class WorldTask:
     """The pick-and-place task's phases from the world: what is held (the plant's GRASP
     and RELEASE) and where the objects are (OBJECT_POSES)."""
 
-    def __init__(
-        self, scene: SceneKnowledge, object_names: Sequence[str], timestep_s: float
-    ) -> None:
+    def __init__(self, scene: SceneKnowledge, object_names: Sequence[str], tick_s: float) -> None:
         self.scene = scene
         self.object_names = tuple(object_names)
         self.movable = tuple(name for name in object_names if name != BIN_BODY)
-        self.timestep_s = timestep_s
+        self.tick_s = tick_s
         self.reset()
 
     def reset(self) -> None:
@@ -143,7 +141,7 @@ class WorldTask:
         self.phase = phase
         if self.start_tick is None:
             self.start_tick = tick
-        self.phase_times.append({"name": PHASES[phase], "sim_time_s": tick * self.timestep_s})
+        self.phase_times.append({"name": PHASES[phase], "sim_time_s": tick * self.tick_s})
         emit(Event.PHASE, tick, tick, float(phase))
 
     def start(self, tick: int, emit: Emit) -> None:
@@ -157,7 +155,7 @@ class WorldTask:
 
     def _settle_hold(self, tick: int, emit: Emit) -> None:
         change = self._hold_change
-        if change is None or (tick - change[1]) * self.timestep_s < HOLD_SETTLE_S:
+        if change is None or (tick - change[1]) * self.tick_s < HOLD_SETTLE_S:
             return
         self._hold_change = None
         holding, since = change
@@ -200,7 +198,7 @@ class WorldTask:
             self._enter(PLACED, tick, emit)
         if self._placed_since_tick is None:
             self._placed_since_tick = tick
-        elif (tick - self._placed_since_tick) * self.timestep_s >= PLACED_SETTLE_S:
+        elif (tick - self._placed_since_tick) * self.tick_s >= PLACED_SETTLE_S:
             self.finish(True, tick, emit)
 
     def finish(self, success: bool, tick: int, emit: Emit) -> None:
@@ -226,15 +224,15 @@ class HumanOperatorLoop:
         self.config = config
         self.outputs = outputs
         self.lockstep = lockstep
-        self.timestep_s = config.tick_s
-        self.period_ns = round(self.timestep_s * NS_PER_S)
-        self.rate_hz = config.operator.decision_rate_hz
-        self.lead_ticks = lead_ticks(self.rate_hz, self.timestep_s)
-        self.max_ahead_ticks = max(self.lead_ticks, round(MAX_AHEAD_S / self.timestep_s))
-        self.decision_ns = round(NS_PER_S / self.rate_hz)
+        self.tick_s = config.tick_s
+        self.tick_ns = round(self.tick_s * NS_PER_S)
+        self.hand_schedule = SampleSchedule.of(config.operator.decision_rate_hz, self.tick_s)
+        lead = self.hand_schedule.lead_ticks
+        self.max_ahead_ticks = max(lead, self.hand_schedule.ticks(MAX_AHEAD_S))
+        self.decision_ns = round(NS_PER_S / self.hand_schedule.rate_hz)
         self.hand_stiffness_n_per_m = config.haptic.hand_stiffness_n_per_m
         self.weight_f_n: np.ndarray | None = None  # the held weight the handle renders
-        self.task = WorldTask(scene, config.robot.object_bodies, self.timestep_s)
+        self.task = WorldTask(scene, config.robot.object_bodies, self.tick_s)
         self.view = WorldView()
         self.runs = 0
         self.inputs_sent = 0
@@ -264,7 +262,7 @@ class HumanOperatorLoop:
             self.joined_at_tick = tick
         p = np.array(world_p_m, dtype=np.float64)
         if self._last_tool is not None and tick > self._last_tool[0]:
-            dt_s = (tick - self._last_tool[0]) * self.timestep_s
+            dt_s = (tick - self._last_tool[0]) * self.tick_s
             self.view.tool_speed_m_s = float(np.linalg.norm(p - self._last_tool[1])) / dt_s
         self._last_tool = (tick, p)
         if self.tool_start_p_m is None:
@@ -277,8 +275,8 @@ class HumanOperatorLoop:
         the task from reach (what is held shows at the next grasp or release)."""
         self.runs += 1
         self.joined_at_tick = None
-        self._start_ns = now_ns - tick * self.period_ns
-        self._next_sample_tick = last_sample_tick(tick, self.rate_hz, self.timestep_s)
+        self._start_ns = now_ns - tick * self.tick_ns
+        self._next_sample_tick = self.hand_schedule.last_sample(tick)
         self._next_realtime_ns = now_ns
         self._last_tool = None
         self.tool_start_p_m = None
@@ -331,7 +329,8 @@ class HumanOperatorLoop:
             target_p_m = target_p_m - self.weight_f_n / self.hand_stiffness_n_per_m
         if not self.lockstep:
             if now_ns >= self._next_realtime_ns:
-                self._send(max(self.view.tick, 0) + self.lead_ticks, target_p_m, buttons)
+                lead = self.hand_schedule.lead_ticks
+                self._send(max(self.view.tick, 0) + lead, target_p_m, buttons)
                 self._next_realtime_ns += self.decision_ns
                 if self._next_realtime_ns <= now_ns:  # a stall: no burst to catch up
                     self._next_realtime_ns = now_ns + self.decision_ns
@@ -339,16 +338,16 @@ class HumanOperatorLoop:
         newest = max(self.view.tick, 0)
         while True:
             s = self._next_sample_tick
-            due_ns = self._start_ns + s * self.period_ns
+            due_ns = self._start_ns + s * self.tick_ns
             if due_ns > now_ns:
                 return due_ns
-            if s + self.lead_ticks > newest + self.max_ahead_ticks:
+            if s + self.hand_schedule.lead_ticks > newest + self.max_ahead_ticks:
                 if s != self._held_back_tick:
                     self._held_back_tick = s
                     self.inputs_held_back += 1
                 return now_ns + self.decision_ns  # the run lags: wait for its next pose
-            self._send(s + self.lead_ticks, target_p_m, buttons)
-            self._next_sample_tick = next_sample_tick(s, self.rate_hz, self.timestep_s)
+            self._send(s + self.hand_schedule.lead_ticks, target_p_m, buttons)
+            self._next_sample_tick = self.hand_schedule.next_sample(s)
 
     def _send(self, valid_from_tick: int, target_p_m: np.ndarray, buttons: Button) -> None:
         self.outputs.put_hand(valid_from_tick, target_p_m, buttons)
@@ -371,7 +370,7 @@ class HumanOperatorLoop:
         task = self.task
         duration_s = None
         if task.start_tick is not None and task.done_tick is not None:
-            duration_s = (task.done_tick - task.start_tick) * self.timestep_s
+            duration_s = (task.done_tick - task.start_tick) * self.tick_s
         return {
             "phases": task.phase_times,
             "task_done": task.done,
@@ -440,7 +439,7 @@ class HumanStation:
         logger.info("the hand moves from robot %d to robot %d", self.active, robot)
         self.active = robot
         self.loop.take_over(previous)
-        self._settle_until_tick = tick + round(SWITCH_SETTLE_S / previous.timestep_s)
+        self._settle_until_tick = tick + round(SWITCH_SETTLE_S / previous.tick_s)
 
     @property
     def settling(self) -> bool:

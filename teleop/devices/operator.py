@@ -88,13 +88,7 @@ from teleop.core.config import (
     build,
     read_toml,
 )
-from teleop.core.ticks import (
-    expected_valid_from,
-    is_sample_tick,
-    last_sample_tick,
-    lead_ticks,
-    period_ticks,
-)
+from teleop.core.ticks import hand_schedule, head_schedule, period_ticks
 from teleop.devices.routing import KeepOut, SceneKnowledge, plan_route, route_length_m
 from teleop.sim.proximity import BIN_BODY
 
@@ -651,7 +645,7 @@ class ScriptedOperator:
         operator_cfg: OperatorConfig,
         teleop_cfg: TeleopConfig,
         haptic_cfg: HapticConfig,
-        timestep_s: float,
+        tick_s: float,
         scene: SceneKnowledge | None = None,
     ) -> None:
         self.scenario = scenario
@@ -660,17 +654,17 @@ class ScriptedOperator:
         self.operator_cfg = operator_cfg
         self.teleop = teleop_cfg
         self.haptic = haptic_cfg
-        self.timestep_s = timestep_s
+        self.tick_s = tick_s
         self.gain_per_s = NO_OVERSHOOT_MARGIN * critical_gain_per_s(
             operator_cfg.reaction_delay_s + UNMODELLED_LAG_S, HAND_TIME_CONSTANT_S
         )
         self.speed_cap_m_s = SPEED_CAP_FRACTION * teleop_cfg.max_tool_speed_m_s
         self.drift_limit_m_s = DRIFT_LIMIT_FRACTION * self.speed_cap_m_s
         # A hand command decided at tick s moves the tool from about s + this (ticks).
-        self._apply_lag_ticks = round(UNMODELLED_LAG_S / timestep_s)
+        self._apply_lag_ticks = round(UNMODELLED_LAG_S / tick_s)
         # Decisions further apart than this (ticks): the device centred the handle
         # meanwhile (haptic.hand_input_stale_s), the hand starts over from there.
-        self._hand_hold_ticks = round(haptic_cfg.hand_input_stale_s / timestep_s)
+        self._hand_hold_ticks = round(haptic_cfg.hand_input_stale_s / tick_s)
         self.hand_holds = 0  # gaps in the decisions that long (a late operator caught up)
         # The haptic device, the operator's only way to move the tool, is gone (its
         # liveliness token withdrawn: killed, restarting): nothing the hand does reaches
@@ -678,7 +672,7 @@ class ScriptedOperator:
         self.device_gone = False
         self.device_gone_decisions = 0
         # Expected-velocity history kept for the drift estimate (ticks).
-        self._history_ticks = round(operator_cfg.reaction_delay_s / timestep_s) + 2 * (
+        self._history_ticks = round(operator_cfg.reaction_delay_s / tick_s) + 2 * (
             self._apply_lag_ticks + 1
         )
         self.reset()
@@ -768,26 +762,26 @@ class ScriptedOperator:
         self.failure = why
 
     def _elapsed_s(self, tick: int, since: int) -> float:
-        return (tick - since) * self.timestep_s
+        return (tick - since) * self.tick_s
 
     def _resume(self, tick: int, seen: Observation) -> None:
         """Take the task up where the world is (see :func:`resume_phase`). The task began
         when the run's first operator first looked, one reaction delay into the run:
         ``max_task_s`` bounds the whole task, the restart included."""
         resumption = resume_phase(self.scenario, seen, self.scene)
-        delay_ticks = round(self.operator_cfg.reaction_delay_s / self.timestep_s)
+        delay_ticks = round(self.operator_cfg.reaction_delay_s / self.tick_s)
         self.task_start_tick = min(tick, delay_ticks)
         self._start_phase(resumption.phase, tick, seen, resumption.anchors)
         name = self.scenario.phases[resumption.phase].name
         self.resumed = {
-            "sim_time_s": tick * self.timestep_s,
+            "sim_time_s": tick * self.tick_s,
             "phase": resumption.phase,
             "name": name,
             "why": resumption.why,
         }
         logger.info(
             "joined a run under way at %.2f s: taking the task up at phase %d (%s): %s",
-            tick * self.timestep_s,
+            tick * self.tick_s,
             resumption.phase,
             name,
             resumption.why,
@@ -903,7 +897,7 @@ class ScriptedOperator:
         self._prev_seen = (seen.tick, seen.tool_p_m)
         if prev is None or seen.tick <= prev[0]:
             return
-        dt_s = (seen.tick - prev[0]) * self.timestep_s
+        dt_s = (seen.tick - prev[0]) * self.tick_s
         observed_v = (seen.tool_p_m - prev[1]) / dt_s
         mismatch = observed_v - self._expected_velocity_at(seen.tick - 1)
         alpha = 1.0 - math.exp(-dt_s / DRIFT_TIME_CONSTANT_S)
@@ -924,7 +918,7 @@ class ScriptedOperator:
     def _move_hand(self, tick: int, goal_m: np.ndarray) -> np.ndarray:
         """Low-pass the hand toward ``goal_m`` over the sim time since the last decision."""
         if self._last_tick is not None and tick > self._last_tick:
-            dt_s = (tick - self._last_tick) * self.timestep_s
+            dt_s = (tick - self._last_tick) * self.tick_s
             alpha = 1.0 - math.exp(-dt_s / HAND_TIME_CONSTANT_S)
             self._hand_m = self._hand_m + alpha * (goal_m - self._hand_m)
         self._last_tick = tick
@@ -1064,25 +1058,24 @@ class OperatorLoop:
             config = dataclasses.replace(
                 config, operator=dataclasses.replace(config.operator, reaction_delay_s=seen_s)
             )
-        self.timestep_s = config.tick_s
-        self.rate_hz = config.operator.decision_rate_hz
-        if self.rate_hz > config.plant.scene_rate_hz:
+        self.tick_s = config.tick_s
+        self.hand_schedule = hand_schedule(config)
+        rate_hz = self.hand_schedule.rate_hz
+        if rate_hz > config.plant.scene_rate_hz:
             raise ConfigError(
-                f"operator.decision_rate_hz ({self.rate_hz:g}) above plant.scene_rate_hz "
+                f"operator.decision_rate_hz ({rate_hz:g}) above plant.scene_rate_hz "
                 f"({config.plant.scene_rate_hz:g}): decisions are driven by TOOL_POSE arrivals"
             )
         self.lockstep = lockstep
-        self.lead_ticks = lead_ticks(self.rate_hz, self.timestep_s)
         # Lockstep: how far the newest TOOL_POSE can be ahead of the last one decided while
         # the haptic device waits for this operator's hand inputs (a hand input applies
         # for a decision period from a decision period ahead, and poses come every scene
         # period), with a scene period to spare. A pose further ahead means the run went
         # on without this operator (a restart, or the device gave up waiting for it).
-        scene_ticks = period_ticks(config.plant.scene_rate_hz, self.timestep_s)
-        self.lockstep_lag_ticks = 3 * self.lead_ticks + 2 * scene_ticks
-        self.delay_ticks = round(config.operator.reaction_delay_s / self.timestep_s)
-        self.hmd_rate_hz = config.hmd.rate_hz
-        self.hmd_lead_ticks = round(config.hmd.prediction_s / self.timestep_s)
+        scene_ticks = period_ticks(config.plant.scene_rate_hz, self.tick_s)
+        self.lockstep_lag_ticks = 3 * self.hand_schedule.lead_ticks + 2 * scene_ticks
+        self.delay_ticks = round(config.operator.reaction_delay_s / self.tick_s)
+        self.head_schedule = head_schedule(config)
         self.scenario = scenario
         self.outputs = outputs
         self.operator = ScriptedOperator(
@@ -1090,7 +1083,7 @@ class OperatorLoop:
             config.operator,
             config.teleop,
             config.haptic,
-            self.timestep_s,
+            self.tick_s,
             scene=scene if scene is not None else SceneKnowledge.from_config(config),
         )
         self.buffer = ObservationBuffer(
@@ -1164,22 +1157,21 @@ class OperatorLoop:
             self.duplicate_poses += 1  # a plant re-send of a state nobody answered yet
             return
         if self._last_tick is None:
-            first = last_sample_tick(m, self.rate_hz, self.timestep_s)
+            first = self.hand_schedule.last_sample(m)
             if m > 0 and self.operator.phase < 0 and not self.operator.done:
                 self._joined_tick = m
                 self.operator.joining = True
                 logger.info("joined a run under way at tick %d (a restart)", m)
         elif catch_up:
-            first = max(self._last_tick + 1, last_sample_tick(m, self.rate_hz, self.timestep_s))
+            first = max(self._last_tick + 1, self.hand_schedule.last_sample(m))
             self.skipped_decisions += sum(
-                is_sample_tick(s, self.rate_hz, self.timestep_s)
-                for s in range(self._last_tick + 1, first)
+                self.hand_schedule.is_sample(s) for s in range(self._last_tick + 1, first)
             )
         else:
             first = self._last_tick + 1
         self._last_tick = m
         for s in range(first, m + 1):
-            if is_sample_tick(s, self.rate_hz, self.timestep_s):
+            if self.hand_schedule.is_sample(s):
                 self._decide(s, m)
 
     def _decide(self, s: int, m: int) -> None:
@@ -1189,9 +1181,7 @@ class OperatorLoop:
         if self.lockstep and not unseen:
             head_from = None
             if self._hmd_present.is_set() and seen >= 0:
-                head_from = expected_valid_from(
-                    seen, self.hmd_rate_hz, self.timestep_s, self.hmd_lead_ticks
-                )
+                head_from = self.head_schedule.valid_from_for(seen)
             if not self.buffer.wait_ready(s, head_from, LOCKSTEP_INPUT_WAIT_S):
                 self.late_observations += 1
         command = self.operator.decide(s, self.buffer.observe(s))
@@ -1199,14 +1189,14 @@ class OperatorLoop:
         if unseen and command.phase < 0:
             self.withheld_inputs += 1  # nothing of this run seen yet: no hand to give
             return
-        self.outputs.hand(s + self.lead_ticks, command)
+        self.outputs.hand(s + self.hand_schedule.lead_ticks, command)
         if command.phase != self._phase_reported and command.phase >= 0:
             self._phase_reported = command.phase
             self.phase_times.append(
                 {
                     "phase": command.phase,
                     "name": self.scenario.phases[command.phase].name,
-                    "sim_time_s": s * self.timestep_s,
+                    "sim_time_s": s * self.tick_s,
                 }
             )
             self.outputs.event(Event.PHASE, s, s, float(command.phase))
@@ -1219,7 +1209,7 @@ class OperatorLoop:
             self.outputs.event(Event.TASK_DONE, s, finish_tick, float(command.success))
             logger.info(
                 "task done at %.2f s: %s %s",
-                s * self.timestep_s,
+                s * self.tick_s,
                 "success" if command.success else "gave up",
                 self.operator.failure,
             )
@@ -1229,7 +1219,7 @@ class OperatorLoop:
         op = self.operator
         duration_s = None
         if op.task_start_tick is not None and op.done_tick is not None:
-            duration_s = (op.done_tick - op.task_start_tick) * self.timestep_s
+            duration_s = (op.done_tick - op.task_start_tick) * self.tick_s
         return {
             "scenario": self.scenario.source,
             "phases": self.phase_times,

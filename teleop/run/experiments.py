@@ -35,7 +35,10 @@ def print_progress(fraction: float, sim_time_s: float) -> None:
 def run_path_following_inprocess(
     config: Config, progress: ProgressFn | None = print_progress
 ) -> dict[str, object]:
-    """Experiment 1 with plant and controller in one process; returns the summary."""
+    """Experiment 1 with plant and controller in one process; returns the summary.
+    ValueError for a teleoperated scenario (its hand and devices run as services)."""
+    if not config.run.follows_path:
+        raise ValueError(f"in process: an autonomous scenario, not {config.run.scenario}")
     plant = Plant(config)
     plant.reset(initial_configuration(config))
     arm = build_arm_model(config.robot)
@@ -73,7 +76,7 @@ def run_path_following_inprocess(
     # Every step after the delay applied the controller's command.
     figures = {**metrics.summary(), "commands_applied": steps - delay}
     return {
-        "scenario": "path-following",
+        "scenario": config.run.scenario,
         "mode": "inprocess",
         "duration_s": config.run.duration_s,
         "seed": config.run.seed,
@@ -81,7 +84,7 @@ def run_path_following_inprocess(
         "compensation": config.control.compensation,
         **figures,
         # The task's criteria (teleop.core.criteria) and what the motion itself reported.
-        **judge_task("path-following", figures, metrics.problems()).summary(),
+        **judge_task(config.run.scenario, figures, metrics.problems()).summary(),
         "events": [
             {"event": e.event.name, "sim_time_s": e.sim_time_s, "value": e.value}
             for e in metrics.events

@@ -35,6 +35,7 @@ from teleop.bus.access import LAUNCHER, OBSERVER
 from teleop.bus.messages import PROTOCOL_VERSION
 from teleop.bus.session import ServicesMissing, session_config, wait_alive
 from teleop.bus.topics import Topics
+from teleop.core import markdown
 from teleop.core.config import SCENARIOS, Config, ConfigError, load_config
 from teleop.core.rundir import AUTH_DIR, FOREGROUND_DIR, SUPERVISOR_CONF_FILE
 
@@ -164,11 +165,7 @@ def join_tables() -> str:
     """The table of docs/protocol.md ("Bringing your own service"): per scenario and
     service, whose ``alive`` tokens it waits for before ``ready``, and whose ``ready``
     tokens before its work (Markdown; ``python -m teleop.run.outside``)."""
-    lines = [
-        "| scenario | service | `alive` tokens to see before declaring `ready` "
-        "| `ready` tokens to see before its work |",
-        "| --- | --- | --- | --- |",
-    ]
+    rows = []
     optional = [spec for spec in graph.SERVICES if spec.optional]
     for scenario in SCENARIOS:
         stack = graph.scenario_services(scenario)
@@ -179,9 +176,12 @@ def join_tables() -> str:
             ready_text = "-"
             if ready:
                 ready_text = f"`teleop run`: {_names(with_launcher)}; `teleop up`: {_names(ready)}"
-            lines.append(f"| {scenario} | `{service}` | {_names(alive)} | {ready_text} |")
+            rows.append((scenario, f"`{service}`", _names(alive), ready_text))
         if extra:
-            lines.append(f"| {scenario} | {_names(extra)} | as any other service | - |")
+            rows.append((scenario, _names(extra), "as any other service", "-"))
+    header = ("scenario", "service", "`alive` tokens to see before declaring `ready`",
+              "`ready` tokens to see before its work")  # fmt: skip
+    lines = markdown.table(header, rows)
     notes = [
         f"`{spec.name}` runs with `{spec.optional}`: every service then waits for its "
         "`alive` token too, and the plant for its `ready` token."

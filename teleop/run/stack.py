@@ -86,6 +86,7 @@ from teleop.core.rundir import (
     idle_poll_status_path,
     summary_path,
 )
+from teleop.core.summary import CONTROLLER, GRASP, PATH, copied_fields
 from teleop.devices.human_loop import PHASES as HUMAN_PHASES
 from teleop.devices.operator import Scenario
 from teleop.run import restart_priority
@@ -860,12 +861,7 @@ def _robot_section(
     else:
         figures = {
             "duration_s": config.run.duration_s,
-            "settle_s": controller.get("settle_s"),
-            "compensation": controller.get("compensation"),
-            "path_error_rms_m": controller.get("path_error_rms_m"),
-            "path_error_max_m": controller.get("path_error_max_m"),
-            "min_manipulability": controller.get("min_manipulability"),
-            **{key: controller.get(key) for key in PATH_MOTION_KEYS},
+            **{key: controller.get(key) for key in copied_fields(CONTROLLER, PATH)},
         }
         # A run that stalls or collides is not a good run either (teleop.control.path).
         problems = list(controller.get("motion_problems", []))
@@ -923,30 +919,6 @@ def _robots_verdict(scenario: str, sections: Mapping[str, dict[str, Any]]) -> di
     }
 
 
-# The controller's figures of safe motion a path-following summary carries.
-PATH_MOTION_KEYS = (
-    "path_progress",
-    "stalled_s",
-    "min_clearance_m",
-    "min_clearance_scene_m",
-    "min_clearance_self_m",
-    "min_clearance_finger_m",
-    "arm_contacts",
-    "singularity_crossings",
-    "events",
-)
-# The same in teleoperation (no path: no progress, no stall).
-TELEOP_MOTION_KEYS = (
-    "min_clearance_m",
-    "min_clearance_scene_m",
-    "min_clearance_self_m",
-    "min_clearance_finger_m",
-    "arm_contacts",
-    "singularity_crossings",
-    "events",
-)
-
-
 def _eye_view_summary(summaries: dict[str, dict[str, Any]]) -> dict[str, Any] | None:
     """Frames rendered and received (over SHM), render time, CPU shares, latency."""
     eyeview = summaries.get(EYEVIEW)
@@ -979,7 +951,7 @@ def _grasp_figures(
     problems = controller.get("motion_problems", [])
     figures = {
         "motion_problems": problems,
-        **{key: controller.get(key) for key in TELEOP_MOTION_KEYS},
+        **{key: controller.get(key) for key in copied_fields(CONTROLLER, GRASP)},
         "object_in_box": plant.get("object_in_box"),
         "object_bin_distance_m": plant.get("object_bin_distance_m"),
         "duration_s": operator.get("task_duration_s"),

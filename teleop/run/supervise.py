@@ -45,11 +45,11 @@ from teleop.run.failure import ServiceFailed, program_log_text
 
 # Seconds supervisord waits after the stop signal (SIGINT) before SIGKILLing a program's group.
 # A clean stop takes well under a second, but a recorder finishing its .rrd on a starved
-# 2-core machine can need several seconds, and a killed recorder writes no summary.
+# machine can need several seconds, and a killed recorder writes no summary.
 STOP_WAIT_S = 15
 # Default time for start(): supervisord up plus every program RUNNING (startsecs included), s.
 # A program that fails is seen at once (BACKOFF, FATAL, EXITED), so this bounds only a
-# supervisord too starved to spawn: on a 2-core machine at load 30 that took over 15 s.
+# supervisord too starved to spawn (a machine loaded many times over its cores).
 # The same bound as the services' ready tokens (the launcher's wait after this one).
 DEFAULT_START_TIMEOUT_S = 60.0
 # Default time for stop(): supervisord's own graceful stop must fit (STOP_WAIT_S per program

@@ -30,7 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from teleop.core.config import SCENARIOS, load_config
+from teleop.core import markdown
+from teleop.core.config import SCENARIOS, Config, load_config, scenario_spec
 from teleop.core.criteria import FAIL, UNAVAILABLE, event_reasons, judge_summary
 from teleop.core.rundir import RECORDING_FILE, RUN_SUMMARY_FILE
 from teleop.core.summary import write_run_summary
@@ -41,6 +42,8 @@ from teleop.run.tasks import (
     random_grasp_tasks,
     random_path_tasks,
 )
+
+Task = PathTask | GraspTask
 
 KINDS = SCENARIOS  # a sweep runs tasks of one scenario
 # Report files in the output directory.
@@ -59,7 +62,7 @@ class Job:
     """What a worker needs to run one task: picklable, no models."""
 
     kind: str
-    task: PathTask | GraspTask
+    task: Task
     config_file: str | None
     overrides: tuple[str, ...]  # the sweep's own --set values, before the task's
     run_dir: str
@@ -88,7 +91,7 @@ def run_job(job: Job) -> dict[str, Any]:
         return record
     record.update(
         **judge_record(summary),
-        figures={key: summary.get(key) for key in _FIGURES[job.kind] if key in summary},
+        figures={key: summary.get(key) for key in kind_of(job.kind).figures if key in summary},
         wall_s=time.perf_counter() - start,
     )
     return record
@@ -108,36 +111,6 @@ def judge_record(summary: Mapping[str, Any]) -> dict[str, Any]:
         if not reasons:
             reasons = [f"unmeasured: {', '.join(verdict.unmeasured)}"]
     return {"success": success, "criteria": verdict.summary()["criteria"], "reasons": reasons}
-
-
-# Figures kept per task in the report.
-_FIGURES = {
-    "path-following": (
-        "path_error_rms_m",
-        "path_error_max_m",
-        "path_progress",
-        "stalled_s",
-        "min_clearance_m",
-        "arm_contacts",
-        "min_manipulability",
-        "commands_clamped",
-        "realtime_factor",
-        "final_state_sha256",
-    ),
-    "grasp": (
-        "success",
-        "object_in_box",
-        "duration_s",
-        "max_device_force_n",
-        "max_contact_force_n",
-        "min_clearance_m",
-        "arm_contacts",
-        "obstacle_min_clearance_m",
-        "max_obstacle_force_n",
-        "phases",
-        "final_state_sha256",
-    ),
-}
 
 
 def _run_started(job: Job, record: dict[str, Any]) -> dict[str, Any]:
@@ -161,15 +134,22 @@ def _run_started(job: Job, record: dict[str, Any]) -> dict[str, Any]:
 
 
 def _run(job: Job) -> dict[str, Any]:
-    overrides = [*job.overrides, *job.task.overrides()]
-    if job.kind == "path-following":
-        from teleop.run.experiments import run_path_following_inprocess
+    return kind_of(job.kind).run(job, [*job.overrides, *job.task.overrides()])
 
-        config = load_config(job.config_file, [*overrides, 'run.scenario="path-following"'])
-        return run_path_following_inprocess(config, progress=None)
+
+def _run_in_process(job: Job, overrides: list[str]) -> dict[str, Any]:
+    """An autonomous task, as ``teleop run <scenario> --inprocess``."""
+    from teleop.run.experiments import run_path_following_inprocess
+
+    config = load_config(job.config_file, [*overrides, f'run.scenario="{job.kind}"'])
+    return run_path_following_inprocess(config, progress=None)
+
+
+def _run_on_services(job: Job, overrides: list[str]) -> dict[str, Any]:
+    """A teleoperated task, as ``teleop run <scenario> --mode lockstep``."""
     from teleop.run.stack import run_on_services
 
-    overrides = [*overrides, 'run.scenario="grasp"', 'run.mode="lockstep"']
+    overrides = [*overrides, f'run.scenario="{job.kind}"', 'run.mode="lockstep"']
     config = load_config(job.config_file, overrides)
     run_dir = Path(job.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -178,6 +158,77 @@ def _run(job: Job) -> dict[str, Any]:
     if not job.keep_recordings:  # tens of MB each; the summary and the logs stay
         Path(str(summary.get("rrd") or run_dir / RECORDING_FILE)).unlink(missing_ok=True)
     return summary
+
+
+def _mm(value: Any) -> str:
+    return "-" if value is None else f"{float(value) * 1e3:.3f}"
+
+
+def _num(value: Any, fmt: str) -> str:
+    return "-" if value is None else format(float(value), fmt)
+
+
+def _yes(value: bool) -> str:
+    return "yes" if value else "no"
+
+
+def _path_row(p: Mapping[str, Any], f: Mapping[str, Any]) -> tuple[object, ...]:
+    return (p["center_m"], p["radius_m"], p["path_speed_m_s"], _mm(f.get("path_error_rms_m")),
+            _mm(f.get("path_error_max_m")), _num(f.get("path_progress"), ".3f"),
+            _mm(f.get("min_clearance_m")), f.get("arm_contacts", "-"))  # fmt: skip
+
+
+def _scene_row(p: Mapping[str, Any], f: Mapping[str, Any]) -> tuple[object, ...]:
+    return (p["cube_p_m"][:2], p["bin_p_m"][:2],
+            f"{p['obstacle_p_m']} r {p['obstacle_radius_m']}", _yes(p["obstacle_in_the_way"]),
+            _num(f.get("duration_s"), ".1f"), _num(f.get("max_device_force_n"), ".2f"),
+            _mm(f.get("min_clearance_m")), f.get("arm_contacts", "-"))  # fmt: skip
+
+
+@dataclass(frozen=True)
+class SweepKind:
+    """How a sweep draws, runs and tables the tasks of a scenario: random paths for an
+    autonomous one (run in process), random scenes for a teleoperated one (run on the
+    services, lockstep). Chosen once from the scenario's ``teleoperated``."""
+
+    tasks: str  # what a task is, plural: the name of the count option (``--paths``)
+    generate: Callable[[Config, int, int], Generated]
+    run: Callable[[Job, list[str]], dict[str, Any]]
+    figures: tuple[str, ...]  # the run's figures kept per task in the report
+    columns: tuple[str, ...]  # the report's table, between the task and the verdict
+    row: Callable[[Mapping[str, Any], Mapping[str, Any]], tuple[object, ...]]
+
+
+PATHS = SweepKind(
+    "paths",
+    random_path_tasks,
+    _run_in_process,
+    ("path_error_rms_m", "path_error_max_m", "path_progress", "stalled_s", "min_clearance_m",
+     "arm_contacts", "min_manipulability", "commands_clamped", "realtime_factor",
+     "final_state_sha256"),
+    ("centre (m)", "radius (m)", "speed (m/s)", "RMS (mm)", "max (mm)", "progress",
+     "clearance (mm)", "contacts"),
+    _path_row,
+)  # fmt: skip
+SCENES = SweepKind(
+    "scenes",
+    random_grasp_tasks,
+    _run_on_services,
+    ("success", "object_in_box", "duration_s", "max_device_force_n", "max_contact_force_n",
+     "min_clearance_m", "arm_contacts", "obstacle_min_clearance_m", "max_obstacle_force_n",
+     "phases", "final_state_sha256"),
+    ("cube (m)", "bin (m)", "obstacle (m)", "in the way", "time (s)", "device (N)",
+     "clearance (mm)", "contacts"),
+    _scene_row,
+)  # fmt: skip
+SWEEP_KINDS = (PATHS, SCENES)
+
+
+def kind_of(scenario: str) -> SweepKind:
+    """The sweep of ``scenario`` (ValueError naming the scenarios for another name)."""
+    if scenario not in KINDS:
+        raise ValueError(f"sweep kind {scenario!r}: one of {', '.join(KINDS)}")
+    return SCENES if scenario_spec(scenario).teleoperated else PATHS
 
 
 # --- The sweep ------------------------------------------------------------------------------
@@ -191,10 +242,7 @@ def default_workers() -> int:
 def generate(kind: str, count: int, seed: int, config_file: str | None,
              overrides: Sequence[str]) -> Generated:  # fmt: skip
     """The sweep's tasks (see :mod:`teleop.run.tasks`)."""
-    config = load_config(config_file, list(overrides))
-    if kind == "path-following":
-        return random_path_tasks(config, count, seed)
-    return random_grasp_tasks(config, count, seed)
+    return kind_of(kind).generate(load_config(config_file, list(overrides)), count, seed)
 
 
 ProgressFn = Callable[[str], None]
@@ -229,8 +277,7 @@ def run_sweep(
 ) -> dict[str, Any]:
     """Generate ``count`` tasks of ``kind`` from ``seed``, run them on ``workers``
     processes, write ``sweep.json`` and ``sweep.md`` into ``out_dir``; returns the report."""
-    if kind not in KINDS:
-        raise ValueError(f"sweep kind {kind!r}: one of {', '.join(KINDS)}")
+    kind_of(kind)  # an unknown kind fails before any work
     workers = workers or default_workers()
     generated = generate(kind, count, seed, config_file, overrides)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -270,7 +317,7 @@ def run_sweep(
     report["interrupted"] = interrupted
     report["tasks_drawn"] = len(jobs)
     (out_dir / REPORT_JSON).write_text(json.dumps(report, indent=2) + "\n")
-    (out_dir / REPORT_MARKDOWN).write_text(markdown(report))
+    (out_dir / REPORT_MARKDOWN).write_text(report_markdown(report))
     if interrupted:
         raise KeyboardInterrupt
     return report
@@ -344,15 +391,7 @@ def _percentiles_mm(distribution: Mapping[str, float] | None) -> str:
     return ", ".join(f"{k} {v * 1e3:.1f}" for k, v in distribution.items())
 
 
-def _mm(value: Any) -> str:
-    return "-" if value is None else f"{float(value) * 1e3:.3f}"
-
-
-def _num(value: Any, fmt: str) -> str:
-    return "-" if value is None else format(float(value), fmt)
-
-
-def markdown(report: Mapping[str, Any]) -> str:
+def report_markdown(report: Mapping[str, Any]) -> str:
     """The report as a markdown page: the totals, then one row per task."""
     rate = report["success_rate"]
     lines = [
@@ -378,38 +417,14 @@ def markdown(report: Mapping[str, Any]) -> str:
         f"- wall time {report['wall_s']:.0f} s on {report['workers']} worker(s)",
         "",
     ]
-    if report["kind"] == "path-following":
-        lines += [
-            "| task | centre (m) | radius (m) | speed (m/s) | RMS (mm) | max (mm) | progress "
-            "| clearance (mm) | contacts | ok | reasons |",
-            "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
-        ]
-        for r in report["results"]:
-            p, f = r["params"], r.get("figures", {})
-            lines.append(
-                f"| {r['index']} | {p['center_m']} | {p['radius_m']} | {p['path_speed_m_s']} "
-                f"| {_mm(f.get('path_error_rms_m'))} | {_mm(f.get('path_error_max_m'))} "
-                f"| {_num(f.get('path_progress'), '.3f')} | {_mm(f.get('min_clearance_m'))} "
-                f"| {f.get('arm_contacts', '-')} | {'yes' if r['success'] else 'no'} "
-                f"| {'; '.join(r['reasons'])} |"
-            )
-    else:
-        lines += [
-            "| task | cube (m) | bin (m) | obstacle (m) | in the way | time (s) | device (N) "
-            "| clearance (mm) | contacts | ok | reasons |",
-            "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
-        ]
-        for r in report["results"]:
-            p, f = r["params"], r.get("figures", {})
-            lines.append(
-                f"| {r['index']} | {p['cube_p_m'][:2]} | {p['bin_p_m'][:2]} "
-                f"| {p['obstacle_p_m']} r {p['obstacle_radius_m']} "
-                f"| {'yes' if p['obstacle_in_the_way'] else 'no'} "
-                f"| {_num(f.get('duration_s'), '.1f')} "
-                f"| {_num(f.get('max_device_force_n'), '.2f')} "
-                f"| {_mm(f.get('min_clearance_m'))} | {f.get('arm_contacts', '-')} "
-                f"| {'yes' if r['success'] else 'no'} | {'; '.join(r['reasons'])} |"
-            )
+    kind = kind_of(report["kind"])
+    rows = [
+        (r["index"], *kind.row(r["params"], r.get("figures", {})), _yes(r["success"]),
+         "; ".join(r["reasons"]))
+        for r in report["results"]
+    ]  # fmt: skip
+    header = ("task", *kind.columns, "ok", "reasons")
+    lines += markdown.table(header, rows)
     lines += ["", "Run one task again by hand:", ""]
     lines += [f"    {r['command']}" for r in report["results"]]
     return "\n".join(lines) + "\n"

@@ -124,7 +124,7 @@ def _robot_tabs(config: Config) -> tuple[tuple[str, tuple[ViewSpec, ...]], ...]:
             ViewSpec("series", "Latency per hop (ms)", subtrees=(r.ENTITY_LATENCY,)),
         ),
     )
-    if config.run.scenario == "path-following":
+    if config.run.follows_path:
         path = (
             "Path following",
             (

@@ -506,7 +506,7 @@ class RecordingWriter:
         if self._scene is not None:
             for entity, archetype in self._scene.static_entities():
                 rec.log(entity, archetype, static=True)
-        if self.config.run.scenario == "path-following":
+        if self.config.run.follows_path:
             path = DesiredPath(self.config.path)
             s = np.linspace(0.0, path.search_window_s, DESIRED_PATH_POINTS)
             points = np.stack([path.point(v) for v in s])
@@ -515,7 +515,7 @@ class RecordingWriter:
                 rr.LineStrips3D([points], colors=[DESIRED_COLOR], radii=DESIRED_PATH_RADIUS_M),
                 static=True,
             )
-        if self.config.run.scenario == "path-following":
+        if self.config.run.follows_path:
             desired, actual = ENTITY_DESIRED_P, ENTITY_TOOL_P
         else:
             desired, actual = ENTITY_TELEOP_V_REF, ENTITY_TELEOP_V_TOOL

@@ -30,6 +30,7 @@ import matplotlib.pyplot as plt  # noqa: E402  (after the backend choice)
 import numpy as np  # noqa: E402
 
 from teleop.bus.messages import Stage  # noqa: E402
+from teleop.core import markdown  # noqa: E402
 from teleop.core.criteria import judge_summary  # noqa: E402
 from teleop.core.rundir import REPORT_SUMMARY_FILE, RUN_SUMMARY_FILE, report_dir  # noqa: E402
 from teleop.core.summary import read_run_summary  # noqa: E402
@@ -469,11 +470,12 @@ def _summary_text(
             )
         lines.append("")
     if m.get("latency"):
-        lines += ["## Latency per hop", "", "| hop | p50 (ms) | p99 (ms) | samples |"]
-        lines += ["| --- | ---: | ---: | ---: |"]
-        for hop, v in m["latency"].items():
-            lines.append(f"| {hop} | {v['p50_ms']:.3f} | {v['p99_ms']:.3f} | {v['samples']} |")
-        lines.append("")
+        hops = [
+            (hop, f"{v['p50_ms']:.3f}", f"{v['p99_ms']:.3f}", v["samples"])
+            for hop, v in m["latency"].items()
+        ]
+        lines += ["## Latency per hop", ""]
+        lines += [*markdown.table(("hop", "p50 (ms)", "p99 (ms)", "samples"), hops, "lrrr"), ""]
     if m.get("rates_hz_median"):
         rates = ", ".join(f"{k} {v:.0f} Hz" for k, v in m["rates_hz_median"].items())
         lines += ["## Loop rates (median)", "", rates, ""]
@@ -504,10 +506,11 @@ def verdict_text(run_summary: Mapping[str, Any]) -> list[str]:
         f"- task: {'success' if verdict.success else 'failed'} "
         f"({run_summary['scenario']}, judged by teleop.core.criteria)",
         "",
-        "| criterion | status | detail |",
-        "| --- | --- | --- |",
+        *markdown.table(
+            ("criterion", "status", "detail"),
+            [(c.name, c.status, c.detail) for c in verdict.criteria],
+        ),
     ]
-    lines += [f"| {c.name} | {c.status} | {c.detail} |" for c in verdict.criteria]
     lines += ["", *[f"- problem: {problem}" for problem in verdict.problems]]
     return [*lines, ""] if verdict.problems else lines
 

@@ -43,6 +43,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after the backend choice)
 import numpy as np  # noqa: E402
 
+from teleop.core import markdown  # noqa: E402
 from teleop.core.config import STABILISERS, load_config  # noqa: E402
 from teleop.viz import entities as r  # noqa: E402
 from teleop.viz import rrd  # noqa: E402
@@ -183,35 +184,30 @@ def ms_list(text: str) -> list[float]:
     return [float(v) for v in text.split(",") if v.strip()]
 
 
-def markdown(results: dict[str, Any]) -> str:
-    lines = ["## Grasp across the emulated link", ""]
-    lines += [
-        "| round trip | stabiliser | successes | task time median / max | peak device force "
-        "| observer least W |",
-        "| ---: | --- | ---: | ---: | ---: | ---: |",
-    ]
+def results_markdown(results: dict[str, Any]) -> str:
+    rows = []
     for cell in results["grasp"]:
         d = cell["summary"]
         task = f"{d['task_s_median']:.1f} / {d['task_s_max']:.1f} s" if d["task_s_median"] else "-"
         least = f"{d['observer_min_j'] * 1e3:.2f} mJ" if d["observer_min_j"] is not None else "-"
-        lines.append(
-            f"| {cell['round_trip_ms']:g} ms | {cell['stabiliser']} | {d['successes']}/{d['runs']} "
-            f"| {task} | {d['max_device_force_n']:.2f} N | {least} |"
-        )
-    lines += ["", "## Contact case (press.toml)", ""]
-    lines += [
-        "| spring | round trip | stabiliser | observer least W | device force peak "
-        "| last second: force p-p / handle p-p | dissipated |",
-        "| ---: | ---: | --- | ---: | ---: | ---: | ---: |",
-    ]
+        rows.append((f"{cell['round_trip_ms']:g} ms", cell["stabiliser"],
+                     f"{d['successes']}/{d['runs']}", task, f"{d['max_device_force_n']:.2f} N",
+                     least))  # fmt: skip
+    header = ("round trip", "stabiliser", "successes", "task time median / max",
+              "peak device force", "observer least W")  # fmt: skip
+    lines = ["## Grasp across the emulated link", "", *markdown.table(header, rows, "rlrrrr")]
+    rows = []
     for run in results["press"]:
         f = run["figures"]
-        lines.append(
-            f"| {run['stiffness_n_per_m']:g} N/m | {run['round_trip_ms']:g} ms "
-            f"| {run['stabiliser']} | {f['observer_min_j'] * 1e3:.2f} mJ "
-            f"| {f['max_device_force_n']:.2f} N | {f['device_f_p2p_last_s_n']:.3f} N / "
-            f"{f['handle_z_p2p_last_s_m'] * 1e3:.2f} mm | {f['dissipated_j'] * 1e3:.1f} mJ |"
-        )
+        rows.append((f"{run['stiffness_n_per_m']:g} N/m", f"{run['round_trip_ms']:g} ms",
+                     run["stabiliser"], f"{f['observer_min_j'] * 1e3:.2f} mJ",
+                     f"{f['max_device_force_n']:.2f} N",
+                     f"{f['device_f_p2p_last_s_n']:.3f} N / "
+                     f"{f['handle_z_p2p_last_s_m'] * 1e3:.2f} mm",
+                     f"{f['dissipated_j'] * 1e3:.1f} mJ"))  # fmt: skip
+    header = ("spring", "round trip", "stabiliser", "observer least W", "device force peak",
+              "last second: force p-p / handle p-p", "dissipated")  # fmt: skip
+    lines += ["", "## Contact case (press.toml)", "", *markdown.table(header, rows, "rrlrrrr")]
     return "\n".join(lines) + "\n"
 
 
@@ -294,8 +290,8 @@ def main() -> int:
             press_plot(series_by, title, args.out / f"press_k{stiffness:g}_{round_trip:g}ms.png",
                        contact)  # fmt: skip
     (args.out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
-    (args.out / "results.md").write_text(markdown(results))
-    print(markdown(results))
+    (args.out / "results.md").write_text(results_markdown(results))
+    print(results_markdown(results))
     print(f"written: {args.out}")
     return 0
 

@@ -21,6 +21,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from teleop.core import markdown
+
 SERVICES = ("plant", "controller", "haptic", "hmd", "operator", "recorder", "eyeview")
 KINDS = ("kill", "freeze")
 # Sim time of the fault (s): the realtime grasp with seed 0 closes the gripper at about
@@ -62,11 +64,8 @@ def _cell(value: object, fmt: str) -> str:
     return "–" if value is None else f"{value:{fmt}}"
 
 
-def markdown(rows: list[dict]) -> str:
-    lines = [
-        "| service | fault | at (sim s) | brake ms | restart s | resumed s | task |",
-        "| --- | --- | ---: | ---: | ---: | ---: | --- |",
-    ]
+def rows_markdown(rows: list[dict]) -> str:
+    cells = []
     for row in rows:
         fault = (row.get("faults") or [{}])[0]
         if row.get("error"):
@@ -75,12 +74,11 @@ def markdown(rows: list[dict]) -> str:
             outcome = f"success ({row['task_s']:.1f} s)"
         else:
             outcome = "failed (task not done)"
-        lines.append(
-            f"| {row['service']} | {row['kind']} | {_cell(fault.get('t_s'), '.2f')} "
-            f"| {_cell(fault.get('brake_ms'), '.1f')} | {_cell(fault.get('restart_s'), '.2f')} "
-            f"| {_cell(fault.get('resumed_s'), '.2f')} | {outcome} |"
-        )
-    return "\n".join(lines) + "\n"
+        cells.append((row["service"], row["kind"], _cell(fault.get("t_s"), ".2f"),
+                      _cell(fault.get("brake_ms"), ".1f"), _cell(fault.get("restart_s"), ".2f"),
+                      _cell(fault.get("resumed_s"), ".2f"), outcome))  # fmt: skip
+    header = ("service", "fault", "at (sim s)", "brake ms", "restart s", "resumed s", "task")
+    return "\n".join(markdown.table(header, cells, "llrrrrl")) + "\n"
 
 
 def main() -> int:
@@ -112,8 +110,8 @@ def main() -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(report, indent=2) + "\n")
         if args.markdown is not None:
-            args.markdown.write_text(markdown(rows))
-    print(markdown(rows))
+            args.markdown.write_text(rows_markdown(rows))
+    print(rows_markdown(rows))
     return 0
 
 

@@ -134,7 +134,7 @@ class Loop:
             # As step_realtime does, its tick ending now: the render grid a feedback
             # arriving later is rendered on (from the servo period after it came).
             now_ns = time.monotonic_ns()
-            loop._step(max(loop._state_seq, 0), 0, None, now_ns - loop.period_ns, deadline_ns)
+            loop._step(max(loop._state_seq, 0), 0, None, now_ns - loop.tick_ns, deadline_ns)
             loop._last_deadline_ns = now_ns
         sample = loop.record.tobytes()
         between()

@@ -47,6 +47,7 @@ import numpy as np
 from teleop.bus.messages import PLANT_STATE, DropCounter, Stage
 from teleop.bus.session import close_session, open_session, subscribe
 from teleop.bus.topics import Topics
+from teleop.core import markdown
 from teleop.core.config import load_config
 from teleop.core.rundir import incarnation_paths, segment_paths
 from teleop.run.stack import IDLE_POLL
@@ -209,43 +210,38 @@ def _mean(values: list[float | None]) -> float | None:
     return round(float(np.mean(known)), 3) if known else None
 
 
-def markdown(report: dict) -> str:
+def report_markdown(report: dict) -> str:
     """The report's two tables: each service's memory and CPU, the loop's figures over
     the first and the last ten minutes (or the run's first and last tenth)."""
     minutes = report["minutes"]
     span = max(1, min(10, len(minutes) // 2))
     first, last = minutes[:span], minutes[-span:]
     marks = [f"{m}_min_mb" for m in MARKS_MIN]
-    lines = [
-        "| service | " + " | ".join(f"{m} min" for m in MARKS_MIN)
-        + " | slope after warm-up | CPU s per sim s, first / last "
-        + f"{span} min |",
-        "| --- |" + " ---: |" * (len(MARKS_MIN) + 2),
-    ]  # fmt: skip
+    header = ("service", *(f"{m} min" for m in MARKS_MIN), "slope after warm-up",
+              f"CPU s per sim s, first / last {span} min")  # fmt: skip
+    rows = []
     for name, figures in report["services"].items():
         cpu_first = _mean([r["cpu_s_per_sim_s"].get(name) for r in first])
         cpu_last = _mean([r["cpu_s_per_sim_s"].get(name) for r in last])
-        cells = [f"{figures[m]} MB" if m in figures else "-" for m in marks]
-        lines.append(f"| {name} | " + " | ".join(cells)
-                     + f" | {figures['slope_kb_s']} KB/s | {cpu_first} / {cpu_last} |")  # fmt: skip
-    lines += ["", f"| | first {span} min | last {span} min |", "| --- | ---: | ---: |"]
+        rows.append((name, *(f"{figures[m]} MB" if m in figures else "-" for m in marks),
+                     f"{figures['slope_kb_s']} KB/s", f"{cpu_first} / {cpu_last}"))  # fmt: skip
+    lines = markdown.table(header, rows, "l" + "r" * (len(header) - 1))
 
-    def row(label: str, key: str) -> str:
-        return f"| {label} | {_mean([r.get(key) for r in first])} | " \
-               f"{_mean([r.get(key) for r in last])} |"  # fmt: skip
+    def row(label: str, key: str) -> tuple[object, ...]:
+        return label, _mean([r.get(key) for r in first]), _mean([r.get(key) for r in last])
 
-    lines += [
+    per_min = [b["recording_mb"] - a["recording_mb"] for a, b in itertools.pairwise(minutes)]
+    end = minutes[-1] if minutes else {}
+    loop = [
         row("CPU s per simulated s, every service (idle pollers apart)", "cpu_all"),
         row("round trip p50 (ms, mean of the minutes)", "round_trip_p50_ms"),
         row("round trip p99 (ms, mean of the minutes)", "round_trip_p99_ms"),
         row("plant state lateness p99 (ms)", "late_p99_ms"),
-    ]
-    per_min = [b["recording_mb"] - a["recording_mb"] for a, b in itertools.pairwise(minutes)]
-    lines.append(f"| recording written (MB per minute) | {_mean(per_min[:span])} | "
-                 f"{_mean(per_min[-span:])} |")  # fmt: skip
-    end = minutes[-1] if minutes else {}
-    lines.append(f"| records dropped, stale commands (whole run) | "
-                 f"{end.get('dropped_records')}, {end.get('stale_commands')} | |")  # fmt: skip
+        ("recording written (MB per minute)", _mean(per_min[:span]), _mean(per_min[-span:])),
+        ("records dropped, stale commands (whole run)",
+         f"{end.get('dropped_records')}, {end.get('stale_commands')}", ""),
+    ]  # fmt: skip
+    lines += ["", *markdown.table(("", f"first {span} min", f"last {span} min"), loop, "lrr")]
     return "\n".join(lines) + "\n"
 
 
@@ -297,7 +293,7 @@ def main() -> int:
     args = parser.parse_args()
     if args.markdown_from:
         report = json.loads(args.markdown_from.read_text())
-        print(markdown(report), end="")
+        print(report_markdown(report), end="")
         plot(report, args.markdown_from.with_suffix(".png"))
         return 0
     if args.json is None:
@@ -390,7 +386,7 @@ def main() -> int:
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(report, indent=2) + "\n")
     plot(report, args.json.with_suffix(".png"))
-    args.json.with_suffix(".md").write_text(markdown(report))
+    args.json.with_suffix(".md").write_text(report_markdown(report))
     for name, figures in services.items():
         marks = ", ".join(f"{k.removesuffix('_mb')} {v}" for k, v in figures.items()
                           if k.endswith("_min_mb"))  # fmt: skip

@@ -1,11 +1,10 @@
-"""Issue 18's grasp scenes that the scripted operator used to fail, on the whole stack.
+"""Grasp scenes the scripted operator must read before it moves, on the whole stack.
 
-- An obstacle right on the straight carry from the cube to the bin: the operator that
-  went straight pushed against its repulsion (device force at the 8 N peak, the fingers
-  squeezing the cube at 15-25 N, the obstacle's influence entered); the operator that
-  sees it goes over and never enters the influence zone.
-- A cube out of the arm's reach: the operator used to push until the phase timed out
-  (15 s); now it says so, with an OUT_OF_REACH event and a failure reason, in seconds.
+- An obstacle right on the straight carry from the cube to the bin: an operator going
+  straight would push against its repulsion (the device force at its peak, the fingers
+  squeezing the cube); the operator goes over and never enters the influence zone.
+- A cube out of the arm's reach: the operator says so at once, with an OUT_OF_REACH
+  event and a failure reason, instead of pushing until the phase times out.
 """
 
 from __future__ import annotations

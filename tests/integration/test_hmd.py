@@ -19,8 +19,8 @@ from teleop.bus.session import Publisher, close_session, open_session, subscribe
 from teleop.bus.topics import Topics
 from teleop.core.config import REPO_ROOT, load_config
 from teleop.core.net import free_loopback_port
-from teleop.core.ticks import last_sample_tick
-from teleop.devices.hmd import HmdEmulator, HmdSchedule
+from teleop.core.ticks import head_schedule, last_sample_tick
+from teleop.devices.hmd import HmdEmulator
 from tests.unit.test_hmd import run_emulator
 
 ALIVE_TIMEOUT_S = 60.0
@@ -34,12 +34,12 @@ def test_hmd_process_publishes_on_the_sample_ticks(tmp_path):
     overrides = [f'bus.endpoint="{endpoint}"', "run.seed=9"]
     config = load_config(None, overrides)
     topics = Topics(config.robot.robot_id)
-    schedule = HmdSchedule.from_config(config)
-    assert schedule.timestep_s == config.tick_s  # the HMD samples on bus ticks
+    schedule = head_schedule(config)
+    assert schedule.tick_s == config.tick_s  # the HMD samples on bus ticks
     tick_ns = round(config.tick_s * 1e9)
     last_tick = 300
     sample_ticks = [k for k in range(last_tick + 1) if schedule.is_sample(k)]
-    assert last_sample_tick(last_tick, schedule.rate_hz, schedule.timestep_s) == sample_ticks[-1]
+    assert last_sample_tick(last_tick, schedule.rate_hz, schedule.tick_s) == sample_ticks[-1]
 
     received: list[np.ndarray] = []
     cond = threading.Condition()
@@ -95,14 +95,14 @@ def test_hmd_process_publishes_on_the_sample_ticks(tmp_path):
     assert [int(r["seq"]) for r in received] == list(range(2 * n))
     # Same seed, fresh filter: the second run repeats the first, and both equal the
     # in-process emulator bit for bit.
-    reference = run_emulator(HmdEmulator(config), sim_s=(last_tick + 1) * schedule.timestep_s)
+    reference = run_emulator(HmdEmulator(config), sim_s=(last_tick + 1) * schedule.tick_s)
     payload = ("measured_p_m", "filtered_p_m", "predicted_p_m", "predicted_yaw_rad")
     for a, b, ref in zip(first, second, reference, strict=True):
         for field in payload:
             assert np.array_equal(a[field], b[field])
         assert np.array_equal(a["predicted_p_m"], ref.predicted.p_m)
         assert float(a["measured_yaw_rad"]) == ref.measured.yaw_rad
-        assert float(a["horizon_s"]) == pytest.approx(schedule.horizon_s)
+        assert float(a["horizon_s"]) == pytest.approx(schedule.lead_s)
     summary = json.loads((tmp_path / "hmd.summary.json").read_text())
     assert summary["samples"] == n and summary["published"] == 2 * n
     assert summary["runs"] == 2 and summary["resent_states"] == 2

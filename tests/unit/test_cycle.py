@@ -14,7 +14,6 @@ from teleop.control.cycle import BilateralCycle, PathCycle
 from teleop.control.kinematics import build_arm_model, tool_position_and_jacobian
 from teleop.core.clock import FakeClock
 from teleop.core.config import load_config
-from teleop.core.ticks import is_sample_tick
 from teleop.devices.haptic import EmulatedDevice
 from teleop.devices.haptic_loop import HapticLoop
 from teleop.run.experiments import run_path_following_inprocess
@@ -210,9 +209,9 @@ def test_a_lost_feedback_is_sent_again_when_the_plant_re_sends_its_states():
         loop.on_state(rec.copy())
         # The operator: on its sample ticks, an input for `lead_ticks` later (a hand at
         # rest). The device waits for it from tick `lead_ticks` on (2 at 250 Hz).
-        if not resent and is_sample_tick(seq, loop.hand_rate_hz, loop.period_s):
+        if not resent and loop.hand_schedule.is_sample(seq):
             hand = HAND_INPUT.new()
-            hand["valid_from_tick"] = seq + loop.lead_ticks
+            hand["valid_from_tick"] = seq + loop.hand_schedule.lead_ticks
             loop.on_hand(hand)
         pump()
 

@@ -288,7 +288,7 @@ def test_loop_steps_once_per_tick_in_lockstep():
     """The lockstep barrier: tick k steps once state k, the feedback of k-1 and the hand
     input that applies at k are in; re-sent states step nothing."""
     loop, sent, _ = make_loop(lockstep=True)
-    lead = loop.lead_ticks
+    lead = loop.hand_schedule.lead_ticks
     target_m, push_n = np.array([0.02, 0.0, 0.0]), np.array([0.0, 2.0, 0.0])
     ticks, push_from = 600, 300
     decided = set(hand_sample_ticks(loop, ticks))
@@ -331,7 +331,7 @@ def test_loop_steps_once_per_tick_in_lockstep():
 def run_lockstep_push(loop: HapticLoop, ticks: int, push_from: int, push_n) -> None:
     """Drive a lockstep loop: a hand 2 cm along x from the start, a feedback force
     ``push_n`` from the feedback of tick ``push_from - 1`` on."""
-    lead = loop.lead_ticks
+    lead = loop.hand_schedule.lead_ticks
     decided = set(hand_sample_ticks(loop, ticks))
     for k in range(ticks):
         loop.on_state(plant_state(k))
@@ -346,7 +346,7 @@ def test_an_emulated_link_delays_the_handle_forward_and_the_force_back():
     as it was 12 ticks before (under tick k's seq and tick), the handle feels the feedback
     of tick k-1 only 13 ticks later; the barrier still waits for feedback k-1."""
     plain, plain_sent, _ = make_loop(lockstep=True)
-    round_trip_ms = 25 * plain.period_s * 1e3  # 25 bus periods (loop.rate_hz)
+    round_trip_ms = 25 * plain.tick_s * 1e3  # 25 bus periods (loop.rate_hz)
     config = load_config(
         None, ['run.mode="lockstep"', f"site.emulated_round_trip_ms={round_trip_ms:g}"]
     )
@@ -433,7 +433,7 @@ def test_an_emulated_link_is_refused_where_it_cannot_be_emulated(settings, error
 
 def test_lockstep_goes_on_without_an_operator_after_the_hand_wait():
     loop, sent, clock = make_loop(lockstep=True)
-    lead = loop.lead_ticks
+    lead = loop.hand_schedule.lead_ticks
     for k in range(lead + 1):
         loop.on_state(plant_state(k))
         if k >= 1:
@@ -454,7 +454,7 @@ def test_lockstep_does_not_wait_for_a_hand_input_a_later_one_overtook():
     waits for: that one will never come, the tick steps at once with the hand input in
     effect (its predecessor's), without the hand wait."""
     loop, sent, _ = make_loop(lockstep=True)
-    lead = loop.lead_ticks
+    lead = loop.hand_schedule.lead_ticks
     # The hand inputs' first three valid_from ticks: decisions 0, 1 and 2, a lead later.
     first, waited, later = (s + lead for s in hand_sample_ticks(loop, 100)[:3])
     target_m = np.array([0.0, 0.02, 0.0])
@@ -476,7 +476,7 @@ def test_a_stale_hand_input_centres_the_handle_and_keeps_the_buttons():
     and the gripper button stays pressed. A plant that stalls does not advance the ticks:
     wall time alone never makes the hand stale."""
     loop, sent, clock = make_loop(lockstep=False)
-    stale_ticks = round(loop.config.haptic.hand_input_stale_s / loop.period_s)
+    stale_ticks = round(loop.config.haptic.hand_input_stale_s / loop.tick_s)
     target_m = np.array([0.03, 0.0, 0.0])
     loop.on_hand(hand(100, target_m))
 
@@ -517,7 +517,7 @@ def test_realtime_renders_feedback_on_arrival_and_checks_its_order_and_age():
     # The bus period that ends a period after it came renders it (the one before not).
     loop.step_realtime(deadline_ns=clock.now_ns())
     assert np.allclose(sent.samples[-1]["device_f_n"], 0.0)
-    loop.step_realtime(deadline_ns=clock.now_ns() + loop.period_ns)
+    loop.step_realtime(deadline_ns=clock.now_ns() + loop.tick_ns)
     sample = sent.samples[-1]
     assert int(sample["tick"]) == 500 and int(sample["sim_time_ns"]) == 500 * TICK_NS
     assert np.allclose(sample["device_f_n"], force_n) and sample["flags"] == Flag.NONE
@@ -543,8 +543,8 @@ def test_realtime_loop_paces_on_the_clocks_deadlines():
     loop, sent, clock = make_loop(lockstep=False, stop_after=50)
     loop.run_realtime(sent.stop)
     deadlines = np.array([int(s["device_deadline_ns"]) for s in sent.samples])
-    assert len(deadlines) == 50 and np.all(np.diff(deadlines) == loop.period_ns)
-    assert loop.summary()["rate_hz"] == pytest.approx(1.0 / loop.period_s)
+    assert len(deadlines) == 50 and np.all(np.diff(deadlines) == loop.tick_ns)
+    assert loop.summary()["rate_hz"] == pytest.approx(1.0 / loop.tick_s)
 
 
 # --- a second device behind the same interface ----------------------------------------
@@ -576,13 +576,13 @@ def test_the_loop_drives_a_replay_device_through_the_interface_alone(lockstep):
                 loop.on_state(plant_state(k))
                 if k == 0:  # the run started: the operator's inputs (a replay ignores them)
                     for s in hand_sample_ticks(loop, ticks):
-                        loop.on_hand(hand(s + loop.lead_ticks, np.full(3, 0.04)))
+                        loop.on_hand(hand(s + loop.hand_schedule.lead_ticks, np.full(3, 0.04)))
                 if k >= 1:
                     loop.on_feedback(feedback(k, k - 1, force_n), 0)
             else:
                 loop.on_feedback(feedback(k + 1, k, force_n, tx_ns=clock.now_ns()), clock.now_ns())
                 loop.step_realtime(clock.now_ns())
-                clock.advance(loop.period_ns)
+                clock.advance(loop.tick_ns)
     assert not device.connected and device.samples_left == 0
     assert len(sent.samples) == ticks
     positions = np.array([s["device_p_m"] for s in sent.samples])
@@ -652,7 +652,7 @@ def test_two_robots_step_together_and_the_idle_one_holds_a_centred_handle():
     """Tick k steps once both robots' states k and feedbacks k-1 are in; the robot the
     hand drives gets the handle, the other a centred handle with its buttons held."""
     loop, sent = make_two_robot_loop()
-    lead = loop.lead_ticks
+    lead = loop.hand_schedule.lead_ticks
     for k in range(300):
         loop.on_state(plant_state(k), 0)
         if k >= 1:
@@ -678,7 +678,7 @@ def test_the_handle_switches_robot_only_in_its_deadband():
     within the rate deadband; until then the hand still drives robot 0. Robot 0 then
     holds a centred handle with the buttons it had (the gripper stays closed)."""
     loop, sent = make_two_robot_loop()
-    lead = loop.lead_ticks
+    lead = loop.hand_schedule.lead_ticks
     switch_from = 200
 
     def step(k: int) -> None:
@@ -713,7 +713,7 @@ def test_a_finished_robot_leaves_the_clock():
     """Robot 0's plant finished (its FINISHED): ticks go on with robot 1's state and
     feedback alone, and robot 0 gets no more samples."""
     loop, sent = make_two_robot_loop()
-    lead = loop.lead_ticks
+    lead = loop.hand_schedule.lead_ticks
     for k in range(100):
         for robot in (0, 1):
             loop.on_state(plant_state(k), robot)

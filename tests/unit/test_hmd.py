@@ -14,6 +14,7 @@ import pytest
 
 from teleop.bus.messages import HEAD_POSE
 from teleop.core.config import ConfigError, load_config
+from teleop.core.ticks import head_schedule
 from teleop.devices.hmd import (
     ErrorStats,
     HeadFilter,
@@ -21,7 +22,6 @@ from teleop.devices.hmd import (
     HeadPose,
     HmdEmulator,
     HmdLoop,
-    HmdSchedule,
     Tracker,
     fill_head_pose,
     wrap_angle,
@@ -37,7 +37,7 @@ MOVING_HEAD = (
 
 
 def run_emulator(emulator: HmdEmulator, sim_s: float = SIM_S) -> list:
-    ticks = round(sim_s / emulator.schedule.timestep_s)
+    ticks = round(sim_s / emulator.schedule.tick_s)
     return [s for k in range(ticks) if (s := emulator.on_tick(k)) is not None]
 
 
@@ -83,7 +83,7 @@ def test_prediction_by_the_horizon_beats_the_unpredicted_pose_of_a_moving_head()
     config = load_config(None, ["run.seed=4", *MOVING_HEAD])
     emulator = HmdEmulator(config)
     samples = run_emulator(emulator)
-    horizon_s = emulator.schedule.horizon_s
+    horizon_s = emulator.schedule.lead_s
     assert horizon_s == pytest.approx(config.hmd.prediction_s)
     motion = HeadMotion(config.hmd)
     future = [motion.pose(s.t_s + horizon_s) for s in samples]
@@ -175,7 +175,7 @@ def test_tracker_noise_has_the_configured_spread():
 
 def test_schedule_says_which_record_applies_at_a_tick():
     config = load_config()
-    schedule = HmdSchedule.from_config(config)
+    schedule = head_schedule(config)
     tick_s = config.tick_s  # one tick: a bus period (loop.rate_hz)
     # hmd.prediction_s (20 ms) in whole ticks
     assert schedule.lead_ticks * tick_s == pytest.approx(config.hmd.prediction_s)

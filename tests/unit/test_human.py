@@ -169,7 +169,7 @@ def test_nothing_goes_out_before_the_run_starts():
 
 def test_lockstep_inputs_follow_the_wall_clock_on_the_grid_the_haptic_device_waits_on():
     loop, out = _loop(lockstep=True)
-    lead = loop.lead_ticks
+    lead = loop.hand_schedule.lead_ticks
     t0 = 1_000 * MS
     loop.on_started(t0)
     next_ns = loop.due(t0, HandIntent())
@@ -312,7 +312,7 @@ def _station(lockstep: bool, robots: int = 2) -> tuple[HumanStation, list[Output
 
 def test_the_switch_moves_the_hand_to_the_next_robot_on_one_unbroken_grid():
     station, (out0, out1) = _station(lockstep=True)
-    lead = station.loop.lead_ticks
+    lead = station.loop.hand_schedule.lead_ticks
     poses = range(0, 200 * MS // TICK_NS, SCENE_TICKS)
     for loop in station.loops:
         loop.on_started(0)

@@ -32,3 +32,16 @@ def test_the_check_finds_a_cycle_and_an_upward_import(tmp_path: Path):
     assert upward_imports(graph) == ["teleop.core.a -> teleop.sim.b"]
     assert cycles(graph) == [["teleop.core.a", "teleop.sim.b", "teleop.core.a"]]
     assert LAYERS.index("teleop.core") < LAYERS.index("teleop.sim")
+
+
+def test_no_service_imports_another():
+    """services/ are thin bus adapters side by side: what two share lives in teleop/."""
+    graph = import_graph()
+    crossing = sorted(
+        f"{module} -> {imported}"
+        for module, imports in graph.items()
+        if module.startswith("services.")
+        for imported in imports
+        if imported.startswith("services.") and imported != module
+    )
+    assert crossing == []

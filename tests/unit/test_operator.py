@@ -11,7 +11,7 @@ import pytest
 
 from teleop.bus.messages import Button, Event
 from teleop.core.config import DEPLOY_DIR, Config, ConfigError, load_config
-from teleop.core.ticks import expected_valid_from, is_sample_tick
+from teleop.core.ticks import is_sample_tick
 from teleop.devices.operator import (
     HandCommand,
     Observation,
@@ -529,7 +529,7 @@ def test_operator_loop_answers_each_scene_tick_toward_the_cube():
     config = load_config(None, ['run.mode="lockstep"'])
     outputs = Outputs()
     loop = OperatorLoop(config, Scenario.load(GRASP_FILE), outputs, lockstep=True)
-    lead = loop.lead_ticks
+    lead = loop.hand_schedule.lead_ticks
     last_tick, scene_period = scene_tick_at(config, 0.6)
     for tick in range(0, last_tick + 1, scene_period):
         loop.buffer.add_objects(tick, np.array([CUBE_M, BIN_M]))
@@ -652,7 +652,7 @@ def test_the_operator_loop_joining_a_run_sends_nothing_until_it_has_seen_the_wor
     # The first decision that sees a pose of this run: one reaction delay after the join.
     delay = round(config.operator.reaction_delay_s / config.tick_s)
     first_sent = decision_ticks(config, joined + delay, last_tick)[0]
-    assert min(outputs.hands) == first_sent + loop.lead_ticks
+    assert min(outputs.hands) == first_sent + loop.hand_schedule.lead_ticks
     summary = loop.summary()
     # The decisions of one reaction delay (20: 0.2 s at 100 Hz), all withheld.
     withheld = round(config.operator.reaction_delay_s * config.operator.decision_rate_hz)
@@ -723,7 +723,7 @@ def test_a_late_operator_loop_catches_up_by_skipping_not_by_a_burst():
         loop.buffer.add_tool(tick, HOME_TOOL_M)
     loop.on_arrival(0)
     loop.on_arrival(one_s, catch_up=True)  # the poses of the second in between were skipped
-    lead = loop.lead_ticks
+    lead = loop.hand_schedule.lead_ticks
     assert sorted(outputs.hands) == [0 + lead, one_s + lead]
     # The decisions strictly inside that second (99 at 100 Hz).
     skipped = round(1.0 * config.operator.decision_rate_hz) - 1
@@ -746,10 +746,9 @@ def test_a_lockstep_operator_left_behind_catches_up_and_waits_for_nothing_it_mis
     for tick in range(joined, later + 1, scene_period):
         loop.buffer.add_objects(tick, np.array([CUBE_M, BIN_M]))
         loop.buffer.add_tool(tick, HOME_TOOL_M)
-    hmd = config.hmd
-    head_from = joined + round(0.030 / loop.timestep_s)  # the HMD's, from after the join only
+    head_from = joined + round(0.030 / loop.tick_s)  # the HMD's, from after the join only
     for tick in range(head_from, later + 1):
-        valid_from = expected_valid_from(tick, hmd.rate_hz, loop.timestep_s, loop.hmd_lead_ticks)
+        valid_from = loop.head_schedule.valid_from_for(tick)
         loop.buffer.add_head(valid_from, 0.0)
     assert not loop.left_behind(joined)  # nothing decided yet: the join decides the newest
     loop.on_arrival(joined)
@@ -760,7 +759,7 @@ def test_a_lockstep_operator_left_behind_catches_up_and_waits_for_nothing_it_mis
     skipped = round(3.0 * config.operator.decision_rate_hz) - 1  # 299: those in between
     assert summary["decisions"] == 2 and summary["skipped_decisions"] == skipped
     assert summary["late_observations"] == 0  # waited for no head pose it could not get
-    assert max(outputs.hands) == later + loop.lead_ticks
+    assert max(outputs.hands) == later + loop.hand_schedule.lead_ticks
     realtime = OperatorLoop(config, Scenario.load(GRASP_FILE), Outputs(), lockstep=False)
     assert realtime.left_behind(0)  # realtime: always on the newest pose
 

@@ -24,6 +24,7 @@ from teleop.bus.messages import (
     version_text,
 )
 from teleop.bus.stamps import Inbound
+from teleop.core import markdown
 from teleop.core.config import Config, load_config
 from teleop.sim.plant import Plant
 from tests.conftest import ARM7_OVERRIDES
@@ -76,9 +77,8 @@ def speed_limits(config: Config) -> str:
         "teleop.max_tool_speed_m_s": config.teleop.max_tool_speed_m_s,
         "plant.tool_speed_stop_m_s": config.plant.tool_speed_stop_m_s,
     }
-    lines = ["| setting | default | what |", "| --- | ---: | --- |"]
-    lines += [f"| `{k}` | {v:.2f} m/s | {SPEED_SETTINGS[k]} |" for k, v in values.items()]
-    return "\n".join(lines)
+    rows = [(f"`{k}`", f"{v:.2f} m/s", SPEED_SETTINGS[k]) for k, v in values.items()]
+    return "\n".join(markdown.table(("setting", "default", "what"), rows, "lr"))
 
 
 def speed_figures(text: str) -> dict[str, set[float]]:
@@ -137,15 +137,14 @@ def test_protocol_doc_accounts_every_counter_of_the_command_stream():
 def joint_reach_table() -> str:
     """The table of docs/running.md "The limits a controller meets": each shipped arm's
     joint reach (Plant.joint_reach_m) and the uniform joint-speed budget it gives."""
-    lines = ["| arm | reach per joint, base to wrist (m) | sum of joint speeds at most |",
-             "| --- | --- | ---: |"]  # fmt: skip
+    rows = []
     for name, overrides in (("6-DOF (default)", ()), ("7-DOF", ARM7_OVERRIDES)):
         config = load_config(None, overrides)
         reach = Plant(config).joint_reach_m()
         budget = config.plant.tool_speed_limit_m_s / reach.max()
-        shown = ", ".join(f"{r:.3f}" for r in reach)
-        lines.append(f"| {name} | {shown} | {budget:.3f} rad/s |")
-    return "\n".join(lines)
+        rows.append((name, ", ".join(f"{r:.3f}" for r in reach), f"{budget:.3f} rad/s"))
+    header = ("arm", "reach per joint, base to wrist (m)", "sum of joint speeds at most")
+    return "\n".join(markdown.table(header, rows, "llr"))
 
 
 def test_running_doc_gives_each_arms_joint_reach():

@@ -42,8 +42,8 @@ def test_inbound_drops_older_and_stale_records_and_logs_their_loops():
 SEQ_RUNS = [
     [0, 1, 2, 3],  # in order: nothing missing
     [5, 6, 9, 10, 20],  # gaps: 2 + 9 missing
-    [7, 8, 3, 4, 6],  # went back once (a new run), then 1 missing
-    [1, 2, 2, 3],  # a repeat: not ahead, counted as starting over
+    [7, 8, 3, 4, 6],  # went back: a new run, taken up at its third record
+    [1, 2, 2, 3],  # a repeat: out of order, the stream goes on
     [1, 1 + SEQ_WINDOW + 1, 1 + SEQ_WINDOW + 2],  # too far ahead: no gap of 65536
 ]
 
@@ -61,10 +61,14 @@ def test_seq_gaps_count_the_same_record_by_record_and_in_batches(seqs):
 
 
 def test_seq_gaps_of_each_case():
-    expected = [(0, 0), (11, 0), (1, 1), (0, 1), (0, 1)]
-    for seqs, (missing, restarts) in zip(SEQ_RUNS, expected, strict=True):
-        gaps = SeqGaps()
+    # (missing, restarts, out of order): SeqCheck's counts, the one rule of the bus layer
+    expected = [(0, 0, 0), (11, 0, 0), (0, 1, 2), (0, 0, 1), (0, 0, 2)]
+    for seqs, (missing, restarts, out_of_order) in zip(SEQ_RUNS, expected, strict=True):
+        gaps, check = SeqGaps(), SeqCheck()
         assert gaps.add_batch(np.array(seqs)) == (missing, restarts)
-        assert (gaps.missing, gaps.restarts) == (missing, restarts)
+        assert (gaps.missing, gaps.restarts, gaps.out_of_order) == (missing, restarts, out_of_order)
+        for seq in seqs:
+            check.accept(seq)
+        assert (check.lost, check.restarts) == (missing, restarts)
     gaps = SeqGaps()
     assert gaps.add(4) == 0 and gaps.add(7) == 2 and gaps.add_batch(np.zeros(0)) == (0, 0)

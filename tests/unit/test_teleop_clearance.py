@@ -21,7 +21,6 @@ from teleop.control.cycle import BilateralCycle
 from teleop.control.kinematics import build_arm_model
 from teleop.core.clock import FakeClock
 from teleop.core.config import load_config
-from teleop.core.ticks import expected_valid_from
 from teleop.sim.plant_loop import PlantLoop
 from tests.unit.test_cycle import Wire
 
@@ -56,7 +55,7 @@ def drive_down(*overrides: str) -> tuple[dict[str, Any], list[np.ndarray]]:
         while states:  # each command steps the plant, which publishes the next state
             state = states.popleft()
             tick = int(state["seq"])
-            valid_from = expected_valid_from(tick, hmd.rate_hz, config.tick_s, cycle.hmd_lead_ticks)
+            valid_from = cycle.head_schedule.valid_from_for(tick)
             if valid_from is not None:  # the HMD pose the cycle waits for at this tick
                 pose["valid_from_tick"] = valid_from
                 cycle.on_head_pose(pose.copy(), clock.now_ns())

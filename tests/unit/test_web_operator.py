@@ -23,6 +23,7 @@ from teleop.bus.topics import Topics
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import ConfigError, load_config
 from teleop.core.net import LoopbackPorts
+from teleop.devices import web_page
 from teleop.devices.human import DEFAULT_KEYS, SWITCH, HandIntent
 from teleop.devices.human_loop import WorldView
 from teleop.run import web_operator
@@ -32,25 +33,25 @@ TOKEN = "a-token-of-enough-characters-0123456789"
 
 # -- the token -------------------------------------------------------------------------
 def test_only_the_exact_token_passes():
-    assert web.token_matches(TOKEN, TOKEN)
+    assert web_page.token_matches(TOKEN, TOKEN)
     for given in (None, "", TOKEN[:-1], TOKEN + "x", TOKEN.upper(), "é" + TOKEN[1:], "\udcff"):
-        assert not web.token_matches(TOKEN, given), given
+        assert not web_page.token_matches(TOKEN, given), given
 
 
 def test_the_token_file_must_be_private_and_long_enough(tmp_path):
     path = tmp_path / "token"
     path.write_text(TOKEN + "\n")
     os.chmod(path, 0o600)
-    assert web.read_token(path) == TOKEN
+    assert web_page.read_token(path) == TOKEN
     os.chmod(path, 0o640)
     with pytest.raises(ConfigError, match="readable by other users"):
-        web.read_token(path)
+        web_page.read_token(path)
     os.chmod(path, 0o600)
     path.write_text("short")
     with pytest.raises(ConfigError, match="16\\+ characters"):
-        web.read_token(path)
+        web_page.read_token(path)
     with pytest.raises(ConfigError, match="No such file"):
-        web.read_token(tmp_path / "none")
+        web_page.read_token(tmp_path / "none")
 
 
 # -- what the page may send ------------------------------------------------------------
@@ -59,9 +60,9 @@ def _body(**message: object) -> bytes:
 
 
 def test_a_well_formed_input_is_the_intent_it_says_and_may_name_its_robot():
-    intent, robot = web.parse_input(_body(v=[0.5, -1, 0], gripper=True, clutch=False))
+    intent, robot = web_page.parse_input(_body(v=[0.5, -1, 0], gripper=True, clutch=False))
     assert intent == HandIntent((0.5, -1.0, 0.0), True, False) and robot is None
-    _, robot = web.parse_input(_body(v=[0, 0, 0], gripper=False, clutch=False, robot="arm1"))
+    _, robot = web_page.parse_input(_body(v=[0, 0, 0], gripper=False, clutch=False, robot="arm1"))
     assert robot == "arm1"
 
 
@@ -85,17 +86,17 @@ def test_a_well_formed_input_is_the_intent_it_says_and_may_name_its_robot():
         (_body(v=[0, 0, 0], gripper=1, clutch=False), "true or false"),
         (_body(v=[0, 0, 0], gripper=False, clutch=False, robot=7), "a robot id"),
         (_body(v=[0, 0, 0], gripper=False, clutch=False, robot=""), "a robot id"),
-        (b" " * (web.MAX_INPUT_BYTES + 1), "bytes"),
+        (b" " * (web_page.MAX_INPUT_BYTES + 1), "bytes"),
     ],
 )
 def test_a_malformed_input_is_refused_with_its_reason(body, reason):
-    with pytest.raises(web.BadInput, match=reason):
-        web.parse_input(body)
+    with pytest.raises(web_page.BadInput, match=reason):
+        web_page.parse_input(body)
 
 
 # -- the intent's expiry ---------------------------------------------------------------
 def test_the_motion_stops_when_the_page_goes_silent_and_the_buttons_stay():
-    page = web.PageIntent(expiry_s=0.5)
+    page = web_page.PageIntent(expiry_s=0.5)
     assert page.intent(0) == HandIntent()  # nothing from the page yet
     moving = HandIntent((0.4, 0.0, -0.2), gripper_closed=True)
     t0 = 10 * NS_PER_S
@@ -111,7 +112,7 @@ def test_the_motion_stops_when_the_page_goes_silent_and_the_buttons_stay():
 
 
 def test_a_still_page_going_silent_is_no_expiry():
-    page = web.PageIntent(expiry_s=0.5)
+    page = web_page.PageIntent(expiry_s=0.5)
     page.update(HandIntent(clutch=True), 0)
     assert page.intent(NS_PER_S) == HandIntent(clutch=True)
     assert page.expiries == 0
@@ -119,7 +120,7 @@ def test_a_still_page_going_silent_is_no_expiry():
 
 # -- the page --------------------------------------------------------------------------
 def test_the_page_gets_the_terminals_keys_by_the_browsers_names():
-    keys = web.browser_key_map(DEFAULT_KEYS)
+    keys = web_page.browser_key_map(DEFAULT_KEYS)
     assert keys["w"] == ["move", 0, 1.0] and keys["ArrowUp"] == ["move", 0, 1.0]
     assert keys["PageDown"] == ["move", 2, -1.0] and keys["f"] == ["move", 2, -1.0]
     assert keys[" "][0] == "stop" and keys["q"][0] == "quit" and keys["g"][0] == "gripper"
@@ -129,13 +130,14 @@ def test_the_page_gets_the_terminals_keys_by_the_browsers_names():
 
 def test_the_page_file_takes_its_settings_safely():
     config = load_config()
-    settings = web.page_settings(config, DEFAULT_KEYS)
-    page = web.render_page(web.PAGE_FILE.read_text(), {**settings, "robot_id": "</script>"})
-    assert web.PAGE_CONFIG_MARK.encode() not in page
+    settings = web_page.page_settings(config, DEFAULT_KEYS)
+    template = web_page.PAGE_FILE.read_text()
+    page = web_page.render_page(template, {**settings, "robot_id": "</script>"})
+    assert web_page.PAGE_CONFIG_MARK.encode() not in page
     assert b'</script>"' not in page and b"\\u003c/script>" in page
     assert b"http://" not in page and b"https://" not in page  # nothing from elsewhere
     with pytest.raises(ConfigError, match="expected one"):
-        web.render_page("<html></html>", settings)
+        web_page.render_page("<html></html>", settings)
 
 
 def test_the_state_names_what_the_screen_shows():
@@ -143,7 +145,7 @@ def test_the_state_names_what_the_screen_shows():
     view = WorldView(tick=250, tool_p_m=np.array([0.4, 0.0, 0.2]), phase=1, holding=True,
                      device_f_n=np.array([0.0, 3.0, 4.0]),
                      objects_p_m={"cube": np.zeros(3)})  # fmt: skip
-    state = web.state_message(view, config, HandIntent((0.1, 0, 0)), intent_live=True,
+    state = web_page.state_message(view, config, HandIntent((0.1, 0, 0)), intent_live=True,
                               run_over=False, frame_seq=7, robot_id="arm1")  # fmt: skip
     assert state["robot"] == "arm1"
     assert state["phase"] == "carry" and state["holding"] is True
@@ -161,11 +163,11 @@ def test_the_launcher_writes_a_private_token_and_keeps_it_off_the_command_line(t
         access = web_operator.prepare_web_operator(config, tmp_path / "run", ports)
         assert access is not None
         assert access.url == f"http://127.0.0.1:{access.port}/?token={access.token}"
-        assert len(access.token) >= web.MIN_TOKEN_CHARS
+        assert len(access.token) >= web_page.MIN_TOKEN_CHARS
         assert access.token_file == tmp_path / "run" / "auth" / web_operator.TOKEN_FILE
         assert stat.S_IMODE(access.token_file.stat().st_mode) == 0o600
         assert stat.S_IMODE(access.token_file.parent.stat().st_mode) == 0o700
-        assert web.read_token(access.token_file) == access.token
+        assert web_page.read_token(access.token_file) == access.token
         overrides = web_operator.web_overrides(access)
         assert not any(access.token in o for o in overrides)
         assert access.token not in repr(access)
@@ -216,38 +218,34 @@ def served(tmp_path) -> Iterator[SimpleNamespace]:
     config = load_config(None, ['run.scenario="grasp"', 'run.operator="web"'])
     service = web.WebOperatorService.__new__(web.WebOperatorService)
     service.config = config
-    service.token = TOKEN
-    service.page = web.render_page(
-        web.PAGE_FILE.read_text(), web.page_settings(config, DEFAULT_KEYS)
-    )
-    service.page_intent = web.PageIntent(config.web.input_expiry_s)
-    service.frames = web.EyeFrames(config.web.jpeg_quality)
-    service.counts = web.RequestCounts()
-    service._counts_lock = threading.Lock()
-    service.stopping = threading.Event()
-    service._streams = 0
+    service.page_intent = web_page.PageIntent(config.web.input_expiry_s)
+    service.frames = web_page.EyeFrames(config.web.jpeg_quality)
     service.lock = threading.Lock()
     service.station = _Station()
     service.robot_topics = (Topics("arm0"), Topics("arm1"))
     service.run_over = threading.Event()
     service._pending_input_ns = None
     service._wake = threading.Event()
-    server = web._PageServer(("127.0.0.1", 0), web._PageHandler, service)
-    thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05})
+    page = web_page.render_page(
+        web_page.PAGE_FILE.read_text(), web_page.page_settings(config, DEFAULT_KEYS)
+    )
+    service.site = web_page.PageServer(0, service, token=TOKEN, page=page, frames=service.frames,
+                                       state_rate_hz=config.web.state_rate_hz)  # fmt: skip
+    stop = threading.Event()
+    thread = threading.Thread(target=service.site.serve, args=(stop,))
     thread.start()
     try:
-        yield SimpleNamespace(service=service, port=server.server_address[1])
+        yield SimpleNamespace(service=service, port=service.site.port)
     finally:
-        service.stopping.set()
-        server.shutdown()
-        server.server_close()
+        stop.set()
         thread.join()
+        service.site.close()
 
 
 def _request(port: int, method: str, path: str, body: bytes | None = None,
              token: str | None = TOKEN) -> tuple[int, bytes, http.client.HTTPResponse]:  # fmt: skip
     connection = http.client.HTTPConnection("127.0.0.1", port, timeout=5)
-    headers = {web.TOKEN_HEADER: token} if token is not None else {}
+    headers = {web_page.TOKEN_HEADER: token} if token is not None else {}
     connection.request(method, path, body=body, headers=headers)
     response = connection.getresponse()
     data = response.read() if response.headers.get("Content-Type") != "text/event-stream" else b""
@@ -266,7 +264,7 @@ def test_every_request_without_the_token_is_forbidden_and_counted(served):
         assert status == 403, (method, path)
         assert TOKEN.encode() not in body
         assert response.headers["Cache-Control"] == "no-store"
-    assert served.service.counts.forbidden == 7
+    assert served.service.site.counts.forbidden == 7
     assert served.service.loop.ended == 0
 
 
@@ -282,14 +280,14 @@ def test_the_robot_switch_drives_the_next_robot_with_its_gripper_as_left(served)
     assert json.loads(body) == {"switched": True, "robot": "arm1", "gripper": True, "clutch": False}
     # the page's motion stops; the hand holds the new robot's gripper as it left it
     assert service.page_intent.intent(time.monotonic_ns()) == HandIntent(gripper_closed=True)
-    assert service._wake.is_set() and service.counts.switches == 1
+    assert service._wake.is_set() and service.site.counts.switches == 1
     assert service.state()["robot"] == "arm1"
     assert _request(port, "POST", "/switch", token="wrong")[0] == 403
     # An input the page sent for arm0 before it saw the switch: dropped, counted.
     stale = _body(v=[0.5, 0.0, 0.0], gripper=False, clutch=False, robot="arm0")
     assert _request(port, "POST", "/input", stale)[0] == 204
     assert service.page_intent.newest == HandIntent(gripper_closed=True)
-    assert service.counts.other_robot_inputs == 1
+    assert service.site.counts.other_robot_inputs == 1
     fresh = _body(v=[0.5, 0.0, 0.0], gripper=True, clutch=False, robot="arm1")
     assert _request(port, "POST", "/input", fresh)[0] == 204
     assert service.page_intent.newest == HandIntent((0.5, 0.0, 0.0), True, False)
@@ -302,8 +300,9 @@ def test_inputs_are_taken_or_refused_and_end_ends(served):
     assert service.page_intent.newest == HandIntent((0.2, 0.0, -0.3), True, False)
     assert service._wake.is_set()  # the pacer is told
     assert _request(port, "POST", "/input", b'{"v": [NaN, 0, 0]}')[0] == 400
-    assert _request(port, "POST", "/input", b"x" * (web.MAX_INPUT_BYTES + 1))[0] == 400
-    assert service.counts.bad_inputs == 2 and "expected the keys" in service.counts.first_bad_input
+    assert _request(port, "POST", "/input", b"x" * (web_page.MAX_INPUT_BYTES + 1))[0] == 400
+    counts = service.site.counts
+    assert counts.bad_inputs == 2 and "expected the keys" in counts.first_bad_input
     assert service.page_intent.newest == HandIntent((0.2, 0.0, -0.3), True, False)  # kept
     assert _request(port, "POST", "/end")[0] == 204 and service.loop.ended == 1
     assert _request(port, "GET", "/frame")[0] == 204  # no frame yet
@@ -315,7 +314,7 @@ def test_inputs_are_taken_or_refused_and_end_ends(served):
 
 def test_the_state_stream_sends_the_view(served):
     connection = http.client.HTTPConnection("127.0.0.1", served.port, timeout=5)
-    connection.request("GET", "/state", headers={web.TOKEN_HEADER: TOKEN})
+    connection.request("GET", "/state", headers={web_page.TOKEN_HEADER: TOKEN})
     response = connection.getresponse()
     assert response.status == 200
     assert response.headers["Content-Type"] == "text/event-stream"

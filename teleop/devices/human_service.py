@@ -1,5 +1,6 @@
 """The bus adapter of a person's operator: :class:`teleop.devices.human_loop.HumanOperatorLoop`
-on the bus, the device left to a subclass (services/keyboard.py).
+on the bus, the device left to a subclass (the services of services/keyboard.py,
+services/input_device.py and services/web.py).
 
 It takes the operator's place in the stack (participant ``operator``: its credentials,
 tokens and rights), so the haptic device, controller and plant run as with the scripted
@@ -23,7 +24,6 @@ from typing import Any
 
 import numpy as np
 
-from services.operator import RobotOutputs
 from teleop.bus.messages import (
     FORCE_FEEDBACK,
     Button,
@@ -35,6 +35,7 @@ from teleop.core.clock import NS_PER_S
 from teleop.core.ring import Ring
 from teleop.devices.human import HandIntent
 from teleop.devices.human_loop import HumanOperatorLoop, HumanStation
+from teleop.devices.robot_outputs import RobotOutputs
 from teleop.devices.routing import SceneKnowledge
 
 logger = logging.getLogger(__name__)
