@@ -231,9 +231,10 @@ class ServiceSpec:
 
 
 ROBOT, OPERATOR = ROBOT_SITE, OPERATOR_SITE
+PLANT, EYEVIEW = "plant", "eyeview"  # the services the launcher names
 SERVICES: tuple[ServiceSpec, ...] = (
     # The plant comes first in every stack's list and starts last: it waits for the others.
-    ServiceSpec("plant", SCENARIOS, 30, ROBOT, "MuJoCo at 1 kHz, one tick per bus period",
+    ServiceSpec(PLANT, SCENARIOS, 30, ROBOT, "MuJoCo at 1 kHz, one tick per bus period",
                 per_robot=True),
     ServiceSpec("controller", SCENARIOS, 20, ROBOT, "control law, force feedback",
                 per_robot=True),
@@ -241,7 +242,7 @@ SERVICES: tuple[ServiceSpec, ...] = (
     ServiceSpec("hmd", TELEOPERATED, 20, OPERATOR, "head pose, filtered and predicted"),
     ServiceSpec("operator", TELEOPERATED, 20, OPERATOR, "scripted operator on the handle"),
     ServiceSpec("recorder", SCENARIOS, 10, ROBOT, "every stream into Rerun"),
-    ServiceSpec("eyeview", SCENARIOS, 20, ROBOT, "the operator's eye view",
+    ServiceSpec(EYEVIEW, SCENARIOS, 20, ROBOT, "the operator's eye view",
                 optional="eyeview.enabled", per_robot=True),
 )  # fmt: skip
 SERVICES_BY_NAME: Mapping[str, ServiceSpec] = {s.name: s for s in SERVICES}

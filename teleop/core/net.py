@@ -19,9 +19,9 @@ class LoopbackPorts(ExitStack):
     pick, not any program's bind to port 0 (the kernel skips a bound port). Released at
     once, the picks of one stack could repeat (the kernel draws each from its ephemeral
     range, so 8 picks among its ports meet about 28 / ports of the time), and one of the
-    run's services then could not listen. The process given the port can still listen on it: Zenoh's listeners
-    and Rust's set SO_REUSEADDR too. Close once the processes listen, or when the run
-    ends (an :class:`~contextlib.ExitStack` of the held sockets).
+    run's services then could not listen. The process given the port can still listen
+    on it: Zenoh's listeners and Rust's set SO_REUSEADDR too. Close once the processes
+    listen, or when the run ends (an :class:`~contextlib.ExitStack` of the held sockets).
     """
 
     def take(self) -> int:

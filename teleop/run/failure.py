@@ -53,6 +53,10 @@ HINTS: tuple[tuple[str, str], ...] = (
 )
 
 
+class RunError(RuntimeError):
+    """A services run did not complete; the message says which service and why."""
+
+
 def hint_for(log_text: str) -> str:
     """The hint for the first known cause found in ``log_text``; empty when none."""
     for needle, hint in HINTS:

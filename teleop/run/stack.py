@@ -19,6 +19,12 @@ services' configs), the difference chosen once as a :class:`Launch`.
 ``--without SERVICE`` leaves services out of either: they keep their place in the peer
 mesh, the user runs them (teleop.run.outside), and the launcher waits for their ready
 tokens before the run goes on.
+
+The launcher's rooms: this module plans and starts (:func:`plan_stack`,
+:func:`run_on_services`, :func:`start_detached`); :mod:`teleop.run.run_watch` hears the
+run (its events, progress and end); :mod:`teleop.run.fault_run` injects the faults asked
+for and says what followed; :mod:`teleop.run.assemble` builds the summary from the files
+the services wrote. Only the first touches processes; the last reads files only.
 """
 
 from __future__ import annotations
@@ -30,14 +36,12 @@ import os
 import signal
 import socket
 import sys
-import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import zenoh
 
 from teleop.bus import graph
@@ -48,22 +52,14 @@ from teleop.bus.access import (
     site_observer,
     write_run_credentials,
 )
-from teleop.bus.messages import PLANT_STATE, DropCounter, Event
-from teleop.bus.service import read_summary
+from teleop.bus.graph import EYEVIEW, PLANT
 from teleop.bus.session import (
-    Latest,
     ServicesMissing,
     close_session,
-    declare_alive,
-    declare_protocol,
     open_session,
-    subscribe,
-    subscribe_events,
-    subscribe_stream,
     wait_alive,
 )
 from teleop.bus.topics import Topics
-from teleop.control.kinematics import build_arm_model, tool_jacobian
 from teleop.core.config import (
     INPUT_DEVICE_OPERATORS,
     ROBOT_SITE,
@@ -75,32 +71,20 @@ from teleop.core.config import (
     ConfigError,
     load_config,
 )
-from teleop.core.criteria import judge_task
 from teleop.core.net import LOOPBACK, LoopbackPorts, endpoint_address
 from teleop.core.rundir import (
     AUTH_DIR,
-    LOG_DIR,
     RECORDING_FILE,
     SUPERVISOR_LOG_FILE,
     clear_run_results,
     idle_poll_status_path,
     summary_path,
 )
-from teleop.core.summary import CONTROLLER, GRASP, PATH, copied_fields
-from teleop.devices.human_loop import PHASES as HUMAN_PHASES
-from teleop.devices.operator import Scenario
-from teleop.run import restart_priority
-from teleop.run.failure import ProgramWatch, ServiceFailed, program_log_text
+from teleop.run import assemble, restart_priority
+from teleop.run.failure import ProgramWatch, RunError, ServiceFailed, program_log_text
+from teleop.run.fault_run import FaultRun
 from teleop.run.faults import (
-    FaultInjector,
-    FaultSpec,
-    InjectorHooks,
-    StateLog,
-    fault_report,
     parse_faults,
-    resumed_index,
-    stage_stamps,
-    world_reset,
 )
 from teleop.run.foreground import Foreground, ForegroundExited
 from teleop.run.idle_poll import POLLING, read_status
@@ -112,15 +96,14 @@ from teleop.run.outside import (
     wait_for_outside,
     write_outside_config,
 )
-from teleop.run.progress import RunProgress
+from teleop.run.run_watch import RunWatch
 from teleop.run.sites import SiteError, check_site, write_operator_bundle
 from teleop.run.supervise import Program, Stack, StackError
-from teleop.run.verdict import drop_lines, machine_section, realtime_health, refused_privileges
 from teleop.run.web_operator import WebAccess, prepare_web_operator, web_overrides
 
-# The operator's eye view renders in a process of its own (see services/eyeview.py for
-# why not a thread in the plant); it joins the stack of any scenario when eyeview.enabled.
-EYEVIEW = "eyeview"
+# The operator's eye view (graph.EYEVIEW) renders in a process of its own (see
+# services/eyeview.py for why not a thread in the plant); it joins the stack of any
+# scenario when eyeview.enabled.
 # Keeps the idle CPUs polling in realtime runs (teleop/run/idle_poll.py): not a bus service.
 IDLE_POLL = "idle_poll"
 # Start order (supervisord priority: lower first) of the bus services, from the graph;
@@ -163,10 +146,6 @@ def scenario_services(config: Config) -> tuple[str, ...]:
     if eye.enabled and (config.run.mode == "realtime" or eye.in_lockstep or shown):
         return (*services, EYEVIEW)
     return services
-
-
-class RunError(RuntimeError):
-    """A services run did not complete; the message says which service and why."""
 
 
 def loopback_endpoint(ports: LoopbackPorts, tls: bool) -> str:
@@ -372,14 +351,6 @@ def idle_poll_report(cpus: Sequence[int], run_dir: Path) -> dict[str, Any]:
     }
 
 
-def _read_summary(run_dir: Path, service: str) -> dict[str, Any]:
-    summary = read_summary(run_dir, service)
-    if summary is None:
-        path = summary_path(run_dir, service)
-        raise RunError(f"{service} wrote no summary ({path}); see {run_dir / LOG_DIR}")
-    return summary
-
-
 def _stderr(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
@@ -442,7 +413,6 @@ class Launch(enum.Enum):
 
 # The service a person's device stands in for (run.operator).
 OPERATOR_SERVICE = "operator"
-PLANT = "plant"
 
 
 @dataclass(frozen=True)
@@ -614,132 +584,107 @@ def run_on_services(
     Several robots (``run.robots``): a plant and a controller per robot
     (``<service>-<robot_id>``, graph.instances), the station's services once; the run
     ends when every plant has finished, and the summary has a section per robot
-    (:func:`robot_view`, :func:`_robot_section`) under ``robots``.
+    (:func:`teleop.run.assemble.robot_section`) under ``robots``.
     """
+    _refuse_run(config, kills, freezes)
+    layout = StackServices.of(config, without)
+    fault_specs = parse_faults(kills, freezes, layout.started, config.run.duration_s)
+    run_dir = run_dir.absolute()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    refuse_if_running(run_dir)
+    clear_run_results(run_dir)
+    faults = FaultRun(config, fault_specs) if fault_specs else None
+    watch = RunWatch(config, faults.on_started if faults is not None else None)
+    # The run's ports stay held here until it ends: a restarted service takes its own again.
+    with LoopbackPorts() as ports:
+        plan = plan_stack(
+            Launch.RUN, config, config_file, overrides, run_dir, ports, layout,
+            without_timeout_s=without_timeout_s,
+        )  # fmt: skip
+        wall_start = time.perf_counter()
+        _run_plan(
+            plan, run_dir, config, watch, faults, progress,
+            without_timeout_s=without_timeout_s, announce=announce,
+            restarts_expected=restarts_expected,
+        )  # fmt: skip
+        wall_s = time.perf_counter() - wall_start
+    idle_poll = idle_poll_report(plan.polled_cpus, run_dir)
+    return assemble.run_summary(
+        config, run_dir, layout.started, layout.outside, watch, faults,
+        plan.polled_cpus, idle_poll, wall_s,
+    )  # fmt: skip
+
+
+def _refuse_run(config: Config, kills: Sequence[str], freezes: Sequence[str]) -> None:
+    """RunError or ConfigError for a run ``teleop run`` does not make."""
     if config.site.name:
         raise RunError(
             "site.name: a run across hosts starts one site per host with teleop up --site "
             "(docs/sites.md); teleop run keeps the whole stack on this host"
         )
-    layout = StackServices.of(config, without)
-    services, outside = layout.started, layout.outside
-    robot_ids = config.robot_ids()
-    if len(robot_ids) > 1 and (kills or freezes):
+    robots = len(config.robot_ids())
+    if robots > 1 and (kills or freezes):
         raise ConfigError(
-            f"--kill and --freeze: not in a run of several robots (run.robots={len(robot_ids)})"
+            f"--kill and --freeze: not in a run of several robots (run.robots={robots})"
         )
-    fault_specs = parse_faults(kills, freezes, services, config.run.duration_s)
-    run_dir = run_dir.absolute()
-    run_dir.mkdir(parents=True, exist_ok=True)
-    refuse_if_running(run_dir)
-    clear_run_results(run_dir)
-    robots = [Topics(rid) for rid in robot_ids]
-    topics = robots[0]
-    plants = graph.instances([PLANT], robot_ids)
-    drops = DropCounter()
-    finished = threading.Event()  # every robot's plant finished
-    finished_robots: set[str] = set()
-    # Per robot, the operator's TASK_DONE value (1: success), if any.
-    task_done: dict[str, list[float]] = {rid: [] for rid in robot_ids}
-    tool = Latest()  # the newest tool pose of any robot: the run's sim time
 
-    phases: tuple[str, ...] = ()
-    if config.run.teleoperated and config.run.operator != SCRIPTED:
-        phases = HUMAN_PHASES  # read from the world (teleop.devices.human_loop)
-    elif config.run.teleoperated:
-        scenario = Scenario.load(config.operator.scenario_path, config.robot.object_bodies)
-        phases = tuple(phase.name for phase in scenario.phases)
-    tracker = RunProgress(config.run.duration_s, phases)
 
-    def events_of(robot_id: str) -> Callable[[np.ndarray, int], None]:
-        def on_event(rec: np.ndarray, rx_ns: int) -> None:
-            if int(rec["event"]) == Event.STARTED and faults is not None:
-                faults.on_started(int(rec["t_source_ns"]))
-            if int(rec["event"]) in (Event.FINISHED, Event.ABORTED):
-                finished_robots.add(robot_id)
-                if len(finished_robots) == len(robot_ids):
-                    finished.set()
-            elif int(rec["event"]) == Event.PHASE:
-                tracker.on_phase(int(rec["value"]), int(rec["sim_time_ns"]) * 1e-9)
-            elif int(rec["event"]) == Event.TASK_DONE:
-                task_done[robot_id].append(float(rec["value"]))
-
-        return on_event
-
-    faults = _FaultRun(config, fault_specs) if fault_specs else None
-    # The run's ports stay held here until it ends: a restarted service takes its own again.
-    ports = LoopbackPorts()
-    session = None
+def _launcher_session(
+    plan: StackPlan, config: Config, watch: RunWatch, faults: FaultRun | None
+) -> tuple[zenoh.Session, list[Any]]:
+    """The launcher's session, the mesh's listener, hearing the run (``watch``, and the
+    faults' plant states and tokens); the session and what to undeclare."""
+    credentials = plan.credentials
+    bus = replace(
+        config.bus,
+        endpoint=plan.endpoint,
+        gossip=False,
+        credentials_file=str(credentials[LAUNCHER]) if credentials else "",
+    )
+    session = open_session(bus, listen=True)
     entities: list[Any] = []
     try:
-        plan = plan_stack(
-            Launch.RUN, config, config_file, overrides, run_dir, ports, layout,
-            without_timeout_s=without_timeout_s,
-        )  # fmt: skip
-        credentials = plan.credentials
-        bus = replace(  # the mesh's listener
-            config.bus,
-            endpoint=plan.endpoint,
-            gossip=False,
-            credentials_file=str(credentials[LAUNCHER]) if credentials else "",
-        )
-        session = open_session(bus, listen=True)
         if faults is not None:
-            entities += faults.subscribe(session, topics, drops)
-        for robot in robots:
-            on_event = events_of(robot.robot_id)
-            entities.append(subscribe_events(session, robot, "plant_events", on_event, drops))
-            if config.run.teleoperated:  # the operator's TASK_DONE (success or not)
-                entities.append(
-                    subscribe_events(session, robot, "operator_events", on_event, drops)
-                )
-            entities.append(
-                subscribe_stream(
-                    session,
-                    robot,
-                    "tool_pose",
-                    tool,
-                    drops,
-                    consumer=LAUNCHER,
-                    mode=config.run.mode,
-                    scenario=config.run.scenario,
-                )
-            )
-            entities.append(declare_protocol(session, robot))
-            entities.append(declare_alive(session, robot, LAUNCHER))
-            entities.append(declare_alive(session, robot, LAUNCHER, ready=True))
+            entities += faults.subscribe(session, watch.robots[0], watch.drops)
+        entities += watch.listen(session)
+    except BaseException:
+        close_session(session, *reversed(entities))
+        raise
+    return session, entities
+
+
+def _run_plan(
+    plan: StackPlan,
+    run_dir: Path,
+    config: Config,
+    watch: RunWatch,
+    faults: FaultRun | None,
+    progress: Callable[[str], None] | None,
+    *,
+    without_timeout_s: float,
+    announce: Callable[[str], None],
+    restarts_expected: Sequence[str],
+) -> None:
+    """Start ``plan``'s programs and wait for the run's end; the stack stopped after it
+    (each service writes its summary on close), the launcher's session closed."""
+    session, entities = _launcher_session(plan, config, watch, faults)
+    try:
         for text, _ in plan.joins:
             announce(text)
-        factor = (
-            LOCKSTEP_TIMEOUT_FACTOR if config.run.mode == "lockstep" else REALTIME_TIMEOUT_FACTOR
-        )
-        deadline_s = config.run.duration_s * factor + RUN_TIMEOUT_SLACK_S
-        wall_start = time.perf_counter()
         with contextlib.ExitStack() as running:
             stack = running.enter_context(Stack(run_dir, plan.programs))
-            watch = ProgramWatch(stack.log_path, _read_log, frozenset(restarts_expected))
-            check = _failure_check(stack, watch)
+            watch_programs = ProgramWatch(stack.log_path, _read_log, frozenset(restarts_expected))
+            check = _failure_check(stack, watch_programs)
             if faults is not None:
-                check = faults.start(stack, watch, check)
+                check = faults.start(stack, watch_programs, check)
             # Entered last: stopped first, while the stack still runs (its summary then
             # has the run's end).
             for program in plan.foreground:
-                check = _foreground_check(running.enter_context(Foreground(program, run_dir)),
-                                          check)  # fmt: skip
+                foreground = running.enter_context(Foreground(program, run_dir))
+                check = _foreground_check(foreground, check)
             try:
-                _wait_alive(session, robots, services, stack, check)
-                try:
-                    wait_for_outside(
-                        session, topics, outside, without_timeout_s, announce,
-                        still_running=check,
-                    )  # fmt: skip
-                except OutsideMissing as exc:
-                    raise RunError(str(exc)) from None
-                if plan.web is not None:  # the page is up: its URL and token, to the person
-                    announce(plan.web.announcement())
-                _wait_finished(
-                    finished, tool, tracker, deadline_s, stack, progress, run_dir, plants, check
-                )
+                _wait_run(session, plan, run_dir, config, watch, stack, check, progress,
+                          without_timeout_s=without_timeout_s, announce=announce)  # fmt: skip
             except ServiceFailed as exc:
                 # Said now, not after the stop (which can take seconds more).
                 announce(f"teleop: the run failed:\n{exc.block()}\nstopping the services...")
@@ -748,235 +693,44 @@ def run_on_services(
             finally:
                 if faults is not None:
                     faults.close()  # nothing left frozen when the stack stops
-        wall_s = time.perf_counter() - wall_start
     finally:
         close_session(session, *reversed(entities))
-        ports.close()
-
-    # A service killed on purpose whose new incarnation was stopped while still starting
-    # has only its killed process's running summary, or none if that one was killed
-    # before its first (teleop.bus.service): the run's figures then go without it.
-    killed = {spec.service for spec in fault_specs if spec.kind == "kill"}
-    read = {name: read_summary(run_dir, name) for name in services}
-    summaries = {
-        name: summary if summary is not None else _read_summary(run_dir, name)
-        for name, summary in read.items()
-        if summary is not None or name not in killed
-    }
-    # A pair of peers that never linked: what one sent the other is lost (Service.become_ready).
-    unlinked = {n: s["unlinked_peers"] for n, s in summaries.items() if s.get("unlinked_peers")}
-    # The bad records each receiver dropped (restarted services: their earlier
-    # processes' too), by kind and reason, and their total.
-    dropped_by: dict[str, dict[str, Any]] = {"launcher": drops.by_key()}
-    for name, s in summaries.items():
-        for incarnation in (*s.get("earlier_incarnations", []), s):
-            mine = dropped_by.setdefault(name, {"counts": {}, "first": {}})
-            for key, count in (incarnation.get("dropped_by_reason") or {}).items():
-                mine["counts"][key] = mine["counts"].get(key, 0) + count
-            for key, detail in (incarnation.get("dropped_first") or {}).items():
-                mine["first"].setdefault(key, detail)
-    dropped = sum(sum(d["counts"].values()) for d in dropped_by.values())
-    restarted = {
-        name: len(s["earlier_incarnations"])
-        for name, s in summaries.items()
-        if s.get("earlier_incarnations")
-    }
-    summary: dict[str, Any] = {
-        "scenario": config.run.scenario,
-        "mode": config.run.mode,
-        "seed": config.run.seed,
-    }
-    if config.run.teleoperated:
-        summary["operator"] = config.run.operator
-    sections = {
-        rid: _robot_section(config, robot_view(summaries, rid, robot_ids), task_done[rid])
-        for rid in robot_ids
-    }
-    plant_summaries = [summaries.get(name, {}) for name in plants]
-    if len(robot_ids) == 1:  # one robot: its section is the run's
-        summary.update(sections[robot_ids[0]])
-    else:
-        summary.update(_robots_verdict(config.run.scenario, sections))
-    idle_poll = idle_poll_report(plan.polled_cpus, run_dir)
-    machine = machine_section(summaries, plan.polled_cpus, idle_poll)
-    # The brakes an injected fault caused are the fault's, not a loss of real time.
-    fault_braked = faults.braked_states() if faults is not None else 0
-    health = realtime_health(
-        config.run.mode,
-        overrun_fraction=max(p.get("overrun_fraction", 0.0) for p in plant_summaries),
-        realtime_factor=min(p.get("realtime_factor") or 0.0 for p in plant_summaries),
-        watchdog_brakes=sum(p.get("stale_commands", 0) for p in plant_summaries)
-        - (faults.brakes() if faults else 0),
-        braked_steps=max(0, sum(p.get("stale_steps", 0) for p in plant_summaries) - fault_braked),
-        steps=sum(p.get("steps", 0) for p in plant_summaries),
-        drops=drop_lines(dropped_by),
-        unlinked_peers=unlinked,
-    )
-    summary.update(
-        {
-            **health.as_dict(),
-            "outside": list(outside),
-            "summaries_missing": [name for name in services if name not in summaries],
-            # Services whose earlier processes wrote a summary (restarted after it).
-            "restarted_services": restarted,
-            "dropped_messages": dropped,
-            "unlinked_peers": unlinked,
-            "stack_wall_s": wall_s,
-            **idle_poll,
-            "machine": machine,
-            "refused_privileges": refused_privileges(machine),
-            "faults": faults.report(summary.get("success")) if faults is not None else [],
-            "run_dir": str(run_dir),
-            "services": summaries,
-        }
-    )
-    return summary
 
 
-def robot_view(
-    summaries: Mapping[str, dict[str, Any]], robot_id: str, robot_ids: Sequence[str]
-) -> dict[str, dict[str, Any]]:
-    """The services' summaries as one robot's run saw them, by service: its own plant,
-    controller and eye view (``<service>-<robot_id>`` in a run of several robots), and
-    the station's services, whose per-robot figures (a section per robot under
-    ``robots``: the operator's task, the recorder's file) are this robot's."""
-    view: dict[str, dict[str, Any]] = {}
-    for name, summary in summaries.items():
-        role, robot = graph.role_of(name), graph.robot_of(name)
-        if robot is not None and robot != robot_id:
-            continue
-        own = summary.get("robots", {}).get(robot_id) if len(robot_ids) > 1 else None
-        view[role] = {**summary, **own} if isinstance(own, dict) else summary
-    return view
-
-
-def _robot_section(
-    config: Config, view: Mapping[str, dict[str, Any]], task_done: list[float]
-) -> dict[str, Any]:
-    """One robot's figures, verdict and plant figures, from its services' summaries
-    (:func:`robot_view`) and the operator's TASK_DONE values for it."""
-    plant, controller = view.get("plant", {}), view.get("controller", {})
-    if config.run.teleoperated:
-        figures, problems = _grasp_figures(view, task_done)
-    else:
-        figures = {
-            "duration_s": config.run.duration_s,
-            **{key: controller.get(key) for key in copied_fields(CONTROLLER, PATH)},
-        }
-        # A run that stalls or collides is not a good run either (teleop.control.path).
-        problems = list(controller.get("motion_problems", []))
-        figures["motion_problems"] = problems
-    if plant.get("aborted") or plant.get("failure"):
-        # The plant ended the run on a failure: whatever the task's figures say, it did
-        # not go on to its end.
-        problems = [*problems, f"plant: {plant.get('failure') or 'aborted'}"]
-    figures["commands_received"] = plant.get("commands_received")
-    figures["commands_applied"] = plant.get("commands_applied")
-    # The task's criteria (teleop.core.criteria) and the problems: the one verdict, which
-    # the summary holds enough to give again (criteria.judge_summary).
-    verdict = judge_task(config.run.scenario, figures, problems).summary()
-    sim_s = (plant.get("steps") or 0) * config.tick_s
-    return {
-        **figures,
-        **verdict,
-        "steps": plant.get("steps"),
-        "wall_s": plant.get("wall_s"),
-        "realtime_factor": plant.get("realtime_factor"),
-        "overrun_fraction": plant.get("overrun_fraction"),
-        "commands_clamped": plant.get("commands_clamped"),
-        "commands_clamped_by_reason": plant.get("commands_clamped_by_reason"),
-        "command_stream": plant.get("command_stream"),
-        "stale_commands": plant.get("stale_commands"),
-        # The plant's own stops on contact force and tool speed (teleop.sim.protective).
-        "protective_stop": plant.get("protective_stop"),
-        # The plant ended the run on a failure (its reason), and its restarts.
-        "failure": plant.get("failure"),
-        "plant_resumes": plant.get("resumes", []),
-        "skipped_states": controller.get("skipped_states"),
-        "final_state_sha256": plant.get("final_state_sha256"),
-        # CPU seconds per simulated second of this robot's own processes (start-up in).
-        "cpu_s_per_sim_s": {
-            role: round(view[role]["cpu_s"] / sim_s, 4)
-            for role in graph.PER_ROBOT
-            if role in view and sim_s > 0 and view[role].get("cpu_s") is not None
-        },
-        "eye_view": _eye_view_summary(view),
-        "rrd": view.get("recorder", {}).get("rrd_path"),
-    }
-
-
-def _robots_verdict(scenario: str, sections: Mapping[str, dict[str, Any]]) -> dict[str, Any]:
-    """A run of several robots: a section per robot (each judged by itself, its
-    ``scenario`` with it so criteria.judge_summary judges it again the same way) and the
-    run's verdict: every robot's task succeeded; its problems, each with its robot."""
-    return {
-        "robots": {rid: {"scenario": scenario, **s} for rid, s in sections.items()},
-        "success": all(s.get("success") for s in sections.values()),
-        "problems": [f"{rid}: {p}" for rid, s in sections.items() for p in s.get("problems", [])],
-        "reasons": [f"{rid}: {r}" for rid, s in sections.items() for r in s.get("reasons", [])],
-        "failure": next((s["failure"] for s in sections.values() if s.get("failure")), None),
-        "rrd": next((s["rrd"] for s in sections.values() if s.get("rrd")), None),
-    }
-
-
-def _eye_view_summary(summaries: dict[str, dict[str, Any]]) -> dict[str, Any] | None:
-    """Frames rendered and received (over SHM), render time, CPU shares, latency."""
-    eyeview = summaries.get(EYEVIEW)
-    if eyeview is None:
-        return None
-    recorder = summaries.get("recorder", {})
-    received = recorder.get("eye_view", {})
-    return {
-        "frames_published": eyeview["frames_published"],
-        "frames_received": received.get("received"),
-        "frames_received_shm": received.get("received_shm"),
-        "logged_bytes_per_frame": received.get("logged_bytes_per_frame"),
-        "render_ms_p50": eyeview["render_ms_p50"],
-        "renderer_cpu_share": eyeview["cpu_share"],
-        "recorder_cpu_share": recorder.get("cpu_share"),
-        "latency_ms": {k: v for k, v in received.items() if k.endswith("_ms")},
-    }
-
-
-def _grasp_figures(
-    summaries: dict[str, dict[str, Any]], task_done: list[float]
-) -> tuple[dict[str, Any], list[str]]:
-    """The teleoperation task's figures of merit, from the services that measured them
-    (an outside service's are None; an outside operator's success is its TASK_DONE's),
-    and the problems the run reported: the motion's, and an operator that did not finish."""
-    plant, controller = summaries.get("plant", {}), summaries.get("controller", {})
-    haptic, operator = summaries.get("haptic", {}), summaries.get("operator")
-    said_success = operator.get("success") if operator is not None else task_done[-1:] == [1.0]
-    operator = operator or {}
-    problems = controller.get("motion_problems", [])
-    figures = {
-        "motion_problems": problems,
-        **{key: controller.get(key) for key in copied_fields(CONTROLLER, GRASP)},
-        "object_in_box": plant.get("object_in_box"),
-        "object_bin_distance_m": plant.get("object_bin_distance_m"),
-        "duration_s": operator.get("task_duration_s"),
-        "max_device_force_n": haptic.get("max_rendered_force_n"),
-        # The energy the force exchanged with the hand, and what the stabiliser dissipated.
-        "passivity": haptic.get("passivity"),
-        "max_contact_force_n": plant.get("max_contact_force_n"),
-        "obstacle_min_clearance_m": plant.get("obstacle_min_clearance_m"),
-        "tool_speed_max_m_s": plant.get("tool_speed_max_m_s"),
-        "velocity_tracking_rms_m_s": controller.get("velocity_tracking_rms_m_s"),
-        "stale_feedback_events": haptic.get("stale_feedback_events"),
-        "max_obstacle_force_n": controller.get("max_obstacle_force_n"),
-        "held_weight_n": controller.get("held_weight_n"),
-        "phases": operator.get("phases"),
-        "operator_failure": operator.get("failure") or None,  # why the operator gave up
-    }
-    gave_up = f": {figures['operator_failure']}" if figures["operator_failure"] else ""
-    said = [] if said_success else [f"the operator did not finish the task{gave_up}"]
-    return figures, [*problems, *said]
+def _wait_run(
+    session: zenoh.Session,
+    plan: StackPlan,
+    run_dir: Path,
+    config: Config,
+    watch: RunWatch,
+    stack: Stack,
+    check: Callable[[], None],
+    progress: Callable[[str], None] | None,
+    *,
+    without_timeout_s: float,
+    announce: Callable[[str], None],
+) -> None:
+    """Every service alive, the outside ones ready, then the run to its end."""
+    layout = plan.services
+    _wait_alive(session, watch.robots, layout.started, stack, check)
+    try:
+        wait_for_outside(
+            session, watch.robots[0], layout.outside, without_timeout_s, announce,
+            still_running=check,
+        )  # fmt: skip
+    except OutsideMissing as exc:
+        raise RunError(str(exc)) from None
+    if plan.web is not None:  # the page is up: its URL and token, to the person
+        announce(plan.web.announcement())
+    lockstep = config.run.mode == "lockstep"
+    factor = LOCKSTEP_TIMEOUT_FACTOR if lockstep else REALTIME_TIMEOUT_FACTOR
+    deadline_s = config.run.duration_s * factor + RUN_TIMEOUT_SLACK_S
+    plants = graph.instances([PLANT], watch.robot_ids)
+    _wait_finished(watch, deadline_s, stack, progress, run_dir, plants, check)
 
 
 def _wait_finished(
-    finished: threading.Event,
-    tool: Latest,
-    tracker: RunProgress,
+    watch: RunWatch,
     deadline_s: float,
     stack: Stack,
     progress: Callable[[str], None] | None,
@@ -987,22 +741,23 @@ def _wait_finished(
     """Wait until every plant (``plants``: one per robot) has finished: its FINISHED
     event, or its summary on file saying so (written as it finishes: an event lost on a
     starved machine does not hang the run). Reports progress meanwhile: sim time from
-    the tool pose stream, the task's phase from the operator's events (``tracker``)."""
+    the tool pose stream, the task's phase from the operator's events."""
     start = time.monotonic()
-    sim_s = 0.0
-    while not finished.wait(timeout=0.5) and not all(_plant_finished(run_dir, p) for p in plants):
+    tracker = watch.tracker
+    while not watch.finished.wait(timeout=0.5) and not all(
+        _plant_finished(run_dir, p) for p in plants
+    ):
         if time.monotonic() - start > deadline_s:
             raise RunError(f"run did not finish within {deadline_s:g} s: {stack.status()}")
         check()
-        latest = tool.get()
-        if progress is not None and latest is not None:
-            sim_s = int(latest[0]["sim_time_ns"]) * 1e-9
+        sim_s = watch.sim_s()
+        if progress is not None and sim_s is not None:
             line = tracker.due(sim_s)
             if line is not None:
                 progress(line)
-    latest = tool.get()
-    if progress is not None and latest is not None:
-        progress(tracker.line(int(latest[0]["sim_time_ns"]) * 1e-9) + "   finished")
+    sim_s = watch.sim_s()
+    if progress is not None and sim_s is not None:
+        progress(tracker.line(sim_s) + "   finished")
 
 
 def _plant_finished(run_dir: Path, plant: str = PLANT) -> bool:
@@ -1049,135 +804,6 @@ def _failure_check(stack: Stack, watch: ProgramWatch | None = None) -> Callable[
     if watch is None:
         watch = ProgramWatch(stack.log_path, _read_log)
     return lambda: watch.check(stack.process_infos())
-
-
-class _FaultRun:
-    """The bus side of fault injection in a run (teleop.run.faults): the plant's states
-    recorded and fed to the injector, ready tokens watched for restarts, the run failed
-    when a killed plant starts the world over, and the summary's ``faults``."""
-
-    def __init__(self, config: Config, specs: Sequence[FaultSpec]) -> None:
-        self.specs = specs
-        self.realtime = config.run.mode == "realtime"
-        self.arm = build_arm_model(config.robot)  # tool speed from joint state
-        self.states = StateLog(self.arm.n_joints)
-        self.injector: FaultInjector | None = None
-        self._started_ns = 0  # the plant's STARTED stamp, if it came before start()
-
-    def subscribe(self, session: zenoh.Session, topics: Topics, drops: DropCounter) -> list[Any]:
-        """The plant's states (the observers' batched copy) and every ready token."""
-
-        def on_state(rec: np.ndarray, rx_ns: int) -> None:
-            self.states.add(rec)
-            if self.injector is not None:
-                self.injector.on_state(int(rec["sim_time_ns"]), int(rec["step"]))
-
-        def on_token(sample: zenoh.Sample) -> None:
-            if sample.kind != zenoh.SampleKind.PUT:
-                return
-            name, now_ns = topics.service_of(str(sample.key_expr)), time.monotonic_ns()
-            if self.injector is not None:
-                self.injector.on_ready(name, now_ns)
-
-        states = subscribe(
-            session, topics.plant_state_batch, PLANT_STATE, on_state, drops, batched=True
-        )
-        tokens = session.liveliness().declare_subscriber(topics.ready_all, on_token)
-        return [states, tokens]
-
-    def start(
-        self, stack: Stack, watch: ProgramWatch, check: Callable[[], None]
-    ) -> Callable[[], None]:
-        """Start injecting into ``stack``; the run's check, extended by the plant's."""
-        hooks = InjectorHooks(
-            pid_of=stack.pid,
-            signal_group=os.killpg,
-            expect_restart=watch.expect_restart,
-            now_ns=time.monotonic_ns,
-        )
-        self.injector = FaultInjector(self.specs, hooks, realtime=self.realtime)
-        if self._started_ns:
-            self.injector.on_started(self._started_ns)
-        self.injector.start()
-
-        def checked() -> None:
-            check()
-            self.check_world()
-
-        return checked
-
-    def check_world(self) -> None:
-        """Raise RunError when a killed plant came back with the run started over."""
-        assert self.injector is not None
-        arrays = self.states.arrays()
-        for record in self.injector.records:
-            if record.inject_ns and world_reset(record, arrays):
-                raise RunError(
-                    f"the plant was killed at sim {record.t_s:.3f} s (step {record.step}) "
-                    "and its new incarnation started the run over from step 0: the world "
-                    "was reset, so the run cannot go on (the plant did not resume from a "
-                    "checkpoint)"
-                )
-
-    def on_started(self, t_ns: int) -> None:
-        """The plant's STARTED event (stamped ``t_ns``): realtime faults are due from it."""
-        self._started_ns = self._started_ns or t_ns
-        if self.injector is not None:
-            self.injector.on_started(t_ns)
-
-    def close(self) -> None:
-        if self.injector is not None:
-            self.injector.close()
-
-    def _speed_at(self, arrays: dict[str, np.ndarray]) -> Callable[[int], float]:
-        def speed_at(i: int) -> float:
-            jacobian = tool_jacobian(self.arm, arrays["q_rad"][i])
-            return float(np.linalg.norm(jacobian[:3] @ arrays["qd_rad_s"][i]))
-
-        return speed_at
-
-    def report(self, success: bool | None) -> list[dict[str, Any]]:
-        """The summary's ``faults``: one object per fault (teleop.run.faults)."""
-        if self.injector is None:
-            return [{"service": s.service, "kind": s.kind, "error": "not injected"}
-                    for s in self.specs]  # fmt: skip
-        arrays = self.states.arrays()
-        speed_at = self._speed_at(arrays)
-        return [fault_report(r, arrays, speed_at, success) for r in self.injector.records]
-
-    def _windows(self) -> list[tuple[int, int]]:
-        """Per injected fault, (injected, resumed or the record's end), host ns."""
-        if self.injector is None:
-            return []
-        arrays = self.states.arrays()
-        end_ns = int(arrays["t_ns"][-1]) if len(arrays["t_ns"]) else 0
-        windows = []
-        for record in self.injector.records:
-            if not record.inject_ns:
-                continue
-            stamps = stage_stamps(arrays, record.spec.service)
-            resumed = None
-            if record.back_ns:
-                resumed = resumed_index(arrays["t_ns"], stamps, arrays["braking"], record.back_ns)
-            stop_ns = int(arrays["t_ns"][resumed]) if resumed is not None else end_ns
-            windows.append((record.inject_ns, stop_ns))
-        return windows
-
-    def braked_states(self) -> int:
-        """Plant states braked between an injection and the resumption it caused."""
-        arrays = self.states.arrays()
-        t_ns, braking = arrays["t_ns"], arrays["braking"]
-        inside = np.zeros(len(t_ns), bool)
-        for start_ns, stop_ns in self._windows():
-            inside |= (t_ns >= start_ns) & (t_ns <= stop_ns)
-        return int(np.count_nonzero(inside & braking))
-
-    def brakes(self) -> int:
-        """Brakes (runs of braked states) that began inside a fault's window."""
-        arrays = self.states.arrays()
-        t_ns, braking = arrays["t_ns"], arrays["braking"]
-        onsets = np.flatnonzero(braking & ~np.concatenate(([False], braking[:-1])))
-        return sum(1 for i in onsets if any(a <= t_ns[i] <= b for a, b in self._windows()))
 
 
 def _read_log(path: Path) -> str:
@@ -1264,31 +890,10 @@ def start_detached(
     the operator site's bundle (announced), the operator site is given its
     ``credentials`` from it. The plant waits for the other site's services as for its own.
     """
-    if config.run.robots > 1:
-        raise ConfigError(
-            f"run.robots={config.run.robots}: teleop up runs one robot; several robots run "
-            "with teleop run grasp --robots N"
-        )
     run_dir = run_dir.absolute()
     refuse_if_running(run_dir)
+    layout = _refuse_up(config, endpoint, without)
     clear_run_results(run_dir)  # a previous stack's checkpoint must not be resumed
-    try:
-        check_site(config)
-    except SiteError as exc:
-        raise RunError(str(exc)) from None
-    if endpoint is not None:
-        if config.bus.mutual_tls and not endpoint.startswith("tls/"):
-            raise RunError(
-                f"endpoint {endpoint}: this run links over mutual TLS (bus.tls), so its "
-                "endpoint is tls/HOST:PORT (or --set bus.tls=false for a tcp/ one)"
-            )
-        ensure_endpoint_free(endpoint)
-    layout = StackServices.of(config, without)
-    if layout.foreground:
-        raise RunError(
-            f"run.operator={config.run.operator}: teleop up runs the stack detached, with no "
-            f"terminal for it; drive it with teleop run grasp --operator {config.run.operator}"
-        )
     # Held until every service listens: then each holds its own.
     with LoopbackPorts() as ports:
         plan = plan_stack(
@@ -1317,6 +922,33 @@ def start_detached(
         if plan.web is not None:  # the page is up: its URL and token, to the person
             announce(plan.web.announcement())
         return stack.status(), plan.endpoint
+
+
+def _refuse_up(config: Config, endpoint: str | None, without: Sequence[str]) -> StackServices:
+    """The stack ``teleop up`` starts; RunError or ConfigError for one it does not."""
+    if config.run.robots > 1:
+        raise ConfigError(
+            f"run.robots={config.run.robots}: teleop up runs one robot; several robots run "
+            "with teleop run grasp --robots N"
+        )
+    try:
+        check_site(config)
+    except SiteError as exc:
+        raise RunError(str(exc)) from None
+    if endpoint is not None:
+        if config.bus.mutual_tls and not endpoint.startswith("tls/"):
+            raise RunError(
+                f"endpoint {endpoint}: this run links over mutual TLS (bus.tls), so its "
+                "endpoint is tls/HOST:PORT (or --set bus.tls=false for a tcp/ one)"
+            )
+        ensure_endpoint_free(endpoint)
+    layout = StackServices.of(config, without)
+    if layout.foreground:
+        raise RunError(
+            f"run.operator={config.run.operator}: teleop up runs the stack detached, with no "
+            f"terminal for it; drive it with teleop run grasp --operator {config.run.operator}"
+        )
+    return layout
 
 
 def _await_ready_detached(
