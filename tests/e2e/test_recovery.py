@@ -15,8 +15,8 @@ from teleop.bus.messages import Event
 from teleop.core.config import load_config
 from teleop.run.stack import run_on_services
 from teleop.run.supervise import Stack
-from teleop.viz.recording import event_text
 from teleop.viz.rrd import Recording
+from teleop.viz.stream_writers import event_text
 
 # Phases of deploy/scenarios/grasp.toml during which the cube is held.
 HOLDING_PHASES = ("lift", "carry")

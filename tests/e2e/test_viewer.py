@@ -36,7 +36,7 @@ from websockets.sync.client import ClientConnection, connect
 
 from teleop.core.config import load_config
 from teleop.viz import entities as ent
-from teleop.viz import recording
+from teleop.viz import stream_writers
 from teleop.viz.blueprint import view_specs
 from teleop.viz.report import write_reports
 from teleop.viz.rrd import Recording
@@ -241,7 +241,7 @@ def test_path_following_recording_holds_what_its_blueprint_shows(web_run):
             if root != ent.ENTITY_EYE_VIEW:  # the eye view is grasp only
                 assert any(e == root or e.startswith(root + "/") for e in data), root
     strips = data[ent.ENTITY_DESIRED_PATH]["LineStrips3D:strips"]
-    assert len(strips[0][0]) == recording.DESIRED_PATH_POINTS
+    assert len(strips[0][0]) == stream_writers.DESIRED_PATH_POINTS
 
 
 def test_report_draws_the_path_following_figures(web_run, tmp_path):

@@ -33,7 +33,7 @@ from teleop.core.rundir import (
     segment_paths,
     summary_path,
 )
-from teleop.viz import blueprint, recording
+from teleop.viz import blueprint, recording, stream_writers
 from teleop.viz import entities as ent
 from teleop.viz.recording_file import RecordingFile, Segment, no_display_reason
 from teleop.viz.report import write_reports
@@ -362,7 +362,7 @@ def test_every_stream_is_logged_at_its_own_time(rig_factory, tmp_path):
     assert texts[sim_ns(5)] == ["TASK_DONE (success) at step 5000"]
     assert texts[sim_ns(6)] == ["TASK_DONE (gave up) at step 6000"]
     levels = dict(zip(events[ent.TIMELINE_SIM], events["TextLog:level"], strict=True))
-    assert levels[sim_ns(1)] == [recording.LEVEL_WARN]
+    assert levels[sim_ns(1)] == [stream_writers.LEVEL_WARN]
 
     stats = json.loads(data[ent.ENTITY_STATS]["TextDocument:text"][0][0])
     assert stats["samples_logged"] == summary["samples_logged"]
@@ -436,7 +436,7 @@ def test_bilateral_streams_are_logged_at_their_own_time(rig_factory, tmp_path):
         assert times[newest] == sim_ns(last)
         vectors = np.asarray(arrows["Arrows3D:vectors"][newest])
         origins = np.asarray(arrows["Arrows3D:origins"][newest])
-        expected_m = np.asarray(newest_n) * recording.FORCE_ARROW_M_PER_N
+        expected_m = np.asarray(newest_n) * stream_writers.FORCE_ARROW_M_PER_N
         np.testing.assert_allclose(vectors, [expected_m], atol=F32_TOLERANCE)
         np.testing.assert_allclose(origins, [newest_tool_m], atol=F32_TOLERANCE)
         assert arrows["Arrows3D:colors"]  # static, one colour per component
@@ -450,7 +450,7 @@ def test_bilateral_streams_are_logged_at_their_own_time(rig_factory, tmp_path):
     hmd = data[ent.ENTITY_HMD]
     assert sorted(hmd[ent.TIMELINE_SIM]) == sims("head_pose")
     quats = dict(zip(hmd[ent.TIMELINE_SIM], hmd["Transform3D:quaternion"], strict=True))
-    expected_q = recording.yaw_pitch_to_xyzw(np.array(0.2), np.array(0.05))
+    expected_q = stream_writers.yaw_pitch_to_xyzw(np.array(0.2), np.array(0.05))
     np.testing.assert_allclose(quats[sim_ns(10)][0], expected_q, atol=F32_TOLERANCE)
     assert hmd["Pinhole:image_from_camera"]  # static: the viewer draws a frustum
     assert hmd["Pinhole:camera_xyz"]
@@ -466,12 +466,16 @@ def test_bilateral_streams_are_logged_at_their_own_time(rig_factory, tmp_path):
     assert series(data, ent.ENTITY_TELEOP_SPEED_SCALE)[sim_ns(10)] == pytest.approx(0.9)
 
 
-class FaultyWriter(recording.RecordingWriter):
+class FaultyArm(stream_writers.ArmWriter):
     """Sends a malformed control-status batch (more values than times): a real Rerun error."""
 
-    def _write_control_status(self, records: np.ndarray) -> None:
+    def control_status(self, records: np.ndarray, out: stream_writers.Columns) -> None:
         values = np.zeros(records.size + 1)
-        self._send_scalars(ent.ENTITY_PATH_ERROR, self._indexes(records), values)
+        out.scalars(ent.ENTITY_PATH_ERROR, out.indexes(records), values)
+
+
+class FaultyWriter(recording.RecordingWriter):
+    arm_writer = FaultyArm
 
 
 class FaultyRecorder(r.RecorderService):
@@ -531,11 +535,12 @@ def test_default_rrd_path_is_in_the_run_dir(tmp_path):
 
 def test_event_text_and_quaternion_order():
     assert (
-        recording.event_text(int(m.Event.WATCHDOG_BRAKE), 123, 0.0) == "WATCHDOG_BRAKE at step 123"
+        stream_writers.event_text(int(m.Event.WATCHDOG_BRAKE), 123, 0.0)
+        == "WATCHDOG_BRAKE at step 123"
     )
-    assert recording.event_text(99, 1, 0.0) == "EVENT_99 at step 1"
+    assert stream_writers.event_text(99, 1, 0.0) == "EVENT_99 at step 1"
     q_wxyz = np.array([[0.5, 0.1, 0.2, 0.3]])
-    np.testing.assert_array_equal(recording.wxyz_to_xyzw(q_wxyz), [[0.1, 0.2, 0.3, 0.5]])
+    np.testing.assert_array_equal(stream_writers.wxyz_to_xyzw(q_wxyz), [[0.1, 0.2, 0.3, 0.5]])
 
 
 def rotate(q_xyzw: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -548,7 +553,7 @@ def rotate(q_xyzw: np.ndarray, v: np.ndarray) -> np.ndarray:
     ("yaw_rad", "pitch_rad"), [(0.0, 0.0), (0.7, 0.0), (0.3, 0.2), (-2.5, -0.4)]
 )
 def test_head_quaternion_looks_along_yaw_and_pitch(yaw_rad, pitch_rad):
-    q = recording.yaw_pitch_to_xyzw(np.array([yaw_rad]), np.array([pitch_rad]))[0]
+    q = stream_writers.yaw_pitch_to_xyzw(np.array([yaw_rad]), np.array([pitch_rad]))[0]
     assert np.linalg.norm(q) == pytest.approx(1.0)
     # The head's +x (forward): yaw turns it toward +y, positive pitch lowers the nose.
     forward = [
