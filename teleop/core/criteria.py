@@ -91,14 +91,51 @@ class TaskVerdict:
         }
 
 
-def _figure(summary: Mapping[str, Any], key: str) -> float | None:
+def _number(summary: Mapping[str, Any], key: str) -> float | None:
     value = summary.get(key)
     return None if value is None else float(value)
 
 
-def _at_most(summary: Mapping[str, Any], key: str, bound: float, unit: str, scale: float,
+def _count(summary: Mapping[str, Any], key: str) -> int | None:
+    value = summary.get(key)
+    return None if value is None else int(value)
+
+
+@dataclass(frozen=True)
+class TaskFigures:
+    """The figures a task is judged by, as a run's summary gives them (None: the run did
+    not report it, and its criterion is unavailable, never passed). Read from the
+    summary's JSON once (:meth:`of`); the criteria read this record."""
+
+    path_error_rms_m: float | None = None
+    path_error_max_m: float | None = None
+    path_progress: float | None = None
+    arm_contacts: int | None = None
+    commands_applied: int | None = None
+    commands_received: int | None = None
+    object_in_box: bool | None = None
+    object_bin_distance_m: float | None = None
+    max_device_force_n: float | None = None
+
+    @classmethod
+    def of(cls, summary: Mapping[str, Any]) -> TaskFigures:
+        """The figures of a summary (a run's, or a robot's section of one)."""
+        in_box = summary.get("object_in_box")
+        return cls(
+            path_error_rms_m=_number(summary, "path_error_rms_m"),
+            path_error_max_m=_number(summary, "path_error_max_m"),
+            path_progress=_number(summary, "path_progress"),
+            arm_contacts=_count(summary, "arm_contacts"),
+            commands_applied=_count(summary, "commands_applied"),
+            commands_received=_count(summary, "commands_received"),
+            object_in_box=None if in_box is None else bool(in_box),
+            object_bin_distance_m=_number(summary, "object_bin_distance_m"),
+            max_device_force_n=_number(summary, "max_device_force_n"),
+        )
+
+
+def _at_most(value: float | None, key: str, bound: float, unit: str, scale: float,
              name: str) -> Criterion:  # fmt: skip
-    value = _figure(summary, key)
     if value is None:
         return Criterion(name, UNAVAILABLE, f"{key} not reported")
     shown = f"{value * scale:.3g} {unit}"
@@ -107,37 +144,36 @@ def _at_most(summary: Mapping[str, Any], key: str, bound: float, unit: str, scal
     return Criterion(name, FAIL, f"{name}: {shown} > {bound * scale:g} {unit}")
 
 
-def _no_contact(summary: Mapping[str, Any]) -> Criterion:
-    contacts = summary.get("arm_contacts")
+def _no_contact(figures: TaskFigures) -> Criterion:
+    contacts = figures.arm_contacts
     if contacts is None:
         return Criterion("no unintended contact", UNAVAILABLE, "arm_contacts not reported")
-    if int(contacts) == 0:
+    if contacts == 0:
         return Criterion("no unintended contact", PASS, "0 steps")
     return Criterion(
-        "no unintended contact", FAIL, f"unintended contact: {int(contacts)} steps in contact"
+        "no unintended contact", FAIL, f"unintended contact: {contacts} steps in contact"
     )
 
 
-def _commands_applied(summary: Mapping[str, Any]) -> Criterion:
+def _commands_applied(figures: TaskFigures) -> Criterion:
     name = "commands applied"
-    applied = summary.get("commands_applied")
+    applied, received = figures.commands_applied, figures.commands_received
     if applied is None:
         return Criterion(name, UNAVAILABLE, "commands_applied not reported")
-    if int(applied) > 0:
-        return Criterion(name, PASS, f"{int(applied)}")
-    received = summary.get("commands_received")
+    if applied > 0:
+        return Criterion(name, PASS, f"{applied}")
     if received is None:
         got = ""
-    elif int(received) == 0:
+    elif received == 0:
         got = ": none it could read reached it (see the records dropped)"
     else:
-        got = f": {int(received)} reached it, none admitted"
+        got = f": {received} reached it, none admitted"
     return Criterion(name, FAIL, f"the plant applied no command of its controller{got}")
 
 
-def judge_path(summary: Mapping[str, Any]) -> list[Criterion]:
-    """The path-following criteria on a run's summary."""
-    progress = _figure(summary, "path_progress")
+def judge_path(figures: TaskFigures) -> list[Criterion]:
+    """The path-following criteria."""
+    progress = figures.path_progress
     if progress is None:
         progress_c = Criterion("path progress", UNAVAILABLE, "path_progress not reported")
     elif progress >= MIN_PATH_PROGRESS:
@@ -146,27 +182,28 @@ def judge_path(summary: Mapping[str, Any]) -> list[Criterion]:
         progress_c = Criterion(
             "path progress", FAIL, f"path progress {progress:.3f} < {MIN_PATH_PROGRESS:g}"
         )
+    rms, peak = figures.path_error_rms_m, figures.path_error_max_m
     return [
-        _at_most(summary, "path_error_rms_m", MAX_PATH_ERROR_RMS_M, "mm", 1e3, "path error RMS"),
-        _at_most(summary, "path_error_max_m", MAX_PATH_ERROR_M, "mm", 1e3, "path error max"),
+        _at_most(rms, "path_error_rms_m", MAX_PATH_ERROR_RMS_M, "mm", 1e3, "path error RMS"),
+        _at_most(peak, "path_error_max_m", MAX_PATH_ERROR_M, "mm", 1e3, "path error max"),
         progress_c,
-        _no_contact(summary),
-        _commands_applied(summary),
+        _no_contact(figures),
+        _commands_applied(figures),
     ]
 
 
-def judge_grasp(summary: Mapping[str, Any]) -> list[Criterion]:
-    """The grasp criteria on a run's summary."""
-    in_bin = summary.get("object_in_box")
+def judge_grasp(figures: TaskFigures) -> list[Criterion]:
+    """The grasp criteria."""
+    in_bin = figures.object_in_box
     if in_bin is None:
         bin_c = Criterion("cube in the bin", UNAVAILABLE, "object_in_box not reported")
     elif in_bin:
         bin_c = Criterion("cube in the bin", PASS, "yes")
     else:
-        away = _figure(summary, "object_bin_distance_m")
+        away = figures.object_bin_distance_m
         where = "" if away is None else f": {away * 100:.1f} cm from its inside (bound 0)"
         bin_c = Criterion("cube in the bin", FAIL, f"the cube is not in the bin{where}")
-    force = _figure(summary, "max_device_force_n")
+    force = figures.max_device_force_n
     if force is None:
         force_c = Criterion("device force", UNAVAILABLE, "max_device_force_n not reported")
     elif force < MAX_DEVICE_FORCE_N - SATURATED_N:
@@ -175,7 +212,7 @@ def judge_grasp(summary: Mapping[str, Any]) -> list[Criterion]:
         force_c = Criterion(
             "device force", FAIL, f"device force at its {MAX_DEVICE_FORCE_N:g} N peak (saturated)"
         )
-    return [bin_c, _no_contact(summary), force_c, _commands_applied(summary)]
+    return [bin_c, _no_contact(figures), force_c, _commands_applied(figures)]
 
 
 def judge_task(
@@ -183,8 +220,9 @@ def judge_task(
 ) -> TaskVerdict:
     """``summary`` of a ``scenario`` run judged by its criteria; ``problems``: what the
     run itself said went wrong."""
+    figures = TaskFigures.of(summary)
     teleoperated = scenario_spec(scenario).teleoperated
-    criteria = judge_grasp(summary) if teleoperated else judge_path(summary)
+    criteria = judge_grasp(figures) if teleoperated else judge_path(figures)
     return TaskVerdict(tuple(criteria), tuple(problems))
 
 

@@ -16,7 +16,11 @@ def _statuses(criteria: list[criteria.Criterion]) -> dict[str, str]:
 
 
 def test_missing_figures_are_unavailable_never_passed() -> None:
-    judged = _statuses(criteria.judge_path({"path_error_rms_m": 2e-4, "path_error_max_m": 5e-4}))
+    judged = _statuses(
+        criteria.judge_path(
+            criteria.TaskFigures.of({"path_error_rms_m": 2e-4, "path_error_max_m": 5e-4})
+        )
+    )
     assert judged == {
         "path error RMS": criteria.PASS,
         "path error max": criteria.PASS,
@@ -33,7 +37,7 @@ def test_path_criteria_fail_with_their_reason() -> None:
         "path_progress": 0.5,
         "arm_contacts": 40,
     }
-    judged = criteria.judge_path(summary)
+    judged = criteria.judge_path(criteria.TaskFigures.of(summary))
     failed = [c.detail for c in judged if c.status == criteria.FAIL]
     assert failed == [
         "path error RMS: 1.2 mm > 1 mm",
@@ -42,7 +46,7 @@ def test_path_criteria_fail_with_their_reason() -> None:
     ]
     ok = {"path_error_rms_m": 1e-5, "path_error_max_m": 2e-5, "path_progress": 0.99,
           "arm_contacts": 0, "commands_applied": 5000}  # fmt: skip
-    assert all(c.status == criteria.PASS for c in criteria.judge_path(ok))
+    assert all(c.status == criteria.PASS for c in criteria.judge_path(criteria.TaskFigures.of(ok)))
 
 
 def test_grasp_criteria_and_the_operators_reason() -> None:
@@ -52,7 +56,7 @@ def test_grasp_criteria_and_the_operators_reason() -> None:
         "max_device_force_n": 8.0,  # the device's peak: it saturated
         "services": {"operator": {"failure": "timeout in carry"}},
     }
-    judged = _statuses(criteria.judge_grasp(summary))
+    judged = _statuses(criteria.judge_grasp(criteria.TaskFigures.of(summary)))
     assert judged == {
         "cube in the bin": criteria.FAIL,
         "no unintended contact": criteria.PASS,
@@ -62,7 +66,9 @@ def test_grasp_criteria_and_the_operators_reason() -> None:
     assert criteria.event_reasons(summary) == ["operator: timeout in carry"]
     light = {"object_in_box": True, "arm_contacts": 0, "max_device_force_n": 1.2,
              "commands_applied": 6000}  # fmt: skip
-    assert all(c.status == criteria.PASS for c in criteria.judge_grasp(light))
+    assert all(
+        c.status == criteria.PASS for c in criteria.judge_grasp(criteria.TaskFigures.of(light))
+    )
 
 
 def test_a_run_off_its_path_is_no_success_however_it_ended():
