@@ -126,13 +126,27 @@ def _add_web_port_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--grpc-port", type=int, default=None, help="its gRPC port (default: free)")
 
 
+# The group of subcommands build_parser adds each command to.
+Commands = argparse._SubParsersAction
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="teleop",
         description="zenoh-teleop: real-time simulator for teleoperated and autonomous robot arms.",
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _add_run_command(commands)
+    _add_latency_command(commands)
+    _add_view_command(commands)
+    _add_report_command(commands)
+    _add_sweep_command(commands)
+    _add_up_command(commands)
+    _add_stack_state_commands(commands)
+    return parser
 
+
+def _add_run_command(commands: Commands) -> None:
     run = commands.add_parser(
         "run",
         help="run a scenario and print its summary",
@@ -225,6 +239,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_config_arguments(run)
 
+
+def _add_latency_command(commands: Commands) -> None:
     latency = commands.add_parser(
         "latency",
         help="measure the bilateral loop's latency, hop by hop, against the transport floor",
@@ -299,6 +315,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_config_arguments(latency)
 
+
+def _add_view_command(commands: Commands) -> None:
     view = commands.add_parser(
         "view",
         help="open a saved recording in the Rerun viewer",
@@ -312,6 +330,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_web_port_arguments(view)
 
+
+def _add_report_command(commands: Commands) -> None:
     report = commands.add_parser(
         "report",
         help="write the paper's figures (PNG) and a markdown summary of a recording",
@@ -338,6 +358,8 @@ def build_parser() -> argparse.ArgumentParser:
         "(default: run.settle_s of the config)",
     )
 
+
+def _add_sweep_command(commands: Commands) -> None:
     sweep = commands.add_parser(
         "sweep",
         help="run many random reachable tasks and report the success rate",
@@ -387,6 +409,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_config_arguments(sweep)
 
+
+def _add_up_command(commands: Commands) -> None:
     up = commands.add_parser(
         "up",
         help="start the services under supervisord and leave them running",
@@ -444,6 +468,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_without_arguments(up)
     _add_config_arguments(up)
+
+
+def _add_stack_state_commands(commands: Commands) -> None:
     for name, text in (
         ("status", "show the state of each service started by `teleop up`"),
         ("down", "stop everything `teleop up` started"),
@@ -452,7 +479,6 @@ def build_parser() -> argparse.ArgumentParser:
         sub.add_argument(
             "--run-dir", type=Path, default=DEFAULT_UP_DIR, help="(default: %(default)s)"
         )
-    return parser
 
 
 def _overrides(args: argparse.Namespace) -> list[str]:
