@@ -1,6 +1,6 @@
 """A person on a gamepad or a SpaceMouse drives the arm (``teleop run grasp --operator
 gamepad|spacemouse``): the operator's place in the stack
-(teleop/devices/human_service.py), read from a Linux input device
+(teleop/devices/person_service.py), read from a Linux input device
 (teleop/devices/input_devices.py: evdev or hidraw, found through sysfs, decoded by
 teleop/devices/input_events.py).
 
@@ -22,9 +22,9 @@ import time
 
 from teleop.bus.messages import Button
 from teleop.bus.service import service_main
-from teleop.devices.human import HandIntent
-from teleop.devices.human_service import HumanOperatorService
-from teleop.devices.input_devices import DeviceUnavailable, HumanInputDevice, open_input_device
+from teleop.devices.input_devices import DeviceUnavailable, PersonInputDevice, open_input_device
+from teleop.devices.person import HandIntent
+from teleop.devices.person_service import PersonOperatorService
 
 logger = logging.getLogger(__name__)
 
@@ -33,12 +33,12 @@ logger = logging.getLogger(__name__)
 READ_TIMEOUT_S = 0.05
 
 
-class InputDeviceOperatorService(HumanOperatorService):
+class InputDeviceOperatorService(PersonOperatorService):
     """The device is ``run.operator`` (gamepad or spacemouse)."""
 
     def open(self) -> None:
         self.device = self.config.run.operator
-        self.reader: HumanInputDevice = open_input_device(self.device, self.config)
+        self.reader: PersonInputDevice = open_input_device(self.device, self.config)
         self._intent = HandIntent()
         self._switch_presses = 0  # the reader's robot-switch presses acted on
         self.device_lost = ""

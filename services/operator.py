@@ -1,4 +1,4 @@
-"""The operator service: :class:`teleop.devices.operator.OperatorLoop` on the bus.
+"""The operator service: :class:`teleop.devices.scripted.ScriptedLoop` on the bus.
 
 Inputs: TOOL_POSE and OBJECT_POSES (plant, every ``1 / scene_rate_hz``, stamped with
 ``sim_time_ns``; tick = sim_time_ns / timestep), HEAD_POSE (hmd, keyed by the tick its
@@ -6,11 +6,11 @@ predicted yaw applies from), RUN_EVENT STARTED and the liveliness tokens of the 
 the haptic device. Outputs: HAND_INPUT (to the haptic device) and RUN_EVENT PHASE /
 TASK_DONE. In a run of several robots (``run.robots``) each of these comes from, and
 goes to, every robot's keys: a loop per robot, the hand driving one at a time
-(:class:`teleop.devices.operator.OperatorStation`).
+(:class:`teleop.devices.scripted.ScriptedStation`).
 
 The Zenoh callbacks only store samples in the loop's observation buffer and queue the
 tool-pose ticks; one run thread hands them to the station in arrival order, so decisions
-follow sim time only (see OperatorLoop for which decisions an arrival triggers).
+follow sim time only (see ScriptedLoop for which decisions an arrival triggers).
 """
 
 from __future__ import annotations
@@ -33,16 +33,16 @@ from teleop.bus.service import STOP_POLL_S, Service, service_main
 from teleop.bus.session import RecordCallback, subscribe_events
 from teleop.core.clock import NS_PER_S
 from teleop.core.ring import Ring
-from teleop.devices.operator import (
+from teleop.devices.robot_outputs import RobotOutputs
+from teleop.devices.scripted import (
     Arrival,
     ObservationBuffer,
-    OperatorLoop,
-    OperatorStation,
     PoseArrival,
     RunStarted,
     Scenario,
+    ScriptedLoop,
+    ScriptedStation,
 )
-from teleop.devices.robot_outputs import RobotOutputs
 
 logger = logging.getLogger(__name__)
 
@@ -53,9 +53,9 @@ DEVICE_SERVICE = "haptic"  # liveliness name of the operator's device
 LATENESS_SAMPLES = 1 << 15
 
 
-class OperatorService(Service):
-    """The scripted operator: an :class:`OperatorLoop` per robot of the run (one, or one
-    task per robot in turn: :class:`OperatorStation`), each robot's streams into its
+class ScriptedOperatorService(Service):
+    """The scripted operator: an :class:`ScriptedLoop` per robot of the run (one, or one
+    task per robot in turn: :class:`ScriptedStation`), each robot's streams into its
     loop, its decisions out on that robot's keys."""
 
     name = "operator"
@@ -67,9 +67,9 @@ class OperatorService(Service):
         self.timestep_ns = round(cfg.tick_s * NS_PER_S)
         self.scenario = Scenario.load(cfg.operator.scenario_path, cfg.robot.object_bodies)
         lockstep = cfg.run.mode == "lockstep"
-        self.station = OperatorStation(
+        self.station = ScriptedStation(
             [
-                OperatorLoop(
+                ScriptedLoop(
                     cfg,
                     self.scenario,
                     RobotOutputs(self, topics, self.timestep_ns),
@@ -125,7 +125,7 @@ class OperatorService(Service):
 
         return on_objects
 
-    def _on_head(self, loop: OperatorLoop) -> RecordCallback:
+    def _on_head(self, loop: ScriptedLoop) -> RecordCallback:
         def on_head(rec: np.ndarray, rx_ns: int) -> None:
             loop.hmd_seen()
             loop.buffer.add_head(int(rec["valid_from_tick"]), float(rec["predicted_yaw_rad"]))
@@ -156,7 +156,7 @@ class OperatorService(Service):
     # -- the run thread --------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
         """Hand arrivals to the station in batches, in order, until stopped (what a batch
-        decides: OperatorStation.take)."""
+        decides: ScriptedStation.take)."""
         while not stop.is_set():
             try:
                 items = [self._arrivals.get(timeout=STOP_POLL_S)]
@@ -183,4 +183,4 @@ class OperatorService(Service):
 
 
 if __name__ == "__main__":
-    sys.exit(service_main(OperatorService))
+    sys.exit(service_main(ScriptedOperatorService))

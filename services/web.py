@@ -1,5 +1,5 @@
 """A person at a web page drives the arm (``teleop run grasp --operator web``): the
-operator's place in the stack (teleop/devices/human_service.py), read from the page of
+operator's place in the stack (teleop/devices/person_service.py), read from the page of
 :mod:`teleop.devices.web_page` (its server, endpoints, token and threads are described
 there). This adapter ties the page to the bus: the page's input is the hand's intent, its
 robot switch the station's, its state the driven robot's world, its view that robot's
@@ -22,8 +22,8 @@ from teleop.bus.messages import EYE_VIEW, Button
 from teleop.bus.service import service_main
 from teleop.bus.session import subscribe_frames
 from teleop.core.config import ConfigError
-from teleop.devices.human import DEFAULT_KEYS, HandIntent
-from teleop.devices.human_service import HumanOperatorService
+from teleop.devices.person import DEFAULT_KEYS, HandIntent
+from teleop.devices.person_service import PersonOperatorService
 from teleop.devices.web_page import (
     PAGE_FILE,
     EyeFrames,
@@ -38,7 +38,7 @@ from teleop.devices.web_page import (
 logger = logging.getLogger(__name__)
 
 
-class WebOperatorService(HumanOperatorService):
+class WebOperatorService(PersonOperatorService):
     device = "web"
 
     def open(self) -> None:

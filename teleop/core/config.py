@@ -607,7 +607,7 @@ class OperatorConfig:
     reaction_delay_s: float = 0.2
     decision_rate_hz: float = 100.0
     # The largest offset the hand gives the handle (m); the operator's gain follows from
-    # reaction_delay_s (no overshoot for a delayed P loop, see teleop/devices/operator.py).
+    # reaction_delay_s (no overshoot for a delayed P loop, see teleop/devices/scripted.py).
     max_hand_offset_m: float = 0.045
 
     def __post_init__(self) -> None:
@@ -625,7 +625,7 @@ class OperatorConfig:
 
 
 # Who drives the emulated haptic handle (RunConfig.operator): the scripted operator, or a
-# person through one of the human input devices (teleop/devices/human.py).
+# person through one of the human input devices (teleop/devices/person.py).
 SCRIPTED = "scripted"
 OPERATORS = (SCRIPTED, "keyboard", "gamepad", "spacemouse", "web")
 # The person's devices read in the launcher's terminal (the launcher runs them in the
@@ -641,7 +641,7 @@ INPUT_DEVICE_OPERATORS = ("gamepad", "spacemouse")
 @dataclass(frozen=True)
 class KeyboardConfig:
     """A person at the terminal's keyboard (``--operator keyboard``,
-    teleop/devices/human.py): how long a key press moves and the speed steps."""
+    teleop/devices/person.py): how long a key press moves and the speed steps."""
 
     # A motion key moves its axis this long after its last press (s): longer than the
     # terminal's key-repeat delay, so a held key moves on without a stutter.

@@ -45,7 +45,6 @@ from typing import Protocol
 from teleop.bus.messages import Button
 from teleop.core.clock import Clock, MonotonicClock
 from teleop.core.config import Config, GamepadConfig, SpaceMouseConfig
-from teleop.devices.human import HandIntent
 from teleop.devices.input_events import (
     ABS_MAX,
     ABS_NAMES,
@@ -75,6 +74,7 @@ from teleop.devices.input_events import (
     pack_event,
     pack_rumble_effect,
 )
+from teleop.devices.person import HandIntent
 
 DEV_ROOT = Path("/dev")
 SYS_ROOT = Path("/sys")
@@ -370,7 +370,7 @@ def find_spacemouse(
     return _first_readable(candidates, can_read)
 
 
-class HumanInputDevice(Protocol):
+class PersonInputDevice(Protocol):
     """What the operator service needs of a gamepad or SpaceMouse reader."""
 
     name: str

@@ -36,7 +36,7 @@ Endpoints:
 The page sends its intent at once on a change and, while it asks for motion,
 ``web.input_rate_hz`` times a second; ``web.input_expiry_s`` after its newest input the
 motion falls back to none (:class:`PageIntent`), so a closed tab or a lost link stops the
-arm. The keys are those of the terminal (:data:`teleop.devices.human.DEFAULT_KEYS`);
+arm. The keys are those of the terminal (:data:`teleop.devices.person.DEFAULT_KEYS`);
 the page holds a motion key's motion while the key is down (a browser reports releases).
 
 Threads: the HTTP server and its request threads run under normal scheduling, even where
@@ -71,7 +71,7 @@ from teleop.bus.messages import Button
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import Config, ConfigError
 from teleop.core.net import LOOPBACK
-from teleop.devices.human import (
+from teleop.devices.person import (
     DOWN,
     KEY_HELP,
     LEFT,
@@ -84,7 +84,7 @@ from teleop.devices.human import (
     HandIntent,
     KeyAction,
 )
-from teleop.devices.human_loop import PHASES, WorldView
+from teleop.devices.person_loop import PHASES, WorldView
 
 logger = logging.getLogger(__name__)
 

@@ -57,8 +57,8 @@ from teleop.control.teleop import (
     position_condition_number,
 )
 from teleop.core.config import Config, PathConfig, SceneConfig
-from teleop.devices.operator import TOOL_ANCHOR, Scenario
 from teleop.devices.routing import SceneKnowledge, plan_route
+from teleop.devices.scripted import TOOL_ANCHOR, Scenario
 from teleop.sim.proximity import apply_scene_overrides, arm_collision_geoms, obstacle_geoms
 
 # --- Reachability -------------------------------------------------------------------------
@@ -546,7 +546,7 @@ class Move:
 def operator_moves(scenario: Scenario, knowledge: SceneKnowledge, start_p_m: np.ndarray,
                    objects_p_m: dict[str, np.ndarray]) -> list[Move]:  # fmt: skip
     """The moves of ``scenario`` from ``start_p_m``, the objects where they lie, planned as
-    the operator plans them (:class:`teleop.devices.operator.ScriptedOperator`): each
+    the operator plans them (:class:`teleop.devices.scripted.ScriptedOperator`): each
     phase's target is its anchor (an object as it lies when the phase starts, or the tool)
     plus its offset, reached along :func:`plan_route` around the keep-out volumes of that
     phase. Phases that do not move the tool are left out."""

@@ -12,14 +12,15 @@ import pytest
 from teleop.bus.messages import Button, Event
 from teleop.core.config import DEPLOY_DIR, Config, ConfigError, load_config
 from teleop.core.ticks import is_sample_tick
-from teleop.devices.operator import (
+from teleop.devices.routing import SceneKnowledge
+from teleop.devices.scripted import (
     HandCommand,
     Observation,
     ObservationBuffer,
-    OperatorLoop,
     Phase,
     Scenario,
     ScenarioError,
+    ScriptedLoop,
     ScriptedOperator,
     Target,
     critical_gain_per_s,
@@ -27,7 +28,6 @@ from teleop.devices.operator import (
     resume_phase,
     rot_z,
 )
-from teleop.devices.routing import SceneKnowledge
 
 TIMESTEP_S = 0.001
 GRASP_FILE = DEPLOY_DIR / "scenarios" / "grasp.toml"
@@ -509,7 +509,7 @@ def decision_ticks(config: Config, first: int, last: int) -> list[int]:
 
 
 class Outputs:
-    """OperatorOutputs that keeps what the loop sends."""
+    """ScriptedOutputs that keeps what the loop sends."""
 
     def __init__(self) -> None:
         self.hands: dict[int, HandCommand] = {}
@@ -528,7 +528,7 @@ def test_operator_loop_answers_each_scene_tick_toward_the_cube():
     tick (operator.decision_rate_hz), valid a lead later."""
     config = load_config(None, ['run.mode="lockstep"'])
     outputs = Outputs()
-    loop = OperatorLoop(config, Scenario.load(GRASP_FILE), outputs, lockstep=True)
+    loop = ScriptedLoop(config, Scenario.load(GRASP_FILE), outputs, lockstep=True)
     lead = loop.hand_schedule.lead_ticks
     last_tick, scene_period = scene_tick_at(config, 0.6)
     for tick in range(0, last_tick + 1, scene_period):
@@ -559,7 +559,7 @@ def test_operator_loop_answers_each_scene_tick_toward_the_cube():
 def test_operator_loop_refuses_decisions_faster_than_the_scene():
     config = load_config(None, ["operator.decision_rate_hz=200"])
     with pytest.raises(ConfigError, match="decision_rate_hz"):
-        OperatorLoop(config, Scenario.load(GRASP_FILE), Outputs(), lockstep=False)
+        ScriptedLoop(config, Scenario.load(GRASP_FILE), Outputs(), lockstep=False)
 
 
 # --- a restarted operator takes the task up where the world is ----------------------------
@@ -640,7 +640,7 @@ def test_the_operator_loop_joining_a_run_sends_nothing_until_it_has_seen_the_wor
     world is (the cube lifted in the gripper: the lift) and says so with its PHASE."""
     config = load_config(None, ['run.mode="lockstep"'])
     outputs = Outputs()
-    loop = OperatorLoop(
+    loop = ScriptedLoop(
         config, Scenario.load(GRASP_FILE), outputs, lockstep=True, scene=restart_scene()
     )
     (joined, scene_period), (last_tick, _) = (scene_tick_at(config, t_s) for t_s in (8.0, 8.4))
@@ -716,7 +716,7 @@ def test_a_late_operator_loop_catches_up_by_skipping_not_by_a_burst():
     only (one hand input, not a burst of late ones) and counts the ticks it skipped."""
     config = load_config(None, ['run.mode="realtime"'])
     outputs = Outputs()
-    loop = OperatorLoop(config, Scenario.load(GRASP_FILE), outputs, lockstep=False)
+    loop = ScriptedLoop(config, Scenario.load(GRASP_FILE), outputs, lockstep=False)
     one_s, scene_period = scene_tick_at(config, 1.0)
     for tick in range(0, one_s + 1, scene_period):
         loop.buffer.add_objects(tick, np.array([CUBE_M, BIN_M]))
@@ -737,7 +737,7 @@ def test_a_lockstep_operator_left_behind_catches_up_and_waits_for_nothing_it_mis
     (sent before it subscribed) is not waited for: no decision times out on it."""
     config = load_config(None, ['run.mode="lockstep"'])
     outputs = Outputs()
-    loop = OperatorLoop(
+    loop = ScriptedLoop(
         config, Scenario.load(GRASP_FILE), outputs, lockstep=True, scene=restart_scene()
     )
     loop.hmd_seen()
@@ -760,7 +760,7 @@ def test_a_lockstep_operator_left_behind_catches_up_and_waits_for_nothing_it_mis
     assert summary["decisions"] == 2 and summary["skipped_decisions"] == skipped
     assert summary["late_observations"] == 0  # waited for no head pose it could not get
     assert max(outputs.hands) == later + loop.hand_schedule.lead_ticks
-    realtime = OperatorLoop(config, Scenario.load(GRASP_FILE), Outputs(), lockstep=False)
+    realtime = ScriptedLoop(config, Scenario.load(GRASP_FILE), Outputs(), lockstep=False)
     assert realtime.left_behind(0)  # realtime: always on the newest pose
 
 

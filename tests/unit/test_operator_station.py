@@ -1,17 +1,17 @@
-"""The operator's hand over several robots (teleop.devices.operator.OperatorStation):
+"""The operator's hand over several robots (teleop.devices.scripted.ScriptedStation):
 which loop an arrival goes to, and when the hand moves on. The loops here are stand-ins
-that note what they are handed (the station's contract with OperatorLoop); the whole
+that note what they are handed (the station's contract with ScriptedLoop); the whole
 operator on two robots runs in tests/e2e/test_robots.py."""
 
 from __future__ import annotations
 
 from typing import Any
 
-from teleop.devices.operator import OperatorStation, PoseArrival, RunStarted
+from teleop.devices.scripted import PoseArrival, RunStarted, ScriptedStation
 
 
 class NotingLoop:
-    """What OperatorStation calls of an OperatorLoop; its task is done at ``done_at``."""
+    """What ScriptedStation calls of an ScriptedLoop; its task is done at ``done_at``."""
 
     def __init__(self, done_at: int | None = None, lockstep: bool = True) -> None:
         self.done_at = done_at
@@ -47,7 +47,7 @@ def poses(ticks: range, robots: int = 2) -> list[PoseArrival]:
 
 def test_the_hand_drives_one_robot_then_the_next_from_where_it_left_off():
     first, second = NotingLoop(done_at=50), NotingLoop()
-    station = OperatorStation([first, second])  # type: ignore[list-item]
+    station = ScriptedStation([first, second])  # type: ignore[list-item]
     decided: list[int] = []
     # One batch across the hand-over: what came after it goes to the next robot.
     station.take(poses(range(0, 100, 10)), decided.append)
@@ -65,7 +65,7 @@ def test_the_hand_drives_one_robot_then_the_next_from_where_it_left_off():
 
 def test_the_last_robot_keeps_the_hand_and_a_new_run_starts_with_robot_zero():
     first, second = NotingLoop(done_at=20), NotingLoop(done_at=0)
-    station = OperatorStation([first, second])  # type: ignore[list-item]
+    station = ScriptedStation([first, second])  # type: ignore[list-item]
     station.take(poses(range(0, 40, 10)))
     assert station.active == 1 and second.done_reported  # done too, no robot after it
     station.take([RunStarted(1), RunStarted(0), *poses(range(0, 10, 10))])
@@ -77,12 +77,12 @@ def test_a_late_operator_decides_the_driven_robots_newest_pose_only():
     """Realtime, behind: of the driven robot's poses queued, only the newest is decided
     (the other robot's poses do not count as newer ones)."""
     first, second = NotingLoop(lockstep=False), NotingLoop(lockstep=False)
-    station = OperatorStation([first, second])  # type: ignore[list-item]
+    station = ScriptedStation([first, second])  # type: ignore[list-item]
     station.take(poses(range(0, 40, 10)))
     assert first.arrivals == [(30, True)] and second.arrivals == []
 
 
 def test_one_robot_is_its_loops_summary():
-    station = OperatorStation([NotingLoop()])  # type: ignore[list-item]
+    station = ScriptedStation([NotingLoop()])  # type: ignore[list-item]
     station.take(poses(range(0, 20, 10), robots=1))
     assert station.summary(["arm0"]) == {"arrivals": 2}

@@ -24,8 +24,8 @@ from teleop.core.clock import NS_PER_S
 from teleop.core.config import ConfigError, load_config
 from teleop.core.net import LoopbackPorts
 from teleop.devices import web_page
-from teleop.devices.human import DEFAULT_KEYS, SWITCH, HandIntent
-from teleop.devices.human_loop import WorldView
+from teleop.devices.person import DEFAULT_KEYS, SWITCH, HandIntent
+from teleop.devices.person_loop import WorldView
 from teleop.run import web_operator
 
 TOKEN = "a-token-of-enough-characters-0123456789"
@@ -192,7 +192,7 @@ def test_the_web_config_checks_its_rates():
 
 # -- the page's server, its bus side stubbed -------------------------------------------
 class _Station:
-    """A two-robot HumanStation stand-in: its loop's view is fixed, ending is counted,
+    """A two-robot PersonStation stand-in: its loop's view is fixed, ending is counted,
     the switch goes to the other robot, whose gripper the hand left closed."""
 
     def __init__(self) -> None:

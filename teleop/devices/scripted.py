@@ -1,6 +1,6 @@
 """The scripted operator: plays a task on the haptic handle, closing the loop on what it sees.
 
-Pure and process-free: :class:`OperatorLoop` is the whole operator minus the bus
+Pure and process-free: :class:`ScriptedLoop` is the whole operator minus the bus
 (``services/operator.py`` feeds it and publishes what it sends), so the closed loop and
 the service's decisions can be simulated in a test.
 
@@ -693,7 +693,7 @@ class ScriptedOperator:
         self.routes: list[dict[str, Any]] = []  # every route planned (phase, waypoints)
         self._timeout_s = 0.0  # this phase's timeout, a detour's travel time added
         self._stall: list[tuple[int, float, float]] = []  # (tick, distance, intended speed)
-        # Events the operator has to announce (Event, value), taken by OperatorLoop.
+        # Events the operator has to announce (Event, value), taken by ScriptedLoop.
         self.events: list[tuple[Event, float]] = []
         self._hand_m = np.zeros(3)  # low-passed handle target, device frame
         self._last_tick: int | None = None
@@ -996,8 +996,8 @@ TASK_DONE_AHEAD_TICKS = 100
 LOCKSTEP_INPUT_WAIT_S = 1.0
 
 
-class OperatorOutputs(Protocol):
-    """Where :class:`OperatorLoop` sends what it decides (the service: its publishers)."""
+class ScriptedOutputs(Protocol):
+    """Where :class:`ScriptedLoop` sends what it decides (the service: its publishers)."""
 
     def hand(self, valid_from_tick: int, command: HandCommand) -> None:
         """A HAND_INPUT that applies from ``valid_from_tick``."""
@@ -1006,7 +1006,7 @@ class OperatorOutputs(Protocol):
         """A RUN_EVENT decided at ``tick``; ``step`` is the tick it names (see Event)."""
 
 
-class OperatorLoop:
+class ScriptedLoop:
     """The scripted operator on plant ticks: which decisions a TOOL_POSE arrival triggers,
     what they publish, and the run boundaries. No bus and no thread of its own.
 
@@ -1044,7 +1044,7 @@ class OperatorLoop:
         self,
         config: Config,
         scenario: Scenario,
-        outputs: OperatorOutputs,
+        outputs: ScriptedOutputs,
         *,
         lockstep: bool,
         scene: SceneKnowledge | None = None,
@@ -1261,22 +1261,22 @@ class RunStarted(NamedTuple):
 Arrival = PoseArrival | RunStarted
 
 
-class OperatorStation:
+class ScriptedStation:
     """One scripted operator's hand over the robots of a run (``run.robots``), one task
-    per robot, in turn: :class:`OperatorLoop` ``loops[i]`` plays robot i's task (its
+    per robot, in turn: :class:`ScriptedLoop` ``loops[i]`` plays robot i's task (its
     outputs go out on robot i's keys). The hand drives robot 0 until its TASK_DONE is
     out, then the next robot's task starts where the last decision left off
-    (:meth:`OperatorLoop.take_over`). Every robot's scene is observed all along (the
+    (:meth:`ScriptedLoop.take_over`). Every robot's scene is observed all along (the
     caller fills each loop's buffer); only the driven robot's poses trigger decisions.
     With one robot it is that robot's loop, as the service always was.
     """
 
-    def __init__(self, loops: Sequence[OperatorLoop]) -> None:
+    def __init__(self, loops: Sequence[ScriptedLoop]) -> None:
         self.loops = list(loops)
         self.active = 0  # the robot the hand drives
 
     @property
-    def loop(self) -> OperatorLoop:
+    def loop(self) -> ScriptedLoop:
         """The driven robot's loop."""
         return self.loops[self.active]
 
@@ -1286,7 +1286,7 @@ class OperatorStation:
         on once the driven robot's task is done.
 
         A late operator (realtime: poses queued behind a newer one; lockstep: a run that
-        went on without it, :meth:`OperatorLoop.left_behind`) decides on the newest pose
+        went on without it, :meth:`ScriptedLoop.left_behind`) decides on the newest pose
         only and skips the rest: it catches up by skipping, never by a burst of late hand
         inputs. Lockstep otherwise decides every one (the haptic device waits for each)."""
         loop = self.loop
@@ -1318,7 +1318,7 @@ class OperatorStation:
                 return
 
     def summary(self, robot_ids: Sequence[str]) -> dict[str, Any]:
-        """The task's outcome (:meth:`OperatorLoop.summary`): with one robot its loop's;
+        """The task's outcome (:meth:`ScriptedLoop.summary`): with one robot its loop's;
         with several, one section per robot id under ``robots``."""
         if len(self.loops) == 1:
             return self.loops[0].summary()

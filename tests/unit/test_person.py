@@ -1,6 +1,6 @@
 """A person at the controls, without a bus: key presses into hand intents
-(teleop.devices.human), hand inputs paced for each timing mode and the task's phases read
-from the world (teleop.devices.human_loop), on a fake clock."""
+(teleop.devices.person), hand inputs paced for each timing mode and the task's phases read
+from the world (teleop.devices.person_loop), on a fake clock."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from teleop.bus.messages import Button, Event
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import ConfigError, load_config
 from teleop.core.ticks import expected_valid_from, is_sample_tick, lead_ticks, next_sample_tick
-from teleop.devices.human import (
+from teleop.devices.person import (
     DEFAULT_KEYS,
     SWITCH,
     TAB,
@@ -25,14 +25,14 @@ from teleop.devices.human import (
     hand_command,
     top_offset_m,
 )
-from teleop.devices.human_loop import (
+from teleop.devices.person_loop import (
     CARRY,
     PLACED,
     REACH,
     SWITCH_SETTLE_S,
     TASK_DONE_AHEAD_TICKS,
-    HumanOperatorLoop,
-    HumanStation,
+    PersonLoop,
+    PersonStation,
     WorldTask,
 )
 from teleop.devices.routing import SceneKnowledge
@@ -150,9 +150,9 @@ def test_keyboard_config_is_checked():
 
 
 # -- pacing ----------------------------------------------------------------------------------
-def _loop(lockstep: bool) -> tuple[HumanOperatorLoop, Outputs]:
+def _loop(lockstep: bool) -> tuple[PersonLoop, Outputs]:
     outputs = Outputs()
-    return HumanOperatorLoop(CONFIG, outputs, SCENE, lockstep=lockstep), outputs
+    return PersonLoop(CONFIG, outputs, SCENE, lockstep=lockstep), outputs
 
 
 def _sample_ticks(after_ns: int, until_ns: int) -> list[int]:
@@ -304,10 +304,10 @@ def test_the_person_ending_the_run_is_no_success_and_said_once():
 
 
 # -- several robots: one hand, the person's robot switch --------------------------------------
-def _station(lockstep: bool, robots: int = 2) -> tuple[HumanStation, list[Outputs]]:
+def _station(lockstep: bool, robots: int = 2) -> tuple[PersonStation, list[Outputs]]:
     outputs = [Outputs() for _ in range(robots)]
-    loops = [HumanOperatorLoop(CONFIG, out, SCENE, lockstep=lockstep) for out in outputs]
-    return HumanStation(loops), outputs
+    loops = [PersonLoop(CONFIG, out, SCENE, lockstep=lockstep) for out in outputs]
+    return PersonStation(loops), outputs
 
 
 def test_the_switch_moves_the_hand_to_the_next_robot_on_one_unbroken_grid():

@@ -1,13 +1,13 @@
 """The operator service of a person at the controls, as pure code: when hand inputs go
 out, and the task's phases read from the world.
 
-:class:`HumanOperatorLoop` takes what the service receives (the plant's STARTED, GRASP and
+:class:`PersonLoop` takes what the service receives (the plant's STARTED, GRASP and
 RELEASE events, TOOL_POSE and OBJECT_POSES), asks a device for the person's
-:class:`teleop.devices.human.HandIntent` and hands HAND_INPUT and RUN_EVENT decisions to
-:class:`HumanOutputs`. Clock-injected: each call takes the time;
-:mod:`teleop.devices.human_service` is the bus adapter.
+:class:`teleop.devices.person.HandIntent` and hands HAND_INPUT and RUN_EVENT decisions to
+:class:`PersonOutputs`. Clock-injected: each call takes the time;
+:mod:`teleop.devices.person_service` is the bus adapter.
 
-When hand inputs go out (:meth:`HumanOperatorLoop.due`), on the grid of sample ticks the
+When hand inputs go out (:meth:`PersonLoop.due`), on the grid of sample ticks the
 haptic device expects (teleop.core.ticks: ``operator.decision_rate_hz``, each valid from
 its sample tick plus one decision period):
 
@@ -50,7 +50,7 @@ from teleop.bus.messages import Button, Event
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import Config
 from teleop.core.ticks import SampleSchedule
-from teleop.devices.human import HandIntent, hand_command
+from teleop.devices.person import HandIntent, hand_command
 from teleop.devices.routing import SceneKnowledge
 from teleop.sim.proximity import BIN_BODY
 
@@ -79,7 +79,7 @@ REACH, CARRY, PLACED = 0, 1, 2
 PHASES = ("reach", "carry", "placed")
 
 
-class HumanOutputs(Protocol):
+class PersonOutputs(Protocol):
     """Where the loop's decisions go (the bus adapter publishes them)."""
 
     def put_hand(self, valid_from_tick: int, target_p_m: np.ndarray, buttons: Button) -> None: ...
@@ -209,14 +209,14 @@ class WorldTask:
         emit(Event.TASK_DONE, tick, tick + TASK_DONE_AHEAD_TICKS, 1.0 if success else 0.0)
 
 
-class HumanOperatorLoop:
+class PersonLoop:
     """Hand inputs from a person's device, paced for the run's mode, and the task's
     phases from the world (see the module docstring)."""
 
     def __init__(
         self,
         config: Config,
-        outputs: HumanOutputs,
+        outputs: PersonOutputs,
         scene: SceneKnowledge,
         *,
         lockstep: bool,
@@ -354,7 +354,7 @@ class HumanOperatorLoop:
         self.inputs_sent += 1
         self.last_buttons = buttons
 
-    def take_over(self, previous: HumanOperatorLoop) -> None:
+    def take_over(self, previous: PersonLoop) -> None:
         """The hand comes to this robot from ``previous``'s: the hand inputs go on from
         where that loop's left off (its run start, its next sample tick or decision time),
         so the haptic device's stream of hand inputs has no gap and no repeat. A loop
@@ -392,32 +392,32 @@ def _listed(p_m: np.ndarray | None) -> list[float] | None:
     return None if p_m is None else [round(float(v), 6) for v in p_m]
 
 
-class HumanStation:
+class PersonStation:
     """A person's hand over the robots of a run (``run.robots``), one
-    :class:`HumanOperatorLoop` per robot (``loops[i]`` plays robot i's task, its outputs
+    :class:`PersonLoop` per robot (``loops[i]`` plays robot i's task, its outputs
     on robot i's keys): the hand drives one robot at a time, robot 0 first.
 
     The person switches robots (:meth:`switch`: the device's robot switch); the hand also
     moves on by itself once the driven robot's task is done, to the next robot whose task
     is not (:meth:`move_on`). Either way the device then takes up the gripper as the hand
-    last left that robot (:attr:`HumanOperatorLoop.last_buttons`), and the hand asks for
+    last left that robot (:attr:`PersonLoop.last_buttons`), and the hand asks for
     no motion for ``SWITCH_SETTLE_S`` (:attr:`settling`). Hand inputs go out
     from the driven robot's loop only, on the sample-tick grid the previous one left off
-    at (:meth:`HumanOperatorLoop.take_over`), so the haptic device (which drives the
+    at (:meth:`PersonLoop.take_over`), so the haptic device (which drives the
     robot whose keys the input comes on) sees one unbroken stream. Ending the run ends
     every robot's task. With one robot it is that robot's loop.
     """
 
-    def __init__(self, loops: Sequence[HumanOperatorLoop]) -> None:
+    def __init__(self, loops: Sequence[PersonLoop]) -> None:
         if not loops:
-            raise ValueError("HumanStation needs a loop per robot")
+            raise ValueError("PersonStation needs a loop per robot")
         self.loops = list(loops)
         self.active = 0  # the robot the hand drives
         self.switches: list[dict[str, int]] = []  # each: the robot left, the one taken, tick
         self._settle_until_tick = -1  # after a switch: no motion before this tick
 
     @property
-    def loop(self) -> HumanOperatorLoop:
+    def loop(self) -> PersonLoop:
         """The driven robot's loop."""
         return self.loops[self.active]
 
@@ -453,7 +453,7 @@ class HumanStation:
         return self.loop.task.done and self.switch()
 
     def due(self, now_ns: int, intent: HandIntent) -> int:
-        """:meth:`HumanOperatorLoop.due` of the driven robot; while :attr:`settling`,
+        """:meth:`PersonLoop.due` of the driven robot; while :attr:`settling`,
         with the intent's buttons and no motion."""
         if self.settling:
             intent = HandIntent(gripper_closed=intent.gripper_closed, clutch=intent.clutch)
@@ -469,7 +469,7 @@ class HumanStation:
         return sum(loop.inputs_sent for loop in self.loops)
 
     def summary(self, robot_ids: Sequence[str]) -> dict[str, Any]:
-        """The task's outcome (:meth:`HumanOperatorLoop.summary`): with one robot its
+        """The task's outcome (:meth:`PersonLoop.summary`): with one robot its
         loop's; with several, a section per robot id under ``robots`` and the switches."""
         if len(self.loops) == 1:
             return self.loops[0].summary()

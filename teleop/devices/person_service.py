@@ -1,4 +1,4 @@
-"""The bus adapter of a person's operator: :class:`teleop.devices.human_loop.HumanOperatorLoop`
+"""The bus adapter of a person's operator: :class:`teleop.devices.person_loop.PersonLoop`
 on the bus, the device left to a subclass (the services of services/keyboard.py,
 services/input_device.py and services/web.py).
 
@@ -11,7 +11,7 @@ and RUN_EVENT PHASE / TASK_DONE.
 
 Threads: Zenoh's callbacks hand records to the loop under one lock; a pacer thread sends
 the hand inputs when the loop says they are due (event driven: it sleeps until then); the
-device's own loop (:meth:`HumanOperatorService.interact`) runs in the main thread and
+device's own loop (:meth:`PersonOperatorService.interact`) runs in the main thread and
 reads the person's input through :meth:`intent`.
 """
 
@@ -33,8 +33,8 @@ from teleop.bus.service import Service
 from teleop.bus.session import RecordCallback, subscribe, subscribe_events
 from teleop.core.clock import NS_PER_S
 from teleop.core.ring import Ring
-from teleop.devices.human import HandIntent
-from teleop.devices.human_loop import HumanOperatorLoop, HumanStation
+from teleop.devices.person import HandIntent
+from teleop.devices.person_loop import PersonLoop, PersonStation
 from teleop.devices.robot_outputs import RobotOutputs
 from teleop.devices.routing import SceneKnowledge
 
@@ -44,7 +44,7 @@ logger = logging.getLogger(__name__)
 LATENCY_SAMPLES = 1 << 14
 
 
-class HumanOperatorService(Service):
+class PersonOperatorService(Service):
     """The operator's place in the stack, driven by a person's device."""
 
     name = "operator"
@@ -60,12 +60,12 @@ class HumanOperatorService(Service):
         scene = SceneKnowledge.from_config(cfg)
         lockstep = cfg.run.mode == "lockstep"
         # One task loop per robot, its outputs on that robot's keys; the station says
-        # which robot the hand drives (teleop.devices.human_loop.HumanStation).
+        # which robot the hand drives (teleop.devices.person_loop.PersonStation).
         loops = []
         for topics in self.robot_topics:
             outputs = RobotOutputs(self, topics, self.timestep_ns)
-            loops.append(HumanOperatorLoop(cfg, outputs, scene, lockstep=lockstep))
-        self.station = HumanStation(loops)
+            loops.append(PersonLoop(cfg, outputs, scene, lockstep=lockstep))
+        self.station = PersonStation(loops)
         self.run_over = threading.Event()  # every robot's plant finished or aborted its run
         self._finished: set[int] = set()
         self._wake = threading.Event()  # the pacer: a run started, or the input changed
@@ -84,7 +84,7 @@ class HumanOperatorService(Service):
         self.announce()
 
     @property
-    def loop(self) -> HumanOperatorLoop:
+    def loop(self) -> PersonLoop:
         """The driven robot's task loop (its view is what the device shows)."""
         return self.station.loop
 
