@@ -84,7 +84,7 @@ from teleop.control.feedback import workspace_force
 from teleop.control.wave import handle_rate_m_s, handle_resistance_n, handle_wave
 from teleop.core.clock import NS_PER_S, Clock, LoopTimer
 from teleop.core.config import Config
-from teleop.core.ticks import SampleSchedule, TickedInputs
+from teleop.core.ticks import TickedInputs, hand_schedule
 from teleop.devices.haptic import (
     DeviceSample,
     FeedbackHold,
@@ -184,7 +184,7 @@ class HapticLoop:
         )
         self.models_softened = 0
         self.slew = ForceSlew(config.haptic.max_force_rate_n_per_s, self.render_period_s)
-        self.hand_schedule = SampleSchedule.of(config.operator.decision_rate_hz, self.tick_s)
+        self.hand_schedule = hand_schedule(config)
         self.hand_stale_ticks = self.hand_schedule.ticks(config.haptic.hand_input_stale_s)
         self.peak_force_n = config.haptic.peak_force_n
         self.max_feedback_n = OVERSIZED_FEEDBACK_FACTOR * self.peak_force_n

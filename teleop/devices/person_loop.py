@@ -49,7 +49,7 @@ import numpy as np
 from teleop.bus.messages import Button, Event
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import Config
-from teleop.core.ticks import SampleSchedule
+from teleop.core.ticks import hand_schedule
 from teleop.devices.person import HandIntent, hand_command
 from teleop.devices.routing import SceneKnowledge
 from teleop.sim.proximity import BIN_BODY
@@ -226,7 +226,7 @@ class PersonLoop:
         self.lockstep = lockstep
         self.tick_s = config.tick_s
         self.tick_ns = round(self.tick_s * NS_PER_S)
-        self.hand_schedule = SampleSchedule.of(config.operator.decision_rate_hz, self.tick_s)
+        self.hand_schedule = hand_schedule(config)
         lead = self.hand_schedule.lead_ticks
         self.max_ahead_ticks = max(lead, self.hand_schedule.ticks(MAX_AHEAD_S))
         self.decision_ns = round(NS_PER_S / self.hand_schedule.rate_hz)
