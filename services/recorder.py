@@ -28,12 +28,11 @@ from teleop.viz.entities import entity_roots
 from teleop.viz.recording import (
     BATCHED_STREAMS,
     BUFFER_CAPACITY_RECORDS,
-    LEVEL_INFO,
-    LEVEL_WARN,
     STREAM_SCHEMAS,
     RecordingWriter,
 )
 from teleop.viz.recording_file import RecordingFile, claim_segment
+from teleop.viz.stream_writers import LEVEL_INFO, LEVEL_WARN
 
 logger = logging.getLogger(__name__)
 
