@@ -773,6 +773,8 @@ class BilateralCycle(ControllerCore):
             "no_input_cycles": self.no_input_cycles,
             "plant_silent_samples": self.plant_silent_samples,
             "missing_head_poses": self.missing_head_poses,
+            # Obstacle samples on an arm body the model has no frame for: ignored, counted.
+            "unmapped_obstacle_samples": self.controller.unmapped_obstacle_samples,
             "barrier_dropped": self.barrier.dropped,
             "haptic_lost": self.haptic_in.seq.lost,
             "haptic_reordered": self.haptic_in.seq.reordered,

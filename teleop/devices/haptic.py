@@ -204,11 +204,6 @@ class KalmanVelocityEstimator:
         self._kf.P = np.diag([r] * N_AXES + [KF_INITIAL_SPEED_STD_M_S**2] * N_AXES)
         self._kf.K = np.zeros_like(self._kf.K)
 
-    @property
-    def steady(self) -> bool:
-        """True once the gain has converged and the g-h form runs."""
-        return self._steady is not None
-
     def update(self, p_measured_m: np.ndarray, dt_s: float) -> np.ndarray:
         """Predict over ``dt_s`` (s), correct with the encoder position (3,), m; velocity (3,)."""
         self._set_dt(dt_s)

@@ -37,7 +37,6 @@ NOD_PERIOD_FRACTION = 0.5
 POSE_DIM = 5
 YAW_INDEX = 3
 PITCH_INDEX = 4
-ANGLE_INDICES = (YAW_INDEX, PITCH_INDEX)
 
 # Process noise of the constant-velocity filter: standard deviation of the white
 # acceleration the model does not explain, per coordinate. It sets the trade-off between

@@ -163,7 +163,6 @@ class KeyboardIntent:
             self.speed_index = self.config.start_speed_step
         # Per axis: (sign, until_ns) of the newest motion key; sign 0: still.
         self._axes: list[tuple[float, int]] = [(0.0, 0)] * 3
-        self.last_press_ns = 0
 
     @property
     def speed_fraction(self) -> float:
@@ -176,7 +175,6 @@ class KeyboardIntent:
             self.unknown_keys += 1
             return None
         self.presses += 1
-        self.last_press_ns = now_ns
         if action.kind == MOVE:
             until_ns = now_ns + round(self.config.hold_s * NS_PER_S)
             self._axes[action.axis] = (action.sign, until_ns)

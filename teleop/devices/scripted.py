@@ -139,7 +139,6 @@ TOOL_ANCHOR = "tool"  # target relative to the tool position at phase start
 GRIPPER_STATES = {"open": False, "closed": True}  # gripper word -> GRIPPER_CLOSE held
 # Keys of a repeat entry in the [[phase]] list (see Scenario.from_table).
 REPEAT_KEY = "repeat"
-BLOCK_KEY = "block"
 _TOP_LEVEL_KEYS = ("task", "phase")
 
 
