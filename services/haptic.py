@@ -1,4 +1,4 @@
-"""The haptic service: :class:`teleop.devices.haptic_loop.HapticLoop` on the bus.
+"""The haptic service: :class:`teleop.devices.haptic.loop.HapticLoop` on the bus.
 
 Inputs: FORCE_FEEDBACK (the force to render, from the controller), HAND_INPUT (where the
 operator's hand pulls the handle, keyed by the plant tick it applies from) and, in
@@ -28,8 +28,8 @@ from teleop.bus.service import Service, service_main
 from teleop.bus.session import BatchPublisher, Publisher, RecordCallback, subscribe_events
 from teleop.core.clock import MonotonicClock
 from teleop.core.rundir import HAPTIC_SAMPLES_FILE, HAPTIC_TRACE_FILE, shed_path
-from teleop.devices.haptic import EmulatedDevice, max_stable_stiffness_n_per_m
-from teleop.devices.haptic_loop import HapticLoop
+from teleop.devices.haptic.device import EmulatedDevice, max_stable_stiffness_n_per_m
+from teleop.devices.haptic.loop import HapticLoop
 
 logger = logging.getLogger(__name__)
 

@@ -1,8 +1,8 @@
 """A person on a gamepad or a SpaceMouse drives the arm (``teleop run grasp --operator
 gamepad|spacemouse``): the operator's place in the stack
-(teleop/devices/person_service.py), read from a Linux input device
-(teleop/devices/input_devices.py: evdev or hidraw, found through sysfs, decoded by
-teleop/devices/input_events.py).
+(teleop/devices/person/service.py), read from a Linux input device
+(teleop/devices/person/input_devices.py: evdev or hidraw, found through sysfs, decoded by
+teleop/devices/person/input_events.py).
 
 It runs under supervisord like every service (the device is not the terminal's). Its
 loop waits on the device (``poll``, no busy loop) and hands each intent to the pacer; a
@@ -22,9 +22,13 @@ import time
 
 from teleop.bus.messages import Button
 from teleop.bus.service import service_main
-from teleop.devices.input_devices import DeviceUnavailable, PersonInputDevice, open_input_device
-from teleop.devices.person import HandIntent
-from teleop.devices.person_service import PersonOperatorService
+from teleop.devices.person.input_devices import (
+    DeviceUnavailable,
+    PersonInputDevice,
+    open_input_device,
+)
+from teleop.devices.person.intent import HandIntent
+from teleop.devices.person.service import PersonOperatorService
 
 logger = logging.getLogger(__name__)
 

@@ -1,5 +1,5 @@
 """A person at the terminal's keyboard drives the arm (``teleop run grasp --operator
-keyboard``): the operator's place in the stack (teleop/devices/person_service.py), read
+keyboard``): the operator's place in the stack (teleop/devices/person/service.py), read
 from the keys of the terminal the launcher runs in. No X server, no input group: it works over SSH
 (``ssh -t``) and in tmux.
 
@@ -7,7 +7,7 @@ The screen (curses, redrawn ``keyboard.screen_rate_hz`` times a second) shows th
 phase (read from the world), the tool's position and speed, the objects, the force the
 handle renders as a bar (the emulated handle feels it; the keyboard cannot), the speed
 step, gripper and clutch, and the keys. The keys are those of
-:data:`teleop.devices.person.DEFAULT_KEYS` (also under ``?``). In a run of several robots
+:data:`teleop.devices.person.intent.DEFAULT_KEYS` (also under ``?``). In a run of several robots
 (``--robots``) the screen shows the driven robot's world and tab drives the next one.
 """
 
@@ -21,7 +21,7 @@ from typing import Any
 
 from teleop.bus.messages import Button
 from teleop.bus.service import service_main
-from teleop.devices.person import (
+from teleop.devices.person.intent import (
     DOWN,
     KEY_HELP,
     LEFT,
@@ -35,8 +35,8 @@ from teleop.devices.person import (
     HandIntent,
     KeyboardIntent,
 )
-from teleop.devices.person_loop import PHASES
-from teleop.devices.person_service import PersonOperatorService
+from teleop.devices.person.loop import PHASES
+from teleop.devices.person.service import PersonOperatorService
 
 # curses' codes of the special keys, by the names of the key map.
 _SPECIAL_KEYS = {

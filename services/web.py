@@ -1,6 +1,6 @@
 """A person at a web page drives the arm (``teleop run grasp --operator web``): the
-operator's place in the stack (teleop/devices/person_service.py), read from the page of
-:mod:`teleop.devices.web_page` (its server, endpoints, token and threads are described
+operator's place in the stack (teleop/devices/person/service.py), read from the page of
+:mod:`teleop.devices.person.web_page` (its server, endpoints, token and threads are described
 there). This adapter ties the page to the bus: the page's input is the hand's intent, its
 robot switch the station's, its state the driven robot's world, its view that robot's
 eye-view frames.
@@ -22,9 +22,9 @@ from teleop.bus.messages import EYE_VIEW, Button
 from teleop.bus.service import service_main
 from teleop.bus.session import subscribe_frames
 from teleop.core.config import ConfigError
-from teleop.devices.person import DEFAULT_KEYS, HandIntent
-from teleop.devices.person_service import PersonOperatorService
-from teleop.devices.web_page import (
+from teleop.devices.person.intent import DEFAULT_KEYS, HandIntent
+from teleop.devices.person.service import PersonOperatorService
+from teleop.devices.person.web_page import (
     PAGE_FILE,
     EyeFrames,
     PageIntent,
@@ -82,7 +82,7 @@ class WebOperatorService(PersonOperatorService):
             site.close()
         super().close()
 
-    # -- what the page asks (teleop.devices.web_page.PageOperator; request threads) ------
+    # -- what the page asks (teleop.devices.person.web_page.PageOperator; request threads) ------
     def take_input(self, intent: HandIntent, robot: str | None = None) -> None:
         """The page's input, meant for ``robot`` (None: whichever is driven). One for
         another robot than the one driven now is dropped and counted."""

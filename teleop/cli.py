@@ -591,7 +591,7 @@ def check_operator(config: Config, without: Sequence[str] = ()) -> None:
             "run teleop in a terminal (ssh -t for a remote one, or tmux)"
         )
     if device in INPUT_DEVICE_OPERATORS:  # there, and this user may read it
-        from teleop.devices.input_devices import DeviceUnavailable, open_input_device
+        from teleop.devices.person.input_devices import DeviceUnavailable, open_input_device
 
         try:
             open_input_device(device, config).close()

@@ -408,7 +408,7 @@ class HapticConfig:
     # whatever the bus rate (loop.rate_hz; a bus period is a whole number of these).
     render_period_s: float = 0.001
     # The rendered force changes at most this fast (N/s): a new local model ramps in
-    # instead of knocking the handle once per bus period (teleop.devices.haptic.ForceSlew).
+    # instead of knocking the handle once per bus period (teleop.devices.haptic.device.ForceSlew).
     max_force_rate_n_per_s: float = 2000.0
     # Feedback older than this is stale: the rendered force fades to zero over fade_s.
     stale_feedback_s: float = 0.020
@@ -563,7 +563,7 @@ class TeleopConfig:
     # Hold the tool pointing straight down (top grasps), keeping its start heading;
     # false: hold whatever orientation the tool has when teleoperation starts.
     approach_down: bool = True
-    # Force feedback under delay (teleop/devices/passivity.py): "none" renders the force
+    # Force feedback under delay (teleop/devices/haptic/passivity.py): "none" renders the force
     # as it comes (the energy it exchanges is observed and reported all the same);
     # "tdpa": the time-domain passivity controller at the handle damps what the delayed
     # channel would give out, at most tdpa_max_damping_n_s_m (and what the handle renders
@@ -607,7 +607,7 @@ class OperatorConfig:
     reaction_delay_s: float = 0.2
     decision_rate_hz: float = 100.0
     # The largest offset the hand gives the handle (m); the operator's gain follows from
-    # reaction_delay_s (no overshoot for a delayed P loop, see teleop/devices/scripted.py).
+    # reaction_delay_s (no overshoot for a delayed P loop, see teleop/devices/scripted/operator.py).
     max_hand_offset_m: float = 0.045
 
     def __post_init__(self) -> None:
@@ -625,7 +625,7 @@ class OperatorConfig:
 
 
 # Who drives the emulated haptic handle (RunConfig.operator): the scripted operator, or a
-# person through one of the human input devices (teleop/devices/person.py).
+# person through one of the human input devices (teleop/devices/person/intent.py).
 SCRIPTED = "scripted"
 OPERATORS = (SCRIPTED, "keyboard", "gamepad", "spacemouse", "web")
 # The person's devices read in the launcher's terminal (the launcher runs them in the
@@ -634,14 +634,15 @@ TERMINAL_OPERATORS = ("keyboard",)
 # The person's devices that show the operator's eye view (the web page): their runs have
 # the eye view in lockstep too.
 VIEWING_OPERATORS = ("web",)
-# The person's devices read from Linux input (evdev, hidraw): teleop/devices/input_devices.py.
+# The person's devices read from Linux input (evdev, hidraw):
+# teleop/devices/person/input_devices.py.
 INPUT_DEVICE_OPERATORS = ("gamepad", "spacemouse")
 
 
 @dataclass(frozen=True)
 class KeyboardConfig:
     """A person at the terminal's keyboard (``--operator keyboard``,
-    teleop/devices/person.py): how long a key press moves and the speed steps."""
+    teleop/devices/person/intent.py): how long a key press moves and the speed steps."""
 
     # A motion key moves its axis this long after its last press (s): longer than the
     # terminal's key-repeat delay, so a held key moves on without a stutter.
@@ -680,7 +681,7 @@ def _check_human_device(section: str, axes: tuple[str, ...], dead_zone_fraction:
                         clutch_buttons: tuple[str, ...], gripper_mode: str,
                         clutch_mode: str, switch_buttons: tuple[str, ...]) -> None:  # fmt: skip
     """The checks a gamepad's and a SpaceMouse's sections share (names checked against the
-    kernel's tables when the device opens, teleop/devices/input_events.py)."""
+    kernel's tables when the device opens, teleop/devices/person/input_events.py)."""
     _require(
         len(axes) > 0 and all(_AXIS_MAP_ENTRY.fullmatch(a) for a in axes),
         f'{section}.axes: entries like "x=-Y" (view axis x/y/z = sign, device axis name)',
@@ -705,7 +706,7 @@ def _check_human_device(section: str, axes: tuple[str, ...], dead_zone_fraction:
 
 @dataclass(frozen=True)
 class GamepadConfig:
-    """A person with a gamepad (``--operator gamepad``, teleop/devices/input_devices.py):
+    """A person with a gamepad (``--operator gamepad``, teleop/devices/person/input_devices.py):
     which stick drives which view axis, the dead zone, the buttons and the rumble.
 
     Defaults fit the kernel's gamepad layout (xpad, hid-playstation, hid-nintendo): left
@@ -766,7 +767,7 @@ class GamepadConfig:
 @dataclass(frozen=True)
 class SpaceMouseConfig:
     """A person with a 3Dconnexion SpaceMouse (``--operator spacemouse``,
-    teleop/devices/input_devices.py): which of its six axes drive the view axes, its
+    teleop/devices/person/input_devices.py): which of its six axes drive the view axes, its
     full scale, the dead zone and the buttons. Rotation is not mapped by default.
 
     The device's own axes (HID reports and the kernel's events alike): X right, Y towards

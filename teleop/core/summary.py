@@ -142,7 +142,7 @@ SUMMARY_FIELDS: tuple[SummaryField, ...] = (
     F("max_device_force_n", "number", GRASP, "largest force rendered on the handle (N; "
       "the device saturates at 8 N)", nullable=True),
     F("passivity", "object", GRASP, "the energy the force feedback exchanged with the "
-      "operator's hand (J, teleop.devices.passivity): energy_in_j, energy_out_j, "
+      "operator's hand (J, teleop.devices.haptic.passivity): energy_in_j, energy_out_j, "
       "observed_j and its least value observer_min_j (below zero: the channel gave "
       "energy out), dissipated_j by the stabiliser (teleop.stabiliser)", nullable=True),
     F("max_contact_force_n", "number", GRASP, "largest contact force on the gripper (N)",

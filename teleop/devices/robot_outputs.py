@@ -1,5 +1,5 @@
 """One robot's end of an operator, scripted (services/operator.py) or a person's
-(:mod:`teleop.devices.person_service`): its hand stream and its task events, published on
+(:mod:`teleop.devices.person.service`): its hand stream and its task events, published on
 that robot's keys."""
 
 from __future__ import annotations
@@ -19,13 +19,13 @@ from teleop.bus.messages import (
 from teleop.bus.service import Service
 from teleop.bus.session import Publisher
 from teleop.bus.topics import Topics
-from teleop.devices.scripted import HandCommand
+from teleop.devices.scripted.operator import HandCommand
 
 
 class RobotOutputs:
     """One robot's end of an operator, scripted or a person's: its hand stream and its
     task events, on that robot's keys (ScriptedOutputs, and PersonOutputs of
-    teleop.devices.person_loop)."""
+    teleop.devices.person.loop)."""
 
     def __init__(self, service: Service, topics: Topics, timestep_ns: int) -> None:
         assert service.session is not None

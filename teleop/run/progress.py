@@ -166,7 +166,7 @@ def _task_lines(summary: Mapping[str, Any]) -> list[str]:
         lines.append(_clearance_line(summary))
     lockstep = mode == "lockstep"
     if lockstep:  # not paced by the wall clock: its speed is the machine's, not a verdict
-        # A person's run goes at most at their clock's pace (teleop.devices.person_loop).
+        # A person's run goes at most at their clock's pace (teleop.devices.person.loop).
         person = summary.get("operator") not in (None, "scripted")
         timing = (
             f"  timing             lockstep (deterministic, "

@@ -24,8 +24,8 @@ from teleop.bus.session import (
 )
 from teleop.bus.topics import Topics
 from teleop.core.config import SCRIPTED, Config
-from teleop.devices.person_loop import PHASES as PERSON_PHASES
-from teleop.devices.scripted import Scenario
+from teleop.devices.person.loop import PHASES as PERSON_PHASES
+from teleop.devices.scripted.operator import Scenario
 from teleop.run.progress import RunProgress
 
 
@@ -35,7 +35,7 @@ def task_phases(config: Config) -> tuple[str, ...]:
     if not config.run.teleoperated:
         return ()
     if config.run.operator != SCRIPTED:
-        return PERSON_PHASES  # teleop.devices.person_loop
+        return PERSON_PHASES  # teleop.devices.person.loop
     scenario = Scenario.load(config.operator.scenario_path, config.robot.object_bodies)
     return tuple(phase.name for phase in scenario.phases)
 

@@ -21,7 +21,7 @@ Path following checks the way from the start pose to the path and one whole peri
 the path. A grasp scene checks the moves the scripted operator makes, with the tool
 pointing down: each phase of its scenario (``operator.scenario_file``) from the target
 before to the phase's target, along the route the operator plans around what it sees
-(:func:`teleop.devices.routing.plan_route`: over or beside a virtual obstacle, over
+(:func:`teleop.devices.scripted.routing.plan_route`: over or beside a virtual obstacle, over
 the bin's walls). The virtual obstacle (non-colliding) is kept away from every target,
 and the arm's links (the gripper's are the route's business) stay out of its influence
 along the whole way: there the controller pushes the arm away, and the operator, who
@@ -57,8 +57,8 @@ from teleop.control.teleop import (
     position_condition_number,
 )
 from teleop.core.config import Config, PathConfig, SceneConfig
-from teleop.devices.routing import SceneKnowledge, plan_route
-from teleop.devices.scripted import TOOL_ANCHOR, Scenario
+from teleop.devices.scripted.operator import TOOL_ANCHOR, Scenario
+from teleop.devices.scripted.routing import SceneKnowledge, plan_route
 from teleop.sim.proximity import apply_scene_overrides, arm_collision_geoms, obstacle_geoms
 
 # --- Reachability -------------------------------------------------------------------------
@@ -546,7 +546,7 @@ class Move:
 def operator_moves(scenario: Scenario, knowledge: SceneKnowledge, start_p_m: np.ndarray,
                    objects_p_m: dict[str, np.ndarray]) -> list[Move]:  # fmt: skip
     """The moves of ``scenario`` from ``start_p_m``, the objects where they lie, planned as
-    the operator plans them (:class:`teleop.devices.scripted.ScriptedOperator`): each
+    the operator plans them (:class:`teleop.devices.scripted.operator.ScriptedOperator`): each
     phase's target is its anchor (an object as it lies when the phase starts, or the tool)
     plus its offset, reached along :func:`plan_route` around the keep-out volumes of that
     phase. Phases that do not move the tool are left out."""

@@ -215,7 +215,7 @@ def _fig_forces(sim: Mapping[str, rrd.Series], report: Report, t0: float) -> Non
 
 def _fig_passivity(sim: Mapping[str, rrd.Series], report: Report, t0: float) -> None:
     """The passivity observer's energy over the run (below zero: the force gave the hand
-    energy out) and what the stabiliser dissipated (teleop.devices.passivity)."""
+    energy out) and what the stabiliser dissipated (teleop.devices.haptic.passivity)."""
     observed = sim[r.ENTITY_PASSIVITY_OBSERVED]
     fig, ax = plt.subplots(figsize=FIG_SIZE_WIDE_IN)
     ax.plot(observed.t_s - t0, observed.values * 1e3, color="tab:blue", linewidth=1.0,

@@ -2,7 +2,7 @@
 
 Every run is a lockstep ``teleop run grasp`` (every service under supervisord) with
 ``site.emulated_round_trip_ms``: the operator's and the robot's site that far apart in
-sim time (teleop/devices/haptic_loop.py, docs/sites.md). Lockstep runs are
+sim time (teleop/devices/haptic/loop.py, docs/sites.md). Lockstep runs are
 deterministic: the figures do not depend on the machine's load, only the wall time does
 (given per run, with the load average). The round trip is exact, the emulated one plus
 the loop's own plant step, with no jitter.

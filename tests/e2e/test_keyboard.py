@@ -30,7 +30,7 @@ from tests.e2e.terminal import Terminal
 
 REPO = Path(__file__).resolve().parents[2]
 NUMBER = r"([+-]\d+\.\d+)"
-# Keys of the default key map (teleop.devices.person.DEFAULT_KEYS) per (axis, direction).
+# Keys of the default key map (teleop.devices.person.intent.DEFAULT_KEYS) per (axis, direction).
 MOVE_KEYS = {(0, 1): "w", (0, -1): "s", (1, 1): "a", (1, -1): "d", (2, 1): "r", (2, -1): "f"}
 SPEEDS = load_config().keyboard.speed_steps
 

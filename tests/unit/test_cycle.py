@@ -14,8 +14,8 @@ from teleop.control.cycle import BilateralCycle, PathCycle
 from teleop.control.kinematics import build_arm_model, tool_position_and_jacobian
 from teleop.core.clock import FakeClock
 from teleop.core.config import load_config
-from teleop.devices.haptic import EmulatedDevice
-from teleop.devices.haptic_loop import HapticLoop
+from teleop.devices.haptic.device import EmulatedDevice
+from teleop.devices.haptic.loop import HapticLoop
 from teleop.run.experiments import run_path_following_inprocess
 from teleop.sim.plant_loop import PlantLoop
 

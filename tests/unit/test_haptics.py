@@ -23,7 +23,7 @@ from teleop.control.wave import handle_rate_m_s
 from teleop.core.clock import FakeClock
 from teleop.core.config import ConfigError, HapticConfig, load_config
 from teleop.core.ticks import is_sample_tick
-from teleop.devices.haptic import (
+from teleop.devices.haptic.device import (
     EmulatedDevice,
     FeedbackHold,
     ForceSlew,
@@ -32,8 +32,8 @@ from teleop.devices.haptic import (
     LocalContactModel,
     max_stable_stiffness_n_per_m,
 )
-from teleop.devices.haptic_loop import HAND_INPUT_WAIT_S, HapticLoop
-from teleop.devices.replay import ReplayDevice
+from teleop.devices.haptic.loop import HAND_INPUT_WAIT_S, HapticLoop
+from teleop.devices.haptic.replay import ReplayDevice
 
 PERIOD_S = 0.001  # the servo period the device steps at (haptic.render_period_s)
 NS_PER_MS = 1_000_000

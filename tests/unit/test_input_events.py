@@ -12,7 +12,7 @@ import pytest
 from teleop.bus.messages import Button
 from teleop.core.clock import NS_PER_S, FakeClock
 from teleop.core.config import Config, ConfigError, GamepadConfig, SpaceMouseConfig, load_config
-from teleop.devices.input_devices import (
+from teleop.devices.person.input_devices import (
     EVDEV,
     HIDRAW,
     UDEV_RULES_FILE,
@@ -28,7 +28,7 @@ from teleop.devices.input_devices import (
     open_spacemouse,
     parse_capability_bitmap,
 )
-from teleop.devices.input_events import (
+from teleop.devices.person.input_events import (
     EVIOCSFF,
     FF_EFFECT,
     INPUT_EVENT,

@@ -12,8 +12,7 @@ import pytest
 from teleop.bus.messages import Button, Event
 from teleop.core.config import DEPLOY_DIR, Config, ConfigError, load_config
 from teleop.core.ticks import is_sample_tick
-from teleop.devices.routing import SceneKnowledge
-from teleop.devices.scripted import (
+from teleop.devices.scripted.operator import (
     HandCommand,
     Observation,
     ObservationBuffer,
@@ -28,6 +27,7 @@ from teleop.devices.scripted import (
     resume_phase,
     rot_z,
 )
+from teleop.devices.scripted.routing import SceneKnowledge
 
 TIMESTEP_S = 0.001
 GRASP_FILE = DEPLOY_DIR / "scenarios" / "grasp.toml"

@@ -1,5 +1,5 @@
-"""Time-domain passivity at the haptic device (teleop.devices.passivity): the energy
-account, the controller's damping, then the emulated handle (teleop.devices.haptic)
+"""Time-domain passivity at the haptic device (teleop.devices.haptic.passivity): the energy
+account, the controller's damping, then the emulated handle (teleop.devices.haptic.device)
 pushed by the hand into a wall rendered 100 ms late."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from teleop.core.config import ConfigError, load_config
-from teleop.devices.haptic import EmulatedDevice, HandInput
-from teleop.devices.passivity import PassivityControl, max_stable_damping_n_s_m
+from teleop.devices.haptic.device import EmulatedDevice, HandInput
+from teleop.devices.haptic.passivity import PassivityControl, max_stable_damping_n_s_m
 
 DT_S = 0.001
 X = np.array([1.0, 0.0, 0.0])

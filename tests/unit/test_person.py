@@ -1,6 +1,6 @@
 """A person at the controls, without a bus: key presses into hand intents
-(teleop.devices.person), hand inputs paced for each timing mode and the task's phases read
-from the world (teleop.devices.person_loop), on a fake clock."""
+(teleop.devices.person.intent), hand inputs paced for each timing mode and the task's phases read
+from the world (teleop.devices.person.loop), on a fake clock."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from teleop.bus.messages import Button, Event
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import ConfigError, load_config
 from teleop.core.ticks import expected_valid_from, is_sample_tick, lead_ticks, next_sample_tick
-from teleop.devices.person import (
+from teleop.devices.person.intent import (
     DEFAULT_KEYS,
     SWITCH,
     TAB,
@@ -25,7 +25,7 @@ from teleop.devices.person import (
     hand_command,
     top_offset_m,
 )
-from teleop.devices.person_loop import (
+from teleop.devices.person.loop import (
     CARRY,
     PLACED,
     REACH,
@@ -35,7 +35,7 @@ from teleop.devices.person_loop import (
     PersonStation,
     WorldTask,
 )
-from teleop.devices.routing import SceneKnowledge
+from teleop.devices.scripted.routing import SceneKnowledge
 
 MS = 1_000_000  # ns
 CONFIG = load_config()

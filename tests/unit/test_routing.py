@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from teleop.core.config import load_config
-from teleop.devices import routing
-from teleop.devices.routing import KeepOut, SceneKnowledge, plan_route
+from teleop.devices.scripted import routing
+from teleop.devices.scripted.routing import KeepOut, SceneKnowledge, plan_route
 
 
 def _clear(start, waypoints, target, volumes) -> bool:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from teleop.core.config import Config, PathConfig, SceneConfig, load_config
-from teleop.devices.routing import SceneKnowledge
+from teleop.devices.scripted.routing import SceneKnowledge
 from teleop.run import sweep, tasks
 from teleop.run.failure import ServiceFailed
 from teleop.run.supervise import StartTimeout

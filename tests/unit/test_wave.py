@@ -15,8 +15,8 @@ from teleop.control.wave import (
     handle_wave,
 )
 from teleop.core.config import load_config
-from teleop.devices.haptic import EmulatedDevice, HandInput, saturate_force
-from teleop.devices.passivity import PassivityControl
+from teleop.devices.haptic.device import EmulatedDevice, HandInput, saturate_force
+from teleop.devices.haptic.passivity import PassivityControl
 
 DT_S = 0.001
 B = 10.0  # N s/m, the default teleop.wave_impedance_n_s_m

@@ -23,9 +23,9 @@ from teleop.bus.topics import Topics
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import ConfigError, load_config
 from teleop.core.net import LoopbackPorts
-from teleop.devices import web_page
-from teleop.devices.person import DEFAULT_KEYS, SWITCH, HandIntent
-from teleop.devices.person_loop import WorldView
+from teleop.devices.person import web_page
+from teleop.devices.person.intent import DEFAULT_KEYS, SWITCH, HandIntent
+from teleop.devices.person.loop import WorldView
 from teleop.run import web_operator
 
 TOKEN = "a-token-of-enough-characters-0123456789"

@@ -7,7 +7,7 @@ reports whatever the operator's hand did. It replays a recorded session's hand m
 into a live stack, and it is the test that the service's loop needs nothing beyond
 the interface.
 
-Device frame, m, m/s, N (as :mod:`teleop.devices.haptic`). The velocity is the finite
+Device frame, m, m/s, N (as :mod:`teleop.devices.haptic.device`). The velocity is the finite
 difference of consecutive recorded positions; the rendered force is the force sent,
 saturated at the peak force; the hand input of :meth:`next_sample` is ignored (the
 recording is the hand). After the last recorded sample the handle rests there.
@@ -20,7 +20,13 @@ from collections.abc import Sequence
 import numpy as np
 
 from teleop.bus.messages import Button
-from teleop.devices.haptic import N_AXES, DeviceSample, HandInput, HapticDevice, saturate_force
+from teleop.devices.haptic.device import (
+    N_AXES,
+    DeviceSample,
+    HandInput,
+    HapticDevice,
+    saturate_force,
+)
 
 
 class ReplayDevice(HapticDevice):

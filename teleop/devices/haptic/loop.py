@@ -10,7 +10,7 @@ renders a tick's servo periods in one go at the tick's end, each with the model 
 arrived by its time, as that thread would have.
 
 :class:`HapticLoop` takes the records the service receives (FORCE_FEEDBACK, HAND_INPUT
-and, in lockstep, PLANT_STATE), drives any :class:`teleop.devices.haptic.HapticDevice`
+and, in lockstep, PLANT_STATE), drives any :class:`teleop.devices.haptic.device.HapticDevice`
 through its interface alone, and hands each HAPTIC_STATE record it fills to
 :class:`HapticOutputs`. Time comes from an injected :class:`teleop.core.clock.Clock`,
 so a test drives it on a fake clock without Zenoh; ``services/haptic.py`` is the bus
@@ -85,7 +85,7 @@ from teleop.control.wave import handle_rate_m_s, handle_resistance_n, handle_wav
 from teleop.core.clock import NS_PER_S, Clock, LoopTimer
 from teleop.core.config import Config
 from teleop.core.ticks import TickedInputs, hand_schedule
-from teleop.devices.haptic import (
+from teleop.devices.haptic.device import (
     DeviceSample,
     FeedbackHold,
     ForceSlew,
@@ -95,7 +95,7 @@ from teleop.devices.haptic import (
     max_stable_stiffness_n_per_m,
     saturate_force,
 )
-from teleop.devices.passivity import PassivityControl, max_stable_damping_n_s_m
+from teleop.devices.haptic.passivity import PassivityControl, max_stable_damping_n_s_m
 
 logger = logging.getLogger(__name__)
 

@@ -51,7 +51,7 @@ from typing import NamedTuple
 from teleop.bus.messages import Button
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import ConfigError, GamepadConfig, SpaceMouseConfig
-from teleop.devices.person import AXES, HandIntent
+from teleop.devices.person.intent import AXES, HandIntent
 
 # Event types and the codes used here (linux/input-event-codes.h).
 EV_SYN, EV_KEY, EV_REL, EV_ABS, EV_FF = 0x00, 0x01, 0x02, 0x03, 0x15

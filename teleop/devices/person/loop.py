@@ -3,9 +3,9 @@ out, and the task's phases read from the world.
 
 :class:`PersonLoop` takes what the service receives (the plant's STARTED, GRASP and
 RELEASE events, TOOL_POSE and OBJECT_POSES), asks a device for the person's
-:class:`teleop.devices.person.HandIntent` and hands HAND_INPUT and RUN_EVENT decisions to
+:class:`teleop.devices.person.intent.HandIntent` and hands HAND_INPUT and RUN_EVENT decisions to
 :class:`PersonOutputs`. Clock-injected: each call takes the time;
-:mod:`teleop.devices.person_service` is the bus adapter.
+:mod:`teleop.devices.person.service` is the bus adapter.
 
 When hand inputs go out (:meth:`PersonLoop.due`), on the grid of sample ticks the
 haptic device expects (teleop.core.ticks: ``operator.decision_rate_hz``, each valid from
@@ -50,8 +50,8 @@ from teleop.bus.messages import Button, Event
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import Config
 from teleop.core.ticks import hand_schedule
-from teleop.devices.person import HandIntent, hand_command
-from teleop.devices.routing import SceneKnowledge
+from teleop.devices.person.intent import HandIntent, hand_command
+from teleop.devices.scripted.routing import SceneKnowledge
 from teleop.sim.proximity import BIN_BODY
 
 logger = logging.getLogger(__name__)
@@ -68,7 +68,7 @@ HOLD_SETTLE_S = 0.05
 # run there (the same margin as the scripted operator's).
 TASK_DONE_AHEAD_TICKS = 100
 # After a robot switch the hand asks for no motion this long (sim s): the handle comes to
-# rest, where the haptic device makes the switch (teleop.devices.haptic_loop), before the
+# rest, where the haptic device makes the switch (teleop.devices.haptic.loop), before the
 # person's motion goes out; motion sooner would still move the robot left behind.
 SWITCH_SETTLE_S = 0.25
 

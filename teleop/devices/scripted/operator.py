@@ -54,7 +54,7 @@ the held object in a ``carrying`` phase.
 
 Like a person, the operator sees what is in the way: at phase start a move whose straight
 line would enter a virtual obstacle's influence or cross the bin's walls gets waypoints
-over (or around) them (:mod:`teleop.devices.routing`), passed at cruising speed, the
+over (or around) them (:mod:`teleop.devices.scripted.routing`), passed at cruising speed, the
 phase's timeout lengthened by the detour. And it notices when the tool no longer comes
 closer though it pushes toward it (``STALL_WINDOW_S``): it gives up at once with an
 OUT_OF_REACH event and the reason (out of reach, or blocked by an obstacle) instead of
@@ -89,7 +89,7 @@ from teleop.core.config import (
     read_toml,
 )
 from teleop.core.ticks import hand_schedule, head_schedule, period_ticks
-from teleop.devices.routing import KeepOut, SceneKnowledge, plan_route, route_length_m
+from teleop.devices.scripted.routing import KeepOut, SceneKnowledge, plan_route, route_length_m
 from teleop.sim.proximity import BIN_BODY
 
 logger = logging.getLogger(__name__)

@@ -1,6 +1,6 @@
 """Gamepads and SpaceMice on Linux: finding one, opening it, reading intents, rumble.
 
-The adapter around teleop/devices/input_events.py's pure decoding: discovery through
+The adapter around teleop/devices/person/input_events.py's pure decoding: discovery through
 sysfs, the device node opened non-blocking, reads driven by ``poll`` with a timeout (no
 busy loop), and a gamepad's rumble through EVIOCSFF. Only the standard library: the
 kernel's ``input_event``, ``input_absinfo``, ``ff_effect`` and hidraw report formats are
@@ -45,7 +45,7 @@ from typing import Protocol
 from teleop.bus.messages import Button
 from teleop.core.clock import Clock, MonotonicClock
 from teleop.core.config import Config, GamepadConfig, SpaceMouseConfig
-from teleop.devices.input_events import (
+from teleop.devices.person.input_events import (
     ABS_MAX,
     ABS_NAMES,
     ABS_X,
@@ -74,7 +74,7 @@ from teleop.devices.input_events import (
     pack_event,
     pack_rumble_effect,
 )
-from teleop.devices.person import HandIntent
+from teleop.devices.person.intent import HandIntent
 
 DEV_ROOT = Path("/dev")
 SYS_ROOT = Path("/sys")

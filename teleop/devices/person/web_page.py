@@ -2,7 +2,7 @@
 page, its HTTP server and what it parses and sends. The bus side is services/web.py (the
 operator's place in the stack, :class:`PageOperator` here).
 
-The page (teleop/devices/web_page.html, one self-contained file read at start) is served on
+The page (teleop/devices/person/web_page.html, one self-contained file read at start) is served on
 127.0.0.1 only, at ``web.port``, by the standard library's HTTP server. Every request
 carries the run's token (``web.token_file``, written by the launcher: see
 teleop/run/web_operator.py): the page's URL has it in its query, and the page sends it in
@@ -36,7 +36,7 @@ Endpoints:
 The page sends its intent at once on a change and, while it asks for motion,
 ``web.input_rate_hz`` times a second; ``web.input_expiry_s`` after its newest input the
 motion falls back to none (:class:`PageIntent`), so a closed tab or a lost link stops the
-arm. The keys are those of the terminal (:data:`teleop.devices.person.DEFAULT_KEYS`);
+arm. The keys are those of the terminal (:data:`teleop.devices.person.intent.DEFAULT_KEYS`);
 the page holds a motion key's motion while the key is down (a browser reports releases).
 
 Threads: the HTTP server and its request threads run under normal scheduling, even where
@@ -71,7 +71,7 @@ from teleop.bus.messages import Button
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import Config, ConfigError
 from teleop.core.net import LOOPBACK
-from teleop.devices.person import (
+from teleop.devices.person.intent import (
     DOWN,
     KEY_HELP,
     LEFT,
@@ -84,7 +84,7 @@ from teleop.devices.person import (
     HandIntent,
     KeyAction,
 )
-from teleop.devices.person_loop import PHASES, WorldView
+from teleop.devices.person.loop import PHASES, WorldView
 
 logger = logging.getLogger(__name__)
 

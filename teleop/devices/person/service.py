@@ -1,4 +1,4 @@
-"""The bus adapter of a person's operator: :class:`teleop.devices.person_loop.PersonLoop`
+"""The bus adapter of a person's operator: :class:`teleop.devices.person.loop.PersonLoop`
 on the bus, the device left to a subclass (the services of services/keyboard.py,
 services/input_device.py and services/web.py).
 
@@ -33,10 +33,10 @@ from teleop.bus.service import Service
 from teleop.bus.session import RecordCallback, subscribe, subscribe_events
 from teleop.core.clock import NS_PER_S
 from teleop.core.ring import Ring
-from teleop.devices.person import HandIntent
-from teleop.devices.person_loop import PersonLoop, PersonStation
+from teleop.devices.person.intent import HandIntent
+from teleop.devices.person.loop import PersonLoop, PersonStation
 from teleop.devices.robot_outputs import RobotOutputs
-from teleop.devices.routing import SceneKnowledge
+from teleop.devices.scripted.routing import SceneKnowledge
 
 logger = logging.getLogger(__name__)
 
@@ -60,7 +60,7 @@ class PersonOperatorService(Service):
         scene = SceneKnowledge.from_config(cfg)
         lockstep = cfg.run.mode == "lockstep"
         # One task loop per robot, its outputs on that robot's keys; the station says
-        # which robot the hand drives (teleop.devices.person_loop.PersonStation).
+        # which robot the hand drives (teleop.devices.person.loop.PersonStation).
         loops = []
         for topics in self.robot_topics:
             outputs = RobotOutputs(self, topics, self.timestep_ns)
