@@ -607,10 +607,11 @@ class BilateralCycle(ControllerCore):
     def _head_yaw_rad(self, tick: int) -> float:
         """The HMD's predicted view yaw that applies at ``tick`` (config yaw before any)."""
         hmd = self.config.hmd
-        valid_from = self.head_schedule.valid_from_for(tick)
-        if valid_from is None:  # before the first HMD record can apply
+        if tick < self.head_schedule.lead_ticks:  # before the first HMD record can apply
             return hmd.head_yaw_rad
         if self.lockstep:
+            valid_from = self.head_schedule.valid_from_for(tick)
+            assert valid_from is not None
             rec = self.head_poses.wait_for(valid_from, HEAD_POSE_WAIT_S)
         else:  # the newest record: no need to know which one the schedule expects
             rec = self.head_poses.latest_at(tick)

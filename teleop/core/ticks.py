@@ -88,14 +88,10 @@ class SampleSchedule:
     lead_ticks: int
 
     @classmethod
-    def of(cls, rate_hz: float, tick_s: float, lead_ticks: int | None = None) -> SampleSchedule:
-        """The schedule at ``rate_hz``, leading by one of its periods unless told."""
-        lead = period_ticks(rate_hz, tick_s) if lead_ticks is None else lead_ticks
-        return cls(rate_hz, tick_s, lead)
-
-    @property
-    def tick_ns(self) -> int:
-        return round(self.tick_s * 1e9)
+    def of(cls, rate_hz: float, tick_s: float, lead: int | None = None) -> SampleSchedule:
+        """The schedule at ``rate_hz``, leading by ``lead`` ticks (default :func:`lead_ticks`:
+        one of its periods)."""
+        return cls(rate_hz, tick_s, lead_ticks(rate_hz, tick_s) if lead is None else lead)
 
     @property
     def lead_s(self) -> float:

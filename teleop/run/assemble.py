@@ -15,10 +15,11 @@ from teleop.bus.graph import EYEVIEW, PLANT
 from teleop.bus.service import read_summary
 from teleop.core.config import Config
 from teleop.core.criteria import judge_task
-from teleop.core.rundir import LOG_DIR, summary_path
+from teleop.core.rundir import LOG_DIR, idle_poll_status_path, summary_path
 from teleop.core.summary import CONTROLLER, GRASP, PATH, copied_fields
 from teleop.run.failure import RunError
 from teleop.run.fault_run import FaultRun
+from teleop.run.idle_poll import POLLING, read_status
 from teleop.run.run_watch import RunWatch
 from teleop.run.verdict import drop_lines, machine_section, realtime_health, refused_privileges
 
@@ -58,6 +59,15 @@ def dropped_by_receiver(
     return dropped_by
 
 
+def idle_poll_report(cpus: Sequence[int], run_dir: Path) -> dict[str, Any]:
+    """After a run: the CPUs whose poller polled, and why the others did not."""
+    statuses = {cpu: read_status(idle_poll_status_path(run_dir, cpu)) for cpu in cpus}
+    return {
+        "idle_poll_cpus": [cpu for cpu, status in statuses.items() if status == POLLING],
+        "idle_poll_failed": {cpu: s for cpu, s in statuses.items() if s != POLLING},
+    }
+
+
 def run_summary(
     config: Config,
     run_dir: Path,
@@ -66,11 +76,10 @@ def run_summary(
     watch: RunWatch,
     faults: FaultRun | None,
     polled_cpus: Sequence[int],
-    idle_poll: Mapping[str, Any],
     wall_s: float,
 ) -> dict[str, Any]:
-    """The run's summary (docs/running.md, the summary's fields); ``idle_poll``: which of
-    the ``polled_cpus`` the idle pollers kept polling (teleop.run.stack.idle_poll_report)."""
+    """The run's summary (docs/running.md, the summary's fields); ``polled_cpus``: the CPUs
+    the run asked idle pollers for."""
     specs = faults.specs if faults is not None else ()
     killed = frozenset(spec.service for spec in specs if spec.kind == "kill")
     summaries = service_summaries(run_dir, started, killed)
@@ -94,7 +103,8 @@ def run_summary(
         summary.update(sections[robot_ids[0]])
     else:
         summary.update(robots_verdict(config.run.scenario, sections))
-    machine = machine_section(summaries, polled_cpus, dict(idle_poll))
+    idle_poll = idle_poll_report(polled_cpus, run_dir)
+    machine = machine_section(summaries, polled_cpus, idle_poll)
     plant_summaries = [summaries.get(name, {}) for name in plants]
     summary.update(
         {

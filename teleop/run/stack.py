@@ -87,7 +87,6 @@ from teleop.run.faults import (
     parse_faults,
 )
 from teleop.run.foreground import Foreground, ForegroundExited
-from teleop.run.idle_poll import POLLING, read_status
 from teleop.run.outside import (
     DEFAULT_WITHOUT_TIMEOUT_S,
     OutsideMissing,
@@ -340,15 +339,6 @@ def idle_poll_programs(cpus: Sequence[int], run_dir: Path) -> list[Program]:
             )
         )
     return programs
-
-
-def idle_poll_report(cpus: Sequence[int], run_dir: Path) -> dict[str, Any]:
-    """After a run: the CPUs whose poller polled, and why the others did not."""
-    statuses = {cpu: read_status(idle_poll_status_path(run_dir, cpu)) for cpu in cpus}
-    return {
-        "idle_poll_cpus": [cpu for cpu, status in statuses.items() if status == POLLING],
-        "idle_poll_failed": {cpu: s for cpu, s in statuses.items() if s != POLLING},
-    }
 
 
 def _stderr(line: str) -> None:
@@ -608,11 +598,9 @@ def run_on_services(
             restarts_expected=restarts_expected,
         )  # fmt: skip
         wall_s = time.perf_counter() - wall_start
-    idle_poll = idle_poll_report(plan.polled_cpus, run_dir)
     return assemble.run_summary(
-        config, run_dir, layout.started, layout.outside, watch, faults,
-        plan.polled_cpus, idle_poll, wall_s,
-    )  # fmt: skip
+        config, run_dir, layout.started, layout.outside, watch, faults, plan.polled_cpus, wall_s
+    )
 
 
 def _refuse_run(config: Config, kills: Sequence[str], freezes: Sequence[str]) -> None:

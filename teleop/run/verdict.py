@@ -70,7 +70,7 @@ def machine_section(
 
     ``summaries``: the services' own summaries (their ``privileges`` and the eye view's
     ``shm_pool``); ``polled_cpus``: the CPUs the run asked to keep polling;
-    ``idle_poll``: :func:`teleop.run.stack.idle_poll_report` of them.
+    ``idle_poll``: :func:`teleop.run.assemble.idle_poll_report` of them.
     """
     eye_pool = summaries.get("eyeview", {}).get("shm_pool")
     idle_refused = {str(cpu): why for cpu, why in idle_poll.get("idle_poll_failed", {}).items()}

@@ -14,6 +14,7 @@ import pytest
 
 from teleop.core.config import load_config
 from teleop.core.rundir import idle_poll_status_path
+from teleop.run.assemble import idle_poll_report
 from teleop.run.idle_poll import (
     IDLE_CGROUP_NAME,
     POLLING,
@@ -26,7 +27,6 @@ from teleop.run.stack import (
     PRIORITY,
     idle_poll_cpus,
     idle_poll_programs,
-    idle_poll_report,
 )
 
 # Waits poll with a deadline; the deadline only bounds a failure.
