@@ -40,13 +40,18 @@ import secrets
 from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from teleop.bus import graph
 from teleop.bus.graph import ALIVE_TOKEN, PROTOCOL_TOKEN, READY_TOKEN, ROOT
 from teleop.bus.messages import PROTOCOL_VERSION
-from teleop.bus.tls import Issued, RunAuthority
 from teleop.core.config import OPERATOR_SITE
+
+# The certificates are made here, by a launcher; a service only reads its credentials
+# file. teleop.bus.tls brings the cryptography package (about 40 ms to import): it is
+# imported where a certificate is made, so that no service pays for it at each (re)start.
+if TYPE_CHECKING:
+    from teleop.bus.tls import Issued
 
 # The launcher's own session (teleop run): it consumes the streams the graph lists for
 # "launcher" and declares its tokens under this name.
@@ -238,6 +243,8 @@ def write_run_certificates(
     and private key per participant in ``directory`` (mode 0600 each; the authority's
     own key is never written), valid on loopback and at the participant's ``addresses``
     (a site's router); returns each participant's Zenoh TLS file settings."""
+    from teleop.bus.tls import RunAuthority
+
     authority = RunAuthority()
     write_private(directory / CA_FILE, authority.certificate_pem.decode())
     addresses = addresses or {}
@@ -324,6 +331,8 @@ def import_identities(directory: Path, exported: Mapping[str, Any]) -> dict[str,
     """Write the identities of :func:`export_identities` into ``directory`` (mode 0700,
     files 0600) as this host's credentials files; returns them by name. KeyError or
     ValueError on a malformed record."""
+    from teleop.bus.tls import Issued
+
     directory = _private_directory(directory)
     write_private(directory / CA_FILE, str(exported["ca_pem"]))
     files = {}

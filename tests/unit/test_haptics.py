@@ -31,6 +31,7 @@ from teleop.devices.haptic.device import (
     KalmanVelocityEstimator,
     LocalContactModel,
     max_stable_stiffness_n_per_m,
+    steady_state_gains,
 )
 from teleop.devices.haptic.loop import HAND_INPUT_WAIT_S, HapticLoop
 from teleop.devices.haptic.replay import ReplayDevice
@@ -127,6 +128,31 @@ def test_stability_bound_is_colgates():
 
 
 # --- velocity estimate ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("resolution_m", "accel_noise_m_s2", "dt_s"),
+    [(2e-5, 3.0, 0.001), (2e-5, 30.0, 0.001), (1e-4, 0.5, 0.004), (5e-6, 3.0, 0.0005)],
+)
+def test_steady_state_gains_are_filterpys_kalman_filter_converged(
+    resolution_m, accel_noise_m_s2, dt_s
+):
+    """The closed form equals the gain filterpy's KalmanFilter settles to on the model."""
+    from filterpy.common import Q_discrete_white_noise
+    from filterpy.kalman import KalmanFilter
+
+    kf = KalmanFilter(dim_x=2, dim_z=1)
+    kf.F = np.array([[1.0, dt_s], [0.0, 1.0]])
+    kf.H = np.array([[1.0, 0.0]])
+    kf.R = np.array([[resolution_m**2 / 12.0]])
+    kf.Q = Q_discrete_white_noise(dim=2, dt=dt_s, var=accel_noise_m_s2**2)
+    kf.P = np.diag([resolution_m**2, 1.0])
+    for _ in range(5000):
+        kf.predict()
+        kf.update(np.array([0.0]))
+    g, h = steady_state_gains(resolution_m, accel_noise_m_s2, dt_s)
+    assert g == pytest.approx(kf.K[0, 0], rel=1e-9)
+    assert h == pytest.approx(kf.K[1, 0] * dt_s, rel=1e-9)
 
 
 @pytest.mark.parametrize("speed_m_s", [0.0123, -0.05])

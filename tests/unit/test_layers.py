@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
+
+import pytest
 
 from teleop.layers import LAYERS, cycles, import_graph, layer_of, upward_imports
 
@@ -45,3 +49,26 @@ def test_no_service_imports_another():
         if imported.startswith("services.") and imported != module
     )
     assert crossing == []
+
+
+# Packages a service's process must not load: each costs tens to hundreds of ms of every
+# start, and a restarted loop service spends its start-up with the robot braked.
+# cryptography makes the run's certificates (the launcher's job); filterpy's kalman
+# package brings scipy.stats (about 0.4 s).
+NOT_IMPORTED_BY = {
+    "plant": ("cryptography", "filterpy", "scipy", "pinocchio", "rerun"),
+    "controller": ("cryptography", "filterpy", "rerun"),
+    "haptic": ("cryptography", "filterpy", "scipy", "mujoco", "pinocchio", "rerun"),
+    "hmd": ("cryptography", "mujoco", "pinocchio", "rerun"),
+    "operator": ("cryptography", "filterpy", "scipy", "pinocchio", "rerun"),
+    "eyeview": ("cryptography", "filterpy", "scipy", "pinocchio", "rerun"),
+}
+
+
+@pytest.mark.parametrize("service", sorted(NOT_IMPORTED_BY))
+def test_a_service_imports_only_what_it_uses(service: str):
+    code = f"import sys, services.{service}; print(' '.join(sorted(sys.modules)))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    loaded = {name.split(".")[0] for name in out.stdout.split()}
+    assert "zenoh" in loaded  # the probe itself works
+    assert sorted(loaded & set(NOT_IMPORTED_BY[service])) == []

@@ -27,18 +27,12 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from filterpy.common import Q_discrete_white_noise
-from filterpy.gh import GHFilter
-from filterpy.kalman import KalmanFilter
 
 from teleop.bus.messages import Button
 from teleop.core.config import HapticConfig
 
 N_AXES = 3  # a Falcon-like device: three translational degrees of freedom
 NS_PER_S = 1_000_000_000
-# Initial velocity standard deviation of the Kalman filter (m/s): a handle at rest or moved
-# by hand, well above any speed the 0.1 m workspace allows for long.
-KF_INITIAL_SPEED_STD_M_S = 0.5
 # Variance of a uniform quantisation error of step q is q^2 / 12.
 UNIFORM_QUANTISATION_VARIANCE_FACTOR = 1.0 / 12.0
 
@@ -143,99 +137,93 @@ class HapticDevice(abc.ABC):
         handle back at the centre, at rest; a real handle stays where the hand holds it)."""
 
 
+def steady_state_gains(
+    resolution_m: float, accel_noise_m_s2: float, dt_s: float
+) -> tuple[float, float]:
+    """The gains ``(g, h)`` the constant-velocity Kalman filter of
+    :class:`KalmanVelocityEstimator` converges to: ``g`` on the position, ``h`` on the
+    velocity times ``dt_s`` (an alpha-beta filter's alpha and beta).
+
+    The model: per axis, state ``[p, v]`` driven by white acceleration of standard deviation
+    ``accel_noise_m_s2`` held over each period (filterpy's ``Q_discrete_white_noise``), the
+    encoder position measured with quantisation noise of standard deviation
+    ``q / sqrt(12)``. Its steady state is known in closed form through the tracking index
+    ``lambda = sigma_a T^2 / sigma_w`` (Kalata, "The tracking index", IEEE Trans. AES 20(2),
+    1984; Bar-Shalom, Li and Kirubarajan, "Estimation with Applications to Tracking and
+    Navigation", 6.5)::
+
+        g = -(lambda^2 + 8 lambda - (lambda + 4) sqrt(lambda^2 + 8 lambda)) / 8
+        h = (lambda^2 + 4 lambda - lambda sqrt(lambda^2 + 8 lambda)) / 4
+
+    tests/unit/test_haptics.py checks them against filterpy's ``KalmanFilter`` run to
+    convergence on the same model.
+    """
+    if resolution_m <= 0 or accel_noise_m_s2 <= 0 or dt_s <= 0:
+        raise ValueError("resolution_m, accel_noise_m_s2 and dt_s must be > 0")
+    sigma_w = resolution_m * math.sqrt(UNIFORM_QUANTISATION_VARIANCE_FACTOR)
+    lam = accel_noise_m_s2 * dt_s * dt_s / sigma_w
+    root = math.sqrt(lam * lam + 8.0 * lam)
+    g = -(lam * lam + 8.0 * lam - (lam + 4.0) * root) / 8.0
+    h = (lam * lam + 4.0 * lam - lam * root) / 4.0
+    return g, h
+
+
 class KalmanVelocityEstimator:
-    """Velocity from quantised encoder positions: a filterpy constant-velocity Kalman filter.
+    """Velocity from quantised encoder positions: a constant-velocity Kalman filter at its
+    steady state (:func:`steady_state_gains`), one per axis.
 
-    State ``[px, py, pz, vx, vy, vz]`` (m, m/s), one independent constant-velocity model
-    per axis, driven by white acceleration of standard deviation ``accel_noise_m_s2``
-    (piecewise-constant over a period). The measurement is the encoder position with
-    quantisation noise of variance q^2 / 12 (q = ``resolution_m``). Finite differences of
-    quantised positions jump by q / T (20 mm/s at 20 um, 1 ms) whenever a count changes;
-    the filter averages those steps over its bandwidth instead.
-
+    Finite differences of quantised positions jump by q / T (20 mm/s at 20 um, 1 ms)
+    whenever a count changes; the filter averages those steps over its bandwidth instead.
     The tuning trades lag for noise through ``accel_noise_m_s2`` alone: with q = 20 um and
     T = 1 ms, 3 m/s^2 gives a velocity noise about 5x below finite differences and settles in
     about 15 ms; 30 m/s^2 trusts the encoder so much that it is *noisier* than finite
     differences (std 12.7 vs 9.7 mm/s for a slow constant motion).
 
-    Steady state: the model is time invariant, so after a reset the Kalman gain converges
-    (within about 100 updates) to a constant. From then on the update is exactly
-    filterpy's g-h filter with ``g = K_p`` and ``h = K_v T`` (all three axes at once),
-    which gives the same estimate as the Kalman update with the converged gain (to
-    ``GAIN_CONVERGED_RELATIVE``) for about a tenth of its cost: the Kalman update was
-    the haptic service's largest item at 1 kHz (about 100 us of a 1 ms period). A change
-    of ``dt_s`` or a reset goes back to the full filter until the gain settles again.
+    Why the steady state from the start, and not filterpy's ``KalmanFilter`` converging
+    to it: the model is time invariant, so the gain settles within about 100 updates
+    (0.1 s) of a reset, where the handle is at rest; and importing filterpy (its
+    ``kalman`` package brings scipy.stats) took half a second of the device's start-up,
+    which a restarted device spends with the robot braked. The update runs in Python
+    floats: a few microseconds at the 1 kHz servo rate.
     """
 
-    # Relative change of the gain between two updates below which it counts as converged.
-    GAIN_CONVERGED_RELATIVE = 1e-9
-
     def __init__(self, resolution_m: float, accel_noise_m_s2: float, dt_s: float) -> None:
-        if resolution_m <= 0 or accel_noise_m_s2 <= 0 or dt_s <= 0:
-            raise ValueError("resolution_m, accel_noise_m_s2 and dt_s must be > 0")
         self.resolution_m = resolution_m
         self.accel_noise_m_s2 = accel_noise_m_s2
-        self._kf = KalmanFilter(dim_x=2 * N_AXES, dim_z=N_AXES)
-        self._kf.H = np.hstack([np.eye(N_AXES), np.zeros((N_AXES, N_AXES))])
-        self._kf.R = np.eye(N_AXES) * (resolution_m**2 * UNIFORM_QUANTISATION_VARIANCE_FACTOR)
-        self._steady: GHFilter | None = None  # the converged filter, once the gain settled
         self._dt_s = 0.0
+        self._g = self._h = 0.0
         self._set_dt(dt_s)
+        self._p_m = [0.0] * N_AXES
+        self._v_m_s = [0.0] * N_AXES
         self.reset(np.zeros(N_AXES))
 
     def _set_dt(self, dt_s: float) -> None:
-        """Rebuild F and Q for a period of ``dt_s`` (only when it changes)."""
-        if dt_s == self._dt_s:
-            return
-        self._leave_steady_state()
-        self._dt_s = dt_s
-        eye = np.eye(N_AXES)
-        self._kf.F = np.block([[eye, dt_s * eye], [np.zeros((N_AXES, N_AXES)), eye]])
-        # order_by_dim=False: positions first, then velocities, matching the state layout.
-        self._kf.Q = Q_discrete_white_noise(
-            dim=2, dt=dt_s, var=self.accel_noise_m_s2**2, block_size=N_AXES, order_by_dim=False
-        )
+        """The gains for a period of ``dt_s`` (only when it changes)."""
+        if dt_s != self._dt_s:
+            self._g, self._h = steady_state_gains(self.resolution_m, self.accel_noise_m_s2, dt_s)
+            self._dt_s = dt_s
 
     def reset(self, p_m: np.ndarray) -> None:
-        """Restart at position ``p_m`` (3,), m, velocity unknown around zero."""
-        self._steady = None
-        self._kf.x = np.concatenate([np.asarray(p_m, dtype=np.float64), np.zeros(N_AXES)])
-        r = self.resolution_m**2 * UNIFORM_QUANTISATION_VARIANCE_FACTOR
-        self._kf.P = np.diag([r] * N_AXES + [KF_INITIAL_SPEED_STD_M_S**2] * N_AXES)
-        self._kf.K = np.zeros_like(self._kf.K)
+        """Restart at position ``p_m`` (3,), m, at rest."""
+        self._p_m = [float(x) for x in p_m]
+        self._v_m_s = [0.0] * N_AXES
 
     def update(self, p_measured_m: np.ndarray, dt_s: float) -> np.ndarray:
         """Predict over ``dt_s`` (s), correct with the encoder position (3,), m; velocity (3,)."""
         self._set_dt(dt_s)
-        z = np.asarray(p_measured_m, dtype=np.float64)
-        if self._steady is not None:
-            self._steady.update(z)
-            return self._steady.dx.copy()
-        gain_before = self._kf.K[0, 0], self._kf.K[N_AXES, 0]
-        self._kf.predict()
-        self._kf.update(z)
-        g, k_v = self._kf.K[0, 0], self._kf.K[N_AXES, 0]
-        if abs(g - gain_before[0]) <= self.GAIN_CONVERGED_RELATIVE * abs(g) and abs(
-            k_v - gain_before[1]
-        ) <= self.GAIN_CONVERGED_RELATIVE * abs(k_v):
-            x = self._kf.x
-            self._steady = GHFilter(
-                x=x[:N_AXES].copy(), dx=x[N_AXES:].copy(), dt=dt_s, g=g, h=k_v * dt_s
-            )
+        g, h_per_s = self._g, self._h / dt_s
+        p, v = self._p_m, self._v_m_s
+        for axis, z in enumerate(p_measured_m.tolist()):
+            predicted = p[axis] + v[axis] * dt_s
+            residual = z - predicted
+            p[axis] = predicted + g * residual
+            v[axis] += h_per_s * residual
         return self.velocity_m_s
-
-    def _leave_steady_state(self) -> None:
-        """Back to the full filter, from the g-h filter's state (the converged P stays)."""
-        if self._steady is not None:
-            self._kf.x = np.concatenate([self._steady.x, self._steady.dx])
-            self._steady = None
 
     @property
     def velocity_m_s(self) -> np.ndarray:
         """Current velocity estimate (3,), m/s (a copy)."""
-        if self._steady is not None:
-            return np.array(self._steady.dx, dtype=np.float64)
-        return np.array(self._kf.x[N_AXES:], dtype=np.float64)
+        return np.array(self._v_m_s, dtype=np.float64)
 
 
 class EmulatedDevice(HapticDevice):
