@@ -75,7 +75,7 @@ from teleop.control.teleop import (
 from teleop.control.wave import RobotWavePort
 from teleop.core.clock import Clock
 from teleop.core.config import Config
-from teleop.core.ticks import TickBarrier, TickedInputs, head_schedule, period_ticks
+from teleop.core.ticks import TickBarrier, TickedInputs, head_schedule, status_schedule
 from teleop.sim.proximity import ProximitySample, body_names
 
 # The path-following task keeps the gripper open (fraction of full opening).
@@ -108,7 +108,7 @@ class ControllerCore:
         self.outputs = outputs
         self.clock = clock
         self.timestep_s = config.tick_s
-        self.status_every_steps = period_ticks(config.control.status_rate_hz, self.timestep_s)
+        self.status = status_schedule(config)
         self._command = JOINT_COMMAND.new()
         self._lock = threading.Lock()  # the state gate: callbacks of several Zenoh threads
         # Held while a record of the last cycle is filled and sent, and while it is sent
@@ -257,7 +257,7 @@ class PathCycle(ControllerCore):
         self.metrics.add(sim_time_ns * 1e-9, output, commanded=not braked)
         if self.metrics.events:
             self.send_events(self.metrics.take_events(), int(state["step"]))
-        if int(state["step"]) % self.status_every_steps == 0:
+        if self.status.is_sample(int(state["step"])):
             self._send_status(output, sim_time_ns)
 
     def _send_status(self, output: ControlOutput, sim_time_ns: int) -> None:
@@ -473,7 +473,7 @@ class BilateralCycle(ControllerCore):
         deadline_ns = int(haptic["device_deadline_ns"])
         self.send_command(state, output.qd_ref_rad_s, gripper_cmd, trace, deadline_ns)
         self._last_output = output
-        if tick % self.status_every_steps == 0:
+        if self.status.is_sample(tick):
             self._send_status(tick, state, output, float(state["held_mass_kg"]) > 0)
 
     def feedback_half_cycle(self, state: np.ndarray) -> None:
@@ -651,7 +651,7 @@ class BilateralCycle(ControllerCore):
         self.send_command(state, output.qd_ref_rad_s, gripper_cmd, trace)
         self._measure(output, components, device_f_n, held_mass)
         self._watch(state, terms)
-        if tick % self.status_every_steps == 0:
+        if self.status.is_sample(tick):
             self._send_status(tick, state, output, held_mass > 0)
 
     # -- outputs ---------------------------------------------------------------------------

@@ -102,6 +102,12 @@ class SampleSchedule:
         """``duration_s`` in whole ticks (rounded)."""
         return round(duration_s / self.tick_s)
 
+    @property
+    def gap_ticks(self) -> int:
+        """The most ticks from one sample to the next: a rate that does not divide the bus
+        rate samples at uneven gaps (100 Hz on 250 Hz ticks: every 2 or 3 ticks)."""
+        return max(1, math.ceil(1.0 / (self.rate_hz * self.tick_s) - _EPS))
+
     def is_sample(self, tick: int) -> bool:
         return is_sample_tick(tick, self.rate_hz, self.tick_s)
 
@@ -121,6 +127,18 @@ def hand_schedule(config: Config) -> SampleSchedule:
     ``operator.decision_rate_hz``, each input valid one of its periods later; the haptic
     device takes the one valid at its tick."""
     return SampleSchedule.of(config.operator.decision_rate_hz, config.tick_s)
+
+
+def scene_schedule(config: Config) -> SampleSchedule:
+    """TOOL_POSE's and OBJECT_POSES' schedule: the plant sends them on the sample ticks of
+    ``plant.scene_rate_hz``, exactly that many a second, valid as soon as they are sent."""
+    return SampleSchedule.of(config.plant.scene_rate_hz, config.tick_s, 0)
+
+
+def status_schedule(config: Config) -> SampleSchedule:
+    """CONTROL_STATUS's and TELEOP_STATUS's schedule: the controller sends them on the
+    sample ticks of ``control.status_rate_hz``."""
+    return SampleSchedule.of(config.control.status_rate_hz, config.tick_s, 0)
 
 
 def head_schedule(config: Config) -> SampleSchedule:

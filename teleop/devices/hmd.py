@@ -26,7 +26,7 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 
 from teleop.core.config import SCRIPTED, Config, ConfigError, HmdConfig
-from teleop.core.ticks import head_schedule, period_ticks
+from teleop.core.ticks import head_schedule, scene_schedule
 
 # Head pitch nod of the scripted motion: amplitude (rad, about 3 degrees) and its period
 # as a fraction of hmd.motion_period_s (a nod twice per yaw sway).
@@ -385,11 +385,11 @@ class HmdLoop:
     """
 
     def __init__(self, config: Config) -> None:
-        scene_period_ticks = period_ticks(config.plant.scene_rate_hz, config.tick_s)
-        if head_schedule(config).lead_ticks < scene_period_ticks:
+        scene_gap_ticks = scene_schedule(config).gap_ticks
+        if head_schedule(config).lead_ticks < scene_gap_ticks:
             raise ConfigError(
                 f"hmd.prediction_s ({config.hmd.prediction_s} s) must be at least one "
-                f"scene period (1 / plant.scene_rate_hz = {scene_period_ticks} ticks)"
+                f"scene period (1 / plant.scene_rate_hz: up to {scene_gap_ticks} ticks)"
             )
         self.emulator = HmdEmulator(config)
         self._last_tick = -1

@@ -51,7 +51,7 @@ from teleop.bus.messages import (
 from teleop.bus.stamps import Inbound
 from teleop.core.clock import NS_PER_S, Clock
 from teleop.core.config import Config
-from teleop.core.ticks import period_ticks
+from teleop.core.ticks import scene_schedule
 from teleop.sim.checkpoint import (
     FRESH_HEADER,
     SLOT_COMMAND_SEQ,
@@ -263,11 +263,11 @@ class PlantStepCore:
         plant_cfg = config.plant
         self.plant = Plant(config)
         self.period_ns = self.plant.tick_ns  # one step of the core: one bus period
-        self.scene_every_steps = period_ticks(plant_cfg.scene_rate_hz, config.tick_s)
+        self.scene = scene_schedule(config)
         # Contact and obstacle proximity feed the force feedback of teleoperation every tick;
         # otherwise only the recorder reads them, at the scene rate (computing them costs
         # the plant a contact scan and a narrow-phase distance query per step).
-        self.interaction_every_steps = 1 if config.run.teleoperated else self.scene_every_steps
+        self.interaction_every_tick = config.run.teleoperated
         self.watchdog = Watchdog(round(plant_cfg.watchdog_s * NS_PER_S), self.period_ns)
         self.proximity = ObstacleProximity(self.plant.model, self.plant.data, config.robot)
         self._fingers = finger_bodies(self.plant.model, config.robot)
@@ -594,7 +594,7 @@ class PlantStepCore:
         Not in lockstep, where the state's send would wait behind it."""
         step = self.plant.step_count + 1
         self.plant.prepare_step()
-        if step % self.interaction_every_steps == 0:
+        if self.interaction_every_tick or self.scene.is_sample(step):
             self._closest = (step, self.proximity.closest())
 
     # -- publishing ----------------------------------------------------------------------
@@ -637,7 +637,7 @@ class PlantStepCore:
         rec["gripper_opening_m"] = sample.gripper_opening_m
         rec["peak_contact_force_n"] = self.plant.tick_peak_contact_force_n
         grasp_event = None
-        if sample.step % self.interaction_every_steps == 0:
+        if self.interaction_every_tick or self.scene.is_sample(sample.step):
             grasp_event = self._sample_interaction(sample.step)
         if command is not None:
             rec["cmd_seq_applied"] = command["seq"]
@@ -659,7 +659,7 @@ class PlantStepCore:
             self.save_checkpoint(now_ns)
         if grasp_event is not None:
             self.publish_event(grasp_event, float(max(int(rec["held_body"]), 0)))
-        if sample.step % self.scene_every_steps == 0:
+        if self.scene.is_sample(sample.step):
             self._publish_scene(sample.sim_time_ns, now_ns)
         figures = self.figures
         plant = self.plant

@@ -252,11 +252,11 @@ def test_lockstep_steps_only_on_the_answer_to_the_pending_state():
 
 def test_lockstep_re_sends_the_states_in_flight_byte_for_byte():
     pacer, out, clock = started("plant.lockstep_delay_steps=1")
-    every = pacer.core.scene_every_steps
+    scene_ticks = pacer.core.scene
 
     def tick_streams(tick: int) -> list[str]:
         """A tick's records: its state, then its scene on the scene ticks."""
-        scene = ["tool_pose", "objects"] if tick % every == 0 else []
+        scene = ["tool_pose", "objects"] if scene_ticks.is_sample(tick) else []
         return ["plant_state", *scene]
 
     def sent() -> set[tuple[str, bytes]]:
@@ -266,7 +266,7 @@ def test_lockstep_re_sends_the_states_in_flight_byte_for_byte():
             for rec in out.records.get(stream, [])
         }
 
-    assert every > 1  # state 1 has no scene of its own
+    assert not scene_ticks.is_sample(1)  # state 1 has no scene of its own
     pacer.core.publish_event(Event.GRASP, 1.0)
     pacer.republish_pending()
     # States 0 and 1 are in flight, state 0 with its tick's scene; no event is re-sent.

@@ -116,11 +116,28 @@ def test_a_command_held_over_several_steps_is_counted_and_traced_once():
     assert out.records["plant_state"][-1]["trace_ns"][Stage.PLANT_RX] == clock.now_ns()
 
 
+@pytest.mark.parametrize("scene_rate_hz", [100.0, 125.0, 60.0])
+def test_the_scene_goes_out_at_its_rate_exactly_whether_or_not_it_divides_the_bus_rate(
+    scene_rate_hz,
+):
+    core, out, clock = make_core(f"plant.scene_rate_hz={scene_rate_hz}")
+    ticks_per_s = round(1.0 / core.config.tick_s)
+    sent_before = len(out.records["tool_pose"])
+    for _ in range(ticks_per_s):
+        clock.advance(core.period_ns)
+        core.step(None, 0)
+    poses = out.records["tool_pose"][sent_before:]
+    assert len(poses) == round(scene_rate_hz)
+    assert len(out.records["objects"]) == len(out.records["tool_pose"])
+    gaps = np.diff([int(p["sim_time_ns"]) for p in poses]) / core.period_ns
+    assert gaps.max() == core.scene.gap_ticks
+
+
 def test_a_tool_pose_says_whether_the_plant_braked_since_the_one_before():
     """TOOL_POSE comes at the scene rate; its BRAKING flag covers every step since the
     previous one, so an operator watching the tool knows it was held."""
     core, out, clock = make_core()
-    every = core.scene_every_steps
+    every = core.scene.gap_ticks
     for _ in range(every):  # no command yet: every step brakes
         clock.advance(PERIOD_NS)
         assert not core.step(None, 0)

@@ -88,7 +88,7 @@ from teleop.core.config import (
     build,
     read_toml,
 )
-from teleop.core.ticks import hand_schedule, head_schedule, period_ticks
+from teleop.core.ticks import hand_schedule, head_schedule, scene_schedule
 from teleop.devices.scripted.routing import KeepOut, SceneKnowledge, plan_route, route_length_m
 from teleop.sim.proximity import BIN_BODY
 
@@ -1071,7 +1071,7 @@ class ScriptedLoop:
         # for a decision period from a decision period ahead, and poses come every scene
         # period), with a scene period to spare. A pose further ahead means the run went
         # on without this operator (a restart, or the device gave up waiting for it).
-        scene_ticks = period_ticks(config.plant.scene_rate_hz, self.tick_s)
+        scene_ticks = scene_schedule(config).gap_ticks
         self.lockstep_lag_ticks = 3 * self.hand_schedule.lead_ticks + 2 * scene_ticks
         self.delay_ticks = round(config.operator.reaction_delay_s / self.tick_s)
         self.head_schedule = head_schedule(config)
