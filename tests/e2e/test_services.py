@@ -29,6 +29,7 @@ from teleop.bus.topics import Topics
 from teleop.core.config import load_config
 from teleop.core.net import LoopbackPorts
 from teleop.core.summary import summary_problems
+from teleop.core.ticks import scene_schedule
 from teleop.run.experiments import run_path_following_inprocess
 from teleop.run.stack import peer_mesh, service_programs
 from teleop.run.supervise import Stack
@@ -83,14 +84,14 @@ def test_lockstep_is_deterministic_and_equals_the_inprocess_run(tmp_path):
     # Outside teleoperation the plant computes contact and proximity at the scene rate
     # only: the recording has them for those states alone, at their own sim times.
     config = load_config()
-    every = round(1 / (config.plant.scene_rate_hz * config.tick_s))
+    scene = scene_schedule(config)
     timestep_ns = round(config.tick_s * 1e9)
     q_entity = ent.joint_entity(ent.ENTITY_JOINT_Q, config.robot.arm_joints[0])
     data = Recording(first["rrd"]).lists((ent.ENTITY_OBSTACLE_DISTANCE, q_entity))
     state_sims = set(data[q_entity][ent.TIMELINE_SIM])
     sims = data[ent.ENTITY_OBSTACLE_DISTANCE][ent.TIMELINE_SIM]
-    assert set(sims) == {t for t in state_sims if t // timestep_ns % every == 0}
-    assert len(set(sims)) >= first["steps"] // every
+    assert set(sims) == {t for t in state_sims if scene.is_sample(t // timestep_ns)}
+    assert len(set(sims)) >= first["steps"] * config.plant.scene_rate_hz * config.tick_s - 1
 
 
 @pytest.mark.parametrize("delay_steps", [0, 2])
