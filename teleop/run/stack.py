@@ -133,6 +133,10 @@ ALIVE_POLL_S = 0.5
 LOCKSTEP_TIMEOUT_FACTOR = 20.0
 REALTIME_TIMEOUT_FACTOR = 2.0
 RUN_TIMEOUT_SLACK_S = 30.0
+# The launcher reads the run's sim time for its progress lines (every ALIVE_POLL_S) from
+# the tool pose: this many a second are plenty, and its session drops the rest
+# (Zenoh's ingress downsampling) before they cost it a Python callback each.
+PROGRESS_TOOL_POSE_HZ = 10.0
 
 
 def scenario_services(config: Config) -> tuple[str, ...]:
@@ -629,7 +633,8 @@ def _launcher_session(
         gossip=False,
         credentials_file=str(credentials[LAUNCHER]) if credentials else "",
     )
-    session = open_session(bus, listen=True)
+    progress_rate = {robot.tool_pose: PROGRESS_TOOL_POSE_HZ for robot in watch.robots}
+    session = open_session(bus, listen=True, ingress_rate_hz=progress_rate)
     entities: list[Any] = []
     try:
         if faults is not None:
