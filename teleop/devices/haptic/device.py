@@ -51,11 +51,16 @@ def max_stable_stiffness_n_per_m(config: HapticConfig, period_s: float) -> float
 
 def saturate_force(force_n: np.ndarray, peak_n: float) -> np.ndarray:
     """``force_n`` (3,) scaled down to norm ``peak_n`` if above it (direction kept)."""
-    force = np.asarray(force_n, dtype=np.float64)
-    norm = math.hypot(*force.tolist())  # np.linalg.norm costs ~3 us at this size
+    return np.array(saturated_xyz(np.asarray(force_n, dtype=np.float64).tolist(), peak_n))
+
+
+def saturated_xyz(force_n: list[float], peak_n: float) -> list[float]:
+    """:func:`saturate_force` on Python floats (the servo period's own form)."""
+    norm = math.hypot(*force_n)  # np.linalg.norm costs ~3 us at this size
     if norm > peak_n:
-        return force * (peak_n / norm)
-    return force.copy()
+        scale = peak_n / norm
+        return [f * scale for f in force_n]
+    return list(force_n)
 
 
 @dataclass(frozen=True)
@@ -257,11 +262,15 @@ class EmulatedDevice(HapticDevice):
         self._estimator = KalmanVelocityEstimator(
             config.encoder_resolution_m, config.kf_accel_noise_m_s2, period_s
         )
-        self._p_m = np.zeros(N_AXES)
-        self._v_m_s = np.zeros(N_AXES)
-        self._f_command_n = np.zeros(N_AXES)
-        self._f_rendered_n = np.zeros(N_AXES)
-        self._p_encoder_m = np.zeros(N_AXES)
+        # The state as Python floats, one per axis: the servo period runs a few dozen
+        # operations on 3-vectors, each cheaper on floats than a numpy call (and the
+        # same IEEE operations in the same order: the same results). numpy at the
+        # interface only (send_force, read).
+        self._p_m = [0.0] * N_AXES
+        self._v_m_s = [0.0] * N_AXES
+        self._f_command_n = [0.0] * N_AXES
+        self._f_rendered_n = [0.0] * N_AXES
+        self._p_encoder_m = [0.0] * N_AXES
         self._v_estimate_m_s = np.zeros(N_AXES)
         self._buttons = Button.NONE
         self.connected = False
@@ -269,14 +278,14 @@ class EmulatedDevice(HapticDevice):
 
     def reset(self) -> None:
         """Handle at the centre, at rest, no force, no buttons; velocity filter restarted."""
-        self._p_m[:] = 0.0
-        self._v_m_s[:] = 0.0
-        self._f_command_n[:] = 0.0
-        self._f_rendered_n[:] = 0.0
-        self._p_encoder_m[:] = 0.0
-        self._v_estimate_m_s[:] = 0.0
+        self._p_m = [0.0] * N_AXES
+        self._v_m_s = [0.0] * N_AXES
+        self._f_command_n = [0.0] * N_AXES
+        self._f_rendered_n = [0.0] * N_AXES
+        self._p_encoder_m = [0.0] * N_AXES
+        self._v_estimate_m_s = np.zeros(N_AXES)
         self._buttons = Button.NONE
-        self._estimator.reset(self._p_encoder_m)
+        self._estimator.reset(np.zeros(N_AXES))
 
     # -- HapticDevice ------------------------------------------------------------------
     def connect(self) -> None:
@@ -285,19 +294,19 @@ class EmulatedDevice(HapticDevice):
 
     def disconnect(self) -> None:
         """Nothing to release in an emulator; zero the force as a driver would."""
-        self._f_command_n[:] = 0.0
+        self._f_command_n = [0.0] * N_AXES
         self.connected = False
 
     def send_force(self, force_n: np.ndarray) -> None:
         """Set the force for the next :meth:`step`, saturated to ``peak_force_n`` in norm."""
-        self._f_command_n = saturate_force(force_n, self.config.peak_force_n)
+        self._f_command_n = saturated_xyz(force_n.tolist(), self.config.peak_force_n)
 
     def read(self) -> DeviceSample:
         """Encoder position (quantised), Kalman velocity, last rendered force, buttons."""
         return DeviceSample(
-            p_m=self._p_encoder_m.copy(),
+            p_m=np.array(self._p_encoder_m),
             v_m_s=self._v_estimate_m_s.copy(),
-            f_n=self._f_rendered_n.copy(),
+            f_n=np.array(self._f_rendered_n),
             buttons=self._buttons,
         )
 
@@ -323,37 +332,42 @@ class EmulatedDevice(HapticDevice):
         force and its own damping). ``buttons``: what the hand holds pressed.
         """
         c = self.config
-        p, v = self._p_m, self._v_m_s
-        force = self._f_command_n.copy()
+        force = self._f_command_n
         damping = c.damping_n_s_per_m
         if hand_target_p_m is not None:
-            target = np.asarray(hand_target_p_m, dtype=np.float64)
-            force += c.hand_stiffness_n_per_m * (target - p)
+            k = c.hand_stiffness_n_per_m
+            targets = hand_target_p_m.tolist()
+            force = [f + k * (t - x) for f, t, x in zip(force, targets, self._p_m, strict=True)]
             damping += c.hand_damping_n_s_per_m
         m = c.handle_mass_kg
-        v_new = (v + dt_s / m * force) / (1.0 + dt_s * damping / m)
-        p_new = p + dt_s * v_new
-        half = c.workspace_half_m
-        high, low = p_new > half, p_new < -half
-        p_new[high], p_new[low] = half, -half
-        v_new[high & (v_new > 0)] = 0.0
-        v_new[low & (v_new < 0)] = 0.0
+        gain, divisor = dt_s / m, 1.0 + dt_s * damping / m
+        half, q = c.workspace_half_m, c.encoder_resolution_m
+        p_new, v_new, encoder = [], [], []
+        for p, v, f in zip(self._p_m, self._v_m_s, force, strict=True):
+            v = (v + gain * f) / divisor
+            p = p + dt_s * v
+            if p > half:
+                p, v = half, min(v, 0.0)  # the end stop: no speed into it
+            elif p < -half:
+                p, v = -half, max(v, 0.0)
+            p_new.append(p)
+            v_new.append(v)
+            encoder.append(q * round(p / q))
         self._p_m, self._v_m_s = p_new, v_new
-        self._f_rendered_n = self._f_command_n.copy()
+        self._f_rendered_n = self._f_command_n
         self._buttons = Button(buttons)
-        q = c.encoder_resolution_m
-        self._p_encoder_m = q * np.round(p_new / q)
-        self._v_estimate_m_s = self._estimator.update(self._p_encoder_m, dt_s)
+        self._p_encoder_m = encoder
+        self._v_estimate_m_s = self._estimator.update(np.array(encoder), dt_s)
 
     @property
     def true_p_m(self) -> np.ndarray:
         """Exact handle position (3,), m (emulator only: tests and diagnostics)."""
-        return self._p_m.copy()
+        return np.array(self._p_m)
 
     @property
     def true_v_m_s(self) -> np.ndarray:
         """Exact handle velocity (3,), m/s (emulator only)."""
-        return self._v_m_s.copy()
+        return np.array(self._v_m_s)
 
 
 @dataclass(frozen=True)
@@ -407,22 +421,24 @@ class ForceSlew:
         if max_rate_n_per_s <= 0 or period_s <= 0:
             raise ValueError("max_rate_n_per_s and period_s must be > 0")
         self.max_step_n = max_rate_n_per_s * period_s
-        self._last_n = np.zeros(N_AXES)
+        self._last_n = [0.0] * N_AXES  # Python floats: cheaper than numpy at this size
         self.limited_steps = 0  # servo periods whose force change was cut
 
     def reset(self) -> None:
-        self._last_n = np.zeros(N_AXES)
+        self._last_n = [0.0] * N_AXES
 
     def limit(self, force_n: np.ndarray) -> np.ndarray:
         """``force_n`` (3,), N, moved from the last one by at most the step (direction of
         the change kept)."""
-        change = np.asarray(force_n, dtype=np.float64) - self._last_n
-        size = math.hypot(*change.tolist())
+        last = self._last_n
+        change = [f - x for f, x in zip(force_n.tolist(), last, strict=True)]
+        size = math.hypot(*change)
         if size > self.max_step_n:
-            change = change * (self.max_step_n / size)
+            scale = self.max_step_n / size
+            change = [d * scale for d in change]
             self.limited_steps += 1
-        self._last_n = self._last_n + change
-        return self._last_n.copy()
+        self._last_n = [x + d for x, d in zip(last, change, strict=True)]
+        return np.array(self._last_n)
 
 
 # Local models FeedbackHold keeps by arrival time: the device's renders of one bus period

@@ -55,22 +55,24 @@ class PassivityControl:
         self.dissipated_j = 0.0  # by the controller's damping
         self.active_steps = 0  # steps the controller damped
         self.correction_max_n = 0.0  # the largest force the controller took out
-        self._velocity = np.zeros(3)
-        self._axis_j = np.zeros(3)  # W of each device axis (their sum: observed_j)
+        self._velocity = [0.0] * 3
+        self._axis_j = [0.0] * 3  # W of each device axis (their sum: observed_j)
 
     def observe(self, rendered_f_n: np.ndarray, v_m_s: np.ndarray) -> None:
         """One device period: the force the motors rendered during it and the handle's
         velocity at its end."""
-        axis_j = -np.asarray(rendered_f_n, dtype=np.float64) * v_m_s * self.dt_s
-        energy_j = float(axis_j.sum())  # into the environment
+        # Python floats: cheaper than numpy at this size, every servo period.
+        dt_s, velocity = self.dt_s, v_m_s.tolist()
+        axis_j = [-f * v * dt_s for f, v in zip(rendered_f_n.tolist(), velocity, strict=True)]
+        energy_j = axis_j[0] + axis_j[1] + axis_j[2]  # into the environment
         if energy_j >= 0:
             self.energy_in_j += energy_j
         else:
             self.energy_out_j -= energy_j
-        self._axis_j += axis_j
+        self._axis_j = [w + a for w, a in zip(self._axis_j, axis_j, strict=True)]
         self.observed_j += energy_j
         self.observer_min_j = min(self.observer_min_j, self.observed_j)
-        self._velocity = np.asarray(v_m_s, dtype=np.float64)
+        self._velocity = velocity
 
     def control(self, force_n: np.ndarray) -> np.ndarray:
         """The force to render instead of ``force_n``: unchanged unless enabled and an
