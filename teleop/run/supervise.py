@@ -70,6 +70,14 @@ KILL_GRACE_S = 2.0
 RESIGNAL_S = 5.0
 # Poll interval while waiting for start-up or shutdown (not a control loop), s.
 POLL_INTERVAL_S = 0.02
+# supervisord notices that a program exited at its main loop's next turn, and a SIGCHLD
+# does not bring that turn on (Python resumes its poll after the signal handler): alone,
+# its loop turns once a second, and each step of a shutdown (a priority group stopped,
+# the next one signalled, its own exit) waits for a turn. While it shuts down, the stop
+# asks it for its state this often: each request is a turn (what exited is reaped).
+SHUTDOWN_NUDGE_S = 0.05
+# Socket timeout of one such request: a supervisord too busy to answer is left alone, s.
+NUDGE_TIMEOUT_S = 0.5
 # Socket timeout of one XML-RPC call; stopProcess(wait=True) may take up to STOP_WAIT_S, s.
 RPC_TIMEOUT_S = STOP_WAIT_S + 5.0
 # How much of a program's log an error message quotes, bytes.
@@ -396,11 +404,12 @@ class Stack:
         # The host part is ignored by the unix transport; it only has to parse as a URL.
         return xmlrpc.client.ServerProxy("http://localhost", transport=transport)
 
-    def _answers(self) -> bool:
+    def _answers(self, timeout_s: float = RPC_TIMEOUT_S) -> bool:
         if not self.socket_path.exists():
             return False
         try:
-            with self._rpc() as rpc:
+            transport = _UnixTransport(self.socket_path, timeout_s)
+            with xmlrpc.client.ServerProxy("http://localhost", transport=transport) as rpc:
                 rpc.supervisor.getState()
         except (OSError, xmlrpc.client.Error, http.client.HTTPException):
             return False
@@ -526,7 +535,7 @@ class Stack:
         deadline = time.monotonic() + timeout_s
         while True:
             left_s = deadline - time.monotonic()
-            if self._wait_gone(pid, min(RESIGNAL_S, max(left_s, 0.0))):
+            if self._wait_gone(pid, min(RESIGNAL_S, max(left_s, 0.0)), nudge=True):
                 return True
             if left_s <= RESIGNAL_S:
                 return False
@@ -534,17 +543,24 @@ class Stack:
                 with contextlib.suppress(ProcessLookupError):
                     os.killpg(pgid, signal.SIGINT)
 
-    def _wait_gone(self, pid: int, timeout_s: float) -> bool:
-        """Wait until ``pid`` has exited (reaped or zombie); True if it did within the time."""
+    def _wait_gone(self, pid: int, timeout_s: float, *, nudge: bool = False) -> bool:
+        """Wait until ``pid`` has exited (reaped or zombie); True if it did within the time.
+        ``nudge``: ``pid`` is supervisord shutting down; ask it for its state every
+        :data:`SHUTDOWN_NUDGE_S` meanwhile, so that its loop turns."""
         deadline = time.monotonic() + timeout_s
+        nudged = 0.0
         while True:
             if self._proc is not None and self._proc.pid == pid:
                 if self._proc.poll() is not None:
                     return True
             elif not _pid_alive(pid):
                 return True
-            if time.monotonic() >= deadline:
+            now = time.monotonic()
+            if now >= deadline:
                 return False
+            if nudge and now - nudged >= SHUTDOWN_NUDGE_S:
+                nudged = now
+                self._answers(NUDGE_TIMEOUT_S)
             time.sleep(POLL_INTERVAL_S)
 
     def _signal_own_group(self, pid: int, signum: int) -> None:
