@@ -262,22 +262,15 @@ class EmulatedDevice(HapticDevice):
         self._estimator = KalmanVelocityEstimator(
             config.encoder_resolution_m, config.kf_accel_noise_m_s2, period_s
         )
-        # The state as Python floats, one per axis: the servo period runs a few dozen
-        # operations on 3-vectors, each cheaper on floats than a numpy call (and the
-        # same IEEE operations in the same order: the same results). numpy at the
-        # interface only (send_force, read).
-        self._p_m = [0.0] * N_AXES
-        self._v_m_s = [0.0] * N_AXES
-        self._f_command_n = [0.0] * N_AXES
-        self._f_rendered_n = [0.0] * N_AXES
-        self._p_encoder_m = [0.0] * N_AXES
-        self._v_estimate_m_s = np.zeros(N_AXES)
-        self._buttons = Button.NONE
         self.connected = False
         self.reset()
 
     def reset(self) -> None:
         """Handle at the centre, at rest, no force, no buttons; velocity filter restarted."""
+        # The state as Python floats, one per axis: the servo period runs a few dozen
+        # operations on 3-vectors, each cheaper on floats than a numpy call (and the
+        # same IEEE operations in the same order: the same results). numpy at the
+        # interface only (send_force, read).
         self._p_m = [0.0] * N_AXES
         self._v_m_s = [0.0] * N_AXES
         self._f_command_n = [0.0] * N_AXES
