@@ -36,7 +36,7 @@ import mujoco
 import numpy as np
 import pinocchio as pin
 
-from teleop.control.kinematics import ArmModel
+from teleop.control.kinematics import ArmModel, point_jacobian_along
 from teleop.core.config import ClearanceConfig, Config, ModelError
 from teleop.sim.contact import finger_bodies
 from teleop.sim.proximity import apply_scene_overrides, arm_collision_geoms
@@ -416,19 +416,9 @@ def approach_row(arm: ArmModel, pair: ClearancePair) -> np.ndarray:
 
     j = n^T J_arm(p_arm) - n^T J_other(p_other), the second term for SELF pairs only
     (a scene point does not move)."""
-    row = _point_row(arm, pair.arm_frame, pair.world_p_arm_m, pair.world_n_away)
+    row = point_jacobian_along(arm, pair.arm_frame, pair.world_p_arm_m, pair.world_n_away)
     if pair.other_frame >= 0:
-        row = row - _point_row(arm, pair.other_frame, pair.world_p_other_m, pair.world_n_away)
+        row = row - point_jacobian_along(
+            arm, pair.other_frame, pair.world_p_other_m, pair.world_n_away
+        )
     return row
-
-
-def _point_row(arm: ArmModel, frame: int, world_p_m: np.ndarray, world_n: np.ndarray) -> np.ndarray:
-    """n^T of the velocity of the point ``world_p_m`` rigidly attached to ``frame``:
-    n^T Jv - (n x r)^T Jw with r from the frame's origin to the point."""
-    jacobian = pin.getFrameJacobian(
-        arm.model, arm.data, frame, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
-    )
-    origin = pin.updateFramePlacement(arm.model, arm.data, frame).translation
-    r = world_p_m - origin
-    n = world_n
-    return np.concatenate((n, -np.cross(n, r))) @ jacobian

@@ -260,3 +260,26 @@ def joint_space_dynamics(
     mass, bias = mass_matrix_and_bias(arm, q_rad, qd_rad_s)
     gravity = pin.computeGeneralizedGravity(arm.model, arm.data, q_rad).copy()
     return np.array(mass), np.array(bias) - gravity, gravity
+
+
+def point_jacobian_along(
+    arm: ArmModel, frame_id: int, world_p_m: np.ndarray, world_n: np.ndarray
+) -> np.ndarray:
+    """Row (n,) mapping joint rates to the speed (m/s) of a point along a direction.
+
+    The point ``world_p_m`` is rigidly attached to the Pinocchio frame ``frame_id``; its
+    velocity is the frame's v_o + w x r with r = p - o, so along the unit ``world_n``
+    it is n^T Jv - (n x r)^T Jw. Reads the joint Jacobians that
+    :func:`tool_pose_and_jacobian` (or :func:`tool_position_and_jacobian`)
+    left in ``arm.data``: call it first, at the same q. Updates the frame's placement.
+    """
+    frame_jacobian = pin.getFrameJacobian(
+        arm.model, arm.data, frame_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+    )
+    px, py, pz = np.asarray(world_p_m, dtype=float).tolist()
+    ox, oy, oz = pin.updateFramePlacement(arm.model, arm.data, frame_id).translation.tolist()
+    rx, ry, rz = px - ox, py - oy, pz - oz
+    nx, ny, nz = np.asarray(world_n, dtype=float).tolist()
+    # One (6,) row times the (6, n) Jacobian: [n, -(n x r)] . [Jv; Jw].
+    row = (nx, ny, nz, nz * ry - ny * rz, nx * rz - nz * rx, ny * rx - nx * ry)
+    return np.array(row) @ frame_jacobian

@@ -53,7 +53,12 @@ import pinocchio as pin
 from scipy.linalg import lapack
 
 from teleop.control.clearance import Clearance, ClearanceModel, PairKind, close_pairs
-from teleop.control.kinematics import ArmModel, tool_jacobian, tool_pose_and_jacobian
+from teleop.control.kinematics import (
+    ArmModel,
+    point_jacobian_along,
+    tool_jacobian,
+    tool_pose_and_jacobian,
+)
 from teleop.control.path import (
     CompensationTerms,
     clearance_push,
@@ -267,29 +272,6 @@ def _damped_gram_factor_solve(factor: np.ndarray, rhs: np.ndarray) -> np.ndarray
     if info != 0:
         raise np.linalg.LinAlgError(f"dpotrs failed (info {info})")
     return solution
-
-
-def point_jacobian_along(
-    arm: ArmModel, frame_id: int, world_p_m: np.ndarray, world_n: np.ndarray
-) -> np.ndarray:
-    """Row (n,) mapping joint rates to the speed (m/s) of a point along a direction.
-
-    The point ``world_p_m`` is rigidly attached to the Pinocchio frame ``frame_id``; its
-    velocity is the frame's v_o + w x r with r = p - o, so along the unit ``world_n``
-    it is n^T Jv - (n x r)^T Jw. Reads the joint Jacobians that
-    :func:`teleop.control.kinematics.tool_pose_and_jacobian` (or ``tool_position_and_jacobian``)
-    left in ``arm.data``: call it first, at the same q. Updates the frame's placement.
-    """
-    frame_jacobian = pin.getFrameJacobian(
-        arm.model, arm.data, frame_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
-    )
-    px, py, pz = np.asarray(world_p_m, dtype=float).tolist()
-    ox, oy, oz = pin.updateFramePlacement(arm.model, arm.data, frame_id).translation.tolist()
-    rx, ry, rz = px - ox, py - oy, pz - oz
-    nx, ny, nz = np.asarray(world_n, dtype=float).tolist()
-    # One (6,) row times the (6, n) Jacobian: [n, -(n x r)] . [Jv; Jw].
-    row = (nx, ny, nz, nz * ry - ny * rz, nx * rz - nz * rx, ny * rx - nx * ry)
-    return np.array(row) @ frame_jacobian
 
 
 def approach_down_orientation(world_r_tool: np.ndarray) -> np.ndarray:

@@ -16,7 +16,12 @@ import pinocchio as pin
 import pytest
 from scipy.linalg import lapack
 
-from teleop.control.kinematics import ArmModel, build_arm_model, tool_position_and_jacobian
+from teleop.control.kinematics import (
+    ArmModel,
+    build_arm_model,
+    point_jacobian_along,
+    tool_position_and_jacobian,
+)
 from teleop.control.rate import rate_command, teleop_reference, view_to_world
 from teleop.control.teleop import (
     SINGULAR_DAMPING,
@@ -27,7 +32,6 @@ from teleop.control.teleop import (
     _damped_gram_factor_solve,
     damped_least_squares,
     joint_limit_scale,
-    point_jacobian_along,
     position_condition_number,
     singularity_scale,
 )
