@@ -44,13 +44,13 @@ import mujoco
 import numpy as np
 import pinocchio as pin
 
+from teleop.control.desired_path import DesiredPath
 from teleop.control.kinematics import (
     ArmModel,
     build_arm_model,
     manipulability,
     tool_pose_and_jacobian,
 )
-from teleop.control.path import DesiredPath
 from teleop.control.teleop import (
     CONTINUOUS_LIMIT_RAD,
     approach_down_orientation,

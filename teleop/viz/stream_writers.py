@@ -30,7 +30,7 @@ import rerun as rr
 
 from teleop.bus.messages import DropCounter, Event, Kind, Stage
 from teleop.bus.stamps import SeqGaps
-from teleop.control.path import DesiredPath
+from teleop.control.desired_path import DesiredPath
 from teleop.control.rate import view_to_world
 from teleop.core.config import Config
 from teleop.sim.stepping import Abort

@@ -62,6 +62,7 @@ NOT_IMPORTED_BY = {
     "hmd": ("cryptography", "mujoco", "pinocchio", "rerun"),
     "operator": ("cryptography", "filterpy", "scipy", "pinocchio", "rerun"),
     "eyeview": ("cryptography", "filterpy", "scipy", "pinocchio", "rerun"),
+    "recorder": ("cryptography", "filterpy", "scipy", "pinocchio"),
 }
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from teleop.control.path import DesiredPath
+from teleop.control.desired_path import DesiredPath
 from teleop.core.config import load_config
 from teleop.run.experiments import run_path_following_inprocess
 from tests.conftest import ARM7_OVERRIDES
