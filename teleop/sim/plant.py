@@ -29,6 +29,9 @@ from teleop.sim.proximity import apply_scene_overrides
 # Hold mode of the drives (the "brake"): stiffness of the position hold, per second.
 # q'_ref = HOLD_GAIN_PER_S (q_hold - q) + gravity / kv keeps the arm where it stopped.
 HOLD_GAIN_PER_S = 20.0
+# The contact force while nothing touches the gripper (most steps), shared: read-only.
+_NO_FORCE_N = np.zeros(3)
+_NO_FORCE_N.flags.writeable = False
 
 
 def _as_slice(index: np.ndarray) -> slice | np.ndarray:
@@ -189,6 +192,7 @@ class Plant:
         # judges): the net contact force on the gripper (N, world), its contacts, the part
         # of that force from everything but the free objects (the scene, the arm), and
         # the tool point's speed (m/s).
+        self._site_velocity = np.zeros(6)  # tool_speed_m_s's buffer
         self.contact_force_n = np.zeros(3)
         self.n_contacts = 0
         self.scene_contact_force_n = np.zeros(3)
@@ -538,6 +542,8 @@ class Plant:
         contacts = self._gripper_contacts
         if contacts is None:  # no step since reset: the contacts of mj_forward
             contacts = self._find_gripper_contacts()
+        if not any(contact.active for contact in contacts):  # most steps: nothing touches
+            return _NO_FORCE_N, 0, _NO_FORCE_N
         total, scene = np.zeros(3), np.zeros(3)
         wrench = np.zeros(6)
         touching = 0
@@ -593,7 +599,7 @@ class Plant:
 
     def tool_speed_m_s(self) -> float:
         """Linear speed of the tool point (m/s), from MuJoCo's own site velocity."""
-        velocity = np.zeros(6)  # [angular, linear] in the world frame
+        velocity = self._site_velocity  # [angular, linear] in the world frame, overwritten
         mujoco.mj_objectVelocity(
             self.model, self.data, mujoco.mjtObj.mjOBJ_SITE, self.tool_site, velocity, 0
         )
