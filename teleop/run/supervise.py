@@ -398,9 +398,9 @@ class Stack:
             raise StackError(f"no running stack in {stack.run_dir}")
         return stack
 
-    def _rpc(self) -> xmlrpc.client.ServerProxy:
+    def _rpc(self, timeout_s: float = RPC_TIMEOUT_S) -> xmlrpc.client.ServerProxy:
         """A fresh XML-RPC proxy (a new connection each time: no state left by an interrupt)."""
-        transport = _UnixTransport(self.socket_path, RPC_TIMEOUT_S)
+        transport = _UnixTransport(self.socket_path, timeout_s)
         # The host part is ignored by the unix transport; it only has to parse as a URL.
         return xmlrpc.client.ServerProxy("http://localhost", transport=transport)
 
@@ -408,8 +408,7 @@ class Stack:
         if not self.socket_path.exists():
             return False
         try:
-            transport = _UnixTransport(self.socket_path, timeout_s)
-            with xmlrpc.client.ServerProxy("http://localhost", transport=transport) as rpc:
+            with self._rpc(timeout_s) as rpc:
                 rpc.supervisor.getState()
         except (OSError, xmlrpc.client.Error, http.client.HTTPException):
             return False

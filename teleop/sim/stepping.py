@@ -586,6 +586,10 @@ class PlantStepCore:
             self.plant.step_before_commands()
         self.publish_state(None, 0, 0)
 
+    def interacts_at(self, step: int) -> bool:
+        """Whether the state of ``step`` carries contact and proximity (computed for it)."""
+        return self.interaction_every_tick or self.scene.is_sample(step)
+
     def prepare_next_step(self) -> None:
         """While the command is on its way (realtime): the control-free half of the next
         physics step (:meth:`Plant.prepare_step`) and, when that step's state carries them,
@@ -594,7 +598,7 @@ class PlantStepCore:
         Not in lockstep, where the state's send would wait behind it."""
         step = self.plant.step_count + 1
         self.plant.prepare_step()
-        if self.interaction_every_tick or self.scene.is_sample(step):
+        if self.interacts_at(step):
             self._closest = (step, self.proximity.closest())
 
     # -- publishing ----------------------------------------------------------------------
@@ -637,7 +641,7 @@ class PlantStepCore:
         rec["gripper_opening_m"] = sample.gripper_opening_m
         rec["peak_contact_force_n"] = self.plant.tick_peak_contact_force_n
         grasp_event = None
-        if self.interaction_every_tick or self.scene.is_sample(sample.step):
+        if self.interacts_at(sample.step):
             grasp_event = self._sample_interaction(sample.step)
         if command is not None:
             rec["cmd_seq_applied"] = command["seq"]

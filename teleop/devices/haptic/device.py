@@ -24,6 +24,7 @@ from __future__ import annotations
 import abc
 import collections
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -213,12 +214,13 @@ class KalmanVelocityEstimator:
         self._p_m = [float(x) for x in p_m]
         self._v_m_s = [0.0] * N_AXES
 
-    def update(self, p_measured_m: np.ndarray, dt_s: float) -> np.ndarray:
-        """Predict over ``dt_s`` (s), correct with the encoder position (3,), m; velocity (3,)."""
+    def update(self, p_measured_m: Sequence[float], dt_s: float) -> np.ndarray:
+        """Predict over ``dt_s`` (s), correct with the encoder position (3 floats or an
+        array), m; velocity (3,)."""
         self._set_dt(dt_s)
         g, h_per_s = self._g, self._h / dt_s
         p, v = self._p_m, self._v_m_s
-        for axis, z in enumerate(p_measured_m.tolist()):
+        for axis, z in enumerate(map(float, p_measured_m)):
             predicted = p[axis] + v[axis] * dt_s
             residual = z - predicted
             p[axis] = predicted + g * residual
@@ -350,7 +352,7 @@ class EmulatedDevice(HapticDevice):
         self._f_rendered_n = self._f_command_n
         self._buttons = Button(buttons)
         self._p_encoder_m = encoder
-        self._v_estimate_m_s = self._estimator.update(np.array(encoder), dt_s)
+        self._v_estimate_m_s = self._estimator.update(encoder, dt_s)
 
     @property
     def true_p_m(self) -> np.ndarray:
