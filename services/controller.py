@@ -70,6 +70,9 @@ class ControllerService(Service):
         if stream == "force_feedback" and self.feedback_batch is not None:
             self.feedback_batch.add(data)
 
+    def resend(self, stream: str, rec: np.ndarray) -> None:
+        self.publishers[stream].put(rec)
+
     # -- lifecycle -----------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
         stop.wait()  # every cycle runs in the bus callbacks

@@ -96,6 +96,12 @@ class ControllerOutputs(Protocol):
         teleop_status (teleop.bus.graph)."""
         ...
 
+    def resend(self, stream: str, rec: np.ndarray) -> None:
+        """Send ``rec`` on ``stream`` again, unchanged, for a plant that re-sent its state:
+        to the loop's receivers only (the observers' copy has it already, and a recording
+        would hold it twice)."""
+        ...
+
 
 class ControllerCore:
     """What both tasks share: which states start a cycle, the command, the counters."""
@@ -163,7 +169,7 @@ class ControllerCore:
     def resend_last(self) -> None:
         """Send the last JOINT_COMMAND again, unchanged (same seq)."""
         with self._out_lock:
-            self.outputs.put("joint_command", self._command)
+            self.outputs.resend("joint_command", self._command)
 
     def reset(self) -> None:
         """A new run: the task forgets its state."""
@@ -705,7 +711,7 @@ class BilateralCycle(ControllerCore):
         tick waits for: only the feedback's re-send unblocks the loop."""
         if self.lockstep and self.feedback_count > 0:
             with self._out_lock:
-                self.outputs.put("force_feedback", self._feedback)
+                self.outputs.resend("force_feedback", self._feedback)
         super().resend_last()
 
     def _measure(

@@ -33,9 +33,14 @@ class Sent:
 
     def __init__(self) -> None:
         self.log: list[tuple[str, np.ndarray]] = []
+        self.resent: list[str] = []  # the streams of the records sent again
 
     def put(self, stream: str, rec: np.ndarray) -> None:
         self.log.append((stream, rec.copy()))
+
+    def resend(self, stream: str, rec: np.ndarray) -> None:
+        self.log.append((stream, rec.copy()))
+        self.resent.append(stream)
 
     def streams(self) -> list[str]:
         return [stream for stream, _ in self.log]
@@ -132,6 +137,7 @@ def test_the_path_cycle_answers_each_state_once_and_restarts_on_a_new_run():
     assert [int(c["state_seq"]) for c in commands] == [0, 1, 1, 3]
     assert [int(c["seq"]) for c in commands] == [1, 2, 2, 3]
     assert cycle.commands_resent == 1
+    assert sent.resent == ["joint_command"]  # to the plant only, not the recorder's copy
     assert cycle.skipped_states == 1 and cycle.runs == 1
     assert "control_status" in sent.streams()  # step 0 is a status step
     cycle.on_state(state(config, 0, now, start_ns=2), now)  # state 0 of a new run
@@ -381,6 +387,9 @@ class Wire:
 
     def put_bytes(self, stream: str, data: bytes) -> None:
         """A lockstep re-send: the test delivers every record once, so none is needed."""
+
+    def resend(self, stream: str, rec: np.ndarray) -> None:
+        """The controller's lockstep re-send: likewise none needed."""
 
     def flush(self) -> None:
         """Nothing is batched here."""
