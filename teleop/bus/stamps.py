@@ -9,6 +9,7 @@ at the end of an hour as at the start.
 
 from __future__ import annotations
 
+import collections
 import logging
 from pathlib import Path
 
@@ -51,9 +52,113 @@ RESYNC_RECORDS = 3
 # Runs of rejected records in order tracked at once: junk between a restarted producer's
 # records starts runs of its own, which evict the shortest, never a longer one.
 MAX_RESYNC_RUNS = 4
-# A record stamped more than this far in this host's future did not come from a clock of
-# this host: rejected (it would otherwise never be judged stale).
+# A link's fastest delivery is learnt over this much of the receiver's time: long enough
+# that a backlog lasting seconds still shows as age, short enough that clocks drifting
+# apart (tens of ppm) move it by well under a shed age.
+LINK_CLOCK_WINDOW_NS = 10_000_000_000
+# ... in this many slices, each keeping its fastest record (the window slides by one).
+LINK_CLOCK_SLICES = 10
+# A record that arrived this much faster than the link's fastest delivery is stamped in
+# the future of the clock learnt: refused.
 FUTURE_STAMP_TOLERANCE_NS = 1_000_000
+# A record this much slower than the link's fastest delivery is far behind the clock
+# learnt (judged old). RESYNC_RECORDS records in a row off the clock learnt, either way,
+# are a sender's new clock (a restart on another host): the link learns it afresh.
+CLOCK_STEP_LIMIT_NS = 1_000_000_000
+
+
+class LinkClock:
+    """A sender's clock as one receiver sees it: how long a record has been on its way.
+
+    Sender and receiver each stamp with their own monotonic clock (two hosts, or two time
+    namespaces, never share one), so a stamp alone says nothing on this host. What does:
+    ``delay = arrival - send stamp`` is the clocks' offset plus the record's time on its
+    way, and its least over :data:`LINK_CLOCK_WINDOW_NS` (as NTP's clock filter keeps its
+    best samples) is the offset plus the link's fastest delivery: ``offset_ns``.
+    :meth:`age_ns` is a record's time beyond that fastest delivery, on this host's clock:
+    the queueing a receiver that is behind adds, never the link's own latency.
+
+    The first :data:`RESYNC_RECORDS` records set ``offset_ns`` by their median (their
+    ages are 0 meanwhile), so that no single record does. After that a record that
+    arrived faster than ``offset_ns`` allows (by more than
+    :data:`FUTURE_STAMP_TOLERANCE_NS`) is stamped in the sender's future and refused;
+    one slower by more than :data:`CLOCK_STEP_LIMIT_NS` is old, as its age says; and
+    :data:`RESYNC_RECORDS` records in a row off the clock either way are learnt afresh
+    from (``relearnt``): the sender's new clock (a restart on another host), or a link
+    faster than its first records showed (they came through a busy start). So a
+    single record, whatever its stamp, neither makes the sender's next records look old
+    nor an old one fresh. Not thread-safe: its owner calls it under its own lock;
+    ``offset_ns`` may be read from any thread.
+    """
+
+    def __init__(
+        self, window_ns: int = LINK_CLOCK_WINDOW_NS, step_limit_ns: int = CLOCK_STEP_LIMIT_NS
+    ) -> None:
+        self.slice_ns = max(1, window_ns // LINK_CLOCK_SLICES)
+        self.step_limit_ns = step_limit_ns
+        self._slices: collections.deque[list[int]] = collections.deque()  # [index, least]
+        self._first: list[int] = []  # delays of the records off the clock learnt (or before)
+        self._offset_ns: int | None = None  # kept apart: any thread may read it
+        self.refused = 0  # records stamped in the sender's future
+        self.relearnt = 0  # times the link learnt its clock afresh
+
+    @property
+    def offset_ns(self) -> int | None:
+        """The clocks' offset plus the link's fastest delivery: the least (arrival - send
+        stamp) in the window (None: not learnt yet)."""
+        return self._offset_ns
+
+    def observe(self, stamp_ns: int, rx_ns: int) -> bool:
+        """Learn from a record sent at ``stamp_ns`` (sender's clock) that arrived at
+        ``rx_ns`` (this host's); False if it is refused, stamped in the sender's future."""
+        delay_ns = rx_ns - stamp_ns
+        offset_ns = self._offset_ns
+        faster = offset_ns is not None and offset_ns - delay_ns > FUTURE_STAMP_TOLERANCE_NS
+        if offset_ns is None or faster or delay_ns - offset_ns > self.step_limit_ns:
+            self._first.append(delay_ns)
+            if len(self._first) < RESYNC_RECORDS:
+                if faster:
+                    self.refused += 1
+                    return False
+                return True  # old (its age says so), or while the clock is not learnt
+            if offset_ns is not None:
+                self.relearnt += 1
+            self._slices.clear()
+            delay_ns = sorted(self._first)[len(self._first) // 2]
+        self._first.clear()
+        self._learn(delay_ns, rx_ns // self.slice_ns)
+        return True
+
+    def _learn(self, delay_ns: int, index: int) -> None:
+        slices = self._slices
+        if slices and slices[-1][0] == index:
+            if delay_ns < slices[-1][1]:
+                slices[-1][1] = delay_ns
+            if self._offset_ns is not None and delay_ns >= self._offset_ns:
+                return
+        else:
+            slices.append([index, delay_ns])
+            while slices[0][0] <= index - LINK_CLOCK_SLICES:
+                slices.popleft()
+        self._offset_ns = min(least for _, least in slices)
+
+    def age_ns(self, stamp_ns: int, now_ns: int) -> int:
+        """How much longer than the link's fastest delivery the record sent at
+        ``stamp_ns`` has been on its way at ``now_ns`` (0 while the clock is not learnt)."""
+        offset_ns = self._offset_ns
+        return 0 if offset_ns is None else now_ns - stamp_ns - offset_ns
+
+    def local_ns(self, stamp_ns: int) -> int:
+        """``stamp_ns`` of the sender's clock on this host's clock, as the link's fastest
+        delivery would have brought it (``stamp_ns`` itself while not learnt)."""
+        offset_ns = self._offset_ns
+        return stamp_ns if offset_ns is None else stamp_ns + offset_ns
+
+    def reset(self) -> None:
+        """Forget the sender's clock (it started over, perhaps on another host)."""
+        self._slices.clear()
+        self._first.clear()
+        self._offset_ns = None
 
 
 class SeqCheck:
@@ -90,13 +195,7 @@ class SeqCheck:
             self.reordered += 1
         else:
             self.jumps += 1
-        extends = [last for last in self._runs if last < seq <= last + SEQ_WINDOW]
-        length = 1
-        if extends:
-            newest = max(extends)
-            length = self._runs.pop(newest) + 1
-        elif len(self._runs) >= MAX_RESYNC_RUNS:
-            del self._runs[min(self._runs, key=self._runs.__getitem__)]  # shortest, oldest
+        length = self._join_run(seq)
         if length < RESYNC_RECORDS:
             self._runs[seq] = length
             return False
@@ -104,6 +203,24 @@ class SeqCheck:
         self.last_seq = seq
         self._runs.clear()
         return True
+
+    def refused(self, seq: int) -> None:
+        """A record refused before this check (for its stamp) joins the runs of rejected
+        records, uncounted here and never taken: a producer whose records look wrong after
+        one hostile record (a seq and a clock it set) is taken up as soon as it would be
+        for its seqs alone."""
+        if self.last_seq < 0 or not self.last_seq < seq <= self.last_seq + SEQ_WINDOW:
+            self._runs[seq] = self._join_run(seq)
+
+    def _join_run(self, seq: int) -> int:
+        """The length of the run of rejected records ``seq`` extends (1: a new run, the
+        shortest dropped if too many), taken out of the runs."""
+        extends = [last for last in self._runs if last < seq <= last + SEQ_WINDOW]
+        if extends:
+            return self._runs.pop(max(extends)) + 1
+        if len(self._runs) >= MAX_RESYNC_RUNS:
+            del self._runs[min(self._runs, key=self._runs.__getitem__)]  # shortest, oldest
+        return 1
 
     def restart(self) -> None:
         """The producer starts over (a new run): the next seq is not a gap."""
@@ -166,11 +283,12 @@ class Inbound:
     """Receiver-side bookkeeping of one realtime input stream, in one place.
 
     The checks every realtime receiver makes, in this order: the record's send stamp
-    (taken at ``tx_stage`` on this host's monotonic clock) is not in this host's future
-    (``future_stamp``: rejected, the seq check untouched); its seq is in order
-    (:class:`SeqCheck`: gaps counted as lost, older ones as reordered, jumps beyond the
-    window rejected, a restarted producer taken up); and it is not older than
-    ``shed_age_ns`` (else it is shed: the receiver is behind; it did arrive, so the next
+    (taken at ``tx_stage`` on the sender's monotonic clock) is not in the sender's future
+    as this link has seen its clock (:class:`LinkClock`; ``future_stamp``: rejected, the
+    seq check untouched); its seq is in order (:class:`SeqCheck`: gaps counted as lost,
+    older ones as reordered, jumps beyond the window rejected, a restarted producer taken
+    up); and it is not older than ``shed_age_ns`` beyond the link's fastest delivery, on
+    this host's clock (else it is shed: the receiver is behind; it did arrive, so the next
     record is no gap). What is shed (here or by the caller, e.g.
     superseded by a newer record) has the HAPTIC_SAMPLE stamp of its loop logged, for the
     latency report's count of loops that never closed. The first rejection of each
@@ -188,6 +306,7 @@ class Inbound:
         self.shed_age_ns = shed_age_ns
         self.name = name or tx_stage.name  # for the log lines
         self.seq = SeqCheck()
+        self.clock = LinkClock()
         self.shed = 0  # records dropped unanswered: too old, or superseded (see drop)
         self.future_stamps = 0
         # HAPTIC_SAMPLE stamps of the loops dropped here (one log may serve several streams
@@ -199,17 +318,30 @@ class Inbound:
         """True if ``rec`` is to be used: not stamped in the future, in order and (with
         ``shed``) not older than the shed age at ``now_ns``. A stale record is counted in
         ``shed`` and logged."""
-        stamp_ns = int(rec["trace_ns"][self.tx_stage])
-        if stamp_ns > now_ns + FUTURE_STAMP_TOLERANCE_NS:
-            self.future_stamps += 1
-            self._log_once("future_stamp", stamp_ns - now_ns)
+        if not self.arrived(rec, now_ns):
+            self.seq.refused(int(rec["seq"]))
             return False
         if not self.accept_seq(int(rec["seq"])):
             return False
-        if shed and now_ns - stamp_ns > self.shed_age_ns:
+        if shed and self.too_old(rec, now_ns):
             self.drop(rec)  # arrived, in order, too late: shed, not lost
             return False
         return True
+
+    def arrived(self, rec: np.ndarray, rx_ns: int) -> bool:
+        """The clock check alone: fold the record's send stamp into the link's clock;
+        False (counted, logged once) if it is stamped in the sender's future."""
+        stamp_ns = int(rec["trace_ns"][self.tx_stage])
+        if self.clock.observe(stamp_ns, rx_ns):
+            return True
+        self.future_stamps += 1
+        self._log_once("future_stamp", self.clock.local_ns(stamp_ns) - rx_ns)
+        return False
+
+    def age_ns(self, rec: np.ndarray, now_ns: int) -> int:
+        """How long ``rec`` has been on its way at ``now_ns`` beyond the link's fastest
+        delivery (this host's clock; :class:`LinkClock`)."""
+        return self.clock.age_ns(int(rec["trace_ns"][self.tx_stage]), now_ns)
 
     def accept_seq(self, seq: int) -> bool:
         """The sequence check alone (:class:`SeqCheck`), its first rejection of each kind
@@ -241,8 +373,9 @@ class Inbound:
         self.log_dropped(rec)
 
     def too_old(self, rec: np.ndarray, now_ns: int) -> bool:
-        """Whether ``rec`` left its sender more than ``shed_age_ns`` before ``now_ns``."""
-        return now_ns - int(rec["trace_ns"][self.tx_stage]) > self.shed_age_ns
+        """Whether ``rec`` has been on its way more than ``shed_age_ns`` beyond the link's
+        fastest delivery at ``now_ns``."""
+        return self.age_ns(rec, now_ns) > self.shed_age_ns
 
     def log_dropped(self, rec: np.ndarray) -> None:
         """Log the HAPTIC_SAMPLE stamp of a record dropped for whatever reason (none
@@ -252,8 +385,10 @@ class Inbound:
             self.shed_log.append((sample_ns,))
 
     def restart(self) -> None:
-        """The producer starts over (a new run): its next seq is not a gap."""
+        """The producer starts over (a new run, perhaps on another host): its next seq is
+        not a gap, its clock is learnt afresh."""
         self.seq.restart()
+        self.clock.reset()
 
     def counts(self) -> dict[str, int]:
         """Every counter of the stream, by name (for a summary)."""

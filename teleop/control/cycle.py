@@ -401,6 +401,9 @@ class BilateralCycle(ControllerCore):
             self.barrier.put("state", int(state["seq"]), state)
         else:
             state["trace_ns"][Stage.CONTROLLER_STATE_RX] = rx_ns
+            with self._rt_lock:
+                if not self.state_in.arrived(state, rx_ns):
+                    return
             self.states(state, rx_ns)
             self._dispatch("state", state)
 
@@ -416,7 +419,7 @@ class BilateralCycle(ControllerCore):
         (each stream comes once per bus period), so no thread loops forever under overload.
         """
         with self._rt_lock:
-            if kind == "haptic" and not self.haptic_in.accept_seq(int(item[0]["seq"])):
+            if kind == "haptic" and not self.haptic_in.accept(*item, shed=False):
                 return
             older = self._pending.pop(kind, None)
             if older is not None:
@@ -462,7 +465,7 @@ class BilateralCycle(ControllerCore):
         state = latest_state[0]
         tick = int(state["seq"])
         t0 = self.clock.now_ns()
-        if t0 - int(state["trace_ns"][Stage.PLANT_STATE_TX]) > self.state_silent_ns:
+        if self.state_in.age_ns(state, t0) > self.state_silent_ns:
             self.plant_silent_samples += 1  # the plant went silent: command no motion
             with self._rt_lock:  # the sample goes unanswered: shed, not vanished
                 self._drop("haptic", (haptic, rx_ns))

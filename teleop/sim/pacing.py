@@ -8,7 +8,8 @@ step, publish, checkpoint) and keeps its own state under its own lock:
   step applies the newest command.
 - :class:`DeviceClockPacer`, realtime teleoperation with ``plant.apply_on_arrival``:
   each command enters a step the moment it arrives, in the Zenoh callback; the steps
-  follow the haptic device's clock, one per device period (:class:`DeviceClockGrid`; the
+  follow the haptic device's periods, one per device period, counted on the device's
+  clock and placed on the plant's by the commands' arrivals (:class:`DeviceClockGrid`; the
   device samples once per bus period, ``loop.rate_hz``: a device period is a tick), so
   a command never waits for the plant's tick, and a period without a command is stepped
   with the last one.
@@ -31,6 +32,7 @@ import numpy as np
 
 from teleop.bus.messages import Stage
 from teleop.bus.session import Latest
+from teleop.bus.stamps import LinkClock
 from teleop.core.clock import NS_PER_S, Clock, LoopTimer
 from teleop.core.config import LOCKSTEP_RESEND_S, Config
 from teleop.core.ring import Ring
@@ -140,9 +142,10 @@ RELOCK_PERIODS = 1000
 
 
 class DeviceClockGrid:
-    """The realtime plant's steps on the haptic device's clock (times in ns, monotonic).
+    """The realtime plant's steps on the haptic device's periods (times in ns of the
+    device's monotonic clock).
 
-    The device samples the handle on absolute deadlines ``t0 + k * period`` of the host's
+    The device samples the handle on absolute deadlines ``t0 + k * period`` of its own
     monotonic clock, and each teleoperation command carries the deadline of the period
     whose sample it answers (``device_deadline_ns``). The plant takes exactly one step
     per device period, as a fieldbus slave follows the master's distributed clock:
@@ -155,8 +158,11 @@ class DeviceClockGrid:
     window, sim time stays on the device's clock (no drift either way), and the plant
     still keeps wall-clock time when no command comes at all.
 
-    Before the first command the grid runs from ``start_ns``; :meth:`lock` puts the
-    next step on the first command's period. Pure arithmetic, no clock of its own.
+    Before the first command the grid runs from ``start_ns`` (the plant's clock, no
+    device's known yet); :meth:`lock` puts the next step on the first command's period.
+    Pure arithmetic, no clock of its own: the pacer places the device's periods on the
+    plant's clock (:class:`teleop.bus.stamps.LinkClock`, where the fastest command would
+    have brought them) only to time its own steps, as two hosts share no clock.
     """
 
     def __init__(self, period_ns: int, start_ns: int) -> None:
@@ -219,6 +225,8 @@ class DeviceClockPacer:
         self.core = core
         self.cond = threading.Condition()  # the run thread and the command callback
         self.grid: DeviceClockGrid | None = None  # from the run's start (:meth:`begin`)
+        # The device's clock as the commands' deadlines and arrivals show it.
+        self.device_clock = LinkClock()
         self.counts = ArrivalCounts()
         self._running = False  # commands step the plant (between begin and the run's end)
         self._held_command: np.ndarray | None = None  # the newest applied, for own steps
@@ -250,6 +258,7 @@ class DeviceClockPacer:
         new device clock grid. The caller holds ``cond``, or is a test or benchmark
         driving the pacer directly."""
         self.grid = DeviceClockGrid(self.core.period_ns, self.core.clock.now_ns())
+        self.device_clock.reset()
         self._held_command = None
         self.core.restart_commands()
         self._running = True
@@ -257,14 +266,14 @@ class DeviceClockPacer:
     def own_step_due(self, now_ns: int) -> int:
         """Nanoseconds until the run thread steps the next period itself (<= 0: now)."""
         assert self.grid is not None
-        return self.grid.own_step_ns - now_ns
+        return self.device_clock.local_ns(self.grid.own_step_ns) - now_ns
 
     def own_step(self, now_ns: int) -> None:
         """Step the next device period without a new command; after a stall, skip the
         periods beyond the catch-up instead of bursting through them."""
         grid = self.grid
         assert grid is not None
-        behind = (now_ns - grid.own_step_ns) // self.core.period_ns
+        behind = (now_ns - self.device_clock.local_ns(grid.own_step_ns)) // self.core.period_ns
         if behind > CATCH_UP_MAX_PERIODS:
             self.counts.stalls += 1
             grid.skip(int(behind) - CATCH_UP_MAX_PERIODS)
@@ -280,9 +289,12 @@ class DeviceClockPacer:
             deadline_ns = int(command["device_deadline_ns"])
             ahead = 0  # a command not paced by a device steps the next period
             if deadline_ns > 0:
-                if not grid.locked or abs(grid.periods_ahead(deadline_ns)) > RELOCK_PERIODS:
-                    grid.lock(deadline_ns)
-                ahead = grid.periods_ahead(deadline_ns)
+                if self.device_clock.observe(deadline_ns, rx_ns):
+                    if not grid.locked or abs(grid.periods_ahead(deadline_ns)) > RELOCK_PERIODS:
+                        grid.lock(deadline_ns)
+                    ahead = grid.periods_ahead(deadline_ns)
+                else:  # stamped in the device clock's future: the next step applies it
+                    ahead = -1
             if ahead < 0:  # its period was stepped without it: the next step applies it
                 self.counts.commands_late += 1
                 self.core.log_dropped(command)
@@ -327,6 +339,8 @@ class DeviceClockPacer:
             arrival={
                 **asdict(self.counts),
                 "grid_locks": grid.locks,
+                "device_clock_refused": self.device_clock.refused,
+                "device_clock_relearnt": self.device_clock.relearnt,
                 "commands_lost": command_in.seq.lost,
                 "commands_reordered": command_in.seq.reordered,
                 "commands_shed": command_in.shed,

@@ -28,6 +28,7 @@ from teleop.core.config import load_config
 from teleop.core.summary import read_run_summary, summary_problems
 from teleop.run.sites import OPERATOR_BUNDLE_FILE
 from teleop.run.supervise import Stack
+from teleop.run.verdict import realtime_health
 from teleop.viz import entities as ent
 from teleop.viz import recording
 from teleop.viz.blueprint import view_specs
@@ -358,8 +359,24 @@ class TwoSites:
     while it runs, strangers dial the robot router from the operator's host. A context
     manager: both sites are stopped on exit."""
 
-    def __init__(self, robot: Host, operator: Host, tmp_path: Path) -> None:
+    def __init__(
+        self,
+        robot: Host,
+        operator: Host,
+        tmp_path: Path,
+        *,
+        mode: str = "lockstep",
+        operator_clock_ahead_s: int = 0,
+    ) -> None:
         self.robot, self.operator, self.tmp_path = robot, operator, tmp_path
+        self.mode = mode
+        # The operator site in a time namespace of its own: its monotonic clock this far
+        # ahead of the robot site's (two hosts share no clock).
+        self.operator_clock = (
+            ["unshare", "--time", "--monotonic", str(operator_clock_ahead_s), "--fork"]
+            if operator_clock_ahead_s
+            else []
+        )
         self.robot_dir, self.operator_dir = tmp_path / "robot", tmp_path / "operator"
         self.site_endpoint = f"tls/{robot.address}:7447"
         self.teleop = [sys.executable, "-m", "teleop.cli"]
@@ -376,22 +393,28 @@ class TwoSites:
             if (run_dir / "supervisord.conf").exists():
                 subprocess.run([*self.teleop, "down", "--run-dir", str(run_dir)], timeout=120)
 
-    def _up(self, host: Host, args: Sequence[str]) -> subprocess.CompletedProcess:
+    def _up(
+        self, host: Host, args: Sequence[str], clock: Sequence[str] = ()
+    ) -> subprocess.CompletedProcess:
         up = subprocess.run(
-            host.argv([*self.teleop, "up", *args]),
+            host.argv([*clock, *self.teleop, "up", *args]),
             capture_output=True, text=True, timeout=180, stdin=subprocess.DEVNULL,
         )  # fmt: skip
         assert up.returncode == 0, up.stderr[-3000:]
         return up
 
-    def start(self, settings: Sequence[str]) -> None:
+    def start(self, settings: Sequence[str], *, strangers: bool = True) -> None:
         """Both sites up (the bundle handed over as scp would: the file only, its mode
-        kept), then the strangers' attempts."""
+        kept); with ``strangers``, the robot's router killed and back before the operator
+        site starts, and the strangers' attempts after."""
         self.tmp_path.mkdir(parents=True, exist_ok=True)
-        up = self._up(self.robot, ["--mode", "lockstep", "--site", "robot", "--site-listen",
+        up = self._up(self.robot, ["--mode", self.mode, "--site", "robot", "--site-listen",
                                    self.site_endpoint, "--run-dir", str(self.robot_dir),
                                    *settings])  # fmt: skip
         self.robot_up = up.stdout + up.stderr
+        if not strangers:
+            self._join()
+            return
         # The robot's router killed: supervisord brings it back, and the operator's router
         # links to the new one. (Killed mid-run, the run goes on as well, but records in
         # flight at the cut are lost, so it need not end in the same state: docs/sites.md.)
@@ -404,11 +427,7 @@ class TwoSites:
         ):
             assert time.monotonic() < deadline, "the robot's router did not come back"
             time.sleep(0.2)
-        bundle = self.tmp_path / "handed-over.json"
-        shutil.copy2(self.robot_dir / OPERATOR_BUNDLE_FILE, bundle)
-        up = self._up(self.operator, ["--site", "operator", "--join", str(bundle),
-                                      "--run-dir", str(self.operator_dir)])  # fmt: skip
-        self.operator_up = up.stdout + up.stderr
+        self._join()
         others = write_run_credentials(
             self.tmp_path / "other", ["operator_router"], ("arm0",), tls=True
         )
@@ -423,6 +442,15 @@ class TwoSites:
             capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL,
         )  # fmt: skip
         self.robot_status = status.stdout
+
+    def _join(self) -> None:
+        """The operator site up, from the robot site's bundle."""
+        bundle = self.tmp_path / "handed-over.json"
+        shutil.copy2(self.robot_dir / OPERATOR_BUNDLE_FILE, bundle)
+        up = self._up(self.operator, ["--site", "operator", "--join", str(bundle),
+                                      "--run-dir", str(self.operator_dir)],
+                      self.operator_clock)  # fmt: skip
+        self.operator_up = up.stdout + up.stderr
 
     def finish(self) -> None:
         """Wait for the plant to finish, stop both sites, read every service's summary."""
@@ -505,3 +533,66 @@ def test_a_grasp_split_across_two_hosts_is_the_same_run_as_on_one(obstacle_runs)
     assert (robot_router["other_site_links"], robot_router["other_site_losses"]) == (1, 1)
     assert (operator_router["other_site_links"], operator_router["other_site_losses"]) == (1, 0)
     assert (sites.robot_dir / "recording.rrd").stat().st_size > 0
+
+
+# The operator site's monotonic clock ahead of the robot site's (another host's clock).
+OPERATOR_CLOCK_AHEAD_S = 3 * 3600
+
+
+@needs_realtime_stack
+def test_a_realtime_grasp_across_two_hosts_keeps_real_time_on_clocks_hours_apart(tmp_path):
+    """The two sites in realtime, each on its own clock: the operator site in a time
+    namespace of its own (its monotonic clock three hours ahead) and a network namespace,
+    the routers linked over mutual TLS. Nothing compares a stamp of one site with the
+    other's clock (the plant follows the device's periods and judges freshness on its own
+    clock), so the grasp succeeds and keeps real time as on one host."""
+    with contextlib.ExitStack() as stack:
+        try:
+            robot, operator = stack.enter_context(two_hosts())
+        except HostsUnavailable as exc:
+            pytest.skip(f"no test hosts: {exc}")
+        sites = stack.enter_context(
+            TwoSites(robot, operator, tmp_path, mode="realtime",
+                     operator_clock_ahead_s=OPERATOR_CLOCK_AHEAD_S)
+        )  # fmt: skip
+        sites.start(("--set", 'run.scenario="grasp"', "--set", "run.seed=0"), strangers=False)
+        haptic_pid = Stack.attach(sites.operator_dir).pid("haptic")
+        offsets = Path(f"/proc/{haptic_pid}/timens_offsets").read_text().split()
+        sites.finish()
+    assert offsets[:2] == ["monotonic", str(OPERATOR_CLOCK_AHEAD_S)]  # really its own clock
+    plant = sites.summaries["plant"]
+    assert plant["finished"] and plant["object_in_box"], plant.get("failure")
+    assert sites.summaries["operator"]["success"]
+    assert plant["realtime_factor"] > 0.99
+    # At most a start through busy CPUs: commands faster than the first ones, refused as
+    # stamped in the device's future until the plant learnt its clock afresh (twice each).
+    arrival = plant["arrival"]
+    print("device clock:", {k: v for k, v in arrival.items() if k.startswith("device_clock")})
+    assert arrival["device_clock_refused"] <= 2 * arrival["device_clock_relearnt"] <= 4
+    health = realtime_health(
+        "realtime",
+        overrun_fraction=plant["overrun_fraction"],
+        realtime_factor=plant["realtime_factor"],
+        watchdog_brakes=plant["stale_commands"],
+        braked_steps=plant["stale_steps"],
+        steps=plant["steps"],
+        drops=[
+            f"{name} dropped records"
+            for name, s in sites.summaries.items()
+            if s.get("dropped_messages")
+        ],  # fmt: skip
+        unlinked_peers={
+            name: s["unlinked_peers"]
+            for name, s in sites.summaries.items()
+            if s.get("unlinked_peers")
+        },  # fmt: skip
+    )
+    print("two sites, realtime:", health.as_dict(), "plant CPU s", plant["cpu_s"])
+    if health.verdict == "lost":  # the machine did not keep real time: it must say why
+        assert health.problems
+        pytest.skip(f"the run lost real time: {'; '.join(health.problems)}")
+    # Ages on each site's own clock: the handle's feedback is rendered, never shed as
+    # hours old, and the controller takes the handle's samples.
+    haptic = sites.summaries["haptic"]
+    assert haptic["feedback_rendered"] > 0.9 * plant["steps"]
+    assert haptic["feedback_stream"]["shed"] <= 3

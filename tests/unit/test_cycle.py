@@ -118,7 +118,9 @@ def test_realtime_inputs_too_old_or_out_of_order_are_dropped_and_counted():
     cycle.on_haptic(handle(4, 0, now), now)  # older than the last one: dropped
     old = now - 10 * cycle.haptic_in.shed_age_ns
     cycle.on_haptic(handle(6, 0, old), now)  # sampled too long ago: shed, its loop logged
-    stale_state = state(config, 1, old)
+    for tick in (1, 2):  # the states' pace: an age is the time beyond the fastest ones
+        cycle.on_state(state(config, tick, now), now)
+    stale_state = state(config, 3, old)
     cycle.on_state(stale_state, now)
     summary = cycle.summary()
     assert summary["haptic_reordered"] == 1 and summary["haptic_shed"] == 1
@@ -358,8 +360,9 @@ def test_a_stale_handle_gives_zero_feedback_and_drives_no_motion():
     handle_m = config.teleop.workspace_free_m + 0.01  # the spring pulls while the input is live
     now = clock.now_ns()
     cycle.on_state(state(config, 0, now), now)
-    cycle.on_haptic(handle(1, 0, now, (handle_m, 0.0, 0.0)), now)
-    assert sent.streams().count("joint_command") == 1
+    for seq in (1, 2, 3):  # the samples' pace: an age is the time beyond the fastest ones
+        cycle.on_haptic(handle(seq, 0, now, (handle_m, 0.0, 0.0)), now)
+    assert sent.streams().count("joint_command") == 3
     cycle.on_state(state(config, 1, now), now)  # the handle is fresh: the spring renders
     assert sent.last("force_feedback")["device_f_n"][0] < 0.0
     cycle.on_state(state(config, cycle.stale_ticks + 1, now), now)  # now it is stale
@@ -367,8 +370,8 @@ def test_a_stale_handle_gives_zero_feedback_and_drives_no_motion():
     assert np.array_equal(sent.last("force_feedback")["device_f_workspace_n"], np.zeros(3))
     clock.advance(2 * cycle.haptic_in.shed_age_ns)
     late = clock.now_ns()
-    cycle.on_haptic(handle(2, 1, now, (handle_m, 0.0, 0.0)), late)  # sampled long ago
-    assert sent.streams().count("joint_command") == 1  # no command: nothing drives the tool
+    cycle.on_haptic(handle(4, 1, now, (handle_m, 0.0, 0.0)), late)  # sampled long ago
+    assert sent.streams().count("joint_command") == 3  # no command: nothing drives the tool
     assert cycle.summary()["haptic_shed"] == 1
 
 
@@ -459,16 +462,17 @@ def test_a_silent_plant_stops_the_commands():
     again on the first fresh state."""
     cycle, sent, clock, config = make(BilateralCycle, REALTIME, GRASP)
     now = clock.now_ns()
-    cycle.on_state(state(config, 0, now), now)
-    cycle.on_haptic(handle(1, 0, now), now)
+    for tick in (0, 1, 2):  # the states' pace: an age is the time beyond the fastest ones
+        cycle.on_state(state(config, tick, now), now)
+    cycle.on_haptic(handle(1, 2, now), now)
     assert sent.streams().count("joint_command") == 1
     clock.advance(round(config.plant.watchdog_s * 1e9) + 1_000_000)
     for seq in (2, 3, 4):  # fresh samples, a silent plant
         now = clock.now_ns()
-        cycle.on_haptic(handle(seq, 0, now), now)
+        cycle.on_haptic(handle(seq, 2, now), now)
     assert sent.streams().count("joint_command") == 1
     assert cycle.summary()["plant_silent_samples"] == 3
     assert cycle.haptic_in.shed == 3  # unanswered on purpose: the latency count's shed
-    cycle.on_state(state(config, 1, now), now)
-    cycle.on_haptic(handle(5, 1, now), now)
+    cycle.on_state(state(config, 3, now), now)
+    cycle.on_haptic(handle(5, 3, now), now)
     assert sent.streams().count("joint_command") == 2

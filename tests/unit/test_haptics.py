@@ -554,7 +554,7 @@ def test_realtime_renders_feedback_on_arrival_and_checks_its_order_and_age():
     # Older than the newest: dropped; too old on arrival: shed and logged; a lower tick
     # later on: a new run.
     loop.on_feedback(feedback(1, 501, force_n, tx_ns=clock.now_ns()), clock.now_ns())
-    old = feedback(2, 501, force_n, tx_ns=clock.now_ns() - loop.feedback_in.shed_age_ns - 1)
+    old = feedback(2, 501, force_n, tx_ns=clock.now_ns() - 10 * loop.feedback_in.shed_age_ns)
     old["trace_ns"][Stage.HAPTIC_SAMPLE] = 42
     loop.on_feedback(old, clock.now_ns())
     loop.on_feedback(feedback(4, 7, force_n, tx_ns=clock.now_ns()), clock.now_ns())

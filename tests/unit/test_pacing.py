@@ -14,7 +14,6 @@ from teleop.core.config import load_config
 from teleop.sim.pacing import (
     CATCH_UP_MAX_PERIODS,
     OWN_STEP_AFTER_PERIODS,
-    RELOCK_PERIODS,
     DeviceClockGrid,
     DeviceClockPacer,
     LockstepPacer,
@@ -149,37 +148,96 @@ def begun(*overrides: str) -> tuple[DeviceClockPacer, Recorded, FakeClock]:
     return pacer, out, clock
 
 
+# The device's clock, hours away from the plant's (another host, or a time namespace).
+DEVICE_CLOCK_OFFSET_NS = 3 * 3600 * NS_PER_S
+# From a device period's start to its command's arrival at the plant.
+ARRIVAL_AFTER_NS = 300_000
+
+
 def test_device_clock_pacing_steps_once_per_device_period_and_never_runs_ahead():
-    """Commands step at once; a late one merges, a gap is filled, sim time = device time."""
+    """Commands step at once; a late one merges, a gap is filled, sim time follows the
+    device's periods; the device's clock is another host's, hours away from the plant's."""
     pacer, out, clock = begun()
     core = pacer.core
     period_ns = core.period_ns  # the device's period: one tick (bus period)
-    t0_ns = clock.now_ns()
+    t0_ns = clock.now_ns()  # the plant's clock when the device's period 0 began
+    device_t0_ns = t0_ns + DEVICE_CLOCK_OFFSET_NS
 
-    def arrive(seq: int, periods: int) -> None:
-        deadline_ns = t0_ns + periods * period_ns
+    def arrive(seq: int, periods: int, *, after_ns: int = ARRIVAL_AFTER_NS) -> None:
+        """The command of the device's period ``periods``, arriving ``after_ns`` after
+        that period began (never before what arrived already)."""
+        clock.advance(max(0, t0_ns + periods * period_ns + after_ns - clock.now_ns()))
+        deadline_ns = device_t0_ns + periods * period_ns
         rec = command(seq, max(core.state_seq, 0), clock.now_ns(), deadline_ns=deadline_ns)
         pacer.on_command(rec, clock.now_ns())
 
-    arrive(1, 0)
-    assert core.plant.step_count == 1 and pacer.counts.steps_on_arrival == 1
-    arrive(2, 1)  # the next period's command: one more step, on arrival
-    assert core.plant.step_count == 2
-    arrive(3, 1)  # late (its period was stepped): no step of its own, held for the next
-    assert core.plant.step_count == 2 and pacer.counts.commands_late == 1
-    arrive(4, 3)  # two periods on: the period in between (no command) is stepped first
-    assert core.plant.step_count == 4 and pacer.counts.steps_without_command == 1
-    arrive(5, 20)  # after a long gap only CATCH_UP_MAX_PERIODS are stepped back to back
-    assert core.plant.step_count == 5 + CATCH_UP_MAX_PERIODS
-    assert pacer.grid is not None
-    assert pacer.grid.skipped == 20 - 4 - CATCH_UP_MAX_PERIODS
-    assert pacer.grid.periods_ahead(t0_ns + 21 * period_ns) == 0  # sim time = device time
-    arrive(6, 2 * RELOCK_PERIODS)  # a restarted device: the grid re-locks to its clock
-    assert pacer.grid.locks == 2
-    arrive(6, 2 * RELOCK_PERIODS + 1)  # not newer than the last: dropped, counted
+    for seq in range(3):  # the first commands: the plant learns the device's clock
+        arrive(seq, seq)
+    assert core.plant.step_count == pacer.counts.steps_on_arrival == 3
+    arrive(3, 3, after_ns=ARRIVAL_AFTER_NS + period_ns // 2)  # jitter: still its period
+    assert core.plant.step_count == 4
+    arrive(4, 3)  # late (its period was stepped): no step of its own, held for the next
+    assert core.plant.step_count == 4 and pacer.counts.commands_late == 1
+    arrive(5, 5)  # two periods on: the period in between (no command) is stepped first
+    assert core.plant.step_count == 6 and pacer.counts.steps_without_command == 1
+    arrive(6, 22)  # after a long gap only CATCH_UP_MAX_PERIODS are stepped back to back
+    assert core.plant.step_count == 7 + CATCH_UP_MAX_PERIODS
+    grid = pacer.grid
+    assert grid is not None and grid.locks == 1
+    assert grid.skipped == 22 - 6 - CATCH_UP_MAX_PERIODS
+    # Sim time follows the device's periods: the next step is its period 23, which the
+    # plant steps itself if no command comes OWN_STEP_AFTER_PERIODS after it began, as
+    # the fastest commands place the device's clock on the plant's.
+    assert grid.periods_ahead(device_t0_ns + 23 * period_ns) == 0
+    own_step_ns = t0_ns + ARRIVAL_AFTER_NS + (23 + OWN_STEP_AFTER_PERIODS) * period_ns
+    assert pacer.own_step_due(clock.now_ns()) == own_step_ns - clock.now_ns()
+    arrive(6, 23)  # not newer than the last: dropped, counted
     assert core.command_in.seq.reordered == 1
     summary = core.summary(pacer.figures())["arrival"]
     assert summary["commands_late"] == 1 and summary["commands_reordered"] == 1
+    assert summary["device_clock_refused"] == summary["device_clock_relearnt"] == 0
+
+
+@pytest.mark.parametrize("hours", [2 * 3, -3])
+def test_a_device_restarted_on_another_clock_is_followed(hours: int):
+    """A device restarted on another host, its deadlines hours away from the last
+    device's: the plant follows its periods within a command or two, and learns where its
+    clock lies."""
+    pacer, out, clock = begun()
+    core = pacer.core
+    period_ns = core.period_ns
+    device_t0_ns = clock.now_ns() + DEVICE_CLOCK_OFFSET_NS
+    seq = 0
+
+    def arrive(deadline_ns: int) -> None:
+        nonlocal seq
+        clock.advance(period_ns)
+        seq += 1
+        rec = command(seq, core.state_seq, clock.now_ns(), deadline_ns=deadline_ns)
+        pacer.on_command(rec, clock.now_ns())
+
+    for k in range(3):  # the first device
+        arrive(device_t0_ns + k * period_ns)
+    assert core.plant.step_count == 3
+    new_t0_ns = device_t0_ns + hours * 3600 * NS_PER_S
+    for k in range(4):
+        arrive(new_t0_ns + k * period_ns)
+    assert pacer.grid is not None and pacer.grid.locks == 2
+    if hours > 0:
+        # Its first two commands are stamped in the future of the clock the plant knew:
+        # refused (the second least delay is the new clock's from the third), held for
+        # the next step, never stepped on their own.
+        assert pacer.device_clock.refused == 2 and pacer.counts.commands_late == 2
+        assert pacer.counts.steps_on_arrival == 3 + 2
+    else:
+        # Behind the known clock: its periods are followed at once; the third command in a
+        # row that far behind starts the clock afresh.
+        assert pacer.device_clock.relearnt == 1 and pacer.counts.commands_late == 0
+        assert pacer.counts.steps_on_arrival == 3 + 4
+    # Its clock is learnt: each of its commands arrived 4 periods after its deadline (the
+    # first device's clock started at the plant's, the test's clock 3 periods before).
+    learnt_ns = 4 * period_ns - DEVICE_CLOCK_OFFSET_NS - hours * 3600 * NS_PER_S
+    assert pacer.device_clock.offset_ns == learnt_ns
 
 
 def test_device_clock_pacing_steps_periods_without_commands_itself_and_skips_stalls():
@@ -201,9 +259,13 @@ def test_device_clock_pacing_steps_periods_without_commands_itself_and_skips_sta
 def test_device_clock_pacing_sheds_a_command_older_than_the_shed_age_and_logs_its_loop():
     pacer, out, clock = begun()
     core = pacer.core
-    old = command(1, 0, clock.now_ns() - 10 * core.command_in.shed_age_ns)
+    for seq in (1, 2):  # the link's pace: ages are times beyond its fastest records
+        pacer.on_command(command(seq, core.state_seq, clock.now_ns()), clock.now_ns())
+        clock.advance(core.period_ns)
+    assert core.plant.step_count == 2
+    old = command(3, core.state_seq, clock.now_ns() - 10 * core.command_in.shed_age_ns)
     pacer.on_command(old, clock.now_ns())
-    assert core.plant.step_count == 0 and core.command_in.shed == 1
+    assert core.plant.step_count == 2 and core.command_in.shed == 1
     assert len(core.command_in.shed_log) == 1
 
 

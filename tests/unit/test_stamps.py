@@ -6,7 +6,15 @@ import numpy as np
 import pytest
 
 from teleop.bus.messages import JOINT_COMMAND, Stage
-from teleop.bus.stamps import SEQ_WINDOW, SHED_AGE_NS, Inbound, SeqCheck, SeqGaps
+from teleop.bus.stamps import (
+    LINK_CLOCK_WINDOW_NS,
+    SEQ_WINDOW,
+    SHED_AGE_NS,
+    Inbound,
+    LinkClock,
+    SeqCheck,
+    SeqGaps,
+)
 
 
 def command(seq: int, tx_ns: int, sample_ns: int = 0):
@@ -28,15 +36,51 @@ def test_seq_check_counts_gaps_and_reorders_and_restarts():
 def test_inbound_drops_older_and_stale_records_and_logs_their_loops():
     inbound = Inbound(Stage.CONTROLLER_TX)
     now_ns = 10 * SHED_AGE_NS
-    assert inbound.accept(command(1, now_ns - 1000), now_ns)
-    assert not inbound.accept(command(1, now_ns), now_ns)  # not newer
-    stale = command(2, now_ns - SHED_AGE_NS - 1, sample_ns=777)
+    for seq in (1, 2, 3):  # the link's pace: 1 us on the way at the fastest
+        assert inbound.accept(command(seq, now_ns - 1000), now_ns)
+    assert not inbound.accept(command(3, now_ns), now_ns)  # not newer
+    stale = command(4, now_ns - 1000 - SHED_AGE_NS - 1, sample_ns=777)
     assert not inbound.accept(stale, now_ns)
     assert inbound.shed == 1 and inbound.seq.reordered == 1
     assert inbound.shed_log.rows.tolist() == [[777]]
     # a record of no teleoperation loop (no sample stamp) is shed but leaves no stamp
-    assert not inbound.accept(command(3, 0), now_ns)
+    assert not inbound.accept(command(5, 0), now_ns)
     assert inbound.shed == 2 and len(inbound.shed_log) == 1
+
+
+def test_a_link_clock_learns_the_senders_clock_and_no_single_stamp_moves_it():
+    """Hours between the clocks: ages are the time beyond the fastest delivery; one record
+    stamped anywhere neither ages the next nor freshens an old one; a sender's new clock
+    is learnt from its third record."""
+    hours_ns = 5 * 3600 * 10**9
+    clock = LinkClock()
+    rx_ns = 10**12
+    for delay_ns in (400_000, 0, 900_000):  # stamps of a clock hours ahead
+        assert clock.offset_ns is None and clock.age_ns(0, 10**18) == 0  # not learnt yet
+        assert clock.observe(rx_ns + hours_ns - delay_ns, rx_ns)
+        rx_ns += 4_000_000
+    assert clock.offset_ns == -hours_ns + 400_000  # the median of the first three
+    assert clock.observe(rx_ns + hours_ns - 300_000, rx_ns)  # faster still: learnt
+    assert clock.offset_ns == -hours_ns + 300_000
+    # Stamped in the future: refused, and nothing moves; stamped long ago: old.
+    assert not clock.observe(rx_ns + hours_ns + 10**9, rx_ns) and clock.refused == 1
+    assert clock.observe(rx_ns, rx_ns) and clock.offset_ns == -hours_ns + 300_000
+    stamp_ns = rx_ns + hours_ns - 300_000 - SHED_AGE_NS
+    assert clock.age_ns(stamp_ns, rx_ns) == SHED_AGE_NS
+    assert clock.local_ns(stamp_ns) == rx_ns - SHED_AGE_NS
+    assert clock.observe(rx_ns + hours_ns - 300_000, rx_ns)  # on the clock again
+    # A sender restarted on a clock hours behind: its third record re-learns the link.
+    for k in range(3):
+        rx_ns += 4_000_000
+        assert clock.observe(rx_ns - 100_000, rx_ns)
+        assert clock.relearnt == (1 if k == 2 else 0)
+    assert clock.offset_ns == 100_000 and clock.age_ns(rx_ns - 100_000, rx_ns) == 0
+    # The fastest delivery is forgotten after the window: a slower link is learnt.
+    rx_ns += LINK_CLOCK_WINDOW_NS + 1
+    for _ in range(3):
+        rx_ns += 4_000_000
+        clock.observe(rx_ns - 700_000, rx_ns)
+    assert clock.offset_ns == 700_000
 
 
 SEQ_RUNS = [

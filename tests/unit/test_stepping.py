@@ -90,12 +90,14 @@ def test_the_core_admits_answers_to_states_it_sent_and_sheds_only_when_asked():
     # A command answering a state not sent yet is rejected before anything else.
     assert not core.admit(command(1, state_seq=5, now_ns=clock.now_ns()), shed=False)
     assert core.commands_future_state == 1 and core.commands_received == 1
-    old = command(2, state_seq=0, now_ns=clock.now_ns() - 10 * core.command_in.shed_age_ns)
+    for seq in (2, 3, 4):  # the link's pace: an age is the time beyond its fastest records
+        assert core.admit(command(seq, state_seq=0, now_ns=clock.now_ns()), shed=True)
+    old = command(5, state_seq=0, now_ns=clock.now_ns() - 10 * core.command_in.shed_age_ns)
     assert core.admit(old, shed=False)  # the watchdog judges its age at the step
-    older = command(3, state_seq=0, now_ns=clock.now_ns() - 10 * core.command_in.shed_age_ns)
+    older = command(6, state_seq=0, now_ns=clock.now_ns() - 10 * core.command_in.shed_age_ns)
     assert not core.admit(older, shed=True)  # applied on arrival, a backlog is shed
-    assert core.command_in.shed == 1 and core.commands_received == 3
-    assert not core.admit(command(2, state_seq=0, now_ns=clock.now_ns()), shed=False)
+    assert core.command_in.shed == 1 and core.commands_received == 6
+    assert not core.admit(command(5, state_seq=0, now_ns=clock.now_ns()), shed=False)
     assert core.command_in.seq.reordered == 1  # not newer than the last admitted
 
 
