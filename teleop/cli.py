@@ -861,13 +861,6 @@ def _up(args: argparse.Namespace) -> int:
     except SiteError as exc:
         print(f"teleop: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    if config.site.name and config.run.mode == "realtime":
-        print(
-            "teleop: note: realtime across hosts needs the sites to share one monotonic "
-            "clock (namespaces of one host do; two machines do not): across machines "
-            "use --mode lockstep (docs/sites.md, Limits)",
-            file=sys.stderr,
-        )
     try:
         status, endpoint = start_detached(
             config,
