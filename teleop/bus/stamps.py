@@ -59,8 +59,9 @@ LINK_CLOCK_WINDOW_NS = 10_000_000_000
 # ... in this many slices, each keeping its fastest record (the window slides by one).
 LINK_CLOCK_SLICES = 10
 # A record that arrived this much faster than the link's fastest delivery is stamped in
-# the future of the clock learnt: refused.
-FUTURE_STAMP_TOLERANCE_NS = 1_000_000
+# the future of the clock learnt: refused. Faster by less, it is learnt at once (a link
+# faster than its first records showed, after a busy start, loses nothing).
+FUTURE_STAMP_TOLERANCE_NS = 100_000_000
 # A record this much slower than the link's fastest delivery is far behind the clock
 # learnt (judged old). RESYNC_RECORDS records in a row off the clock learnt, either way,
 # are a sender's new clock (a restart on another host): the link learns it afresh.
@@ -110,7 +111,10 @@ class LinkClock:
 
     def observe(self, stamp_ns: int, rx_ns: int) -> bool:
         """Learn from a record sent at ``stamp_ns`` (sender's clock) that arrived at
-        ``rx_ns`` (this host's); False if it is refused, stamped in the sender's future."""
+        ``rx_ns`` (this host's); False if it is refused, stamped in the sender's future.
+        An unset stamp (0) teaches nothing (its age is the sender's uptime)."""
+        if stamp_ns == 0:
+            return True
         delay_ns = rx_ns - stamp_ns
         offset_ns = self._offset_ns
         faster = offset_ns is not None and offset_ns - delay_ns > FUTURE_STAMP_TOLERANCE_NS
