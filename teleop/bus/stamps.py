@@ -136,11 +136,8 @@ class LinkClock:
     def _learn(self, delay_ns: int, index: int) -> None:
         slices = self._slices
         if slices and slices[-1][0] == index:
-            if delay_ns < slices[-1][1]:
-                slices[-1][1] = delay_ns
-            if self._offset_ns is not None and delay_ns >= self._offset_ns:
-                return
-        else:
+            slices[-1][1] = min(slices[-1][1], delay_ns)
+        else:  # a new slice: the oldest leave the window
             slices.append([index, delay_ns])
             while slices[0][0] <= index - LINK_CLOCK_SLICES:
                 slices.popleft()
@@ -209,11 +206,11 @@ class SeqCheck:
         return True
 
     def refused(self, seq: int) -> None:
-        """A record refused before this check (for its stamp) joins the runs of rejected
-        records, uncounted here and never taken: a producer whose records look wrong after
-        one hostile record (a seq and a clock it set) is taken up as soon as it would be
-        for its seqs alone."""
-        if self.last_seq < 0 or not self.last_seq < seq <= self.last_seq + SEQ_WINDOW:
+        """A record refused before this check (for its stamp), which this check would
+        have rejected too, joins the runs of rejected records, uncounted here and never
+        taken: a producer whose records look wrong after one hostile record (a seq and a
+        clock it set) is taken up as soon as it would be for its seqs alone."""
+        if not self.last_seq < seq <= self.last_seq + SEQ_WINDOW:
             self._runs[seq] = self._join_run(seq)
 
     def _join_run(self, seq: int) -> int:
@@ -322,10 +319,11 @@ class Inbound:
         """True if ``rec`` is to be used: not stamped in the future, in order and (with
         ``shed``) not older than the shed age at ``now_ns``. A stale record is counted in
         ``shed`` and logged."""
+        seq = int(rec["seq"])
         if not self.arrived(rec, now_ns):
-            self.seq.refused(int(rec["seq"]))
+            self.seq.refused(seq)
             return False
-        if not self.accept_seq(int(rec["seq"])):
+        if not self.accept_seq(seq):
             return False
         if shed and self.too_old(rec, now_ns):
             self.drop(rec)  # arrived, in order, too late: shed, not lost

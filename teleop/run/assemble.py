@@ -108,7 +108,7 @@ def run_summary(
     plant_summaries = [summaries.get(name, {}) for name in plants]
     summary.update(
         {
-            **_health(config, plant_summaries, faults, dropped_by, unlinked),
+            **run_health(config.run.mode, plant_summaries, dropped_by, unlinked, faults),
             "outside": list(outside),
             "summaries_missing": [name for name in started if name not in summaries],
             # Services whose earlier processes wrote a summary (restarted after it).
@@ -131,18 +131,20 @@ def run_summary(
     return summary
 
 
-def _health(
-    config: Config,
+def run_health(
+    mode: str,
     plants: Sequence[Mapping[str, Any]],
-    faults: FaultRun | None,
     dropped_by: Mapping[str, Mapping[str, Any]],
     unlinked: Mapping[str, Any],
+    faults: FaultRun | None = None,
 ) -> dict[str, Any]:
     """The run's real-time verdict (teleop.run.verdict.realtime_health) from its plants'
-    figures; the brakes an injected fault caused are the fault's, not a loss of real time."""
+    summaries, the bad records its receivers dropped (:func:`dropped_by_receiver`) and the
+    services that never linked; the brakes an injected fault caused are the fault's, not a
+    loss of real time."""
     fault_braked = faults.braked_states() if faults is not None else 0
     health = realtime_health(
-        config.run.mode,
+        mode,
         overrun_fraction=max(p.get("overrun_fraction", 0.0) for p in plants),
         realtime_factor=min(p.get("realtime_factor") or 0.0 for p in plants),
         watchdog_brakes=sum(p.get("stale_commands", 0) for p in plants)

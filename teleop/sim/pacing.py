@@ -273,7 +273,7 @@ class DeviceClockPacer:
         periods beyond the catch-up instead of bursting through them."""
         grid = self.grid
         assert grid is not None
-        behind = (now_ns - self.device_clock.local_ns(grid.own_step_ns)) // self.core.period_ns
+        behind = -self.own_step_due(now_ns) // self.core.period_ns
         if behind > CATCH_UP_MAX_PERIODS:
             self.counts.stalls += 1
             grid.skip(int(behind) - CATCH_UP_MAX_PERIODS)

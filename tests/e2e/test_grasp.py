@@ -26,9 +26,9 @@ from teleop.bus.access import write_run_credentials
 from teleop.control.feedback import STANDARD_GRAVITY_M_S2
 from teleop.core.config import load_config
 from teleop.core.summary import read_run_summary, summary_problems
+from teleop.run.assemble import dropped_by_receiver, run_health
 from teleop.run.sites import OPERATOR_BUNDLE_FILE
 from teleop.run.supervise import Stack
-from teleop.run.verdict import realtime_health
 from teleop.viz import entities as ent
 from teleop.viz import recording
 from teleop.viz.blueprint import view_specs
@@ -569,28 +569,12 @@ def test_a_realtime_grasp_across_two_hosts_keeps_real_time_on_clocks_hours_apart
     arrival = plant["arrival"]
     print("device clock:", {k: v for k, v in arrival.items() if k.startswith("device_clock")})
     assert arrival["device_clock_refused"] <= 2 * arrival["device_clock_relearnt"] <= 4
-    health = realtime_health(
-        "realtime",
-        overrun_fraction=plant["overrun_fraction"],
-        realtime_factor=plant["realtime_factor"],
-        watchdog_brakes=plant["stale_commands"],
-        braked_steps=plant["stale_steps"],
-        steps=plant["steps"],
-        drops=[
-            f"{name} dropped records"
-            for name, s in sites.summaries.items()
-            if s.get("dropped_messages")
-        ],  # fmt: skip
-        unlinked_peers={
-            name: s["unlinked_peers"]
-            for name, s in sites.summaries.items()
-            if s.get("unlinked_peers")
-        },  # fmt: skip
-    )
-    print("two sites, realtime:", health.as_dict(), "plant CPU s", plant["cpu_s"])
-    if health.verdict == "lost":  # the machine did not keep real time: it must say why
-        assert health.problems
-        pytest.skip(f"the run lost real time: {'; '.join(health.problems)}")
+    unlinked = {n: s["unlinked_peers"] for n, s in sites.summaries.items() if s["unlinked_peers"]}
+    health = run_health("realtime", [plant], dropped_by_receiver({}, sites.summaries), unlinked)
+    print("two sites, realtime:", health, "plant CPU s", plant["cpu_s"])
+    if health["realtime_verdict"] == "lost":  # the machine did not keep real time: say why
+        assert health["realtime_problems"]
+        pytest.skip(f"the run lost real time: {'; '.join(health['realtime_problems'])}")
     # Ages on each site's own clock: the handle's feedback is rendered, not shed as hours
     # old (a feedback shed now and then is a backlog on a busy machine).
     haptic = sites.summaries["haptic"]
