@@ -13,10 +13,16 @@ a TCP stream. Per direction, each chunk read is due at
 
     max(received + delay + U(-jitter, +jitter) [+ retransmit if lost], previous due)
 
-(order preserved; a seeded generator, so a run is repeatable). Run it by hand::
+(order preserved; a seeded generator, so a run is repeatable).
+
+A **cut** (:class:`LinkCut`) breaks the link for a while, as a pulled cable or a
+failed route whose endpoints notice: ``after_s`` past the first connection forwarded,
+every open connection is reset (both sides at once) and new ones are refused (reset as
+they come) for ``duration_s``; then connections are forwarded again, and the
+connecting side's retries find the link back. Run it by hand::
 
     python -m teleop.bench.netem --listen 127.0.0.1:7448 --target 127.0.0.1:7447 \\
-        --delay-ms 50 --jitter-ms 5 --loss 0.01
+        --delay-ms 50 --jitter-ms 5 --loss 0.01 --cut 20:0.5
 
 and point the connecting side at the listen address.
 """
@@ -26,12 +32,15 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import json
 import random
 import signal
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 # Linux's minimum TCP retransmission timeout (TCP_RTO_MIN): what one loss costs.
@@ -59,6 +68,44 @@ class LinkImpairment:
             f"delay {self.delay_s * 1e3:g} ms, jitter +-{self.jitter_s * 1e3:g} ms, "
             f"loss {self.loss:.1%} (a loss costs {self.retransmit_s * 1e3:g} ms)"
         )
+
+
+@dataclass(frozen=True)
+class LinkCut:
+    """The link broken for ``duration_s``, ``after_s`` after the first connection the
+    proxy forwarded (so a cut falls at the same point of a run whatever its start-up
+    took)."""
+
+    after_s: float
+    duration_s: float
+
+    def __post_init__(self) -> None:
+        if not (self.after_s >= 0 and self.duration_s > 0):
+            raise ValueError(f"a cut needs after_s >= 0 and duration_s > 0, got {self}")
+
+    @classmethod
+    def parse(cls, text: str) -> LinkCut:
+        """``AFTER_S:DURATION_S``, e.g. ``20:0.5``."""
+        after, sep, duration = text.partition(":")
+        try:
+            if not sep:
+                raise ValueError(text)
+            return cls(float(after), float(duration))
+        except ValueError as exc:
+            raise ValueError(
+                f"{text!r}: AFTER_S:DURATION_S (s after the first connection, s cut), e.g. 20:0.5"
+            ) from exc
+
+
+@dataclass
+class CutRecord:
+    """One cut as it happened: monotonic ns of this host, the connections it reset and
+    those refused while it lasted."""
+
+    start_ns: int
+    end_ns: int = 0
+    reset: int = 0
+    refused: int = 0
 
 
 @dataclass
@@ -107,13 +154,18 @@ class ImpairedProxy:
         *,
         seed: int = 0,
         listen: tuple[str, int] = ("127.0.0.1", 0),
+        cuts: tuple[LinkCut, ...] = (),
     ) -> None:
         self.target = target
         self.impairment = impairment
         self.listen = listen
+        self.cuts = cuts
         self._rng = random.Random(seed)
         self._server: asyncio.Server | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
+        self._open: set[asyncio.StreamWriter] = set()  # both ends of every forwarded link
+        self._cut: CutRecord | None = None  # the cut under way
+        self.cut_log: list[CutRecord] = []
         self.connections = 0
         self.refused = 0  # connections closed at once: nothing listened on the target
         self.forward = DirectionStats()  # listen side -> target
@@ -143,9 +195,36 @@ class ImpairedProxy:
             "refused": self.refused,
             "forward": vars(self.forward).copy(),
             "backward": vars(self.backward).copy(),
+            "cuts": [vars(cut).copy() for cut in self.cut_log],
         }
 
+    def _schedule_cuts(self) -> None:
+        loop = asyncio.get_running_loop()
+        for cut in self.cuts:
+            loop.call_later(cut.after_s, self._begin_cut, cut.duration_s)
+
+    def _begin_cut(self, duration_s: float) -> None:
+        """Reset every open connection and refuse new ones for ``duration_s``."""
+        record = CutRecord(start_ns=time.monotonic_ns(), reset=len(self._open) // 2)
+        self._cut = record
+        self.cut_log.append(record)
+        for writer in list(self._open):
+            writer.transport.abort()  # a reset, not an orderly close: the link failed
+        print(f"netem: link cut for {duration_s:g} s ({record.reset} connection(s) reset)",
+              file=sys.stderr, flush=True)  # fmt: skip
+        asyncio.get_running_loop().call_later(duration_s, self._end_cut, record)
+
+    def _end_cut(self, record: CutRecord) -> None:
+        record.end_ns = time.monotonic_ns()
+        self._cut = None
+        print(f"netem: link back ({record.refused} connection(s) refused meanwhile)",
+              file=sys.stderr, flush=True)  # fmt: skip
+
     async def _accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        if self._cut is not None:
+            self._cut.refused += 1
+            writer.transport.abort()
+            return
         try:
             target_reader, target_writer = await asyncio.open_connection(*self.target)
         except OSError as exc:
@@ -155,7 +234,10 @@ class ImpairedProxy:
                       "connections are closed until it listens", file=sys.stderr)  # fmt: skip
             self.refused += 1
             return
+        if not self.connections:
+            self._schedule_cuts()
         self.connections += 1
+        self._open.update((writer, target_writer))
         pumps = [
             self._pump(reader, target_writer, self.forward),
             self._pump(target_reader, writer, self.backward),
@@ -169,6 +251,7 @@ class ImpairedProxy:
                 task.cancel()
                 self._tasks.discard(task)
             for w in (writer, target_writer):
+                self._open.discard(w)
                 w.close()
 
     async def _pump(
@@ -212,12 +295,16 @@ class ImpairedProxy:
 
 @contextlib.contextmanager
 def running_proxy(
-    target: tuple[str, int], impairment: LinkImpairment, *, seed: int = 0
+    target: tuple[str, int],
+    impairment: LinkImpairment,
+    *,
+    seed: int = 0,
+    cuts: tuple[LinkCut, ...] = (),
 ) -> Iterator[ImpairedProxy]:
     """An :class:`ImpairedProxy` on a loopback port of its own, on a thread of its own
     (for tests and benchmarks); stopped on leaving."""
     loop = asyncio.new_event_loop()
-    proxy = ImpairedProxy(target, impairment, seed=seed)
+    proxy = ImpairedProxy(target, impairment, seed=seed, cuts=cuts)
     thread = threading.Thread(target=loop.run_forever, name="netem", daemon=True)
     thread.start()
     try:
@@ -251,16 +338,28 @@ def main(argv: list[str] | None = None) -> int:
         help="what one loss delays the stream by (ms; TCP's minimum RTO by default)",
     )  # fmt: skip
     parser.add_argument("--seed", type=int, default=0, help="random seed (jitter, loss)")
+    parser.add_argument(
+        "--cut", action="append", default=[], metavar="AFTER_S:DURATION_S",
+        help="break the link for DURATION_S, AFTER_S after the first connection forwarded: "
+        "open connections reset, new ones refused meanwhile (repeatable)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--report", type=Path, default=None,
+        help="on exit, write what was forwarded and each cut (monotonic ns) here as JSON",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     try:
         impairment = LinkImpairment(
             args.delay_ms / 1e3, args.jitter_ms / 1e3, args.loss, args.retransmit_ms / 1e3
         )
+        cuts = tuple(LinkCut.parse(text) for text in args.cut)
     except ValueError as exc:
         parser.error(str(exc))
 
     async def serve() -> ImpairedProxy:
-        proxy = ImpairedProxy(args.target, impairment, seed=args.seed, listen=args.listen)
+        proxy = ImpairedProxy(
+            args.target, impairment, seed=args.seed, listen=args.listen, cuts=cuts
+        )
         try:
             await proxy.start()
         except OSError as exc:
@@ -281,6 +380,8 @@ def main(argv: list[str] | None = None) -> int:
 
     proxy = asyncio.run(serve())
     print(f"netem: {proxy.stats()}", file=sys.stderr)
+    if args.report is not None:
+        args.report.write_text(json.dumps(proxy.stats(), indent=1))
     return 0
 
 

@@ -204,9 +204,15 @@ class PlantConfig:
     # Lockstep: a pending state left unanswered this long (wall clock) ends the run with
     # an ABORTED event instead of waiting for ever. Above a controller's restart time.
     lockstep_timeout_s: float = 15.0
+    # Realtime: a watchdog brake that lasts this long (no fresh command at all: the
+    # controller, or the operator's site behind it, gone; the link between the sites cut)
+    # ends the run with an ABORTED event instead of holding the arm for ever. Above a
+    # service's restart time and a link cut the run rides out (docs/sites.md).
+    brake_limit_s: float = 15.0
 
     def __post_init__(self) -> None:
         _require(0 < self.timestep_s <= 0.01, "plant.timestep_s in (0, 0.01]")
+        _require(self.brake_limit_s > self.watchdog_s, "plant.brake_limit_s > plant.watchdog_s")
         _require(self.checkpoint_s >= 0, "plant.checkpoint_s >= 0")
         _require(
             self.lockstep_timeout_s > LOCKSTEP_RESEND_S,

@@ -77,6 +77,7 @@ class Abort(enum.IntEnum):
 
     RESUME_FAILED = 1  # restarted, but its checkpoint could not be resumed
     LOCKSTEP_TIMEOUT = 2  # lockstep: no answer to the pending state within the bound
+    BRAKE_LIMIT = 3  # realtime: braked for want of a fresh command for plant.brake_limit_s
 
 
 # Checkpoint writes whose duration the summary keeps (the newest ones).
@@ -95,6 +96,8 @@ class Judgement(NamedTuple):
 # States whose send time the watchdog remembers (a ring): 4 s at 1 kHz or more, far beyond any
 # watchdog limit; a command answering an older state is stale whatever the limit.
 STATE_HISTORY = 4096
+# Watchdog brakes whose times the summary keeps (the count goes on beyond them).
+MAX_EPISODES_KEPT = 64
 
 
 class Watchdog:
@@ -120,6 +123,10 @@ class Watchdog:
         self.braking = False
         self.brakes = 0  # times it started braking on a stale command
         self.stale_steps = 0  # steps braked on a stale command (not before the first one)
+        # The first MAX_EPISODES_KEPT brakes: [began, ended] on the plant's clock (ns; 0:
+        # not ended), so a test can place them against what it did to the link.
+        self.episodes: list[list[int]] = []
+        self.braking_since_ns = 0  # when the brake under way began (braking only)
         self._sent_seq = np.full(history, -1, dtype=np.int64)
         self._sent_ns = np.zeros(history, dtype=np.int64)
         self.newest_seq = -1
@@ -159,6 +166,8 @@ class Watchdog:
         if self.overdue_ns(answered, now_ns) < self.limit_ns:
             if self.braking:
                 self.braking = False
+                if self.episodes and not self.episodes[-1][1]:
+                    self.episodes[-1][1] = now_ns
                 return Judgement(True, Event.WATCHDOG_RESUME)
             return Judgement(True)
         self.stale_steps += 1
@@ -166,6 +175,9 @@ class Watchdog:
             return Judgement(False)
         self.braking = True
         self.brakes += 1
+        self.braking_since_ns = now_ns
+        if len(self.episodes) < MAX_EPISODES_KEPT:
+            self.episodes.append([now_ns, 0])
         sent_ns = self.sent_ns(answered)
         age_s = (now_ns - sent_ns) / NS_PER_S if sent_ns is not None else math.inf
         return Judgement(False, Event.WATCHDOG_BRAKE, age_s)
@@ -269,6 +281,7 @@ class PlantStepCore:
         # the plant a contact scan and a narrow-phase distance query per step).
         self.interaction_every_tick = config.run.teleoperated
         self.watchdog = Watchdog(round(plant_cfg.watchdog_s * NS_PER_S), self.period_ns)
+        self._brake_limit_ns = round(plant_cfg.brake_limit_s * NS_PER_S)
         self.proximity = ObstacleProximity(self.plant.model, self.plant.data, config.robot)
         self._fingers = finger_bodies(self.plant.model, config.robot)
         self.state_rec = PLANT_STATE.new()  # the newest state, as published
@@ -367,7 +380,10 @@ class PlantStepCore:
         logger.info("task done: the run ends at tick %d", step)
 
     def should_step(self) -> bool:
-        """False once the run's duration, or the tick the operator asked for, is reached."""
+        """False once the run's duration, or the tick the operator asked for, is reached,
+        or the run aborted."""
+        if self.aborted:
+            return False
         if self._steps is not None and self.plant.step_count >= self._steps:
             return False
         return self.finish_tick is None or self.plant.step_count < self.finish_tick
@@ -458,6 +474,8 @@ class PlantStepCore:
                     "approach_slowed_steps": plant.approach_slowed_steps,
                     "watchdog_brakes": self.watchdog.brakes,
                     "stale_steps": self.watchdog.stale_steps,
+                    # Each brake's start and end on the plant's clock, ns (the first 64).
+                    "watchdog_episodes_ns": self.watchdog.episodes,
                 },
                 "figures": asdict(self.figures),
                 "resumes": self.resumes,
@@ -548,12 +566,21 @@ class PlantStepCore:
         says so, and its state published; whether it was applied. ``traced``: the command
         entered this step first hand (its stamps go on in the state); None: if it was not
         applied before."""
-        judgement = self.watchdog.judge(command, self.clock.now_ns())
+        now_ns = self.clock.now_ns()
+        judgement = self.watchdog.judge(command, now_ns)
         if judgement.event is not None:
             self.publish_event(judgement.event, judgement.value)
         if not judgement.apply:
             self.plant.step_braking()
             self.publish_state(None, 0, 0)
+            braked_ns = now_ns - self.watchdog.braking_since_ns
+            if self.watchdog.braking and braked_ns >= self._brake_limit_ns:
+                self.abort(
+                    Abort.BRAKE_LIMIT,
+                    f"no fresh command for {braked_ns / NS_PER_S:.1f} s (plant.brake_limit_s "
+                    f"= {self.config.plant.brake_limit_s:g}): the controller, or the "
+                    "operator's site behind it, is gone or cut off; the arm is held",
+                )
             return False
         assert command is not None
         applied_ns = self.clock.now_ns()
@@ -759,6 +786,8 @@ class PlantStepCore:
             },
             "stale_commands": self.watchdog.brakes,
             "stale_steps": self.watchdog.stale_steps,
+            # Each brake's start and end on the plant's clock, ns (the first 64).
+            "watchdog_episodes_ns": self.watchdog.episodes,
             "unanswered_commands": self.unanswered_commands,
             "lockstep_cycle_us": pacing.lockstep_cycle_us,
             "final_state_sha256": self.plant.state_sha256(),

@@ -5,14 +5,15 @@ Per round, alternating: the grasp with one robot (the baseline) and with two, se
 each mode asked for (``--modes``):
 
 - **lockstep** (deterministic; the figures but wall time do not depend on the load):
-  success per robot, and each process's CPU seconds per simulated second, start-up
-  included: a robot's own processes (plant, controller) over its own plant's simulated
-  time, the station's (haptic, HMD, operator, recorder) over the run's;
+  success per robot, and each process's CPU seconds per simulated second once running
+  (its start-up apart, reported on its own): a robot's own processes (plant,
+  controller) over its own plant's simulated time, the station's (haptic, HMD,
+  operator, recorder, eye view) over the run's;
 - **realtime**: the same, and the bilateral loop's round trip (handle sampled ->
   controller -> feedback rendered on the handle; ``teleop.bench.latency.analyse`` of the
   haptic service's stamps, after its warm-up), the realtime factor and the share of plant
-  steps the watchdog braked. On 2 cores two robots need more CPU than there is: the
-  realtime run then says so (its verdict), and that is the figure.
+  steps the watchdog braked. A run that cannot keep real time says so (its verdict),
+  and that is the figure.
 
 Measure on a quiet machine: the load average before each run is in the output.
 
@@ -38,7 +39,6 @@ from teleop.bench.latency import analyse
 from teleop.bus import graph
 from teleop.core.rundir import HAPTIC_TRACE_FILE, RUN_SUMMARY_FILE
 
-TIMESTEP_S = 0.001
 RUN_TIMEOUT_S = 1800
 
 
@@ -58,13 +58,19 @@ def one_run(robots: int, mode: str, run_dir: Path) -> dict[str, Any]:
     summary = json.loads(path.read_text())
     services = summary["services"]
     sections = summary.get("robots") or {"arm0": summary}
-    steps = {rid: services[graph.instance_name("plant", rid, robots)]["steps"] for rid in sections}
-    run_sim_s = max(steps.values()) * TIMESTEP_S
+    plant_sim_s = {
+        rid: services[graph.instance_name("plant", rid, robots)]["sim_time_s"] for rid in sections
+    }
+    run_sim_s = max(plant_sim_s.values())
     cpu: dict[str, float] = {}
+    startup_cpu_s: dict[str, float] = {}
     for name, own in services.items():
+        if "cpu_s" not in own:  # the idle pollers
+            continue
         robot = graph.robot_of(name)
-        sim_s = steps[robot] * TIMESTEP_S if robot is not None else run_sim_s
-        cpu[name] = own["cpu_s"] / sim_s
+        sim_s = plant_sim_s[robot] if robot is not None else run_sim_s
+        startup_cpu_s[name] = own.get("cpu_s_ready", 0.0)
+        cpu[name] = (own["cpu_s"] - startup_cpu_s[name]) / sim_s
     result: dict[str, Any] = {
         "robots": robots,
         "mode": mode,
@@ -77,6 +83,7 @@ def one_run(robots: int, mode: str, run_dir: Path) -> dict[str, Any]:
         "sim_s": run_sim_s,
         "cpu_per_sim_s": cpu,
         "cpu_per_sim_s_total": sum(cpu.values()),
+        "startup_cpu_s": startup_cpu_s,
         "realtime_verdict": summary.get("realtime_verdict"),
         "realtime_problems": summary.get("realtime_problems"),
     }

@@ -7,6 +7,7 @@ adds to them.)
 
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 import struct
@@ -15,7 +16,7 @@ import time
 
 import zenoh
 
-from teleop.bench.netem import LinkImpairment, running_proxy
+from teleop.bench.netem import LinkCut, LinkImpairment, running_proxy
 from teleop.bus import session as bus
 from teleop.core.config import BusConfig
 from tests.integration.receiving import free_endpoint
@@ -146,3 +147,38 @@ def test_a_target_that_is_not_there_closes_the_connection_and_is_counted():
             assert conn.recv(1) == b""  # closed by the proxy, nothing forwarded
         stats = proxy.stats()
     assert stats["refused"] == 1 and stats["connections"] == 0
+
+
+def _echoes(port: int) -> bool:
+    """Whether a new connection through the proxy on ``port`` echoes a few bytes."""
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=TIMEOUT_S) as conn:
+            conn.sendall(b"ping")
+            return conn.recv(4) == b"ping"
+    except OSError:  # reset by the proxy
+        return False
+
+
+def test_a_cut_resets_the_open_link_refuses_new_ones_and_ends():
+    echo = EchoServer()
+    cut = LinkCut(after_s=0.3, duration_s=1.0)
+    try:
+        with running_proxy(("127.0.0.1", echo.port), LinkImpairment(), cuts=(cut,)) as proxy:
+            with socket.create_connection(("127.0.0.1", proxy.port), timeout=TIMEOUT_S) as conn:
+                conn.sendall(b"ping")
+                assert conn.recv(4) == b"ping"  # the first connection: the cut's clock starts
+                with contextlib.suppress(ConnectionResetError):
+                    assert conn.recv(4) == b""  # reset at the cut (or closed)
+            cut_seen_ns = time.monotonic_ns()
+            assert not _echoes(proxy.port)  # the cut lasts 1 s: a new link is refused
+            deadline = time.monotonic() + TIMEOUT_S
+            while not _echoes(proxy.port):
+                assert time.monotonic() < deadline, "the link did not come back"
+                time.sleep(0.05)
+            stats = proxy.stats()
+    finally:
+        echo.close()
+    [record] = stats["cuts"]
+    assert record["start_ns"] <= cut_seen_ns < record["end_ns"]
+    assert record["end_ns"] - record["start_ns"] >= 1e9
+    assert record["reset"] == 1 and record["refused"] >= 1

@@ -30,6 +30,7 @@ from teleop.devices.haptic.device import (
     HapticDevice,
     KalmanVelocityEstimator,
     LocalContactModel,
+    StaleSpells,
     max_stable_stiffness_n_per_m,
     steady_state_gains,
 )
@@ -754,3 +755,23 @@ def test_a_finished_robot_leaves_the_clock():
         if k % lead == 0:
             loop.on_hand(hand(k + lead, [0.0, 0.0, 0.0]), 0)
     assert len(sent.by_robot[1]) == 200 and len(sent.by_robot[0]) == 100
+
+
+def test_a_stale_spell_says_how_long_the_feedback_was_missing_and_how_long_it_was_felt():
+    """The feedback stops after a model received at 0 (1 ms renders): stale from 20 ms,
+    faded out by 40 ms; the spell ends when fresh feedback comes at 500 ms."""
+    ms = 1_000_000
+    hold, spells = FeedbackHold(stale_after_s=0.020, fade_s=0.020), StaleSpells()
+    push = LocalContactModel.constant(np.array([0.0, 0.0, 2.0]))
+    hold.receive(push, 0)
+    handle = np.zeros(3)
+    for t in range(0, 501 * ms, ms):
+        if t == 500 * ms:
+            hold.receive(push, t)  # the link back
+        model, stale, received = hold.model_at(t)
+        spells.render(t, stale, received, float(np.linalg.norm(model.force_at(handle))))
+    assert spells.count == 1 and not spells.open
+    [spell] = spells.summary()["spells"]
+    assert spell["missing_ms"] == pytest.approx(499.0)
+    assert 20.0 < spell["felt_ms"] < 40.0  # faded out after 20 ms, not held
+    assert spells.felt_max_ms == spell["felt_ms"]

@@ -6,7 +6,7 @@ import random
 
 import pytest
 
-from teleop.bench.netem import DeliverySchedule, LinkImpairment
+from teleop.bench.netem import DeliverySchedule, LinkCut, LinkImpairment
 
 
 def schedule(**impairment: float) -> DeliverySchedule:
@@ -51,3 +51,13 @@ def test_the_same_seed_gives_the_same_schedule():
 def test_impossible_impairments_are_refused(bad):
     with pytest.raises(ValueError):
         LinkImpairment(**bad)
+
+
+def test_a_cut_is_read_from_after_and_duration():
+    assert LinkCut.parse("20:0.5") == LinkCut(after_s=20.0, duration_s=0.5)
+
+
+@pytest.mark.parametrize("bad", ["20", "a:1", "20:0", "-1:2", "20:-0.5", ""])
+def test_a_cut_that_is_not_after_and_duration_is_refused_saying_how(bad):
+    with pytest.raises(ValueError, match="AFTER_S:DURATION_S"):
+        LinkCut.parse(bad)

@@ -730,6 +730,28 @@ def test_a_late_operator_loop_catches_up_by_skipping_not_by_a_burst():
     assert loop.summary()["skipped_decisions"] == skipped
 
 
+def test_after_a_frozen_view_the_realtime_loop_decides_the_newest_pose_not_a_burst():
+    """Realtime, the poses stop for 5 s (the link to the robot's site cut), then come
+    again: the loop decides the newest sample tick only. A burst over the frozen
+    stretch would judge 5 s of decisions on the last picture before the cut, in which
+    the tool does not move, and give the target up as out of reach."""
+    config = load_config(None, ['run.mode="realtime"'])
+    outputs = Outputs()
+    loop = ScriptedLoop(config, Scenario.load(GRASP_FILE), outputs, lockstep=False)
+    one_s, scene_period = scene_tick_at(config, 1.0)
+    back, _ = scene_tick_at(config, 6.0)
+    for tick in [*range(0, one_s + 1, scene_period), back]:
+        loop.buffer.add_objects(tick, np.array([CUBE_M, BIN_M]))
+        loop.buffer.add_tool(tick, HOME_TOOL_M)
+    for tick in range(0, one_s + 1, scene_period):
+        loop.on_arrival(tick)
+    decided = loop.summary()["decisions"]
+    loop.on_arrival(back)
+    summary = loop.summary()
+    assert summary["decisions"] == decided + 1 and summary["frozen_views"] == 1
+    assert not loop.operator.done, loop.operator.failure
+
+
 def test_a_lockstep_operator_left_behind_catches_up_and_waits_for_nothing_it_missed():
     """Lockstep, restarted: the device went on without it, so its poses run far ahead of
     its decisions. It is left behind (never while the device waits for it: a pose at

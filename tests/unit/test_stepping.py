@@ -8,7 +8,7 @@ import pytest
 from teleop.bus.messages import JOINT_COMMAND, Event, Flag, Stage
 from teleop.core.clock import FakeClock
 from teleop.core.config import load_config
-from teleop.sim.stepping import PlantStepCore, Watchdog
+from teleop.sim.stepping import Abort, PlantStepCore, Watchdog
 
 PERIOD_NS = 1_000_000
 
@@ -77,6 +77,7 @@ def test_watchdog_judges_on_the_plants_clock_and_state_numbering():
     resume = dog.judge(command(2, state_seq=101, now_ns=0), 122 * ms)
     assert resume.apply and resume.event is Event.WATCHDOG_RESUME
     assert (dog.brakes, dog.stale_steps) == (1, 2)
+    assert dog.episodes == [[120 * ms, 122 * ms]]  # when it braked and resumed
     # A state too old to remember (or never sent) is stale.
     assert not dog.judge(command(3, state_seq=0, now_ns=0), 122 * ms).apply
     with pytest.raises(ValueError):
@@ -116,6 +117,35 @@ def test_a_command_held_over_several_steps_is_counted_and_traced_once():
     clock.advance(PERIOD_NS)
     core.step(held, clock.now_ns(), traced=True)
     assert out.records["plant_state"][-1]["trace_ns"][Stage.PLANT_RX] == clock.now_ns()
+
+
+def test_a_brake_that_lasts_the_limit_ends_the_run_in_one_line():
+    """Realtime, the commands stop (the link to the operator's site cut): the watchdog
+    brakes and holds the arm; a fresh command within plant.brake_limit_s resumes, a
+    brake that lasts the limit aborts the run (no more steps) saying why."""
+    core, out, clock = make_core("plant.brake_limit_s=1.0")
+    fresh = command(1, state_seq=core.state_seq, now_ns=clock.now_ns())
+    clock.advance(core.period_ns)
+    assert core.step(fresh, 0)
+    while not core.watchdog.braking:  # no fresh command since: braked within watchdog_s
+        clock.advance(core.period_ns)
+        core.step(fresh, 0)
+    for _ in range(round(0.9 / core.config.tick_s)):  # 0.9 s braked
+        clock.advance(core.period_ns)
+        assert not core.step(fresh, 0)
+    assert not core.aborted and core.should_step()
+    again = command(2, state_seq=core.state_seq, now_ns=clock.now_ns())
+    clock.advance(core.period_ns)
+    assert core.step(again, 0)  # back within the limit: the run goes on
+    while not core.aborted:
+        clock.advance(core.period_ns)
+        core.step(again, 0)
+        if core.watchdog.braking:
+            assert clock.now_ns() - core.watchdog.braking_since_ns <= 1e9 + core.period_ns
+    assert not core.should_step()
+    assert "no fresh command for 1.0 s (plant.brake_limit_s = 1)" in core.failure
+    [aborted] = [r for r in out.records["plant_events"] if r["event"] == Event.ABORTED]
+    assert aborted["value"] == Abort.BRAKE_LIMIT
 
 
 @pytest.mark.parametrize("scene_rate_hz", [100.0, 125.0, 60.0])

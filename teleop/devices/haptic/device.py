@@ -504,3 +504,68 @@ class FeedbackHold:
             self._stale = True
             self.stale_events += 1
         return model.scaled(max(0.0, 1.0 - overdue_ns / self.fade_ns)), True, received_ns
+
+
+# A force from the robot's feedback below this is not felt (N): the handle's own friction
+# and the encoder's quantisation are larger.
+FELT_FORCE_N = 0.01
+# Stale spells StaleSpells keeps in full (the count goes on beyond them).
+MAX_SPELLS_KEPT = 32
+
+
+@dataclass
+class StaleSpell:
+    """One spell of stale feedback (times on the device's feedback clock, integer ns)."""
+
+    received_ns: int  # the last fresh model's receipt: the spell's start
+    last_stale_ns: int  # the last render it was still stale
+    felt_until_ns: int  # the last render the handle still felt a force from it
+
+    def summary(self) -> dict[str, float]:
+        return {
+            "missing_ms": (self.last_stale_ns - self.received_ns) / 1e6,
+            "felt_ms": max(0, self.felt_until_ns - self.received_ns) / 1e6,
+        }
+
+
+class StaleSpells:
+    """What the handle felt while its feedback was stale (the link or the controller
+    silent): per spell, how long the feedback was missing and how long after the last
+    fresh model the handle still felt a force from it (a stale force held would be felt
+    for the whole spell; :class:`FeedbackHold` fades it out after ``stale_after_s``).
+    The first :data:`MAX_SPELLS_KEPT` spells are kept; :attr:`felt_max_ms` covers all."""
+
+    def __init__(self) -> None:
+        self.spells: list[StaleSpell] = []
+        self.count = 0
+        self.felt_max_ms = 0.0
+        self._open: StaleSpell | None = None
+
+    @property
+    def open(self) -> bool:
+        """Whether a spell is under way (the next render may close it)."""
+        return self._open is not None
+
+    def render(self, t_ns: int, stale: bool, received_ns: int | None, force_n: float) -> None:
+        """One render at ``t_ns``: whether its model was stale, when that model was
+        received, and the size of the force from it (N)."""
+        if not stale or received_ns is None:
+            self._open = None
+            return
+        spell = self._open
+        if spell is None or spell.received_ns != received_ns:
+            spell = self._open = StaleSpell(received_ns, t_ns, received_ns)
+            self.count += 1
+            if len(self.spells) < MAX_SPELLS_KEPT:
+                self.spells.append(spell)
+        spell.last_stale_ns = t_ns
+        if force_n > FELT_FORCE_N:
+            spell.felt_until_ns = t_ns
+            self.felt_max_ms = max(self.felt_max_ms, (t_ns - received_ns) / 1e6)
+
+    def summary(self) -> dict[str, object]:
+        return {
+            "count": self.count,
+            "felt_max_ms": self.felt_max_ms,
+            "spells": [spell.summary() for spell in self.spells],
+        }

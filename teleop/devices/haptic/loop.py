@@ -92,6 +92,7 @@ from teleop.devices.haptic.device import (
     HandInput,
     HapticDevice,
     LocalContactModel,
+    StaleSpells,
     max_stable_stiffness_n_per_m,
     saturate_force,
 )
@@ -201,6 +202,7 @@ class HapticLoop:
         # Lockstep with a forward delay: the samples still on their way (oldest first).
         self._in_flight: deque[np.ndarray] = deque(maxlen=self.forward_ticks + 1)
         self.hold = FeedbackHold(config.haptic.stale_feedback_s, config.haptic.fade_s)
+        self.stale_spells = StaleSpells()
         # The energy the force exchanges with the hand, observed; damped with "tdpa".
         self.passivity = PassivityControl(
             config.teleop.stabiliser == "tdpa",
@@ -696,8 +698,12 @@ class HapticLoop:
         handle_d_m = self.record["device_p_m"].copy()  # where the last sample left it
         stale = False
         for render in range(self.renders_per_tick):
-            model, render_stale, _ = self.hold.model_at(t_ns + render * self.render_period_ns)
+            render_ns = t_ns + render * self.render_period_ns
+            model, render_stale, received_ns = self.hold.model_at(render_ns)
             stale |= render_stale
+            if render_stale or self.stale_spells.open:
+                felt_n = math.hypot(*model.force_at(handle_d_m).tolist())
+                self.stale_spells.render(render_ns, render_stale, received_ns, felt_n)
             self.device.send_force(self._render(model, handle_d_m))
             sample = self.device.next_sample(held)
             self.passivity.observe(sample.f_n, sample.v_m_s)
@@ -743,6 +749,8 @@ class HapticLoop:
             "steps": self.steps,
             "runs": self.runs,
             "stale_feedback_events": self.hold.stale_events,
+            # What the handle felt from stale feedback: per spell, missing and felt (ms).
+            "stale_spells": self.stale_spells.summary(),
             "max_rendered_force_n": self.max_force_n,
             "max_abs_position_m": self.max_abs_position_m,
             "lockstep_waits": self.lockstep_waits,

@@ -1073,6 +1073,9 @@ class ScriptedLoop:
         # on without this operator (a restart, or the device gave up waiting for it).
         scene_ticks = scene_schedule(config).gap_ticks
         self.lockstep_lag_ticks = 3 * self.hand_schedule.lead_ticks + 2 * scene_ticks
+        # Realtime: poses that stopped coming for longer than the device keeps a hand
+        # input (a link cut, a stalled plant) froze the view; see on_arrival.
+        self.frozen_view_ticks = round(config.haptic.hand_input_stale_s / self.tick_s)
         self.delay_ticks = round(config.operator.reaction_delay_s / self.tick_s)
         self.head_schedule = head_schedule(config)
         self.scenario = scenario
@@ -1099,6 +1102,7 @@ class ScriptedLoop:
         self._joined_tick: int | None = None  # first TOOL_POSE tick of a run joined late
         self.withheld_inputs = 0  # joined: decisions made before anything was seen
         self.skipped_decisions = 0  # realtime: sample ticks a late operator skipped
+        self.frozen_views = 0  # realtime: poses that came after a frozen view
         self.phase_times: list[dict[str, Any]] = []
 
     def hmd_seen(self) -> None:
@@ -1149,7 +1153,10 @@ class ScriptedLoop:
         ``catch_up`` (a late operator whose caller skipped the poses queued before this
         one, see :meth:`left_behind`): decide only the newest sample tick, never a burst
         of decisions whose hand inputs would all be late (see
-        ScriptedOperator._after_hold)."""
+        ScriptedOperator._after_hold). The same in realtime after a frozen view (no pose
+        for longer than ``frozen_view_ticks``: the link was cut, the plant stalled): a
+        person who saw nothing new decided nothing meanwhile, and a burst over the frozen
+        stretch would judge the tool's progress on a picture that did not move."""
         if m == 0 and self._last_tick != 0:
             self._new_run()
         elif self._last_tick is not None and m <= self._last_tick:
@@ -1161,7 +1168,9 @@ class ScriptedLoop:
                 self._joined_tick = m
                 self.operator.joining = True
                 logger.info("joined a run under way at tick %d (a restart)", m)
-        elif catch_up:
+        elif catch_up or (not self.lockstep and m - self._last_tick > self.frozen_view_ticks):
+            if not catch_up:
+                self.frozen_views += 1
             first = max(self._last_tick + 1, self.hand_schedule.last_sample(m))
             self.skipped_decisions += sum(
                 self.hand_schedule.is_sample(s) for s in range(self._last_tick + 1, first)
@@ -1235,6 +1244,7 @@ class ScriptedLoop:
             "resumed": op.resumed,  # a restarted operator: where it took the task up
             "withheld_inputs": self.withheld_inputs,
             "skipped_decisions": self.skipped_decisions,
+            "frozen_views": self.frozen_views,
             "hand_holds": op.hand_holds,
             "device_gone_decisions": op.device_gone_decisions,
         }
