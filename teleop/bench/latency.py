@@ -193,6 +193,35 @@ def analyse(*traces: np.ndarray) -> dict[str, Any]:
     }
 
 
+def across_clocks(*traces: np.ndarray) -> dict[str, Any]:
+    """The loop split across two sites on two clocks: the operator site's stamps
+    (HAPTIC_SAMPLE, FEEDBACK_RX, FEEDBACK_RENDERED) on one, the robot site's
+    (CONTROLLER_RX to FEEDBACK_TX) on another. The round trip is on the sampling side's
+    clock alone; each way across is found as NTP does: per loop, the clocks' offset
+    ``((t1 - t0) + (t2 - t3)) / 2`` (robot minus operator) and the time on the wire
+    ``(t3 - t0) - (t2 - t1)``; the offset taken from the loop with the least wire time,
+    whose half is its uncertainty (the two ways need not be equal). In us (the offset in
+    s) after the warm-up."""
+    loops = warm_loops(*traces)
+    t0, t1 = loops[:, Stage.HAPTIC_SAMPLE], loops[:, Stage.CONTROLLER_RX]
+    t2, t3 = loops[:, Stage.FEEDBACK_TX], loops[:, Stage.FEEDBACK_RX]
+    if loops.shape[0] == 0:
+        return {"loops": 0}
+    wire_ns = (t3 - t0) - (t2 - t1)
+    best = int(np.argmin(wire_ns))
+    # Halved in integers: two stamps hours apart are beyond a float's ns resolution.
+    offset_ns = ((t1[best] - t0[best]) + (t2[best] - t3[best])) // 2
+    return {
+        "loops": int(loops.shape[0]),
+        "offset_s": offset_ns / NS_PER_S,
+        "offset_uncertainty_us": float(wire_ns[best]) / 2 / NS_PER_US,
+        "round_trip_us": stats_us(hop_ns(loops, ROUND_TRIP)),
+        "robot_site_us": stats_us(t2 - t1),
+        "operator_to_robot_us": stats_us(t1 - t0 - offset_ns),
+        "robot_to_operator_us": stats_us(t3 - t2 + offset_ns),
+    }
+
+
 def chain_accounting(
     samples: np.ndarray, traces: np.ndarray, shed_ns: np.ndarray | None = None
 ) -> dict[str, int]:

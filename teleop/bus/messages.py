@@ -914,7 +914,8 @@ EVENT_MEANINGS: Mapping[Event, tuple[str, str]] = {  # (sent by, meaning and val
                     "checkpointed; value: steps of physics lost (since the checkpoint)"),
     Event.ABORTED: ("plant", "the plant ended the run on a failure, no more states; value: "
                     "1 its checkpoint could not be resumed, 2 lockstep got no answer "
-                    "within `plant.lockstep_timeout_s`"),
+                    "within `plant.lockstep_timeout_s`, 3 realtime braked for want of a "
+                    "fresh command for `plant.brake_limit_s`"),
     Event.STALL: ("controller", "path following: the tool stopped progressing along the "
                   "path while commanded (`clearance.stall_window_s`); value: path error (m)"),
     Event.CONTACT: ("controller", "an arm or gripper link touches the scene or another "

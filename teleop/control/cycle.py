@@ -14,8 +14,9 @@ Two tasks (``run.scenario``), one :class:`ControllerCore` each:
   thread hand-off, no waiting for a tick): each HAPTIC_STATE sample becomes one
   JOINT_COMMAND at once (control law on the newest state), and each PLANT_STATE one
   FORCE_FEEDBACK (from its own contact and proximity and the newest handle). A handle
-  sample older than ``haptic.stale_feedback_s`` counts as "no input" (the tool holds
-  still).
+  silent for ``haptic.stale_feedback_s`` (realtime: its newest sample arrived that long
+  ago; lockstep: that many ticks behind the state) counts as "no input" (the tool holds
+  still, the device gets no force).
 
 Every command names the state it answers (``state_seq``): a controller too slow for the
 plant's rate makes its commands stale and the plant's watchdog brakes, the safe failure.
@@ -323,7 +324,12 @@ class BilateralCycle(ControllerCore):
             clearance=ClearanceModel(config, arm),
         )
         self.head_schedule = head_schedule(config)
+        # Lockstep: a handle sample more than this many ticks behind the state is silent.
         self.stale_ticks = round(config.haptic.stale_feedback_s / self.timestep_s)
+        # Realtime: the handle is silent when its newest sample arrived longer ago than
+        # this on the controller's clock. Not by ticks: a sample's tick is the newest
+        # state the device had seen, a whole round trip behind across a slow link.
+        self.handle_silent_ns = round(config.haptic.stale_feedback_s * 1e9)
         # Realtime: a newest plant state older than this on the clock means the plant went
         # silent; a command answering it would only be braked on (plant.watchdog_s).
         self.state_silent_ns = round(config.plant.watchdog_s * 1e9)
@@ -493,9 +499,9 @@ class BilateralCycle(ControllerCore):
             return
         tick = int(state["seq"])
         latest = self.haptic.get()
-        haptic = latest[0] if latest is not None else None
-        if haptic is not None and tick - int(haptic["tick"]) > self.stale_ticks:
-            haptic = None
+        haptic = None
+        if latest is not None and self.clock.now_ns() - latest[1] <= self.handle_silent_ns:
+            haptic = latest[0]
         if haptic is None:
             self.no_input_cycles += 1
         t0 = self.clock.now_ns()

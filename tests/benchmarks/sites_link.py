@@ -18,7 +18,7 @@ emulator (``teleop.bench.netem``) in the robot host's namespace. Needs root.
    stopped (the haptic device's stale spells), when the plant resumed after the link
    came back, and the outcome.
 
-    .venv/bin/python tests/benchmarks/sites_link.py --out runs/bench/sites_link
+    .venv/bin/python -m tests.benchmarks.sites_link --out runs/bench/sites_link
 
 Writes ``results.json`` and ``results.md`` into ``--out``. Measure on a quiet machine:
 the load average before each run is in the output.
@@ -37,8 +37,13 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from teleop.bench import sites as sites_bench
+from teleop.bench.latency import across_clocks
 from teleop.core import markdown
 from teleop.core.config import STABILISERS, load_config
+from teleop.core.rundir import HAPTIC_TRACE_FILE
 from teleop.run.assemble import grasp_figures
 from tests.benchmarks.delayed_teleop import PRESS_SCENARIO, press_figures, press_series
 from tests.e2e.hosts import two_hosts
@@ -46,6 +51,7 @@ from tests.e2e.sites import TwoSites
 
 OPERATOR_CLOCK_AHEAD_S = 3 * 3600
 NS_PER_MS = 1_000_000
+FLOOR_PINGS = 2000
 
 
 def ms_list(text: str) -> list[float]:
@@ -69,6 +75,7 @@ def one_run(
         sites.finish()
     plant, operator_summary = sites.summaries["plant"], sites.summaries["operator"]
     figures, _ = grasp_figures(sites.summaries, [])
+    loop = across_clocks(np.load(sites.operator_dir / HAPTIC_TRACE_FILE))
     return sites, {
         "load_before": round(load, 2),
         "wall_s": round(time.monotonic() - start, 1),
@@ -84,12 +91,25 @@ def one_run(
         "max_device_force_n": figures["max_device_force_n"],
         "observer_min_j": (figures["passivity"] or {}).get("observer_min_j"),
         "stale_felt_max_ms": sites.summaries["haptic"]["stale_spells"]["felt_max_ms"],
+        # The loop across the clocks: round trip on the operator site's, each way from the
+        # estimated offset (robot minus operator site, s) within its uncertainty.
+        "round_trip_ms": _p50_p99_ms(loop.get("round_trip_us")),
+        "operator_to_robot_ms": _p50_p99_ms(loop.get("operator_to_robot_us")),
+        "robot_to_operator_ms": _p50_p99_ms(loop.get("robot_to_operator_us")),
+        "clock_offset_s": loop.get("offset_s"),
+        "clock_offset_uncertainty_ms": (loop.get("offset_uncertainty_us") or 0.0) / 1e3,
     }
+
+
+def _p50_p99_ms(figures: dict[str, Any] | None) -> list[float] | None:
+    if not figures or figures.get("p50") is None:
+        return None
+    return [figures["p50"] / 1e3, figures["p99"] / 1e3]
 
 
 def delay_runs(tmp: Path, delay_ms: float, stabilisers: Sequence[str], stiff_k: float) -> list:
     """The grasp with tdpa, then the stiff press per stabiliser, at ``delay_ms`` one way."""
-    link = ["--delay-ms", f"{delay_ms:g}"]
+    link = ["--delay-ms", f"{delay_ms:g}"]  # 0: through the emulator all the same
     rows = []
     _, grasp = one_run(tmp, f"grasp-{delay_ms:g}", link,
                        ("--set", 'run.scenario="grasp"', "--set", "run.seed=0",
@@ -136,6 +156,14 @@ def _table(header: Sequence[str], rows: list[list[str]]) -> str:
     return "\n".join(markdown.table(header, rows))
 
 
+def _pair(values: list[float] | None) -> str:
+    return "-" if values is None else f"{values[0]:.1f} / {values[1]:.1f} ms"
+
+
+def _first(values: list[float] | None) -> str:
+    return "-" if values is None else f"{values[0]:.1f}"
+
+
 def results_markdown(rows: list[dict[str, Any]]) -> str:
     def num(value: Any, fmt: str, scale: float = 1.0) -> str:
         return "-" if value is None else format(value * scale, fmt)
@@ -147,10 +175,15 @@ def results_markdown(rows: list[dict[str, Any]]) -> str:
     if grasp:
         parts.append(_table(
             ["one way", "stabiliser", "success", "task time", "observer's least W",
-             "realtime factor", "load before"],
+             "round trip p50 / p99", "out, back p50 (+- offset)", "realtime factor",
+             "braked steps", "load before"],
             [[f"{r['delay_ms']:g} ms", r["stabiliser"], str(r["success"]),
               num(r["duration_s"], ".1f"), num(r["observer_min_j"], ".2f", 1e3) + " mJ",
-              num(r["realtime_factor"], ".3f"), num(r["load_before"], ".2f")] for r in grasp],
+              _pair(r["round_trip_ms"]),
+              f"{_first(r['operator_to_robot_ms'])}, {_first(r['robot_to_operator_ms'])} "
+              f"(+- {r['clock_offset_uncertainty_ms']:.1f})",
+              num(r["realtime_factor"], ".3f"), f"{r['braked_steps']} / {r['steps']}",
+              num(r["load_before"], ".2f")] for r in grasp],
         ))  # fmt: skip
     if press:
         parts.append(_table(
@@ -220,13 +253,23 @@ def main() -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     stiff_k = load_config().teleop.scene_stiffness_n_per_m * args.stiff_factor
     rows: list[dict[str, Any]] = []
+    # The floor under the stack's loop in the same run: two bare ends through the same
+    # routers (teleop latency --across-sites), at the bus rate, per delay.
+    rate_hz = load_config().loop.rate_hz
+    floor = sites_bench.measure(
+        FLOOR_PINGS,
+        rate_hz,
+        1,
+        [d for d in args.delays_ms if d],
+        progress=lambda line: print("floor:", line, flush=True),
+    )
     with tempfile.TemporaryDirectory(prefix="sites-link-") as tmp:
         for delay_ms in args.delays_ms:
             rows += delay_runs(Path(tmp), delay_ms, args.stabilisers, stiff_k)
         for cut_s in args.cuts_s:
             rows.append(cut_run(Path(tmp), cut_s, args.cut_after_s))
-    (args.out / "results.json").write_text(json.dumps(rows, indent=1) + "\n")
-    text = results_markdown(rows)
+    (args.out / "results.json").write_text(json.dumps({"floor": floor, "runs": rows}, indent=1))
+    text = "\n".join(sites_bench.table(floor)) + "\n\n" + results_markdown(rows)
     (args.out / "results.md").write_text(text)
     print(text)
     print(f"written: {args.out}")

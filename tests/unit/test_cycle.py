@@ -96,15 +96,22 @@ def test_lockstep_cycle_sends_feedback_then_a_command_that_moves_the_tool():
 
 
 def test_a_silent_handle_gives_no_motion_and_counts_as_no_input():
+    """Realtime, a handle is silent when no sample has arrived for
+    haptic.stale_feedback_s on the controller's clock, not when its tick lags: across a
+    slow link every sample's tick is a round trip behind the newest state."""
     cycle, sent, clock, config = make(BilateralCycle, 'run.mode="realtime"', 'run.scenario="grasp"')
     now = clock.now_ns()
     cycle.on_state(state(config, 0, now), now)  # no handle yet: feedback without input
     assert sent.streams() == ["force_feedback"] and cycle.no_input_cycles == 1
-    late_tick = cycle.stale_ticks + 1
     cycle.on_haptic(handle(1, 0, now), now)  # answered on state 0: a command
     command = sent.last("joint_command")
     assert command["device_deadline_ns"] == now and np.abs(command["qd_ref_rad_s"]).max() > 0
-    cycle.on_state(state(config, late_tick, now), now)  # the handle's tick is stale now
+    far_tick = cycle.stale_ticks + 5  # the handle's tick far behind, its sample just in
+    cycle.on_state(state(config, far_tick, now), now)
+    assert cycle.no_input_cycles == 1
+    clock.advance(cycle.handle_silent_ns + 1)  # no sample since: the handle went silent
+    now = clock.now_ns()
+    cycle.on_state(state(config, far_tick + 1, now), now)
     assert cycle.no_input_cycles == 2
     # with no input the workspace spring (on the handle's offset) is not rendered
     assert np.allclose(sent.last("force_feedback")["device_f_workspace_n"], 0.0)
@@ -352,10 +359,10 @@ def test_feedback_saturates_at_the_device_peak_force_keeping_its_direction():
 
 
 def test_a_stale_handle_gives_zero_feedback_and_drives_no_motion():
-    """A handle more than stale_ticks behind the plant is "no input": no workspace spring,
-    so with no contact nor obstacle the device force is exactly zero; a sample older
-    than the shed age on the clock is never answered with a command (the plant's
-    watchdog brakes the arm)."""
+    """A handle silent for haptic.stale_feedback_s on the clock is "no input": no
+    workspace spring, so with no contact nor obstacle the device force is exactly zero;
+    a sample older than the shed age on the clock is never answered with a command (the
+    plant's watchdog brakes the arm)."""
     cycle, sent, clock, config = make(BilateralCycle, REALTIME, GRASP)
     handle_m = config.teleop.workspace_free_m + 0.01  # the spring pulls while the input is live
     now = clock.now_ns()
@@ -365,11 +372,11 @@ def test_a_stale_handle_gives_zero_feedback_and_drives_no_motion():
     assert sent.streams().count("joint_command") == 3
     cycle.on_state(state(config, 1, now), now)  # the handle is fresh: the spring renders
     assert sent.last("force_feedback")["device_f_n"][0] < 0.0
-    cycle.on_state(state(config, cycle.stale_ticks + 1, now), now)  # now it is stale
+    clock.advance(cycle.handle_silent_ns + 1)  # no sample since: it went silent
+    late = clock.now_ns()
+    cycle.on_state(state(config, 2, late), late)
     assert np.array_equal(sent.last("force_feedback")["device_f_n"], np.zeros(3))
     assert np.array_equal(sent.last("force_feedback")["device_f_workspace_n"], np.zeros(3))
-    clock.advance(2 * cycle.haptic_in.shed_age_ns)
-    late = clock.now_ns()
     cycle.on_haptic(handle(4, 1, now, (handle_m, 0.0, 0.0)), late)  # sampled long ago
     assert sent.streams().count("joint_command") == 3  # no command: nothing drives the tool
     assert cycle.summary()["haptic_shed"] == 1
@@ -448,9 +455,11 @@ def test_a_silent_handle_zeroes_the_rendered_force_even_in_contact():
     cycle.on_haptic(handle(1, 0, now), now)
     cycle.on_state(loaded, now)  # the handle is fresh: contact and weight render
     assert np.linalg.norm(sent.last("force_feedback")["device_f_n"]) > 0.5
+    clock.advance(cycle.handle_silent_ns + 1)  # no handle sample since
     silent = loaded.copy()
-    silent["seq"] = silent["step"] = cycle.stale_ticks + 1
-    cycle.on_state(silent, now)
+    silent["seq"] = silent["step"] = 1
+    silent["t_source_ns"] = clock.now_ns()
+    cycle.on_state(silent, clock.now_ns())
     feedback = sent.last("force_feedback")
     assert np.array_equal(feedback["device_f_n"], np.zeros(3))
     assert np.linalg.norm(feedback["world_f_contact_n"]) > 0  # still reported

@@ -203,3 +203,27 @@ def test_the_floor_sends_only_sizes_its_pools_carry_and_says_why_not_the_others(
         ],
     }  # fmt: skip
     assert f"1048576 B: not measured over SHM ({reason})" in latency.conclusions(report)
+
+
+def test_across_two_clocks_the_offset_is_found_within_its_uncertainty_and_each_way_too():
+    """Loops whose robot-side stamps are on a clock three hours behind the operator's,
+    the way out 5-6 ms and back 2-3 ms (unequal): the offset is found within the half
+    wire time it claims, each way within that of its true times, the round trip exact."""
+    rng = np.random.default_rng(3)
+    behind_ns = -3 * 3600 * NS_PER_S
+    traces = _synthetic_traces(4000, rng) - 2 * behind_ns  # both clocks running for hours
+    out_ns = rng.integers(5_000_000, 6_000_000, size=traces.shape[0])
+    back_ns = rng.integers(2_000_000, 3_000_000, size=traces.shape[0])
+    robot = slice(Stage.CONTROLLER_RX, Stage.FEEDBACK_TX + 1)
+    traces[:, robot] += out_ns[:, None]
+    traces[:, Stage.FEEDBACK_RX :] += (out_ns + back_ns)[:, None]
+    true_round_trip = latency.hop_ns(latency.warm_loops(traces), latency.ROUND_TRIP)
+    traces[:, robot] += behind_ns
+    figures = latency.across_clocks(traces)
+    uncertainty_ns = figures["offset_uncertainty_us"] * NS_PER_US
+    assert 3.5e6 < uncertainty_ns < 4.5e6  # half the least out + back: (5 + 2) / 2 ms-ish
+    assert abs(figures["offset_s"] * NS_PER_S - behind_ns) <= uncertainty_ns
+    out_us, back_us = figures["operator_to_robot_us"], figures["robot_to_operator_us"]
+    assert abs(out_us["p50"] * NS_PER_US - 5.5e6) <= uncertainty_ns + 0.1e6
+    assert abs(back_us["p50"] * NS_PER_US - 2.5e6) <= uncertainty_ns + 0.1e6
+    assert_matches_reference(figures["round_trip_us"], true_round_trip)
