@@ -216,8 +216,9 @@ def main() -> int:
     parser.add_argument(
         "--delays-ms",
         type=ms_list,
-        default=[12.5, 25.0, 50.0],
-        help="one-way delays of the link (ms, comma separated; empty: none)",
+        default=[0.0, 12.5, 25.0, 50.0],
+        help="one-way delays of the link (ms, comma separated; empty: none; 0: through the "
+        "emulator undelayed, the baseline)",
     )
     parser.add_argument(
         "--stabilisers",
