@@ -29,6 +29,15 @@ STAMP_LOG_ROWS = 65_536
 # queued input in order would keep it behind for as long as the backlog lasts. Many times a
 # healthy hop (a fraction of a ms), well below the plant's command watchdog.
 SHED_AGE_NS = 5_000_000
+# A link's own delivery spreads its records' ages (a network's jitter, a router's batches):
+# a record late by that is the newest there is, not a backlog. So the shed age grows by
+# SPREAD_FACTOR times the link's mean age (an average, gain SPREAD_GAIN, of the ages of
+# the records not too old: a backlog does not widen it), as TCP's retransmission timeout
+# grows with the round trip's variation, up to MAX_SHED_AGE_NS, below the plant's
+# command watchdog (20 ms).
+SPREAD_FACTOR = 4
+SPREAD_GAIN = 1 / 16
+MAX_SHED_AGE_NS = 15_000_000
 
 
 class StampLog(Ring):
@@ -288,12 +297,13 @@ class Inbound:
     as this link has seen its clock (:class:`LinkClock`; ``future_stamp``: rejected, the
     seq check untouched); its seq is in order (:class:`SeqCheck`: gaps counted as lost,
     older ones as reordered, jumps beyond the window rejected, a restarted producer taken
-    up); and it is not older than ``shed_age_ns`` beyond the link's fastest delivery, on
-    this host's clock (else it is shed: the receiver is behind; it did arrive, so the next
-    record is no gap). What is shed (here or by the caller, e.g.
-    superseded by a newer record) has the HAPTIC_SAMPLE stamp of its loop logged, for the
-    latency report's count of loops that never closed. The first rejection of each
-    reason is logged. Not thread-safe: the owner calls it under its own lock.
+    up); and it is not older than ``shed_age_ns`` (plus the link's own spread, see
+    SPREAD_FACTOR) beyond the link's fastest delivery, on this host's clock (else it is
+    shed: the receiver is behind; it did arrive, so the next record is no gap). What is
+    shed (here or by the caller, e.g. superseded by a newer record) has the HAPTIC_SAMPLE
+    stamp of its loop logged, for the latency report's count of loops that never closed.
+    The first rejection of each reason is logged. Not thread-safe: the owner calls it
+    under its own lock.
     """
 
     def __init__(
@@ -310,6 +320,7 @@ class Inbound:
         self.clock = LinkClock()
         self.shed = 0  # records dropped unanswered: too old, or superseded (see drop)
         self.future_stamps = 0
+        self.mean_age_ns = 0.0  # the link's spread: its records' mean age on arrival
         # HAPTIC_SAMPLE stamps of the loops dropped here (one log may serve several streams
         # of a service: the latency report counts loops, not streams)
         self.shed_log = shed_log if shed_log is not None else StampLog(1)
@@ -325,9 +336,13 @@ class Inbound:
             return False
         if not self.accept_seq(seq):
             return False
-        if shed and self.too_old(rec, now_ns):
-            self.drop(rec)  # arrived, in order, too late: shed, not lost
-            return False
+        if self.too_old(rec, now_ns):
+            if shed:
+                self.drop(rec)  # arrived, in order, too late: shed, not lost
+                return False
+        else:  # the link's own spread, from the records it delivers in time
+            age_ns = max(0, self.age_ns(rec, now_ns))
+            self.mean_age_ns += SPREAD_GAIN * (age_ns - self.mean_age_ns)
         return True
 
     def arrived(self, rec: np.ndarray, rx_ns: int) -> bool:
@@ -374,10 +389,17 @@ class Inbound:
         self.shed += 1
         self.log_dropped(rec)
 
+    @property
+    def shed_after_ns(self) -> int:
+        """The age beyond which a record is shed: ``shed_age_ns`` plus the link's spread,
+        at most MAX_SHED_AGE_NS (or ``shed_age_ns`` if that is more)."""
+        spread_ns = round(SPREAD_FACTOR * self.mean_age_ns)
+        return max(self.shed_age_ns, min(self.shed_age_ns + spread_ns, MAX_SHED_AGE_NS))
+
     def too_old(self, rec: np.ndarray, now_ns: int) -> bool:
-        """Whether ``rec`` has been on its way more than ``shed_age_ns`` beyond the link's
-        fastest delivery at ``now_ns``."""
-        return self.age_ns(rec, now_ns) > self.shed_age_ns
+        """Whether ``rec`` has been on its way longer than :attr:`shed_after_ns` beyond the
+        link's fastest delivery at ``now_ns``."""
+        return self.age_ns(rec, now_ns) > self.shed_after_ns
 
     def log_dropped(self, rec: np.ndarray) -> None:
         """Log the HAPTIC_SAMPLE stamp of a record dropped for whatever reason (none
@@ -394,7 +416,12 @@ class Inbound:
 
     def counts(self) -> dict[str, int]:
         """Every counter of the stream, by name (for a summary)."""
-        return {**self.seq.counts(), "shed": self.shed, "future_stamps": self.future_stamps}
+        return {
+            **self.seq.counts(),
+            "shed": self.shed,
+            "future_stamps": self.future_stamps,
+            "shed_after_ms": self.shed_after_ns / 1e6,  # its last value
+        }
 
     def save(self, path: Path) -> None:
         """Write the shed log (see :meth:`StampLog.save`)."""

@@ -8,6 +8,7 @@ import pytest
 from teleop.bus.messages import JOINT_COMMAND, Stage
 from teleop.bus.stamps import (
     LINK_CLOCK_WINDOW_NS,
+    MAX_SHED_AGE_NS,
     SEQ_WINDOW,
     SHED_AGE_NS,
     Inbound,
@@ -46,6 +47,28 @@ def test_inbound_drops_older_and_stale_records_and_logs_their_loops():
     # a record of no teleoperation loop (no sample stamp) is shed but leaves no stamp
     assert not inbound.accept(command(5, 0), now_ns)
     assert inbound.shed == 2 and len(inbound.shed_log) == 1
+
+
+def test_a_link_that_spreads_its_records_sheds_later_but_never_past_the_bound():
+    """Records of a steady link arrive within a fraction of a ms of its fastest: shed
+    beyond SHED_AGE_NS. A link whose delivery spreads them over 0-6 ms (a network's
+    jitter) is no backlog: a record 6 ms late is still used; a backlog beyond
+    MAX_SHED_AGE_NS is shed whatever the spread."""
+    period_ns, ms = 4_000_000, 1_000_000
+    steady, jittery = Inbound(Stage.CONTROLLER_TX), Inbound(Stage.CONTROLLER_TX)
+    rx_ns = 10**12
+    for seq in range(1, 400):
+        rx_ns += period_ns
+        assert steady.accept(command(seq, rx_ns - 100_000), rx_ns)
+        late_ns = (seq * 7 % 13) * ms // 2  # 0 to 6 ms, spread evenly
+        jittery.accept(command(seq, rx_ns - 100_000 - late_ns), rx_ns)
+    assert steady.shed_after_ns == SHED_AGE_NS
+    assert SHED_AGE_NS + 6 * ms < jittery.shed_after_ns <= MAX_SHED_AGE_NS
+    rx_ns += period_ns
+    assert not steady.accept(command(400, rx_ns - 6 * ms), rx_ns)
+    assert jittery.accept(command(400, rx_ns - 6 * ms), rx_ns)
+    assert not jittery.accept(command(401, rx_ns - MAX_SHED_AGE_NS - ms), rx_ns)
+    assert jittery.counts()["shed_after_ms"] == jittery.shed_after_ns / 1e6
 
 
 def test_a_link_clock_learns_the_senders_clock_and_no_single_stamp_moves_it():
