@@ -24,6 +24,7 @@ import contextlib
 import json
 import math
 import os
+import statistics
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -287,6 +288,13 @@ def _add_latency_command(commands: Commands) -> None:
         "--across-sites",
         action="store_true",
         help="measure the round trip across two sites' routers instead of the stack's loop",
+    )
+    latency.add_argument(
+        "--with-stack",
+        action="store_true",
+        help="--across-sites: then the realtime grasp split across two sites on this host "
+        "(teleop up --site robot and --site operator): its loop's round trip on the operator "
+        "site's clock and each way from the clocks' offset estimated from the loop's stamps",
     )
     latency.add_argument(
         "--delays-ms",
@@ -681,9 +689,12 @@ def _latency_across_sites(args: argparse.Namespace) -> int:
     given = [name for name, value in stack_only.items() if value is not None]
     given += ["--no-old-timing"] if args.no_old_timing else []
     if given:
-        raise ConfigError(f"--across-sites measures no stack: drop {', '.join(given)}")
+        dropped = ", ".join(given)
+        raise ConfigError(f"--across-sites takes none of the one-host stack run's: drop {dropped}")
     if args.pings < 1 or args.rounds < 1:
         raise ConfigError("--pings and --rounds: at least 1")
+    if args.config is not None:
+        raise ConfigError("--across-sites: no --config (the sites take --set values)")
     delays = DEFAULT_SITE_DELAYS_MS if args.delays_ms is None else args.delays_ms
     print(
         f"latency across sites: {args.rounds} rounds direct and through the routers, then "
@@ -693,12 +704,22 @@ def _latency_across_sites(args: argparse.Namespace) -> int:
     report = sites.measure(
         args.pings, 1000.0, args.rounds, delays, progress=lambda line: print(line, file=sys.stderr)
     )
+    stack_ok = True
+    if args.with_stack:
+        to_stderr = lambda line: print(line, file=sys.stderr)  # noqa: E731
+        stack = sites.measure_stack(args.run_dir / "stack", args.overrides, progress=to_stderr)
+        report["stack"] = stack
+        stack_ok = stack["success"] and bool(stack.get("loops"))
     json_path = args.json if args.json is not None else args.run_dir / SITES_REPORT_FILE
     json_path.parent.mkdir(parents=True, exist_ok=True)
     json_path.write_text(json.dumps(report, indent=2) + "\n")
     print("\n".join(sites.table(report)))
+    if args.with_stack:
+        routers = [r[sites.ROUTERS] for r in report["rounds"]]
+        floor = {k: statistics.median(r[k] for r in routers) for k in ("p50_ms", "p99_ms")}
+        print("\n" + "\n".join(sites.stack_table(report["stack"], floor)))
     print(f"report: {json_path}")
-    return 1 if report["lost"] else 0
+    return 1 if report["lost"] or not stack_ok else 0
 
 
 def _latency(args: argparse.Namespace) -> int:
@@ -706,8 +727,8 @@ def _latency(args: argparse.Namespace) -> int:
 
     if args.across_sites:
         return _latency_across_sites(args)
-    if args.delays_ms is not None:
-        raise ConfigError("--delays-ms: with --across-sites only")
+    if args.delays_ms is not None or args.with_stack:
+        raise ConfigError("--delays-ms and --with-stack: with --across-sites only")
     if args.duration is None:
         args.duration = DEFAULT_LATENCY_DURATION_S
     if args.duration <= latency.WARMUP_S:

@@ -22,9 +22,13 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import json
 import multiprocessing
 import os
+import subprocess
+import sys
 import tempfile
+import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -32,6 +36,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from teleop.bench.latency import across_clocks
 from teleop.bench.netem import LinkImpairment, running_proxy
 from teleop.bench.ping import paced_round_trips_ms
 from teleop.bus import graph
@@ -41,6 +46,8 @@ from teleop.bus.topics import Topics
 from teleop.core import markdown
 from teleop.core.config import OPERATOR_SITE, ROBOT_SITE, BusConfig, SiteConfig
 from teleop.core.net import free_loopback_port
+from teleop.core.rundir import HAPTIC_TRACE_FILE, summary_path
+from teleop.run.sites import OPERATOR_BUNDLE_FILE
 
 ROBOT = "sites"  # the robot id of the measurement's keys (no run shares them)
 ROBOT_ROUTER, OPERATOR_ROUTER = graph.router_name(ROBOT_SITE), graph.router_name(OPERATOR_SITE)
@@ -238,4 +245,107 @@ def table(report: dict[str, Any]) -> list[str]:
         ]
     if report["lost"]:
         lines.append(f"{report['lost']} samples never came back")
+    return lines
+
+
+# -- the stack's own loop across the two sites -------------------------------------------
+
+# The realtime grasp split across the sites: its plant's end is waited for this long (s).
+STACK_RUN_TIMEOUT_S = 300.0
+STACK_SETTINGS = ('run.scenario="grasp"', "run.seed=0")
+
+
+def _teleop(args: Sequence[str], timeout_s: float) -> subprocess.CompletedProcess[str]:
+    """``teleop ARGS`` in a process of its own; a failure raises, saying why."""
+    done = subprocess.run(
+        [sys.executable, "-m", "teleop.cli", *args],
+        capture_output=True, text=True, timeout=timeout_s, stdin=subprocess.DEVNULL,
+    )  # fmt: skip
+    if done.returncode != 0:
+        raise RuntimeError(f"teleop {' '.join(args[:3])}: {(done.stderr or done.stdout)[-1500:]}")
+    return done
+
+
+def _plant_end(run_dir: Path, timeout_s: float) -> dict[str, Any]:
+    """The plant's summary once it says the run finished or aborted."""
+    path = summary_path(run_dir, "plant")
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        with contextlib.suppress(OSError, ValueError):
+            summary = json.loads(path.read_text())
+            if summary.get("finished") or summary.get("aborted"):
+                return summary
+        time.sleep(1.0)
+    raise RuntimeError(f"the plant did not finish within {timeout_s:g} s (see {run_dir}/logs)")
+
+
+def measure_stack(
+    run_dir: Path, settings: Sequence[str] = (), progress: Callable[[str], None] = print
+) -> dict[str, Any]:
+    """The realtime grasp (seed 0) split across two sites on this host (``teleop up
+    --site robot`` and ``--site operator``, their routers over mutual TLS on loopback),
+    each site on its own clock as far as the stack knows: the loop's round trip on the
+    operator site's clock, each way across from the clocks' offset estimated from the
+    loop's stamps (:func:`teleop.bench.latency.across_clocks`), and the run's outcome.
+    ``settings``: more ``--set`` values for both sites."""
+    robot_dir, operator_dir = run_dir / "robot", run_dir / "operator"
+    listen = f"tls/127.0.0.1:{free_loopback_port()}"
+    sets = [item for value in (*STACK_SETTINGS, *settings) for item in ("--set", value)]
+    started: list[Path] = []
+    try:
+        progress(f"the realtime grasp across two sites: robot site in {robot_dir}")
+        _teleop(["up", "--mode", "realtime", "--site", "robot", "--site-listen", listen,
+                 "--run-dir", str(robot_dir), *sets], STACK_RUN_TIMEOUT_S)  # fmt: skip
+        started.append(robot_dir)
+        progress(f"operator site in {operator_dir}")
+        _teleop(["up", "--site", "operator", "--join", str(robot_dir / OPERATOR_BUNDLE_FILE),
+                 "--run-dir", str(operator_dir)], STACK_RUN_TIMEOUT_S)  # fmt: skip
+        started.append(operator_dir)
+        plant = _plant_end(robot_dir, STACK_RUN_TIMEOUT_S)
+    finally:
+        for site_dir in reversed(started):
+            subprocess.run([sys.executable, "-m", "teleop.cli", "down", "--run-dir",
+                            str(site_dir)], capture_output=True, timeout=120)  # fmt: skip
+    loop = across_clocks(np.load(operator_dir / HAPTIC_TRACE_FILE))
+    return {
+        "success": bool(plant.get("object_in_box")) and bool(plant.get("finished")),
+        "failure": plant.get("failure"),
+        "realtime_factor": plant.get("realtime_factor"),
+        "braked_steps": plant.get("stale_steps"),
+        "steps": plant.get("steps"),
+        **loop,
+    }
+
+
+def stack_table(stack: dict[str, Any], floor_routers_ms: dict[str, float] | None) -> list[str]:
+    """The stack's loop across the sites as Markdown lines, beside the routers' floor."""
+    if not stack.get("loops"):
+        return ["the stack across the sites closed no loop"]
+
+    def ms(figures: dict[str, Any], key: str) -> str:
+        return f"{figures[key] / 1e3:.2f} ms"
+
+    rows = [
+        ("round trip (operator site's clock)", ms(stack["round_trip_us"], "p50"),
+         ms(stack["round_trip_us"], "p99")),
+        ("operator site -> robot site", ms(stack["operator_to_robot_us"], "p50"),
+         ms(stack["operator_to_robot_us"], "p99")),
+        ("robot site (controller, plant, controller)", ms(stack["robot_site_us"], "p50"),
+         ms(stack["robot_site_us"], "p99")),
+        ("robot site -> operator site", ms(stack["robot_to_operator_us"], "p50"),
+         ms(stack["robot_to_operator_us"], "p99")),
+    ]  # fmt: skip
+    if floor_routers_ms is not None:
+        rows.append(("floor: bare ends through the routers", f"{floor_routers_ms['p50_ms']:.2f} ms",
+                     f"{floor_routers_ms['p99_ms']:.2f} ms"))  # fmt: skip
+    lines = [
+        f"The realtime grasp across two sites: {'success' if stack['success'] else 'failed'}, "
+        f"realtime factor {stack['realtime_factor']:.3f}, {stack['braked_steps']} of "
+        f"{stack['steps']} steps braked; {stack['loops']} loops",
+        "",
+        *markdown.table(("path", "p50", "p99"), rows, "lrr"),
+        "",
+        f"clocks' offset (robot minus operator site) {stack['offset_s']:+.6f} s, +- "
+        f"{stack['offset_uncertainty_us'] / 1e3:.2f} ms (each way within that)",
+    ]
     return lines

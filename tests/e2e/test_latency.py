@@ -185,3 +185,31 @@ def test_report_files(stack_run, floor_run, tmp_path):
         timeout=120,
     )
     assert verify.returncode == 0, verify.stderr[-2000:]
+
+
+@needs_realtime_stack
+def test_across_sites_with_the_stack_times_its_loop_on_each_sites_clock(tmp_path):
+    """``teleop latency --across-sites --with-stack``: the floor through the routers, then
+    the realtime grasp split across two sites on this host (each under its own
+    supervisord, routers over mutual TLS). The loop's round trip is on the operator
+    site's clock; each way comes from the clocks' offset estimated from the loop's
+    stamps, which on one host is zero within the uncertainty it claims."""
+    out = tmp_path / "sites.json"
+    done = subprocess.run(
+        [sys.executable, "-m", "teleop.cli", "latency", "--across-sites", "--with-stack",
+         "--rounds", "1", "--pings", "200", "--delays-ms", "", "--run-dir", str(tmp_path),
+         "--json", str(out)],
+        capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=600, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads(out.read_text())
+    stack = report["stack"]
+    print("the stack across two sites:", {k: v for k, v in stack.items() if "_us" not in k})
+    assert stack["success"] and stack["loops"] > 1000
+    assert abs(stack["offset_s"]) * 1e6 <= stack["offset_uncertainty_us"]
+    floor_ms = report["rounds"][0]["routers"]["p50_ms"]
+    assert stack["round_trip_us"]["p50"] / 1e3 > floor_ms  # the loop rides on the floor
+    for way in ("operator_to_robot_us", "robot_to_operator_us"):
+        assert stack[way]["p50"] > 0
+    assert "| round trip (operator site's clock) |" in done.stdout
+    assert "clocks' offset (robot minus operator site)" in done.stdout

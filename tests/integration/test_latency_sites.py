@@ -40,8 +40,10 @@ def test_the_round_trip_across_two_sites_direct_routed_and_delayed(tmp_path: Pat
 def test_across_sites_refuses_the_stack_runs_options(tmp_path: Path):
     done = latency("--across-sites", "--png", str(tmp_path / "x.png"), "--duration", "5")
     assert done.returncode == 2
-    assert "--across-sites measures no stack: drop --duration, --png" in done.stderr
+    assert "one-host stack run's: drop --duration, --png" in done.stderr
     done = latency("--delays-ms", "10")
-    assert done.returncode == 2 and "--delays-ms: with --across-sites only" in done.stderr
+    assert done.returncode == 2 and "with --across-sites only" in done.stderr
+    done = latency("--with-stack")
+    assert done.returncode == 2 and "with --across-sites only" in done.stderr
     done = latency("--across-sites", "--delays-ms", "10,-1")
     assert done.returncode == 2 and "delays must be finite and >= 0 ms" in done.stderr
