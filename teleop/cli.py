@@ -701,12 +701,13 @@ def _latency_across_sites(args: argparse.Namespace) -> int:
         f"{len(delays)} delays, {args.pings} samples each",
         file=sys.stderr,
     )
-    report = sites.measure(
-        args.pings, 1000.0, args.rounds, delays, progress=lambda line: print(line, file=sys.stderr)
-    )
+
+    def to_stderr(line: str) -> None:
+        print(line, file=sys.stderr)
+
+    report = sites.measure(args.pings, 1000.0, args.rounds, delays, progress=to_stderr)
     stack_ok = True
     if args.with_stack:
-        to_stderr = lambda line: print(line, file=sys.stderr)  # noqa: E731
         stack = sites.measure_stack(args.run_dir / "stack", args.overrides, progress=to_stderr)
         report["stack"] = stack
         stack_ok = stack["success"] and bool(stack.get("loops"))

@@ -203,10 +203,10 @@ def across_clocks(*traces: np.ndarray) -> dict[str, Any]:
     whose half is its uncertainty (the two ways need not be equal). In us (the offset in
     s) after the warm-up."""
     loops = warm_loops(*traces)
-    t0, t1 = loops[:, Stage.HAPTIC_SAMPLE], loops[:, Stage.CONTROLLER_RX]
-    t2, t3 = loops[:, Stage.FEEDBACK_TX], loops[:, Stage.FEEDBACK_RX]
     if loops.shape[0] == 0:
         return {"loops": 0}
+    t0, t1 = loops[:, Stage.HAPTIC_SAMPLE], loops[:, Stage.CONTROLLER_RX]
+    t2, t3 = loops[:, Stage.FEEDBACK_TX], loops[:, Stage.FEEDBACK_RX]
     wire_ns = (t3 - t0) - (t2 - t1)
     best = int(np.argmin(wire_ns))
     # Halved in integers: two stamps hours apart are beyond a float's ns resolution.

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 import multiprocessing
 import os
 import subprocess
@@ -46,8 +45,9 @@ from teleop.bus.topics import Topics
 from teleop.core import markdown
 from teleop.core.config import OPERATOR_SITE, ROBOT_SITE, BusConfig, SiteConfig
 from teleop.core.net import free_loopback_port
-from teleop.core.rundir import HAPTIC_TRACE_FILE, summary_path
+from teleop.core.rundir import HAPTIC_TRACE_FILE
 from teleop.run.sites import OPERATOR_BUNDLE_FILE
+from teleop.run.stack import ended_plant_summary
 
 ROBOT = "sites"  # the robot id of the measurement's keys (no run shares them)
 ROBOT_ROUTER, OPERATOR_ROUTER = graph.router_name(ROBOT_SITE), graph.router_name(OPERATOR_SITE)
@@ -266,17 +266,15 @@ def _teleop(args: Sequence[str], timeout_s: float) -> subprocess.CompletedProces
     return done
 
 
-def _plant_end(run_dir: Path, timeout_s: float) -> dict[str, Any]:
-    """The plant's summary once it says the run finished or aborted."""
-    path = summary_path(run_dir, "plant")
+def wait_plant_end(run_dir: Path, timeout_s: float) -> dict[str, Any]:
+    """The plant's summary once it says the run finished or aborted (polled each second;
+    the launcher's own wait, without a bus session)."""
     deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        with contextlib.suppress(OSError, ValueError):
-            summary = json.loads(path.read_text())
-            if summary.get("finished") or summary.get("aborted"):
-                return summary
+    while (summary := ended_plant_summary(run_dir)) is None:
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"the plant did not finish within {timeout_s:g} s ({run_dir})")
         time.sleep(1.0)
-    raise RuntimeError(f"the plant did not finish within {timeout_s:g} s (see {run_dir}/logs)")
+    return summary
 
 
 def measure_stack(
@@ -301,7 +299,7 @@ def measure_stack(
         _teleop(["up", "--site", "operator", "--join", str(robot_dir / OPERATOR_BUNDLE_FILE),
                  "--run-dir", str(operator_dir)], STACK_RUN_TIMEOUT_S)  # fmt: skip
         started.append(operator_dir)
-        plant = _plant_end(robot_dir, STACK_RUN_TIMEOUT_S)
+        plant = wait_plant_end(robot_dir, STACK_RUN_TIMEOUT_S)
     finally:
         for site_dir in reversed(started):
             subprocess.run([sys.executable, "-m", "teleop.cli", "down", "--run-dir",

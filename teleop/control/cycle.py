@@ -499,12 +499,12 @@ class BilateralCycle(ControllerCore):
             return
         tick = int(state["seq"])
         latest = self.haptic.get()
+        t0 = self.clock.now_ns()
         haptic = None
-        if latest is not None and self.clock.now_ns() - latest[1] <= self.handle_silent_ns:
+        if latest is not None and t0 - latest[1] <= self.handle_silent_ns:
             haptic = latest[0]
         if haptic is None:
             self.no_input_cycles += 1
-        t0 = self.clock.now_ns()
         handle_d_m = np.array(haptic["device_p_m"]) if haptic is not None else np.zeros(3)
         yaw_rad = self._head_yaw_rad(tick)
         obstacle = ProximitySample.from_state(state)

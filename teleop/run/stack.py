@@ -738,7 +738,7 @@ def _wait_finished(
     start = time.monotonic()
     tracker = watch.tracker
     while not watch.finished.wait(timeout=0.5) and not all(
-        _plant_finished(run_dir, p) for p in plants
+        ended_plant_summary(run_dir, p) is not None for p in plants
     ):
         if time.monotonic() - start > deadline_s:
             raise RunError(f"run did not finish within {deadline_s:g} s: {stack.status()}")
@@ -753,15 +753,15 @@ def _wait_finished(
         progress(tracker.line(sim_s) + "   finished")
 
 
-def _plant_finished(run_dir: Path, plant: str = PLANT) -> bool:
-    """True when ``plant``'s summary is on file and says the run finished (or ended on
-    a failure: aborted)."""
+def ended_plant_summary(run_dir: Path, plant: str = PLANT) -> dict[str, Any] | None:
+    """``plant``'s summary if it is on file and says the run finished (or ended on a
+    failure: aborted); None otherwise."""
     path = summary_path(run_dir, plant)
     try:
         summary = json.loads(path.read_text())
-        return bool(summary.get("finished") or summary.get("aborted"))
     except (OSError, ValueError):
-        return False
+        return None
+    return summary if summary.get("finished") or summary.get("aborted") else None
 
 
 def refuse_if_running(run_dir: Path) -> None:

@@ -474,8 +474,6 @@ class PlantStepCore:
                     "approach_slowed_steps": plant.approach_slowed_steps,
                     "watchdog_brakes": self.watchdog.brakes,
                     "stale_steps": self.watchdog.stale_steps,
-                    # Each brake's start and end on the plant's clock, ns (the first 64).
-                    "watchdog_episodes_ns": self.watchdog.episodes,
                 },
                 "figures": asdict(self.figures),
                 "resumes": self.resumes,

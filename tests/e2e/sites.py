@@ -21,6 +21,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from teleop.bench.sites import wait_plant_end
 from teleop.bus.access import write_run_credentials
 from teleop.run.sites import OPERATOR_BUNDLE_FILE
 from teleop.run.supervise import Stack
@@ -178,7 +179,7 @@ class TwoSites:
 
     def finish(self) -> None:
         """Wait for the plant to finish, stop both sites, read every service's summary."""
-        self.summaries["plant"] = wait_plant_finished(self.robot_dir, HANG_S)
+        self.summaries["plant"] = wait_plant_end(self.robot_dir, HANG_S)
         self.__exit__()
         for run_dir, names in (
             (self.robot_dir, ["controller", "recorder", "robot_router"]),
@@ -186,19 +187,6 @@ class TwoSites:
         ):
             for name in names:
                 self.summaries[name] = json.loads((run_dir / f"{name}.summary.json").read_text())
-
-
-def wait_plant_finished(run_dir: Path, timeout_s: float) -> dict:
-    """The plant's summary once it says the run finished (written as it finishes)."""
-    path = run_dir / "plant.summary.json"
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        with contextlib.suppress(OSError, ValueError):
-            summary = json.loads(path.read_text())
-            if summary.get("finished") or summary.get("aborted"):
-                return summary
-        time.sleep(1.0)
-    raise AssertionError(f"the plant did not finish within {timeout_s:g} s")
 
 
 def stranger_at(host: Host, endpoint: str, credentials: Path | None) -> dict:
