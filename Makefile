@@ -42,18 +42,21 @@ lint: $(STAMP)
 
 # The web viewer's screenshot test needs Chromium: install it if we can (root, Debian);
 # without it that test checks the page is served and skips the screenshot.
-# The unit layer (no bus, no processes) on every core; then the integration and e2e
-# layers one test at a time, as their stacks need the cores to themselves.
+# The unit layer (no bus, no processes) on every core; the integration layer (real
+# sessions, each test waiting on tokens and samples, never on the clock) two files at a
+# time; then the e2e layer one test at a time, as its stacks need the cores to themselves.
+INTEGRATION := $(BIN)/python -m pytest tests/integration -n 2 --dist loadfile
 test: lint
 	-@test -x $(CHROMIUM) || $(MAKE) --no-print-directory chromium
 	@command -v tmux >/dev/null || $(MAKE) --no-print-directory tmux
 	$(BIN)/python -m pytest tests/unit -n auto
-	$(BIN)/python -m pytest tests/integration tests/e2e
+	$(INTEGRATION)
+	$(BIN)/python -m pytest tests/e2e
 
 # The unit and integration layers only (no supervisord stacks): a minute or so.
 test-fast: lint
 	$(BIN)/python -m pytest tests/unit -n auto
-	$(BIN)/python -m pytest tests/integration
+	$(INTEGRATION)
 
 # Debian's Chromium, for the headless screenshot of the web viewer served by --web.
 # `make test` installs it when it can and runs the screenshot test when it is there (else

@@ -31,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -74,7 +75,7 @@ from teleop.control.teleop import (
     TeleopOutput,
 )
 from teleop.control.wave import RobotWavePort
-from teleop.core.clock import Clock
+from teleop.core.clock import NS_PER_S, Clock
 from teleop.core.config import Config
 from teleop.core.ticks import TickBarrier, TickedInputs, head_schedule, status_schedule
 from teleop.sim.proximity import ProximitySample, body_names
@@ -346,9 +347,18 @@ class BilateralCycle(ControllerCore):
         self._last_output: TeleopOutput | None = None
         # teleop.stabiliser "wave": the robot's end of the wave channel (else None).
         self.wave = (
-            RobotWavePort(config.teleop.wave_impedance_n_s_m)
+            RobotWavePort(
+                config.teleop.wave_impedance_n_s_m, config.tick_s, config.plant.watchdog_s
+            )
             if config.teleop.stabiliser == "wave"
             else None
+        )
+        # When a handle's wave is taken (s): the state's simulated time in lockstep (each
+        # state one bus period on), the controller's own clock in realtime.
+        self._wave_time_s: Callable[[np.ndarray], float] = (
+            (lambda state: int(state["sim_time_ns"]) / NS_PER_S)
+            if self.lockstep
+            else (lambda _state: self.clock.now_ns() / NS_PER_S)
         )
         # Realtime: (state seq, its joint-state terms of the control law, its closest
         # obstacle), prepared after that state's feedback went out, so a handle sample
@@ -554,7 +564,7 @@ class BilateralCycle(ControllerCore):
         gripper_cmd = GRIPPER_CLOSED if buttons & _GRIPPER_CLOSE else GRIPPER_OPEN
         if self.wave is not None and haptic is not None:
             # The handle's rate from its wave, against the robot's newest resistance.
-            rate = self.wave.rate(haptic["wave_u"]).tolist()
+            rate = self.wave.rate(haptic["wave_u"], self._wave_time_s(state)).tolist()
             v_ref = np.zeros(3) if clutch else rate_to_world(*rate, yaw_rad, self.config.teleop)
         else:
             v_ref = teleop_reference(handle_d_m, yaw_rad, clutch, self.config.teleop)
@@ -799,6 +809,10 @@ class BilateralCycle(ControllerCore):
             "states_shed": self.state_in.shed,
             "haptic_stream": self.haptic_in.counts(),  # lost, reordered, jumps, restarts...
             "state_stream": self.state_in.counts(),
+            # wave variables: the energy the handle's waves brought, what the robot's end
+            # held back of waves passed on beyond it (a varying delay), what the robot's
+            # surroundings absorbed and the series damper dissipated (teleop.control.wave)
+            "wave_bank": self.wave.summary() if self.wave is not None else None,
             "stability": {
                 "k_max_n_per_m": self.stability.k_max_n_per_m,
                 "k_workspace_n_per_m": self.stability.k_workspace_n_per_m,

@@ -419,8 +419,8 @@ class RenderLog(EmulatedDevice):
 def test_with_wave_variables_the_handle_renders_the_channels_resistance():
     """teleop.stabiliser "wave", nothing coming back (wave 0): every servo period the
     handle feels the matching drag -b r of its own rate there, and each sample carries
-    the force and the wave sqrt(2 b) r of the rate its tick's last render was against
-    (teleop/control/wave.py)."""
+    the force its tick's last render sent and the mean of its renders' waves sqrt(2 b) r
+    (teleop/control/wave.py: the period's wave carries what its servo periods put in)."""
     config = load_config(None, ['run.mode="lockstep"', 'teleop.stabiliser="wave"'])
     sent, clock = Sent(), FakeClock(start_ns=10 * NS_PER_S)
     device = RenderLog(config.haptic, config.haptic.render_period_s)
@@ -434,9 +434,12 @@ def test_with_wave_variables_the_handle_renders_the_channels_resistance():
     for at_m, force_n in device.renders:
         assert np.allclose(force_n, -b * handle_rate_m_s(at_m, False, teleop))
     for k, rec in enumerate(sent.samples):
-        at_m, force_n = device.renders[(k + 1) * renders - 1]  # the tick's last render
-        assert np.allclose(rec["device_f_n"], force_n)
-        assert np.allclose(rec["wave_u"], math.sqrt(2 * b) * handle_rate_m_s(at_m, False, teleop))
+        tick_renders = device.renders[k * renders : (k + 1) * renders]
+        assert np.allclose(rec["device_f_n"], tick_renders[-1][1])
+        waves = [
+            math.sqrt(2 * b) * handle_rate_m_s(at_m, False, teleop) for at_m, _ in tick_renders
+        ]
+        assert np.allclose(rec["wave_u"], np.mean(waves, axis=0))
     # The drag holds the handle back from where the plain one goes (the hand's 2 cm).
     held_back_m = plain_sent.samples[-1]["device_p_m"][0] - sent.samples[-1]["device_p_m"][0]
     assert held_back_m > 0.002

@@ -81,7 +81,12 @@ from teleop.bus.messages import HAPTIC_STATE, N_STAGES, Button, Flag, Stage
 from teleop.bus.service import STOP_POLL_S
 from teleop.bus.stamps import Inbound, StampLog
 from teleop.control.feedback import workspace_force
-from teleop.control.wave import handle_rate_m_s, handle_resistance_n, handle_wave
+from teleop.control.wave import (
+    WaveEnergyBank,
+    handle_rate_m_s,
+    handle_resistance_n,
+    handle_wave,
+)
 from teleop.core.clock import NS_PER_S, Clock, LoopTimer
 from teleop.core.config import Config
 from teleop.core.ticks import TickedInputs, hand_schedule
@@ -195,7 +200,13 @@ class HapticLoop:
         self.teleop_cfg = config.teleop
         wave = config.teleop.stabiliser == "wave"
         self.wave_b = config.teleop.wave_impedance_n_s_m if wave else 0.0
-        self._wave_u = np.zeros(3)  # the wave of the force last rendered
+        # The waves toward the robot of the bus period's servo periods, summed: the sample
+        # carries their mean (a wave held for the period carries no more energy than its
+        # servo periods put in; the last one alone could carry more).
+        self._wave_u_sum = np.zeros(3)
+        # The robot's waves pass on no more energy than they brought (a varying delay).
+        self.wave_bank = WaveEnergyBank(self.tick_s)
+        self._banked_received_ns: int | None = None
         # The emulated link's delay each way (ticks; lockstep only, else (0, 0)).
         self.forward_ticks, self.backward_ticks = config.link_delay_ticks()
         self.feedback_keep = FEEDBACK_KEEP + self.backward_ticks
@@ -450,7 +461,9 @@ class HapticLoop:
         self.selected = 0
         self._in_flight.clear()
         self.record["device_p_m"] = 0.0  # the device is back at the centre
-        self._wave_u = np.zeros(3)
+        self._wave_u_sum = np.zeros(3)
+        self.wave_bank.reset()
+        self._banked_received_ns = None
         self._first_tick = 0
         self._last_tick = -1
         self._hand_blocked_since_ns = None
@@ -636,19 +649,27 @@ class HapticLoop:
         self._account_sample(sample)
 
     # -- shared ------------------------------------------------------------------------
-    def _render(self, model: LocalContactModel, handle_d_m: np.ndarray) -> np.ndarray:
+    def _render(
+        self, model: LocalContactModel, handle_d_m: np.ndarray, received_ns: int | None
+    ) -> np.ndarray:
         """The force to send the motors for one servo period from the local model held
-        and the handle's position (lock held): the model's force there, stabilised
-        (:meth:`_stabilised`); with wave variables the robot's wave, decoded against the
-        handle's rate (teleop/control/wave.py) into the channel's resistance, rendered
-        with the handle's own workspace spring, and the wave toward the robot that goes
-        with it kept for the next sample."""
+        (received at ``received_ns``) and the handle's position (lock held): the model's
+        force there, stabilised (:meth:`_stabilised`); with wave variables the robot's
+        wave, passed on within the energy the waves brought (:class:`WaveEnergyBank`),
+        decoded against the handle's rate (teleop/control/wave.py) into the channel's
+        resistance, rendered with the handle's own workspace spring, and the wave toward
+        the robot that goes with it added to the period's (the sample sends their mean)."""
         received = model.force_at(handle_d_m)
         if not self.wave_b:
             return self._stabilised(received)
+        if received_ns != self._banked_received_ns:  # a wave that came: its energy
+            self._banked_received_ns = received_ns
+            if received_ns is not None:
+                self.wave_bank.receive(received)
+        received = self.wave_bank.pass_on(received, self.render_period_s)
         clutch = bool(int(self.record["buttons"]) & _CLUTCH)
         rate = handle_rate_m_s(handle_d_m, clutch, self.teleop_cfg)
-        self._wave_u = handle_wave(rate, received, self.wave_b)
+        self._wave_u_sum += handle_wave(rate, received, self.wave_b)
         resistance_n = handle_resistance_n(rate, received, self.wave_b)
         spring_n = workspace_force(handle_d_m, self.teleop_cfg)
         return self._stabilised(spring_n - resistance_n)
@@ -704,7 +725,7 @@ class HapticLoop:
             if render_stale or self.stale_spells.open:
                 felt_n = math.hypot(*model.force_at(handle_d_m).tolist())
                 self.stale_spells.render(render_ns, render_stale, received_ns, felt_n)
-            self.device.send_force(self._render(model, handle_d_m))
+            self.device.send_force(self._render(model, handle_d_m, received_ns))
             sample = self.device.next_sample(held)
             self.passivity.observe(sample.f_n, sample.v_m_s)
             handle_d_m = sample.p_m
@@ -724,7 +745,8 @@ class HapticLoop:
         rec["device_f_n"] = sample.f_n
         rec["passivity_observed_j"] = self.passivity.observed_j
         rec["passivity_dissipated_j"] = self.passivity.dissipated_j
-        rec["wave_u"] = self._wave_u  # the last servo period's
+        rec["wave_u"] = self._wave_u_sum / self.renders_per_tick
+        self._wave_u_sum[:] = 0.0
         rec["buttons"] = int(sample.buttons)
         return sample
 
@@ -777,6 +799,9 @@ class HapticLoop:
             "switch_deferred_steps": self.switch_deferred_steps,
             "unselected_feedback": self.unselected_feedback,
             "passivity": self.passivity.summary(self.config.teleop.stabiliser),
+            # wave variables: the energy the robot's waves brought, and what the handle's
+            # end held back of waves passed on beyond it (a varying delay)
+            "wave_bank": self.wave_bank.summary() if self.wave_b else None,
             "max_stable_stiffness_n_per_m": self.max_model_stiffness_n_per_m,
             # the local contact model: servo periods rendered per bus period, models whose
             # stiffness was cut to the passive bound, servo periods the rate limit cut
