@@ -294,8 +294,7 @@ def _add_latency_command(commands: Commands) -> None:
         action="store_true",
         help="--across-sites: then the realtime grasp split across two sites on this host "
         "(teleop up --site robot and --site operator): its loop's round trip on the operator "
-        "site's clock and each way from the clocks' offset estimated from the loop's stamps "
-        "(the whole grasp; --set run.duration_s=S ends it sooner)",
+        "site's clock and each way from the clocks' offset estimated from the loop's stamps",
     )
     latency.add_argument(
         "--delays-ms",
@@ -711,7 +710,7 @@ def _latency_across_sites(args: argparse.Namespace) -> int:
     if args.with_stack:
         stack = sites.measure_stack(args.run_dir / "stack", args.overrides, progress=to_stderr)
         report["stack"] = stack
-        stack_ok = stack["finished"] and bool(stack.get("loops"))
+        stack_ok = stack["success"] and bool(stack.get("loops"))
     json_path = args.json if args.json is not None else args.run_dir / SITES_REPORT_FILE
     json_path.parent.mkdir(parents=True, exist_ok=True)
     json_path.write_text(json.dumps(report, indent=2) + "\n")

@@ -29,8 +29,6 @@ from tests.unit.test_latency_report import assert_matches_reference
 
 # The stack run: 10 s measured after the 1 s warm-up.
 STACK_DURATION_S = 11.0
-# The grasp split across two sites (teleop latency --across-sites --with-stack): part of it.
-STACK_RUN_S = 8.0
 
 
 @pytest.fixture(scope="module")
@@ -195,23 +193,19 @@ def test_across_sites_with_the_stack_times_its_loop_on_each_sites_clock(tmp_path
     the realtime grasp split across two sites on this host (each under its own
     supervisord, routers over mutual TLS). The loop's round trip is on the operator
     site's clock; each way comes from the clocks' offset estimated from the loop's
-    stamps, which on one host is zero within the uncertainty it claims. The grasp runs
-    :data:`STACK_RUN_S` of its 20-odd seconds: the loop's figures, not the task (the
-    link-cut test of tests/e2e/test_grasp.py runs the whole grasp across two hosts)."""
+    stamps, which on one host is zero within the uncertainty it claims."""
     out = tmp_path / "sites.json"
     done = subprocess.run(
         [sys.executable, "-m", "teleop.cli", "latency", "--across-sites", "--with-stack",
          "--rounds", "1", "--pings", "200", "--delays-ms", "", "--run-dir", str(tmp_path),
-         "--json", str(out), "--set", f"run.duration_s={STACK_RUN_S}"],
+         "--json", str(out)],
         capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=600, check=False,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
     report = json.loads(out.read_text())
     stack = report["stack"]
     print("the stack across two sites:", {k: v for k, v in stack.items() if "_us" not in k})
-    # The grasp stopped at run.duration_s: ran to its end, every period a loop.
-    assert stack["finished"] and not stack["success"]
-    assert stack["loops"] > 0.8 * STACK_RUN_S * load_config().loop.rate_hz
+    assert stack["success"] and stack["loops"] > 1000
     assert abs(stack["offset_s"]) * 1e6 <= stack["offset_uncertainty_us"]
     floor_ms = report["rounds"][0]["routers"]["p50_ms"]
     assert stack["round_trip_us"]["p50"] / 1e3 > floor_ms  # the loop rides on the floor
