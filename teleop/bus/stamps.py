@@ -331,6 +331,13 @@ class Inbound:
         ``shed``) not older than the shed age at ``now_ns``. A stale record is counted in
         ``shed`` and logged."""
         seq = int(rec["seq"])
+        if 0 <= seq <= self.seq.last_seq:
+            # A copy of a record taken already (a lockstep re-send, byte for byte) or one
+            # overtaken: its seq alone judges it. It tells nothing of the sender's clock,
+            # and a copy sent again a second later would teach the link a delivery a
+            # second slow (three such: its clock learnt afresh, the next fresh record
+            # refused as stamped in the future).
+            return self.accept_seq(seq)
         if not self.arrived(rec, now_ns):
             self.seq.refused(seq)
             return False

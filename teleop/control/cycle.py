@@ -119,19 +119,23 @@ class ControllerCore:
         self.status = status_schedule(config)
         self._command = JOINT_COMMAND.new()
         self._lock = threading.Lock()  # the state gate: callbacks of several Zenoh threads
-        # Held while a record of the last cycle is filled and sent, and while it is sent
-        # again (:meth:`resend_last`, from another callback): a re-send never goes out
-        # half-filled (a new seq with the old state_seq would be admitted by the plant
-        # and make the real answer look like a duplicate).
+        # Held while a record of a cycle is filled, sent and kept, and while a kept one
+        # is sent again (:meth:`_resend_answer`, from another callback).
         self._out_lock = threading.Lock()
         self._last_seq = -1
         self._realtime = config.run.mode == "realtime"
+        # Lockstep: the answers to the newest states (state seq -> stream -> a copy of
+        # the record sent), each to be sent again, byte for byte, when the plant sends
+        # its state again: every state in flight (plant.lockstep_delay_steps + 1) may
+        # be the one whose answer was lost.
+        self._answers: dict[int, dict[str, np.ndarray]] = {}
+        self._answers_kept = config.plant.lockstep_delay_steps + 2
         # t_source_ns of this run's state 0: a state 0 with the same stamp is the plant
         # re-sending it (byte for byte), not a new run.
         self._run_start_ns = -1
         self.cycles = 0
         self.skipped_states = 0
-        self.commands_resent = 0  # last commands sent again on a re-sent state (lockstep)
+        self.commands_resent = 0  # answers sent again for a re-sent state (lockstep)
         self.runs = 0
         self.compute_ns_total = 0
         self._event = RUN_EVENT.new()
@@ -142,9 +146,10 @@ class ControllerCore:
         """A PLANT_STATE of this arm arrived at ``rx_ns``: a new run starts over, a state
         already answered (a re-send) is ignored, the others go to the task.
 
-        A re-send of the newest state means the plant (lockstep) has waited a second for
-        an answer: what the last cycle sent goes out again, byte for byte, in case it was
-        lost on the way (:meth:`resend_last`; a receiver that has it drops the copy)."""
+        A re-send of a state means the plant (lockstep) has waited a second for an
+        answer: this controller's answer to it goes out again, byte for byte, in case it
+        was lost on the way (:meth:`_resend_answer`; a receiver that has it drops the
+        copy)."""
         with self._lock:
             seq = int(rec["seq"])
             # Realtime: the plant never re-sends, and the state stream is taken newest-only
@@ -154,11 +159,12 @@ class ControllerCore:
             if (seq == 0 and int(rec["t_source_ns"]) != self._run_start_ns) or started_over:
                 self._run_start_ns = int(rec["t_source_ns"])  # a new run (or plant restart):
                 self.reset()  # forget the task state
+                with self._out_lock:
+                    self._answers.clear()
                 self.runs += 1
             elif seq <= self._last_seq:
-                if seq == self._last_seq and self.cycles > 0:
+                if self._resend_answer(seq):
                     self.commands_resent += 1
-                    self.resend_last()
                 return  # a re-sent state this controller has already received
             elif self._last_seq >= 0 and seq > self._last_seq + 1:
                 self.skipped_states += seq - self._last_seq - 1
@@ -168,10 +174,29 @@ class ControllerCore:
     def handle_state(self, state: np.ndarray, rx_ns: int) -> None:
         raise NotImplementedError
 
-    def resend_last(self) -> None:
-        """Send the last JOINT_COMMAND again, unchanged (same seq)."""
+    def _resend_answer(self, state_seq: int) -> bool:
+        """Lockstep: what answered ``state_seq`` sent again, unchanged, as far as it is
+        kept: the FORCE_FEEDBACK of the state before (the haptic device steps a tick on
+        the feedback of the tick before: one lost on the way, e.g. with a link that
+        dropped when a process stalled past the Zenoh lease, holds back the handle
+        sample the cycle of ``state_seq`` waits for), then this state's own feedback and
+        JOINT_COMMAND; whether anything was sent."""
         with self._out_lock:
-            self.outputs.resend("joint_command", self._command)
+            before = self._answers.get(state_seq - 1, {}).get("force_feedback")
+            records = [("force_feedback", before)] if before is not None else []
+            records += sorted(self._answers.get(state_seq, {}).items())  # feedback first
+            for stream, rec in records:
+                self.outputs.resend(stream, rec)
+            return bool(records)
+
+    def _keep_answer(self, state_seq: int, stream: str, rec: np.ndarray) -> None:
+        """Lockstep: keep a copy of ``rec``, sent on ``stream`` in answer to state
+        ``state_seq``, to send again (caller holds ``_out_lock``)."""
+        if self._realtime:
+            return
+        self._answers.setdefault(state_seq, {})[stream] = rec.copy()
+        while len(self._answers) > self._answers_kept:
+            del self._answers[min(self._answers)]
 
     def reset(self) -> None:
         """A new run: the task forgets its state."""
@@ -203,6 +228,7 @@ class ControllerCore:
             cmd["trace_ns"][Stage.CONTROLLER_TX] = now_ns
             cmd["t_source_ns"] = now_ns
             self.outputs.put("joint_command", cmd)
+            self._keep_answer(int(state["seq"]), "joint_command", cmd)
 
     def send_events(self, events: list[MotionEvent], step: int) -> None:
         """Publish the run events the metrics saw (``controller_events``) and keep them
@@ -720,18 +746,7 @@ class BilateralCycle(ControllerCore):
             rec["trace_ns"][Stage.FEEDBACK_TX] = now_ns
             rec["t_source_ns"] = now_ns
             self.outputs.put("force_feedback", rec)
-
-    def resend_last(self) -> None:
-        """Lockstep: send the last cycle's FORCE_FEEDBACK and JOINT_COMMAND again,
-        unchanged. The plant re-sends its states when no answer came for a second; the
-        answer may be missing because the haptic device never got the feedback of the
-        tick before (lost with a link that dropped, e.g. a process stalled past the
-        Zenoh lease), and then it never sends the handle sample this controller's next
-        tick waits for: only the feedback's re-send unblocks the loop."""
-        if self.lockstep and self.feedback_count > 0:
-            with self._out_lock:
-                self.outputs.resend("force_feedback", self._feedback)
-        super().resend_last()
+            self._keep_answer(tick, "force_feedback", rec)
 
     def _measure(
         self,

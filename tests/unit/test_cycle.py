@@ -141,12 +141,13 @@ def test_the_path_cycle_answers_each_state_once_and_restarts_on_a_new_run():
     for seq in (0, 1, 1, 0, 3):  # re-sends of 1 and 0, and state 2 never seen
         cycle.on_state(state(config, seq, now), now)
     commands = [rec for s, rec in sent.log if s == "joint_command"]
-    # The re-send of the newest state (the plant waited for an answer) gets the last
-    # command again, same seq; an older one gets nothing.
-    assert [int(c["state_seq"]) for c in commands] == [0, 1, 1, 3]
-    assert [int(c["seq"]) for c in commands] == [1, 2, 2, 3]
-    assert cycle.commands_resent == 1
-    assert sent.resent == ["joint_command"]  # to the plant only, not the recorder's copy
+    # A re-sent state (the plant waited for an answer) gets the command that answered
+    # it again, same seq.
+    assert [int(c["state_seq"]) for c in commands] == [0, 1, 1, 0, 3]
+    assert [int(c["seq"]) for c in commands] == [1, 2, 2, 1, 3]
+    assert cycle.commands_resent == 2
+    # to the plant only, not the recorder's copy
+    assert sent.resent == ["joint_command", "joint_command"]
     assert cycle.skipped_states == 1 and cycle.runs == 1
     assert "control_status" in sent.streams()  # step 0 is a status step
     cycle.on_state(state(config, 0, now, start_ns=2), now)  # state 0 of a new run
@@ -186,8 +187,8 @@ def test_a_lost_feedback_is_sent_again_when_the_plant_re_sends_its_states():
     """Lockstep, controller and haptic device joined: the feedback of tick 2 is lost on
     the way (a link that dropped). The device then never steps tick 3, so the controller
     never answers state 3 and the plant waits. Its re-send of the states in flight (3
-    and 4) makes the controller send its last cycle's records again, the feedback too:
-    the device steps, and state 3 gets its answer."""
+    and 4) makes the controller send the feedback of the state before each again: the
+    device steps, and state 3 gets its answer."""
     cycle, sent, clock, config = make(BilateralCycle, LOCKSTEP, GRASP)
     device = DeviceSent()
     loop = HapticLoop(
@@ -236,8 +237,28 @@ def test_a_lost_feedback_is_sent_again_when_the_plant_re_sends_its_states():
     assert max(answered()) == lost_tick  # state 3 waits for the device's tick 3
     for seq in (lost_tick + 1, lost_tick + 2):  # a second without an answer: re-sent
         publish(seq, resent=True)
-    assert cycle.commands_resent == 1
     assert lost_tick + 1 in answered()
+    # State 3's re-send brought the feedback of 2 again; state 4's (answered by then,
+    # the device unblocked) the feedback of 3 and its own answer.
+    assert cycle.commands_resent == 2
+
+
+def test_two_answers_lost_together_are_both_sent_again():
+    """Lockstep: the commands answering states 2 and 3 both lost (a link that dropped on
+    a loaded machine). The plant waits on state 2 and sends its states in flight, 2 and
+    3, again: each gets its own answer again, not only the newest (which alone would
+    leave the plant waiting on state 2 for ever)."""
+    cycle, sent, clock, config = make(PathCycle, 'run.mode="lockstep"')
+    now = clock.now_ns()
+    for seq in (0, 1, 2, 3):
+        cycle.on_state(state(config, seq, now), now)
+    first = len(sent.log)
+    for seq in (2, 3):  # the plant's re-send
+        cycle.on_state(state(config, seq, now), now)
+    again = [rec for s, rec in sent.log[first:] if s == "joint_command"]
+    assert [int(c["state_seq"]) for c in again] == [2, 3]
+    assert [int(c["seq"]) for c in again] == [3, 4]  # the same records, byte for byte
+    assert cycle.commands_resent == 2
 
 
 @pytest.mark.parametrize("cycle_class", [PathCycle, BilateralCycle])

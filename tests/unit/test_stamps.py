@@ -49,6 +49,28 @@ def test_inbound_drops_older_and_stale_records_and_logs_their_loops():
     assert inbound.shed == 2 and len(inbound.shed_log) == 1
 
 
+def test_copies_sent_again_a_second_later_teach_the_link_clock_nothing():
+    """Lockstep: a plant waiting on an answer gets the controller's commands again, byte
+    for byte, a second or more after their stamps, stall after stall. They are copies
+    (seqs taken already): rejected by their seq, and the link's clock learns nothing
+    from them, so the next fresh command is taken. Learnt from, three of them would set
+    the link a second slow and the fresh one would be refused as stamped in the future."""
+    inbound = Inbound(Stage.CONTROLLER_TX)
+    rx_ns, delivery_ns = 10**12, 200_000
+    for seq in range(1, 11):
+        rx_ns += 4_000_000
+        assert inbound.accept(command(seq, rx_ns - delivery_ns), rx_ns, shed=False)
+    sent_ns = {seq: rx_ns - delivery_ns - (10 - seq) * 4_000_000 for seq in (9, 10)}
+    for _ in range(3):  # three stalls, the commands in flight sent again each time
+        rx_ns += 1_100_000_000
+        for seq in (9, 10):
+            assert not inbound.accept(command(seq, sent_ns[seq]), rx_ns, shed=False)
+    rx_ns += 4_000_000
+    assert inbound.accept(command(11, rx_ns - delivery_ns), rx_ns, shed=False)
+    assert inbound.future_stamps == 0 and inbound.clock.relearnt == 0
+    assert inbound.seq.reordered == 6
+
+
 def test_a_link_that_spreads_its_records_sheds_later_but_never_past_the_bound():
     """Records of a steady link arrive within a fraction of a ms of its fastest: shed
     beyond SHED_AGE_NS. A link whose delivery spreads them over 0-6 ms (a network's

@@ -62,9 +62,9 @@ leaves that barrier and gets no more samples. Robot 0's plant starts a run.
 Lockstep: a PLANT_STATE seq 0 with a new ``t_source_ns`` (or as the first state) starts
 a new run: the device is reset and every stored input is forgotten. A state with a seq
 already seen is a plant re-send (the plant re-sends every state in flight byte for byte,
-so a re-sent state 0 keeps its stamp): it never steps the device again; if it names the
-tick last stepped, that tick's HAPTIC_STATE is sent again unchanged (same seq), in case
-the first copy was lost to a late subscriber.
+so a re-sent state 0 keeps its stamp): it never steps the device again; the HAPTIC_STATE
+of its tick, if stepped, is sent again unchanged (same seq), in case the first copy was
+lost (a late subscriber, a link that dropped).
 """
 
 from __future__ import annotations
@@ -236,8 +236,11 @@ class HapticLoop:
         self._robot_feedback: list[dict[int, np.ndarray]] = [{} for _ in range(self.robots)]
         self._idle = [HAPTIC_STATE.new() for _ in range(self.robots)]
         self._buttons = [0] * self.robots  # each robot's buttons when it was last driven
-        # The last sample each robot was sent (what a re-sent state of its plant gets).
-        self._robot_sent: list[np.ndarray | None] = [None] * self.robots
+        # Lockstep: copies of the samples each robot was sent, by tick, for its plant's
+        # states in flight (plant.lockstep_delay_steps + 1): a re-sent state gets the
+        # sample of its tick again.
+        self._robot_sent: list[dict[int, np.ndarray]] = [{} for _ in range(self.robots)]
+        self._sent_kept = config.plant.lockstep_delay_steps + 2
         self.switches: list[dict[str, Any]] = []  # (tick, robot) of each switch
         self.switch_deferred_steps = 0  # steps a switch waited for the handle's deadband
         self.unselected_feedback = 0  # realtime: feedback of a robot not driven, not rendered
@@ -298,7 +301,7 @@ class HapticLoop:
                 self._run_start_ns = int(rec["t_source_ns"])
                 self._new_run()
             elif seq <= self._robot_seq[0]:
-                self._resend_if_last(seq, 0)
+                self._resend_sample(seq, 0)
                 return
             elif self._robot_seq[0] < 0:  # joined a run already under way
                 self._first_tick = seq
@@ -314,20 +317,29 @@ class HapticLoop:
     def _other_robot_state(self, seq: int, robot: int) -> None:
         """PLANT_STATE ``seq`` of a robot other than robot 0 (lock held)."""
         if seq <= self._robot_seq[robot]:
-            self._resend_if_last(seq, robot)
+            self._resend_sample(seq, robot)
             return
         self._robot_seq[robot] = seq
         self._state_seq = self._robots_state()
         if self.lockstep:
             self._try_steps()
 
-    def _resend_if_last(self, seq: int, robot: int) -> None:
-        """A re-sent state of ``robot`` (lock held): the sample of the tick last stepped
-        again, if it names that tick (lockstep)."""
-        sent = self._robot_sent[robot]
-        if self.lockstep and seq == self._last_tick and sent is not None:
+    def _resend_sample(self, seq: int, robot: int) -> None:
+        """A re-sent state of ``robot`` (lock held): the sample of its tick again, if it
+        is kept (lockstep)."""
+        sent = self._robot_sent[robot].get(seq)
+        if sent is not None:
             self.republished_states += 1
             self.outputs.resend(sent, robot)
+
+    def _keep_sent(self, robot: int, rec: np.ndarray) -> None:
+        """Lockstep: a copy of the sample ``robot`` was sent, kept by its tick (lock held)."""
+        if not self.lockstep:
+            return
+        kept = self._robot_sent[robot]
+        kept[int(rec["tick"])] = rec.copy()
+        while len(kept) > self._sent_kept:
+            del kept[min(kept)]
 
     def _robots_state(self) -> int:
         """The newest tick every running robot's state has reached (lock held; -1:
@@ -456,6 +468,8 @@ class HapticLoop:
         self.hand_inputs.clear()
         for feedback in self._robot_feedback:
             feedback.clear()
+        for sent in self._robot_sent:
+            sent.clear()
         self._robot_seq[1:] = [-1] * (self.robots - 1)
         self._finished.clear()
         self.selected = 0
@@ -561,7 +575,7 @@ class HapticLoop:
         with its own buttons held (lock held, or the realtime loop's thread)."""
         driven = self.selected
         if driven not in self._finished:
-            self._robot_sent[driven] = sent
+            self._keep_sent(driven, sent)
             self.outputs.sample(sent, driven)
         if self.robots == 1:
             return
@@ -573,7 +587,7 @@ class HapticLoop:
             for field in ("device_p_m", "device_v_m_s", "device_f_n", "wave_u"):
                 idle[field] = 0.0
             idle["buttons"] = self._buttons[robot]
-            self._robot_sent[robot] = idle
+            self._keep_sent(robot, idle)
             self.outputs.sample(idle, robot)
 
     def _over_the_link(self) -> np.ndarray:
