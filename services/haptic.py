@@ -65,7 +65,12 @@ class HapticService(Service):
                 self.subscribe_stream("plant_state", self._on_state(robot), topics)
             if len(self.robot_topics) > 1:  # a robot whose plant is done leaves the clock
                 events = subscribe_events(
-                    session, topics, "plant_events", self._on_event(robot), self.drops
+                    session,
+                    topics,
+                    "plant_events",
+                    self._on_event(robot),
+                    self.drops,
+                    recovery=self.recovery,
                 )
                 self.keep(events)
         logger.info(

@@ -39,7 +39,9 @@ class HmdService(Service):
         # One head, every robot's keys (a run of several robots): each robot's controller
         # and operator take the head pose from their own robot's stream.
         self.pose_pubs = [
-            self.keep(Publisher.for_stream(self.session, topics, "head_pose"))
+            self.keep(
+                Publisher.for_stream(self.session, topics, "head_pose", recovery=self.recovery)
+            )
             for topics in self.robot_topics
         ]
         self._record = HEAD_POSE.new()

@@ -90,7 +90,16 @@ class ScriptedOperatorService(Service):
             self.subscribe_stream("objects", self._on_objects(buffer), topics)
             self.subscribe_stream("head_pose", self._on_head(loops[robot]), topics)
             on_event = self._on_event(robot)
-            self.keep(subscribe_events(self.session, topics, "plant_events", on_event, self.drops))
+            self.keep(
+                subscribe_events(
+                    self.session,
+                    topics,
+                    "plant_events",
+                    on_event,
+                    self.drops,
+                    recovery=self.recovery,
+                )
+            )
         self.keep(
             self.session.liveliness().declare_subscriber(
                 self.topics.alive(HMD_SERVICE), self._on_hmd_token, history=True

@@ -42,10 +42,8 @@ class PlantService(Service):
         assert self.session is not None
         session, topics = self.session, self.topics
         self.publishers = {
-            "plant_state": self.keep(Publisher.for_stream(session, topics, "plant_state")),
-            "tool_pose": self.keep(Publisher.for_stream(session, topics, "tool_pose")),
-            "objects": self.keep(Publisher.for_stream(session, topics, "objects")),
-            "plant_events": self.keep(Publisher.for_stream(session, topics, "plant_events")),
+            name: self.keep(Publisher.for_stream(session, topics, name, recovery=self.recovery))
+            for name in ("plant_state", "tool_pose", "objects", "plant_events")
         }
         self.state_batch = self.keep(  # the observers' copy, several states per message
             BatchPublisher.for_stream(
@@ -56,7 +54,16 @@ class PlantService(Service):
         if self.options.run_dir is not None:  # checkpoints, and a restart resumes from them
             store = CheckpointStore(checkpoint_path(self.options.run_dir, self.instance))
         self.loop = PlantLoop(self.config, self, MonotonicClock(), store)
-        self.keep(subscribe_events(session, topics, "operator_events", self._on_event, self.drops))
+        self.keep(
+            subscribe_events(
+                session,
+                topics,
+                "operator_events",
+                self._on_event,
+                self.drops,
+                recovery=self.recovery,
+            )
+        )
         self.keep(
             subscribe(session, topics.joint_command, JOINT_COMMAND, self._on_command, self.drops)
         )

@@ -116,6 +116,37 @@ def rights(participant: str) -> tuple[list[str], list[str]]:
     return produces, consumes
 
 
+def recovery_keys(key: str) -> tuple[str, str]:
+    """The keys zenoh-ext's recovery uses beside a stream's ``key`` (graph.Stream
+    .recovered): its publishers' (heartbeats, the cache's queryable and its replies) and
+    all of it (the subscribers' queries)."""
+    return f"{key}/@adv/pub/**", f"{key}/@adv/**"
+
+
+def _recovery_rules(name: str, produced: list[str], consumed: list[str]) -> list[dict[str, Any]]:
+    """A participant's rights in the recovery of the recovered streams it produces (its
+    cache: heartbeats out, queries in, replies out) and consumes (heartbeats in, queries
+    out, replies in): nobody but a stream's producer answers for its records."""
+    out_pub = [recovery_keys(k)[0] for k in produced]
+    in_pub = [recovery_keys(k)[0] for k in consumed]
+    rules = []
+    if out_pub:
+        rules += [
+            _rule(f"{name}-keeps", ["put", "declare_queryable", "reply"], "ingress",
+                  out_pub + produced),
+            _rule(f"{name}-is-asked", ["query", "declare_subscriber"], "egress",
+                  [recovery_keys(k)[1] for k in produced]),
+        ]  # fmt: skip
+    if in_pub:
+        rules += [
+            _rule(f"{name}-asks", ["query", "declare_subscriber"], "ingress",
+                  [recovery_keys(k)[1] for k in consumed]),
+            _rule(f"{name}-is-answered", ["put", "declare_queryable", "reply"], "egress",
+                  in_pub + consumed),
+        ]  # fmt: skip
+    return rules
+
+
 def _rule(rule_id: str, messages: list[str], flow: str, keys: Iterable[str]) -> dict[str, Any]:
     return {
         "id": rule_id,
@@ -181,6 +212,12 @@ def access_control(
                 _rule(f"{name}-subscribes", ["declare_subscriber"], "ingress", consumed),
                 _rule(f"{name}-receives", ["put"], "egress", consumed),
             ]
+        recovered = {s.key for s in graph.STREAMS if s.recovered}
+        mine += _recovery_rules(
+            name,
+            [k for k in produced if k.split("/", 2)[2] in recovered],
+            [k for k in consumed if k.split("/", 2)[2] in recovered],
+        )
         if name in graph.ROUTERS:  # forwards the other site's tokens
             mine.append(_rule(f"{name}-forwards-tokens", ["liveliness_token"], "ingress", tokens))
         rules += mine

@@ -84,6 +84,11 @@ class Stream:
     newest_for: tuple[str, ...] = ()
     # The scenarios in which they do (empty: every scenario that carries the stream).
     newest_in: tuple[str, ...] = ()
+    # A lockstep run needs every record of it, and nothing sends one again (the loop's
+    # own streams are sent again when the plant's state goes unanswered): across sites
+    # (where a router restarted loses what it held) it is published with a cache and
+    # taken with recovery (teleop.bus.session, RECOVERY).
+    recovered: bool = False
 
     def takes_newest(self, consumer: str, mode: str, scenario: str) -> bool:
         """Whether ``consumer`` takes only the newest record of this stream in a run of
@@ -109,10 +114,10 @@ STREAMS: tuple[Stream, ...] = (
            qos=OBSERVER_QOS, batch_of="plant_state"),
     Stream("tool_pose", "state/tool_pose", TOOL_POSE, ("plant",),
            ("recorder", "operator", "hmd", "launcher"),
-           "`plant.scene_rate_hz` (100 Hz)", newest_for=("operator", "launcher")),
+           "`plant.scene_rate_hz` (100 Hz)", newest_for=("operator", "launcher"), recovered=True),
     Stream("objects", "state/objects", OBJECT_POSES, ("plant",),
            ("recorder", "operator", "eyeview"), "`plant.scene_rate_hz` (100 Hz)",
-           newest_for=("operator", "eyeview")),
+           newest_for=("operator", "eyeview"), recovered=True),
     Stream("joint_command", "cmd/joint_velocity", JOINT_COMMAND, ("controller",), ("plant",),
            "`loop.rate_hz`: one per state (lockstep, path following) or per haptic sample",
            note="realtime teleoperation: carries its sample's `device_deadline_ns`; the "
@@ -122,11 +127,11 @@ STREAMS: tuple[Stream, ...] = (
            note="`seq` is the controller's cycle counter"),
     Stream("plant_events", "events/plant", RUN_EVENT, ("plant",),
            ("operator", "recorder", "launcher", "controller", "haptic"), "on change",
-           periodic=False,
+           periodic=False, recovered=True,
            note="STARTED, FINISHED, WATCHDOG_BRAKE, WATCHDOG_RESUME, GRASP, RELEASE, "
            "RESUMED, ABORTED"),
     Stream("operator_events", "events/operator", RUN_EVENT, ("operator",),
-           ("plant", "recorder", "launcher"), "on change", periodic=False,
+           ("plant", "recorder", "launcher"), "on change", periodic=False, recovered=True,
            note="PHASE, OUT_OF_REACH, TASK_DONE (the plant ends the run at its `step`)",
            scenarios=TELEOP),
     Stream("controller_events", "events/controller", RUN_EVENT, ("controller",),
@@ -152,7 +157,7 @@ STREAMS: tuple[Stream, ...] = (
            note="a person's operator shows the force felt (`run.operator`)"),
     Stream("head_pose", "hmd/pose", HEAD_POSE, ("hmd",),
            ("controller", "operator", "eyeview", "recorder"), "`hmd.rate_hz` (90 Hz)",
-           scenarios=TELEOP, newest_for=("controller", "operator", "eyeview")),
+           scenarios=TELEOP, newest_for=("controller", "operator", "eyeview"), recovered=True),
     Stream("teleop_status", "control/teleop", TELEOP_STATUS, ("controller",),
            ("recorder",), "100 Hz", scenarios=TELEOP),
     Stream("eye_view", "view/eye", EYE_VIEW, ("eyeview",), ("recorder", "operator"),

@@ -107,6 +107,9 @@ class Service:
         if self.name not in graph.PER_ROBOT:
             robot_ids = config.robot_ids()
         self.robot_topics = tuple(Topics(rid) for rid in robot_ids)
+        # A lockstep run across sites needs every record of the streams nothing sends
+        # again, through a router's restart: those streams with recovery (graph.Stream).
+        self.recovery = bool(config.site.name) and config.run.mode == "lockstep"
         self.drops = DropCounter()
         self.session: zenoh.Session | None = None
         self._entities: list[Any] = []
@@ -195,6 +198,7 @@ class Service:
             consumer=self.name,
             mode=run.mode,
             scenario=run.scenario,
+            recovery=self.recovery,
         )
         if isinstance(sub, NewestSubscriber):
             own = topics.robot_id == self.topics.robot_id

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 import zenoh
+import zenoh.ext
 from zenoh.shm import ShmProvider
 
 from shm.provider import SHM_THRESHOLD_BYTES, configure_session, put_by_size, took_shm_path
@@ -152,6 +153,15 @@ def router_config(bus: BusConfig, site: SiteConfig, *, listen: bool) -> zenoh.Co
 # How long Publisher.undeclare waits for a put under way, s.
 UNDECLARE_WAIT_S = 1.0
 
+# Recovery (graph.Stream.recovered, in a lockstep run across sites): zenoh-ext's
+# advanced publisher keeps its newest records and says every heartbeat how far it has
+# sent; an advanced subscriber that sees a gap in the sequence (or a heartbeat beyond
+# its newest record) asks the publisher's cache for what it missed, through whichever
+# routers link them then. The cache holds more than a router's restart lets through
+# (about 2 s at 100 Hz); the heartbeat finds a lost last record while the loop waits.
+RECOVERY_CACHE_RECORDS = 512
+RECOVERY_HEARTBEAT_S = 0.25
+
 
 def _undeclare(entity: Any) -> None:
     try:
@@ -187,7 +197,11 @@ class Publisher:
     """
 
     def __init__(
-        self, pub: zenoh.Publisher, schema: Schema, shm: ShmProvider | None, block: bool = True
+        self,
+        pub: zenoh.Publisher | zenoh.ext.AdvancedPublisher,
+        schema: Schema,
+        shm: ShmProvider | None,
+        block: bool = True,
     ) -> None:
         self._pub = pub
         self.schema = schema
@@ -213,22 +227,41 @@ class Publisher:
         priority: zenoh.Priority = zenoh.Priority.REAL_TIME,
         congestion_control: zenoh.CongestionControl = zenoh.CongestionControl.BLOCK,
         reliability: zenoh.Reliability = zenoh.Reliability.RELIABLE,
+        recovery: bool = False,
     ) -> Publisher:
-        pub = session.declare_publisher(
-            key,
-            congestion_control=congestion_control,
-            priority=priority,
-            express=express,
-            reliability=reliability,
-        )
+        """A publisher on ``key``; with ``recovery`` zenoh-ext's advanced one (a cache of
+        its newest records and a heartbeat, :data:`RECOVERY_CACHE_RECORDS`)."""
+        qos: dict[str, Any] = {
+            "congestion_control": congestion_control,
+            "priority": priority,
+            "express": express,
+            "reliability": reliability,
+        }
+        if recovery:
+            pub = zenoh.ext.declare_advanced_publisher(
+                session,
+                key,
+                cache=zenoh.ext.CacheConfig(RECOVERY_CACHE_RECORDS),
+                sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=RECOVERY_HEARTBEAT_S),
+                **qos,
+            )
+        else:
+            pub = session.declare_publisher(key, **qos)
         return cls(pub, schema, shm, congestion_control == zenoh.CongestionControl.BLOCK)
 
     @classmethod
     def for_stream(
-        cls, session: zenoh.Session, topics: Topics, name: str, *, shm: ShmProvider | None = None
+        cls,
+        session: zenoh.Session,
+        topics: Topics,
+        name: str,
+        *,
+        shm: ShmProvider | None = None,
+        recovery: bool = False,
     ) -> Publisher:
         """A publisher of the graph's stream ``name`` (teleop.bus.graph): its key, record
-        kind and QoS as the graph describes them."""
+        kind and QoS as the graph describes them; with ``recovery`` (the run's choice:
+        lockstep across sites) a stream the graph marks ``recovered`` keeps a cache."""
         stream = graph.stream(name)
         qos = stream.qos
         return cls.declare(
@@ -242,6 +275,7 @@ class Publisher:
             reliability=zenoh.Reliability.RELIABLE
             if qos.reliable
             else zenoh.Reliability.BEST_EFFORT,
+            recovery=recovery and stream.recovered,
         )
 
     @property
@@ -265,7 +299,8 @@ class Publisher:
         return sent
 
     def wait_matched(self, timeout_s: float) -> bool:
-        """Wait until at least one subscriber matches this publisher (event driven)."""
+        """Wait until at least one subscriber matches this publisher (event driven; not
+        for a publisher with recovery, whose zenoh-ext type has no matching status)."""
         matched = threading.Event()
 
         def on_status(status: zenoh.MatchingStatus) -> None:
@@ -300,7 +335,8 @@ def subscribe(
     drops: DropCounter,
     *,
     batched: bool = False,
-) -> zenoh.Subscriber:
+    recovery: bool = False,
+) -> zenoh.Subscriber | zenoh.ext.AdvancedSubscriber:
     """Subscribe to records of ``schema``; ``callback(record, rx_ns)`` gets valid ones.
 
     ``rx_ns`` is ``time.monotonic_ns()`` on arrival, before decoding. Bad records are
@@ -312,12 +348,19 @@ def subscribe(
     ``batched``: the key is a :class:`BatchPublisher`'s, whose messages hold several
     records back to back: the callback runs once per valid record, in order. A message
     that is not a whole number of records is dropped (counted once).
+
+    ``recovery``: zenoh-ext's advanced subscriber, which asks an advanced publisher's
+    cache for the records a gap in its sequence says were lost (:data:`RECOVERY_CACHE_RECORDS`).
     """
 
     def on_sample(sample: zenoh.Sample) -> None:
         rx_ns = time.monotonic_ns()
         deliver(sample.payload.to_bytes(), rx_ns, schema, callback, drops, batched=batched)
 
+    if recovery:
+        return zenoh.ext.declare_advanced_subscriber(
+            session, key, on_sample, recovery=zenoh.ext.RecoveryConfig(heartbeat=True)
+        )
     return session.declare_subscriber(key, on_sample)
 
 
@@ -398,16 +441,19 @@ def subscribe_stream(
     consumer: str,
     mode: str,
     scenario: str,
-) -> zenoh.Subscriber | NewestSubscriber:
+    recovery: bool = False,
+) -> zenoh.Subscriber | zenoh.ext.AdvancedSubscriber | NewestSubscriber:
     """Subscribe ``consumer`` to the graph's stream ``stream_name`` (its key and record
     kind) as the graph says it takes it in a run of ``mode`` and ``scenario``
     (``Stream.takes_newest``): a :class:`NewestSubscriber`, or :func:`subscribe` (every
-    record, in order). The choice is made here, once per subscription."""
+    record, in order; with ``recovery``, the run's choice, a stream the graph marks
+    ``recovered`` with recovery). The choice is made here, once per subscription."""
     stream = graph.stream(stream_name)
     key = getattr(topics, stream_name)
     if stream.takes_newest(consumer, mode, scenario):
         return NewestSubscriber(session, key, stream.schema, callback, drops)
-    return subscribe(session, key, stream.schema, callback, drops)
+    recovered = recovery and stream.recovered
+    return subscribe(session, key, stream.schema, callback, drops, recovery=recovered)
 
 
 def owned_events(stream_name: str, callback: RecordCallback, drops: DropCounter) -> RecordCallback:
@@ -432,12 +478,18 @@ def subscribe_events(
     stream_name: str,
     callback: RecordCallback,
     drops: DropCounter,
-) -> zenoh.Subscriber:
+    *,
+    recovery: bool = False,
+) -> zenoh.Subscriber | zenoh.ext.AdvancedSubscriber:
     """Subscribe to one service's RUN_EVENT stream (``plant_events``, ``operator_events``):
-    ``callback`` gets only the events that service owns (:func:`owned_events`)."""
+    ``callback`` gets only the events that service owns (:func:`owned_events`); with
+    ``recovery`` (the run's choice) as :func:`subscribe_stream` says."""
     key = getattr(topics, stream_name)
-    schema = graph.stream(stream_name).schema
-    return subscribe(session, key, schema, owned_events(stream_name, callback, drops), drops)
+    stream = graph.stream(stream_name)
+    owned = owned_events(stream_name, callback, drops)
+    return subscribe(
+        session, key, stream.schema, owned, drops, recovery=recovery and stream.recovered
+    )
 
 
 def deliver(

@@ -32,7 +32,9 @@ class RobotOutputs:
         self.timestep_ns = timestep_ns
         self.hand_pub = service.keep(Publisher.for_stream(service.session, topics, "hand_input"))
         self.events_pub = service.keep(
-            Publisher.for_stream(service.session, topics, "operator_events")
+            Publisher.for_stream(
+                service.session, topics, "operator_events", recovery=service.recovery
+            )
         )
         self._hand = HAND_INPUT.new()  # each stream's seq counts its own records
         self._event = RUN_EVENT.new()

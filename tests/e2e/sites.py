@@ -23,6 +23,7 @@ from typing import Any
 
 from teleop.bench.sites import wait_plant_end
 from teleop.bus.access import write_run_credentials
+from teleop.core.rundir import incarnation_paths
 from teleop.run.sites import OPERATOR_BUNDLE_FILE
 from teleop.run.supervise import Stack
 from tests.e2e.hosts import Host
@@ -33,13 +34,15 @@ SITE_PORT = 7447
 PROXY_PORT = 7448
 PROXY_REPORT_FILE = "netem.json"
 PROXY_FIFO_PRIORITY = 50  # above the stack's loops (cpu.fifo_priority)
+# When the two-site run's robot router is killed (simulated s into the run).
+ROUTER_KILL_AT_SIM_S = 6.0
 
 
 class TwoSites:
     """A run split across two hosts: the robot site in the robot host's namespace, the
-    operator site in the operator host's; with ``strangers`` (:meth:`start`), after the
-    robot's router was killed and came back, strangers dialling the robot router from
-    the operator's host while it runs. ``link``: the network emulator's arguments
+    operator site in the operator host's; with ``strangers`` (:meth:`start`), the robot's
+    router killed mid-run and back, then strangers dialling the robot router from the
+    operator's host while it runs. ``link``: the network emulator's arguments
     (``--delay-ms 25``, ``--cut 15:0.5``...), the routers then linked through it. A
     context manager: both sites (and the emulator) are stopped on exit."""
 
@@ -128,19 +131,20 @@ class TwoSites:
 
     def start(self, settings: Sequence[str], *, strangers: bool = True) -> None:
         """Both sites up (the bundle handed over as scp would: the file only, its mode
-        kept); with ``strangers``, the robot's router killed and back before the operator
-        site starts, and the strangers' attempts after."""
+        kept); with ``strangers``, the robot's router killed and back once the run is
+        :data:`ROUTER_KILL_AT_SIM_S` in (records in flight through it are lost with it),
+        and the strangers' attempts after."""
         self.tmp_path.mkdir(parents=True, exist_ok=True)
         up = self._up(self.robot, ["--mode", self.mode, "--site", "robot", "--site-listen",
                                    self.site_endpoint, "--run-dir", str(self.robot_dir),
                                    *settings])  # fmt: skip
         self.robot_up = up.stdout + up.stderr
+        self._join()
         if not strangers:
-            self._join()
             return
-        # The robot's router killed: supervisord brings it back, and the operator's router
-        # links to the new one. (Killed mid-run, the run goes on as well, but records in
-        # flight at the cut are lost, so it need not end in the same state: docs/sites.md.)
+        # The robot's router killed mid-run: supervisord brings it back, and the
+        # operator's router links to the new one.
+        self._wait_sim_time(ROUTER_KILL_AT_SIM_S)
         stack = Stack.attach(self.robot_dir)
         self.killed_router_pid = stack.pid("robot_router")
         stack.signal_program("robot_router", signal.SIGKILL)
@@ -150,7 +154,6 @@ class TwoSites:
         ):
             assert time.monotonic() < deadline, "the robot's router did not come back"
             time.sleep(0.2)
-        self._join()
         others = write_run_credentials(
             self.tmp_path / "other", ["operator_router"], ("arm0",), tls=True
         )
@@ -165,6 +168,18 @@ class TwoSites:
             capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL,
         )  # fmt: skip
         self.robot_status = status.stdout
+
+    def _wait_sim_time(self, sim_s: float) -> None:
+        """Until the plant's summary so far (written every 2 s while it runs) says it
+        has simulated ``sim_s``."""
+        deadline = time.monotonic() + HANG_S
+        while time.monotonic() < deadline:
+            for path in incarnation_paths(self.robot_dir, "plant"):
+                with contextlib.suppress(OSError, ValueError):
+                    if json.loads(path.read_text()).get("sim_time_s", 0.0) >= sim_s:
+                        return
+            time.sleep(0.2)
+        raise AssertionError(f"the plant did not reach {sim_s} s of simulated time")
 
     def _join(self) -> None:
         """The operator site up, from the robot site's bundle (through the emulator when

@@ -18,7 +18,14 @@ import zenoh
 from teleop.bus import graph
 from teleop.bus import session as bus
 from teleop.bus.access import write_run_credentials
-from teleop.bus.messages import HAPTIC_STATE, JOINT_COMMAND, PLANT_STATE, DropCounter
+from teleop.bus.messages import (
+    HAPTIC_STATE,
+    JOINT_COMMAND,
+    PLANT_STATE,
+    RUN_EVENT,
+    DropCounter,
+    Event,
+)
 from teleop.bus.topics import Topics
 from teleop.core.config import OPERATOR_SITE, ROBOT_SITE, BusConfig, SiteConfig
 from tests.integration.receiving import TIMEOUT_S, Seen, free_endpoint
@@ -58,13 +65,12 @@ class Sites:
                 robot_router, SiteConfig(ROBOT_SITE, listen=site_endpoint), listen=False
             )
         )
-        self.operator_router = zenoh.open(
-            bus.router_config(
-                config(OPERATOR_ROUTER, operator_mesh),
-                SiteConfig(OPERATOR_SITE, connect=site_endpoint),
-                listen=True,
-            )
+        self._operator_router_config = bus.router_config(
+            config(OPERATOR_ROUTER, operator_mesh),
+            SiteConfig(OPERATOR_SITE, connect=site_endpoint),
+            listen=True,
         )
+        self.open_operator_router()
         self.haptic = bus.open_session(
             config("haptic", operator_mesh, free_endpoint("tls")), listen=False
         )
@@ -83,6 +89,14 @@ class Sites:
                 ("haptic", self.haptic),
             )
         ]
+
+    def open_operator_router(self) -> None:
+        """The operator site's router (again: after :meth:`drop_operator_router`)."""
+        self.operator_router = zenoh.open(self._operator_router_config)
+
+    def drop_operator_router(self) -> None:
+        """The operator site's router gone: what it held is lost, the sites unlinked."""
+        self.operator_router.close()
 
     def link(self) -> None:
         """Each end sees the other's token: through both routers, subscriptions included."""
@@ -155,3 +169,48 @@ def test_a_session_of_another_run_gets_no_link_at_the_routers(tmp_path):
         stranger.close()
         sites.close()
     assert seen.seqs == []
+
+
+def test_a_recovered_stream_loses_no_record_while_a_router_is_away(tmp_path):
+    """The plant's events (graph: recovered) and its states (not: the loop sends its own
+    again) from the robot site to the operator site, the operator site's router gone
+    for a while and back: the states sent meanwhile are lost, every event comes, in
+    order, asked for from the plant's cache once the routers linked again (zenoh-ext's
+    recovery, under the run's access list)."""
+    endpoint = free_endpoint("tls")
+    files = write_run_credentials(tmp_path / "auth", PARTICIPANTS, (ROBOT,), tls=True)
+    sites = Sites(files, endpoint)
+    events, drops = Seen(), DropCounter()
+    topics = sites.topics
+    recovering = bus.subscribe(
+        sites.haptic, topics.plant_events, RUN_EVENT, events, drops, recovery=True
+    )
+    try:
+        sites.link()
+        states = bus.Publisher.for_stream(sites.plant, topics, "plant_state", recovery=True)
+        cached = bus.Publisher.for_stream(sites.plant, topics, "plant_events", recovery=True)
+        assert states.key == topics.plant_state and cached.key == topics.plant_events
+        seq = 0
+        for away in (False, True, False):
+            if away:
+                sites.drop_operator_router()
+            for _ in range(RECORDS // 4):
+                seq += 1
+                for publisher in (states, cached):
+                    rec = publisher.schema.new()
+                    rec["seq"] = seq
+                    if publisher is cached:
+                        rec["event"] = Event.PHASE
+                    publisher.put(rec)
+                time.sleep(0.002)
+            if away:
+                sites.open_operator_router()
+                sites.link()
+        assert events.wait(seq), f"events: {len(events.seqs)} of {seq}"
+        assert sites.states.wait(seq // 3)
+    finally:
+        recovering.undeclare()
+        sites.close()
+    assert events.seqs == list(range(1, seq + 1))  # each once, in order
+    lost = sorted(set(range(1, seq + 1)) - set(sites.states.seqs))
+    assert lost and all(seq // 3 < s <= 2 * seq // 3 for s in lost)  # sent while away

@@ -12,7 +12,7 @@ from cryptography import x509
 
 from services.router import RouterService
 from teleop.bus import graph
-from teleop.bus.access import OPERATOR_OBSERVER, rights
+from teleop.bus.access import OPERATOR_OBSERVER, Credentials, access_control, rights
 from teleop.cli import EXIT_USAGE, main
 from teleop.core.config import OPERATOR_SITE, ROBOT_SITE, ConfigError, load_config
 from teleop.run.sites import (
@@ -93,6 +93,33 @@ def test_a_router_may_forward_every_stream_and_a_peer_only_its_own():
     produces, _ = rights("haptic")
     assert "cmd/joint_velocity" not in produces
     assert rights(OPERATOR_OBSERVER)[0] == []
+
+
+def test_only_a_recovered_streams_producer_answers_for_its_records():
+    """The access list's part in recovery (graph.Stream.recovered): the plant keeps its
+    events' cache (heartbeats, the cache's queryable and replies out, queries in); the
+    haptic service, a consumer, may ask for them and hear the answers, never answer;
+    a stream without recovery has no such rights."""
+    names = ["plant", "haptic", "controller"]
+    acl = access_control({n: Credentials.generate(n) for n in names}, ("arm0",))
+    rules = {rule["id"]: rule for rule in acl["rules"]}
+    events, states = "teleop/arm0/events/plant", "teleop/arm0/state/plant"
+    keeps = rules["plant-keeps"]
+    assert keeps["flows"] == ["ingress"] and "reply" in keeps["messages"]
+    assert f"{events}/@adv/pub/**" in keeps["key_exprs"] and events in keeps["key_exprs"]
+    assert not any(key.startswith(states) for key in keeps["key_exprs"])
+    assert f"{events}/@adv/**" in rules["plant-is-asked"]["key_exprs"]
+    asks = rules["haptic-asks"]
+    assert asks["flows"] == ["ingress"] and "reply" not in asks["messages"]
+    assert f"{events}/@adv/**" in asks["key_exprs"]
+    answered = rules["haptic-is-answered"]
+    assert answered["flows"] == ["egress"] and f"{events}/@adv/pub/**" in answered["key_exprs"]
+    replied_by_haptic = [
+        r for r in acl["rules"]
+        if r["id"].startswith("haptic-") and "reply" in r["messages"] and "ingress" in r["flows"]
+    ]  # fmt: skip
+    assert replied_by_haptic == []
+    assert "controller-keeps" not in rules  # it produces no recovered stream
 
 
 def _certificate(path) -> x509.Certificate:
