@@ -75,6 +75,9 @@ FUTURE_STAMP_TOLERANCE_NS = 100_000_000
 # learnt (judged old). RESYNC_RECORDS records in a row off the clock learnt, either way,
 # are a sender's new clock (a restart on another host): the link learns it afresh.
 CLOCK_STEP_LIMIT_NS = 1_000_000_000
+# Records taken whose seq and send stamp a receiver keeps, to know a copy sent again (a
+# lockstep re-send: the states in flight, a few).
+TAKEN_KEPT = 8
 
 
 class LinkClock:
@@ -300,6 +303,8 @@ class Inbound:
     up); and it is not older than ``shed_age_ns`` (plus the link's own spread, see
     SPREAD_FACTOR) beyond the link's fastest delivery, on this host's clock (else it is
     shed: the receiver is behind; it did arrive, so the next record is no gap). What is
+    A copy of a record taken already (the same seq and send stamp: a lockstep re-send) is
+    judged by its seq alone and teaches the link's clock nothing. What is
     shed (here or by the caller, e.g. superseded by a newer record) has the HAPTIC_SAMPLE
     stamp of its loop logged, for the latency report's count of loops that never closed.
     The first rejection of each reason is logged. Not thread-safe: the owner calls it
@@ -325,24 +330,28 @@ class Inbound:
         # of a service: the latency report counts loops, not streams)
         self.shed_log = shed_log if shed_log is not None else StampLog(1)
         self._logged: set[str] = set()
+        self._taken: dict[int, int] = {}  # seq -> send stamp of the newest records taken
 
     def accept(self, rec: np.ndarray, now_ns: int, *, shed: bool = True) -> bool:
         """True if ``rec`` is to be used: not stamped in the future, in order and (with
         ``shed``) not older than the shed age at ``now_ns``. A stale record is counted in
         ``shed`` and logged."""
         seq = int(rec["seq"])
-        if 0 <= seq <= self.seq.last_seq:
-            # A copy of a record taken already (a lockstep re-send, byte for byte) or one
-            # overtaken: its seq alone judges it. It tells nothing of the sender's clock,
-            # and a copy sent again a second later would teach the link a delivery a
-            # second slow (three such: its clock learnt afresh, the next fresh record
-            # refused as stamped in the future).
+        if self._taken.get(seq) == int(rec["trace_ns"][self.tx_stage]):
+            # A copy of a record taken already (a lockstep re-send, byte for byte): its
+            # seq alone judges it. It tells nothing new of the sender's clock, and a copy
+            # sent again a second later would teach the link a delivery a second slow
+            # (three such: its clock learnt afresh, the next fresh record refused as
+            # stamped in the future).
             return self.accept_seq(seq)
         if not self.arrived(rec, now_ns):
             self.seq.refused(seq)
             return False
         if not self.accept_seq(seq):
             return False
+        self._taken[seq] = int(rec["trace_ns"][self.tx_stage])
+        if len(self._taken) > TAKEN_KEPT:
+            del self._taken[next(iter(self._taken))]  # the oldest taken
         if self.too_old(rec, now_ns):
             if shed:
                 self.drop(rec)  # arrived, in order, too late: shed, not lost
@@ -420,6 +429,7 @@ class Inbound:
         not a gap, its clock is learnt afresh."""
         self.seq.restart()
         self.clock.reset()
+        self._taken.clear()
 
     def counts(self) -> dict[str, int]:
         """Every counter of the stream, by name (for a summary)."""
