@@ -302,11 +302,11 @@ class Inbound:
     older ones as reordered, jumps beyond the window rejected, a restarted producer taken
     up); and it is not older than ``shed_age_ns`` (plus the link's own spread, see
     SPREAD_FACTOR) beyond the link's fastest delivery, on this host's clock (else it is
-    shed: the receiver is behind; it did arrive, so the next record is no gap). What is
-    A copy of a record taken already (the same seq and send stamp: a lockstep re-send) is
-    judged by its seq alone and teaches the link's clock nothing. What is
-    shed (here or by the caller, e.g. superseded by a newer record) has the HAPTIC_SAMPLE
-    stamp of its loop logged, for the latency report's count of loops that never closed.
+    shed: the receiver is behind; it did arrive, so the next record is no gap). A copy
+    of a record taken already (the same seq and send stamp: a lockstep re-send) is judged
+    by its seq alone and teaches the link's clock nothing. What is shed (here or by the
+    caller, e.g. superseded by a newer record) has the HAPTIC_SAMPLE stamp of its loop
+    logged, for the latency report's count of loops that never closed.
     The first rejection of each reason is logged. Not thread-safe: the owner calls it
     under its own lock.
     """
@@ -336,8 +336,8 @@ class Inbound:
         """True if ``rec`` is to be used: not stamped in the future, in order and (with
         ``shed``) not older than the shed age at ``now_ns``. A stale record is counted in
         ``shed`` and logged."""
-        seq = int(rec["seq"])
-        if self._taken.get(seq) == int(rec["trace_ns"][self.tx_stage]):
+        seq, stamp_ns = int(rec["seq"]), int(rec["trace_ns"][self.tx_stage])
+        if self._taken.get(seq) == stamp_ns:
             # A copy of a record taken already (a lockstep re-send, byte for byte): its
             # seq alone judges it. It tells nothing new of the sender's clock, and a copy
             # sent again a second later would teach the link a delivery a second slow
@@ -349,7 +349,7 @@ class Inbound:
             return False
         if not self.accept_seq(seq):
             return False
-        self._taken[seq] = int(rec["trace_ns"][self.tx_stage])
+        self._taken[seq] = stamp_ns
         if len(self._taken) > TAKEN_KEPT:
             del self._taken[next(iter(self._taken))]  # the oldest taken
         if self.too_old(rec, now_ns):

@@ -124,12 +124,14 @@ class ControllerCore:
         self._out_lock = threading.Lock()
         self._last_seq = -1
         self._realtime = config.run.mode == "realtime"
-        # Lockstep: the answers to the newest states (state seq -> stream -> a copy of
-        # the record sent), each to be sent again, byte for byte, when the plant sends
-        # its state again: every state in flight (plant.lockstep_delay_steps + 1) may
-        # be the one whose answer was lost.
-        self._answers: dict[int, dict[str, np.ndarray]] = {}
-        self._answers_kept = config.plant.lockstep_delay_steps + 2
+        # Lockstep: per stream, copies of the records that answered the newest states (by
+        # state seq), each to be sent again, byte for byte, when the plant sends its
+        # state again: every state in flight (plant.lockstep_delay_steps + 1) may be the
+        # one whose answer was lost.
+        kept = config.plant.lockstep_delay_steps + 2
+        self._answers: dict[str, TickedInputs[np.ndarray]] = {
+            stream: TickedInputs(kept) for stream in ("force_feedback", "joint_command")
+        }
         # t_source_ns of this run's state 0: a state 0 with the same stamp is the plant
         # re-sending it (byte for byte), not a new run.
         self._run_start_ns = -1
@@ -160,7 +162,8 @@ class ControllerCore:
                 self._run_start_ns = int(rec["t_source_ns"])  # a new run (or plant restart):
                 self.reset()  # forget the task state
                 with self._out_lock:
-                    self._answers.clear()
+                    for answers in self._answers.values():
+                        answers.clear()
                 self.runs += 1
             elif seq <= self._last_seq:
                 if self._resend_answer(seq):
@@ -181,10 +184,17 @@ class ControllerCore:
         dropped when a process stalled past the Zenoh lease, holds back the handle
         sample the cycle of ``state_seq`` waits for), then this state's own feedback and
         JOINT_COMMAND; whether anything was sent."""
+        feedback, commands = self._answers["force_feedback"], self._answers["joint_command"]
         with self._out_lock:
-            before = self._answers.get(state_seq - 1, {}).get("force_feedback")
-            records = [("force_feedback", before)] if before is not None else []
-            records += sorted(self._answers.get(state_seq, {}).items())  # feedback first
+            records = [
+                (stream, rec)
+                for stream, rec in (
+                    ("force_feedback", feedback.at(state_seq - 1)),
+                    ("force_feedback", feedback.at(state_seq)),
+                    ("joint_command", commands.at(state_seq)),
+                )
+                if rec is not None
+            ]
             for stream, rec in records:
                 self.outputs.resend(stream, rec)
             return bool(records)
@@ -192,11 +202,8 @@ class ControllerCore:
     def _keep_answer(self, state_seq: int, stream: str, rec: np.ndarray) -> None:
         """Lockstep: keep a copy of ``rec``, sent on ``stream`` in answer to state
         ``state_seq``, to send again (caller holds ``_out_lock``)."""
-        if self._realtime:
-            return
-        self._answers.setdefault(state_seq, {})[stream] = rec.copy()
-        while len(self._answers) > self._answers_kept:
-            del self._answers[min(self._answers)]
+        if not self._realtime:
+            self._answers[stream].put(state_seq, rec.copy())
 
     def reset(self) -> None:
         """A new run: the task forgets its state."""

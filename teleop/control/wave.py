@@ -178,7 +178,6 @@ class RobotWavePort:
             raise ValueError("the wave impedance must be > 0")
         self.b_n_s_m = b_n_s_m
         self._root_2b = math.sqrt(2.0 * b_n_s_m)
-        self.period_s = sample_period_s
         self.bank = WaveEnergyBank(sample_period_s)
         self.max_hold_s = max_hold_s
         self.reset()
@@ -199,7 +198,7 @@ class RobotWavePort:
         """The robot's newest resistance (N, device frame: minus the feedback force), one
         period after the last: what its surroundings absorbed meanwhile is observed."""
         self.resistance_n = np.asarray(resistance_n, dtype=np.float64)
-        self.absorbed_j += float(self.rate_m_s @ self.resistance_n) * self.period_s
+        self.absorbed_j += float(self.rate_m_s @ self.resistance_n) * self.bank.sample_period_s
 
     def rate(self, u_wave: np.ndarray, now_s: float) -> np.ndarray:
         """The tool's rate (m/s, device frame) the wave ``u`` that came at ``now_s`` (the
@@ -211,7 +210,8 @@ class RobotWavePort:
             held_s = min(max(now_s - self._passed_at_s, 0.0), self.max_hold_s)
             self.bank.spend(self._passed_u, held_s)
         self.bank.receive(u_wave)
-        self._passed_u = self.bank.fit(u_wave, self.bank.sample_period_s)
+        period_s = self.bank.sample_period_s
+        self._passed_u = self.bank.fit(u_wave, period_s)
         self._passed_at_s = now_s
         drive = self._root_2b * self._passed_u - self.resistance_n
         two_b = 2.0 * self.b_n_s_m
@@ -222,13 +222,11 @@ class RobotWavePort:
             speed_sq = float(undamped @ undamped)
             if speed_sq > 0.0:
                 self.damping_n_s_m = min(
-                    deficit_j / (speed_sq * self.period_s), self.MAX_DAMPING_PER_B * self.b_n_s_m
+                    deficit_j / (speed_sq * period_s), self.MAX_DAMPING_PER_B * self.b_n_s_m
                 )
                 self.damped_cycles += 1
         self.rate_m_s = drive / (two_b + self.damping_n_s_m)
-        self.dissipated_j += (
-            self.damping_n_s_m * float(self.rate_m_s @ self.rate_m_s) * self.period_s
-        )
+        self.dissipated_j += self.damping_n_s_m * float(self.rate_m_s @ self.rate_m_s) * period_s
         return self.rate_m_s
 
     def wave_back(self) -> np.ndarray:

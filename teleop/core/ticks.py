@@ -183,6 +183,11 @@ class TickedInputs(Generic[Held]):
             self._cond.wait_for(lambda: valid_from_tick in self._records, timeout_s)
             return self._records.get(valid_from_tick)
 
+    def at(self, valid_from_tick: int) -> Held | None:
+        """The record valid from exactly that tick, if it is kept (no wait)."""
+        with self._cond:
+            return self._records.get(valid_from_tick)
+
     def newest_tick(self) -> int | None:
         """The largest valid_from_tick stored (None: none)."""
         with self._cond:

@@ -23,7 +23,7 @@ from typing import Any
 
 from teleop.bench.sites import wait_plant_end
 from teleop.bus.access import write_run_credentials
-from teleop.core.rundir import incarnation_paths
+from teleop.bus.service import read_summary
 from teleop.run.sites import OPERATOR_BUNDLE_FILE
 from teleop.run.supervise import Stack
 from tests.e2e.hosts import Host
@@ -174,10 +174,9 @@ class TwoSites:
         has simulated ``sim_s``."""
         deadline = time.monotonic() + HANG_S
         while time.monotonic() < deadline:
-            for path in incarnation_paths(self.robot_dir, "plant"):
-                with contextlib.suppress(OSError, ValueError):
-                    if json.loads(path.read_text()).get("sim_time_s", 0.0) >= sim_s:
-                        return
+            summary = read_summary(self.robot_dir, "plant")
+            if summary is not None and summary.get("sim_time_s", 0.0) >= sim_s:
+                return
             time.sleep(0.2)
         raise AssertionError(f"the plant did not reach {sim_s} s of simulated time")
 

@@ -239,8 +239,10 @@ class HapticLoop:
         # Lockstep: copies of the samples each robot was sent, by tick, for its plant's
         # states in flight (plant.lockstep_delay_steps + 1): a re-sent state gets the
         # sample of its tick again.
-        self._robot_sent: list[dict[int, np.ndarray]] = [{} for _ in range(self.robots)]
-        self._sent_kept = config.plant.lockstep_delay_steps + 2
+        kept = config.plant.lockstep_delay_steps + 2
+        self._robot_sent: list[TickedInputs[np.ndarray]] = [
+            TickedInputs(kept) for _ in range(self.robots)
+        ]
         self.switches: list[dict[str, Any]] = []  # (tick, robot) of each switch
         self.switch_deferred_steps = 0  # steps a switch waited for the handle's deadband
         self.unselected_feedback = 0  # realtime: feedback of a robot not driven, not rendered
@@ -327,19 +329,15 @@ class HapticLoop:
     def _resend_sample(self, seq: int, robot: int) -> None:
         """A re-sent state of ``robot`` (lock held): the sample of its tick again, if it
         is kept (lockstep)."""
-        sent = self._robot_sent[robot].get(seq)
+        sent = self._robot_sent[robot].at(seq)
         if sent is not None:
             self.republished_states += 1
             self.outputs.resend(sent, robot)
 
     def _keep_sent(self, robot: int, rec: np.ndarray) -> None:
         """Lockstep: a copy of the sample ``robot`` was sent, kept by its tick (lock held)."""
-        if not self.lockstep:
-            return
-        kept = self._robot_sent[robot]
-        kept[int(rec["tick"])] = rec.copy()
-        while len(kept) > self._sent_kept:
-            del kept[min(kept)]
+        if self.lockstep:
+            self._robot_sent[robot].put(int(rec["tick"]), rec.copy())
 
     def _robots_state(self) -> int:
         """The newest tick every running robot's state has reached (lock held; -1:
