@@ -19,9 +19,10 @@ from typing import Any
 
 import zenoh
 
-from teleop.bus.graph import router_name
+from teleop.bus.graph import router_instance, router_name
 from teleop.bus.service import Service, ServiceOptions, service_main
 from teleop.bus.session import router_config
+from teleop.bus.topics import Topics
 from teleop.core.config import SITES, Config, ConfigError
 
 logger = logging.getLogger(__name__)
@@ -34,13 +35,24 @@ class RouterService(Service):
         super().__init__(config, options)
         if not config.site.name:
             raise ConfigError("the router serves one site of a run across hosts: set site.name")
-        self.name = router_name(config.site.name)  # its credentials, tokens and summary
+        self.name = router_name(config.site.name)  # its tokens
+        # The site it links to: the operator site's router for a robot site (through the
+        # first robot's router, for another robot's site), the first robot's for the
+        # operator site.
         other = next(site for site in SITES if site != config.site.name)
         self.other_router = router_name(other)
+        if config.site.robot:  # another robot's site: its tokens under its robot's keys
+            self.robot_topics = (Topics(config.site.robot),)
         self._lock = threading.Lock()
         self.other_site_linked = False
         self.other_site_links = 0  # times the other site's router came (its token appeared)
         self.other_site_losses = 0  # times it went (its token's DELETE: link cut, or it died)
+
+    @property
+    def instance(self) -> str:
+        """Its participant (credentials, summary): the site's router, or another robot's
+        site's own instance (graph.router_instance)."""
+        return router_instance(self.config.site.name, self.config.site.robot)
 
     def zenoh_config(self) -> zenoh.Config:
         return router_config(self.config.bus, self.config.site, listen=self.options.listen)

@@ -445,27 +445,30 @@ def _add_up_command(commands: Commands) -> None:
     up.add_argument(
         "--site",
         choices=SITES,
-        help="start one site of a run across two hosts (docs/sites.md): robot (plant, "
+        help="start one site of a run across hosts (docs/sites.md): robot (plant, "
         "controller, recorder, eye view) or operator (haptic device, HMD, operator), each "
-        "with a Zenoh router that links to the other site's over mutual TLS",
+        "with a Zenoh router that links to the robot site's over mutual TLS; a run of "
+        "several robots (--set run.robots=N) has a robot site per robot",
     )
     up.add_argument(
         "--site-listen",
         metavar="tls/ADDRESS:PORT",
-        help="--site robot: where its router listens for the operator site's (an address "
-        "of this host the other reaches); writes <run-dir>/operator-site.json to hand over",
+        help="--site robot: where its router listens for the other sites' (an address "
+        "of this host the others reach); writes <run-dir>/operator-site.json (and "
+        "robot-site-<robot>.json per other robot) to hand over",
     )
     up.add_argument(
         "--join",
         type=Path,
         metavar="FILE",
-        help="--site operator: the robot site's operator-site.json (identities and the "
-        "run's settings; keep it private)",
+        help="--site operator: the robot site's operator-site.json; --site robot: the "
+        "robot-site-<robot>.json it wrote for another robot's site of a run of several "
+        "(identities and the run's settings; keep it private)",
     )
     up.add_argument(
         "--connect",
         metavar="tls/ADDRESS:PORT",
-        help="--site operator: the robot site's router (default: the bundle's)",
+        help="with --join: the first robot's site's router (default: the bundle's)",
     )
     up.add_argument(
         "--operator",
@@ -834,26 +837,31 @@ def _sweep(args: argparse.Namespace) -> int:
 
 
 def _site_overrides(args: argparse.Namespace) -> tuple[list[str], dict[str, Path] | None]:
-    """``teleop up``'s site options as overrides (the operator site's from its bundle
-    first), and the operator site's credentials; SiteError on a bad combination."""
-    from teleop.run.sites import SiteError, join_operator_site
+    """``teleop up``'s site options as overrides (a joining site's from its bundle
+    first), and a joining site's credentials; SiteError on a bad combination. The first
+    robot's site listens (``--site-listen``) and makes every identity; the operator site
+    and, in a run of several robots, each other robot's site join with the bundle it
+    wrote for them."""
+    from teleop.run.sites import SiteError, join_site
 
     if args.site is None:
         if args.site_listen or args.join or args.connect:
             raise SiteError("--site-listen, --join and --connect go with --site")
         return [], None
-    if args.site == ROBOT_SITE:
-        if args.join or args.connect:
-            raise SiteError("--join and --connect are the operator site's")
+    if args.site_listen and (args.join or args.site == OPERATOR_SITE):
+        raise SiteError("--site-listen is the first robot's site's: a site that joins connects")
+    if args.join is None:
+        if args.site == OPERATOR_SITE:
+            raise SiteError(
+                "--site operator needs --join FILE: the robot site's operator-site.json"
+            )
+        if args.connect:
+            raise SiteError("--connect goes with --join (a site that joins the first robot's)")
         listen = [f"site.listen={json.dumps(args.site_listen)}"] if args.site_listen else []
         return [f'site.name="{ROBOT_SITE}"', *listen], None
-    if args.site_listen:
-        raise SiteError("--site-listen is the robot site's")
-    if args.join is None:
-        raise SiteError("--site operator needs --join FILE: the robot site's operator-site.json")
-    joined = join_operator_site(args.join, args.run_dir)
+    joined = join_site(args.site, args.join, args.run_dir)
     connect = args.connect or joined.connect
-    site = [f'site.name="{OPERATOR_SITE}"', f"site.connect={json.dumps(connect)}"]
+    site = [f'site.name="{args.site}"', f"site.connect={json.dumps(connect)}"]
     return [*joined.overrides, *site], joined.credentials
 
 

@@ -266,11 +266,12 @@ def _teleop(args: Sequence[str], timeout_s: float) -> subprocess.CompletedProces
     return done
 
 
-def wait_plant_end(run_dir: Path, timeout_s: float) -> dict[str, Any]:
-    """The plant's summary once it says the run finished or aborted (polled each second;
-    the launcher's own wait, without a bus session)."""
+def wait_plant_end(run_dir: Path, timeout_s: float, plant: str = graph.PLANT) -> dict[str, Any]:
+    """The summary of ``plant`` (an instance in a run of several robots: ``plant-arm1``)
+    once it says the run finished or aborted (polled each second; the launcher's own
+    wait, without a bus session)."""
     deadline = time.monotonic() + timeout_s
-    while (summary := ended_plant_summary(run_dir)) is None:
+    while (summary := ended_plant_summary(run_dir, plant)) is None:
         if time.monotonic() > deadline:
             raise RuntimeError(f"the plant did not finish within {timeout_s:g} s ({run_dir})")
         time.sleep(1.0)

@@ -97,9 +97,13 @@ def new_zid() -> str:
     return format(secrets.randbits(127) | 1 << 127, "032x")
 
 
-def site_observer(site: str) -> str:
-    """The observer participant of ``site`` (empty: a one-host run's)."""
-    return OPERATOR_OBSERVER if site == OPERATOR_SITE else OBSERVER
+def site_observer(site: str, robot_id: str = "") -> str:
+    """The observer participant of ``site`` (empty: a one-host run's); of the robot site
+    of a robot other than the first (``robot_id``, graph.router_instance), its own
+    instance, watching that robot's keys alone."""
+    if site == OPERATOR_SITE:
+        return OPERATOR_OBSERVER
+    return f"{OBSERVER}{graph.INSTANCE_SEPARATOR}{robot_id}" if robot_id else OBSERVER
 
 
 def rights(participant: str) -> tuple[list[str], list[str]]:
@@ -107,9 +111,9 @@ def rights(participant: str) -> tuple[list[str], list[str]]:
     subscribe to (an observer: none, and every stream; a site's router, which forwards
     the other site's streams: every stream both ways)."""
     every = [s.key for s in graph.STREAMS]
-    if participant in OBSERVERS:
+    if graph.role_of(participant) in OBSERVERS:
         return [], every
-    if participant in graph.ROUTERS:
+    if graph.is_router(participant):
         return every, every
     produces = [s.key for s in graph.STREAMS if participant in s.producers]
     consumes = [s.key for s in graph.STREAMS if participant in s.consumers]
@@ -159,10 +163,12 @@ def _rule(rule_id: str, messages: list[str], flow: str, keys: Iterable[str]) -> 
 
 def participant_robots(name: str, robot_ids: Sequence[str]) -> tuple[str, tuple[str, ...]]:
     """The service whose rights ``name`` has and the robots it acts for in a run of
-    ``robot_ids``: a per-robot service's instance (``plant-arm1``, graph.instance_name)
-    its own robot, any other participant every robot."""
+    ``robot_ids``: a per-robot service's instance (``plant-arm1``, graph.instance_name),
+    or the router or observer of one robot's site (graph.router_instance), its own robot;
+    any other participant every robot."""
     role, robot = graph.role_of(name), graph.robot_of(name)
-    if role in graph.PER_ROBOT and robot in robot_ids:
+    per_robot = role in graph.PER_ROBOT or role in graph.ROUTERS or role in OBSERVERS
+    if per_robot and robot in robot_ids:
         return role, (robot,)
     return name, tuple(robot_ids)
 
@@ -218,7 +224,7 @@ def access_control(
             [k for k in produced if k.split("/", 2)[2] in recovered],
             [k for k in consumed if k.split("/", 2)[2] in recovered],
         )
-        if name in graph.ROUTERS:  # forwards the other site's tokens
+        if graph.is_router(name):  # forwards the other sites' tokens
             mine.append(_rule(f"{name}-forwards-tokens", ["liveliness_token"], "ingress", tokens))
         rules += mine
         if tls:  # both authenticated by TLS together: the name and this session

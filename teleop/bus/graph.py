@@ -307,13 +307,34 @@ def router_name(site: str) -> str:
 
 ROUTERS = tuple(router_name(site) for site in SITES)
 
+# A run of several robots across hosts has a robot site per robot. The first robot's
+# site is the hub: it makes the run's identities, runs the recorder, and its router
+# (``robot_router``, acting for every robot) is the one the operator site's and each
+# other robot site's routers connect to. Another robot's site runs that robot's own
+# services and a router of its own, the instance ``robot_router-<robot_id>``, acting for
+# that robot alone.
+
+
+def router_instance(site: str, robot_id: str = "") -> str:
+    """The process (and participant) of ``site``'s router: :func:`router_name`'s, or for
+    the site of a robot other than the first (``robot_id``) its own instance."""
+    name = router_name(site)
+    return f"{name}{INSTANCE_SEPARATOR}{robot_id}" if robot_id else name
+
+
+def is_router(name: str) -> bool:
+    """Whether the participant ``name`` is a site's router."""
+    return role_of(name) in ROUTERS
+
 
 def site_of(service: str) -> str:
-    """The site that runs ``service`` (a service of :data:`SERVICES` or a router)."""
+    """The site that runs ``service``: a service of :data:`SERVICES`, an instance of one
+    (``plant-arm1``), or a router."""
+    role = role_of(service)
     for site in SITES:
-        if service == router_name(site):
+        if role == router_name(site):
             return site
-    return SERVICES_BY_NAME[service].site
+    return SERVICES_BY_NAME[role].site
 
 
 def on_site(services: Iterable[str], site: str) -> tuple[str, ...]:

@@ -1038,10 +1038,15 @@ class SiteConfig:
     routers link (docs/sites.md). Empty ``name``: the whole stack on one host."""
 
     name: str = ""  # "" (one host), "robot" or "operator"
-    # The robot site's router listens here for the operator site's router: tls/ADDR:PORT
-    # with an address of this host the other one can reach.
+    # A run of several robots (run.robots): the robot a robot site runs, when not the
+    # first. The first robot's site ("") is the hub: it makes the run's identities, runs
+    # the recorder, and its router is the one every other site's router connects to.
+    robot: str = ""
+    # The hub's router listens here for the other sites' routers: tls/ADDR:PORT with an
+    # address of this host the others can reach.
     listen: str = ""
-    # The operator site's router connects here: the robot site's ``listen``.
+    # The operator site's router, and another robot's site's, connect here: the hub's
+    # ``listen``.
     connect: str = ""
     # A round trip between the two sites emulated in sim time (ms; lockstep runs with the
     # scripted operator): what one site sends, the other takes this much simulated time
@@ -1063,9 +1068,11 @@ class SiteConfig:
                 not endpoint or endpoint.startswith("tls/"),
                 f"site.{key}: tls/ADDRESS:PORT (sites link over mutual TLS only)",
             )
-        _require(not self.listen or self.name == ROBOT_SITE, "site.listen: the robot site's only")
+        hub = self.name == ROBOT_SITE and not self.robot
+        _require(not self.robot or self.name == ROBOT_SITE, "site.robot: a robot site's only")
+        _require(not self.listen or hub, "site.listen: the first robot's site's only")
         _require(
-            not self.connect or self.name == OPERATOR_SITE, "site.connect: the operator site's only"
+            not self.connect or not hub, "site.connect: the operator site's or another robot's"
         )
 
 
@@ -1319,8 +1326,9 @@ class Config:
     def _check_robots(self) -> None:
         """What a run of several robots (``run.robots``) supports: the scripted operator
         drives them in turn, or a person with a robot switch (tab on the keyboard and the
-        web page, a device's switch_buttons), in the teleoperation scenario, on one host,
-        each with its own model of the operator's link."""
+        web page, a device's switch_buttons), in the teleoperation scenario, on one host
+        or a robot site each (site.name), each with its own model of the operator's
+        link."""
         many = f"run.robots={self.run.robots}"
         _require(self.run.teleoperated, f"{many}: a teleoperated scenario (grasp)")
         if self.run.operator in INPUT_DEVICE_OPERATORS:
@@ -1333,7 +1341,6 @@ class Config:
                 f"default: e.g. --set '{section}.switch_buttons=[\"BTN_1\"]' "
                 f"--set '{section}.clutch_buttons=[]')",
             )
-        _require(not self.site.name, f"{many}: one host only (not with site.name)")
         _require(
             not self.site.emulated_round_trip_ms,
             f"{many}: not with site.emulated_round_trip_ms",

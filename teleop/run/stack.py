@@ -62,6 +62,7 @@ from teleop.bus.session import (
 from teleop.bus.topics import Topics
 from teleop.core.config import (
     INPUT_DEVICE_OPERATORS,
+    OPERATOR_SITE,
     ROBOT_SITE,
     SCRIPTED,
     TERMINAL_OPERATORS,
@@ -96,7 +97,13 @@ from teleop.run.outside import (
     write_outside_config,
 )
 from teleop.run.run_watch import RunWatch
-from teleop.run.sites import SiteError, check_site, write_operator_bundle
+from teleop.run.sites import (
+    SiteError,
+    check_site,
+    site_participants,
+    site_robots,
+    write_site_bundles,
+)
 from teleop.run.supervise import Program, Stack, StackError
 from teleop.run.web_operator import WebAccess, prepare_web_operator, web_overrides
 
@@ -246,7 +253,7 @@ def service_programs(
         if credentials is not None:
             own.append(f'bus.credentials_file="{credentials[name]}"')
         module = (f"services.{role}",)
-        if name in graph.ROUTERS:
+        if graph.is_router(name):
             module = ("services.router",)
         if modules and name in modules:
             module = (modules[name],)
@@ -293,15 +300,18 @@ def run_credentials(
     """With ``bus.secure``: fresh credentials for ``participants`` and a read-only
     :data:`OBSERVER` in ``<run_dir>/auth`` (teleop.bus.access; with ``bus.tls`` their
     certificates too), their files by name; else None (an open bus). A run across hosts
-    (``site.name``) adds both sites' routers and the operator site's observer: the
-    robot site makes every identity once (teleop.run.sites hands the operator site's
-    over), its router's certificate valid at ``site.listen``'s address too."""
+    (``site.name``) adds every site's router and observer: the first robot's site makes
+    every identity once (teleop.run.sites hands the other sites theirs), its router's
+    certificate valid at ``site.listen``'s address too."""
     if not config.bus.secure:
         return None
     participants = [*participants, OBSERVER]
     addresses: dict[str, list[str]] = {}
     if config.site.name:
         participants += [*graph.ROUTERS, OPERATOR_OBSERVER]
+        for robot_id in config.robot_ids()[1:]:  # a site per robot: its router, observer
+            participants += [graph.router_instance(ROBOT_SITE, robot_id),
+                             site_observer(ROBOT_SITE, robot_id)]  # fmt: skip
         if config.site.listen:
             host, _ = endpoint_address(config.site.listen)
             addresses[graph.router_name(config.site.name)] = [host]
@@ -445,9 +455,10 @@ class StackServices:
         site = config.site.name
         if not site:
             return cls(scenario, outside, started, foreground=foreground, modules=modules)
-        router = graph.router_name(site)
-        here = graph.on_site(started, site)
-        remote = tuple(n for n in scenario if graph.site_of(n) != site)
+        router = graph.router_instance(site, config.site.robot)
+        mine = site_participants(site, config.site.robot, started, config.robot_ids())
+        here = tuple(n for n in started if n in mine)
+        remote = tuple(n for n in scenario if n not in here)
         return cls(scenario, outside, (router, *here), remote, router, foreground, modules)
 
     def listener(self, launch: Launch) -> str | None:
@@ -894,18 +905,20 @@ def start_detached(
             endpoint=endpoint, without_timeout_s=without_timeout_s, credentials=credentials,
         )  # fmt: skip
         credentials = plan.credentials
-        if config.site.name == ROBOT_SITE and credentials is not None:
-            bundle = write_operator_bundle(run_dir, config, overrides, credentials, layout.scenario)
-            announce(
-                f"operator site: copy {bundle} to the operator's host (it holds private "
-                f"keys: scp keeps it 0600), then there: teleop up --site operator --join "
-                f"FILE (its router connects to {config.site.listen})"
-            )
+        if config.site.listen and credentials is not None:  # the first robot's site
+            bundles = write_site_bundles(run_dir, config, overrides, credentials, layout.scenario)
+            for bundle, site in zip(bundles, [OPERATOR_SITE, *[ROBOT_SITE] * (len(bundles) - 1)],
+                                    strict=True):  # fmt: skip
+                announce(
+                    f"{site} site: copy {bundle} to its host (it holds private keys: scp "
+                    f"keeps it 0600), then there: teleop up --site {site} --join FILE (its "
+                    f"router connects to {config.site.listen})"
+                )
         stack = Stack(run_dir, plan.programs)
         stack.start(detach=True)
         for text, _ in plan.joins:
             announce(text)
-        watcher = site_observer(config.site.name)
+        watcher = site_observer(config.site.name, config.site.robot)
         observer = credentials[watcher] if credentials is not None else None
         listener = layout.listener(Launch.UP)
         peers = _listen_endpoints(plan.mesh, [n for n in layout.started if n != listener])
@@ -919,10 +932,10 @@ def start_detached(
 
 def _refuse_up(config: Config, endpoint: str | None, without: Sequence[str]) -> StackServices:
     """The stack ``teleop up`` starts; RunError or ConfigError for one it does not."""
-    if config.run.robots > 1:
+    if config.run.robots > 1 and not config.site.name:
         raise ConfigError(
-            f"run.robots={config.run.robots}: teleop up runs one robot; several robots run "
-            "with teleop run grasp --robots N"
+            f"run.robots={config.run.robots}: teleop up runs one robot on one host; several "
+            "robots run with teleop run grasp --robots N, or a robot site each (--site)"
         )
     try:
         check_site(config)
@@ -970,12 +983,13 @@ def _await_ready_detached(
         peer_connect_endpoints=tuple(peers),
         credentials_file=str(observer) if observer is not None else "",
     )
-    topics = Topics(config.robot.robot_id)
+    robots = [Topics(robot_id) for robot_id in site_robots(config)]
+    topics = robots[0]
     session = None
     try:
         session = open_session(watcher, listen=False)
         check = _failure_check(stack)
-        _wait_alive(session, [topics], services, stack, check)
+        _wait_alive(session, robots, services, stack, check)
         wait_for_outside(session, topics, outside, timeout_s, announce, still_running=check)
     except (OutsideMissing, RunError) as exc:
         stack.stop()

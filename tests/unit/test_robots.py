@@ -40,7 +40,6 @@ def test_robot_ids_number_the_stem_of_robot_id():
     [
         (['run.scenario="path-following"'], "teleoperated"),
         (['run.operator="spacemouse"'], "spacemouse.switch_buttons is empty"),
-        (['site.name="robot"'], "one host"),
         (["site.emulated_round_trip_ms=20"], "emulated_round_trip_ms"),
         (['teleop.stabiliser="wave"'], "wave"),
         (['robot.robot_id="Arm-0"'], "lower-case"),

@@ -1,5 +1,5 @@
-"""A run across two hosts, without a bus: which site runs what, who may forward what,
-and the robot site's bundle of identities for the operator site (teleop.run.sites)."""
+"""A run across hosts, without a bus: which site runs what, who may forward what, and
+the robot site's bundles of identities for the other sites (teleop.run.sites)."""
 
 from __future__ import annotations
 
@@ -12,15 +12,24 @@ from cryptography import x509
 
 from services.router import RouterService
 from teleop.bus import graph
-from teleop.bus.access import OPERATOR_OBSERVER, Credentials, access_control, rights
+from teleop.bus.access import (
+    OBSERVER,
+    OPERATOR_OBSERVER,
+    Credentials,
+    access_control,
+    participant_robots,
+    rights,
+)
 from teleop.cli import EXIT_USAGE, main
 from teleop.core.config import OPERATOR_SITE, ROBOT_SITE, ConfigError, load_config
 from teleop.run.sites import (
+    BUNDLE_FORMAT,
     OPERATOR_BUNDLE_FILE,
     SiteError,
     check_site,
-    join_operator_site,
-    write_operator_bundle,
+    join_site,
+    robot_bundle_file,
+    write_site_bundles,
 )
 from teleop.run.stack import Launch, StackServices, run_credentials
 
@@ -64,8 +73,10 @@ def test_each_site_starts_its_own_services_and_router_and_knows_the_others():
     [
         (['site.name="moon"'], "site.name"),
         (['site.name="robot"', 'site.listen="tcp/10.0.0.1:7447"'], "tls/"),
-        (['site.name="operator"', 'site.listen="tls/10.0.0.1:7447"'], "robot site's only"),
-        (['site.name="robot"', 'site.connect="tls/10.0.0.1:7447"'], "operator site's only"),
+        (['site.name="operator"', 'site.listen="tls/10.0.0.1:7447"'], "first robot's site's"),
+        (['site.name="robot"', 'site.connect="tls/10.0.0.1:7447"'], "operator site's or"),
+        (['site.name="operator"', 'site.robot="arm1"'], "a robot site's only"),
+        (['site.name="robot"', 'site.robot="arm1"', 'site.listen="tls/10.0.0.1:1"'], "first"),
     ],
 )
 def test_a_site_setting_that_cannot_work_is_refused(overrides, message):
@@ -150,7 +161,7 @@ def test_the_operator_site_takes_its_identities_and_the_runs_settings_from_the_b
     files = run_credentials(config, robot_dir, [*scenario])
     assert files is not None
     overrides = [*GRASP, 'site.name="robot"', 'bus.endpoint="tls/127.0.0.1:9"', "run.seed=2"]
-    bundle = write_operator_bundle(robot_dir, config, overrides, files, scenario)
+    [bundle] = write_site_bundles(robot_dir, config, overrides, files, scenario)
     assert bundle == robot_dir / OPERATOR_BUNDLE_FILE
     assert stat.S_IMODE(bundle.stat().st_mode) == 0o600
     content = json.loads(bundle.read_text())
@@ -159,7 +170,7 @@ def test_the_operator_site_takes_its_identities_and_the_runs_settings_from_the_b
         "haptic", "hmd", "operator", "operator_router", OPERATOR_OBSERVER,
     }  # fmt: skip
 
-    joined = join_operator_site(bundle, operator_dir)
+    joined = join_site(OPERATOR_SITE, bundle, operator_dir)
     assert joined.connect == SITE_LISTEN
     assert joined.overrides == [*GRASP, "run.seed=2", 'robot.robot_id="arm0"']
     assert set(joined.credentials) == set(content["identities"]["participants"])
@@ -177,20 +188,20 @@ def test_the_operator_site_takes_its_identities_and_the_runs_settings_from_the_b
 def test_a_bundle_others_may_read_or_that_is_no_bundle_is_refused(tmp_path):
     path = tmp_path / "bundle.json"
     with pytest.raises(SiteError, match="copy the robot site's"):
-        join_operator_site(path, tmp_path / "run")
-    path.write_text(json.dumps({"format": "teleop-site/1"}))
+        join_site(OPERATOR_SITE, path, tmp_path / "run")
+    path.write_text(json.dumps({"format": BUNDLE_FORMAT, "site": OPERATOR_SITE}))
     path.chmod(0o644)
     with pytest.raises(SiteError, match="chmod 600"):
-        join_operator_site(path, tmp_path / "run")
+        join_site(OPERATOR_SITE, path, tmp_path / "run")
     path.chmod(0o600)
     with pytest.raises(SiteError, match="malformed"):
-        join_operator_site(path, tmp_path / "run")
+        join_site(OPERATOR_SITE, path, tmp_path / "run")
     path.write_text("{not json")
     with pytest.raises(SiteError, match="not JSON"):
-        join_operator_site(path, tmp_path / "run")
+        join_site(OPERATOR_SITE, path, tmp_path / "run")
     path.write_text(json.dumps({"format": "something else"}))
     with pytest.raises(SiteError, match="not a site bundle"):
-        join_operator_site(path, tmp_path / "run")
+        join_site(OPERATOR_SITE, path, tmp_path / "run")
 
 
 @pytest.mark.parametrize(
@@ -198,8 +209,8 @@ def test_a_bundle_others_may_read_or_that_is_no_bundle_is_refused(tmp_path):
     [
         (["--site-listen", SITE_LISTEN], "go with --site"),
         (["--site", "operator"], "needs --join"),
-        (["--site", "robot", "--connect", SITE_LISTEN], "operator site's"),
-        (["--site", "operator", "--site-listen", SITE_LISTEN], "robot site's"),
+        (["--site", "robot", "--connect", SITE_LISTEN], "goes with --join"),
+        (["--site", "operator", "--site-listen", SITE_LISTEN], "first robot's site's"),
         (["--site", "robot", "--site-listen", SITE_LISTEN], "path-following has no operator"),
         (["--site", "robot", "--set", 'run.scenario="grasp"'], "--site-listen tls/"),
     ],
@@ -213,3 +224,81 @@ def test_up_refuses_site_options_that_do_not_go_together(tmp_path, capsys, args,
 def test_a_sites_router_writes_its_summary_under_its_participants_name():
     config = load_config(None, ['site.name="robot"', 'site.listen="tls/127.0.0.1:7447"'])
     assert RouterService(config).instance == "robot_router"
+
+
+TWO_ROBOTS = ["run.robots=2"]
+
+
+def test_a_run_of_several_robots_has_a_robot_site_per_robot_the_first_one_the_hub():
+    hub = StackServices.of(robot_config(*TWO_ROBOTS), [])
+    second = StackServices.of(
+        load_config(None, [*GRASP, *TWO_ROBOTS, 'site.name="robot"', 'site.robot="arm1"',
+                           f'site.connect="{SITE_LISTEN}"']), [],
+    )  # fmt: skip
+    operator = StackServices.of(
+        load_config(None, [*GRASP, *TWO_ROBOTS, 'site.name="operator"',
+                           f'site.connect="{SITE_LISTEN}"']), [],
+    )  # fmt: skip
+    assert hub.started == (
+        "robot_router", "plant-arm0", "controller-arm0", "recorder", "eyeview-arm0",
+    )  # fmt: skip
+    assert second.started == (
+        "robot_router-arm1", "plant-arm1", "controller-arm1", "eyeview-arm1",
+    )  # fmt: skip
+    assert operator.started == ("operator_router", "haptic", "hmd", "operator")
+    # Every process of the run on exactly one site.
+    every = [n for s in (hub, second, operator) for n in s.started if not graph.is_router(n)]
+    assert sorted(every) == sorted(hub.scenario)
+    assert set(second.remote) == set(hub.scenario) - set(second.started)
+
+
+def test_another_robots_site_acts_for_its_robot_alone():
+    assert participant_robots("robot_router", ("arm0", "arm1")) == (
+        "robot_router", ("arm0", "arm1"),
+    )  # fmt: skip
+    assert participant_robots("robot_router-arm1", ("arm0", "arm1")) == ("robot_router", ("arm1",))
+    assert participant_robots(f"{OBSERVER}-arm1", ("arm0", "arm1")) == (OBSERVER, ("arm1",))
+    names = ["robot_router-arm1", f"{OBSERVER}-arm1"]
+    acl = access_control({n: Credentials.generate(n) for n in names}, ("arm0", "arm1"))
+    keys = {k for rule in acl["rules"] for k in rule["key_exprs"] if rule["flows"] == ["ingress"]}
+    assert any(k.startswith("teleop/arm1/") for k in keys)
+    # Its peers' tokens: it sees every robot's (liveliness), sends and forwards arm1's only.
+    published = {k for rule in acl["rules"] if rule["id"].endswith("-publishes")
+                 for k in rule["key_exprs"]}  # fmt: skip
+    assert published and all(k.startswith("teleop/arm1/") for k in published)
+    assert RouterService(
+        load_config(None, [*GRASP, *TWO_ROBOTS, 'site.name="robot"', 'site.robot="arm1"',
+                           f'site.connect="{SITE_LISTEN}"'])
+    ).instance == "robot_router-arm1"  # fmt: skip
+
+
+def test_the_hub_hands_each_other_robots_site_its_own_identities(tmp_path):
+    config = robot_config(*TWO_ROBOTS)
+    check_site(config)
+    hub_dir, second_dir = tmp_path / "hub", tmp_path / "second"
+    hub_dir.mkdir()
+    scenario = StackServices.of(config, []).scenario
+    files = run_credentials(config, hub_dir, [*scenario])
+    assert files is not None
+    overrides = [*GRASP, *TWO_ROBOTS, 'site.name="robot"', "run.seed=2"]
+    operator_bundle, robot_bundle = write_site_bundles(hub_dir, config, overrides, files, scenario)
+    assert operator_bundle.name == OPERATOR_BUNDLE_FILE
+    assert robot_bundle == hub_dir / robot_bundle_file("arm1")
+    content = json.loads(robot_bundle.read_text())
+    assert set(content["identities"]["participants"]) == {
+        "robot_router-arm1", f"{OBSERVER}-arm1", "plant-arm1", "controller-arm1", "eyeview-arm1",
+    }  # fmt: skip
+    with pytest.raises(SiteError, match="not of the operator site"):
+        join_site(OPERATOR_SITE, robot_bundle, second_dir)
+    joined = join_site(ROBOT_SITE, robot_bundle, second_dir)
+    assert joined.connect == SITE_LISTEN
+    assert joined.overrides == [*GRASP, *TWO_ROBOTS, "run.seed=2", 'robot.robot_id="arm0"',
+                                'site.robot="arm1"']  # fmt: skip
+    second = load_config(None, [*joined.overrides, 'site.name="robot"',
+                                f'site.connect="{joined.connect}"'])  # fmt: skip
+    check_site(second)
+    assert second.robot_ids() == ("arm0", "arm1")
+    elsewhere = [*joined.overrides[:-1], 'site.robot="arm2"', 'site.name="robot"',
+                 f'site.connect="{SITE_LISTEN}"']  # fmt: skip
+    with pytest.raises(SiteError, match="site.robot=arm2"):
+        check_site(load_config(None, elsewhere))
