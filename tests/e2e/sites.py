@@ -1,7 +1,9 @@
 """Two sites on two test hosts (tests/e2e/hosts.py): the robot site (``teleop up --site
 robot``) in the robot host's network namespace, the operator site (``--join`` the
 handed-over file) in the operator host's, each under its own supervisord, their routers
-linked over mutual TLS. Optionally the operator site on a clock of its own (a time
+linked over mutual TLS; or, for a run of two robots, three: the second robot's site
+(``--site robot --join`` its own file) in a third host's namespace, its router linked to
+the first robot's. Optionally the operator site on a clock of its own (a time
 namespace), and the routers' link through the network emulator (``teleop.bench.netem``,
 run in the robot host's namespace) with a delay or cuts. Used by the e2e tests and the
 benchmarks of a run across hosts.
@@ -24,7 +26,7 @@ from typing import Any
 from teleop.bench.sites import wait_plant_end
 from teleop.bus.access import write_run_credentials
 from teleop.bus.service import read_summary
-from teleop.run.sites import OPERATOR_BUNDLE_FILE
+from teleop.run.sites import OPERATOR_BUNDLE_FILE, robot_bundle_file
 from teleop.run.supervise import Stack
 from tests.e2e.hosts import Host
 from tests.e2e.users import HANG_S
@@ -55,8 +57,12 @@ class TwoSites:
         mode: str = "lockstep",
         operator_clock_ahead_s: int = 0,
         link: Sequence[str] | None = None,
+        second_robot: Host | None = None,
     ) -> None:
         self.robot, self.operator, self.tmp_path = robot, operator, tmp_path
+        # A run of two robots: the second robot's site on this host (its own run dir).
+        self.second_robot = second_robot
+        self.second_dir = tmp_path / "second_robot"
         self.mode = mode
         # The operator site in a time namespace of its own: its monotonic clock this far
         # ahead of the robot site's (two hosts share no clock).
@@ -80,7 +86,7 @@ class TwoSites:
         return self
 
     def __exit__(self, *exc_info: object) -> None:
-        for run_dir in (self.operator_dir, self.robot_dir):
+        for run_dir in (self.operator_dir, self.second_dir, self.robot_dir):
             if (run_dir / "supervisord.conf").exists():
                 subprocess.run([*self.teleop, "down", "--run-dir", str(run_dir)], timeout=120)
         self._stop_proxy()
@@ -139,6 +145,11 @@ class TwoSites:
                                    self.site_endpoint, "--run-dir", str(self.robot_dir),
                                    *settings])  # fmt: skip
         self.robot_up = up.stdout + up.stderr
+        if self.second_robot is not None:
+            bundle = self.tmp_path / "handed-over-arm1.json"
+            shutil.copy2(self.robot_dir / robot_bundle_file("arm1"), bundle)
+            self._up(self.second_robot, ["--site", "robot", "--join", str(bundle),
+                                         "--run-dir", str(self.second_dir)])  # fmt: skip
         self._join()
         if not strangers:
             return
@@ -190,6 +201,18 @@ class TwoSites:
                                       "--run-dir", str(self.operator_dir), *via],
                       self.operator_clock)  # fmt: skip
         self.operator_up = up.stdout + up.stderr
+
+    def finish_robots(self, robot_ids: Sequence[str], timeout_s: float) -> None:
+        """A run of a robot site per robot: wait for each robot's plant (on its own
+        site), stop every site, read the plants' and the hub's recorder's summaries."""
+        dirs = [self.robot_dir, self.second_dir]
+        for robot_id, run_dir in zip(robot_ids, dirs, strict=True):
+            name = f"plant-{robot_id}"
+            self.summaries[name] = wait_plant_end(run_dir, timeout_s, name)
+        self.__exit__()
+        self.summaries["recorder"] = json.loads(
+            (self.robot_dir / "recorder.summary.json").read_text()
+        )
 
     def finish(self) -> None:
         """Wait for the plant to finish, stop both sites, read every service's summary."""

@@ -6,11 +6,15 @@ One lockstep run (deterministic): both tasks succeed; the handle drives one robo
 time (each robot's handle is recorded centred while the other is driven); each robot's
 section of the summary is judged again the same way; one recording holds both robots,
 side by side in its 3D view, and ``--report`` writes a report per robot with its own
-verdict. That a robot's processes are kept to its own keys is
+verdict. Beside it, where this machine can make test hosts, the same run across three
+(a robot site per robot, the operator site on a clock of its own): each robot ends bit
+for bit as on one host. That a robot's processes are kept to its own keys is
 tests/integration/test_access.py's.
 """
 
 from __future__ import annotations
+
+import contextlib
 
 import numpy as np
 import pytest
@@ -21,18 +25,47 @@ from teleop.core.rundir import RECORDING_FILE, REPORT_SUMMARY_FILE, report_dir
 from teleop.viz import entities as ent
 from teleop.viz.blueprint import view_specs
 from teleop.viz.rrd import Recording
-from tests.e2e.test_grasp import assert_physical, grasp
+from tests.e2e.hosts import HostsUnavailable, three_hosts
+from tests.e2e.sites import TwoSites
+from tests.e2e.test_grasp import assert_physical, finish_grasps, start_grasps
+from tests.e2e.users import HANG_S
 
 ROBOTS = ("arm0", "arm1")
+# The operator site's monotonic clock this far ahead of the robot sites' (s).
+OPERATOR_CLOCK_AHEAD_S = 7200
+SITES_SETTINGS = ("--set", 'run.scenario="grasp"', "--set", "run.seed=0",
+                  "--set", "run.robots=2", "--set", "run.duration_s=120")  # fmt: skip
 
 
 @pytest.fixture(scope="module")
 def two_robots(tmp_path_factory) -> dict:
+    """The lockstep run of two robots on one host and, at once, across three test hosts
+    (under "sites": the plants' summaries and the hub's recorder's, or why there are
+    none)."""
     tmp_path = tmp_path_factory.mktemp("robots")
-    summary = grasp(
-        tmp_path, "two", "--mode", "lockstep", "--seed", "0", "--robots", "2", "--report"
-    )
-    return {**summary, "report_dir": report_dir(tmp_path / "two" / RECORDING_FILE)}
+    with contextlib.ExitStack() as stack:
+        try:
+            robot, operator, second = stack.enter_context(three_hosts())
+        except HostsUnavailable as exc:
+            sites: TwoSites | str | BaseException = f"no test hosts: {exc}"
+        else:
+            sites = TwoSites(robot, operator, tmp_path / "sites", second_robot=second,
+                             operator_clock_ahead_s=OPERATOR_CLOCK_AHEAD_S)  # fmt: skip
+        args = ("--mode", "lockstep", "--seed", "0", "--robots", "2", "--report")
+        started = start_grasps(tmp_path, {"two": args})
+        if isinstance(sites, TwoSites):
+            stack.enter_context(sites)
+            try:
+                sites.start(SITES_SETTINGS, strangers=False)
+            except Exception as exc:  # the sites test reports it; the others go on
+                sites = exc
+        summary = finish_grasps(started)["two"]
+        if isinstance(sites, TwoSites):
+            try:
+                sites.finish_robots(ROBOTS, HANG_S)
+            except Exception as exc:
+                sites = exc
+    return {**summary, "report_dir": report_dir(tmp_path / "two" / RECORDING_FILE), "sites": sites}
 
 
 def test_both_robots_tasks_succeed_one_after_the_other(two_robots):
@@ -96,3 +129,25 @@ def test_the_report_has_a_part_per_robot_with_its_own_verdict(two_robots):
         assert "- task: success (grasp" in text
         figures = list((two_robots["report_dir"] / robot_id).glob("*.png"))
         assert len(figures) >= 3, figures
+
+
+def test_across_three_hosts_each_robot_ends_as_on_one_host(two_robots):
+    """A robot site per robot (the second joined the first's with the bundle it wrote for
+    it, its router linked to the first's), the operator site on its own host and clock:
+    both tasks done, each robot's final state bit for bit the one-host run's, the hub's
+    one recording holding both robots."""
+    sites = two_robots["sites"]
+    if isinstance(sites, str):
+        pytest.skip(sites)
+    if isinstance(sites, BaseException):
+        raise sites
+    for robot_id in ROBOTS:
+        plant = sites.summaries[f"plant-{robot_id}"]
+        assert plant["finished"] and plant["object_in_box"], robot_id
+        expected = two_robots["services"][f"plant-{robot_id}"]["final_state_sha256"]
+        assert plant["final_state_sha256"] == expected, robot_id
+    recorded = sites.summaries["recorder"]["robots"]
+    assert set(recorded) == set(ROBOTS)
+    assert all(recorded[r]["samples_logged"]["plant_state"] > 0 for r in ROBOTS)
+    assert Recording(str(sites.robot_dir / RECORDING_FILE)).robots == list(ROBOTS)
+    assert "robot-site-arm1.json" in sites.robot_up  # the hub said where it is
