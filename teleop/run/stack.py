@@ -843,7 +843,11 @@ def _wait_alive(
             if time.monotonic() < deadline:
                 continue
             robot_id = waiting[0].robot_id
-            name = graph.instance_name(exc.missing[0], robot_id, len(robots))
+            name = next(
+                (n for n in services
+                 if graph.role_of(n) == exc.missing[0] and graph.robot_of(n) in (None, robot_id)),
+                exc.missing[0],
+            )  # fmt: skip
             with contextlib.suppress(StackError, OSError):
                 stack.signal_program(name, signal.SIGKILL)
             path = stack.log_path(name)
