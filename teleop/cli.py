@@ -929,11 +929,12 @@ def _status(args: argparse.Namespace) -> int:
 def _site_link_lines(run_dir: Path, status: dict[str, str]) -> list[str]:
     """One site of a run across hosts: whether its router sees the other site, from the
     router's running summary (written every 2 s)."""
-    from teleop.bus.graph import ROUTERS
+    from teleop.bus.graph import is_router
     from teleop.core.rundir import incarnation_paths
 
     lines = []
-    for router in (name for name in ROUTERS if status.get(name) == "RUNNING"):
+    running = [name for name, state in status.items() if state == "RUNNING"]
+    for router in filter(is_router, running):
         paths = incarnation_paths(run_dir, router)
         try:
             summary = json.loads(paths[-1].read_text()) if paths else None

@@ -47,7 +47,7 @@ from teleop.bus.session import (
 )
 from teleop.bus.topics import Topics
 from teleop.core.clock import NS_PER_S
-from teleop.core.config import Config, ConfigError, ModelError, load_config
+from teleop.core.config import ROBOT_SITE, Config, ConfigError, ModelError, load_config
 from teleop.core.rundir import incarnation_path, incarnation_paths, summary_path
 
 logger = logging.getLogger(__name__)
@@ -107,6 +107,12 @@ class Service:
         if self.name not in graph.PER_ROBOT:
             robot_ids = config.robot_ids()
         self.robot_topics = tuple(Topics(rid) for rid in robot_ids)
+        # The robots under whose keys this service's peers (the processes of its own
+        # stack or site) declare their tokens: on a robot site of a run of several robots,
+        # that site's robot only (the other robots' processes run on other sites).
+        self.peer_topics = self.robot_topics
+        if config.site.name == ROBOT_SITE and len(self.robot_topics) > 1:
+            self.peer_topics = (Topics(config.site.robot or config.robot_ids()[0]),)
         # A lockstep run across sites needs every record of the streams nothing sends
         # again, through a router's restart: those streams with recovery (graph.Stream).
         self.recovery = bool(config.site.name) and config.run.mode == "lockstep"
@@ -287,7 +293,9 @@ class Service:
         """
         assert self.session is not None
         started_ns = time.monotonic_ns()
-        missing = self._wait_tokens(stop, self.options.peers, ready=False, limit_s=PEER_LINK_WAIT_S)
+        missing = self._wait_tokens(
+            stop, self.options.peers, self.peer_topics, ready=False, limit_s=PEER_LINK_WAIT_S
+        )
         if missing and stop.is_set():
             return False
         if missing:
@@ -298,7 +306,7 @@ class Service:
                 ", ".join(missing),
                 PEER_LINK_WAIT_S,
             )
-            for topics in self.robot_topics:
+            for topics in self.peer_topics:
                 self.keep(self._watch_late_links(started_ns, topics))
         self.cpu_s_ready = time.process_time()
         for topics in self.robot_topics:
@@ -327,25 +335,28 @@ class Service:
     def wait_for_peers(self, stop: threading.Event) -> bool:
         """Wait (event driven) until ``options.await_services`` are ready; False if
         stopped first."""
-        return not self._wait_tokens(stop, self.options.await_services, ready=True)
+        return not self._wait_tokens(
+            stop, self.options.await_services, self.robot_topics, ready=True
+        )
 
     def _wait_tokens(
         self,
         stop: threading.Event,
         services: tuple[str, ...],
+        robots: tuple[Topics, ...],
         *,
         ready: bool,
         limit_s: float | None = None,
     ) -> tuple[str, ...]:
         """Wait until ``services``' tokens are all present under the keys of every robot
-        this service works, until stopped, or for ``limit_s`` (None: no limit); the
+        of ``robots``, until stopped, or for ``limit_s`` (None: no limit); the
         services still missing then (empty: none; under several robots, a service is
         named once per robot it is missing for, as ``service@robot``)."""
         assert self.session is not None
         missing: tuple[str, ...] = ()
         waited_s = 0.0
         warned = False
-        for topics in self.robot_topics:
+        for topics in robots:
             robot_missing = tuple(services)
             while robot_missing and not stop.is_set() and (limit_s is None or waited_s < limit_s):
                 try:

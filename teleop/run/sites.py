@@ -86,6 +86,18 @@ def site_robots(config: Config) -> tuple[str, ...]:
     return (config.site.robot or config.robot_ids()[0],)
 
 
+def site_links(robot_ids: Sequence[str]) -> list[str]:
+    """The routers and the observers of every site of a run of ``robot_ids`` across
+    hosts: the operator site's, the first robot's, and each other robot's site's."""
+    sites = [(OPERATOR_SITE, ""), (ROBOT_SITE, "")]
+    sites += [(ROBOT_SITE, robot_id) for robot_id in robot_ids[1:]]
+    return [
+        name
+        for site, robot_id in sites
+        for name in (graph.router_instance(site, robot_id), site_observer(site, robot_id))
+    ]
+
+
 def site_participants(
     site: str, robot_id: str, scenario: Sequence[str], robot_ids: Sequence[str]
 ) -> list[str]:
@@ -114,8 +126,9 @@ def write_site_bundles(
     overrides: Sequence[str],
     credentials: Mapping[str, Path],
     scenario: Sequence[str],
-) -> list[Path]:
-    """The first robot's site writes the other sites' bundles (mode 0600) in ``run_dir``:
+) -> list[tuple[str, Path]]:
+    """The first robot's site writes the other sites' bundles (mode 0600) in ``run_dir``,
+    each site's name and its file:
     the operator site's, and in a run of several robots each other robot's site's; each
     with the identities of its :func:`site_participants`, the hub's ``site.listen`` to
     connect to, and the run's ``overrides`` (those a site chooses for itself left out)."""
@@ -136,7 +149,7 @@ def write_site_bundles(
         }
         path = Path(run_dir).absolute() / file
         write_private(path, json.dumps(bundle, indent=1))
-        paths.append(path)
+        paths.append((site, path))
     return paths
 
 

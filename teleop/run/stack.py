@@ -48,7 +48,6 @@ from teleop.bus import graph
 from teleop.bus.access import (
     LAUNCHER,
     OBSERVER,
-    OPERATOR_OBSERVER,
     site_observer,
     write_run_credentials,
 )
@@ -62,8 +61,6 @@ from teleop.bus.session import (
 from teleop.bus.topics import Topics
 from teleop.core.config import (
     INPUT_DEVICE_OPERATORS,
-    OPERATOR_SITE,
-    ROBOT_SITE,
     SCRIPTED,
     TERMINAL_OPERATORS,
     VIEWING_OPERATORS,
@@ -100,6 +97,7 @@ from teleop.run.run_watch import RunWatch
 from teleop.run.sites import (
     SiteError,
     check_site,
+    site_links,
     site_participants,
     site_robots,
     write_site_bundles,
@@ -308,10 +306,7 @@ def run_credentials(
     participants = [*participants, OBSERVER]
     addresses: dict[str, list[str]] = {}
     if config.site.name:
-        participants += [*graph.ROUTERS, OPERATOR_OBSERVER]
-        for robot_id in config.robot_ids()[1:]:  # a site per robot: its router, observer
-            participants += [graph.router_instance(ROBOT_SITE, robot_id),
-                             site_observer(ROBOT_SITE, robot_id)]  # fmt: skip
+        participants += [n for n in site_links(config.robot_ids()) if n not in participants]
         if config.site.listen:
             host, _ = endpoint_address(config.site.listen)
             addresses[graph.router_name(config.site.name)] = [host]
@@ -911,8 +906,7 @@ def start_detached(
         credentials = plan.credentials
         if config.site.listen and credentials is not None:  # the first robot's site
             bundles = write_site_bundles(run_dir, config, overrides, credentials, layout.scenario)
-            for bundle, site in zip(bundles, [OPERATOR_SITE, *[ROBOT_SITE] * (len(bundles) - 1)],
-                                    strict=True):  # fmt: skip
+            for site, bundle in bundles:
                 announce(
                     f"{site} site: copy {bundle} to its host (it holds private keys: scp "
                     f"keeps it 0600), then there: teleop up --site {site} --join FILE (its "

@@ -80,6 +80,7 @@ class TwoSites:
         self.robot_up = self.operator_up = self.robot_status = ""
         self.killed_router_pid = 0
         self.strangers: dict[str, dict] = {}
+        self.second_robot_status = ""
         self.summaries: dict[str, dict] = {}
 
     def __enter__(self) -> TwoSites:
@@ -209,6 +210,11 @@ class TwoSites:
         for robot_id, run_dir in zip(robot_ids, dirs, strict=True):
             name = f"plant-{robot_id}"
             self.summaries[name] = wait_plant_end(run_dir, timeout_s, name)
+        status = subprocess.run(
+            [*self.teleop, "status", "--run-dir", str(self.second_dir)],
+            capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL,
+        )  # fmt: skip
+        self.second_robot_status = status.stdout
         self.__exit__()
         self.summaries["recorder"] = json.loads(
             (self.robot_dir / "recorder.summary.json").read_text()

@@ -149,8 +149,13 @@ def test_across_three_hosts_each_robot_ends_as_on_one_host(two_robots):
         assert plant["finished"] and plant["object_in_box"], robot_id
         expected = two_robots["services"][f"plant-{robot_id}"]["final_state_sha256"]
         assert plant["final_state_sha256"] == expected, robot_id
+    # Each site's processes linked to their own site's at once (the hub's recorder did
+    # not wait for arm1's processes, on another site).
+    assert all(sites.summaries[n]["unlinked_peers"] == [] for n in sites.summaries)
     recorded = sites.summaries["recorder"]["robots"]
     assert set(recorded) == set(ROBOTS)
     assert all(recorded[r]["samples_logged"]["plant_state"] > 0 for r in ROBOTS)
     assert Recording(str(sites.robot_dir / RECORDING_FILE)).robots == list(ROBOTS)
     assert "robot-site-arm1.json" in sites.robot_up  # the hub said where it is
+    # The second robot's site: its own router, linked to the operator's through the hub.
+    assert "robot_router-arm1: the other site is linked" in sites.second_robot_status

@@ -161,7 +161,7 @@ def test_the_operator_site_takes_its_identities_and_the_runs_settings_from_the_b
     files = run_credentials(config, robot_dir, [*scenario])
     assert files is not None
     overrides = [*GRASP, 'site.name="robot"', 'bus.endpoint="tls/127.0.0.1:9"', "run.seed=2"]
-    [bundle] = write_site_bundles(robot_dir, config, overrides, files, scenario)
+    [(_, bundle)] = write_site_bundles(robot_dir, config, overrides, files, scenario)
     assert bundle == robot_dir / OPERATOR_BUNDLE_FILE
     assert stat.S_IMODE(bundle.stat().st_mode) == 0o600
     content = json.loads(bundle.read_text())
@@ -266,10 +266,25 @@ def test_another_robots_site_acts_for_its_robot_alone():
     published = {k for rule in acl["rules"] if rule["id"].endswith("-publishes")
                  for k in rule["key_exprs"]}  # fmt: skip
     assert published and all(k.startswith("teleop/arm1/") for k in published)
-    assert RouterService(
+    second = RouterService(
         load_config(None, [*GRASP, *TWO_ROBOTS, 'site.name="robot"', 'site.robot="arm1"',
+                           'robot.robot_id="arm1"', f'site.connect="{SITE_LISTEN}"'])
+    )  # fmt: skip
+    assert second.instance == "robot_router-arm1"
+    assert [t.robot_id for t in second.robot_topics] == ["arm1"]
+
+
+def test_a_robot_sites_services_wait_for_their_peers_under_their_own_robots_keys():
+    """The hub's router (and recorder) work every robot's keys, but their peers on the
+    hub are arm0's processes: arm1's run on another site and may come much later."""
+    hub = RouterService(robot_config(*TWO_ROBOTS))
+    assert [t.robot_id for t in hub.robot_topics] == ["arm0", "arm1"]
+    assert [t.robot_id for t in hub.peer_topics] == ["arm0"]
+    operator = RouterService(
+        load_config(None, [*GRASP, *TWO_ROBOTS, 'site.name="operator"',
                            f'site.connect="{SITE_LISTEN}"'])
-    ).instance == "robot_router-arm1"  # fmt: skip
+    )  # fmt: skip
+    assert [t.robot_id for t in operator.peer_topics] == ["arm0", "arm1"]
 
 
 def test_the_hub_hands_each_other_robots_site_its_own_identities(tmp_path):
@@ -281,7 +296,10 @@ def test_the_hub_hands_each_other_robots_site_its_own_identities(tmp_path):
     files = run_credentials(config, hub_dir, [*scenario])
     assert files is not None
     overrides = [*GRASP, *TWO_ROBOTS, 'site.name="robot"', "run.seed=2"]
-    operator_bundle, robot_bundle = write_site_bundles(hub_dir, config, overrides, files, scenario)
+    (operator_site, operator_bundle), (robot_site, robot_bundle) = write_site_bundles(
+        hub_dir, config, overrides, files, scenario
+    )
+    assert (operator_site, robot_site) == (OPERATOR_SITE, ROBOT_SITE)
     assert operator_bundle.name == OPERATOR_BUNDLE_FILE
     assert robot_bundle == hub_dir / robot_bundle_file("arm1")
     content = json.loads(robot_bundle.read_text())
