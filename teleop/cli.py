@@ -866,7 +866,7 @@ def _site_overrides(args: argparse.Namespace) -> tuple[list[str], dict[str, Path
 
 
 def _up(args: argparse.Namespace) -> int:
-    from teleop.run.sites import SiteError, check_site
+    from teleop.run.sites import SiteError, check_site, robot_bundle_file
     from teleop.run.stack import RunError, start_detached
 
     try:
@@ -888,6 +888,11 @@ def _up(args: argparse.Namespace) -> int:
     check_operator(config, args.without)
     try:
         check_site(config)
+        if config.site.robot and credentials is None:  # its identities are the hub's
+            raise SiteError(
+                f"the site of robot {config.site.robot} joins the first robot's: --join "
+                f"{robot_bundle_file(config.site.robot)} (the first robot's site wrote it)"
+            )
     except SiteError as exc:
         print(f"teleop: {exc}", file=sys.stderr)
         return EXIT_USAGE

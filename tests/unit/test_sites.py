@@ -213,6 +213,21 @@ def test_a_bundle_others_may_read_or_that_is_no_bundle_is_refused(tmp_path):
         (["--site", "operator", "--site-listen", SITE_LISTEN], "first robot's site's"),
         (["--site", "robot", "--site-listen", SITE_LISTEN], "path-following has no operator"),
         (["--site", "robot", "--set", 'run.scenario="grasp"'], "--site-listen tls/"),
+        (
+            [
+                "--site",
+                "robot",
+                "--set",
+                'run.scenario="grasp"',
+                "--set",
+                "run.robots=2",
+                "--set",
+                'site.robot="arm1"',
+                "--set",
+                'site.connect="tls/10.0.0.1:1"',
+            ],
+            "--join robot-site-arm1.json",
+        ),
     ],
 )
 def test_up_refuses_site_options_that_do_not_go_together(tmp_path, capsys, args, message):
