@@ -33,3 +33,8 @@ class Seen:
         """Whether ``count`` records came within TIMEOUT_S."""
         with self.cond:
             return self.cond.wait_for(lambda: len(self.seqs) >= count, TIMEOUT_S)
+
+    def wait_seq(self, seq: int) -> bool:
+        """Whether the record ``seq`` came within TIMEOUT_S."""
+        with self.cond:
+            return self.cond.wait_for(lambda: seq in self.seqs, TIMEOUT_S)
