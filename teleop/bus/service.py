@@ -47,7 +47,7 @@ from teleop.bus.session import (
 )
 from teleop.bus.topics import Topics
 from teleop.core.clock import NS_PER_S
-from teleop.core.config import ROBOT_SITE, Config, ConfigError, ModelError, load_config
+from teleop.core.config import Config, ConfigError, ModelError, load_config
 from teleop.core.rundir import incarnation_path, incarnation_paths, summary_path
 
 logger = logging.getLogger(__name__)
@@ -110,9 +110,8 @@ class Service:
         # The robots under whose keys this service's peers (the processes of its own
         # stack or site) declare their tokens: on a robot site of a run of several robots,
         # that site's robot only (the other robots' processes run on other sites).
-        self.peer_topics = self.robot_topics
-        if config.site.name == ROBOT_SITE and len(self.robot_topics) > 1:
-            self.peer_topics = (Topics(config.site.robot or config.robot_ids()[0]),)
+        here = config.site_robot_ids()
+        self.peer_topics = tuple(t for t in self.robot_topics if t.robot_id in here)
         # A lockstep run across sites needs every record of the streams nothing sends
         # again, through a router's restart: those streams with recovery (graph.Stream).
         self.recovery = bool(config.site.name) and config.run.mode == "lockstep"

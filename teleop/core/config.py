@@ -1367,6 +1367,14 @@ class Config:
         first = int(self.robot.robot_id[len(stem) :] or 0)
         return tuple(f"{stem}{first + i}" for i in range(self.run.robots))
 
+    def site_robot_ids(self) -> tuple[str, ...]:
+        """The robots whose processes this host runs: every robot of a one-host run and
+        of the operator site (its station drives them all), one robot's for a robot site
+        (the first robot's, or ``site.robot``'s)."""
+        if self.site.name != ROBOT_SITE:
+            return self.robot_ids()
+        return (self.site.robot or self.robot_ids()[0],)
+
     def link_delay_ticks(self) -> tuple[int, int]:
         """The emulated link's delay (plant ticks) from the operator's site to the
         robot's and back (``site.emulated_round_trip_ms``; (0, 0): none)."""

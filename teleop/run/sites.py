@@ -77,15 +77,6 @@ def check_site(config: Config) -> None:
         )
 
 
-def site_robots(config: Config) -> tuple[str, ...]:
-    """The robots whose services one site of ``config``'s run runs: every robot for the
-    operator site (its station drives them all) and a one-host run, one robot for a robot
-    site (the first robot's, or ``site.robot``)."""
-    if config.site.name != ROBOT_SITE:
-        return config.robot_ids()
-    return (config.site.robot or config.robot_ids()[0],)
-
-
 def site_links(robot_ids: Sequence[str]) -> list[str]:
     """The routers and the observers of every site of a run of ``robot_ids`` across
     hosts: the operator site's, the first robot's, and each other robot's site's."""

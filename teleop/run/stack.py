@@ -99,7 +99,6 @@ from teleop.run.sites import (
     check_site,
     site_links,
     site_participants,
-    site_robots,
     write_site_bundles,
 )
 from teleop.run.supervise import Program, Stack, StackError
@@ -981,7 +980,7 @@ def _await_ready_detached(
         peer_connect_endpoints=tuple(peers),
         credentials_file=str(observer) if observer is not None else "",
     )
-    robots = [Topics(robot_id) for robot_id in site_robots(config)]
+    robots = [Topics(robot_id) for robot_id in config.site_robot_ids()]
     topics = robots[0]
     session = None
     try:
