@@ -191,6 +191,7 @@ def access_control(
     tokens = [
         f"{p}/{kind}/*" for p in prefixes for kind in (ALIVE_TOKEN, READY_TOKEN, PROTOCOL_TOKEN)
     ]
+    recovered = {s.key for s in graph.STREAMS if s.recovered}
     rules, subjects, policies = [], [], []
     for name, cred in credentials.items():
         role, robots = participant_robots(name, robot_ids)
@@ -218,7 +219,6 @@ def access_control(
                 _rule(f"{name}-subscribes", ["declare_subscriber"], "ingress", consumed),
                 _rule(f"{name}-receives", ["put"], "egress", consumed),
             ]
-        recovered = {s.key for s in graph.STREAMS if s.recovered}
         mine += _recovery_rules(
             name,
             [k for k in produced if k.split("/", 2)[2] in recovered],

@@ -126,9 +126,9 @@ class ControllerCore:
         self._realtime = config.run.mode == "realtime"
         # Lockstep: per stream, copies of the records that answered the newest states (by
         # state seq), each to be sent again, byte for byte, when the plant sends its
-        # state again: every state in flight (plant.lockstep_delay_steps + 1) may be the
-        # one whose answer was lost.
-        kept = config.plant.lockstep_delay_steps + 2
+        # state again: every state in flight may be the one whose answer was lost, and
+        # the feedback of the state before the oldest goes out with it.
+        kept = config.plant.lockstep_states_in_flight + 1
         self._answers: dict[str, TickedInputs[np.ndarray]] = {
             stream: TickedInputs(kept) for stream in ("force_feedback", "joint_command")
         }

@@ -210,6 +210,12 @@ class PlantConfig:
     # service's restart time and a link cut the run rides out (docs/sites.md).
     brake_limit_s: float = 15.0
 
+    @property
+    def lockstep_states_in_flight(self) -> int:
+        """Lockstep: the states the plant has sent and not yet had answered, at most (the
+        ones it sends again when no answer comes)."""
+        return self.lockstep_delay_steps + 1
+
     def __post_init__(self) -> None:
         _require(0 < self.timestep_s <= 0.01, "plant.timestep_s in (0, 0.01]")
         _require(self.brake_limit_s > self.watchdog_s, "plant.brake_limit_s > plant.watchdog_s")

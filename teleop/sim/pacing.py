@@ -71,7 +71,7 @@ def make_pacer(
     newest command is the one to apply.
     """
     if config.run.mode == "lockstep":
-        sent = SentTicks(outputs, config.plant.lockstep_delay_steps + 1)
+        sent = SentTicks(outputs, config.plant.lockstep_states_in_flight)
         return LockstepPacer(PlantStepCore(config, sent, clock, store), sent)
     core = PlantStepCore(config, outputs, clock, store)
     if config.plant.apply_on_arrival and config.run.teleoperated:

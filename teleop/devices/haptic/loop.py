@@ -237,9 +237,8 @@ class HapticLoop:
         self._idle = [HAPTIC_STATE.new() for _ in range(self.robots)]
         self._buttons = [0] * self.robots  # each robot's buttons when it was last driven
         # Lockstep: copies of the samples each robot was sent, by tick, for its plant's
-        # states in flight (plant.lockstep_delay_steps + 1): a re-sent state gets the
-        # sample of its tick again.
-        kept = config.plant.lockstep_delay_steps + 2
+        # states in flight and one more: a re-sent state gets the sample of its tick again.
+        kept = config.plant.lockstep_states_in_flight + 1
         self._robot_sent: list[TickedInputs[np.ndarray]] = [
             TickedInputs(kept) for _ in range(self.robots)
         ]
