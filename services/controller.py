@@ -19,7 +19,7 @@ import numpy as np
 
 from teleop.bus.messages import DecodeError, Kind, Reason
 from teleop.bus.service import Service, service_main
-from teleop.bus.session import BatchPublisher, Publisher
+from teleop.bus.session import BatchPublisher
 from teleop.control.cycle import BilateralCycle, ControllerCore, PathCycle
 from teleop.control.kinematics import build_arm_model
 from teleop.core.clock import MonotonicClock
@@ -39,8 +39,7 @@ class ControllerService(Service):
         teleoperated = self.config.run.teleoperated
         outputs = ["joint_command", "controller_events"]
         outputs += ["force_feedback", "teleop_status"] if teleoperated else ["control_status"]
-        self.publishers = {name: self.keep(Publisher.for_stream(session, topics, name))
-                           for name in outputs}  # fmt: skip
+        self.publishers = {name: self.publish_stream(name) for name in outputs}
         self.feedback_batch: BatchPublisher | None = None
         core_class = BilateralCycle if teleoperated else PathCycle
         self.core: ControllerCore = core_class(self.config, self.arm, self, MonotonicClock())

@@ -44,7 +44,7 @@ from teleop.bus.messages import (
     Reason,
 )
 from teleop.bus.service import Service, lower_priority_to, service_main
-from teleop.bus.session import Latest, Publisher, open_session, subscribe
+from teleop.bus.session import Latest, open_session, subscribe
 from teleop.core.clock import NS_PER_S, LoopTimer, MonotonicClock
 from teleop.core.config import ConfigError
 from teleop.core.ring import Ring
@@ -129,9 +129,7 @@ class EyeViewService(Service):
             if self.pool.reason:
                 logger.warning("shared memory: %s", self.pool.reason)
         # A viewer stream (teleop.bus.graph): dropped rather than blocking a slow receiver.
-        self.frame_pub = self.keep(
-            Publisher.for_stream(self.session, self.topics, "eye_view", shm=provider)
-        )
+        self.frame_pub = self.publish_stream("eye_view", shm=provider)
         self._frame = EYE_VIEW.new()
         self._frame["width_px"] = eye.width_px
         self._frame["height_px"] = eye.height_px

@@ -25,7 +25,7 @@ import numpy as np
 
 from teleop.bus.messages import Event
 from teleop.bus.service import Service, service_main
-from teleop.bus.session import BatchPublisher, Publisher, RecordCallback, subscribe_events
+from teleop.bus.session import BatchPublisher, Publisher, RecordCallback
 from teleop.core.clock import MonotonicClock
 from teleop.core.rundir import HAPTIC_SAMPLES_FILE, HAPTIC_TRACE_FILE, shed_path
 from teleop.devices.haptic.device import EmulatedDevice, max_stable_stiffness_n_per_m
@@ -51,7 +51,7 @@ class HapticService(Service):
         self.state_batches: list[BatchPublisher] = []
         session = self.session
         for robot, topics in enumerate(self.robot_topics):
-            self.state_pubs.append(self.keep(Publisher.for_stream(session, topics, "haptic_state")))
+            self.state_pubs.append(self.publish_stream("haptic_state", topics))
             self.state_batches.append(
                 self.keep(  # the recorder's copy, several samples per message
                     BatchPublisher.for_stream(
@@ -64,15 +64,7 @@ class HapticService(Service):
             if self.lockstep:  # realtime: the feedback's tick is the clock (see HapticLoop)
                 self.subscribe_stream("plant_state", self._on_state(robot), topics)
             if len(self.robot_topics) > 1:  # a robot whose plant is done leaves the clock
-                events = subscribe_events(
-                    session,
-                    topics,
-                    "plant_events",
-                    self._on_event(robot),
-                    self.drops,
-                    recovery=self.recovery,
-                )
-                self.keep(events)
+                self.subscribe_events("plant_events", self._on_event(robot), topics)
         logger.info(
             "%s mode; stiffness a feedback law may render: K_max = 2 b / T = %.0f N/m",
             cfg.run.mode,

@@ -23,7 +23,7 @@ import numpy as np
 
 from teleop.bus.messages import HEAD_POSE
 from teleop.bus.service import Service, service_main
-from teleop.bus.session import Publisher, RecordCallback
+from teleop.bus.session import RecordCallback
 from teleop.core.clock import NS_PER_S
 from teleop.devices.hmd import HmdLoop, fill_head_pose
 
@@ -38,12 +38,7 @@ class HmdService(Service):
         self.timestep_ns = round(self.config.tick_s * NS_PER_S)
         # One head, every robot's keys (a run of several robots): each robot's controller
         # and operator take the head pose from their own robot's stream.
-        self.pose_pubs = [
-            self.keep(
-                Publisher.for_stream(self.session, topics, "head_pose", recovery=self.recovery)
-            )
-            for topics in self.robot_topics
-        ]
+        self.pose_pubs = [self.publish_stream("head_pose", topics) for topics in self.robot_topics]
         self._record = HEAD_POSE.new()
         self._lock = threading.Lock()
         self.published = 0

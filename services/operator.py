@@ -30,7 +30,7 @@ from teleop.bus.messages import (
     Flag,
 )
 from teleop.bus.service import STOP_POLL_S, Service, service_main
-from teleop.bus.session import RecordCallback, subscribe_events
+from teleop.bus.session import RecordCallback
 from teleop.core.clock import NS_PER_S
 from teleop.core.ring import Ring
 from teleop.devices.robot_outputs import RobotOutputs
@@ -89,17 +89,7 @@ class ScriptedOperatorService(Service):
             self.subscribe_stream("tool_pose", self._on_tool(robot), topics)
             self.subscribe_stream("objects", self._on_objects(buffer), topics)
             self.subscribe_stream("head_pose", self._on_head(loops[robot]), topics)
-            on_event = self._on_event(robot)
-            self.keep(
-                subscribe_events(
-                    self.session,
-                    topics,
-                    "plant_events",
-                    on_event,
-                    self.drops,
-                    recovery=self.recovery,
-                )
-            )
+            self.subscribe_events("plant_events", self._on_event(robot), topics)
         self.keep(
             self.session.liveliness().declare_subscriber(
                 self.topics.alive(HMD_SERVICE), self._on_hmd_token, history=True

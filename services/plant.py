@@ -25,7 +25,7 @@ from teleop.bus.messages import (
     Reason,
 )
 from teleop.bus.service import Service, service_main
-from teleop.bus.session import BatchPublisher, Publisher, subscribe, subscribe_events
+from teleop.bus.session import BatchPublisher, subscribe
 from teleop.core.clock import MonotonicClock
 from teleop.core.rundir import checkpoint_path, shed_path
 from teleop.sim.checkpoint import CheckpointStore
@@ -42,7 +42,7 @@ class PlantService(Service):
         assert self.session is not None
         session, topics = self.session, self.topics
         self.publishers = {
-            name: self.keep(Publisher.for_stream(session, topics, name, recovery=self.recovery))
+            name: self.publish_stream(name)
             for name in ("plant_state", "tool_pose", "objects", "plant_events")
         }
         self.state_batch = self.keep(  # the observers' copy, several states per message
@@ -54,16 +54,7 @@ class PlantService(Service):
         if self.options.run_dir is not None:  # checkpoints, and a restart resumes from them
             store = CheckpointStore(checkpoint_path(self.options.run_dir, self.instance))
         self.loop = PlantLoop(self.config, self, MonotonicClock(), store)
-        self.keep(
-            subscribe_events(
-                session,
-                topics,
-                "operator_events",
-                self._on_event,
-                self.drops,
-                recovery=self.recovery,
-            )
-        )
+        self.subscribe_events("operator_events", self._on_event)
         self.keep(
             subscribe(session, topics.joint_command, JOINT_COMMAND, self._on_command, self.drops)
         )

@@ -30,18 +30,22 @@ from types import FrameType, TracebackType
 from typing import Any, ClassVar
 
 import zenoh
+import zenoh.ext
+from zenoh.shm import ShmProvider
 
 from teleop.bus import graph
 from teleop.bus.access import participant_zids, strangers
 from teleop.bus.messages import DropCounter
 from teleop.bus.session import (
     NewestSubscriber,
+    Publisher,
     RecordCallback,
     ServicesMissing,
     close_session,
     declare_alive,
     declare_protocol,
     session_config,
+    subscribe_events,
     subscribe_stream,
     wait_alive,
 )
@@ -209,6 +213,32 @@ class Service:
             own = topics.robot_id == self.topics.robot_id
             self._newest[stream_name if own else f"{stream_name}@{topics.robot_id}"] = sub
         return self.keep(sub)
+
+    def subscribe_events(
+        self, stream_name: str, callback: RecordCallback, topics: Topics | None = None
+    ) -> zenoh.Subscriber | zenoh.ext.AdvancedSubscriber:
+        """Subscribe this service to one service's RUN_EVENT stream of robot ``topics``
+        (default: :attr:`topics`): only the events that service owns, with this run's
+        recovery (:func:`teleop.bus.session.subscribe_events`). Kept."""
+        assert self.session is not None
+        topics = topics or self.topics
+        return self.keep(
+            subscribe_events(
+                self.session, topics, stream_name, callback, self.drops, recovery=self.recovery
+            )
+        )
+
+    def publish_stream(
+        self, stream_name: str, topics: Topics | None = None, *, shm: ShmProvider | None = None
+    ) -> Publisher:
+        """A publisher of the graph's stream ``stream_name`` on robot ``topics`` (default:
+        :attr:`topics`), with this run's recovery where the graph marks the stream
+        recovered (:meth:`Publisher.for_stream`). Kept."""
+        assert self.session is not None
+        topics = topics or self.topics
+        return self.keep(
+            Publisher.for_stream(self.session, topics, stream_name, shm=shm, recovery=self.recovery)
+        )
 
     def keep(self, entity: Any) -> Any:
         """Remember a Zenoh entity so close() undeclares it; returns it."""

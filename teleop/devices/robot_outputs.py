@@ -17,7 +17,6 @@ from teleop.bus.messages import (
     next_run_event,
 )
 from teleop.bus.service import Service
-from teleop.bus.session import Publisher
 from teleop.bus.topics import Topics
 from teleop.devices.scripted.operator import HandCommand
 
@@ -30,12 +29,8 @@ class RobotOutputs:
     def __init__(self, service: Service, topics: Topics, timestep_ns: int) -> None:
         assert service.session is not None
         self.timestep_ns = timestep_ns
-        self.hand_pub = service.keep(Publisher.for_stream(service.session, topics, "hand_input"))
-        self.events_pub = service.keep(
-            Publisher.for_stream(
-                service.session, topics, "operator_events", recovery=service.recovery
-            )
-        )
+        self.hand_pub = service.publish_stream("hand_input", topics)
+        self.events_pub = service.publish_stream("operator_events", topics)
         self._hand = HAND_INPUT.new()  # each stream's seq counts its own records
         self._event = RUN_EVENT.new()
 
