@@ -346,7 +346,7 @@ class ClearanceModel:
         if self.self_pairs:
             a, b = self._self_a, self._self_b
             gap = data.geom_xpos[a] - data.geom_xpos[b]
-            near_self = np.flatnonzero(np.einsum("ij,ij->i", gap, gap) < self._self_reach_sq)
+            near_self = np.nonzero(np.einsum("ij,ij->i", gap, gap) < self._self_reach_sq)[0]
             kind = PairKind.SELF
             for k in near_self.tolist():
                 arm_geom, other = self._self_a_list[k], self._self_b_list[k]

@@ -24,7 +24,7 @@ class DesiredPath:
     """The paper's path P(s), its derivatives, and the closest point to a given point."""
 
     def __init__(self, config: PathConfig) -> None:
-        self.center_m = np.asarray(config.center_m, dtype=float)
+        self.center_m = tuple(float(v) for v in config.center_m)
         self.radius_m = config.radius_m
         self.omega = config.omega_rad
         self.z_amplitude_m = config.z_amplitude_m
@@ -35,11 +35,9 @@ class DesiredPath:
         )
         self.search_window_s = 2 * np.pi / slowest
 
-    def point(self, s: float) -> np.ndarray:
-        """P(s) in m, world frame."""
-        return np.array(self._point(s))
-
-    def _point(self, s: float) -> tuple[float, float, float]:
+    def point(self, s: float) -> tuple[float, float, float]:
+        """P(s) in m, world frame. Python floats: the controller takes it every cycle, where
+        a 3-vector's numpy calls cost more than its arithmetic."""
         c = self.center_m
         return (
             self.radius_m * math.sin(self.omega * s) + c[0],
@@ -47,12 +45,10 @@ class DesiredPath:
             self.z_amplitude_m * math.sin(self.z_omega * s) + c[2],
         )
 
-    def derivatives(self, s: float) -> tuple[np.ndarray, np.ndarray]:
-        """(dP/ds, d2P/ds2) at s."""
-        first, second = self._derivatives(s)
-        return np.array(first), np.array(second)
-
-    def _derivatives(self, s: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    def derivatives(
+        self, s: float
+    ) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """(dP/ds, d2P/ds2) at s, in m per unit of s and its square."""
         r, w, a, wz = self.radius_m, self.omega, self.z_amplitude_m, self.z_omega
         sin_ws, cos_ws = math.sin(w * s), math.cos(w * s)
         sin_wzs, cos_wzs = math.sin(wz * s), math.cos(wz * s)
@@ -76,9 +72,9 @@ class DesiredPath:
         px, py, pz = (float(v) for v in p_m)
         s = s_guess
         for _ in range(NEWTON_ITERATIONS):
-            x, y, z = self._point(s)
+            x, y, z = self.point(s)
             dx, dy, dz = x - px, y - py, z - pz
-            (f1, f2, f3), (g1, g2, g3) = self._derivatives(s)
+            (f1, f2, f3), (g1, g2, g3) = self.derivatives(s)
             slope = f1 * f1 + f2 * f2 + f3 * f3 + dx * g1 + dy * g2 + dz * g3
             if slope <= 0:
                 break

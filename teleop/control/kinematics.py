@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import operator
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import mujoco
@@ -162,8 +163,8 @@ def manipulability(jacobian_position: np.ndarray) -> float:
     return float(np.sqrt(max(det, 0.0)))
 
 
-def manipulability_and_gradient(jacobian: np.ndarray) -> tuple[float, np.ndarray]:
-    """w = sqrt(det(Jv Jv^T)) and its gradient dw/dq (n,), exact for revolute chains.
+def manipulability_and_gradient(jacobian: np.ndarray) -> tuple[float, list[float]]:
+    """w = sqrt(det(Jv Jv^T)) and its gradient dw/dq (n floats), exact for revolute chains.
 
     For a revolute chain with joint axes z_i (angular rows) and position columns v_i,
     dv_i/dq_k = z_k x v_i when k <= i and z_i x v_k when k > i, and
@@ -182,7 +183,7 @@ def manipulability_and_gradient(jacobian: np.ndarray) -> tuple[float, np.ndarray
         _dot(vx, vx), _dot(vx, vy), _dot(vx, vz), _dot(vy, vy), _dot(vy, vz), _dot(vz, vz)
     )
     if det <= 0.0:
-        return 0.0, np.zeros(n)
+        return 0.0, [0.0] * n
     w = math.sqrt(det)
     v_cross_a, a_cross_z = [], []
     for k in range(n):
@@ -203,7 +204,7 @@ def manipulability_and_gradient(jacobian: np.ndarray) -> tuple[float, np.ndarray
         dx, dy, dz = v_cross_a[k]
         sx, sy, sz = sx + dx, sy + dy, sz + dz
         gradient[k] = w * (gradient[k] + zx[k] * sx + zy[k] * sy + zz[k] * sz)
-    return w, np.array(gradient)
+    return w, gradient
 
 
 def _dot(x: list[float], y: list[float]) -> float:
@@ -212,19 +213,41 @@ def _dot(x: list[float], y: list[float]) -> float:
     return sum(map(operator.mul, x, y))
 
 
-def symmetric_3x3_inverse(m: np.ndarray) -> tuple[np.ndarray, float]:
-    """Inverse and determinant of a symmetric 3x3 matrix by its adjugate.
+def damped_least_squares(
+    rows: Sequence[Sequence[float]],
+    damping_sq: float,
+    v_task: Sequence[float],
+    objective: Sequence[float],
+) -> list[float] | None:
+    """q' = J# (v - J g) + g with J# = J^T (J J^T + lambda^2 I)^-1, in Python floats.
 
-    The path-following law inverts J J^T + lambda^2 I every 1 kHz cycle; the closed form
-    in Python floats costs a fraction of ``np.linalg.solve`` at this size. A singular
-    matrix gives ``det == 0`` and a NaN inverse: callers check ``det``.
+    ``rows``: the three rows of the (3, n) position Jacobian J; ``damping_sq``: lambda^2
+    (m^2); ``v_task``: the task velocity v (3,) in m/s; ``objective``: the null-space
+    joint rates g (n,) in rad/s. The minimum-norm motion that achieves v, plus g
+    projected onto J's null space. J J^T + lambda^2 I is inverted by its adjugate: at
+    this size the closed form in floats costs a fraction of ``np.linalg.solve`` and of
+    the numpy calls on 3-vectors around it. None when that matrix is singular (no
+    damping at an exact singularity): the caller takes the least-squares solution.
     """
-    (a, b, c), (_, e, f), (_, _, i) = m.tolist()
-    (c00, c01, c02, c11, c12, c22), det = _symmetric_adjugate(a, b, c, e, f, i)
-    if det == 0.0:
-        return np.full((3, 3), np.nan), 0.0
-    adjugate = ((c00, c01, c02), (c01, c11, c12), (c02, c12, c22))
-    return np.array(adjugate) / det, det
+    vx, vy, vz = rows
+    (c00, c01, c02, c11, c12, c22), det = _symmetric_adjugate(
+        _dot(vx, vx) + damping_sq,
+        _dot(vx, vy),
+        _dot(vx, vz),
+        _dot(vy, vy) + damping_sq,
+        _dot(vy, vz),
+        _dot(vz, vz) + damping_sq,
+    )
+    if det <= 0.0:
+        return None
+    # r = v - J g, then y = A^-1 r, then q' = J^T y + g.
+    rx = v_task[0] - _dot(vx, objective)
+    ry = v_task[1] - _dot(vy, objective)
+    rz = v_task[2] - _dot(vz, objective)
+    yx = (c00 * rx + c01 * ry + c02 * rz) / det
+    yy = (c01 * rx + c11 * ry + c12 * rz) / det
+    yz = (c02 * rx + c12 * ry + c22 * rz) / det
+    return [a * yx + b * yy + c * yz + g for a, b, c, g in zip(vx, vy, vz, objective, strict=True)]
 
 
 def _symmetric_adjugate(

@@ -34,9 +34,9 @@ from teleop.control.clearance import Clearance, ClearanceModel, close_pairs
 from teleop.control.desired_path import DesiredPath
 from teleop.control.kinematics import (
     ArmModel,
+    damped_least_squares,
     manipulability_and_gradient,
     mass_matrix_and_bias,
-    symmetric_3x3_inverse,
     tool_position_and_jacobian,
 )
 from teleop.core.config import ClearanceConfig, Config, ControlConfig, PathConfig
@@ -69,10 +69,13 @@ class ControlOutput:
     held_pairs: int = 0  # close pairs whose approach speed the command was held to
 
 
-def limit_speed(qd_rad_s: np.ndarray, max_rad_s: np.ndarray | float) -> np.ndarray:
-    """Scale the whole vector down (keeping its direction) so every joint is within limits."""
-    ratio = float((np.abs(qd_rad_s) / max_rad_s).max())
-    return qd_rad_s / ratio if ratio > 1.0 else qd_rad_s
+def limit_speed(qd_rad_s: list[float], max_rad_s: list[float]) -> tuple[list[float], float]:
+    """The joint rates divided by ``ratio`` >= 1 (the direction kept) so that every
+    |q'_i| <= max_i (rad/s); returns them and the ratio (1: nothing cut)."""
+    ratio = max(map(operator.truediv, map(abs, qd_rad_s), max_rad_s))
+    if ratio > 1.0:
+        return [v / ratio for v in qd_rad_s], ratio
+    return qd_rad_s, 1.0
 
 
 @dataclass(frozen=True)
@@ -161,10 +164,10 @@ def limited_joints(arm: ArmModel) -> list[tuple[int, float, float]]:
 
 def joint_limit_push(
     q_rad: np.ndarray, limits: list[tuple[int, float, float]], config: ClearanceConfig
-) -> np.ndarray:
+) -> list[float]:
     """Null-space joint rates (n,) in rad/s pushing each joint out of the margin at its
     limits: gain * (depth into the margin)."""
-    push = np.zeros(len(q_rad))
+    push = [0.0] * len(q_rad)
     margin, gain = config.joint_limit_margin_rad, config.joint_limit_gain_per_s
     for k, lower, upper in limits:
         q = float(q_rad[k])
@@ -219,10 +222,10 @@ def hold_clearance(
 
 def joint_limit_hold(
     q_rad: np.ndarray,
-    qd_rad_s: np.ndarray,
+    qd_rad_s: list[float],
     limits: list[tuple[int, float, float]],
     config: ClearanceConfig,
-) -> np.ndarray:
+) -> list[float]:
     """Each joint's rate toward a limit scaled by its distance to it over the margin (1
     outside the margin, 0 at the limit); rates away from the limit are kept."""
     margin = config.joint_limit_margin_rad
@@ -259,8 +262,9 @@ class PathFollowingController:
         self.path = DesiredPath(path)
         self.period_s = period_s
         self.clearance = clearance
-        self.max_speed_rad_s = np.minimum(control.max_joint_speed_rad_s, arm.servo.max_speed_rad_s)
-        self._identity3 = np.eye(3)
+        self._max_speed_rad_s = np.minimum(
+            control.max_joint_speed_rad_s, arm.servo.max_speed_rad_s
+        ).tolist()
         self._limits = limited_joints(arm)
         self._s: float | None = None
         self._arc_m = 0.0
@@ -275,30 +279,33 @@ class PathFollowingController:
         self, q_rad: np.ndarray, qd_rad_s: np.ndarray, gripper_opening_m: float | None = None
     ) -> ControlOutput:
         """One control cycle from the measured joint state (``gripper_opening_m``: each
-        finger's slide, for the clearance; None: fully open)."""
+        finger's slide, for the clearance; None: fully open).
+
+        The law's arithmetic on 3-vectors and joint vectors is in Python floats: at this
+        size each numpy call costs more than the arithmetic it does, and the cycle runs
+        once per exchange in every run."""
         ctl = self.control
         tool_p, jacobian = tool_position_and_jacobian(self.arm, q_rad)
-        jv = jacobian[:3]
-        if self._s is None:
-            self._s = self.path.closest_global(tool_p)
-        else:
-            previous_s = self._s
-            self._s = self.path.closest_local(tool_p, self._s)
-            tangent_mid, _ = self.path.derivatives(0.5 * (previous_s + self._s))
-            self._arc_m += (self._s - previous_s) * math.sqrt(float(tangent_mid @ tangent_mid))
-        desired_p = self.path.point(self._s)
-        error = desired_p - tool_p
-        error_norm = math.sqrt(float(error @ error))
-        tangent, _ = self.path.derivatives(self._s)
+        s = self._track(tool_p)
+        px, py, pz = tool_p.tolist()
+        desired = self.path.point(s)
+        ex, ey, ez = desired[0] - px, desired[1] - py, desired[2] - pz
+        error_norm = math.sqrt(ex * ex + ey * ey + ez * ez)
+        (tx, ty, tz), _ = self.path.derivatives(s)
         speed = ctl.path_speed_m_s / (1.0 + ctl.speed_error_gain_per_m * error_norm)
-        v_desired = tangent * (speed / math.sqrt(float(tangent @ tangent)))
+        along = speed / math.sqrt(tx * tx + ty * ty + tz * tz)
         e0 = ctl.position_saturation_m
-        v_task = v_desired + ctl.position_gain_per_s * e0 * np.tanh(error / e0)
+        pull = ctl.position_gain_per_s * e0
+        v_task = (
+            tx * along + pull * math.tanh(ex / e0),
+            ty * along + pull * math.tanh(ey / e0),
+            tz * along + pull * math.tanh(ez / e0),
+        )
 
-        # J# v + (I - J# J) g with J# = J^T A^-1, A = J J^T + lambda^2 I, in one solve:
-        # J^T A^-1 (v - J g) + g, where g is the null-space objective.
+        # J# v + (I - J# J) g, g the null-space objective: maximise the manipulability and,
+        # with clearance.avoid, push links away from what is near and joints off their limits.
         w, w_gradient = manipulability_and_gradient(jacobian)
-        g = ctl.null_space_gain * w_gradient
+        g = [ctl.null_space_gain * v for v in w_gradient]
         clearance, caps = None, []
         if self.clearance is not None:
             clearance = self.clearance.measure(
@@ -306,54 +313,66 @@ class PathFollowingController:
             )
             if self.clearance.config.avoid:
                 g, caps = self._avoidance(q_rad, qd_rad_s, clearance, g)
-        inverse, det = symmetric_3x3_inverse(
-            jv @ jv.T + singular_damping_sq(ctl, w) * self._identity3
-        )
-        if det > 0.0:
-            qd_c = jv.T @ (inverse @ (v_task - jv @ g)) + g
-        else:  # undamped at an exact singularity: the least-squares solution
-            qd_c = np.linalg.pinv(jv) @ (v_task - jv @ g) + g
+        rows = jacobian[:3].tolist()
+        qd_c = damped_least_squares(rows, singular_damping_sq(ctl, w), v_task, g)
+        if qd_c is None:  # undamped at an exact singularity: the least-squares solution
+            jv = jacobian[:3]
+            qd_c = (np.linalg.pinv(jv) @ (np.array(v_task) - jv @ g) + g).tolist()
         held = 0
         if caps:
-            qd_c, held = hold_clearance(qd_c, caps)
+            held_qd_c, held = hold_clearance(np.array(qd_c), caps)
+            qd_c = held_qd_c.tolist()
         if self.clearance is not None and self.clearance.config.avoid and self._limits:
             qd_c = joint_limit_hold(q_rad, qd_c, self._limits, self.clearance.config)
-        qd_c = limit_speed(qd_c, self.max_speed_rad_s)
+        qd_c, _ = limit_speed(qd_c, self._max_speed_rad_s)
         # control.max_tool_speed_m_s, below the plant's limit: the plant's cut would make the
         # velocity loops track another direction than the one the clearance was held on.
         # Scaled down whole, the caps still hold.
-        tool_v_m_s = jv @ qd_c
-        tool_speed_m_s = math.sqrt(float(tool_v_m_s @ tool_v_m_s))
+        tool_v = [sum(map(operator.mul, row, qd_c)) for row in rows]
+        tool_speed_m_s = math.sqrt(sum(v * v for v in tool_v))
         if tool_speed_m_s > ctl.max_tool_speed_m_s:
-            qd_c = qd_c * (ctl.max_tool_speed_m_s / tool_speed_m_s)
+            cut = ctl.max_tool_speed_m_s / tool_speed_m_s
+            qd_c = [v * cut for v in qd_c]
 
         compensation = compensation_terms(self.arm, q_rad, qd_rad_s) if ctl.compensation else None
-        qd_ref = np.array(
-            velocity_reference(ctl, compensation, qd_c.tolist(), self._previous_qd_c, self.period_s)
-        )
-        self._previous_qd_c = qd_c.tolist()
+        qd_ref = velocity_reference(ctl, compensation, qd_c, self._previous_qd_c, self.period_s)
+        self._previous_qd_c = qd_c
         if caps:
             # The compensation adds the velocity loops' dynamics to q'_c: the reference
             # the plant applies must keep the caps too, or a fast arm braking on q'_c
             # still closes in through q'_ref (the measured rate lags q'_c).
-            qd_ref, _ = hold_clearance(qd_ref, caps)
+            held_qd_ref, _ = hold_clearance(np.array(qd_ref), caps)
+            qd_ref = held_qd_ref.tolist()
         return ControlOutput(
-            qd_ref_rad_s=limit_speed(qd_ref, self.max_speed_rad_s),
-            qd_c_rad_s=qd_c,
+            qd_ref_rad_s=np.array(limit_speed(qd_ref, self._max_speed_rad_s)[0]),
+            qd_c_rad_s=np.array(qd_c),
             tool_p_m=tool_p,
-            desired_p_m=desired_p,
+            desired_p_m=np.array(desired),
             path_error_m=error_norm,
             manipulability=w,
-            path_s=self._s,
+            path_s=s,
             path_arc_m=self._arc_m,
             path_speed_m_s=speed,
             clearance=clearance,
             held_pairs=held,
         )
 
+    def _track(self, tool_p_m: np.ndarray) -> float:
+        """The path parameter s* of the point closest to the tool, followed from the last
+        cycle's (searched over the whole path on the first), and the arc length the
+        tracked point has travelled (the midpoint rule on |P'(s)|)."""
+        if self._s is None:
+            self._s = self.path.closest_global(tool_p_m)
+            return self._s
+        previous_s = self._s
+        self._s = self.path.closest_local(tool_p_m, previous_s)
+        (tx, ty, tz), _ = self.path.derivatives(0.5 * (previous_s + self._s))
+        self._arc_m += (self._s - previous_s) * math.sqrt(tx * tx + ty * ty + tz * tz)
+        return self._s
+
     def _avoidance(
-        self, q_rad: np.ndarray, qd_rad_s: np.ndarray, clearance: Clearance, g: np.ndarray
-    ) -> tuple[np.ndarray, list[tuple[float, np.ndarray]]]:
+        self, q_rad: np.ndarray, qd_rad_s: np.ndarray, clearance: Clearance, g: list[float]
+    ) -> tuple[list[float], list[tuple[float, np.ndarray]]]:
         """The null-space objective with the clearance and joint-limit pushes added, and
         the approach caps (cap m/s, row) of the pairs inside their slowdown distance, at
         their closing speed measured from ``qd_rad_s``. Reads the joint Jacobians at
@@ -364,9 +383,9 @@ class PathFollowingController:
         caps = [(c.cap_m_s, c.row) for c in close]
         push = clearance_push([(c.push_depth_m, c.row) for c in close], config)
         if push is not None:
-            g = g + push
+            g = list(map(operator.add, g, push.tolist()))
         if self._limits:
-            g = g + joint_limit_push(q_rad, self._limits, config)
+            g = list(map(operator.add, g, joint_limit_push(q_rad, self._limits, config)))
         return g, caps
 
 

@@ -64,6 +64,7 @@ from teleop.control.path import (
     clearance_push,
     compensation_terms,
     hold_clearance,
+    limit_speed,
     velocity_reference,
 )
 from teleop.core.config import ControlConfig, TeleopConfig
@@ -108,15 +109,6 @@ MIN_FEEDBACK_DIRECTION = 1e-6
 def _norm(v: np.ndarray) -> float:
     """Euclidean norm of a 3-vector (np.linalg.norm's overhead outweighs it at this size)."""
     return math.hypot(*v.tolist())
-
-
-def _within_limits(values: list[float], limits: list[float]) -> tuple[list[float], float]:
-    """:func:`teleop.control.path.limit_speed` on floats: the whole vector divided by
-    ``ratio`` >= 1 (direction kept) so that every |values[i]| <= limits[i]."""
-    ratio = max(map(operator.truediv, map(abs, values), limits))
-    if ratio > 1.0:
-        return [value / ratio for value in values], ratio
-    return values, 1.0
 
 
 @functools.lru_cache(maxsize=16)
@@ -660,7 +652,7 @@ class TeleopController:
             qd_c = [qd * cap for qd in qd_c]
             scale *= cap
             tool_speed *= cap
-        qd_c, ratio = _within_limits(qd_c, self._speed_limits_rad_s)
+        qd_c, ratio = limit_speed(qd_c, self._speed_limits_rad_s)
         # Both limits scale the whole vector, so the tool speed scales with it.
         self._previous_tool_speed = tool_speed / ratio
 
@@ -671,7 +663,7 @@ class TeleopController:
             # q'_c, and the reference the plant applies must keep the caps too.
             qd_ref = hold_clearance(np.array(qd_ref), caps)[0].tolist()
         return TeleopOutput(
-            qd_ref_rad_s=np.array(_within_limits(qd_ref, self._speed_limits_rad_s)[0]),
+            qd_ref_rad_s=np.array(limit_speed(qd_ref, self._speed_limits_rad_s)[0]),
             qd_c_rad_s=np.array(qd_c),
             world_v_ref_m_s=v_ref,
             world_v_tool_m_s=terms.world_v_tool_m_s,

@@ -464,7 +464,7 @@ def check_path(checker: ReachabilityChecker, path: PathConfig) -> None:
         "min_manipulability": MIN_PATH_MANIPULABILITY,
     }
     q = checker.follow(checker.home_q_rad, segment(home_p, desired.point(s0)), "way in", **bounds)
-    ds_per_m = 1.0 / math.sqrt(float(np.sum(desired.derivatives(s0)[0] ** 2)))
+    ds_per_m = 1.0 / math.sqrt(sum(v * v for v in desired.derivatives(s0)[0]))
     period_s = desired.search_window_s
     count = max(8, math.ceil(period_s / (CHECK_SPACING_M * ds_per_m)))
     points = [desired.point(s0 + period_s * k / count) for k in range(count + 1)]

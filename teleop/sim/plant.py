@@ -340,7 +340,7 @@ class Plant:
         (q'_ref - qfrc_bias / kv); cutting the holding part too would let the arm sag
         and bend the tool's path while it is commanded up."""
         qd = np.minimum(np.maximum(qd_ref_rad_s, self.ctrl_low), self.ctrl_high)
-        range_cut = not np.array_equal(qd, qd_ref_rad_s)
+        range_cut = qd.tolist() != qd_ref_rad_s.tolist()  # np.array_equal costs 10x
         self.prepare_step()  # positions-dependent data of the state the step starts from
         mujoco.mj_jacSite(self.model, self.data, self._jacp, None, self.tool_site)
         hold = self.data.qfrc_bias[self.dof_index] / self.kv  # references that hold still
@@ -568,8 +568,9 @@ class Plant:
         """
         found = []
         gripper, objects = self._gripper_geoms, self._object_geoms
-        excluded = self.data.contact.exclude.tolist()
-        for i, (geom1, geom2) in enumerate(self.data.contact.geom.tolist()):
+        contact = self.data.contact  # a new view of the contact array at each access
+        excluded = contact.exclude.tolist()
+        for i, (geom1, geom2) in enumerate(contact.geom.tolist()):
             on_geom2 = geom2 in gripper
             if (geom1 in gripper) != on_geom2:  # not itself against itself
                 other_is_object = (geom1 if on_geom2 else geom2) in objects
