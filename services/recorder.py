@@ -20,7 +20,7 @@ import zenoh
 
 from teleop.bus.messages import EYE_VIEW, RUN_EVENT
 from teleop.bus.service import Service, ServiceOptions, lower_priority_to, service_main
-from teleop.bus.session import subscribe, subscribe_events, subscribe_frames
+from teleop.bus.session import subscribe, subscribe_frames
 from teleop.bus.topics import Topics
 from teleop.core.config import Config, ConfigError
 from teleop.core.rundir import RECORDER_SEGMENTS_FILE, RECORDING_FILE
@@ -110,11 +110,11 @@ class RecorderService(Service):
             batched = name in BATCHED_STREAMS
             key = getattr(topics, BATCHED_STREAMS[name] if batched else name)
             buffer = writer.buffers[name]
-            if schema is RUN_EVENT:  # only the events the stream's service owns
-                sub = subscribe_events(session, topics, name, buffer, drops)
+            if schema is RUN_EVENT:  # only the events the stream's service owns, recovered
+                self._subscribers.append(self.subscribe_events(name, buffer, topics))
             else:
                 sub = subscribe(session, key, schema, buffer, drops, batched=batched)
-            self._subscribers.append(self.keep(sub))
+                self._subscribers.append(self.keep(sub))
         sub = subscribe_frames(session, topics.eye_view, EYE_VIEW, writer.eye_view, drops)
         self._subscribers.append(self.keep(sub))
         liveliness = session.liveliness().declare_subscriber(

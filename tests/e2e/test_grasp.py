@@ -384,6 +384,12 @@ def test_a_grasp_split_across_two_hosts_is_the_same_run_as_on_one(obstacle_runs)
     assert (robot_router["other_site_links"], robot_router["other_site_losses"]) == (1, 1)
     assert (operator_router["other_site_links"], operator_router["other_site_losses"]) == (2, 1)
     assert (sites.robot_dir / "recording.rrd").stat().st_size > 0
+    # The robot site's recording holds the one-host run's events, those the operator site
+    # sent while the router was away included (the recorder asks for them again).
+    one_host = json.loads((obstacle_runs["run_dir"] / "recorder.summary.json").read_text())
+    recorded = sites.summaries["recorder"]["samples_logged"]
+    for stream in ("plant_events", "operator_events", "controller_events"):
+        assert recorded[stream] == one_host["samples_logged"][stream], stream
 
 
 # The operator site's monotonic clock ahead of the robot site's (another host's clock).

@@ -30,7 +30,7 @@ from teleop.bus.messages import (
     Event,
 )
 from teleop.bus.service import Service
-from teleop.bus.session import RecordCallback, subscribe, subscribe_events
+from teleop.bus.session import RecordCallback, subscribe
 from teleop.core.clock import NS_PER_S
 from teleop.core.ring import Ring
 from teleop.devices.person.intent import HandIntent
@@ -75,8 +75,7 @@ class PersonOperatorService(Service):
         for robot, topics in enumerate(self.robot_topics):
             self.subscribe_stream("tool_pose", self._on_tool(robot), topics)
             self.subscribe_stream("objects", self._on_objects(robot), topics)
-            self.keep(subscribe_events(self.session, topics, "plant_events",
-                                       self._on_event(robot), self.drops))  # fmt: skip
+            self.subscribe_events("plant_events", self._on_event(robot), topics)
             self.keep(
                 subscribe(self.session, topics.force_feedback_batch, FORCE_FEEDBACK,
                           self._on_feedback(robot), self.drops, batched=True)
