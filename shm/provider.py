@@ -46,10 +46,10 @@ SHM_THRESHOLD_BYTES = 3072
 # shared memory off instead, bytes.
 SESSION_SHM_LOCKED_BYTES = 1536 * 1024
 # Locked memory of a process that receives from a pool, besides the pool itself: its
-# session and Zenoh's fixed SHM mappings (seen: about 3.9 MiB in the recorder), bytes.
+# session and Zenoh's fixed SHM mappings (the recorder's, the largest, under 4 MiB), bytes.
 RECEIVER_LOCKED_BYTES = 4 * 1024 * 1024
 # A pool takes at most this share of what a receiver has left after RECEIVER_LOCKED_BYTES:
-# the receiver's fixed share was measured in one stack, so keep a margin of 2x.
+# the receiver's fixed share varies with the Zenoh build, so keep a margin of 2x.
 RECEIVER_POOL_SHARE = 0.5
 # Kept free besides a pool (segment headers, other small locked buffers), bytes.
 MEMLOCK_MARGIN_BYTES = 256 * 1024

@@ -342,8 +342,8 @@ def subscribe(
     ``rx_ns`` is ``time.monotonic_ns()`` on arrival, before decoding. Bad records are
     counted in ``drops`` and never reach the callback. Each record is the callback's
     own, writable, in a buffer nothing else holds: keep it or stamp it without a copy
-    (copying a record costs 3-9 us). The callback runs on a Zenoh thread: keep it short
-    (store into a :class:`Latest`, or a queue).
+    (a copy per record adds up at the loop's rate). The callback runs on a Zenoh thread:
+    keep it short (store into a :class:`Latest`, or a queue).
 
     ``batched``: the key is a :class:`BatchPublisher`'s, whose messages hold several
     records back to back: the callback runs once per valid record, in order. A message
@@ -535,8 +535,8 @@ def batch_records(record_bytes: int, requested: int) -> int:
 class BatchPublisher:
     """Observers' copy of a fast stream: records sent ``records_per_message`` at a time.
 
-    Every Zenoh message costs the receiving process a wake-up (about 50 us of CPU on
-    this 2-core machine, whatever the payload), so an observer that needs every record
+    Every Zenoh message costs the receiving process a wake-up (tens of microseconds of
+    CPU, whatever the payload: docs/realtime.md), so an observer that needs every record
     but none of them at once (the recorder, the eye view) listens here instead of to the
     1 kHz stream. ``add`` keeps an encoded record; the message goes out when it holds
     ``records_per_message`` records, or at :meth:`flush` (the producer calls it when its

@@ -16,12 +16,12 @@ same scene overrides): distances and closest points come from MuJoCo's narrow ph
 Free bodies (the cube) are not obstacles: the fingers are meant to touch them. Virtual
 obstacles (no contype) are the plant's :class:`teleop.sim.proximity.ObstacleProximity`.
 
-Cost: a MuJoCo call costs about 1 us from Python, and 9 arm geoms against 8 scene geoms
-plus the self pairs are about 80 pairs. A broad phase in one numpy pass (bounding
-spheres of the arm geoms against the scene geoms' world boxes and each other) keeps only
-the pairs whose lower bound is within ``clearance.influence_m``; only those reach
-``mj_geomDistance``. tests/benchmarks/clearance_cost.py measures the cycle with and
-without it.
+Cost: each MuJoCo call from Python pays the binding's overhead, and the arm's geoms
+against the scene's plus the self pairs are many (about 80 in the shipped scene). A broad
+phase in one numpy pass (bounding spheres of the arm geoms against the scene geoms' world
+boxes and each other) keeps only the pairs whose lower bound is within
+``clearance.influence_m``; only those reach ``mj_geomDistance``.
+tests/benchmarks/clearance_cost.py measures the cycle with and without it.
 
 Everything is in the world frame (z up, origin at the arm base), in metres.
 """

@@ -16,8 +16,8 @@ It is memory-mapped: a header of int64 slots and two snapshot slots.
   brake's hold, the task-done tick, the summary's counters), about 1.9 KB in all. It is
   copied into the slot not in use, then the header names that slot: a process that dies
   mid-copy leaves the previous snapshot whole (a CRC guards the rest). A copy costs a few
-  microseconds; a file write and rename (``os.replace``) cost 0.5 ms and up to 15 ms on
-  ext4 (renaming over a file flushes its data), more than a 1 ms step may spend.
+  microseconds; a file write and rename (``os.replace``) costs milliseconds on ext4
+  (renaming over a file flushes its data), more than a 1 ms step may spend.
 
 Nothing is synced to disk: this guards against the plant process dying, not the machine
 (a machine that dies ends the run anyway).

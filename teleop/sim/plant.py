@@ -143,7 +143,7 @@ class Plant:
         self.kv = self.model.actuator_gainprm[self.actuator_index, 0].copy()
         self.gripper_actuator = lookup(mujoco.mjtObj.mjOBJ_ACTUATOR, robot.gripper_actuator)
         # (low, high) as Python floats: _gripper_ctrl runs every step, and arithmetic on
-        # numpy scalars costs ~1 us per operation.
+        # numpy scalars costs many times that on floats.
         self.gripper_range_m = tuple(
             float(x) for x in self.model.actuator_ctrlrange[self.gripper_actuator]
         )
@@ -509,7 +509,7 @@ class Plant:
         return self._hold_q_rad is not None
 
     def sample(self) -> JointSample:
-        fingers_m = self.data.qpos[self._fingers_at].tolist()  # a numpy sum costs ~7 us cold
+        fingers_m = self.data.qpos[self._fingers_at].tolist()  # a numpy sum costs more, cold
         return JointSample(
             step=self.step_count,
             sim_time_ns=self.physics_steps * self.timestep_ns,
@@ -604,7 +604,7 @@ class Plant:
         mujoco.mj_objectVelocity(
             self.model, self.data, mujoco.mjtObj.mjOBJ_SITE, self.tool_site, velocity, 0
         )
-        return math.hypot(*velocity[3:].tolist())  # np.linalg.norm costs ~3 us here
+        return math.hypot(*velocity[3:].tolist())  # np.linalg.norm costs several times more
 
     def object_in_bin(self, object_body: str = "cube", bin_body: str = "bin") -> bool:
         """True when the object's centre lies inside the bin: within its floor's x-y

@@ -96,7 +96,7 @@ class Recording:
         self.has_blueprint = self.has_blueprint or bool(reader.blueprints)
         start, end = None, None
         # collect() compacts the recorder's many small chunks (one per entity and flush)
-        # into a few large ones: about 10x faster to read for a 20 s grasp.
+        # into a few large ones, much faster to read.
         for chunk in reader.stream().collect().stream():
             batch = chunk.to_record_batch()
             self.batches[chunk.entity_path.lstrip("/")].append(batch)

@@ -57,7 +57,7 @@ def saturate_force(force_n: np.ndarray, peak_n: float) -> np.ndarray:
 
 def saturated_xyz(force_n: list[float], peak_n: float) -> list[float]:
     """:func:`saturate_force` on Python floats (the servo period's own form)."""
-    norm = math.hypot(*force_n)  # np.linalg.norm costs ~3 us at this size
+    norm = math.hypot(*force_n)  # np.linalg.norm costs several times more
     if norm > peak_n:
         scale = peak_n / norm
         return [f * scale for f in force_n]

@@ -397,8 +397,8 @@ class HapticLoop:
             return LocalContactModel.constant(np.array(rec["wave_v"], dtype=np.float64))
         k_n_per_m = np.array(rec["device_k_n_per_m"], dtype=np.float64).reshape(3, 3)
         bound = self.max_model_stiffness_n_per_m
-        # The Frobenius norm bounds the spectral one from above: the SVD (about 14 us) only
-        # for a model that may be too stiff.
+        # The Frobenius norm bounds the spectral one from above: the SVD (costly at this
+        # rate) only for a model that may be too stiff.
         size = float(np.sqrt((k_n_per_m * k_n_per_m).sum()))
         if size > bound:
             size = float(np.linalg.norm(k_n_per_m, 2))
