@@ -157,6 +157,22 @@ def _add_run_command(commands: Commands) -> None:
         ),
     )
     run.add_argument("scenario", choices=SCENARIOS, help="what to run")
+    _add_run_timing_arguments(run)
+    _add_run_output_arguments(run)
+    _add_run_station_arguments(run)
+    _add_without_arguments(run)
+    _add_run_fault_arguments(run)
+    run.add_argument(
+        "--report",
+        action="store_true",
+        help="after the run, write the figures and summary (see `teleop report`)",
+    )
+    _add_config_arguments(run)
+
+
+def _add_run_timing_arguments(run: argparse.ArgumentParser) -> None:
+    """teleop run: in one process or as services, which timing, how long, which seed, how
+    many robots."""
     where = run.add_mutually_exclusive_group()
     where.add_argument(
         "--inprocess", action="store_true", help="plant and controller in one process, no bus"
@@ -179,6 +195,10 @@ def _add_run_command(commands: Commands) -> None:
         "scripted operator (docs/sites.md, Several robots). Without --duration the run "
         "gets run.duration_s per robot",
     )
+
+
+def _add_run_output_arguments(run: argparse.ArgumentParser) -> None:
+    """teleop run: where its summary, recording and logs go, and what it prints."""
     run.add_argument(
         "--summary-json",
         type=Path,
@@ -195,6 +215,10 @@ def _add_run_command(commands: Commands) -> None:
         help=f"logs and supervisord files of a services run (default: {DEFAULT_RUN_DIR})",
     )
     run.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+
+
+def _add_run_station_arguments(run: argparse.ArgumentParser) -> None:
+    """teleop run: who drives the handle, and which Rerun viewer watches the run."""
     run.add_argument(
         "--operator",
         choices=OPERATORS,
@@ -215,7 +239,10 @@ def _add_run_command(commands: Commands) -> None:
         "printed); it keeps serving after the run until Ctrl-C",
     )
     _add_web_port_arguments(run)
-    _add_without_arguments(run)
+
+
+def _add_run_fault_arguments(run: argparse.ArgumentParser) -> None:
+    """teleop run: the faults it injects into its services (docs/faults.md)."""
     run.add_argument(
         "--kill",
         action="append",
@@ -233,12 +260,6 @@ def _add_run_command(commands: Commands) -> None:
         help="inject a fault: SIGSTOP SERVICE at sim time T, SIGCONT SECONDS (wall clock) "
         "later (repeatable)",
     )
-    run.add_argument(
-        "--report",
-        action="store_true",
-        help="after the run, write the figures and summary (see `teleop report`)",
-    )
-    _add_config_arguments(run)
 
 
 def _add_latency_command(commands: Commands) -> None:
@@ -258,6 +279,20 @@ def _add_latency_command(commands: Commands) -> None:
             "(docs/sites.md)."
         ),
     )
+    _add_latency_stack_arguments(latency)
+    _add_latency_sites_arguments(latency)
+    latency.add_argument(
+        "--run-dir",
+        type=Path,
+        default=DEFAULT_LATENCY_DIR,
+        help=f"logs, summaries and raw stamps of every run (default: {DEFAULT_LATENCY_DIR})",
+    )
+    _add_config_arguments(latency)
+
+
+def _add_latency_stack_arguments(latency: argparse.ArgumentParser) -> None:
+    """teleop latency: how long the stack and its baselines run, and where the report, its
+    figure and its recording go."""
     latency.add_argument(
         "--duration",
         type=float,
@@ -284,6 +319,11 @@ def _add_latency_command(commands: Commands) -> None:
         action="store_true",
         help="skip the comparison run with the plant's tick and the device step",
     )
+
+
+def _add_latency_sites_arguments(latency: argparse.ArgumentParser) -> None:
+    """teleop latency --across-sites: the round trip between two sites' routers, the
+    delays emulated between them, and how many samples."""
     latency.add_argument(
         "--across-sites",
         action="store_true",
@@ -315,13 +355,6 @@ def _add_latency_command(commands: Commands) -> None:
         default=3,
         help="--across-sites: alternating rounds of the direct and routed paths (default: 3)",
     )
-    latency.add_argument(
-        "--run-dir",
-        type=Path,
-        default=DEFAULT_LATENCY_DIR,
-        help=f"logs, summaries and raw stamps of every run (default: {DEFAULT_LATENCY_DIR})",
-    )
-    _add_config_arguments(latency)
 
 
 def _add_view_command(commands: Commands) -> None:
@@ -442,6 +475,21 @@ def _add_up_command(commands: Commands) -> None:
         "refused if taken; tcp/127.0.0.1:PORT with --set bus.tls=false",
     )
     up.add_argument("--run-dir", type=Path, default=DEFAULT_UP_DIR, help="(default: %(default)s)")
+    _add_up_site_arguments(up)
+    up.add_argument(
+        "--operator",
+        choices=OPERATORS,
+        help="who drives the handle of a teleoperated stack (--set 'run.scenario=\"grasp\"'): "
+        "the scripted operator (default), a gamepad, a SpaceMouse or the web page (its URL "
+        "printed); the keyboard needs teleop run (docs/operators.md)",
+    )
+    _add_without_arguments(up)
+    _add_config_arguments(up)
+
+
+def _add_up_site_arguments(up: argparse.ArgumentParser) -> None:
+    """teleop up: one site of a run across hosts, and how its router links to the others
+    (docs/sites.md)."""
     up.add_argument(
         "--site",
         choices=SITES,
@@ -470,15 +518,6 @@ def _add_up_command(commands: Commands) -> None:
         metavar="tls/ADDRESS:PORT",
         help="with --join: the first robot's site's router (default: the bundle's)",
     )
-    up.add_argument(
-        "--operator",
-        choices=OPERATORS,
-        help="who drives the handle of a teleoperated stack (--set 'run.scenario=\"grasp\"'): "
-        "the scripted operator (default), a gamepad, a SpaceMouse or the web page (its URL "
-        "printed); the keyboard needs teleop run (docs/operators.md)",
-    )
-    _add_without_arguments(up)
-    _add_config_arguments(up)
 
 
 def _add_stack_state_commands(commands: Commands) -> None:

@@ -186,6 +186,16 @@ class SeqCheck:
     stream is taken when its seq is within the window of zero (a producer's first
     records), else it starts such a run. Not thread-safe: the owning service calls it
     under its own lock.
+
+    Why a run of records and not one: every record may be hostile or from a restarted
+    peer, and the robot's commands pass this check. Were one record going back taken as
+    a restart at once, a single stale or forged record would rewind the check and the
+    old commands after it would be taken as new; were one far ahead taken, it would turn
+    every real record after it into a reordered one. Only a producer that keeps sending
+    in order moves the check, so no single record of a sender steers it; the price is
+    that a restarted producer's first ``RESYNC_RECORDS - 1`` records go unused. Observers
+    count by the same rule (:class:`SeqGaps`), so their gaps and restarts are the ones
+    the robot's path saw.
     """
 
     def __init__(self) -> None:

@@ -21,7 +21,7 @@ from typing import NamedTuple
 import mujoco
 import numpy as np
 
-from teleop.core.config import Config, ModelError
+from teleop.core.config import Config, ModelError, RobotConfig
 from teleop.sim.checkpoint import get_state, set_state
 from teleop.sim.protective import ProtectiveStop, allowed_approach_m_s
 from teleop.sim.proximity import apply_scene_overrides
@@ -101,8 +101,15 @@ class Plant:
     """MuJoCo model + data, with name lookups resolved once from the config."""
 
     def __init__(self, config: Config) -> None:
-        robot = config.robot
-        path = robot.scene_path
+        path = config.robot.scene_path
+        self._load_model(config, path)
+        self._resolve_names(config.robot, path)
+        self._init_limits(config)
+        self._init_measurements()
+
+    def _load_model(self, config: Config, path: Path) -> None:
+        """The scene's model (the gripper's contacts reported within the approach range)
+        and data, checked against the config's physics period, with its overrides."""
         if not path.exists():
             raise ModelError(f"scene file not found: {path}")
         # Speed and separation: MuJoCo reports the gripper's contacts up to
@@ -111,7 +118,7 @@ class Plant:
         self.approach_touch_m_s = plant.approach_touch_m_s
         self.approach_time_s = plant.approach_time_s
         self.approach_range_m = plant.tool_speed_limit_m_s * plant.approach_time_s
-        self.model = _load_scene(path, robot.tool_site, self.approach_range_m)
+        self.model = _load_scene(path, config.robot.tool_site, self.approach_range_m)
         if not np.isclose(self.model.opt.timestep, config.plant.timestep_s):
             raise ModelError(
                 f"{path}: timestep {self.model.opt.timestep} s differs from "
@@ -123,9 +130,10 @@ class Plant:
         self.steps_per_tick = config.physics_steps_per_tick
         self.tick_ns = self.steps_per_tick * self.timestep_ns  # one bus period
         self._config = config
-        self._step1_done = False  # prepare_step ran for the next step
-        # prepare_step's gripper contacts (see _find_gripper_contacts); None: not known.
-        self._gripper_contacts: list[GripperContact] | None = None
+
+    def _resolve_names(self, robot: RobotConfig, path: Path) -> None:
+        """The config's joint, actuator, site and body names as the model's indices, once
+        (a missing one: ModelError naming the file), and what follows from them."""
 
         def lookup(kind: mujoco.mjtObj, name: str) -> int:
             index = mujoco.mj_name2id(self.model, kind, name)
@@ -161,9 +169,6 @@ class Plant:
         self._gripper_geoms = frozenset(
             g for g in range(self.model.ngeom) if self.model.geom_bodyid[g] in self.gripper_bodies
         )
-        self.approach_slowed_steps = 0  # steps whose command the approach limit slowed
-        self._limit_slowed = False  # the last limit() slowed it for the approach
-        self._jac_other = np.zeros((3, self.model.nv))
         # The objects that move freely (the cube; not the bin, welded to the world): the
         # gripper may hold them, and what they push is not a press on the scene.
         free = {b for b in self.object_bodies.tolist() if self.model.body_weldid[b] != 0}
@@ -178,6 +183,13 @@ class Plant:
         self._fingers_at = _as_slice(self.finger_qpos_index)
         self.ctrl_low = self.model.actuator_ctrlrange[self.actuator_index, 0].copy()
         self.ctrl_high = self.model.actuator_ctrlrange[self.actuator_index, 1].copy()
+
+    def _init_limits(self, config: Config) -> None:
+        """The robot's own limits on every command (the approach limit, the drives'
+        ranges, the tool's speed), and their counters."""
+        self.approach_slowed_steps = 0  # steps whose command the approach limit slowed
+        self._limit_slowed = False  # the last limit() slowed it for the approach
+        self._jac_other = np.zeros((3, self.model.nv))
         # The robot's own limits, enforced on every command whatever sent it: each joint
         # within its drive's range, the tool point's commanded speed within this.
         self.tool_speed_limit_m_s = config.plant.tool_speed_limit_m_s
@@ -188,6 +200,13 @@ class Plant:
         self._limit_cuts = (False, False)  # the last limit()'s (joint range, tool speed)
         # The tool speed the last command asked for (m/s, its motion before any cut).
         self.commanded_tool_speed_m_s = 0.0
+
+    def _init_measurements(self) -> None:
+        """What each step measures and keeps: the gripper's contacts and forces, the tool's
+        speed, the protective stop, the step counts and the gripper's and brake's state."""
+        self._step1_done = False  # prepare_step ran for the next step
+        # prepare_step's gripper contacts (see _find_gripper_contacts); None: not known.
+        self._gripper_contacts: list[GripperContact] | None = None
         # Measured after every step (what the state reports and the protective stop
         # judges): the net contact force on the gripper (N, world), its contacts, the part
         # of that force from everything but the free objects (the scene, the arm), and

@@ -176,6 +176,16 @@ class HapticLoop:
         self.outputs = outputs
         self.clock = clock
         self.lockstep = lockstep
+        self._init_servo(config)
+        self._init_feedback_channel(config)
+        self._init_robots(config)
+        self._init_run_state()
+        self._init_counters()
+        self._init_latency(config)
+
+    def _init_servo(self, config: Config) -> None:
+        """The bus period and the device's servo: how often it renders, and the limits it
+        renders within (a model's stiffness, the force's rate and size, the hand's age)."""
         self.tick_s = config.tick_s  # one tick: one sample out, one feedback in
         self.tick_ns = round(self.tick_s * NS_PER_S)
         # The device's servo: it renders the local contact model this often, a bus
@@ -195,6 +205,11 @@ class HapticLoop:
         self.peak_force_n = config.haptic.peak_force_n
         self.max_feedback_n = OVERSIZED_FEEDBACK_FACTOR * self.peak_force_n
         self.render_on_arrival = config.haptic.render_on_arrival
+
+    def _init_feedback_channel(self, config: Config) -> None:
+        """How the feedback crosses to the hand: the wave variables (teleop.stabiliser
+        "wave"), the emulated link's delay, the fade of stale feedback and the passivity
+        controller."""
         # teleop.stabiliser "wave": the feedback brings the robot's wave, not a force, and
         # the handle renders the channel's resistance and its own workspace spring.
         self.teleop_cfg = config.teleop
@@ -223,6 +238,10 @@ class HapticLoop:
             ),
             self.render_period_s,
         )
+
+    def _init_robots(self, config: Config) -> None:
+        """The hand inputs, and the robots the handle drives: which one, each one's newest
+        state, feedback and buttons, and the samples kept for its plant's re-sends."""
         self.hand_inputs: TickedInputs[HandFor] = TickedInputs()
         # Several robots (run.robots): the handle drives the selected one; the others
         # get a centred handle (their tool holds still) with the buttons they last had.
@@ -245,10 +264,15 @@ class HapticLoop:
         self.switches: list[dict[str, Any]] = []  # (tick, robot) of each switch
         self.switch_deferred_steps = 0  # steps a switch waited for the handle's deadband
         self.unselected_feedback = 0  # realtime: feedback of a robot not driven, not rendered
+
+    def _init_run_state(self) -> None:
+        """Where the run is: the realtime timer, and the ticks, stamps and hand-input wait
+        the input methods and the run thread share under :attr:`cond`."""
         self.timer: LoopTimer | None = None
         self._first_wake_ns = 0
         self._last_deadline_ns = 0  # realtime: the newest tick's start (the render grid)
-        # Everything below is shared by the input methods and the run thread.
+        # From here on shared by the input methods and the run thread (as are the
+        # counters and the latency bookkeeping).
         self.cond = threading.Condition()
         self._state_seq = -1  # newest plant tick of this run; -1: none yet
         self._run_start_ns = -1  # t_source_ns of this run's state 0 (a re-send repeats it)
@@ -260,7 +284,9 @@ class HapticLoop:
         self._operator_absent = False
         self._last_missing_valid_from: int | None = None
         self.record = HAPTIC_STATE.new()  # the last sample taken
-        # Counters for the summary.
+
+    def _init_counters(self) -> None:
+        """The counters and peaks of the summary, and the warnings given once."""
         self.steps = 0
         self.runs = 0
         self.lockstep_waits = 0
@@ -272,7 +298,12 @@ class HapticLoop:
         self.republished_states = 0
         self.max_force_n = 0.0
         self.max_abs_position_m = 0.0
-        # Realtime latency bookkeeping (stamps of the bilateral loop, feedback stream order).
+        self._warned_oversized = False
+        self._warned_no_operator = False
+
+    def _init_latency(self, config: Config) -> None:
+        """Realtime latency bookkeeping: the bilateral loop's stamps, and each robot's
+        feedback stream checked for order and age on its own."""
         self.trace_log = StampLog(N_STAGES)
         self.sample_log = StampLog(2)  # (HAPTIC_STATE seq, HAPTIC_SAMPLE ns)
         self._pending_trace: np.ndarray | None = None  # render at the next step
@@ -285,8 +316,6 @@ class HapticLoop:
             for robot in range(1, len(config.robot_ids()))
         ]  # fmt: skip
         self.feedback_superseded = 0  # replaced before the next step rendered it
-        self._warned_oversized = False
-        self._warned_no_operator = False
 
     # -- inputs ------------------------------------------------------------------------
     def on_state(self, rec: np.ndarray, robot: int = 0) -> None:
