@@ -106,8 +106,8 @@ class EyeViewConfig:
     height_px: int = 240
     # Vertical field of view (rad): a headset's, about 90 degrees.
     fov_y_rad: float = 1.5707963267948966
-    # Shadow mapping costs about 10x the rest of a software-rendered frame (60-67 ms
-    # against 6.5 ms at 320x240 with software GL), so it is off by default.
+    # Shadow mapping costs several times the rest of a software-rendered frame
+    # (docs/eye-view.md), so it is off by default.
     shadows: bool = False
     # PLANT_STATE batches are taken at most this often (Zenoh ingress downsampling): the
     # renderer needs one state per frame, not the plant's 1 kHz. 0: take every one.

@@ -257,8 +257,7 @@ class RecorderConfig:
     # Loop rates are counted over windows of this much of the producer's clock (s).
     rate_window_s: float = 1.0
     # Buffered samples are sent to Rerun in columns this often (s). Each flush costs about
-    # the same whatever it carries (a send per entity): measured, a lockstep grasp's
-    # recorder took 18.4 CPU s at 0.1 s and 10.2 at 0.5 s, and its run 62 -> 51 s.
+    # the same whatever it carries (a send per entity), so fewer flushes cost less CPU.
     flush_period_s: float = 0.5
     # The same while a live viewer watches (``spawn`` or ``grpc_url``): its plots move on
     # at every flush.
@@ -272,9 +271,8 @@ class RecorderConfig:
     # oldest closed segments are deleted, never the one being written, so a stack kept
     # up for a day holds its newest hours. At least two segments.
     keep_mb: float = 0.0
-    # Scheduling niceness (0 normal .. 19 lowest): a logger must not delay the loops.
-    # Measured, realtime grasp on 2 cores: 10 gave realtime factor 0.82-0.87 and 40-45 %
-    # plant overruns against 0.61-0.79 and 55-73 % at 0; lockstep unchanged (1.8x).
+    # Scheduling niceness (0 normal .. 19 lowest): a logger must not delay the loops,
+    # which on 2 cores share their CPUs with it (docs/faults.md on restart priorities).
     nice: int = 10
 
     @property
