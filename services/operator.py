@@ -1,4 +1,4 @@
-"""The operator service: :class:`teleop.devices.scripted.operator.ScriptedLoop` on the bus.
+"""The operator service: :class:`teleop.devices.scripted.loop.ScriptedLoop` on the bus.
 
 Inputs: TOOL_POSE and OBJECT_POSES (plant, every ``1 / scene_rate_hz``, stamped with
 ``sim_time_ns``; tick = sim_time_ns / timestep), HEAD_POSE (hmd, keyed by the tick its
@@ -6,7 +6,7 @@ predicted yaw applies from), RUN_EVENT STARTED and the liveliness tokens of the 
 the haptic device. Outputs: HAND_INPUT (to the haptic device) and RUN_EVENT PHASE /
 TASK_DONE. In a run of several robots (``run.robots``) each of these comes from, and
 goes to, every robot's keys: a loop per robot, the hand driving one at a time
-(:class:`teleop.devices.scripted.operator.ScriptedStation`).
+(:class:`teleop.devices.scripted.loop.ScriptedStation`).
 
 The Zenoh callbacks only store samples in the loop's observation buffer and queue the
 tool-pose ticks; one run thread hands them to the station in arrival order, so decisions
@@ -34,15 +34,15 @@ from teleop.bus.session import RecordCallback
 from teleop.core.clock import NS_PER_S
 from teleop.core.ring import Ring
 from teleop.devices.robot_outputs import RobotOutputs
-from teleop.devices.scripted.operator import (
+from teleop.devices.scripted.loop import (
     Arrival,
-    ObservationBuffer,
     PoseArrival,
     RunStarted,
-    Scenario,
     ScriptedLoop,
     ScriptedStation,
 )
+from teleop.devices.scripted.operator import ObservationBuffer
+from teleop.devices.scripted.scenario import Scenario
 
 logger = logging.getLogger(__name__)
 

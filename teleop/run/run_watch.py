@@ -25,7 +25,7 @@ from teleop.bus.session import (
 from teleop.bus.topics import Topics
 from teleop.core.config import SCRIPTED, Config
 from teleop.devices.person.loop import PHASES as PERSON_PHASES
-from teleop.devices.scripted.operator import Scenario
+from teleop.devices.scripted.scenario import Scenario
 from teleop.run.progress import RunProgress
 
 

@@ -57,8 +57,8 @@ from teleop.control.teleop import (
     position_condition_number,
 )
 from teleop.core.config import Config, PathConfig, SceneConfig
-from teleop.devices.scripted.operator import TOOL_ANCHOR, Scenario
 from teleop.devices.scripted.routing import SceneKnowledge, plan_route
+from teleop.devices.scripted.scenario import TOOL_ANCHOR, Scenario
 from teleop.sim.proximity import apply_scene_overrides, arm_collision_geoms, obstacle_geoms
 
 # --- Reachability -------------------------------------------------------------------------

@@ -12,22 +12,19 @@ import pytest
 from teleop.bus.messages import Button, Event
 from teleop.core.config import DEPLOY_DIR, Config, ConfigError, load_config
 from teleop.core.ticks import is_sample_tick
+from teleop.devices.scripted.loop import ScriptedLoop
 from teleop.devices.scripted.operator import (
     HandCommand,
     Observation,
     ObservationBuffer,
-    Phase,
-    Scenario,
-    ScenarioError,
-    ScriptedLoop,
     ScriptedOperator,
-    Target,
     critical_gain_per_s,
     hand_offset_for_velocity,
     resume_phase,
     rot_z,
 )
 from teleop.devices.scripted.routing import SceneKnowledge
+from teleop.devices.scripted.scenario import Phase, Scenario, ScenarioError, Target
 
 TIMESTEP_S = 0.001
 GRASP_FILE = DEPLOY_DIR / "scenarios" / "grasp.toml"

@@ -1,4 +1,4 @@
-"""The operator's hand over several robots (teleop.devices.scripted.operator.ScriptedStation):
+"""The operator's hand over several robots (teleop.devices.scripted.loop.ScriptedStation):
 which loop an arrival goes to, and when the hand moves on. The loops here are stand-ins
 that note what they are handed (the station's contract with ScriptedLoop); the whole
 operator on two robots runs in tests/e2e/test_robots.py."""
@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from teleop.devices.scripted.operator import PoseArrival, RunStarted, ScriptedStation
+from teleop.devices.scripted.loop import PoseArrival, RunStarted, ScriptedStation
 
 
 class NotingLoop:
