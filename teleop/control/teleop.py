@@ -590,18 +590,69 @@ class TeleopController:
         if terms is None:
             terms = self.prepare(q_rad, qd_rad_s, gripper_opening_m)
             arm_at_q = self._prepare_arm
-        tcfg, dt = self.teleop, self.period_s
-        tool_r = terms.world_r_tool
         v_ref = np.zeros(3) if clutch else np.asarray(world_v_ref_m_s, dtype=float)
+        task, orientation_error_rad = self._task_velocity(terms, v_ref, clutch)
+        qd_c = [sum(map(operator.mul, row, task)) for row in terms.task_to_qd_rows]
+        qd_c = self._limit_acceleration(qd_c, qd_rad_s)
+        obstacle_active = False
+        if obstacle is not None and obstacle.distance_m < self.teleop.obstacle_influence_m:
+            qd_c, obstacle_active = self._avoid(qd_c, obstacle, q_rad, arm_at_q)
+        if terms.null_push_rad_s is not None:
+            qd_c = list(map(operator.add, qd_c, terms.null_push_rad_s))
+        qd_c, scale, joint_limit_factor = self._slow_near_limits(qd_c, q_rad, terms)
+        # Last of the changes that turn the command: the speed caps below scale it as a
+        # whole, which keeps every close pair's approach within its cap.
+        held = 0
+        caps = list(terms.clearance_caps)
+        if caps:
+            held_qd, held = hold_clearance(np.array(qd_c), caps)
+            qd_c = held_qd.tolist()
+        qd_c, cap = self._cap_speeds(qd_c, terms)
+        scale *= cap
+
+        qd_ref = velocity_reference(
+            self.control, terms.compensation, qd_c, self._previous_qd_c, self.period_s
+        )
+        self._previous_qd_c = qd_c
+        if caps:
+            # As in path following: the compensation adds the velocity loops' dynamics to
+            # q'_c, and the reference the plant applies must keep the caps too.
+            qd_ref = hold_clearance(np.array(qd_ref), caps)[0].tolist()
+        return TeleopOutput(
+            qd_ref_rad_s=np.array(limit_speed(qd_ref, self._speed_limits_rad_s)[0]),
+            qd_c_rad_s=np.array(qd_c),
+            world_v_ref_m_s=v_ref,
+            world_v_tool_m_s=terms.world_v_tool_m_s,
+            world_p_tool_m=terms.world_p_tool_m,
+            speed_scale=scale,
+            joint_limit_scale=joint_limit_factor,
+            cond=terms.cond,
+            orientation_error_rad=orientation_error_rad,
+            obstacle_active=obstacle_active,
+            gripper_cmd=min(max(float(gripper_cmd), 0.0), 1.0),
+            held_pairs=held,
+        )
+
+    def _task_velocity(
+        self, terms: JointStateTerms, v_ref: np.ndarray, clutch: bool
+    ) -> tuple[tuple[float, ...], float]:
+        """The 6-D task velocity (world frame: m/s, then rad/s): the operator's reference
+        plus the position hold towards the integrated goal and the orientation hold
+        towards the held pose; and the orientation error's size (rad).
+
+        The goal integrates the reference but never runs away from a tool that the
+        safety scaling holds back (the hold would wind up): it stays within
+        POSITION_HOLD_MAX_ERROR_M of the tool."""
+        tool_r = terms.world_r_tool
         if self._r_des is None:
-            self._r_des = approach_down_orientation(tool_r) if tcfg.approach_down else tool_r.copy()
+            approach_down = self.teleop.approach_down
+            self._r_des = approach_down_orientation(tool_r) if approach_down else tool_r.copy()
             self._r_des.flags.writeable = False  # prepared terms keep it (held_r)
         px, py, pz = terms.world_p_tool_xyz_m
         vx, vy, vz = v_ref.tolist()
         if self._p_des is None or clutch:
             self._p_des = (px, py, pz)
-        # Integrate the operator's reference, but never let the goal run away from a tool
-        # that the safety scaling holds back (the hold would wind up).
+        dt = self.period_s
         gx, gy, gz = self._p_des
         ex, ey, ez = gx + vx * dt - px, gy + vy * dt - py, gz + vz * dt - pz
         error_norm = math.hypot(ex, ey, ez)
@@ -616,66 +667,47 @@ class TeleopController:
         rx, ry, rz = rotation_error.tolist()
         kp, kr = POSITION_HOLD_GAIN_PER_S, ORIENTATION_GAIN_PER_S
         task = (vx + kp * ex, vy + kp * ey, vz + kp * ez, kr * rx, kr * ry, kr * rz)
-        qd_c = [sum(map(operator.mul, row, task)) for row in terms.task_to_qd_rows]
-        qd_c = self._limit_acceleration(qd_c, qd_rad_s)
-        obstacle_active = False
-        if obstacle is not None and obstacle.distance_m < tcfg.obstacle_influence_m:
-            qd_c, obstacle_active = self._avoid(qd_c, obstacle, q_rad, arm_at_q)
-        if terms.null_push_rad_s is not None:
-            qd_c = list(map(operator.add, qd_c, terms.null_push_rad_s))
+        return task, math.hypot(rx, ry, rz)
 
+    def _slow_near_limits(
+        self, qd_c: list[float], q_rad: np.ndarray, terms: JointStateTerms
+    ) -> tuple[list[float], float, float]:
+        """The command slowed on its way towards a singularity and scaled joint by joint
+        near the joint limits; returns it, the singularity's speed scale and the smallest
+        joint-limit factor (1: neither acted)."""
         cond = terms.cond
         scale = 1.0
-        if cond > tcfg.singularity_slowdown_cond and self._toward_singularity(q_rad, qd_c, cond):
-            scale = singularity_scale(cond, tcfg)
+        if cond > self.teleop.singularity_slowdown_cond and self._toward_singularity(
+            q_rad, qd_c, cond
+        ):
+            scale = singularity_scale(cond, self.teleop)
             qd_c = [qd * scale for qd in qd_c]
         limit_factors = self._joint_limit_factors(terms.q_rad, qd_c)
         joint_limit_factor = min(limit_factors)
         if joint_limit_factor < 1.0:
             qd_c = list(map(operator.mul, qd_c, limit_factors))
-        # Last of the changes that turn the command: the speed caps below scale it as a
-        # whole, which keeps every close pair's approach within its cap.
-        held = 0
-        caps = list(terms.clearance_caps)
-        if caps:
-            held_qd, held = hold_clearance(np.array(qd_c), caps)
-            qd_c = held_qd.tolist()
-        # The drives track with a small lag; when the tool moved faster than it was told
-        # last cycle, command that much less so the MEASURED speed respects the cap.
+        return qd_c, scale, joint_limit_factor
+
+    def _cap_speeds(self, qd_c: list[float], terms: JointStateTerms) -> tuple[list[float], float]:
+        """The command scaled as a whole under the tool-speed cap and the joints' speed
+        limits; returns it and the tool-speed cap's factor (1: not capped).
+
+        The drives track with a small lag: when the tool moved faster than it was told
+        last cycle, the cap is that much lower, so the MEASURED speed respects it."""
         overshoot = terms.measured_tool_speed_m_s - self._previous_tool_speed
-        max_speed = tcfg.max_tool_speed_m_s - max(0.0, overshoot)
+        max_speed = self.teleop.max_tool_speed_m_s - max(0.0, overshoot)
         tool_speed = math.hypot(
             *[sum(map(operator.mul, row, qd_c)) for row in terms.jacobian_position_rows]
         )
+        cap = 1.0
         if tool_speed > max_speed:
             cap = max(0.0, max_speed) / tool_speed
             qd_c = [qd * cap for qd in qd_c]
-            scale *= cap
             tool_speed *= cap
         qd_c, ratio = limit_speed(qd_c, self._speed_limits_rad_s)
         # Both limits scale the whole vector, so the tool speed scales with it.
         self._previous_tool_speed = tool_speed / ratio
-
-        qd_ref = velocity_reference(self.control, terms.compensation, qd_c, self._previous_qd_c, dt)
-        self._previous_qd_c = qd_c
-        if caps:
-            # As in path following: the compensation adds the velocity loops' dynamics to
-            # q'_c, and the reference the plant applies must keep the caps too.
-            qd_ref = hold_clearance(np.array(qd_ref), caps)[0].tolist()
-        return TeleopOutput(
-            qd_ref_rad_s=np.array(limit_speed(qd_ref, self._speed_limits_rad_s)[0]),
-            qd_c_rad_s=np.array(qd_c),
-            world_v_ref_m_s=v_ref,
-            world_v_tool_m_s=terms.world_v_tool_m_s,
-            world_p_tool_m=terms.world_p_tool_m,
-            speed_scale=scale,
-            joint_limit_scale=joint_limit_factor,
-            cond=cond,
-            orientation_error_rad=math.hypot(rx, ry, rz),
-            obstacle_active=obstacle_active,
-            gripper_cmd=min(max(float(gripper_cmd), 0.0), 1.0),
-            held_pairs=held,
-        )
+        return qd_c, cap
 
     def _avoid(
         self,
