@@ -287,20 +287,8 @@ class PathFollowingController:
         ctl = self.control
         tool_p, jacobian = tool_position_and_jacobian(self.arm, q_rad)
         s = self._track(tool_p)
-        px, py, pz = tool_p.tolist()
         desired = self.path.point(s)
-        ex, ey, ez = desired[0] - px, desired[1] - py, desired[2] - pz
-        error_norm = math.sqrt(ex * ex + ey * ey + ez * ez)
-        (tx, ty, tz), _ = self.path.derivatives(s)
-        speed = ctl.path_speed_m_s / (1.0 + ctl.speed_error_gain_per_m * error_norm)
-        along = speed / math.sqrt(tx * tx + ty * ty + tz * tz)
-        e0 = ctl.position_saturation_m
-        pull = ctl.position_gain_per_s * e0
-        v_task = (
-            tx * along + pull * math.tanh(ex / e0),
-            ty * along + pull * math.tanh(ey / e0),
-            tz * along + pull * math.tanh(ez / e0),
-        )
+        v_task, error_norm, speed = self._task_velocity(tool_p, desired, s)
 
         # J# v + (I - J# J) g, g the null-space objective: maximise the manipulability and,
         # with clearance.avoid, push links away from what is near and joints off their limits.
@@ -356,6 +344,28 @@ class PathFollowingController:
             clearance=clearance,
             held_pairs=held,
         )
+
+    def _task_velocity(
+        self, tool_p_m: np.ndarray, desired_p_m: tuple[float, float, float], s: float
+    ) -> tuple[tuple[float, float, float], float, float]:
+        """v_hd + K e0 tanh(h~ / e0): the path's tangent at the speed v_P / (1 + k |h~|)
+        plus the saturated pull back onto the path (world frame, m/s); with |h~| (m) and
+        that speed (m/s)."""
+        ctl = self.control
+        px, py, pz = tool_p_m.tolist()
+        ex, ey, ez = desired_p_m[0] - px, desired_p_m[1] - py, desired_p_m[2] - pz
+        error_norm = math.sqrt(ex * ex + ey * ey + ez * ez)
+        (tx, ty, tz), _ = self.path.derivatives(s)
+        speed = ctl.path_speed_m_s / (1.0 + ctl.speed_error_gain_per_m * error_norm)
+        along = speed / math.sqrt(tx * tx + ty * ty + tz * tz)
+        e0 = ctl.position_saturation_m
+        pull = ctl.position_gain_per_s * e0
+        v_task = (
+            tx * along + pull * math.tanh(ex / e0),
+            ty * along + pull * math.tanh(ey / e0),
+            tz * along + pull * math.tanh(ez / e0),
+        )
+        return v_task, error_norm, speed
 
     def _track(self, tool_p_m: np.ndarray) -> float:
         """The path parameter s* of the point closest to the tool, followed from the last
