@@ -194,38 +194,7 @@ def access_control(
     recovered = {s.key for s in graph.STREAMS if s.recovered}
     rules, subjects, policies = [], [], []
     for name, cred in credentials.items():
-        role, robots = participant_robots(name, robot_ids)
-        own = [f"{ROOT}/{robot_id}" for robot_id in robots]
-        produces, consumes = rights(role)
-        produced = [f"{p}/{key}" for p in own for key in produces]
-        consumed = [f"{p}/{key}" for p in own for key in consumes]
-        own_tokens = [f"{p}/{kind}/{graph.role_of(role)}" for p in own
-                      for kind in (ALIVE_TOKEN, READY_TOKEN)]  # fmt: skip
-        # The version this stack speaks, and no other: a client that reads it can trust it.
-        own_tokens += [f"{p}/{PROTOCOL_TOKEN}/{PROTOCOL_VERSION}" for p in own]
-        mine = [
-            _rule(f"{name}-tokens", ["liveliness_token"], "ingress", own_tokens),
-            _rule(f"{name}-peer-tokens", ["liveliness_token"], "egress", tokens),
-            _rule(f"{name}-watch-in", _LIVELINESS_WATCH, "ingress", tokens),
-            _rule(f"{name}-watch-out", _LIVELINESS_WATCH, "egress", tokens),
-        ]
-        if produced:
-            mine += [
-                _rule(f"{name}-publishes", ["put"], "ingress", produced),
-                _rule(f"{name}-is-subscribed", ["declare_subscriber"], "egress", produced),
-            ]
-        if consumed:
-            mine += [
-                _rule(f"{name}-subscribes", ["declare_subscriber"], "ingress", consumed),
-                _rule(f"{name}-receives", ["put"], "egress", consumed),
-            ]
-        mine += _recovery_rules(
-            name,
-            [k for k in produced if k.split("/", 2)[2] in recovered],
-            [k for k in consumed if k.split("/", 2)[2] in recovered],
-        )
-        if graph.is_router(name):  # forwards the other sites' tokens
-            mine.append(_rule(f"{name}-forwards-tokens", ["liveliness_token"], "ingress", tokens))
+        mine = _participant_rules(name, robot_ids, tokens, recovered)
         rules += mine
         if tls:  # both authenticated by TLS together: the name and this session
             mine_subjects = [
@@ -248,6 +217,48 @@ def access_control(
         "subjects": subjects,
         "policies": policies,
     }
+
+
+def _participant_rules(
+    name: str, robot_ids: Sequence[str], tokens: list[str], recovered: set[str]
+) -> list[dict[str, Any]]:
+    """The rules of one participant ``name``: its tokens, the puts and subscriptions of
+    the streams its role produces and consumes, the queries that recover ``recovered``
+    streams, under the keys of the robots it acts for; a router also forwards the other
+    sites' ``tokens``."""
+    role, robots = participant_robots(name, robot_ids)
+    own = [f"{ROOT}/{robot_id}" for robot_id in robots]
+    produces, consumes = rights(role)
+    produced = [f"{p}/{key}" for p in own for key in produces]
+    consumed = [f"{p}/{key}" for p in own for key in consumes]
+    own_tokens = [f"{p}/{kind}/{graph.role_of(role)}" for p in own
+                  for kind in (ALIVE_TOKEN, READY_TOKEN)]  # fmt: skip
+    # The version this stack speaks, and no other: a client that reads it can trust it.
+    own_tokens += [f"{p}/{PROTOCOL_TOKEN}/{PROTOCOL_VERSION}" for p in own]
+    mine = [
+        _rule(f"{name}-tokens", ["liveliness_token"], "ingress", own_tokens),
+        _rule(f"{name}-peer-tokens", ["liveliness_token"], "egress", tokens),
+        _rule(f"{name}-watch-in", _LIVELINESS_WATCH, "ingress", tokens),
+        _rule(f"{name}-watch-out", _LIVELINESS_WATCH, "egress", tokens),
+    ]
+    if produced:
+        mine += [
+            _rule(f"{name}-publishes", ["put"], "ingress", produced),
+            _rule(f"{name}-is-subscribed", ["declare_subscriber"], "egress", produced),
+        ]
+    if consumed:
+        mine += [
+            _rule(f"{name}-subscribes", ["declare_subscriber"], "ingress", consumed),
+            _rule(f"{name}-receives", ["put"], "egress", consumed),
+        ]
+    mine += _recovery_rules(
+        name,
+        [k for k in produced if k.split("/", 2)[2] in recovered],
+        [k for k in consumed if k.split("/", 2)[2] in recovered],
+    )
+    if graph.is_router(name):  # forwards the other sites' tokens
+        mine.append(_rule(f"{name}-forwards-tokens", ["liveliness_token"], "ingress", tokens))
+    return mine
 
 
 def write_private(path: Path, text: str) -> None:
