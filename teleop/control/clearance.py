@@ -37,7 +37,7 @@ import numpy as np
 import pinocchio as pin
 
 from teleop.control.kinematics import ArmModel, point_jacobian_along
-from teleop.core.config import ClearanceConfig, Config, ModelError
+from teleop.core.config import ClearanceConfig, Config, ModelError, RobotConfig
 from teleop.sim.contact import finger_bodies
 from teleop.sim.proximity import apply_scene_overrides, arm_collision_geoms
 
@@ -203,6 +203,25 @@ class ClearanceModel:
         self.model = mujoco.MjModel.from_xml_path(str(robot.scene_path))
         apply_scene_overrides(self.model, config.scene, robot)
         self.data = mujoco.MjData(self.model)
+        joints = self._index_joints(robot)
+        link = _link_index(self.model, set(joints))
+        scene_arm_geoms = self._sort_geoms(robot, arm, link)
+        self._scene_lo, self._scene_hi = self._scene_boxes()
+        body = self.model.geom_bodyid
+        candidates = [
+            (a, b)
+            for i, a in enumerate(self.arm_geoms)
+            for b in self.arm_geoms[i + 1 :]
+            if abs(link[int(body[a])] - link[int(body[b])]) >= 2
+        ]
+        self.self_pairs = self._reachable_pairs(candidates, self.config.self_slowdown_m)
+        self._prepare_broad_phase(scene_arm_geoms)
+        self._fromto = np.zeros(6)
+        self.queries = 0  # mj_geomDistance calls (cost accounting)
+
+    def _index_joints(self, robot: RobotConfig) -> list[int]:
+        """The arm's joint ids; where the arm's and the fingers' positions are in qpos, and
+        each finger's open slide (m)."""
         model = self.model
         joints = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, n) for n in robot.arm_joints]
         if min(joints) < 0:
@@ -212,13 +231,18 @@ class ClearanceModel:
         self._qpos_at = (
             slice(self._qpos_index[0], self._qpos_index[-1] + 1) if contiguous else self._qpos_index
         )
-        fingers = finger_bodies(model, robot)
         finger_joint = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, robot.gripper_joints[0])
         self.open_m = float(model.jnt_range[finger_joint][1])  # each finger's slide, open
         self._finger_qpos_index = [
             int(model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, n)])
             for n in robot.gripper_joints
         ]
+        return joints
+
+    def _sort_geoms(self, robot: RobotConfig, arm: ArmModel, link: dict[int, int]) -> list[int]:
+        """The arm's collision geoms (each with its Pinocchio frame), the static scene's,
+        and the arm geoms that meet the scene (returned), each a finger's or not."""
+        model = self.model
         self.arm_geoms = arm_collision_geoms(model, robot)
         arm_set = set(self.arm_geoms)
         self.scene_geoms = [
@@ -228,7 +252,6 @@ class ClearanceModel:
             and (model.geom_contype[g] or model.geom_conaffinity[g])
             and model.body_weldid[model.geom_bodyid[g]] == 0
         ]
-        link = _link_index(model, set(joints))
         # The scene is link 0: the first link only turns on its base, at a fixed distance
         # from it and from everything around the base's axis (adjacent links, as below).
         scene_arm_geoms = [g for g in self.arm_geoms if link[int(model.geom_bodyid[g])] >= 2]
@@ -239,19 +262,16 @@ class ClearanceModel:
             if not arm.model.existFrame(name, pin.FrameType.BODY):
                 raise ModelError(f"arm body {name!r} has no Pinocchio frame")
             self._frames[g] = arm.model.getFrameId(name, pin.FrameType.BODY)
+        fingers = finger_bodies(model, robot)
         finger_geoms = {g for g in self.arm_geoms if int(model.geom_bodyid[g]) in fingers}
         self._scene_kinds = [
             PairKind.FINGER if g in finger_geoms else PairKind.SCENE for g in scene_arm_geoms
         ]
-        self._scene_lo, self._scene_hi = self._scene_boxes()
-        candidates = [
-            (a, b)
-            for i, a in enumerate(self.arm_geoms)
-            for b in self.arm_geoms[i + 1 :]
-            if abs(link[int(model.geom_bodyid[a])] - link[int(model.geom_bodyid[b])]) >= 2
-        ]
-        self.self_pairs = self._reachable_pairs(candidates, self.config.self_slowdown_m)
-        # The broad phase's index arrays and squared reach (cutoff + bounding radii).
+        return scene_arm_geoms
+
+    def _prepare_broad_phase(self, scene_arm_geoms: list[int]) -> None:
+        """The broad phase's index arrays and squared reach (cutoff + bounding radii)."""
+        model = self.model
         cutoff = self.config.influence_m
         self._arm_index = np.array(scene_arm_geoms, dtype=int)
         self._scene_arm_list = scene_arm_geoms
@@ -263,8 +283,6 @@ class ClearanceModel:
         self._self_reach_sq = (
             cutoff + model.geom_rbound[self._self_a] + model.geom_rbound[self._self_b]
         ) ** 2
-        self._fromto = np.zeros(6)
-        self.queries = 0  # mj_geomDistance calls (cost accounting)
 
     def _scene_boxes(self) -> tuple[np.ndarray, np.ndarray]:
         """World boxes (lo, hi), each (m, 3), of the static scene geoms: they never move,
