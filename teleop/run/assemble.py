@@ -14,7 +14,7 @@ from teleop.bus import graph
 from teleop.bus.graph import EYEVIEW, PLANT
 from teleop.bus.service import read_summary
 from teleop.core.config import Config
-from teleop.core.criteria import judge_task
+from teleop.core.criteria import TaskFigures, judge_task
 from teleop.core.rundir import LOG_DIR, idle_poll_status_path, summary_path
 from teleop.core.summary import CONTROLLER, GRASP, PATH, copied_fields
 from teleop.run.failure import RunError
@@ -154,7 +154,7 @@ def run_health(
         drops=drop_lines(dropped_by),
         unlinked_peers=dict(unlinked),
     )
-    return health.as_dict()
+    return health.to_json()
 
 
 def robot_view(
@@ -198,7 +198,7 @@ def robot_section(
     figures["commands_applied"] = plant.get("commands_applied")
     # The task's criteria (teleop.core.criteria) and the problems: the one verdict, which
     # the summary holds enough to give again (criteria.judge_summary).
-    verdict = judge_task(config.run.scenario, figures, problems).summary()
+    verdict = judge_task(config.run.scenario, TaskFigures.from_json(figures), problems).to_json()
     sim_s = (plant.get("steps") or 0) * config.tick_s
     return {
         **figures,

@@ -34,7 +34,7 @@ from teleop.core import markdown
 from teleop.core.config import SCENARIOS, Config, load_config, scenario_spec
 from teleop.core.criteria import FAIL, UNAVAILABLE, event_reasons, judge_summary
 from teleop.core.rundir import RECORDING_FILE, RUN_SUMMARY_FILE
-from teleop.core.summary import write_run_summary
+from teleop.core.summary import RunSummary, write_run_summary
 from teleop.run.tasks import (
     Generated,
     GraspTask,
@@ -90,14 +90,14 @@ def run_job(job: Job) -> dict[str, Any]:
         )
         return record
     record.update(
-        **judge_record(summary),
-        figures={key: summary.get(key) for key in kind_of(job.kind).figures if key in summary},
+        **judge_record(RunSummary.from_json(summary)),
+        figures={key: summary[key] for key in kind_of(job.kind).figures if key in summary},
         wall_s=time.perf_counter() - start,
     )
     return record
 
 
-def judge_record(summary: Mapping[str, Any]) -> dict[str, Any]:
+def judge_record(summary: RunSummary) -> dict[str, object]:
     """A task's ``success``, ``criteria`` and ``reasons`` from its run's summary: the
     run's own verdict (criteria.judge_summary), and every criterion measured besides. The
     reasons say why a task failed: the failed criteria, then what the run said went
@@ -110,7 +110,8 @@ def judge_record(summary: Mapping[str, Any]) -> dict[str, Any]:
         reasons = [*verdict.failed, *told]
         if not reasons:
             reasons = [f"unmeasured: {', '.join(verdict.unmeasured)}"]
-    return {"success": success, "criteria": verdict.summary()["criteria"], "reasons": reasons}
+    criteria = [c.to_json() for c in verdict.criteria]
+    return {"success": success, "criteria": criteria, "reasons": reasons}
 
 
 def _run_started(job: Job, record: dict[str, Any]) -> dict[str, Any]:

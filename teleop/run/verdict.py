@@ -147,7 +147,8 @@ class Health:
     verdict: str
     problems: tuple[str, ...]
 
-    def as_dict(self) -> dict[str, Any]:
+    def to_json(self) -> dict[str, object]:
+        """The summary's ``realtime_verdict`` and ``realtime_problems``."""
         return {"realtime_verdict": self.verdict, "realtime_problems": list(self.problems)}
 
 
