@@ -363,7 +363,7 @@ class RunSummary:
 
     def to_json(self) -> dict[str, object]:
         """The JSON object of this record: the fields it was written with, in their order."""
-        return {name: _json_value(getattr(self, name)) for name in self.written}
+        return {name: json_value(getattr(self, name)) for name in self.written}
 
     def section(self, robot_id: str) -> RunSummary:
         """Robot ``robot_id``'s section of a run of several robots over the run's own fields
@@ -394,14 +394,14 @@ def _objects(name: str, value: object) -> list[Mapping[str, object]]:
     return items
 
 
-def _json_value(value: object) -> object:
+def json_value(value: object) -> object:
     """A field's value as JSON: tuples as arrays, records as their objects."""
     if isinstance(value, Criterion | RunSummary):
         return value.to_json()
     if isinstance(value, tuple):
-        return [_json_value(item) for item in value]
+        return [json_value(item) for item in value]
     if isinstance(value, Mapping) and any(isinstance(v, RunSummary) for v in value.values()):
-        return {key: _json_value(item) for key, item in value.items()}
+        return {key: json_value(item) for key, item in value.items()}
     return value
 
 
