@@ -248,6 +248,38 @@ def record_of(role: str, content: Mapping[str, object]) -> ServiceSummary:
     return RECORDS.get(role, ServiceSummary).from_json(content)
 
 
+def record_problems(role: str, content: Mapping[str, object]) -> list[str]:
+    """What in a service of ``role``'s summary JSON its record does not read as its type
+    gives it: a field of another JSON type (empty: the record reads it all). The tests
+    check every service's summary a run writes with it."""
+    record = RECORDS.get(role, ServiceSummary)
+    hints = typing.get_type_hints(record)
+    problems = []
+    for f in dataclasses.fields(record):
+        value = content.get(f.name)
+        if f.name == "earlier_incarnations":
+            for earlier in _sequence(value):
+                problems += [f"earlier: {p}" for p in record_problems(role, _mapping(earlier))]
+        elif value is not None and not _is_json_of(value, hints[f.name]):
+            problems.append(f"{role}.{f.name}: {type(value).__name__}, not {hints[f.name]}")
+    return problems
+
+
+def _is_json_of(value: object, hint: object) -> bool:
+    """Whether JSON ``value`` is of the type ``hint`` (``T | None``) gives a field."""
+    outer = next(a for a in typing.get_args(hint) if a is not type(None))
+    origin = typing.get_origin(outer) or outer
+    if origin is tuple:
+        return isinstance(value, list)
+    if origin is Mapping:
+        return isinstance(value, dict)
+    if origin is float:
+        return isinstance(value, int | float) and not isinstance(value, bool)
+    if origin is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, origin)
+
+
 def _is_tuple(hint: object) -> bool:
     return any(typing.get_origin(a) is tuple for a in (hint, *typing.get_args(hint)))
 

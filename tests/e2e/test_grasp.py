@@ -35,7 +35,7 @@ from teleop.viz.report import write_reports
 from teleop.viz.rrd import Recording
 from teleop.viz.scene3d import ENTITY_GHOSTS, SceneModel
 from tests.e2e.hosts import HostsUnavailable, two_hosts
-from tests.e2e.outcome import assert_ran, needs_realtime_stack
+from tests.e2e.outcome import assert_ran, needs_realtime_stack, services_record_problems
 from tests.e2e.sites import TwoSites
 from tests.e2e.users import HANG_S, USER, UserEnv
 from tests.rerun_check import rerun_verify_problems
@@ -102,6 +102,7 @@ def finish_grasps(started: dict[str, Started]) -> dict[str, dict]:
         assert run.out.exists(), stderr[-3000:]
         summary = json.loads(run.out.read_text())
         assert summary_problems(summary) == []  # as teleop.core.summary describes it
+        assert services_record_problems(summary) == []  # as their records read them
         if summary["success"]:
             assert_ran(run.process.returncode, summary, stderr)
         else:
