@@ -108,6 +108,7 @@ class PlantSummary(ServiceSummary):
     """The plant's (teleop.sim.stepping, services/plant.py)."""
 
     mode: str | None = None
+    finished: bool | None = None  # the run went to its end
     steps: int | None = None
     wall_s: float | None = None
     realtime_factor: float | None = None

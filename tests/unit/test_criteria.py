@@ -156,10 +156,10 @@ def test_run_sweep_and_report_give_a_summary_one_verdict(scenario, figures, prob
     assert again.to_json() == {
         k: summary[k] for k in ("success", "criteria", "problems", "reasons")
     }
-    record = sweep.judge_record(read)
-    assert record["success"] is (summary["success"] and again.complete)
-    if not record["success"]:
-        assert record["reasons"]  # never a silent failure
+    success, _, reasons = sweep.judge_record(read)
+    assert success is (summary["success"] and again.complete)
+    if not success:
+        assert reasons  # never a silent failure
     section = "\n".join(verdict_text(read))
     assert f"- task: {'success' if summary['success'] else 'failed'}" in section
     assert all(f"- problem: {p}" in section for p in problems)
