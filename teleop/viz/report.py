@@ -519,19 +519,22 @@ def write_reports(
     rrd_path: str | Path,
     out_dir: str | Path | None = None,
     settle_s: float = DEFAULT_SETTLE_S,
-    run_summary: RunSummary | None = None,
+    run_summary: RunSummary | Mapping[str, object] | None = None,
 ) -> list[Report]:
     """Read ``rrd_path`` back and write the figures and ``report.md`` of each robot it
     holds: into ``out_dir`` (default: ``<stem>_report/`` beside it) for one robot, into
-    ``out_dir/<robot id>/`` each for several. With ``run_summary`` (the run's summary;
-    default: the ``summary.json`` beside the recording, if any) each report opens with
-    its robot's verdict. SummaryError if that file is no run summary of this version."""
+    ``out_dir/<robot id>/`` each for several. With ``run_summary`` (the run's summary:
+    its record, or the JSON a run just made; default: the ``summary.json`` beside the
+    recording, if any) each report opens with its robot's verdict. SummaryError if that
+    file is no run summary of this version."""
     path = Path(rrd_path)
     if not path.is_file():
         raise FileNotFoundError(f"no recording {path}")
     beside = path.parent / RUN_SUMMARY_FILE
     if run_summary is None and beside.exists():
         run_summary = read_run_summary(beside)
+    elif run_summary is not None and not isinstance(run_summary, RunSummary):
+        run_summary = RunSummary.from_json(run_summary)
     out = Path(out_dir) if out_dir is not None else default_out_dir(path)
     rec = rrd.Recording(path)
     roots = rec.robots or [""]
