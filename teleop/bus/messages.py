@@ -31,11 +31,11 @@ import sys
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from teleop.core import markdown
+from teleop.core.service_summaries import Drops
 
 logger = logging.getLogger(__name__)
 
@@ -809,16 +809,16 @@ class DropCounter:
         with self._lock:
             return dict(self._counts)
 
-    def by_key(self) -> dict[str, dict[str, Any]]:
-        """What a summary reports: ``counts`` and the ``first`` one's detail (a version
+    def by_key(self) -> Drops:
+        """What a summary reports: the counts and the first one's detail (a version
         drop's: "<its version>, expected <ours>") by ``"KIND:reason"`` (the record
         kind's name and :class:`Reason`), one snapshot."""
         with self._lock:
             counts, details = dict(self._counts), dict(self._first_details)
-        return {
-            "counts": {f"{Kind(k).name}:{r}": n for (k, r), n in sorted(counts.items())},
-            "first": {f"{Kind(k).name}:{r}": d for (k, r), d in sorted(details.items())},
-        }
+        return Drops(
+            counts={f"{Kind(k).name}:{r}": n for (k, r), n in sorted(counts.items())},
+            first={f"{Kind(k).name}:{r}": d for (k, r), d in sorted(details.items())},
+        )
 
     @property
     def total(self) -> int:

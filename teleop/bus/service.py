@@ -260,8 +260,8 @@ class Service:
             "dropped_messages": self.drops.total,
             # every rejected record, by record kind and reason (DecodeError / Reason), and
             # the first of each: what it was (a version drop: its version and ours)
-            "dropped_by_reason": drops["counts"],
-            "dropped_first": drops["first"],
+            "dropped_by_reason": dict(drops.counts),
+            "dropped_first": dict(drops.first),
             "cpu_s": time.process_time(),
             "cpu_s_ready": self.cpu_s_ready,
             # per stream taken newest-only (realtime): records taken, and skipped because

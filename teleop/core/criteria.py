@@ -1,8 +1,8 @@
 """A task's success criteria: one verdict for ``teleop run``, ``teleop sweep`` and the
 report.
 
-Pure functions of a run's summary (the dict ``teleop run`` writes), so a unit test judges
-one without running anything:
+Pure functions of typed records (a run's :class:`~teleop.core.summary.RunSummary`, the
+:class:`TaskFigures` it is judged by), so a unit test judges one without running anything:
 
 - path following: path error RMS <= 1 mm and max <= 3 mm after settling,
   ``path_progress`` >= 0.95, no unintended contact (``arm_contacts`` == 0);
@@ -22,10 +22,10 @@ tasks: every criterion measured as well (:attr:`TaskVerdict.complete`).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
-from typing import Any
+from dataclasses import dataclass
 
 from teleop.core.config import scenario_spec
+from teleop.core.summary import Criterion, RunSummary
 
 # Path following.
 MAX_PATH_ERROR_RMS_M = 1e-3
@@ -37,15 +37,6 @@ MAX_DEVICE_FORCE_N = 8.0
 SATURATED_N = 0.01
 
 PASS, FAIL, UNAVAILABLE = "pass", "fail", "unavailable"
-
-
-@dataclass(frozen=True)
-class Criterion:
-    """One success criterion of one task: ``status`` pass, fail or unavailable."""
-
-    name: str
-    status: str
-    detail: str
 
 
 @dataclass(frozen=True)
@@ -80,32 +71,32 @@ class TaskVerdict:
         """Every criterion was measured."""
         return not self.unmeasured
 
-    def summary(self) -> dict[str, Any]:
-        """The summary's ``success``, ``criteria``, ``problems`` and ``reasons``: with the
-        figures, all :func:`judge_summary` needs to judge the run again, the same way."""
+    def to_json(self) -> dict[str, object]:
+        """The summary's ``success``, ``criteria``, ``problems`` and ``reasons`` (JSON):
+        with the figures, all :func:`judge_summary` needs to judge the run again, the same
+        way."""
         return {
             "success": self.success,
-            "criteria": [asdict(c) for c in self.criteria],
+            "criteria": [c.to_json() for c in self.criteria],
             "problems": list(self.problems),
             "reasons": self.reasons,
         }
 
 
-def _number(summary: Mapping[str, Any], key: str) -> float | None:
-    value = summary.get(key)
+def _number(value: object) -> float | None:
     return None if value is None else float(value)
 
 
-def _count(summary: Mapping[str, Any], key: str) -> int | None:
-    value = summary.get(key)
+def _count(value: object) -> int | None:
     return None if value is None else int(value)
 
 
 @dataclass(frozen=True)
 class TaskFigures:
     """The figures a task is judged by, as a run's summary gives them (None: the run did
-    not report it, and its criterion is unavailable, never passed). Read from the
-    summary's JSON once (:meth:`of`); the criteria read this record."""
+    not report it, and its criterion is unavailable, never passed): :meth:`of` a run's
+    record, or :meth:`from_json` the figures a run is assembling; the criteria read this
+    record."""
 
     path_error_rms_m: float | None = None
     path_error_max_m: float | None = None
@@ -118,20 +109,26 @@ class TaskFigures:
     max_device_force_n: float | None = None
 
     @classmethod
-    def of(cls, summary: Mapping[str, Any]) -> TaskFigures:
-        """The figures of a summary (a run's, or a robot's section of one)."""
-        in_box = summary.get("object_in_box")
+    def of(cls, summary: RunSummary) -> TaskFigures:
+        """The figures of a run's summary (or of a robot's section of one)."""
+        in_box = summary.object_in_box
         return cls(
-            path_error_rms_m=_number(summary, "path_error_rms_m"),
-            path_error_max_m=_number(summary, "path_error_max_m"),
-            path_progress=_number(summary, "path_progress"),
-            arm_contacts=_count(summary, "arm_contacts"),
-            commands_applied=_count(summary, "commands_applied"),
-            commands_received=_count(summary, "commands_received"),
+            path_error_rms_m=_number(summary.path_error_rms_m),
+            path_error_max_m=_number(summary.path_error_max_m),
+            path_progress=_number(summary.path_progress),
+            arm_contacts=_count(summary.arm_contacts),
+            commands_applied=_count(summary.commands_applied),
+            commands_received=_count(summary.commands_received),
             object_in_box=None if in_box is None else bool(in_box),
-            object_bin_distance_m=_number(summary, "object_bin_distance_m"),
-            max_device_force_n=_number(summary, "max_device_force_n"),
+            object_bin_distance_m=_number(summary.object_bin_distance_m),
+            max_device_force_n=_number(summary.max_device_force_n),
         )
+
+    @classmethod
+    def from_json(cls, figures: Mapping[str, object]) -> TaskFigures:
+        """The figures of a summary's JSON (the figures a run assembles, before it writes
+        them); SummaryError if one has another type than the summary gives it."""
+        return cls.of(RunSummary.from_json(figures))
 
 
 def _at_most(value: float | None, key: str, bound: float, unit: str, scale: float,
@@ -215,37 +212,36 @@ def judge_grasp(figures: TaskFigures) -> list[Criterion]:
     return [bin_c, _no_contact(figures), force_c, _commands_applied(figures)]
 
 
-def judge_task(
-    scenario: str, summary: Mapping[str, Any], problems: Sequence[str] = ()
-) -> TaskVerdict:
-    """``summary`` of a ``scenario`` run judged by its criteria; ``problems``: what the
-    run itself said went wrong."""
-    figures = TaskFigures.of(summary)
+def judge_task(scenario: str, figures: TaskFigures, problems: Sequence[str] = ()) -> TaskVerdict:
+    """The ``figures`` of a ``scenario`` run judged by its criteria; ``problems``: what
+    the run itself said went wrong."""
     teleoperated = scenario_spec(scenario).teleoperated
     criteria = judge_grasp(figures) if teleoperated else judge_path(figures)
     return TaskVerdict(tuple(criteria), tuple(problems))
 
 
-def judge_summary(summary: Mapping[str, Any]) -> TaskVerdict:
+def judge_summary(summary: RunSummary) -> TaskVerdict:
     """A run's summary (as ``teleop run`` writes it: its ``scenario``, figures and
     ``problems``) judged again: the one verdict ``teleop run`` gave it, and the one the
     sweep and the report give it. KeyError if it names no scenario."""
-    return judge_task(summary["scenario"], summary, summary.get("problems") or ())
+    if summary.scenario is None:
+        raise KeyError("scenario")
+    return judge_task(summary.scenario, TaskFigures.of(summary), summary.problems or ())
 
 
-def event_reasons(summary: Mapping[str, Any]) -> list[str]:
+def event_reasons(summary: RunSummary) -> list[str]:
     """What the run itself said went wrong: the operator's failure reason and the run's
     events (stall, unintended contact, singularity, out of reach), when it reports them."""
     reasons = []
-    if summary.get("failure"):  # the plant ended the run (teleop.sim.stepping.Abort)
-        reasons.append(f"plant: {summary['failure']}")
-    operator = summary.get("services", {}).get("operator", {}) if "services" in summary else {}
-    failure = summary.get("operator_failure") or (
+    if summary.failure:  # the plant ended the run (teleop.sim.stepping.Abort)
+        reasons.append(f"plant: {summary.failure}")
+    operator = (summary.services or {}).get("operator")
+    failure = summary.operator_failure or (
         operator.get("failure") if isinstance(operator, Mapping) else None
     )
     if failure:
         reasons.append(f"operator: {failure}")
-    for event in summary.get("events") or ():
+    for event in summary.events or ():
         if isinstance(event, Mapping):
             name = event.get("event") or event.get("kind") or event.get("name")
             at = event.get("sim_time_s")

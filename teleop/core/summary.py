@@ -9,15 +9,19 @@ line: what it is, what to do). :data:`SUMMARY_FIELDS` gives every top-level fiel
 JSON type, the runs that have it and its meaning: the table in docs/running.md is
 generated from it (``python -m teleop.core.summary``; a test fails when they drift) and
 :func:`summary_problems` checks a summary against it (the tests check every summary a
-run writes). The services' own summaries are under ``services`` (one object per service,
-its fields its own).
+run writes). :class:`RunSummary` is the typed record of it, one attribute per field in
+the description's order and type (a test holds the two together): what
+:func:`read_run_summary` returns and what the verdict (teleop.core.criteria), the report
+and the sweep read; the JSON is met only in its :meth:`RunSummary.from_json` and
+:meth:`RunSummary.to_json`. The services' own summaries are under ``services`` (one
+object per service, its fields its own).
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -217,6 +221,190 @@ def summary_problems(summary: Mapping[str, Any]) -> list[str]:
     return problems
 
 
+@dataclass(frozen=True)
+class Criterion:
+    """One success criterion of one task (teleop.core.criteria): ``status`` pass, fail or
+    unavailable, ``detail`` the figure or why it failed."""
+
+    name: str
+    status: str
+    detail: str
+
+    @classmethod
+    def from_json(cls, content: Mapping[str, object]) -> Criterion:
+        return cls(str(content["name"]), str(content["status"]), str(content["detail"]))
+
+    def to_json(self) -> dict[str, str]:
+        return {"name": self.name, "status": self.status, "detail": self.detail}
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    """The run summary as a typed record: one attribute per :data:`SUMMARY_FIELDS` entry,
+    in its order, of its JSON type (a test holds the two together). None: the run did not
+    write the field, or wrote null. Arrays are tuples; the criteria are
+    :class:`Criterion`; a robot's section under ``robots`` is a RunSummary of its own;
+    the objects whose layout belongs to another module (the services' own summaries, the
+    machine, the protective stops) stay JSON objects.
+
+    ``written``: the fields the run wrote, in its order (default: those not None). It
+    keeps a field the run left out apart from one it wrote as null (an in-process run
+    has no ``realtime_verdict``; a services run's ``failure`` is null), so
+    :meth:`to_json` gives back the JSON :meth:`from_json` read."""
+
+    summary_version: int | None = None
+    # What ran.
+    scenario: str | None = None
+    mode: str | None = None
+    seed: int | None = None
+    operator: str | None = None
+    duration_s: float | None = None
+    # The verdict.
+    success: bool | None = None
+    criteria: tuple[Criterion, ...] | None = None
+    problems: tuple[str, ...] | None = None
+    reasons: tuple[str, ...] | None = None
+    motion_problems: tuple[str, ...] | None = None
+    # The motion, measured by the controller.
+    arm_contacts: int | None = None
+    min_clearance_m: float | None = None
+    min_clearance_scene_m: float | None = None
+    min_clearance_self_m: float | None = None
+    min_clearance_finger_m: float | None = None
+    singularity_crossings: int | None = None
+    events: tuple[Mapping[str, object], ...] | None = None
+    final_state_sha256: str | None = None
+    realtime_factor: float | None = None
+    steps: int | None = None
+    wall_s: float | None = None
+    commands_clamped: int | None = None
+    commands_clamped_by_reason: Mapping[str, int] | None = None
+    commands_applied: int | None = None
+    # Path following.
+    settle_s: float | None = None
+    compensation: bool | None = None
+    path_error_rms_m: float | None = None
+    path_error_max_m: float | None = None
+    path_progress: float | None = None
+    stalled_s: float | None = None
+    stalls: int | None = None
+    min_manipulability: float | None = None
+    # Grasp.
+    object_in_box: bool | None = None
+    object_bin_distance_m: float | None = None
+    max_device_force_n: float | None = None
+    passivity: Mapping[str, float | str | int] | None = None
+    max_contact_force_n: float | None = None
+    obstacle_min_clearance_m: float | None = None
+    tool_speed_max_m_s: float | None = None
+    velocity_tracking_rms_m_s: float | None = None
+    stale_feedback_events: int | None = None
+    max_obstacle_force_n: float | None = None
+    held_weight_n: float | None = None
+    phases: tuple[Mapping[str, object], ...] | None = None
+    operator_failure: str | None = None
+    # The run on the services.
+    overrun_fraction: float | None = None
+    realtime_verdict: str | None = None
+    realtime_problems: tuple[str, ...] | None = None
+    stale_commands: int | None = None
+    commands_received: int | None = None
+    command_stream: Mapping[str, float] | None = None
+    protective_stop: Mapping[str, object] | None = None
+    failure: str | None = None
+    plant_resumes: tuple[Mapping[str, object], ...] | None = None
+    restarted_services: Mapping[str, int] | None = None
+    dropped_messages: int | None = None
+    unlinked_peers: Mapping[str, Sequence[str]] | None = None
+    skipped_states: int | None = None
+    outside: tuple[str, ...] | None = None
+    summaries_missing: tuple[str, ...] | None = None
+    stack_wall_s: float | None = None
+    idle_poll_cpus: tuple[int, ...] | None = None
+    idle_poll_failed: Mapping[str, str] | None = None
+    machine: Mapping[str, object] | None = None
+    refused_privileges: tuple[str, ...] | None = None
+    eye_view: Mapping[str, object] | None = None
+    faults: tuple[Mapping[str, object], ...] | None = None
+    rrd: str | None = None
+    cpu_s_per_sim_s: Mapping[str, float] | None = None
+    robots: Mapping[str, RunSummary] | None = None
+    run_dir: str | None = None
+    services: Mapping[str, Mapping[str, object]] | None = None
+
+    written: tuple[str, ...] = field(default=(), repr=False)
+
+    def __post_init__(self) -> None:
+        if not self.written:
+            present = tuple(f.name for f in SUMMARY_FIELDS if getattr(self, f.name) is not None)
+            object.__setattr__(self, "written", present)
+
+    @classmethod
+    def from_json(cls, content: Mapping[str, object]) -> RunSummary:
+        """The record of a summary's JSON (as a run writes it, or a robot's section of
+        one). SummaryError if a field has another type than :data:`SUMMARY_FIELDS` gives
+        it; a field this build does not know is left out (a newer build's, same version)."""
+        wrong = [p for p in summary_problems(content) if "not a summary field" not in p]
+        if wrong:
+            raise SummaryError(f"not a run summary of this build: {'; '.join(wrong)}")
+        values: dict[str, object] = {}
+        for name, value in content.items():
+            spec = FIELDS_BY_NAME.get(name)
+            if spec is None:
+                continue
+            if name == "criteria" and value is not None:
+                value = tuple(Criterion.from_json(c) for c in _objects(name, value))
+            elif name == "robots" and value is not None:
+                value = {rid: cls.from_json(s) for rid, s in _object(name, value).items()}
+            elif spec.type == "array" and value is not None:
+                value = tuple(_array(name, value))
+            values[name] = value
+        return cls(**values, written=tuple(values))
+
+    def to_json(self) -> dict[str, object]:
+        """The JSON object of this record: the fields it was written with, in their order."""
+        return {name: json_value(getattr(self, name)) for name in self.written}
+
+    def section(self, robot_id: str) -> RunSummary:
+        """Robot ``robot_id``'s section of a run of several robots over the run's own fields
+        (its scenario, mode, the stack's figures), without ``robots``: what a run of that
+        robot alone would say of it. KeyError if the run has no such robot."""
+        own = (self.robots or {})[robot_id]
+        merged = {n: getattr(self, n) for n in self.written if n != "robots"}
+        merged.update({n: getattr(own, n) for n in own.written})
+        return RunSummary(**merged, written=tuple(merged))
+
+
+def _array(name: str, value: object) -> list[object]:
+    if not isinstance(value, list | tuple):
+        raise SummaryError(f"{name}: {type(value).__name__}, not array")
+    return list(value)
+
+
+def _object(name: str, value: object) -> Mapping[str, Mapping[str, object]]:
+    if not isinstance(value, Mapping) or not all(isinstance(v, Mapping) for v in value.values()):
+        raise SummaryError(f"{name}: not an object of objects")
+    return value
+
+
+def _objects(name: str, value: object) -> list[Mapping[str, object]]:
+    items = _array(name, value)
+    if not all(isinstance(item, Mapping) for item in items):
+        raise SummaryError(f"{name}: not an array of objects")
+    return items
+
+
+def json_value(value: object) -> object:
+    """A field's value as JSON: tuples as arrays, records as their objects."""
+    if isinstance(value, Criterion | RunSummary):
+        return value.to_json()
+    if isinstance(value, tuple):
+        return [json_value(item) for item in value]
+    if isinstance(value, Mapping) and any(isinstance(v, RunSummary) for v in value.values()):
+        return {key: json_value(item) for key, item in value.items()}
+    return value
+
+
 def summary_text(summary: Mapping[str, Any]) -> str:
     """``summary`` as the JSON a run leaves, stamped with :data:`SUMMARY_VERSION`."""
     return json.dumps({VERSION_FIELD: SUMMARY_VERSION, **summary}, indent=2) + "\n"
@@ -229,9 +417,9 @@ def write_run_summary(path: Path, summary: Mapping[str, Any]) -> None:
     path.write_text(summary_text(summary))
 
 
-def read_run_summary(path: Path) -> dict[str, Any]:
-    """The run summary in ``path``; SummaryError (one line) if it cannot be read, is no
-    run summary, or is of another version."""
+def read_run_summary(path: Path) -> RunSummary:
+    """The run summary in ``path`` as its record; SummaryError (one line) if it cannot be
+    read, is no run summary, is of another version, or has a field of another type."""
     path = Path(path)
     try:
         content = json.loads(path.read_text())
@@ -247,7 +435,10 @@ def read_run_summary(path: Path) -> dict[str, Any]:
             f"{path}: summary version {version}, this build reads {SUMMARY_VERSION}: "
             "run it again with this build"
         )
-    return content
+    try:
+        return RunSummary.from_json(content)
+    except SummaryError as exc:
+        raise SummaryError(f"{path}: {exc}") from None
 
 
 def copied_fields(service: str, runs: str) -> tuple[str, ...]:

@@ -18,7 +18,7 @@ from teleop.control.clearance import ClearanceModel
 from teleop.control.kinematics import build_arm_model
 from teleop.control.path import PathFollowingController, PathMetrics
 from teleop.core.config import Config
-from teleop.core.criteria import judge_task
+from teleop.core.criteria import TaskFigures, judge_task
 from teleop.sim.plant import Plant, initial_configuration
 
 # Progress lines on long runs: one every this fraction of the run.
@@ -84,7 +84,9 @@ def run_path_following_inprocess(
         "compensation": config.control.compensation,
         **figures,
         # The task's criteria (teleop.core.criteria) and what the motion itself reported.
-        **judge_task(config.run.scenario, figures, metrics.problems()).summary(),
+        **judge_task(
+            config.run.scenario, TaskFigures.from_json(figures), metrics.problems()
+        ).to_json(),
         "events": [
             {"event": e.event.name, "sim_time_s": e.sim_time_s, "value": e.value}
             for e in metrics.events

@@ -35,6 +35,8 @@ import ctypes
 import os
 import signal
 import sys
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 # prctl(2) option: the signal this process gets when its parent (supervisord) dies.
@@ -119,6 +121,19 @@ def poll_forever(cpu: int) -> None:
 def _write_status(path: Path | None, status: str) -> None:
     if path is not None:
         path.write_text(status + "\n")
+
+
+@dataclass(frozen=True)
+class IdlePoll:
+    """After a run: the CPUs whose poller polled, and why each other one did not (its
+    status, :func:`read_status`)."""
+
+    cpus: tuple[int, ...]
+    failed: Mapping[int, str]
+
+    def to_json(self) -> dict[str, object]:
+        """The summary's ``idle_poll_cpus`` and ``idle_poll_failed``."""
+        return {"idle_poll_cpus": list(self.cpus), "idle_poll_failed": dict(self.failed)}
 
 
 def read_status(path: Path) -> str:

@@ -78,6 +78,7 @@ from teleop.core.rundir import (
     idle_poll_status_path,
     summary_path,
 )
+from teleop.core.service_summaries import PlantSummary
 from teleop.run import assemble, restart_priority
 from teleop.run.failure import ProgramWatch, RunError, ServiceFailed, program_log_text
 from teleop.run.fault_run import FaultRun
@@ -766,7 +767,10 @@ def ended_plant_summary(run_dir: Path, plant: str = PLANT) -> dict[str, Any] | N
         summary = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
-    return summary if summary.get("finished") or summary.get("aborted") else None
+    if not isinstance(summary, dict):
+        return None
+    plant_summary = PlantSummary.from_json(summary)
+    return summary if plant_summary.finished or plant_summary.aborted else None
 
 
 def refuse_if_running(run_dir: Path) -> None:

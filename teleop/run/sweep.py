@@ -34,7 +34,7 @@ from teleop.core import markdown
 from teleop.core.config import SCENARIOS, Config, load_config, scenario_spec
 from teleop.core.criteria import FAIL, UNAVAILABLE, event_reasons, judge_summary
 from teleop.core.rundir import RECORDING_FILE, RUN_SUMMARY_FILE
-from teleop.core.summary import write_run_summary
+from teleop.core.summary import Criterion, RunSummary, write_run_summary
 from teleop.run.tasks import (
     Generated,
     GraspTask,
@@ -69,39 +69,75 @@ class Job:
     keep_recordings: bool = False  # grasp: keep each run's Rerun recording
 
 
-def run_job(job: Job) -> dict[str, Any]:
+@dataclass(frozen=True)
+class TaskRecord:
+    """One task judged: a line of the sweep's report (its ``results``). ``figures``: the
+    run's figures the report keeps (None: the run did not end, ``error`` says why);
+    ``startup_retries``: the times its stack did not come up (:func:`_run_started`)."""
+
+    index: int
+    params: Mapping[str, object]
+    seed: int
+    command: str
+    success: bool
+    criteria: tuple[Criterion, ...]
+    reasons: tuple[str, ...]
+    wall_s: float
+    figures: Mapping[str, object] | None = None
+    error: str | None = None
+    startup_retries: int = 0
+
+    def to_json(self) -> dict[str, object]:
+        record: dict[str, object] = {
+            "index": self.index,
+            "params": dict(self.params),
+            "seed": self.seed,
+            "command": self.command,
+        }
+        if self.startup_retries:
+            record["startup_retries"] = self.startup_retries
+        record.update(
+            success=self.success,
+            criteria=[c.to_json() for c in self.criteria],
+            reasons=list(self.reasons),
+        )
+        if self.error is not None:
+            record["error"] = self.error
+        if self.figures is not None:
+            record["figures"] = dict(self.figures)
+        record["wall_s"] = self.wall_s
+        return record
+
+
+def run_job(job: Job) -> TaskRecord:
     """Run one task and judge it; never raises (an error is the task's failure reason)."""
     start = time.perf_counter()
-    record: dict[str, Any] = {
-        "index": job.task.index,
-        "params": job.task.params(),
-        "seed": job.task.seed,
-        "command": job.task.command(job.overrides, job.config_file),
-    }
+    task = job.task
+    params, command = task.params(), task.command(job.overrides, job.config_file)
+    retries: list[int] = []
     try:
-        summary = _run_started(job, record)
+        summary = _run_started(job, retries)
     except Exception as exc:  # the task failed to run: that is its result
-        record.update(
-            success=False,
-            criteria=[],
-            reasons=[f"error: {type(exc).__name__}: {exc}"],
-            error=traceback.format_exc(limit=5),
-            wall_s=time.perf_counter() - start,
-        )
-        return record
-    record.update(
-        **judge_record(summary),
-        figures={key: summary.get(key) for key in kind_of(job.kind).figures if key in summary},
+        return TaskRecord(
+            task.index, params, task.seed, command, success=False, criteria=(),
+            reasons=(f"error: {type(exc).__name__}: {exc}",),
+            wall_s=time.perf_counter() - start, error=traceback.format_exc(limit=5),
+            startup_retries=len(retries),
+        )  # fmt: skip
+    success, criteria, reasons = judge_record(RunSummary.from_json(summary))
+    return TaskRecord(
+        task.index, params, task.seed, command, success, criteria, reasons,
         wall_s=time.perf_counter() - start,
-    )
-    return record
+        figures={key: summary[key] for key in kind_of(job.kind).figures if key in summary},
+        startup_retries=len(retries),
+    )  # fmt: skip
 
 
-def judge_record(summary: Mapping[str, Any]) -> dict[str, Any]:
-    """A task's ``success``, ``criteria`` and ``reasons`` from its run's summary: the
-    run's own verdict (criteria.judge_summary), and every criterion measured besides. The
-    reasons say why a task failed: the failed criteria, then what the run said went
-    wrong (the operator's reason, its events, else its problems)."""
+def judge_record(summary: RunSummary) -> tuple[bool, tuple[Criterion, ...], tuple[str, ...]]:
+    """A task's success, criteria and reasons from its run's summary: the run's own
+    verdict (criteria.judge_summary), and every criterion measured besides. The reasons
+    say why a task failed: the failed criteria, then what the run said went wrong (the
+    operator's reason, its events, else its problems)."""
     verdict = judge_summary(summary)
     success = verdict.success and verdict.complete
     reasons: list[str] = []
@@ -110,34 +146,32 @@ def judge_record(summary: Mapping[str, Any]) -> dict[str, Any]:
         reasons = [*verdict.failed, *told]
         if not reasons:
             reasons = [f"unmeasured: {', '.join(verdict.unmeasured)}"]
-    return {"success": success, "criteria": verdict.summary()["criteria"], "reasons": reasons}
+    return success, verdict.criteria, tuple(reasons)
 
 
-def _run_started(job: Job, record: dict[str, Any]) -> dict[str, Any]:
+def _run_started(job: Job, retries: list[int]) -> dict[str, object]:
     """:func:`_run`, again (at most STARTUP_RETRIES times) when its stack did not come
     up: a program not RUNNING, or a service not ready, within the launcher's time-outs
     (a machine loaded by other work) means the task never ran, which is no outcome of
-    the task. The retries are counted in the record (``startup_retries``)."""
+    the task. Each retry is appended to ``retries`` (the record's ``startup_retries``)."""
     from teleop.run.failure import ServiceFailed
     from teleop.run.supervise import StartTimeout
 
-    retries = 0
     while True:
         try:
             return _run(job)
         except (ServiceFailed, StartTimeout) as exc:
             startup = isinstance(exc, StartTimeout) or exc.startup
-            if not startup or retries == STARTUP_RETRIES:
+            if not startup or len(retries) == STARTUP_RETRIES:
                 raise
-            retries += 1
-            record["startup_retries"] = retries
+            retries.append(len(retries) + 1)
 
 
-def _run(job: Job) -> dict[str, Any]:
+def _run(job: Job) -> dict[str, object]:
     return kind_of(job.kind).run(job, [*job.overrides, *job.task.overrides()])
 
 
-def _run_in_process(job: Job, overrides: list[str]) -> dict[str, Any]:
+def _run_in_process(job: Job, overrides: list[str]) -> dict[str, object]:
     """An autonomous task, as ``teleop run <scenario> --inprocess``."""
     from teleop.run.experiments import run_path_following_inprocess
 
@@ -145,7 +179,7 @@ def _run_in_process(job: Job, overrides: list[str]) -> dict[str, Any]:
     return run_path_following_inprocess(config, progress=None)
 
 
-def _run_on_services(job: Job, overrides: list[str]) -> dict[str, Any]:
+def _run_on_services(job: Job, overrides: list[str]) -> dict[str, object]:
     """A teleoperated task, as ``teleop run <scenario> --mode lockstep``."""
     from teleop.run.stack import run_on_services
 
@@ -193,7 +227,7 @@ class SweepKind:
 
     tasks: str  # what a task is, plural: the name of the count option (``--paths``)
     generate: Callable[[Config, int, int], Generated]
-    run: Callable[[Job, list[str]], dict[str, Any]]
+    run: Callable[[Job, list[str]], dict[str, object]]
     figures: tuple[str, ...]  # the run's figures kept per task in the report
     columns: tuple[str, ...]  # the report's table, between the task and the verdict
     row: Callable[[Mapping[str, Any], Mapping[str, Any]], tuple[object, ...]]
@@ -252,13 +286,13 @@ def _stderr(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
 
-def progress_line(done: int, total: int, record: Mapping[str, Any], elapsed_s: float) -> str:
+def progress_line(done: int, total: int, record: TaskRecord, elapsed_s: float) -> str:
     """One line per finished task: count, outcome, first reason, time left."""
     eta_s = elapsed_s / done * (total - done)
-    outcome = "ok" if record["success"] else "FAILED: " + "; ".join(record["reasons"][:2])
+    outcome = "ok" if record.success else "FAILED: " + "; ".join(record.reasons[:2])
     width = len(str(total))
     return (
-        f"[{done:{width}d}/{total}] task {record['index']:{width}d} {outcome}"
+        f"[{done:{width}d}/{total}] task {record.index:{width}d} {outcome}"
         f"   ({elapsed_s:.0f} s, about {eta_s:.0f} s left)"
     )
 
@@ -298,7 +332,7 @@ def run_sweep(
         for job in jobs:
             progress(f"  task {job.task.index}: {job.task.command(job.overrides, config_file)}")
     start = time.perf_counter()
-    records: list[dict[str, Any]] = []
+    records: list[TaskRecord] = []
     interrupted = False
     # spawn: each worker builds its own models; nothing of this process's state leaks in.
     with multiprocessing.get_context("spawn").Pool(workers) as pool:
@@ -311,7 +345,7 @@ def run_sweep(
         except KeyboardInterrupt:  # Ctrl-C: report the tasks finished so far, then stop
             interrupted = True
             pool.terminate()
-    records.sort(key=lambda r: r["index"])
+    records.sort(key=lambda r: r.index)
     report = make_report(kind, seed, workers, generated, records, time.perf_counter() - start)
     report["overrides"] = list(overrides)
     report["interrupted"] = interrupted
@@ -341,22 +375,20 @@ def reason_kind(reason: str) -> str:
 
 
 def make_report(kind: str, seed: int, workers: int, generated: Generated,
-                records: list[dict[str, Any]], wall_s: float) -> dict[str, Any]:  # fmt: skip
-    """Per-task records plus the success rate, failures by reason, the distribution of
-    the minimum clearance and what the generator rejected."""
-    successes = sum(bool(r["success"]) for r in records)
+                records: Sequence[TaskRecord], wall_s: float) -> dict[str, Any]:  # fmt: skip
+    """The report (JSON): per-task records plus the success rate, failures by reason, the
+    distribution of the minimum clearance and what the generator rejected."""
+    successes = sum(r.success for r in records)
     by_reason: Counter[str] = Counter()
     for r in records:
-        for reason in r["reasons"]:
+        for reason in r.reasons:
             by_reason[reason_kind(reason)] += 1
     clearances = [
-        float(r["figures"]["min_clearance_m"])
+        float(clearance)
         for r in records
-        if r.get("figures", {}).get("min_clearance_m") is not None
+        if (clearance := (r.figures or {}).get("min_clearance_m")) is not None
     ]
-    unavailable = sorted(
-        {c["name"] for r in records for c in r["criteria"] if c["status"] == UNAVAILABLE}
-    )
+    unavailable = sorted({c.name for r in records for c in r.criteria if c.status == UNAVAILABLE})
     return {
         "kind": kind,
         "seed": seed,
@@ -368,20 +400,20 @@ def make_report(kind: str, seed: int, workers: int, generated: Generated,
         "passed_measured": sum(
             1
             for r in records
-            if r["criteria"]
-            and not any(c["status"] == FAIL for c in r["criteria"])
-            and not any(not reason.startswith("unmeasured") for reason in r["reasons"])
+            if r.criteria
+            and not any(c.status == FAIL for c in r.criteria)
+            and not any(not reason.startswith("unmeasured") for reason in r.reasons)
         ),
         "criteria_unavailable": unavailable,
         "failures_by_reason": dict(by_reason.most_common()),
-        "silent_failures": sum(1 for r in records if not r["success"] and not r["reasons"]),
+        "silent_failures": sum(1 for r in records if not r.success and not r.reasons),
         "min_clearance_m": _distribution(clearances),
         "generator": {
             "candidates": generated.candidates,
             "rejected": dict(generated.rejected.most_common()),
         },
         "wall_s": wall_s,
-        "results": records,
+        "results": [r.to_json() for r in records],
     }
 
 

@@ -1,7 +1,7 @@
 """What a services run says about the machine it ran on and about its own real time.
 
-Pure functions of the services' summaries (the dicts they write at close), so a unit
-test checks them without a stack:
+Pure functions of the services' summaries (their typed records,
+teleop.core.service_summaries), so a unit test checks them without a stack:
 
 - :func:`machine_section`: which realtime privileges the run asked for and which the
   kernel granted (SCHED_FIFO, CPU pinning, the idle CPU cgroup of the pollers, shared
@@ -19,10 +19,11 @@ import getpass
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 from teleop.bus import graph
 from teleop.bus.messages import PROTOCOL_VERSION, Reason
+from teleop.core.service_summaries import Drops, EyeViewSummary, ServiceSummary
+from teleop.run.idle_poll import IdlePoll
 
 # Service.privileges outcomes start with one of these (teleop.bus.service).
 GRANTED = "granted"
@@ -45,65 +46,103 @@ REALTIME_FACTOR_LOST = 0.95
 BRAKED_STEPS_LOST = 0.02
 
 
-def _privilege(summaries: Mapping[str, Mapping[str, Any]], key: str) -> dict[str, Any]:
-    """``{"granted": {service: outcome}, "refused": {service: why}}`` of one privilege,
-    over the services that asked for it."""
-    granted: dict[str, str] = {}
-    refused: dict[str, str] = {}
-    for name, summary in summaries.items():
-        outcome = summary.get("privileges", {}).get(key, NOT_REQUESTED)
-        if outcome == NOT_REQUESTED:
-            continue
-        if outcome.startswith(GRANTED):
-            granted[name] = outcome
-        else:
-            refused[name] = outcome
-    return {"granted": granted, "refused": refused}
+@dataclass(frozen=True)
+class Privilege:
+    """One privilege over the services that asked for it: the outcome of each service it
+    was ``granted`` to, and why for each it was ``refused`` to."""
+
+    granted: Mapping[str, str]
+    refused: Mapping[str, str]
+
+    @classmethod
+    def of(cls, records: Mapping[str, ServiceSummary], key: str) -> Privilege:
+        """Privilege ``key`` (a Service.privileges key) over the services' ``records``."""
+        granted: dict[str, str] = {}
+        refused: dict[str, str] = {}
+        for name, record in records.items():
+            outcome = (record.privileges or {}).get(key, NOT_REQUESTED)
+            if outcome == NOT_REQUESTED:
+                continue
+            if outcome.startswith(GRANTED):
+                granted[name] = outcome
+            else:
+                refused[name] = outcome
+        return cls(granted, refused)
+
+    def to_json(self) -> dict[str, dict[str, str]]:
+        return {"granted": dict(self.granted), "refused": dict(self.refused)}
+
+
+@dataclass(frozen=True)
+class Machine:
+    """The summary's ``machine`` section: who ran, and each privilege granted or refused
+    (the idle CPU cgroup's by CPU, the eye view's shared memory pool as it reported it)."""
+
+    user: str
+    uid: int
+    cpus: int
+    sched_fifo: Privilege
+    cpu_pinning: Privilege
+    idle_requested_cpus: tuple[int, ...]
+    idle_granted_cpus: tuple[int, ...]
+    idle_refused: Mapping[str, str]  # CPU (as a JSON key) -> why it was not polled
+    shm: Mapping[str, object] | None
+
+    def to_json(self) -> dict[str, object]:
+        return {
+            "user": self.user,
+            "uid": self.uid,
+            "cpus": self.cpus,
+            "sched_fifo": self.sched_fifo.to_json(),
+            "cpu_pinning": self.cpu_pinning.to_json(),
+            "idle_cgroup": {
+                "requested_cpus": list(self.idle_requested_cpus),
+                "granted": list(self.idle_granted_cpus),
+                "refused": dict(self.idle_refused),
+            },
+            "shm": self.shm,
+        }
 
 
 def machine_section(
-    summaries: Mapping[str, Mapping[str, Any]],
-    polled_cpus: Sequence[int],
-    idle_poll: Mapping[str, Any],
-) -> dict[str, Any]:
-    """The summary's ``machine`` section: who ran, and each privilege granted or refused.
+    records: Mapping[str, ServiceSummary], polled_cpus: Sequence[int], idle_poll: IdlePoll
+) -> Machine:
+    """The summary's ``machine`` section.
 
-    ``summaries``: the services' own summaries (their ``privileges`` and the eye view's
+    ``records``: the services' summaries by name (their ``privileges`` and the eye view's
     ``shm_pool``); ``polled_cpus``: the CPUs the run asked to keep polling;
     ``idle_poll``: :func:`teleop.run.assemble.idle_poll_report` of them.
     """
-    eye_pool = summaries.get("eyeview", {}).get("shm_pool")
-    idle_refused = {str(cpu): why for cpu, why in idle_poll.get("idle_poll_failed", {}).items()}
-    return {
-        "user": getpass.getuser(),
-        "uid": os.getuid(),
-        "cpus": len(os.sched_getaffinity(0)),
-        "sched_fifo": _privilege(summaries, "sched_fifo"),
-        "cpu_pinning": _privilege(summaries, "cpu_pinning"),
-        "idle_cgroup": {
-            "requested_cpus": list(polled_cpus),
-            "granted": list(idle_poll.get("idle_poll_cpus", [])),
-            "refused": idle_refused,
-        },
-        "shm": eye_pool,
-    }
+    eyeview = records.get("eyeview")
+    return Machine(
+        user=getpass.getuser(),
+        uid=os.getuid(),
+        cpus=len(os.sched_getaffinity(0)),
+        sched_fifo=Privilege.of(records, "sched_fifo"),
+        cpu_pinning=Privilege.of(records, "cpu_pinning"),
+        idle_requested_cpus=tuple(polled_cpus),
+        idle_granted_cpus=idle_poll.cpus,
+        idle_refused={str(cpu): why for cpu, why in idle_poll.failed.items()},
+        shm=eyeview.shm_pool if isinstance(eyeview, EyeViewSummary) else None,
+    )
 
 
-def refused_privileges(machine: Mapping[str, Any]) -> list[str]:
+def refused_privileges(machine: Machine) -> list[str]:
     """One line per privilege the run asked for and did not get (empty: all granted)."""
     lines = []
-    for key, label in (("sched_fifo", "SCHED_FIFO"), ("cpu_pinning", "CPU pinning")):
-        refused = machine.get(key, {}).get("refused", {})
-        if refused:
-            why = next(iter(refused.values()))
-            lines.append(f"{label} refused for {', '.join(refused)} ({why})")
-    idle = machine.get("idle_cgroup", {})
-    if idle.get("refused"):
-        why = next(iter(idle["refused"].values()))
-        lines.append(f"idle CPU polling refused on CPU(s) {', '.join(idle['refused'])} ({why})")
-    pool = machine.get("shm")
-    if pool and pool.get("reason"):
-        lines.append(f"shared memory: {pool['reason']}")
+    for privilege, label in (
+        (machine.sched_fifo, "SCHED_FIFO"),
+        (machine.cpu_pinning, "CPU pinning"),
+    ):
+        if privilege.refused:
+            why = next(iter(privilege.refused.values()))
+            lines.append(f"{label} refused for {', '.join(privilege.refused)} ({why})")
+    if machine.idle_refused:
+        why = next(iter(machine.idle_refused.values()))
+        cpus = ", ".join(machine.idle_refused)
+        lines.append(f"idle CPU polling refused on CPU(s) {cpus} ({why})")
+    if machine.shm and machine.shm.get("reason"):
+        lines.append(f"shared memory: {machine.shm['reason']}")
     return lines
 
 
@@ -118,15 +157,15 @@ def senders_of(kind_name: str, receiver: str) -> tuple[str, ...]:
     return tuple(found)
 
 
-def drop_lines(dropped: Mapping[str, Mapping[str, Any]]) -> list[str]:
+def drop_lines(dropped: Mapping[str, Drops]) -> list[str]:
     """One line per receiver, record kind and reason of the bad records a run dropped,
     naming the sender and, for another protocol version, both versions. ``dropped``:
-    receiver -> ``{"counts": ..., "first": ...}`` (:meth:`DropCounter.by_key`: a
-    service summary's ``dropped_by_reason`` and ``dropped_first``)."""
+    receiver -> its drops (:meth:`DropCounter.by_key`: a service summary's
+    ``dropped_by_reason`` and ``dropped_first``)."""
     lines = []
     for receiver, drops in dropped.items():
-        first = drops.get("first") or {}
-        for key, count in (drops.get("counts") or {}).items():
+        first = drops.first
+        for key, count in drops.counts.items():
             kind_name, _, reason = key.partition(":")
             senders = senders_of(kind_name, receiver)
             source = f" from {' or '.join(senders)}" if senders else ""
@@ -147,7 +186,8 @@ class Health:
     verdict: str
     problems: tuple[str, ...]
 
-    def as_dict(self) -> dict[str, Any]:
+    def to_json(self) -> dict[str, object]:
+        """The summary's ``realtime_verdict`` and ``realtime_problems``."""
         return {"realtime_verdict": self.verdict, "realtime_problems": list(self.problems)}
 
 
@@ -160,7 +200,7 @@ def realtime_health(
     braked_steps: int,
     steps: int,
     drops: Sequence[str],
-    unlinked_peers: Mapping[str, Any],
+    unlinked_peers: Mapping[str, Sequence[str]],
 ) -> Health:
     """Judge whether a run kept real time (the bounds above) and got all of its data.
 

@@ -33,7 +33,7 @@ from teleop.bus.messages import Stage  # noqa: E402
 from teleop.core import markdown  # noqa: E402
 from teleop.core.criteria import judge_summary  # noqa: E402
 from teleop.core.rundir import REPORT_SUMMARY_FILE, RUN_SUMMARY_FILE, report_dir  # noqa: E402
-from teleop.core.summary import read_run_summary  # noqa: E402
+from teleop.core.summary import RunSummary, read_run_summary  # noqa: E402
 from teleop.viz import entities as r  # noqa: E402
 from teleop.viz import rrd  # noqa: E402
 from teleop.viz.scene3d import ENTITY_GHOSTS, GHOST_SKELETON  # noqa: E402
@@ -496,7 +496,7 @@ def _summary_text(
     return "\n".join(lines)
 
 
-def verdict_text(run_summary: Mapping[str, Any]) -> list[str]:
+def verdict_text(run_summary: RunSummary) -> list[str]:
     """The report's verdict section: the run's summary judged again by the one verdict
     (teleop.core.criteria.judge_summary, as ``teleop run`` and ``teleop sweep`` judge)."""
     verdict = judge_summary(run_summary)
@@ -504,7 +504,7 @@ def verdict_text(run_summary: Mapping[str, Any]) -> list[str]:
         "## Verdict",
         "",
         f"- task: {'success' if verdict.success else 'failed'} "
-        f"({run_summary['scenario']}, judged by teleop.core.criteria)",
+        f"({run_summary.scenario}, judged by teleop.core.criteria)",
         "",
         *markdown.table(
             ("criterion", "status", "detail"),
@@ -519,27 +519,30 @@ def write_reports(
     rrd_path: str | Path,
     out_dir: str | Path | None = None,
     settle_s: float = DEFAULT_SETTLE_S,
-    run_summary: Mapping[str, Any] | None = None,
+    run_summary: RunSummary | Mapping[str, object] | None = None,
 ) -> list[Report]:
     """Read ``rrd_path`` back and write the figures and ``report.md`` of each robot it
     holds: into ``out_dir`` (default: ``<stem>_report/`` beside it) for one robot, into
-    ``out_dir/<robot id>/`` each for several. With ``run_summary`` (the run's summary;
-    default: the ``summary.json`` beside the recording, if any) each report opens with
-    its robot's verdict. SummaryError if that file is no run summary of this version."""
+    ``out_dir/<robot id>/`` each for several. With ``run_summary`` (the run's summary:
+    its record, or the JSON a run just made; default: the ``summary.json`` beside the
+    recording, if any) each report opens with its robot's verdict. SummaryError if that
+    file is no run summary of this version."""
     path = Path(rrd_path)
     if not path.is_file():
         raise FileNotFoundError(f"no recording {path}")
     beside = path.parent / RUN_SUMMARY_FILE
     if run_summary is None and beside.exists():
         run_summary = read_run_summary(beside)
+    elif run_summary is not None and not isinstance(run_summary, RunSummary):
+        run_summary = RunSummary.from_json(run_summary)
     out = Path(out_dir) if out_dir is not None else default_out_dir(path)
     rec = rrd.Recording(path)
     roots = rec.robots or [""]
     reports = []
     for root in roots:
         section = run_summary
-        if root and run_summary is not None and root in (run_summary.get("robots") or {}):
-            section = {**run_summary, **run_summary["robots"][root]}
+        if root and run_summary is not None and root in (run_summary.robots or {}):
+            section = run_summary.section(root)
         own_out = out / root if root else out
         reports.append(_write_report(path, rec.under(root), own_out, settle_s, section, root))
     return reports
@@ -550,7 +553,7 @@ def _write_report(
     rec: rrd.Recording,
     out_dir: Path,
     settle_s: float,
-    run_summary: Mapping[str, Any] | None,
+    run_summary: RunSummary | None,
     robot: str,
 ) -> Report:
     """One robot's report (``rec`` that robot's entities) into ``out_dir``."""

@@ -44,7 +44,7 @@ from teleop.bench.latency import across_clocks
 from teleop.core import markdown
 from teleop.core.config import STABILISERS, load_config
 from teleop.core.rundir import HAPTIC_TRACE_FILE
-from teleop.run.assemble import grasp_figures
+from teleop.run.assemble import grasp_figures, robot_view
 from tests.benchmarks.delayed_teleop import PRESS_SCENARIO, press_figures, press_series
 from tests.e2e.hosts import two_hosts
 from tests.e2e.sites import TwoSites
@@ -52,6 +52,8 @@ from tests.e2e.sites import TwoSites
 OPERATOR_CLOCK_AHEAD_S = 3 * 3600
 NS_PER_MS = 1_000_000
 FLOOR_PINGS = 2000
+# The one robot's id: its services' names carry none, so its view takes them all.
+ROBOT_ID = "arm0"
 
 
 def ms_list(text: str) -> list[float]:
@@ -74,7 +76,7 @@ def one_run(
         sites.start(settings, strangers=False)
         sites.finish()
     plant, operator_summary = sites.summaries["plant"], sites.summaries["operator"]
-    figures, _ = grasp_figures(sites.summaries, [])
+    figures, _ = grasp_figures(robot_view(sites.summaries, ROBOT_ID, [ROBOT_ID]), [])
     loop = across_clocks(np.load(sites.operator_dir / HAPTIC_TRACE_FILE))
     return sites, {
         "load_before": round(load, 2),
@@ -122,7 +124,8 @@ def delay_runs(tmp: Path, delay_ms: float, stabilisers: Sequence[str], stiff_k: 
                               "--set", f'operator.scenario_file="{PRESS_SCENARIO}"',
                               "--set", f"teleop.scene_stiffness_n_per_m={stiff_k:g}",
                               "--set", f'teleop.stabiliser="{stabiliser}"'))  # fmt: skip
-        summary = {**grasp_figures(sites.summaries, [])[0], **run}
+        view = robot_view(sites.summaries, ROBOT_ID, [ROBOT_ID])
+        summary = {**grasp_figures(view, [])[0], **run}
         series = press_series(sites.robot_dir)
         press = press_figures(summary, series)
         row = {"case": "press", "delay_ms": delay_ms, "stabiliser": stabiliser,

@@ -14,8 +14,10 @@ from typing import Any
 
 import pytest
 
+from teleop.bus import graph
 from teleop.bus.service import fifo_scheduling
 from teleop.cli import EXIT_REALTIME_LOST
+from teleop.core.service_summaries import record_problems
 from teleop.run.verdict import GRANTED
 
 # The whole realtime stack takes about 1.2 cores of CPU at the default bus rate
@@ -67,3 +69,10 @@ def assert_ran(code: int, summary: dict[str, Any] | None, stderr: str = "") -> N
         assert summary.get("realtime_problems"), stderr[-3000:]
         return
     assert code == 0, stderr[-3000:]
+
+
+def services_record_problems(summary: dict[str, Any]) -> list[str]:
+    """What of each service's summary under a run summary's ``services`` its record
+    (teleop.core.service_summaries) does not read as its type (empty: all of it)."""
+    services = summary.get("services") or {}
+    return [p for name, s in services.items() for p in record_problems(graph.role_of(name), s)]

@@ -67,7 +67,7 @@ def test_without_json_the_summary_is_short_and_the_file_full(tmp_path):
     lines = result.stdout.splitlines()
     assert lines[0].startswith("path-following") and len(lines) <= 15
     assert f"  full summary       {tmp_path / 'summary.json'}" in lines
-    summary = read_run_summary(tmp_path / "summary.json")
+    summary = read_run_summary(tmp_path / "summary.json").to_json()
     assert SUMMARY_KEYS <= summary.keys() and summary_problems(summary) == []
 
 

@@ -24,8 +24,9 @@ from teleop.bench.latency import across_clocks
 from teleop.control.feedback import STANDARD_GRAVITY_M_S2
 from teleop.core.config import load_config
 from teleop.core.rundir import HAPTIC_TRACE_FILE
+from teleop.core.service_summaries import Drops, PlantSummary
 from teleop.core.summary import read_run_summary, summary_problems
-from teleop.run.assemble import dropped_by_receiver, run_health
+from teleop.run.assemble import dropped_by_receiver, run_health, service_records
 from teleop.run.supervise import Stack
 from teleop.viz import entities as ent
 from teleop.viz import recording
@@ -34,7 +35,7 @@ from teleop.viz.report import write_reports
 from teleop.viz.rrd import Recording
 from teleop.viz.scene3d import ENTITY_GHOSTS, SceneModel
 from tests.e2e.hosts import HostsUnavailable, two_hosts
-from tests.e2e.outcome import assert_ran, needs_realtime_stack
+from tests.e2e.outcome import assert_ran, needs_realtime_stack, services_record_problems
 from tests.e2e.sites import TwoSites
 from tests.e2e.users import HANG_S, USER, UserEnv
 from tests.rerun_check import rerun_verify_problems
@@ -101,6 +102,7 @@ def finish_grasps(started: dict[str, Started]) -> dict[str, dict]:
         assert run.out.exists(), stderr[-3000:]
         summary = json.loads(run.out.read_text())
         assert summary_problems(summary) == []  # as teleop.core.summary describes it
+        assert services_record_problems(summary) == []  # as their records read them
         if summary["success"]:
             assert_ran(run.process.returncode, summary, stderr)
         else:
@@ -468,11 +470,13 @@ def test_a_realtime_grasp_across_two_hosts_on_clocks_hours_apart_rides_out_a_lin
     uncut = {**plant, "stale_commands": plant["stale_commands"] - 1,
              "stale_steps": max(0, plant["stale_steps"] - cut_steps)}  # fmt: skip
     unlinked = {n: s["unlinked_peers"] for n, s in sites.summaries.items() if s["unlinked_peers"]}
-    health = run_health("realtime", [uncut], dropped_by_receiver({}, sites.summaries), unlinked)
+    records = service_records(sites.summaries)
+    dropped = dropped_by_receiver(Drops({}, {}), records)
+    health = run_health("realtime", [PlantSummary.from_json(uncut)], dropped, unlinked)
     print("two sites, realtime, apart from the cut:", health, "plant CPU s", plant["cpu_s"])
-    if health["realtime_verdict"] == "lost":  # the machine did not keep real time: say why
-        assert health["realtime_problems"]
-        pytest.skip(f"the run lost real time: {'; '.join(health['realtime_problems'])}")
+    if health.verdict == "lost":  # the machine did not keep real time: say why
+        assert health.problems
+        pytest.skip(f"the run lost real time: {'; '.join(health.problems)}")
     # Ages on each site's own clock: the handle's feedback is rendered, not shed as hours
     # old (a feedback shed now and then is a backlog on a busy machine; the cut's half
     # second is lost, not shed).

@@ -84,7 +84,7 @@ def test_poller_spins_pinned_at_sched_idle_and_stops_on_sigint(tmp_path):
         _wait_for(lambda: _user_ticks(proc.pid) > 0, "the poller to spin in user space")
         assert read_status(status) == POLLING
         report = idle_poll_report([cpu], tmp_path)
-        assert report == {"idle_poll_cpus": [cpu], "idle_poll_failed": {}}
+        assert report.to_json() == {"idle_poll_cpus": [cpu], "idle_poll_failed": {}}
         proc.send_signal(signal.SIGINT)
         assert proc.wait(WAIT_TIMEOUT_S) == 0
         assert f"CPU {cpu} polling (SCHED_IDLE, cgroup" in proc.stderr.read()
@@ -170,9 +170,9 @@ def test_the_report_names_only_cpus_whose_poller_polled(tmp_path):
     idle_poll_status_path(tmp_path, 0).write_text(POLLING + "\n")
     idle_poll_status_path(tmp_path, 1).write_text("not polled: no CPU cgroup hierarchy\n")
     report = idle_poll_report([0, 1, 2], tmp_path)
-    assert report["idle_poll_cpus"] == [0]
-    assert report["idle_poll_failed"][1] == "not polled: no CPU cgroup hierarchy"
-    assert report["idle_poll_failed"][2].startswith("not polled: no status")
+    assert report.cpus == (0,)
+    assert report.failed[1] == "not polled: no CPU cgroup hierarchy"
+    assert report.failed[2].startswith("not polled: no status")
 
 
 def test_lockstep_and_disabled_stacks_get_no_poller():

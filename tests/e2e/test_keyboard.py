@@ -24,6 +24,7 @@ from teleop.bus.messages import HAND_INPUT, DropCounter
 from teleop.bus.session import subscribe
 from teleop.bus.topics import Topics
 from teleop.core.config import load_config
+from teleop.core.summary import RunSummary
 from teleop.run.outside import write_observer_config
 from teleop.viz.report import verdict_text
 from tests.e2e.terminal import Terminal
@@ -203,7 +204,7 @@ def test_a_person_at_the_keyboard_puts_the_cube_in_the_bin(tmp_path):
     assert abs(end[0] - bin_p[0]) < 0.03 and abs(end[1] - bin_p[1]) < 0.03
     # The same verdict as a scripted run's, as the report gives it (teleop report renders
     # this section from the run's summary; its figures are tested on a scripted run).
-    assert "- task: success" in "\n".join(verdict_text(summary))
+    assert "- task: success" in "\n".join(verdict_text(RunSummary.from_json(summary)))
     assert (run_dir / "recording.rrd").stat().st_size > 0
 
 

@@ -22,6 +22,7 @@ import pytest
 from teleop.core.config import load_config
 from teleop.core.criteria import judge_summary
 from teleop.core.rundir import RECORDING_FILE, REPORT_SUMMARY_FILE, report_dir
+from teleop.core.summary import RunSummary
 from teleop.viz import entities as ent
 from teleop.viz.blueprint import view_specs
 from teleop.viz.rrd import Recording
@@ -81,7 +82,7 @@ def test_both_robots_tasks_succeed_one_after_the_other(two_robots):
     for robot_id, section in summary["robots"].items():
         assert section["success"] and section["object_in_box"], robot_id
         assert [p["name"] for p in section["phases"]][-1] == "retreat", robot_id
-        assert judge_summary(section).summary() == {
+        assert judge_summary(RunSummary.from_json(section)).to_json() == {
             key: section[key] for key in ("success", "criteria", "problems", "reasons")
         }  # the one verdict, given again the same way
         assert_physical({**summary, **section})

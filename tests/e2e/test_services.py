@@ -35,7 +35,7 @@ from teleop.run.stack import peer_mesh, service_programs
 from teleop.run.supervise import Stack
 from teleop.viz import entities as ent
 from teleop.viz.rrd import Recording
-from tests.e2e.outcome import assert_ran
+from tests.e2e.outcome import assert_ran, services_record_problems
 
 OBSERVER = "observer"
 ALIVE_TIMEOUT_S = 60.0
@@ -64,6 +64,7 @@ def run_services(tmp_path: Path, name: str, *args: str) -> dict:
     summary = json.loads(out.read_text()) if out.exists() else None
     assert_ran(result.returncode, summary, result.stderr)
     assert summary_problems(summary) == []  # as teleop.core.summary describes it
+    assert services_record_problems(summary) == []  # as their records read them
     return summary
 
 

@@ -7,6 +7,7 @@ import json
 import pytest
 
 from teleop.core import criteria
+from teleop.core.summary import RunSummary
 from teleop.run import sweep
 from teleop.viz.report import verdict_text
 
@@ -18,7 +19,7 @@ def _statuses(criteria: list[criteria.Criterion]) -> dict[str, str]:
 def test_missing_figures_are_unavailable_never_passed() -> None:
     judged = _statuses(
         criteria.judge_path(
-            criteria.TaskFigures.of({"path_error_rms_m": 2e-4, "path_error_max_m": 5e-4})
+            criteria.TaskFigures.from_json({"path_error_rms_m": 2e-4, "path_error_max_m": 5e-4})
         )
     )
     assert judged == {
@@ -37,7 +38,7 @@ def test_path_criteria_fail_with_their_reason() -> None:
         "path_progress": 0.5,
         "arm_contacts": 40,
     }
-    judged = criteria.judge_path(criteria.TaskFigures.of(summary))
+    judged = criteria.judge_path(criteria.TaskFigures.from_json(summary))
     failed = [c.detail for c in judged if c.status == criteria.FAIL]
     assert failed == [
         "path error RMS: 1.2 mm > 1 mm",
@@ -46,7 +47,9 @@ def test_path_criteria_fail_with_their_reason() -> None:
     ]
     ok = {"path_error_rms_m": 1e-5, "path_error_max_m": 2e-5, "path_progress": 0.99,
           "arm_contacts": 0, "commands_applied": 5000}  # fmt: skip
-    assert all(c.status == criteria.PASS for c in criteria.judge_path(criteria.TaskFigures.of(ok)))
+    assert all(
+        c.status == criteria.PASS for c in criteria.judge_path(criteria.TaskFigures.from_json(ok))
+    )
 
 
 def test_grasp_criteria_and_the_operators_reason() -> None:
@@ -56,18 +59,19 @@ def test_grasp_criteria_and_the_operators_reason() -> None:
         "max_device_force_n": 8.0,  # the device's peak: it saturated
         "services": {"operator": {"failure": "timeout in carry"}},
     }
-    judged = _statuses(criteria.judge_grasp(criteria.TaskFigures.of(summary)))
+    judged = _statuses(criteria.judge_grasp(criteria.TaskFigures.from_json(summary)))
     assert judged == {
         "cube in the bin": criteria.FAIL,
         "no unintended contact": criteria.PASS,
         "device force": criteria.FAIL,
         "commands applied": criteria.UNAVAILABLE,
     }
-    assert criteria.event_reasons(summary) == ["operator: timeout in carry"]
+    assert criteria.event_reasons(RunSummary.from_json(summary)) == ["operator: timeout in carry"]
     light = {"object_in_box": True, "arm_contacts": 0, "max_device_force_n": 1.2,
              "commands_applied": 6000}  # fmt: skip
     assert all(
-        c.status == criteria.PASS for c in criteria.judge_grasp(criteria.TaskFigures.of(light))
+        c.status == criteria.PASS
+        for c in criteria.judge_grasp(criteria.TaskFigures.from_json(light))
     )
 
 
@@ -76,24 +80,24 @@ def test_a_run_off_its_path_is_no_success_however_it_ended():
     RMS and 93 % progress fail the criteria, so the run is not a success either."""
     summary = {"path_error_rms_m": 2.2e-3, "path_error_max_m": 2.9e-3, "path_progress": 0.93,
                "arm_contacts": 0, "commands_applied": 5000}  # fmt: skip
-    verdict = criteria.judge_task("path-following", summary)
+    verdict = criteria.judge_task("path-following", criteria.TaskFigures.from_json(summary))
     assert not verdict.success and verdict.complete
     assert verdict.failed == ["path error RMS: 2.2 mm > 1 mm", "path progress 0.930 < 0.95"]
-    assert verdict.summary()["success"] is False
+    assert verdict.to_json()["success"] is False
 
 
 def test_a_short_run_is_judged_on_what_it_measured_and_a_problem_fails_it():
     """Before run.settle_s there is no path error: unavailable, which fails a sweep's task
     (complete is False) but not the run; a problem the run reported fails it."""
     short = {"path_progress": None, "arm_contacts": 0, "commands_applied": 400}
-    verdict = criteria.judge_task("path-following", short)
+    verdict = criteria.judge_task("path-following", criteria.TaskFigures.from_json(short))
     assert verdict.success and not verdict.complete
     assert verdict.unmeasured == ["path error RMS", "path error max", "path progress"]
-    stalled = criteria.judge_task("path-following", short, ["the tool stalled 1.0 s"])
+    stalled = criteria.judge_task(
+        "path-following", criteria.TaskFigures.from_json(short), ["the tool stalled 1.0 s"]
+    )
     assert not stalled.success
-    grasp = criteria.judge_task("grasp", {"object_in_box": True, "arm_contacts": 0,
-                                          "max_device_force_n": 1.2,
-                                          "commands_applied": 6000})  # fmt: skip
+    grasp = criteria.judge_task("grasp", criteria.TaskFigures.from_json(GOOD_GRASP))
     assert grasp.success and grasp.complete
 
 
@@ -103,26 +107,26 @@ def test_a_run_whose_plant_applied_no_command_fails_and_says_so(scenario):
     wrong key): whatever the run's other figures, it is a failure with that reason."""
     figures = {**(GOOD_PATH if scenario != "grasp" else GOOD_GRASP), "commands_applied": 0,
                "commands_received": 0}  # fmt: skip
-    verdict = criteria.judge_task(scenario, figures)
+    verdict = criteria.judge_task(scenario, criteria.TaskFigures.from_json(figures))
     assert not verdict.success
     assert verdict.reasons == [
         "the plant applied no command of its controller: none it could read reached it "
         "(see the records dropped)"
     ]
-    assert verdict.summary()["reasons"] == verdict.reasons
+    assert verdict.to_json()["reasons"] == verdict.reasons
 
 
 def test_a_cube_beside_the_bin_says_how_far():
-    verdict = criteria.judge_task(
-        "grasp", {**GOOD_GRASP, "object_in_box": False, "object_bin_distance_m": 0.132}
-    )
+    away = {**GOOD_GRASP, "object_in_box": False, "object_bin_distance_m": 0.132}
+    verdict = criteria.judge_task("grasp", criteria.TaskFigures.from_json(away))
     assert verdict.reasons == ["the cube is not in the bin: 13.2 cm from its inside (bound 0)"]
 
 
 def _written(scenario: str, figures: dict, problems: list[str]) -> dict:
     """A summary as ``teleop run`` writes it: its scenario, figures and verdict."""
     return {"scenario": scenario, **figures,
-            **criteria.judge_task(scenario, figures, problems).summary()}  # fmt: skip
+            **criteria.judge_task(scenario, criteria.TaskFigures.from_json(figures),
+                                  problems).to_json()}  # fmt: skip
 
 
 GOOD_GRASP = {"object_in_box": True, "arm_contacts": 0, "max_device_force_n": 1.2,
@@ -146,15 +150,16 @@ def test_run_sweep_and_report_give_a_summary_one_verdict(scenario, figures, prob
     """What ``teleop run`` wrote, judged again from the summary alone by the run's
     verdict, the sweep's record and the report's section: the same success."""
     summary = _written(scenario, figures, problems)
-    again = criteria.judge_summary(json.loads(json.dumps(summary)))  # as read from file
+    read = RunSummary.from_json(json.loads(json.dumps(summary)))  # as read from file
+    again = criteria.judge_summary(read)
     assert again.success is summary["success"]
-    assert again.summary() == {
+    assert again.to_json() == {
         k: summary[k] for k in ("success", "criteria", "problems", "reasons")
     }
-    record = sweep.judge_record(summary)
-    assert record["success"] is (summary["success"] and again.complete)
-    if not record["success"]:
-        assert record["reasons"]  # never a silent failure
-    section = "\n".join(verdict_text(summary))
+    success, _, reasons = sweep.judge_record(read)
+    assert success is (summary["success"] and again.complete)
+    if not success:
+        assert reasons  # never a silent failure
+    section = "\n".join(verdict_text(read))
     assert f"- task: {'success' if summary['success'] else 'failed'}" in section
     assert all(f"- problem: {p}" in section for p in problems)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from teleop.core.criteria import judge_task
+from teleop.core.criteria import TaskFigures, judge_task
 from teleop.run.progress import PROGRESS_PERIOD_S, RunProgress, human_summary
 
 PHASES = ("approach", "open", "descend")
@@ -120,8 +120,9 @@ def test_a_failed_run_says_why_a_line_each():
     the distance and the bound, and the problems after it; a success gives none."""
     figures = {"object_in_box": False, "object_bin_distance_m": 0.131, "arm_contacts": 0,
                "max_device_force_n": 2.0, "commands_applied": 5000}  # fmt: skip
-    verdict = judge_task("grasp", figures, ["the operator did not finish the task"])
-    summary = {"scenario": "grasp", "mode": "realtime", **figures, **verdict.summary()}
+    problems = ["the operator did not finish the task"]
+    verdict = judge_task("grasp", TaskFigures.from_json(figures), problems)
+    summary = {"scenario": "grasp", "mode": "realtime", **figures, **verdict.to_json()}
     lines = human_summary(summary, None)
     assert lines[0] == "grasp (realtime): FAILED"
     assert lines[1].split() == [
@@ -129,5 +130,6 @@ def test_a_failed_run_says_why_a_line_each():
         "inside", "(bound", "0)",
     ]  # fmt: skip
     assert lines[2].strip() == "the operator did not finish the task"
-    good = {**summary, **judge_task("grasp", {**figures, "object_in_box": True}).summary()}
+    in_bin = TaskFigures.from_json({**figures, "object_in_box": True})
+    good = {**summary, **judge_task("grasp", in_bin).to_json()}
     assert not any(line.lstrip().startswith("why") for line in human_summary(good, None))

@@ -208,5 +208,6 @@ def test_a_stack_that_did_not_come_up_is_started_again(
     monkeypatch.setattr(sweep, "_run", run)
     task = GraspTask(0, 0, (0.45, -0.25, 0.025), (0.35, 0.35, 0.0), (0.55, 0.1, 0.15), 0.05, False)
     record = sweep.run_job(sweep.Job("grasp", task, None, (), str(tmp_path)))
-    assert len(calls) == runs and record["success"] is success
-    assert record.get("startup_retries", 0) == runs - 1
+    assert len(calls) == runs and record.success is success
+    assert record.startup_retries == runs - 1
+    assert record.to_json().get("startup_retries", 0) == runs - 1

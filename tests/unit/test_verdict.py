@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 from teleop.bus.messages import PROTOCOL_VERSION
+from teleop.core.service_summaries import Drops
+from teleop.run.assemble import service_records
+from teleop.run.idle_poll import IdlePoll
 from teleop.run.verdict import (
     CLEAN,
     DEGRADED,
     LOST,
+    Privilege,
     drop_lines,
     machine_section,
     realtime_health,
@@ -72,11 +76,11 @@ def test_services_that_never_linked_degrade_a_run_as_missing_data_not_lost_real_
 
 def test_a_dropped_record_of_another_version_names_its_sender_and_both_versions():
     dropped = {
-        "plant": {
-            "counts": {"JOINT_COMMAND:version": 5001},
-            "first": {"JOINT_COMMAND:version": "5, expected 8"},
-        },
-        "haptic": {"counts": {"FORCE_FEEDBACK:range": 2}, "first": {}},
+        "plant": Drops(
+            counts={"JOINT_COMMAND:version": 5001},
+            first={"JOINT_COMMAND:version": "5, expected 8"},
+        ),
+        "haptic": Drops(counts={"FORCE_FEEDBACK:range": 2}, first={}),
     }
     lines = drop_lines(dropped)
     assert lines[0] == (
@@ -94,11 +98,11 @@ def test_the_machine_section_says_which_privileges_were_granted_and_refused():
         "recorder": {"privileges": {"sched_fifo": "not requested", "cpu_pinning": "granted [1]"}},
         "eyeview": {"privileges": {}, "shm_pool": {"pool_bytes": 2 << 20, "reason": "ulimit"}},
     }
-    idle = {"idle_poll_cpus": [], "idle_poll_failed": {0: "not polled: EACCES"}}
-    machine = machine_section(summaries, [0], idle)
-    assert machine["sched_fifo"] == {"granted": {}, "refused": {"plant": "refused: EPERM"}}
-    assert set(machine["cpu_pinning"]["granted"]) == {"plant", "recorder"}
-    assert machine["idle_cgroup"]["refused"] == {"0": "not polled: EACCES"}
+    idle = IdlePoll(cpus=(), failed={0: "not polled: EACCES"})
+    machine = machine_section(service_records(summaries), [0], idle)
+    assert machine.sched_fifo == Privilege(granted={}, refused={"plant": "refused: EPERM"})
+    assert set(machine.cpu_pinning.granted) == {"plant", "recorder"}
+    assert machine.to_json()["idle_cgroup"]["refused"] == {"0": "not polled: EACCES"}
     lines = refused_privileges(machine)
     assert len(lines) == 3
     assert lines[0].startswith("SCHED_FIFO refused for plant")
