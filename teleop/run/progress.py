@@ -124,45 +124,57 @@ def _reason_lines(summary: RunSummary) -> list[str]:
 
 def _task_lines(summary: RunSummary) -> list[str]:
     """One robot's lines: outcome, task, timing, stops, its recording."""
-    lines = []
-    scenario, mode = summary.scenario, summary.mode
-    if scenario in TELEOPERATED:
-        outcome = "success: the cube is in the bin" if summary.success else "FAILED"
-        lines.append(f"{scenario} ({mode}): {outcome}")
-        lines += _reason_lines(summary)
-        lines.append(
-            f"  task time          {_num(summary.duration_s, '.1f', ' s')}"
-            f"   phases {_phases_reached(summary.phases)}"
-        )
-        lines.append(
-            f"  velocity tracking  {_num(summary.velocity_tracking_rms_m_s, '.4f')} m/s RMS"
-        )
-        lines.append(
-            f"  forces             contact max "
-            f"{_num(summary.max_contact_force_n, '.2f', ' N')}, device max "
-            f"{_num(summary.max_device_force_n, '.2f', ' N')}, held weight "
-            f"{_num(summary.held_weight_n, '.2f', ' N')}"
-        )
-        lines.append(_clearance_line(summary))
+    if summary.scenario in TELEOPERATED:
+        lines = _grasp_lines(summary)
     else:
-        outcome = f"{scenario} ({mode}): {summary.duration_s} s simulated"
-        if summary.success is False:
-            outcome += ", FAILED"
-        lines.append(outcome)
-        lines += _reason_lines(summary)
-        lines.append(
-            f"  path error         RMS {_num(_mm(summary.path_error_rms_m), '.3f', ' mm')}, "
-            f"max {_num(_mm(summary.path_error_max_m), '.3f', ' mm')} "
-            f"(after {summary.settle_s} s)"
-        )
-        lines.append(f"  manipulability     min {_num(summary.min_manipulability, '.3f')}")
-        lines.append(
-            f"  motion             path_progress {_num(summary.path_progress, '.3f')}, "
-            f"stalled {_num(summary.stalled_s, '.1f', ' s')}"
-        )
-        lines.append(_clearance_line(summary))
-    lockstep = mode == "lockstep"
-    if lockstep:  # not paced by the wall clock: its speed is the machine's, not a verdict
+        lines = _path_lines(summary)
+    lines.append(_timing_line(summary))
+    lines += _stop_lines(summary)
+    if summary.rrd:
+        lines.append(f"  recording          {summary.rrd}")
+    return lines
+
+
+def _grasp_lines(summary: RunSummary) -> list[str]:
+    """A teleoperated task's outcome, its reasons, task time, tracking, forces, clearance."""
+    outcome = "success: the cube is in the bin" if summary.success else "FAILED"
+    return [
+        f"{summary.scenario} ({summary.mode}): {outcome}",
+        *_reason_lines(summary),
+        f"  task time          {_num(summary.duration_s, '.1f', ' s')}"
+        f"   phases {_phases_reached(summary.phases)}",
+        f"  velocity tracking  {_num(summary.velocity_tracking_rms_m_s, '.4f')} m/s RMS",
+        f"  forces             contact max "
+        f"{_num(summary.max_contact_force_n, '.2f', ' N')}, device max "
+        f"{_num(summary.max_device_force_n, '.2f', ' N')}, held weight "
+        f"{_num(summary.held_weight_n, '.2f', ' N')}",
+        _clearance_line(summary),
+    ]
+
+
+def _path_lines(summary: RunSummary) -> list[str]:
+    """Path following's outcome, its reasons, path error, manipulability, motion, clearance."""
+    outcome = f"{summary.scenario} ({summary.mode}): {summary.duration_s} s simulated"
+    if summary.success is False:
+        outcome += ", FAILED"
+    return [
+        outcome,
+        *_reason_lines(summary),
+        f"  path error         RMS {_num(_mm(summary.path_error_rms_m), '.3f', ' mm')}, "
+        f"max {_num(_mm(summary.path_error_max_m), '.3f', ' mm')} "
+        f"(after {summary.settle_s} s)",
+        f"  manipulability     min {_num(summary.min_manipulability, '.3f')}",
+        f"  motion             path_progress {_num(summary.path_progress, '.3f')}, "
+        f"stalled {_num(summary.stalled_s, '.1f', ' s')}",
+        _clearance_line(summary),
+    ]
+
+
+def _timing_line(summary: RunSummary) -> str:
+    """How the run kept time: lockstep's speed (the machine's, not a verdict) or the
+    realtime factor, with a services run's overruns, brakes and drops."""
+    lockstep = summary.mode == "lockstep"
+    if lockstep:
         # A person's run goes at most at their clock's pace (teleop.devices.person.loop).
         person = summary.operator not in (None, "scripted")
         timing = (
@@ -179,7 +191,12 @@ def _task_lines(summary: RunSummary) -> list[str]:
                 f"{summary.stale_commands}"
             )
         timing += f", dropped {summary.dropped_messages}"
-    lines.append(timing)
+    return timing
+
+
+def _stop_lines(summary: RunSummary) -> list[str]:
+    """The plant's approach slowing, protective stops, abort and restarts, a line each."""
+    lines = []
     protective = summary.protective_stop or {}
     if protective.get("approach_slowed_steps"):
         lines.append(
@@ -200,8 +217,6 @@ def _task_lines(summary: RunSummary) -> list[str]:
             f"  plant restarted    resumed at {resume['sim_time_s']:.3f} s sim time, "
             f"{resume['steps_lost']} steps lost, {_num(resume['wall_gap_s'], '.2f', ' s')} gap"
         )
-    if summary.rrd:
-        lines.append(f"  recording          {summary.rrd}")
     return lines
 
 
