@@ -312,7 +312,7 @@ def measure_stack(
         "realtime_factor": plant.get("realtime_factor"),
         "braked_steps": plant.get("stale_steps"),
         "steps": plant.get("steps"),
-        **loop,
+        **loop.to_json(),
     }
 
 
