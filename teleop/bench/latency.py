@@ -21,6 +21,13 @@ round trip is ``FEEDBACK_RENDERED - HAPTIC_SAMPLE``: handle sampled -> controlle
 plant (command in a physics step) -> plant state -> controller -> force set on the
 handle's motors. Percentiles come from HDR histograms (``hdrhistogram``: 3 significant
 digits, so within 0.1 % of the exact order statistic).
+
+The figures are typed records (:class:`LatencyStats`, :class:`LoopAnalysis`, the
+services' counters, :class:`LatencyReport`); JSON is written and read only by their
+``to_json``/``from_json``. The services' counters are read from the stack's
+:class:`~teleop.core.summary.RunSummary`: through the services' records
+(:mod:`teleop.core.service_summaries`) where those have the field, else from the
+service's summary JSON (:func:`_service_json`).
 """
 
 from __future__ import annotations
