@@ -21,6 +21,13 @@ round trip is ``FEEDBACK_RENDERED - HAPTIC_SAMPLE``: handle sampled -> controlle
 plant (command in a physics step) -> plant state -> controller -> force set on the
 handle's motors. Percentiles come from HDR histograms (``hdrhistogram``: 3 significant
 digits, so within 0.1 % of the exact order statistic).
+
+The figures are typed records (:class:`LatencyStats`, :class:`LoopAnalysis`, the
+services' counters, :class:`LatencyReport`); JSON is written and read only by their
+``to_json``/``from_json``. The services' counters are read from the stack's
+:class:`~teleop.core.summary.RunSummary`: through the services' records
+(:mod:`teleop.core.service_summaries`) where those have the field, else from the
+service's summary JSON (:func:`_service_json`).
 """
 
 from __future__ import annotations
@@ -31,7 +38,7 @@ import os
 import sys
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, fields, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -47,6 +54,13 @@ from teleop.core.clock import NS_PER_S, NS_PER_US
 from teleop.core.config import Config, EyeViewConfig, load_config
 from teleop.core.net import LoopbackPorts
 from teleop.core.rundir import HAPTIC_SAMPLES_FILE, HAPTIC_TRACE_FILE, SHED_FILE_SUFFIX
+from teleop.core.service_summaries import (
+    ControllerSummary,
+    HmdSummary,
+    PlantSummary,
+    record_of,
+)
+from teleop.core.summary import RunSummary
 from teleop.run.stack import (
     ALIVE_TIMEOUT_S,
     SERVICE_ENVIRONMENT,
@@ -133,23 +147,61 @@ def histogram(values_ns: Iterable[int]) -> Any:
     return hist
 
 
-def stats_us(values_ns: np.ndarray) -> dict[str, Any]:
+@dataclass(frozen=True)
+class LatencyStats:
+    """count, percentiles (PERCENTILES), max and mean of latencies, in us; the figures are
+    None without a sample. ``not_measured``: why a payload-sweep size was not sent.
+    JSON keys drop the unit (``p50``, ``max``): the report's key says ``_us``."""
+
+    count: int
+    p50_us: float | None = None
+    p90_us: float | None = None
+    p99_us: float | None = None
+    p999_us: float | None = None
+    max_us: float | None = None
+    mean_us: float | None = None
+    not_measured: str | None = None
+
+    def percentile_us(self, key: str) -> float | None:
+        """The figure of a PERCENTILES key (``p50``, ...), or ``max``/``mean``."""
+        return getattr(self, f"{key}_us")
+
+    def to_json(self) -> dict[str, float | str | None]:
+        out: dict[str, float | str | None] = {"count": self.count}
+        out |= {key: self.percentile_us(key) for key in (*PERCENTILES, "max", "mean")}
+        if self.not_measured is not None:
+            out["not_measured"] = self.not_measured
+        return out
+
+    @classmethod
+    def from_json(cls, content: Mapping[str, Any]) -> LatencyStats:
+        """The record of a JSON figure set; a key it lacks is None (an empty ``{}``: 0 loops)."""
+        figures = {f"{key}_us": content.get(key) for key in (*PERCENTILES, "max", "mean")}
+        return cls(
+            int(content.get("count", 0)), **figures, not_measured=content.get("not_measured")
+        )
+
+
+def stats_us(values_ns: np.ndarray) -> LatencyStats:
     """count, p50, p90, p99, p999, max and mean of latencies given in ns, reported in us.
 
     Percentiles are the HDR histogram's (the smallest recorded value with at least that
     share of samples at or below it, to 3 significant digits); max and mean are exact.
     """
     values_ns = np.asarray(values_ns, dtype=np.int64)
-    out: dict[str, Any] = {"count": int(values_ns.size)}
     if values_ns.size == 0:
-        out.update({key: None for key in PERCENTILES} | {"max": None, "mean": None})
-        return out
+        return LatencyStats(0)
     hist = histogram(values_ns)
-    for key, pct in PERCENTILES.items():
-        out[key] = hist.get_value_at_percentile(pct) / NS_PER_US
-    out["max"] = float(values_ns.max()) / NS_PER_US
-    out["mean"] = float(values_ns.mean()) / NS_PER_US
-    return out
+    percentiles = {
+        f"{key}_us": hist.get_value_at_percentile(pct) / NS_PER_US
+        for key, pct in PERCENTILES.items()
+    }
+    return LatencyStats(
+        int(values_ns.size),
+        **percentiles,
+        max_us=float(values_ns.max()) / NS_PER_US,
+        mean_us=float(values_ns.mean()) / NS_PER_US,
+    )
 
 
 def complete_loops(traces: np.ndarray) -> np.ndarray:
@@ -182,18 +234,79 @@ def warm_loops(*traces: np.ndarray) -> np.ndarray:
     return np.concatenate([after_warmup(complete_loops(t)) for t in traces])
 
 
-def analyse(*traces: np.ndarray) -> dict[str, Any]:
+def hops_json(hops_us: Mapping[str, LatencyStats]) -> dict[str, dict[str, float | str | None]]:
+    """Each hop's figures as JSON, by hop name."""
+    return {name: figures.to_json() for name, figures in hops_us.items()}
+
+
+def hops_from_json(content: Mapping[str, Any]) -> dict[str, LatencyStats]:
+    """Each hop's figures of a JSON object by hop name."""
+    return {name: LatencyStats.from_json(figures) for name, figures in content.items()}
+
+
+@dataclass(frozen=True)
+class LoopAnalysis:
+    """The round trip and every hop (HOPS, by name) of complete loops, in us, and the
+    loops whose stamps go back in time (must be 0)."""
+
+    round_trip_us: LatencyStats
+    hops_us: Mapping[str, LatencyStats]
+    non_monotonic: int
+
+
+def analyse(*traces: np.ndarray) -> LoopAnalysis:
     """Round trip and every hop of complete loops (after the warm-up of each run whose
     traces are given), in us."""
     loops = warm_loops(*traces)
-    return {
-        "round_trip_us": stats_us(hop_ns(loops, ROUND_TRIP)),
-        "hops": {hop.name: stats_us(hop_ns(loops, hop)) for hop in HOPS},
-        "non_monotonic": non_monotonic(loops),
-    }
+    return LoopAnalysis(
+        round_trip_us=stats_us(hop_ns(loops, ROUND_TRIP)),
+        hops_us={hop.name: stats_us(hop_ns(loops, hop)) for hop in HOPS},
+        non_monotonic=non_monotonic(loops),
+    )
 
 
-def across_clocks(*traces: np.ndarray) -> dict[str, Any]:
+@dataclass(frozen=True)
+class AcrossClocks:
+    """The loop split across two sites on two clocks (:func:`across_clocks`): the clocks'
+    offset (robot minus operator site, s) and its uncertainty (us), the round trip on the
+    operator site's clock, the robot site's part and each way across (us). No loop: every
+    figure None."""
+
+    loops: int
+    offset_s: float | None = None
+    offset_uncertainty_us: float | None = None
+    round_trip_us: LatencyStats | None = None
+    robot_site_us: LatencyStats | None = None
+    operator_to_robot_us: LatencyStats | None = None
+    robot_to_operator_us: LatencyStats | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON object (only ``loops`` when no loop closed)."""
+        if not self.loops:
+            return {"loops": self.loops}
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            out[f.name] = value.to_json() if isinstance(value, LatencyStats) else value
+        return out
+
+    @classmethod
+    def from_json(cls, content: Mapping[str, Any]) -> AcrossClocks:
+        """The record of :meth:`to_json`'s keys in ``content`` (other keys are left)."""
+        figures = {
+            f.name: LatencyStats.from_json(content[f.name])
+            for f in fields(cls)
+            if f.name.endswith("_us") and f.name in content and f.name != "offset_uncertainty_us"
+        }
+        return cls(
+            loops=content["loops"],
+            offset_s=content.get("offset_s"),
+            offset_uncertainty_us=content.get("offset_uncertainty_us"),
+            **figures,
+        )
+
+
+def across_clocks(*traces: np.ndarray) -> AcrossClocks:
     """The loop split across two sites on two clocks: the operator site's stamps
     (HAPTIC_SAMPLE, FEEDBACK_RX, FEEDBACK_RENDERED) on one, the robot site's
     (CONTROLLER_RX to FEEDBACK_TX) on another. The round trip is on the sampling side's
@@ -204,27 +317,42 @@ def across_clocks(*traces: np.ndarray) -> dict[str, Any]:
     s) after the warm-up."""
     loops = warm_loops(*traces)
     if loops.shape[0] == 0:
-        return {"loops": 0}
+        return AcrossClocks(0)
     t0, t1 = loops[:, Stage.HAPTIC_SAMPLE], loops[:, Stage.CONTROLLER_RX]
     t2, t3 = loops[:, Stage.FEEDBACK_TX], loops[:, Stage.FEEDBACK_RX]
     wire_ns = (t3 - t0) - (t2 - t1)
     best = int(np.argmin(wire_ns))
     # Halved in integers: two stamps hours apart are beyond a float's ns resolution.
     offset_ns = ((t1[best] - t0[best]) + (t2[best] - t3[best])) // 2
-    return {
-        "loops": int(loops.shape[0]),
-        "offset_s": offset_ns / NS_PER_S,
-        "offset_uncertainty_us": float(wire_ns[best]) / 2 / NS_PER_US,
-        "round_trip_us": stats_us(hop_ns(loops, ROUND_TRIP)),
-        "robot_site_us": stats_us(t2 - t1),
-        "operator_to_robot_us": stats_us(t1 - t0 - offset_ns),
-        "robot_to_operator_us": stats_us(t3 - t2 + offset_ns),
-    }
+    return AcrossClocks(
+        loops=int(loops.shape[0]),
+        offset_s=offset_ns / NS_PER_S,
+        offset_uncertainty_us=float(wire_ns[best]) / 2 / NS_PER_US,
+        round_trip_us=stats_us(hop_ns(loops, ROUND_TRIP)),
+        robot_site_us=stats_us(t2 - t1),
+        operator_to_robot_us=stats_us(t1 - t0 - offset_ns),
+        robot_to_operator_us=stats_us(t3 - t2 + offset_ns),
+    )
+
+
+@dataclass(frozen=True)
+class ChainAccounting:
+    """Handle samples between the first and the last that came back (:func:`chain_accounting`)."""
+
+    samples: int
+    returned: int
+    missing: int
+    shed: int
+    unaccounted: int
+    duplicates: int
+
+    def to_json(self) -> dict[str, int]:
+        return asdict(self)
 
 
 def chain_accounting(
     samples: np.ndarray, traces: np.ndarray, shed_ns: np.ndarray | None = None
-) -> dict[str, int]:
+) -> ChainAccounting:
     """Did every handle sample come back exactly once, or was it shed on purpose?
 
     ``samples`` (n, 2): (seq, HAPTIC_SAMPLE ns) of every published HAPTIC_STATE;
@@ -235,62 +363,76 @@ def chain_accounting(
     came back twice or more counts in ``duplicates`` (each extra time).
     """
     loops = complete_loops(traces)
-    empty = {"samples": 0, "returned": 0, "missing": 0, "shed": 0, "unaccounted": 0}
     if loops.shape[0] == 0:
-        return {**empty, "duplicates": 0}
+        return ChainAccounting(0, 0, 0, 0, 0, 0)
     returned = loops[:, Stage.HAPTIC_SAMPLE]
     unique, counts = np.unique(returned, return_counts=True)
     sample_ns = np.asarray(samples, dtype=np.int64).reshape(-1, 2)[:, 1]
     window = sample_ns[(sample_ns >= unique.min()) & (sample_ns <= unique.max())]
     missing = np.setdiff1d(window, unique)
     shed = np.zeros(0, np.int64) if shed_ns is None else np.asarray(shed_ns).reshape(-1)
-    return {
-        "samples": int(window.size),
-        "returned": int(unique.size),
-        "missing": int(missing.size),
-        "shed": int(np.isin(missing, shed).sum()),
-        "unaccounted": int(np.setdiff1d(missing, shed).size),
-        "duplicates": int((counts - 1).sum()),
-    }
+    return ChainAccounting(
+        samples=int(window.size),
+        returned=int(unique.size),
+        missing=int(missing.size),
+        shed=int(np.isin(missing, shed).sum()),
+        unaccounted=int(np.setdiff1d(missing, shed).size),
+        duplicates=int((counts - 1).sum()),
+    )
 
 
-def overhead(stack: dict[str, Any], floor: dict[str, Any]) -> dict[str, Any]:
-    """Each hop's and the round trip's p50/p99 over the floor's: ratio and extra us.
+@dataclass(frozen=True)
+class FloorRatio:
+    """A figure's p50 and p99 over the floor's: the ratio (None where the floor's is below
+    MIN_RATIO_BASE_US, or either is missing) and the extra us (None if either is missing)."""
+
+    p50_ratio: float | None
+    p50_extra_us: float | None
+    p99_ratio: float | None
+    p99_extra_us: float | None
+
+    @classmethod
+    def of(cls, mine: LatencyStats, base: LatencyStats) -> FloorRatio:
+        values: dict[str, float | None] = {}
+        for key in ("p50", "p99"):
+            a, b = mine.percentile_us(key), base.percentile_us(key)
+            if a is None or b is None:
+                values[f"{key}_ratio"] = values[f"{key}_extra_us"] = None
+                continue
+            values[f"{key}_ratio"] = a / b if b >= MIN_RATIO_BASE_US else None
+            values[f"{key}_extra_us"] = a - b
+        return cls(**values)
+
+    def to_json(self) -> dict[str, float | None]:
+        return asdict(self)
+
+
+def overhead(stack: LoopAnalysis, floor: LoopAnalysis) -> dict[str, FloorRatio]:
+    """Each hop's and the round trip's (``round_trip``) p50/p99 over the floor's: ratio
+    and extra us.
 
     A ratio is None where the floor's figure is below MIN_RATIO_BASE_US (a wait the bare
     relay does not have).
     """
-
-    def one(mine: dict[str, Any], base: dict[str, Any]) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        for key in ("p50", "p99"):
-            a, b = mine.get(key), base.get(key)
-            if a is None or b is None:
-                out[f"{key}_ratio"] = out[f"{key}_extra_us"] = None
-                continue
-            out[f"{key}_ratio"] = a / b if b >= MIN_RATIO_BASE_US else None
-            out[f"{key}_extra_us"] = a - b
-        return out
-
-    result = {"round_trip": one(stack["round_trip_us"], floor["round_trip_us"])}
-    for name, figures in stack["hops"].items():
-        result[name] = one(figures, floor["hops"][name])
+    result = {"round_trip": FloorRatio.of(stack.round_trip_us, floor.round_trip_us)}
+    for name, figures in stack.hops_us.items():
+        result[name] = FloorRatio.of(figures, floor.hops_us[name])
     return result
 
 
 # -- running the stack --------------------------------------------------------------------
 
 
-@dataclass
+@dataclass(frozen=True)
 class StackRun:
-    """One run of the realtime stack: its summary and raw stamps."""
+    """One run of the realtime stack: its summary, raw stamps and their analysis."""
 
     label: str
-    summary: dict[str, Any]
+    summary: RunSummary
     traces: np.ndarray
     samples: np.ndarray
     shed_ns: np.ndarray  # HAPTIC_SAMPLE stamps of the samples services shed on purpose
-    analysis: dict[str, Any] = field(default_factory=dict)
+    analysis: LoopAnalysis
 
 
 def stack_overrides(duration_s: float, extra: Sequence[str] = ()) -> list[str]:
@@ -328,105 +470,223 @@ def run_stack(
     traces = np.load(run_dir / HAPTIC_TRACE_FILE)
     samples = np.load(run_dir / HAPTIC_SAMPLES_FILE)
     shed = [np.load(path).reshape(-1) for path in sorted(run_dir.glob(f"*{SHED_FILE_SUFFIX}"))]
-    run = StackRun(label, summary, traces, samples, np.concatenate([np.zeros(0, np.int64), *shed]))
-    run.analysis = analyse(traces)
-    return run
+    shed_ns = np.concatenate([np.zeros(0, np.int64), *shed])
+    return StackRun(label, RunSummary.from_json(summary), traces, samples, shed_ns, analyse(traces))
 
 
-def shed_counters(services: dict[str, dict[str, Any]]) -> dict[str, int]:
+# -- what the report reads of the services' summaries -------------------------------------
+
+
+def _service_json(summary: RunSummary, role: str, *section: str) -> Mapping[str, object]:
+    """A service's summary JSON (or a section of it: ``arrival``, ``loop``), for the
+    counters its record in teleop.core.service_summaries does not have; empty if absent."""
+    content: object = (summary.services or {}).get(role, {})
+    for key in section:
+        content = content.get(key, {}) if isinstance(content, Mapping) else {}
+    return content if isinstance(content, Mapping) else {}
+
+
+def _count(content: Mapping[str, object], key: str) -> int:
+    """A counter of a summary's JSON, 0 if not written."""
+    value = content.get(key, 0)
+    return int(value) if isinstance(value, int | float) else 0
+
+
+def _figure(content: Mapping[str, object], key: str) -> float | None:
+    """A number of a summary's JSON as written (an int stays an int), None if not written."""
+    value = content.get(key)
+    return value if isinstance(value, int | float) else None
+
+
+@dataclass(frozen=True)
+class ShedCounts:
+    """Inputs dropped on purpose because a service was behind (:func:`shed_counters`)."""
+
+    haptic: int
+    state: int
+    feedback: int
+    command: int
+    command_late: int
+    command_stale: int
+
+    @property
+    def total(self) -> int:
+        return sum(asdict(self).values())
+
+    def to_json(self) -> dict[str, int]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class LostCounts:
+    """Messages per stream the bus never delivered (gaps in ``seq``)."""
+
+    haptic: int
+    command: int
+    state: int
+    feedback: int
+
+    def to_json(self) -> dict[str, int]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class ReorderedCounts:
+    """Messages per stream that came after a newer one."""
+
+    haptic: int
+    command: int
+    feedback: int
+
+    @property
+    def total(self) -> int:
+        return sum(asdict(self).values())
+
+    def to_json(self) -> dict[str, int]:
+        return asdict(self)
+
+
+def shed_counters(summary: RunSummary) -> ShedCounts:
     """Inputs dropped on purpose because a service was behind (a CPU stall): the
     controller's too-old haptic samples and states, the haptic device's too-old
     feedback, the plant's too-old commands, those that came after their device period
     was stepped (merged into the next step) and those too stale to apply. Each is a
     handle sample that never comes back (a state or feedback without one is counted
     too)."""
-    arrival = services.get("plant", {}).get("arrival", {})
-    controller = services.get("controller", {})
-    return {
-        "haptic": int(controller.get("haptic_shed", 0)),
-        "state": int(controller.get("states_shed", 0)),
-        "feedback": int(services.get("haptic", {}).get("feedback_shed", 0)),
-        "command": int(arrival.get("commands_shed", 0)),
-        "command_late": int(arrival.get("commands_late", 0)),
-        "command_stale": int(arrival.get("commands_stale", 0)),
-    }
+    arrival = _service_json(summary, "plant", "arrival")
+    controller = _service_json(summary, "controller")
+    return ShedCounts(
+        haptic=_count(controller, "haptic_shed"),
+        state=_count(controller, "states_shed"),
+        feedback=_count(_service_json(summary, "haptic"), "feedback_shed"),
+        command=_count(arrival, "commands_shed"),
+        command_late=_count(arrival, "commands_late"),
+        command_stale=_count(arrival, "commands_stale"),
+    )
 
 
-def stream_counters(services: dict[str, dict[str, Any]]) -> tuple[dict[str, int], dict[str, int]]:
+def stream_counters(summary: RunSummary) -> tuple[LostCounts, ReorderedCounts]:
     """(lost, reordered) per stream, from the services' own sequence checks: a gap in a
     stream's ``seq`` is a message the bus never delivered."""
-    plant = services.get("plant", {})
-    arrival = plant.get("arrival", {})
-    controller = services.get("controller", {})
-    haptic = services.get("haptic", {})
-    lost = {
-        "haptic": int(controller.get("haptic_lost", 0)),
-        "command": int(arrival.get("commands_lost", 0)),
-        "state": int(controller.get("skipped_states", 0)),
-        "feedback": int(haptic.get("feedback_lost", 0)),
-    }
-    reordered = {
-        "haptic": int(controller.get("haptic_reordered", 0)),
-        "command": int(arrival.get("commands_reordered", 0)),
-        "feedback": int(haptic.get("feedback_reordered", 0)),
-    }
+    arrival = _service_json(summary, "plant", "arrival")
+    controller = _service_json(summary, "controller")
+    haptic = _service_json(summary, "haptic")
+    skipped_states = ControllerSummary.from_json(controller).skipped_states
+    lost = LostCounts(
+        haptic=_count(controller, "haptic_lost"),
+        command=_count(arrival, "commands_lost"),
+        state=int(skipped_states or 0),
+        feedback=_count(haptic, "feedback_lost"),
+    )
+    reordered = ReorderedCounts(
+        haptic=_count(controller, "haptic_reordered"),
+        command=_count(arrival, "commands_reordered"),
+        feedback=_count(haptic, "feedback_reordered"),
+    )
     return lost, reordered
 
 
-def service_rates(summary: dict[str, Any]) -> dict[str, float | None]:
-    """Loop or message rate of each service over the run (Hz)."""
-    services = summary["services"]
-    wall_s = summary.get("wall_s") or 0.0
+@dataclass(frozen=True)
+class ServiceRates:
+    """Loop or message rate of each service over the run (Hz); None: not known."""
 
-    def per_s(count: Any) -> float | None:
+    plant_hz: float | None
+    haptic_hz: float | None
+    controller_hz: float | None
+    hmd_hz: float | None
+
+    def to_json(self) -> dict[str, float | None]:
+        return {f.name.removesuffix("_hz"): getattr(self, f.name) for f in fields(self)}
+
+
+def service_rates(summary: RunSummary) -> ServiceRates:
+    """Loop or message rate of each service over the run (Hz)."""
+    wall_s = summary.wall_s or 0.0
+
+    def per_s(count: float | None) -> float | None:
         return float(count) / wall_s if count is not None and wall_s > 0 else None
 
-    return {
-        "plant": services["plant"].get("rate_hz"),
-        "haptic": services["haptic"].get("rate_hz"),
-        "controller": per_s(services["controller"].get("cycles")),
-        "hmd": per_s(services.get("hmd", {}).get("published")),
-    }
+    hmd = HmdSummary.from_json(_service_json(summary, "hmd"))
+    return ServiceRates(
+        plant_hz=_figure(_service_json(summary, "plant"), "rate_hz"),
+        haptic_hz=_figure(_service_json(summary, "haptic"), "rate_hz"),
+        controller_hz=per_s(_figure(_service_json(summary, "controller"), "cycles")),
+        hmd_hz=per_s(hmd.published),
+    )
 
 
-def cpu_share(summary: dict[str, Any]) -> dict[str, float | None]:
+def cpu_share(summary: RunSummary) -> dict[str, float | None]:
     """Each service's CPU time over the run's wall time (1.0 = one core all the time;
-    start-up included, so a short run overstates it)."""
-    wall_s = summary.get("stack_wall_s") or 0.0
-    return {
-        name: (s["cpu_s"] / wall_s if wall_s > 0 and s.get("cpu_s") is not None else None)
-        for name, s in summary["services"].items()
-    }
+    start-up included, so a short run overstates it), by service name."""
+    wall_s = summary.stack_wall_s or 0.0
+    shares = {}
+    for name in summary.services or {}:
+        cpu_s = record_of(name, _service_json(summary, name)).cpu_s
+        shares[name] = cpu_s / wall_s if wall_s > 0 and cpu_s is not None else None
+    return shares
 
 
-def deadline_misses(summary: dict[str, Any]) -> dict[str, dict[str, Any]]:
+@dataclass(frozen=True)
+class PlantMisses:
+    """The plant's device periods without a command, its stalls, overruns and skipped
+    ticks, as its summary gives them (None: not written)."""
+
+    steps: int | None
+    periods_without_command: int | None
+    stalls: int | None
+    overrun_fraction: float | None
+    skipped_ticks: int | None
+
+
+@dataclass(frozen=True)
+class HapticMisses:
+    """The haptic device loop's overruns, skipped ticks and lateness (None: not written)."""
+
+    steps: int | None
+    overruns: int | None
+    skipped_ticks: int | None
+    lateness_p99_us: float | None
+
+
+@dataclass(frozen=True)
+class DeadlineMisses:
+    """Each periodic loop's misses (:func:`deadline_misses`)."""
+
+    plant: PlantMisses
+    haptic: HapticMisses
+
+    def to_json(self) -> dict[str, dict[str, float | None]]:
+        return {"plant": asdict(self.plant), "haptic": asdict(self.haptic)}
+
+
+def deadline_misses(summary: RunSummary) -> DeadlineMisses:
     """Each periodic loop's misses: the plant's device periods without a command and stalls,
     the haptic device loop's overruns and skipped ticks."""
-    services = summary["services"]
-    plant, haptic = services["plant"], services["haptic"]
-    arrival = plant.get("arrival", {})
-    haptic_loop = haptic.get("loop", {})
-    return {
-        "plant": {
-            "steps": plant.get("steps"),
-            "periods_without_command": arrival.get("steps_without_command"),
-            "stalls": arrival.get("stalls"),
-            "overrun_fraction": plant.get("overrun_fraction"),
-            "skipped_ticks": plant.get("skipped_ticks"),
-        },
-        "haptic": {
-            "steps": haptic.get("steps"),
-            "overruns": haptic_loop.get("overruns"),
-            "skipped_ticks": haptic_loop.get("skipped"),
-            "lateness_p99_us": haptic_loop.get("lateness_p99_us"),
-        },
-    }
+    plant = PlantSummary.from_json(_service_json(summary, "plant"))
+    arrival = _service_json(summary, "plant", "arrival")
+    haptic = _service_json(summary, "haptic")
+    haptic_loop = _service_json(summary, "haptic", "loop")
+    return DeadlineMisses(
+        plant=PlantMisses(
+            steps=plant.steps,
+            periods_without_command=_figure(arrival, "steps_without_command"),
+            stalls=_figure(arrival, "stalls"),
+            overrun_fraction=plant.overrun_fraction,
+            skipped_ticks=_figure(_service_json(summary, "plant"), "skipped_ticks"),
+        ),
+        haptic=HapticMisses(
+            steps=_figure(haptic, "steps"),
+            overruns=_figure(haptic_loop, "overruns"),
+            skipped_ticks=_figure(haptic_loop, "skipped"),
+            lateness_p99_us=_figure(haptic_loop, "lateness_p99_us"),
+        ),
+    )
 
 
 # -- running the floor --------------------------------------------------------------------
 
 
-@dataclass
+@dataclass(frozen=True)
 class FloorRun:
     """The relay chain's measurements of one bus setting (SHM on or off).
 
@@ -436,9 +696,9 @@ class FloorRun:
     """
 
     label: str
-    paced: dict[str, Any]
-    back_to_back: dict[str, Any]
-    sweep: dict[int, dict[str, Any]]
+    paced: LoopAnalysis
+    back_to_back: LatencyStats
+    sweep: Mapping[int, LatencyStats]  # by payload size (bytes)
     paced_parts: tuple[np.ndarray, ...]
     sent: int
     received: int
@@ -449,9 +709,9 @@ class FloorRun:
         return np.concatenate(self.paced_parts)
 
     @property
-    def paced_by_part(self) -> tuple[dict[str, Any], ...]:
+    def paced_by_part(self) -> tuple[LatencyStats, ...]:
         """Each paced part's round trip on its own (us)."""
-        return tuple(analyse(part)["round_trip_us"] for part in self.paced_parts)
+        return tuple(analyse(part).round_trip_us for part in self.paced_parts)
 
 
 def bracket(before: FloorRun, after: FloorRun) -> FloorRun:
@@ -459,11 +719,12 @@ def bracket(before: FloorRun, after: FloorRun) -> FloorRun:
     back-to-back figures are ``before``'s): on a host whose speed drifts over minutes,
     the floor then spans the same minutes as the stack it is compared with."""
     parts = (*before.paced_parts, *after.paced_parts)
-    paced = analyse(*parts)
-    paced["sent"] = before.sent + after.sent
-    paced["received"] = before.received + after.received
     return replace(
-        before, paced=paced, paced_parts=parts, sent=paced["sent"], received=paced["received"]
+        before,
+        paced=analyse(*parts),
+        paced_parts=parts,
+        sent=before.sent + after.sent,
+        received=before.received + after.received,
     )
 
 
@@ -522,11 +783,11 @@ def run_floor(
                     back_to_back_count, payload_bytes, seq, RETURN_TIMEOUT_S, SWEEP_BUDGET_S
                 )
                 b2b_traces = origin.trace_log.rows.copy()
-                sweep: dict[int, dict[str, Any]] = {}
+                sweep: dict[int, LatencyStats] = {}
                 for size in sweep_sizes:
                     why = unmeasurable_reason(size, bus, pool)
                     if why:
-                        sweep[size] = {**stats_us(np.zeros(0)), "not_measured": why}
+                        sweep[size] = LatencyStats(0, not_measured=why)
                         continue
                     origin.reset()
                     seq = origin.back_to_back(
@@ -542,11 +803,10 @@ def run_floor(
             if origin is not None:
                 origin.close()
             close_session(session)
-    paced = analyse(paced_traces)
-    paced["sent"] = sent
-    paced["received"] = received
     back_to_back = stats_us(hop_ns(complete_loops(b2b_traces), ROUND_TRIP))
-    return FloorRun(label, paced, back_to_back, sweep, (paced_traces,), sent, received)
+    return FloorRun(
+        label, analyse(paced_traces), back_to_back, sweep, (paced_traces,), sent, received
+    )
 
 
 def _floor_programs(
@@ -578,79 +838,271 @@ def _floor_programs(
 # -- the report ---------------------------------------------------------------------------
 
 
-def _loadavg() -> list[float]:
-    return [round(x, 2) for x in os.getloadavg()]
+def _loadavg() -> tuple[float, ...]:
+    return tuple(round(x, 2) for x in os.getloadavg())
 
 
-def sweep_table(shm: FloorRun, tcp: FloorRun) -> list[dict[str, Any]]:
+@dataclass(frozen=True)
+class SweepRow:
+    """One payload size's round trip (4 legs, back to back) with SHM and over TCP (us);
+    ``tcp_us`` None: the TCP floor did not send this size."""
+
+    size_bytes: int
+    shm_us: LatencyStats
+    tcp_us: LatencyStats | None
+    tcp_over_shm_p50: float | None
+    shm_faster: bool
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "bytes": self.size_bytes,
+            "shm_us": self.shm_us.to_json(),
+            "tcp_us": {} if self.tcp_us is None else self.tcp_us.to_json(),
+            "tcp_over_shm_p50": self.tcp_over_shm_p50,
+            "shm_faster": self.shm_faster,
+        }
+
+    @classmethod
+    def from_json(cls, content: Mapping[str, Any]) -> SweepRow:
+        tcp = content["tcp_us"]
+        return cls(
+            size_bytes=content["bytes"],
+            shm_us=LatencyStats.from_json(content["shm_us"]),
+            tcp_us=LatencyStats.from_json(tcp) if tcp else None,
+            tcp_over_shm_p50=content["tcp_over_shm_p50"],
+            shm_faster=content["shm_faster"],
+        )
+
+
+def sweep_table(shm: FloorRun, tcp: FloorRun) -> tuple[SweepRow, ...]:
     """Per payload size: round trip (4 legs, back to back) with SHM and over TCP."""
     rows = []
-    for size in shm.sweep:
-        on, off = shm.sweep[size], tcp.sweep.get(size, {})
+    for size, on in shm.sweep.items():
+        off = tcp.sweep.get(size)
         ratio = None
-        if on.get("p50") and off.get("p50"):
-            ratio = off["p50"] / on["p50"]
-        rows.append(
-            {
-                "bytes": size,
-                "shm_us": on,
-                "tcp_us": off,
-                "tcp_over_shm_p50": ratio,
-                "shm_faster": ratio is not None and ratio > 1.0,
-            }
+        if on.p50_us and off is not None and off.p50_us:
+            ratio = off.p50_us / on.p50_us
+        rows.append(SweepRow(size, on, off, ratio, ratio is not None and ratio > 1.0))
+    return tuple(rows)
+
+
+@dataclass(frozen=True)
+class Machine:
+    """The host of a report: CPUs, load averages (1, 5, 15 min) before and after (before:
+    None outside :func:`measure`), the CPUs kept polling and those whose poller failed
+    (CPU -> its status), as the stack's run summary gives them."""
+
+    cpus: int | None
+    loadavg_after: tuple[float, ...]
+    idle_poll_cpus: tuple[int, ...] | None
+    idle_poll_failed: Mapping[str, str] | None
+    loadavg_before: tuple[float, ...] | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "cpus": self.cpus,
+            "loadavg_after": list(self.loadavg_after),
+            "idle_poll_cpus": None if self.idle_poll_cpus is None else list(self.idle_poll_cpus),
+            "idle_poll_failed": None
+            if self.idle_poll_failed is None
+            else dict(self.idle_poll_failed),
+        }
+        if self.loadavg_before is not None:
+            out["loadavg_before"] = list(self.loadavg_before)
+        return out
+
+    @classmethod
+    def from_json(cls, content: Mapping[str, Any]) -> Machine:
+        polled, before = content.get("idle_poll_cpus"), content.get("loadavg_before")
+        return cls(
+            cpus=content.get("cpus"),
+            loadavg_after=tuple(content.get("loadavg_after", ())),
+            idle_poll_cpus=None if polled is None else tuple(polled),
+            idle_poll_failed=content.get("idle_poll_failed"),
+            loadavg_before=None if before is None else tuple(before),
         )
-    return rows
 
 
-def conclusions(report: dict[str, Any]) -> list[str]:
+@dataclass(frozen=True)
+class LatencyReport:
+    """The ``teleop latency`` report: the stack's loop against the transport floor (SHM on
+    and off), the services' counters, the payload sweep and the findings in words; the
+    run's own fields (``duration_s`` to ``rrd``) are None outside :func:`measure` and the
+    command. Written and read as JSON by :meth:`to_json` and :meth:`from_json` only."""
+
+    round_trip_us: LatencyStats
+    hops_us: Mapping[str, LatencyStats]
+    floor_us: LatencyStats
+    floor_parts_us: tuple[LatencyStats, ...]
+    floor_hops_us: Mapping[str, LatencyStats]
+    floor_back_to_back_us: LatencyStats
+    floor_sent: int
+    floor_received: int
+    shm_off_round_trip_us: LatencyStats
+    shm_off_hops_us: Mapping[str, LatencyStats]
+    floor_shm_off_us: LatencyStats
+    floor_shm_off_back_to_back_us: LatencyStats
+    overhead: Mapping[str, FloorRatio]  # ``round_trip`` and each hop
+    lost: LostCounts
+    reordered: ReorderedCounts
+    shed: ShedCounts
+    chain: ChainAccounting
+    non_monotonic: int
+    rates: ServiceRates
+    cpu_share: Mapping[str, float | None]
+    deadline_misses: DeadlineMisses
+    payload_sweep: tuple[SweepRow, ...]
+    dropped_messages: int | None
+    machine: Machine
+    old_timing_round_trip_us: LatencyStats | None = None
+    old_timing_hops_us: Mapping[str, LatencyStats] | None = None
+    conclusions: tuple[str, ...] = ()
+    duration_s: float | None = None
+    baseline_duration_s: float | None = None
+    date_utc: str | None = None
+    wall_s: float | None = None
+    run_dir: str | None = None
+    rrd: str | None = None  # the Rerun recording of the figures
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON object the command writes (the run's fields only where set)."""
+        out: dict[str, Any] = {
+            "round_trip_us": self.round_trip_us.to_json(),
+            "hops": hops_json(self.hops_us),
+            "floor_us": self.floor_us.to_json(),
+            "floor_parts_us": [part.to_json() for part in self.floor_parts_us],
+            "floor_hops": hops_json(self.floor_hops_us),
+            "floor_back_to_back_us": self.floor_back_to_back_us.to_json(),
+            "floor_sent": self.floor_sent,
+            "floor_received": self.floor_received,
+            "shm_off_round_trip_us": self.shm_off_round_trip_us.to_json(),
+            "shm_off_hops": hops_json(self.shm_off_hops_us),
+            "floor_shm_off_us": self.floor_shm_off_us.to_json(),
+            "floor_shm_off_back_to_back_us": self.floor_shm_off_back_to_back_us.to_json(),
+            "overhead": {name: ratio.to_json() for name, ratio in self.overhead.items()},
+            "lost": self.lost.to_json(),
+            "reordered": self.reordered.to_json(),
+            "shed": self.shed.to_json(),
+            "chain": self.chain.to_json(),
+            "non_monotonic": self.non_monotonic,
+            "rate_hz": self.rates.to_json(),
+            "cpu_share": dict(self.cpu_share),
+            "deadline_misses": self.deadline_misses.to_json(),
+            "payload_sweep": [row.to_json() for row in self.payload_sweep],
+            "dropped_messages": self.dropped_messages,
+            "machine": self.machine.to_json(),
+        }
+        if self.old_timing_round_trip_us is not None:
+            out["old_timing_round_trip_us"] = self.old_timing_round_trip_us.to_json()
+        if self.old_timing_hops_us is not None:
+            out["old_timing_hops"] = hops_json(self.old_timing_hops_us)
+        out["conclusions"] = list(self.conclusions)
+        for name in ("duration_s", "baseline_duration_s", "date_utc", "wall_s", "run_dir", "rrd"):
+            if getattr(self, name) is not None:
+                out[name] = getattr(self, name)
+        return out
+
+    @classmethod
+    def from_json(cls, content: Mapping[str, Any]) -> LatencyReport:
+        """The record of a report as :meth:`to_json` writes it."""
+        old, old_hops = content.get("old_timing_round_trip_us"), content.get("old_timing_hops")
+        misses = content["deadline_misses"]
+        return cls(
+            round_trip_us=LatencyStats.from_json(content["round_trip_us"]),
+            hops_us=hops_from_json(content["hops"]),
+            floor_us=LatencyStats.from_json(content["floor_us"]),
+            floor_parts_us=tuple(LatencyStats.from_json(p) for p in content["floor_parts_us"]),
+            floor_hops_us=hops_from_json(content["floor_hops"]),
+            floor_back_to_back_us=LatencyStats.from_json(content["floor_back_to_back_us"]),
+            floor_sent=content["floor_sent"],
+            floor_received=content["floor_received"],
+            shm_off_round_trip_us=LatencyStats.from_json(content["shm_off_round_trip_us"]),
+            shm_off_hops_us=hops_from_json(content["shm_off_hops"]),
+            floor_shm_off_us=LatencyStats.from_json(content["floor_shm_off_us"]),
+            floor_shm_off_back_to_back_us=LatencyStats.from_json(
+                content["floor_shm_off_back_to_back_us"]
+            ),
+            overhead={name: FloorRatio(**r) for name, r in content["overhead"].items()},
+            lost=LostCounts(**content["lost"]),
+            reordered=ReorderedCounts(**content["reordered"]),
+            shed=ShedCounts(**content["shed"]),
+            chain=ChainAccounting(**content["chain"]),
+            non_monotonic=content["non_monotonic"],
+            rates=ServiceRates(**{f"{k}_hz": v for k, v in content["rate_hz"].items()}),
+            cpu_share=dict(content["cpu_share"]),
+            deadline_misses=DeadlineMisses(
+                PlantMisses(**misses["plant"]), HapticMisses(**misses["haptic"])
+            ),
+            payload_sweep=tuple(SweepRow.from_json(row) for row in content["payload_sweep"]),
+            dropped_messages=content["dropped_messages"],
+            machine=Machine.from_json(content["machine"]),
+            old_timing_round_trip_us=None if old is None else LatencyStats.from_json(old),
+            old_timing_hops_us=None if old_hops is None else hops_from_json(old_hops),
+            conclusions=tuple(content.get("conclusions", ())),
+            duration_s=content.get("duration_s"),
+            baseline_duration_s=content.get("baseline_duration_s"),
+            date_utc=content.get("date_utc"),
+            wall_s=content.get("wall_s"),
+            run_dir=content.get("run_dir"),
+            rrd=content.get("rrd"),
+        )
+
+
+def _typed(report: LatencyReport | Mapping[str, Any]) -> LatencyReport:
+    """The record of a report given as a record or as its JSON (the command's edge)."""
+    return report if isinstance(report, LatencyReport) else LatencyReport.from_json(report)
+
+
+def conclusions(report: LatencyReport) -> list[str]:
     """The report's findings in words (what the numbers say, no judgement beyond them)."""
     out = []
-    rt, floor = report["round_trip_us"], report["floor_us"]
-    ratio = report["overhead"]["round_trip"]
-    if rt["p50"] is not None and floor["p50"] is not None:
+    rt, floor = report.round_trip_us, report.floor_us
+    ratio = report.overhead["round_trip"]
+    if rt.p50_us is not None and floor.p50_us is not None:
         out.append(
-            f"round trip p50 {rt['p50']:.0f} us, p99 {rt['p99']:.0f} us; paced floor p50 "
-            f"{floor['p50']:.0f} us, p99 {floor['p99']:.0f} us (p99 ratio "
-            f"{_fmt(ratio['p99_ratio'])}); back-to-back floor p99 "
-            f"{_fmt(report['floor_back_to_back_us']['p99'])} us"
+            f"round trip p50 {rt.p50_us:.0f} us, p99 {rt.p99_us:.0f} us; paced floor p50 "
+            f"{floor.p50_us:.0f} us, p99 {floor.p99_us:.0f} us (p99 ratio "
+            f"{_fmt(ratio.p99_ratio)}); back-to-back floor p99 "
+            f"{_fmt(report.floor_back_to_back_us.p99_us)} us"
         )
-    parts = report.get("floor_parts_us") or []
+    parts = report.floor_parts_us
     if len(parts) > 1:
         out.append(
             "paced floor before / after the stack: p50 "
-            + " / ".join(_fmt_us(part.get("p50")) for part in parts)
+            + " / ".join(_fmt_us(part.p50_us) for part in parts)
             + " us, p99 "
-            + " / ".join(_fmt_us(part.get("p99")) for part in parts)
+            + " / ".join(_fmt_us(part.p99_us) for part in parts)
             + " us"
         )
     out += where_the_time_goes(report)
-    old = report.get("old_timing_round_trip_us")
-    if old and old.get("p50") is not None and rt["p50"] is not None:
+    old = report.old_timing_round_trip_us
+    if old is not None and old.p50_us is not None and rt.p50_us is not None:
         out.append(
-            f"old timing (plant tick + device step) round trip p50 {old['p50']:.0f} us, "
-            f"p99 {old['p99']:.0f} us: the event-driven loop's p50 is "
-            f"{rt['p50'] / old['p50']:.2f}x the old timing's"
+            f"old timing (plant tick + device step) round trip p50 {old.p50_us:.0f} us, "
+            f"p99 {old.p99_us:.0f} us: the event-driven loop's p50 is "
+            f"{rt.p50_us / old.p50_us:.2f}x the old timing's"
         )
-    for row in report.get("payload_sweep", []):
-        if row["bytes"] < 1 << 20 and row["bytes"] != EYE_VIEW_FRAME_BYTES:
+    for row in report.payload_sweep:
+        if row.size_bytes < 1 << 20 and row.size_bytes != EYE_VIEW_FRAME_BYTES:
             continue  # the sizes the issue asks about: 1 MiB and one eye-view frame
-        what = f"{row['bytes']} B" + (
-            " (eye-view frame)" if row["bytes"] == EYE_VIEW_FRAME_BYTES else ""
+        what = f"{row.size_bytes} B" + (
+            " (eye-view frame)" if row.size_bytes == EYE_VIEW_FRAME_BYTES else ""
         )
-        shm_p50, tcp_p50 = row["shm_us"].get("p50"), row["tcp_us"].get("p50")
-        if row["tcp_over_shm_p50"] is not None:
-            verdict = "faster" if row["shm_faster"] else "NOT faster"
+        shm_p50 = row.shm_us.p50_us
+        tcp_p50 = None if row.tcp_us is None else row.tcp_us.p50_us
+        if row.tcp_over_shm_p50 is not None:
+            verdict = "faster" if row.shm_faster else "NOT faster"
             out.append(
                 f"{what}: SHM is {verdict} than TCP loopback (p50 {shm_p50:.0f} vs "
-                f"{tcp_p50:.0f} us, {row['tcp_over_shm_p50']:.2f}x)"
+                f"{tcp_p50:.0f} us, {row.tcp_over_shm_p50:.2f}x)"
             )
-        elif row["shm_us"].get("not_measured"):
-            out.append(f"{what}: not measured over SHM ({row['shm_us']['not_measured']})")
+        elif row.shm_us.not_measured:
+            out.append(f"{what}: not measured over SHM ({row.shm_us.not_measured})")
         else:  # a side where no payload of this size came back at all
             missing = [side for side, p50 in (("SHM", shm_p50), ("TCP", tcp_p50)) if p50 is None]
             out.append(f"{what}: no payload came back over {' or '.join(missing)}")
-    polled = report["machine"].get("idle_poll_cpus")
-    failed = report["machine"].get("idle_poll_failed") or {}
+    polled = report.machine.idle_poll_cpus
+    failed = report.machine.idle_poll_failed or {}
     if polled:
         out.append(
             f"idle CPUs polled (cpu.idle_poll): {', '.join(map(str, polled))}; the services' "
@@ -659,34 +1111,35 @@ def conclusions(report: dict[str, Any]) -> list[str]:
     elif not failed:
         out.append("idle CPUs halt (cpu.idle_poll off)")
     out += [f"idle CPU {cpu} halts, its poller says: {why}" for cpu, why in failed.items()]
-    lost = report["lost"]
+    lost = report.lost
     out.append(
-        f"lost: haptic {lost['haptic']}, command {lost['command']}, feedback "
-        f"{lost['feedback']}; reordered: {sum(report['reordered'].values())}; "
-        f"samples that never came back: {report['chain']['missing']} of "
-        f"{report['chain']['samples']} (shed while behind: {sum(report['shed'].values())})"
+        f"lost: haptic {lost.haptic}, command {lost.command}, feedback "
+        f"{lost.feedback}; reordered: {report.reordered.total}; samples that never came back: "
+        f"{report.chain.missing} of {report.chain.samples} (shed while behind: "
+        f"{report.shed.total})"
     )
     return out
 
 
-def where_the_time_goes(report: dict[str, Any]) -> list[str]:
+def where_the_time_goes(report: LatencyReport) -> list[str]:
     """The round trip's p50 split into what the transport floor accounts for and what the
     services add: the transport hops' ratios to the floor's, the compute and wait
     stages' p50s (none of which the bare relay chain has)."""
-    hops, ratios = report.get("hops") or {}, report["overhead"]
-    if any(hops.get(h.name, {}).get("p50") is None for h in HOPS):
+    hops, ratios = report.hops_us, report.overhead
+    if any(h.name not in hops or hops[h.name].p50_us is None for h in HOPS):
         return []
+    p50_us = {h.name: hops[h.name].p50_us or 0.0 for h in HOPS}
     transport = [h.name for h in HOPS if h.kind == "transport"]
     work = [h for h in HOPS if h.kind != "transport"]
-    transport_ratios = [ratios[name]["p50_ratio"] for name in transport]
+    transport_ratios = [ratios[name].p50_ratio for name in transport]
     spread = [r for r in transport_ratios if r is not None]
-    work_us = sum(hops[h.name]["p50"] for h in work)
-    line = f"where the p50 goes: transport hops {sum(hops[n]['p50'] for n in transport):.0f} us"
+    work_us = sum(p50_us[h.name] for h in work)
+    line = f"where the p50 goes: transport hops {sum(p50_us[n] for n in transport):.0f} us"
     if spread:
         line += f" ({min(spread):.2f}-{max(spread):.2f}x the floor's)"
     line += (
         f", compute and wait stages {work_us:.0f} us ("
-        + ", ".join(f"{h.name} {hops[h.name]['p50']:.0f}" for h in work)
+        + ", ".join(f"{h.name} {p50_us[h.name]:.0f}" for h in work)
         + ")"
     )
     return [line]
@@ -713,6 +1166,36 @@ def measure(
     old_timing: bool = True,
     progress: ProgressFn | None = None,
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """:func:`measure_report` with the report as the JSON the command writes (the
+    command adds ``rrd`` to it): (report, raw round-trip samples by series, ns)."""
+    report, raw = measure_report(
+        config_file,
+        overrides,
+        run_dir,
+        duration_s,
+        baseline_s=baseline_s,
+        sweep_sizes=sweep_sizes,
+        sweep_count=sweep_count,
+        back_to_back_count=back_to_back_count,
+        old_timing=old_timing,
+        progress=progress,
+    )
+    return report.to_json(), raw
+
+
+def measure_report(
+    config_file: Path | None,
+    overrides: Sequence[str],
+    run_dir: Path,
+    duration_s: float,
+    *,
+    baseline_s: float | None = None,
+    sweep_sizes: Sequence[int] = SWEEP_SIZES_BYTES,
+    sweep_count: int = DEFAULT_SWEEP_COUNT,
+    back_to_back_count: int = DEFAULT_BACK_TO_BACK_COUNT,
+    old_timing: bool = True,
+    progress: ProgressFn | None = None,
+) -> tuple[LatencyReport, dict[str, np.ndarray]]:
     """Run every measurement; return (report, raw round-trip samples by series, ns)."""
     run_dir = Path(run_dir).absolute()
     base_s = baseline_s if baseline_s is not None else min(duration_s, DEFAULT_BASELINE_MAX_S)
@@ -758,12 +1241,15 @@ def measure(
             "old_timing", config_file, [*overrides, *OLD_TIMING], base_s, run_dir / "stack-old"
         )
     report, raw = build_report(stack, stack_tcp, floor, floor_tcp, old)
-    report["duration_s"] = duration_s
-    report["baseline_duration_s"] = base_s
-    report["date_utc"] = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
-    report["machine"]["loadavg_before"] = load_before
-    report["wall_s"] = time.monotonic() - started
-    report["run_dir"] = str(run_dir)
+    report = replace(
+        report,
+        duration_s=duration_s,
+        baseline_duration_s=base_s,
+        date_utc=datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
+        machine=replace(report.machine, loadavg_before=load_before),
+        wall_s=time.monotonic() - started,
+        run_dir=str(run_dir),
+    )
     return report, raw
 
 
@@ -773,44 +1259,43 @@ def build_report(
     floor: FloorRun,
     floor_tcp: FloorRun,
     old: StackRun | None,
-) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """The report (JSON-ready) and the raw round trips (ns) by series, from the runs."""
-    lost, reordered = stream_counters(stack.summary["services"])
-    report: dict[str, Any] = {
-        "round_trip_us": stack.analysis["round_trip_us"],
-        "hops": stack.analysis["hops"],
-        "floor_us": floor.paced["round_trip_us"],
-        "floor_parts_us": list(floor.paced_by_part),
-        "floor_hops": floor.paced["hops"],
-        "floor_back_to_back_us": floor.back_to_back,
-        "floor_sent": floor.sent,
-        "floor_received": floor.received,
-        "shm_off_round_trip_us": stack_tcp.analysis["round_trip_us"],
-        "shm_off_hops": stack_tcp.analysis["hops"],
-        "floor_shm_off_us": floor_tcp.paced["round_trip_us"],
-        "floor_shm_off_back_to_back_us": floor_tcp.back_to_back,
-        "overhead": overhead(stack.analysis, floor.paced),
-        "lost": lost,
-        "reordered": reordered,
-        "shed": shed_counters(stack.summary["services"]),
-        "chain": chain_accounting(stack.samples, stack.traces, stack.shed_ns),
-        "non_monotonic": stack.analysis["non_monotonic"],
-        "rate_hz": service_rates(stack.summary),
-        "cpu_share": cpu_share(stack.summary),
-        "deadline_misses": deadline_misses(stack.summary),
-        "payload_sweep": sweep_table(floor, floor_tcp),
-        "dropped_messages": stack.summary.get("dropped_messages"),
-        "machine": {
-            "cpus": os.cpu_count(),
-            "loadavg_after": _loadavg(),
-            "idle_poll_cpus": stack.summary.get("idle_poll_cpus"),
-            "idle_poll_failed": stack.summary.get("idle_poll_failed"),
-        },
-    }
-    if old is not None:
-        report["old_timing_round_trip_us"] = old.analysis["round_trip_us"]
-        report["old_timing_hops"] = old.analysis["hops"]
-    report["conclusions"] = conclusions(report)
+) -> tuple[LatencyReport, dict[str, np.ndarray]]:
+    """The report and the raw round trips (ns) by series, from the runs."""
+    lost, reordered = stream_counters(stack.summary)
+    report = LatencyReport(
+        round_trip_us=stack.analysis.round_trip_us,
+        hops_us=stack.analysis.hops_us,
+        floor_us=floor.paced.round_trip_us,
+        floor_parts_us=floor.paced_by_part,
+        floor_hops_us=floor.paced.hops_us,
+        floor_back_to_back_us=floor.back_to_back,
+        floor_sent=floor.sent,
+        floor_received=floor.received,
+        shm_off_round_trip_us=stack_tcp.analysis.round_trip_us,
+        shm_off_hops_us=stack_tcp.analysis.hops_us,
+        floor_shm_off_us=floor_tcp.paced.round_trip_us,
+        floor_shm_off_back_to_back_us=floor_tcp.back_to_back,
+        overhead=overhead(stack.analysis, floor.paced),
+        lost=lost,
+        reordered=reordered,
+        shed=shed_counters(stack.summary),
+        chain=chain_accounting(stack.samples, stack.traces, stack.shed_ns),
+        non_monotonic=stack.analysis.non_monotonic,
+        rates=service_rates(stack.summary),
+        cpu_share=cpu_share(stack.summary),
+        deadline_misses=deadline_misses(stack.summary),
+        payload_sweep=sweep_table(floor, floor_tcp),
+        dropped_messages=stack.summary.dropped_messages,
+        machine=Machine(
+            cpus=os.cpu_count(),
+            loadavg_after=_loadavg(),
+            idle_poll_cpus=stack.summary.idle_poll_cpus,
+            idle_poll_failed=stack.summary.idle_poll_failed,
+        ),
+        old_timing_round_trip_us=None if old is None else old.analysis.round_trip_us,
+        old_timing_hops_us=None if old is None else old.analysis.hops_us,
+    )
+    report = replace(report, conclusions=tuple(conclusions(report)))
     raw = {
         "stack": hop_ns(after_warmup(complete_loops(stack.traces)), ROUND_TRIP),
         "floor": hop_ns(warm_loops(*floor.paced_parts), ROUND_TRIP),
@@ -824,10 +1309,12 @@ def build_report(
 # -- output -------------------------------------------------------------------------------
 
 
-def write_json(report: dict[str, Any], path: Path) -> None:
+def write_json(report: LatencyReport | Mapping[str, Any], path: Path) -> None:
+    """The report as JSON at ``path`` (a report given as JSON is written as it is)."""
+    content = report.to_json() if isinstance(report, LatencyReport) else report
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(report, indent=2) + "\n")
+    path.write_text(json.dumps(content, indent=2) + "\n")
 
 
 def fitted_bins_us(raw: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -846,9 +1333,12 @@ def fitted_bins_us(raw: Mapping[str, np.ndarray]) -> np.ndarray:
     )
 
 
-def write_png(report: dict[str, Any], raw: dict[str, np.ndarray], path: Path) -> None:
+def write_png(
+    report: LatencyReport | Mapping[str, Any], raw: Mapping[str, np.ndarray], path: Path
+) -> None:
     """Round-trip histograms (stack and baselines), per-hop p50/p99 against the floor,
-    and the payload sweep, in one figure."""
+    and the payload sweep, in one figure (the report as a record or as its JSON)."""
+    report = _typed(report)
     import matplotlib
 
     matplotlib.use("Agg")
@@ -874,14 +1364,14 @@ def write_png(report: dict[str, Any], raw: dict[str, np.ndarray], path: Path) ->
     width = 0.2
     for i, (series, key) in enumerate(
         (
-            (report["hops"], "p50"),
-            (report["floor_hops"], "p50"),
-            (report["hops"], "p99"),
-            (report["floor_hops"], "p99"),
+            (report.hops_us, "p50"),
+            (report.floor_hops_us, "p50"),
+            (report.hops_us, "p99"),
+            (report.floor_hops_us, "p99"),
         )  # fmt: skip
     ):
-        values = [series[n][key] or 0.0 for n in names]
-        label = ("stack " if series is report["hops"] else "floor ") + key
+        values = [series[n].percentile_us(key) or 0.0 for n in names]
+        label = ("stack " if series is report.hops_us else "floor ") + key
         ax.bar(x + (i - 1.5) * width, values, width, label=label)
     ax.set_yscale("symlog", linthresh=10)
     ax.set_xticks(x, names, rotation=45, ha="right")
@@ -891,13 +1381,14 @@ def write_png(report: dict[str, Any], raw: dict[str, np.ndarray], path: Path) ->
     ax.legend(loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=4, fontsize=8, frameon=False)
 
     ax = axes[2]
-    sweep = report.get("payload_sweep", [])
+    sweep = report.payload_sweep
     if sweep:
-        sizes = [row["bytes"] for row in sweep]
+        sizes = [row.size_bytes for row in sweep]
         order = np.argsort(sizes)
-        for key, label in (("shm_us", "SHM"), ("tcp_us", "TCP loopback")):
-            p50 = [sweep[i][key].get("p50") or math.nan for i in order]
-            p99 = [sweep[i][key].get("p99") or math.nan for i in order]
+        for side, label in (("shm", "SHM"), ("tcp", "TCP loopback")):
+            figures = [sweep[i].shm_us if side == "shm" else sweep[i].tcp_us for i in order]
+            p50 = [(f and f.p50_us) or math.nan for f in figures]
+            p99 = [(f and f.p99_us) or math.nan for f in figures]
             xs = [sizes[i] for i in order]
             line = ax.plot(xs, p50, marker="o", label=f"{label} p50")[0]
             ax.plot(
@@ -917,9 +1408,13 @@ def write_png(report: dict[str, Any], raw: dict[str, np.ndarray], path: Path) ->
     plt.close(fig)
 
 
-def log_to_rerun(report: dict[str, Any], raw: dict[str, np.ndarray], path: Path) -> None:
+def log_to_rerun(
+    report: LatencyReport | Mapping[str, Any], raw: Mapping[str, np.ndarray], path: Path
+) -> None:
     """The same figures into a Rerun recording (application ``zenoh-teleop``): one bar
-    chart per round-trip histogram and the percentiles of every hop, stack and floor."""
+    chart per round-trip histogram and the percentiles of every hop, stack and floor
+    (the report as a record or as its JSON)."""
+    report = _typed(report)
     import rerun as rr
 
     from teleop.viz.entities import APPLICATION_ID
@@ -931,19 +1426,20 @@ def log_to_rerun(report: dict[str, Any], raw: dict[str, np.ndarray], path: Path)
     for name, values_ns in raw.items():
         counts, _ = np.histogram(values_ns / NS_PER_US, bins=FIGURE_BINS_US)
         rec.log(f"latency/histogram/{name}", rr.BarChart(counts), static=True)
-    series = {"stack": report["hops"], "floor": report["floor_hops"]}
+    series = {"stack": report.hops_us, "floor": report.floor_hops_us}
     for origin, hops in series.items():
         for hop_name, figures in hops.items():
             for key in PERCENTILES:
-                if figures.get(key) is not None:
+                value_us = figures.percentile_us(key)
+                if value_us is not None:
                     rec.log(
                         f"latency/{origin}/{hop_name}/{key}_us",
-                        rr.Scalars(figures[key]),
+                        rr.Scalars(value_us),
                         static=True,
                     )
     rec.log(
         "latency/report",
-        rr.TextDocument("\n".join(report["conclusions"]), media_type="text/markdown"),
+        rr.TextDocument("\n".join(report.conclusions), media_type="text/markdown"),
         static=True,
     )
     rec.flush()

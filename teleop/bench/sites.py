@@ -28,14 +28,15 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import zenoh
 
-from teleop.bench.latency import across_clocks
+from teleop.bench.latency import AcrossClocks, LatencyStats, across_clocks
 from teleop.bench.netem import LinkImpairment, running_proxy
 from teleop.bench.ping import paced_round_trips_ms
 from teleop.bus import graph
@@ -46,6 +47,7 @@ from teleop.core import markdown
 from teleop.core.config import OPERATOR_SITE, ROBOT_SITE, BusConfig, SiteConfig
 from teleop.core.net import free_loopback_port
 from teleop.core.rundir import HAPTIC_TRACE_FILE
+from teleop.core.service_summaries import PlantSummary
 from teleop.run.sites import OPERATOR_BUNDLE_FILE
 from teleop.run.stack import ended_plant_summary
 
@@ -158,13 +160,94 @@ def round_trips_ms(
         return _round_trips_ms(_bus(files, "haptic", operator_mesh, _endpoint()), pings, rate_hz)
 
 
-def stats(trips_ms: np.ndarray) -> dict[str, float]:
+@dataclass(frozen=True)
+class PathTrips:
+    """One path's round trips: how many samples came back, their p50 and p99 (ms; NaN if
+    none came back). Through the emulator: its one-way ``delay_ms`` and the p50 over the
+    floor (the direct path's median p50) plus twice the delay; None on the other paths."""
+
+    received: int
+    p50_ms: float
+    p99_ms: float
+    delay_ms: float | None = None
+    p50_over_floor_plus_2_delays: float | None = None
+
+    def to_json(self) -> dict[str, float]:
+        return {
+            f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None
+        }
+
+    @classmethod
+    def from_json(cls, content: Mapping[str, float]) -> PathTrips:
+        return cls(
+            received=int(content["received"]),
+            p50_ms=content["p50_ms"],
+            p99_ms=content["p99_ms"],
+            delay_ms=content.get("delay_ms"),
+            p50_over_floor_plus_2_delays=content.get("p50_over_floor_plus_2_delays"),
+        )
+
+    @property
+    def line(self) -> str:
+        """The figures in one line of progress."""
+        return f"p50 {self.p50_ms:.3f} ms, p99 {self.p99_ms:.3f} ms, {self.received} back"
+
+
+def stats(trips_ms: np.ndarray) -> PathTrips:
     """How many came back, their p50 and p99 (ms)."""
-    return {
-        "received": int(trips_ms.size),
-        "p50_ms": float(np.median(trips_ms)) if trips_ms.size else float("nan"),
-        "p99_ms": float(np.percentile(trips_ms, 99)) if trips_ms.size else float("nan"),
-    }
+    return PathTrips(
+        received=int(trips_ms.size),
+        p50_ms=float(np.median(trips_ms)) if trips_ms.size else float("nan"),
+        p99_ms=float(np.percentile(trips_ms, 99)) if trips_ms.size else float("nan"),
+    )
+
+
+@dataclass(frozen=True)
+class SitesReport:
+    """The ``teleop latency --across-sites`` report (:func:`measure_report`): each round's
+    paths (by path, in the order measured), each delay through the emulator, the
+    routers' median ratios to the direct path (None without a round), the samples that
+    never came back and the load average (1, 5, 15 min) before and after."""
+
+    load_average_start: tuple[float, ...]
+    pings: int
+    rate_hz: float
+    rounds: tuple[Mapping[str, PathTrips], ...]
+    delays: tuple[PathTrips, ...]
+    routers_over_direct_p50: float | None
+    routers_over_direct_p99: float | None
+    load_average_end: tuple[float, ...]
+    lost: int
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "load_average_start": list(self.load_average_start),
+            "pings": self.pings,
+            "rate_hz": self.rate_hz,
+            "rounds": [{path: t.to_json() for path, t in r.items()} for r in self.rounds],
+            "delays": [trips.to_json() for trips in self.delays],
+            "routers_over_direct_p50": self.routers_over_direct_p50,
+            "routers_over_direct_p99": self.routers_over_direct_p99,
+            "load_average_end": list(self.load_average_end),
+            "lost": self.lost,
+        }
+
+    @classmethod
+    def from_json(cls, content: Mapping[str, Any]) -> SitesReport:
+        """The record of a report as :meth:`to_json` writes it (a ``stack`` in it is left)."""
+        return cls(
+            load_average_start=tuple(content["load_average_start"]),
+            pings=content["pings"],
+            rate_hz=content["rate_hz"],
+            rounds=tuple(
+                {path: PathTrips.from_json(t) for path, t in r.items()} for r in content["rounds"]
+            ),
+            delays=tuple(PathTrips.from_json(t) for t in content["delays"]),
+            routers_over_direct_p50=content.get("routers_over_direct_p50"),
+            routers_over_direct_p99=content.get("routers_over_direct_p99"),
+            load_average_end=tuple(content["load_average_end"]),
+            lost=content["lost"],
+        )
 
 
 def measure(
@@ -174,77 +257,92 @@ def measure(
     delays_ms: Sequence[float],
     progress: Callable[[str], None] = lambda line: None,
 ) -> dict[str, Any]:
+    """:func:`measure_report`'s report as the JSON the command writes."""
+    return measure_report(pings, rate_hz, rounds, delays_ms, progress).to_json()
+
+
+def measure_report(
+    pings: int,
+    rate_hz: float,
+    rounds: int,
+    delays_ms: Sequence[float],
+    progress: Callable[[str], None] = lambda line: None,
+) -> SitesReport:
     """Direct and through the routers in ``rounds`` alternating rounds, then through the
-    routers with each one-way delay of ``delays_ms``; the report (JSON-ready), each path's
-    line also given to ``progress`` as it is measured."""
-    report: dict[str, Any] = {
-        "load_average_start": list(os.getloadavg()),
-        "pings": pings,
-        "rate_hz": rate_hz,
-        "rounds": [],
-        "delays": [],
-    }
+    routers with each one-way delay of ``delays_ms``; the report, each path's line also
+    given to ``progress`` as it is measured."""
+    load_average_start = os.getloadavg()
+    measured: list[dict[str, PathTrips]] = []
+    delayed: list[PathTrips] = []
     with tempfile.TemporaryDirectory(prefix="teleop-sites-") as tmp:
         files = write_run_credentials(Path(tmp), PARTICIPANTS, (ROBOT,), tls=True)
         for index in range(rounds):
             order = [DIRECT, ROUTERS] if index % 2 == 0 else [ROUTERS, DIRECT]
             entry = {path: stats(round_trips_ms(files, path, pings, rate_hz)) for path in order}
             for path in order:
-                progress(f"round {index + 1} {path}: {_line(entry[path])}")
-            report["rounds"].append(entry)
-        for key in ("p50_ms", "p99_ms"):
-            ratios = [r[ROUTERS][key] / r[DIRECT][key] for r in report["rounds"]]
-            report[f"routers_over_direct_{key[:3]}"] = float(np.median(ratios)) if ratios else None
-        floor_p50 = float(np.median([r[DIRECT]["p50_ms"] for r in report["rounds"]] or [0.0]))
+                progress(f"round {index + 1} {path}: {entry[path].line}")
+            measured.append(entry)
+        ratios = {
+            key: [getattr(r[ROUTERS], key) / getattr(r[DIRECT], key) for r in measured]
+            for key in ("p50_ms", "p99_ms")
+        }
+        over_direct = {k: float(np.median(v)) if v else None for k, v in ratios.items()}
+        floor_p50 = float(np.median([r[DIRECT].p50_ms for r in measured] or [0.0]))
         for delay_ms in delays_ms:
-            entry = stats(round_trips_ms(files, ROUTERS, pings, rate_hz, delay_ms))
-            entry |= {
-                "delay_ms": delay_ms,
-                "p50_over_floor_plus_2_delays": entry["p50_ms"] / (floor_p50 + 2 * delay_ms),
-            }
-            progress(f"routers + {delay_ms:g} ms each way: {_line(entry)}")
-            report["delays"].append(entry)
-    report["load_average_end"] = list(os.getloadavg())
-    report["lost"] = sum(
-        pings - e["received"]
-        for e in [*report["delays"], *(v for r in report["rounds"] for v in r.values())]
+            trips = stats(round_trips_ms(files, ROUTERS, pings, rate_hz, delay_ms))
+            trips = dataclasses.replace(
+                trips,
+                delay_ms=delay_ms,
+                p50_over_floor_plus_2_delays=trips.p50_ms / (floor_p50 + 2 * delay_ms),
+            )
+            progress(f"routers + {delay_ms:g} ms each way: {trips.line}")
+            delayed.append(trips)
+    every = [*delayed, *(trips for r in measured for trips in r.values())]
+    return SitesReport(
+        load_average_start=load_average_start,
+        pings=pings,
+        rate_hz=rate_hz,
+        rounds=tuple(measured),
+        delays=tuple(delayed),
+        routers_over_direct_p50=over_direct["p50_ms"],
+        routers_over_direct_p99=over_direct["p99_ms"],
+        load_average_end=os.getloadavg(),
+        lost=sum(pings - trips.received for trips in every),
     )
-    return report
 
 
-def _line(entry: dict[str, float]) -> str:
-    return f"p50 {entry['p50_ms']:.3f} ms, p99 {entry['p99_ms']:.3f} ms, {entry['received']} back"
-
-
-def table(report: dict[str, Any]) -> list[str]:
-    """The report as Markdown lines: a row per path (medians over the rounds)."""
+def table(report: SitesReport | Mapping[str, Any]) -> list[str]:
+    """The report (a record, or its JSON) as Markdown lines: a row per path (medians over
+    the rounds)."""
+    if not isinstance(report, SitesReport):
+        report = SitesReport.from_json(report)
     lines = [
-        f"Round trip across two sites on this host: {report['pings']} samples per path at "
-        f"{report['rate_hz']:g} Hz, load average {report['load_average_start'][0]:.2f} before",
+        f"Round trip across two sites on this host: {report.pings} samples per path at "
+        f"{report.rate_hz:g} Hz, load average {report.load_average_start[0]:.2f} before",
         "",
     ]
     rows = []
     for path in (DIRECT, ROUTERS):
-        runs = [r[path] for r in report["rounds"]]
+        runs = [r[path] for r in report.rounds]
         if runs:
-            p50 = float(np.median([r["p50_ms"] for r in runs]))
-            p99 = float(np.median([r["p99_ms"] for r in runs]))
+            p50 = float(np.median([r.p50_ms for r in runs]))
+            p99 = float(np.median([r.p99_ms for r in runs]))
             rows.append((path, "0 ms", f"{p50:.3f} ms", f"{p99:.3f} ms", ""))
     rows += [
-        ("routers + netem", f"{e['delay_ms']:g} ms", f"{e['p50_ms']:.2f} ms",
-         f"{e['p99_ms']:.2f} ms", f"{e['p50_over_floor_plus_2_delays']:.2f}")
-        for e in report["delays"]
+        ("routers + netem", f"{e.delay_ms:g} ms", f"{e.p50_ms:.2f} ms",
+         f"{e.p99_ms:.2f} ms", f"{e.p50_over_floor_plus_2_delays:.2f}")
+        for e in report.delays
     ]  # fmt: skip
     header = ("path", "one-way delay", "round trip p50", "p99", "p50 / (floor + 2 x delay)")
     lines += markdown.table(header, rows, "lrrrr")
-    if report.get("routers_over_direct_p50") is not None:
+    if report.routers_over_direct_p50 is not None:
         lines += [
             "",
-            f"routers / direct, median over rounds: p50 {report['routers_over_direct_p50']:.2f}, "
-            f"p99 {report['routers_over_direct_p99']:.2f}",
+            f"routers / direct, median over rounds: p50 {report.routers_over_direct_p50:.2f}, "
+            f"p99 {report.routers_over_direct_p99:.2f}",
         ]
-    if report["lost"]:
-        lines.append(f"{report['lost']} samples never came back")
+    if report.lost:
+        lines.append(f"{report.lost} samples never came back")
     return lines
 
 
@@ -278,9 +376,46 @@ def wait_plant_end(run_dir: Path, timeout_s: float, plant: str = graph.PLANT) ->
     return summary
 
 
+@dataclass(frozen=True)
+class StackAcrossSites:
+    """The realtime grasp split across two sites (:func:`measure_stack_record`): its
+    outcome as the plant's summary gives it (``braked_steps``: the plant's steps braked by
+    the watchdog) and the loop on the two clocks."""
+
+    success: bool
+    failure: str | None
+    realtime_factor: float | None
+    braked_steps: int | None
+    steps: int | None
+    loop: AcrossClocks
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON object: the outcome, then the loop's figures at the same level."""
+        outcome = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "loop"}
+        return outcome | self.loop.to_json()
+
+    @classmethod
+    def from_json(cls, content: Mapping[str, Any]) -> StackAcrossSites:
+        return cls(
+            success=content["success"],
+            failure=content.get("failure"),
+            realtime_factor=content.get("realtime_factor"),
+            braked_steps=content.get("braked_steps"),
+            steps=content.get("steps"),
+            loop=AcrossClocks.from_json(content),
+        )
+
+
 def measure_stack(
     run_dir: Path, settings: Sequence[str] = (), progress: Callable[[str], None] = print
 ) -> dict[str, Any]:
+    """:func:`measure_stack_record`'s figures as the JSON the command writes."""
+    return measure_stack_record(run_dir, settings, progress).to_json()
+
+
+def measure_stack_record(
+    run_dir: Path, settings: Sequence[str] = (), progress: Callable[[str], None] = print
+) -> StackAcrossSites:
     """The realtime grasp (seed 0) split across two sites on this host (``teleop up
     --site robot`` and ``--site operator``, their routers over mutual TLS on loopback),
     each site on its own clock as far as the stack knows: the loop's round trip on the
@@ -300,51 +435,57 @@ def measure_stack(
         _teleop(["up", "--site", "operator", "--join", str(robot_dir / OPERATOR_BUNDLE_FILE),
                  "--run-dir", str(operator_dir)], STACK_RUN_TIMEOUT_S)  # fmt: skip
         started.append(operator_dir)
-        plant = wait_plant_end(robot_dir, STACK_RUN_TIMEOUT_S)
+        plant = PlantSummary.from_json(wait_plant_end(robot_dir, STACK_RUN_TIMEOUT_S))
     finally:
         for site_dir in reversed(started):
             subprocess.run([sys.executable, "-m", "teleop.cli", "down", "--run-dir",
                             str(site_dir)], capture_output=True, timeout=120)  # fmt: skip
-    loop = across_clocks(np.load(operator_dir / HAPTIC_TRACE_FILE))
-    return {
-        "success": bool(plant.get("object_in_box")) and bool(plant.get("finished")),
-        "failure": plant.get("failure"),
-        "realtime_factor": plant.get("realtime_factor"),
-        "braked_steps": plant.get("stale_steps"),
-        "steps": plant.get("steps"),
-        **loop,
-    }
+    return StackAcrossSites(
+        success=bool(plant.object_in_box) and bool(plant.finished),
+        failure=plant.failure,
+        realtime_factor=plant.realtime_factor,
+        braked_steps=plant.stale_steps,
+        steps=plant.steps,
+        loop=across_clocks(np.load(operator_dir / HAPTIC_TRACE_FILE)),
+    )
 
 
-def stack_table(stack: dict[str, Any], floor_routers_ms: dict[str, float] | None) -> list[str]:
-    """The stack's loop across the sites as Markdown lines, beside the routers' floor."""
-    if not stack.get("loops"):
+def stack_table(
+    stack: StackAcrossSites | Mapping[str, Any], floor_routers_ms: Mapping[str, float] | None
+) -> list[str]:
+    """The stack's loop across the sites (a record, or its JSON) as Markdown lines, beside
+    the routers' floor (``p50_ms``, ``p99_ms``)."""
+    if not isinstance(stack, StackAcrossSites):
+        stack = StackAcrossSites.from_json(stack)
+    loop = stack.loop
+    if not loop.loops:
         return ["the stack across the sites closed no loop"]
 
-    def ms(figures: dict[str, Any], key: str) -> str:
-        return f"{figures[key] / 1e3:.2f} ms"
+    def ms(figures: LatencyStats | None, key: str) -> str:
+        value_us = None if figures is None else figures.percentile_us(key)
+        return "n/a" if value_us is None else f"{value_us / 1e3:.2f} ms"
 
     rows = [
-        ("round trip (operator site's clock)", ms(stack["round_trip_us"], "p50"),
-         ms(stack["round_trip_us"], "p99")),
-        ("operator site -> robot site", ms(stack["operator_to_robot_us"], "p50"),
-         ms(stack["operator_to_robot_us"], "p99")),
-        ("robot site (controller, plant, controller)", ms(stack["robot_site_us"], "p50"),
-         ms(stack["robot_site_us"], "p99")),
-        ("robot site -> operator site", ms(stack["robot_to_operator_us"], "p50"),
-         ms(stack["robot_to_operator_us"], "p99")),
+        ("round trip (operator site's clock)", ms(loop.round_trip_us, "p50"),
+         ms(loop.round_trip_us, "p99")),
+        ("operator site -> robot site", ms(loop.operator_to_robot_us, "p50"),
+         ms(loop.operator_to_robot_us, "p99")),
+        ("robot site (controller, plant, controller)", ms(loop.robot_site_us, "p50"),
+         ms(loop.robot_site_us, "p99")),
+        ("robot site -> operator site", ms(loop.robot_to_operator_us, "p50"),
+         ms(loop.robot_to_operator_us, "p99")),
     ]  # fmt: skip
     if floor_routers_ms is not None:
         rows.append(("floor: bare ends through the routers", f"{floor_routers_ms['p50_ms']:.2f} ms",
                      f"{floor_routers_ms['p99_ms']:.2f} ms"))  # fmt: skip
     lines = [
-        f"The realtime grasp across two sites: {'success' if stack['success'] else 'failed'}, "
-        f"realtime factor {stack['realtime_factor']:.3f}, {stack['braked_steps']} of "
-        f"{stack['steps']} steps braked; {stack['loops']} loops",
+        f"The realtime grasp across two sites: {'success' if stack.success else 'failed'}, "
+        f"realtime factor {stack.realtime_factor:.3f}, {stack.braked_steps} of "
+        f"{stack.steps} steps braked; {loop.loops} loops",
         "",
         *markdown.table(("path", "p50", "p99"), rows, "lrr"),
         "",
-        f"clocks' offset (robot minus operator site) {stack['offset_s']:+.6f} s, +- "
-        f"{stack['offset_uncertainty_us'] / 1e3:.2f} ms (each way within that)",
+        f"clocks' offset (robot minus operator site) {loop.offset_s:+.6f} s, +- "
+        f"{loop.offset_uncertainty_us / 1e3:.2f} ms (each way within that)",
     ]
     return lines

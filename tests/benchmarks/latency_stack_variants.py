@@ -53,9 +53,9 @@ def one_variant(name: str, duration_s: float, run_dir: Path, out: Path) -> None:
     run = latency.run_stack(name, None, VARIANTS[name].get("overrides", []), duration_s, run_dir)
     cpu = latency.cpu_share(run.summary)
     figures = {
-        "round_trip": run.analysis["round_trip_us"],
+        "round_trip": run.analysis.round_trip_us.to_json(),
         "cpu_cores": sum(v for v in cpu.values() if v is not None),
-        "shed": sum(latency.shed_counters(run.summary["services"]).values()),
+        "shed": latency.shed_counters(run.summary).total,
     }
     out.write_text(json.dumps(figures))
 

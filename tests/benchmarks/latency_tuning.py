@@ -62,9 +62,9 @@ def one_variant(name: str, paced_s: float, run_dir: Path, out: Path) -> None:
         sweep_count=100,
     )
     figures = {
-        "paced": run.paced["round_trip_us"],
-        "back_to_back": run.back_to_back,
-        "frame": run.sweep[FRAME_BYTES],
+        "paced": run.paced.round_trip_us.to_json(),
+        "back_to_back": run.back_to_back.to_json(),
+        "frame": run.sweep[FRAME_BYTES].to_json(),
         "lost": run.sent - run.received,
     }
     out.write_text(json.dumps(figures))

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from teleop.bench import sites as sites_bench
-from teleop.bench.latency import across_clocks
+from teleop.bench.latency import LatencyStats, across_clocks
 from teleop.core import markdown
 from teleop.core.config import STABILISERS, load_config
 from teleop.core.rundir import HAPTIC_TRACE_FILE
@@ -95,18 +95,18 @@ def one_run(
         "stale_felt_max_ms": sites.summaries["haptic"]["stale_spells"]["felt_max_ms"],
         # The loop across the clocks: round trip on the operator site's, each way from the
         # estimated offset (robot minus operator site, s) within its uncertainty.
-        "round_trip_ms": _p50_p99_ms(loop.get("round_trip_us")),
-        "operator_to_robot_ms": _p50_p99_ms(loop.get("operator_to_robot_us")),
-        "robot_to_operator_ms": _p50_p99_ms(loop.get("robot_to_operator_us")),
-        "clock_offset_s": loop.get("offset_s"),
-        "clock_offset_uncertainty_ms": (loop.get("offset_uncertainty_us") or 0.0) / 1e3,
+        "round_trip_ms": _p50_p99_ms(loop.round_trip_us),
+        "operator_to_robot_ms": _p50_p99_ms(loop.operator_to_robot_us),
+        "robot_to_operator_ms": _p50_p99_ms(loop.robot_to_operator_us),
+        "clock_offset_s": loop.offset_s,
+        "clock_offset_uncertainty_ms": (loop.offset_uncertainty_us or 0.0) / 1e3,
     }
 
 
-def _p50_p99_ms(figures: dict[str, Any] | None) -> list[float] | None:
-    if not figures or figures.get("p50") is None:
+def _p50_p99_ms(figures: LatencyStats | None) -> list[float] | None:
+    if figures is None or figures.p50_us is None or figures.p99_us is None:
         return None
-    return [figures["p50"] / 1e3, figures["p99"] / 1e3]
+    return [figures.p50_us / 1e3, figures.p99_us / 1e3]
 
 
 def delay_runs(tmp: Path, delay_ms: float, stabilisers: Sequence[str], stiff_k: float) -> list:

@@ -88,7 +88,7 @@ def one_run(robots: int, mode: str, run_dir: Path) -> dict[str, Any]:
         "realtime_problems": summary.get("realtime_problems"),
     }
     if mode == "realtime":
-        loop = analyse(np.load(run_dir / HAPTIC_TRACE_FILE))["round_trip_us"]
+        loop = analyse(np.load(run_dir / HAPTIC_TRACE_FILE)).round_trip_us.to_json()
         result["round_trip_us"] = {k: loop[k] for k in ("count", "p50", "p99", "max")}
         result["realtime_factor"] = {rid: s.get("realtime_factor") for rid, s in sections.items()}
         plants = [services[graph.instance_name("plant", rid, robots)] for rid in sections]

@@ -69,24 +69,23 @@ def test_stamps_follow_the_loop_in_order(stack_run):
 
 @needs_realtime_stack
 def test_no_sample_lost_or_counted_twice_at_1khz(stack_run):
-    services = stack_run.summary["services"]
-    lost, reordered = latency.stream_counters(services)
-    assert lost == {"haptic": 0, "command": 0, "state": 0, "feedback": 0}
-    assert reordered == {"haptic": 0, "command": 0, "feedback": 0}
+    lost, reordered = latency.stream_counters(stack_run.summary)
+    assert lost == latency.LostCounts(haptic=0, command=0, state=0, feedback=0)
+    assert reordered == latency.ReorderedCounts(haptic=0, command=0, feedback=0)
     chain = latency.chain_accounting(stack_run.samples, stack_run.traces, stack_run.shed_ns)
-    assert chain["duplicates"] == 0
+    assert chain.duplicates == 0
     # Every handle sample came back exactly once, unless a service behind its schedule
     # (a CPU stall on a loaded host) shed it on purpose and logged it: nothing vanishes.
-    assert chain["unaccounted"] == 0, chain
-    assert chain["returned"] + chain["missing"] == chain["samples"]
+    assert chain.unaccounted == 0, chain
+    assert chain.returned + chain.missing == chain.samples
     # About ten seconds at 1 kHz came back (the device loop skips late ticks rather than
     # bursting, so a loaded machine samples a little less than 1 kHz).
     period_s = 1e-3
-    assert chain["returned"] >= 0.1 * (STACK_DURATION_S - latency.WARMUP_S) / period_s
+    assert chain.returned >= 0.1 * (STACK_DURATION_S - latency.WARMUP_S) / period_s
 
 
 def test_report_equals_a_reference_computation_on_the_raw_files(stack_run):
-    run_dir = Path(stack_run.summary["run_dir"])
+    run_dir = Path(stack_run.summary.run_dir)
     traces = np.load(run_dir / HAPTIC_TRACE_FILE)
     assert (np.load(run_dir / HAPTIC_SAMPLES_FILE)[:, 1] > 0).all()
     # Reference: plain numpy on the file, independent of the module's helpers.
@@ -95,9 +94,9 @@ def test_report_equals_a_reference_computation_on_the_raw_files(stack_run):
     kept = complete[complete[:, Stage.HAPTIC_SAMPLE] >= first_ns + latency.WARMUP_S * NS_PER_S]
     analysis = stack_run.analysis
     round_trip_ns = kept[:, Stage.FEEDBACK_RENDERED] - kept[:, Stage.HAPTIC_SAMPLE]
-    assert_matches_reference(analysis["round_trip_us"], round_trip_ns)
+    assert_matches_reference(analysis.round_trip_us, round_trip_ns)
     transport_ns = kept[:, Stage.PLANT_RX] - kept[:, Stage.CONTROLLER_TX]
-    assert_matches_reference(analysis["hops"]["controller_to_plant"], transport_ns)
+    assert_matches_reference(analysis.hops_us["controller_to_plant"], transport_ns)
 
 
 def test_floor_chain_returns_every_payload_with_the_loop_stamps(floor_run):
@@ -107,8 +106,8 @@ def test_floor_chain_returns_every_payload_with_the_loop_stamps(floor_run):
     assert latency.non_monotonic(loops) == 0
     # The relays do no work: nothing waits between the plant's arrival and its step.
     assert (latency.hop_ns(loops, latency.HOPS[3]) == 0).all()
-    assert floor_run.back_to_back["count"] == 200
-    assert [floor_run.sweep[size]["count"] for size in (64, 65536)] == [20, 20]
+    assert floor_run.back_to_back.count == 200
+    assert [floor_run.sweep[size].count for size in (64, 65536)] == [20, 20]
 
 
 def test_floor_relays_run_on_the_cpus_of_the_services_they_stand_in_for(floor_run, floor_dir):
@@ -132,21 +131,23 @@ def test_a_floor_bracketing_the_stack_counts_both_halves(floor_run, stack_run):
     later_traces = np.where(traces > 0, traces + 100 * NS_PER_S, 0)
     later = dataclasses.replace(floor_run, paced_parts=(later_traces,))
     both = latency.bracket(floor_run, later)
-    assert both.paced["round_trip_us"]["count"] == 2 * floor_run.paced["round_trip_us"]["count"]
+    assert both.paced.round_trip_us.count == 2 * floor_run.paced.round_trip_us.count
     assert both.sent == 2 * floor_run.sent and both.received == 2 * floor_run.received
-    assert both.paced_by_part == (floor_run.paced["round_trip_us"],) * 2
+    assert both.paced_by_part == (floor_run.paced.round_trip_us,) * 2
     # Each half loses its own warm-up: the reference is each part's loops, concatenated.
     loops = latency.after_warmup(latency.complete_loops(floor_run.paced_traces))
     reference_ns = np.concatenate([latency.hop_ns(loops, latency.ROUND_TRIP)] * 2)
-    assert_matches_reference(both.paced["round_trip_us"], reference_ns)
+    assert_matches_reference(both.paced.round_trip_us, reference_ns)
     report, raw = latency.build_report(stack_run, stack_run, both, floor_run, None)
-    assert report["floor_parts_us"] == [floor_run.paced["round_trip_us"]] * 2
+    assert report.floor_parts_us == (floor_run.paced.round_trip_us,) * 2
     assert raw["floor"].size == reference_ns.size
-    assert any("before / after the stack" in line for line in report["conclusions"])
+    assert any("before / after the stack" in line for line in report.conclusions)
 
 
 def test_report_files(stack_run, floor_run, tmp_path):
-    report, raw = latency.build_report(stack_run, stack_run, floor_run, floor_run, None)
+    record, raw = latency.build_report(stack_run, stack_run, floor_run, floor_run, None)
+    report = record.to_json()  # the JSON the command writes
+    assert latency.LatencyReport.from_json(report) == record
     for key in ("round_trip_us", "floor_us", "floor_back_to_back_us", "shm_off_round_trip_us"):
         assert set(report[key]) >= {"count", "p50", "p90", "p99", "p999", "max"}
     assert set(report["hops"]) == {hop.name for hop in latency.HOPS}
@@ -173,9 +174,9 @@ def test_report_files(stack_run, floor_run, tmp_path):
         for cpu, why in machine["idle_poll_failed"].items():
             assert why.startswith(NOT_POLLED), why
             assert f"idle CPU {cpu} halts, its poller says: {why}" in report["conclusions"]
-    latency.write_json(report, tmp_path / "out.json")
-    latency.write_png(report, raw, tmp_path / "out.png")
-    latency.log_to_rerun(report, raw, tmp_path / "out.rrd")
+    latency.write_json(record, tmp_path / "out.json")
+    latency.write_png(record, raw, tmp_path / "out.png")
+    latency.log_to_rerun(report, raw, tmp_path / "out.rrd")  # as the command gives it
     assert json.loads((tmp_path / "out.json").read_text())["hops"] == report["hops"]
     assert (tmp_path / "out.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     verify = subprocess.run(

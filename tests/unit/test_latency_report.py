@@ -3,6 +3,8 @@ reference, hops, chain accounting, ratios to the floor, conclusions, the stamp l
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import sys
 from pathlib import Path
 
@@ -13,6 +15,7 @@ from teleop.bench import latency
 from teleop.bus.messages import N_STAGES, Stage
 from teleop.bus.stamps import StampLog
 from teleop.core.clock import NS_PER_S, NS_PER_US
+from teleop.core.summary import RunSummary
 
 # HDR histograms keep 3 significant digits: a percentile is within this fraction of the
 # exact order statistic (the bucket's highest equivalent value; 2^-10 < 1e-3).
@@ -27,12 +30,14 @@ def _reference(values_ns: np.ndarray, pct: float) -> float:
     return float(np.sort(values_ns)[rank - 1]) / NS_PER_US
 
 
-def assert_matches_reference(figures: dict, values_ns: np.ndarray) -> None:
-    assert figures["count"] == values_ns.size
+def assert_matches_reference(figures: latency.LatencyStats, values_ns: np.ndarray) -> None:
+    assert figures.count == values_ns.size
     for key, pct in latency.PERCENTILES.items():
         exact = _reference(values_ns, pct)
-        assert figures[key] == pytest.approx(exact, rel=HDR_RELATIVE_PRECISION, abs=1e-3), key
-    assert figures["max"] == pytest.approx(values_ns.max() / NS_PER_US)
+        assert figures.percentile_us(key) == pytest.approx(
+            exact, rel=HDR_RELATIVE_PRECISION, abs=1e-3
+        ), key
+    assert figures.max_us == pytest.approx(values_ns.max() / NS_PER_US)
 
 
 def _synthetic_traces(n: int, rng: np.random.Generator) -> np.ndarray:
@@ -47,7 +52,11 @@ def test_percentiles_match_numpy_within_hdr_precision():
     rng = np.random.default_rng(0)
     values_ns = rng.lognormal(mean=np.log(300e3), sigma=0.8, size=20_000).astype(np.int64)
     assert_matches_reference(latency.stats_us(values_ns), values_ns)
-    assert latency.stats_us(np.array([], dtype=np.int64))["p99"] is None
+    empty = latency.stats_us(np.array([], dtype=np.int64))
+    assert empty.p99_us is None and empty.count == 0
+    assert empty.to_json() == {"count": 0} | dict.fromkeys(
+        ("p50", "p90", "p99", "p999", "max", "mean")
+    )
 
 
 def test_hops_add_up_to_the_round_trip_and_incomplete_loops_are_left_out():
@@ -62,8 +71,8 @@ def test_hops_add_up_to_the_round_trip_and_incomplete_loops_are_left_out():
     report = latency.analyse(traces)
     kept = latency.after_warmup(traces)
     assert kept.shape[0] == 3000 - round(latency.WARMUP_S * NS_PER_S / PERIOD_NS)
-    assert_matches_reference(report["round_trip_us"], latency.hop_ns(kept, latency.ROUND_TRIP))
-    assert report["non_monotonic"] == 0
+    assert_matches_reference(report.round_trip_us, latency.hop_ns(kept, latency.ROUND_TRIP))
+    assert report.non_monotonic == 0
     swapped = traces.copy()
     swapped[5, Stage.PLANT_RX], swapped[5, Stage.PLANT_APPLIED] = (
         swapped[5, Stage.PLANT_APPLIED],
@@ -76,7 +85,7 @@ def test_chain_accounting_finds_missing_and_duplicate_samples():
     rng = np.random.default_rng(2)
     traces = _synthetic_traces(100, rng)
     samples = np.stack([np.arange(100), traces[:, Stage.HAPTIC_SAMPLE]], axis=1)
-    assert latency.chain_accounting(samples, traces) == {
+    assert latency.chain_accounting(samples, traces).to_json() == {
         "samples": 100,
         "returned": 100,
         "missing": 0,
@@ -87,20 +96,23 @@ def test_chain_accounting_finds_missing_and_duplicate_samples():
     damaged = np.vstack([np.delete(traces, [40, 41], axis=0), traces[[7]]])
     shed = traces[[41], Stage.HAPTIC_SAMPLE]
     counts = latency.chain_accounting(samples, damaged, shed)
-    assert counts["missing"] == 2 and counts["duplicates"] == 1
-    assert counts["shed"] == 1 and counts["unaccounted"] == 1
+    assert counts.missing == 2 and counts.duplicates == 1
+    assert counts.shed == 1 and counts.unaccounted == 1
 
 
 def test_overhead_is_a_ratio_to_the_floor_and_none_without_a_floor_stage():
-    stack = {"round_trip_us": {"p50": 300.0, "p99": 900.0}, "hops": {"plant_wait": {"p50": 5.0,
-             "p99": 9.0}}}  # fmt: skip
-    floor = {"round_trip_us": {"p50": 200.0, "p99": 600.0}, "hops": {"plant_wait": {"p50": 0.001,
-             "p99": 0.001}}}  # fmt: skip
+    stack = latency.LoopAnalysis(_figures(300.0, 900.0), {"plant_wait": _figures(5.0, 9.0)}, 0)
+    floor = latency.LoopAnalysis(_figures(200.0, 600.0), {"plant_wait": _figures(0.001, 0.001)}, 0)
     result = latency.overhead(stack, floor)
-    assert result["round_trip"]["p50_ratio"] == pytest.approx(1.5)
-    assert result["round_trip"]["p99_extra_us"] == pytest.approx(300.0)
-    assert result["plant_wait"]["p50_ratio"] is None
-    assert result["plant_wait"]["p50_extra_us"] == pytest.approx(4.999)
+    assert result["round_trip"].p50_ratio == pytest.approx(1.5)
+    assert result["round_trip"].p99_extra_us == pytest.approx(300.0)
+    assert result["plant_wait"].p50_ratio is None
+    assert result["plant_wait"].p50_extra_us == pytest.approx(4.999)
+    missing = latency.overhead(stack, latency.LoopAnalysis(latency.LatencyStats(0), {
+        "plant_wait": latency.LatencyStats(0)}, 0))  # fmt: skip
+    assert missing["round_trip"].to_json() == dict.fromkeys(
+        ("p50_ratio", "p50_extra_us", "p99_ratio", "p99_extra_us")
+    )
 
 
 def test_stamp_log_keeps_the_newest_rows_and_saves_them_oldest_first(tmp_path):
@@ -113,39 +125,127 @@ def test_stamp_log_keeps_the_newest_rows_and_saves_them_oldest_first(tmp_path):
     np.testing.assert_array_equal(np.load(tmp_path / "x.npy"), log.rows)
 
 
+def _figures(p50_us: float | None, p99_us: float | None = None) -> latency.LatencyStats:
+    """Figures of a run with the given p50 and p99 (us)."""
+    return latency.LatencyStats(10, p50_us=p50_us, p99_us=p99_us)
+
+
+def _report(**changes) -> latency.LatencyReport:
+    """A report with no loops, counters at 0 and no payload sweep, with ``changes``."""
+    none = latency.LatencyStats(0)
+    no_hops = {hop.name: none for hop in latency.HOPS}
+    ratio = latency.FloorRatio(None, None, None, None)
+    report = latency.LatencyReport(
+        round_trip_us=none,
+        hops_us=no_hops,
+        floor_us=none,
+        floor_parts_us=(none,),
+        floor_hops_us=no_hops,
+        floor_back_to_back_us=none,
+        floor_sent=0,
+        floor_received=0,
+        shm_off_round_trip_us=none,
+        shm_off_hops_us=no_hops,
+        floor_shm_off_us=none,
+        floor_shm_off_back_to_back_us=none,
+        overhead={"round_trip": ratio} | dict.fromkeys(no_hops, ratio),
+        lost=latency.LostCounts(0, 0, 0, 0),
+        reordered=latency.ReorderedCounts(0, 0, 0),
+        shed=latency.ShedCounts(0, 0, 0, 0, 0, 0),
+        chain=latency.ChainAccounting(10, 10, 0, 0, 0, 0),
+        non_monotonic=0,
+        rates=latency.ServiceRates(None, None, None, None),
+        cpu_share={"plant": None},
+        deadline_misses=latency.DeadlineMisses(
+            latency.PlantMisses(None, None, None, None, None),
+            latency.HapticMisses(None, None, None, None),
+        ),
+        payload_sweep=(),
+        dropped_messages=0,
+        machine=latency.Machine(2, (0.5, 0.5, 0.5), (), {}),
+    )
+    return dataclasses.replace(report, **changes)
+
+
 def test_conclusions_name_the_frame_and_1mib_sizes_and_a_side_that_got_nothing():
-    stats = {"p50": 500.0, "p99": 900.0}
-    empty = {"count": 0, "p50": None, "p99": None}
-    report = {
-        "round_trip_us": stats,
-        "floor_us": {"p50": 250.0, "p99": 600.0},
-        "floor_back_to_back_us": {"p99": 300.0},
-        "overhead": {"round_trip": {"p99_ratio": 1.5}},
-        "lost": {"haptic": 0, "command": 0, "feedback": 0},
-        "reordered": {"haptic": 0},
-        "chain": {"missing": 0, "samples": 10},
-        "shed": {"haptic": 0},
-        "machine": {"idle_poll_cpus": [0, 1]},
-        "payload_sweep": [
-            {"bytes": 64, "shm_us": stats, "tcp_us": stats, "tcp_over_shm_p50": 1.0,
-             "shm_faster": False},
-            {"bytes": latency.EYE_VIEW_FRAME_BYTES, "shm_us": {"p50": 400.0},
-             "tcp_us": {"p50": 800.0}, "tcp_over_shm_p50": 2.0, "shm_faster": True},
-            {"bytes": 1 << 20, "shm_us": {"p50": 1000.0}, "tcp_us": empty,
-             "tcp_over_shm_p50": None, "shm_faster": False},
-        ],
-    }  # fmt: skip
+    stats = _figures(500.0, 900.0)
+    report = _report(
+        round_trip_us=stats,
+        floor_us=_figures(250.0, 600.0),
+        floor_back_to_back_us=_figures(None, 300.0),
+        overhead={"round_trip": latency.FloorRatio(None, None, 1.5, None)},
+        machine=latency.Machine(2, (0.5, 0.5, 0.5), (0, 1), None),
+        payload_sweep=(
+            latency.SweepRow(64, stats, stats, 1.0, False),
+            latency.SweepRow(latency.EYE_VIEW_FRAME_BYTES, _figures(400.0), _figures(800.0),
+                             2.0, True),
+            latency.SweepRow(1 << 20, _figures(1000.0), latency.LatencyStats(0), None, False),
+        ),
+    )  # fmt: skip
     lines = latency.conclusions(report)
     assert not any(line.startswith("64 B") for line in lines)
     assert f"{latency.EYE_VIEW_FRAME_BYTES} B (eye-view frame): SHM is faster" in "\n".join(lines)
     assert "1048576 B: no payload came back over TCP" in lines
     assert lines[-2].startswith("idle CPUs polled (cpu.idle_poll): 0, 1;")
-    report["machine"]["idle_poll_cpus"] = []
-    assert "idle CPUs halt (cpu.idle_poll off)" in latency.conclusions(report)
-    report["machine"]["idle_poll_failed"] = {1: "not polled: no CPU cgroup hierarchy"}
-    lines = latency.conclusions(report)
+    halting = dataclasses.replace(report.machine, idle_poll_cpus=())
+    assert "idle CPUs halt (cpu.idle_poll off)" in latency.conclusions(
+        dataclasses.replace(report, machine=halting)
+    )
+    failed = dataclasses.replace(halting, idle_poll_failed={"1": "not polled: no cgroup"})
+    lines = latency.conclusions(dataclasses.replace(report, machine=failed))
     assert "idle CPUs halt (cpu.idle_poll off)" not in lines
-    assert "idle CPU 1 halts, its poller says: not polled: no CPU cgroup hierarchy" in lines
+    assert "idle CPU 1 halts, its poller says: not polled: no cgroup" in lines
+
+
+def test_the_report_reads_back_from_its_json_as_written():
+    stats = latency.stats_us(np.array([200_000, 300_000, 900_000]))
+    report = _report(
+        round_trip_us=stats,
+        floor_parts_us=(stats, stats),
+        payload_sweep=(
+            latency.SweepRow(64, stats, None, None, False),
+            latency.SweepRow(65536, latency.LatencyStats(0, not_measured="too big"), stats,
+                             None, False),
+        ),
+        old_timing_round_trip_us=stats,
+        old_timing_hops_us={hop.name: stats for hop in latency.HOPS},
+        conclusions=("a line",),
+        machine=latency.Machine(2, (0.5, 0.5, 0.5), (0,), {"1": "off"}, (0.1, 0.2, 0.3)),
+        duration_s=5.0,
+        rrd="out.rrd",
+    )  # fmt: skip
+    content = json.loads(json.dumps(report.to_json()))
+    assert content["payload_sweep"][0]["tcp_us"] == {}
+    assert content["payload_sweep"][1]["shm_us"]["not_measured"] == "too big"
+    assert list(content["machine"])[-1] == "loadavg_before"
+    assert "wall_s" not in content and content["rrd"] == "out.rrd"
+    assert latency.LatencyReport.from_json(content) == report
+    assert "old_timing_hops" not in _report().to_json()
+
+
+def test_the_services_counters_are_read_from_the_run_summary():
+    services = {
+        "plant": {"steps": 100, "overrun_fraction": 0.0, "rate_hz": 250.0, "skipped_ticks": 1,
+                  "arrival": {"commands_shed": 2, "commands_lost": 3, "stalls": 4}},
+        "controller": {"haptic_shed": 5, "skipped_states": 6, "cycles": 500, "cpu_s": 1.0},
+        "haptic": {"feedback_reordered": 7, "loop": {"overruns": 8}},
+        "hmd": {"published": 90},
+    }  # fmt: skip
+    summary = RunSummary.from_json({"services": services, "wall_s": 2.0, "stack_wall_s": 4.0})
+    assert latency.shed_counters(summary) == latency.ShedCounts(5, 0, 0, 2, 0, 0)
+    lost, reordered = latency.stream_counters(summary)
+    assert lost == latency.LostCounts(haptic=0, command=3, state=6, feedback=0)
+    assert reordered == latency.ReorderedCounts(haptic=0, command=0, feedback=7)
+    assert latency.service_rates(summary).to_json() == {
+        "plant": 250.0, "haptic": None, "controller": 250.0, "hmd": 45.0}  # fmt: skip
+    assert latency.cpu_share(summary) == {
+        "plant": None, "controller": 0.25, "haptic": None, "hmd": None}  # fmt: skip
+    assert latency.deadline_misses(summary).to_json() == {
+        "plant": {"steps": 100, "periods_without_command": None, "stalls": 4,
+                  "overrun_fraction": 0.0, "skipped_ticks": 1},
+        "haptic": {"steps": None, "overruns": 8, "skipped_ticks": None,
+                   "lateness_p99_us": None},
+    }  # fmt: skip
 
 
 def test_variant_rounds_rotate_so_every_variant_runs_in_every_position():
@@ -188,20 +288,9 @@ def test_the_floor_sends_only_sizes_its_pools_carry_and_says_why_not_the_others(
     # needs the SHM path (the low-latency transport would lose it without an error).
     assert unmeasurable_reason(1 << 20, BusConfig(shm=False), None) == ""
     assert "pool of 0 B" in unmeasurable_reason(65536, bus, None)
-    report = {
-        "round_trip_us": {"p50": None},
-        "floor_us": {"p50": None},
-        "overhead": {"round_trip": {}},
-        "lost": {"haptic": 0, "command": 0, "feedback": 0},
-        "reordered": {},
-        "chain": {"missing": 0, "samples": 0},
-        "shed": {},
-        "machine": {"idle_poll_cpus": [0]},
-        "payload_sweep": [
-            {"bytes": 1 << 20, "shm_us": {"count": 0, "p50": None, "not_measured": reason},
-             "tcp_us": {"p50": 900.0}, "tcp_over_shm_p50": None, "shm_faster": False},
-        ],
-    }  # fmt: skip
+    not_sent = latency.LatencyStats(0, not_measured=reason)
+    report = _report(payload_sweep=(latency.SweepRow(1 << 20, not_sent, _figures(900.0), None,
+                                                     False),))  # fmt: skip
     assert f"1048576 B: not measured over SHM ({reason})" in latency.conclusions(report)
 
 
@@ -220,10 +309,11 @@ def test_across_two_clocks_the_offset_is_found_within_its_uncertainty_and_each_w
     true_round_trip = latency.hop_ns(latency.warm_loops(traces), latency.ROUND_TRIP)
     traces[:, robot] += behind_ns
     figures = latency.across_clocks(traces)
-    uncertainty_ns = figures["offset_uncertainty_us"] * NS_PER_US
+    uncertainty_ns = figures.offset_uncertainty_us * NS_PER_US
     assert 3.5e6 < uncertainty_ns < 4.5e6  # half the least out + back: (5 + 2) / 2 ms-ish
-    assert abs(figures["offset_s"] * NS_PER_S - behind_ns) <= uncertainty_ns
-    out_us, back_us = figures["operator_to_robot_us"], figures["robot_to_operator_us"]
-    assert abs(out_us["p50"] * NS_PER_US - 5.5e6) <= uncertainty_ns + 0.1e6
-    assert abs(back_us["p50"] * NS_PER_US - 2.5e6) <= uncertainty_ns + 0.1e6
-    assert_matches_reference(figures["round_trip_us"], true_round_trip)
+    assert abs(figures.offset_s * NS_PER_S - behind_ns) <= uncertainty_ns
+    out_us, back_us = figures.operator_to_robot_us, figures.robot_to_operator_us
+    assert abs(out_us.p50_us * NS_PER_US - 5.5e6) <= uncertainty_ns + 0.1e6
+    assert abs(back_us.p50_us * NS_PER_US - 2.5e6) <= uncertainty_ns + 0.1e6
+    assert_matches_reference(figures.round_trip_us, true_round_trip)
+    assert latency.across_clocks(traces[:0]).to_json() == {"loops": 0}
