@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import math
 import os
@@ -794,12 +795,12 @@ def _latency(args: argparse.Namespace) -> int:
     )
     rrd = args.rrd if args.rrd is not None else args.run_dir / LATENCY_RECORDING_FILE
     latency.log_to_rerun(report, raw, rrd)
-    report["rrd"] = str(rrd)
+    report = dataclasses.replace(report, rrd=str(rrd))
     if args.png is not None:
         latency.write_png(report, raw, args.png)
     if args.json is not None:
         latency.write_json(report, args.json)
-    for line in report["conclusions"]:
+    for line in report.conclusions:
         print(line)
     return 0
 

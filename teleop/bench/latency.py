@@ -1048,11 +1048,6 @@ class LatencyReport:
         )
 
 
-def _typed(report: LatencyReport | Mapping[str, Any]) -> LatencyReport:
-    """The record of a report given as a record or as its JSON (the command's edge)."""
-    return report if isinstance(report, LatencyReport) else LatencyReport.from_json(report)
-
-
 def conclusions(report: LatencyReport) -> list[str]:
     """The report's findings in words (what the numbers say, no judgement beyond them)."""
     out = []
@@ -1154,36 +1149,6 @@ def _fmt_us(value: float | None) -> str:
 
 
 def measure(
-    config_file: Path | None,
-    overrides: Sequence[str],
-    run_dir: Path,
-    duration_s: float,
-    *,
-    baseline_s: float | None = None,
-    sweep_sizes: Sequence[int] = SWEEP_SIZES_BYTES,
-    sweep_count: int = DEFAULT_SWEEP_COUNT,
-    back_to_back_count: int = DEFAULT_BACK_TO_BACK_COUNT,
-    old_timing: bool = True,
-    progress: ProgressFn | None = None,
-) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """:func:`measure_report` with the report as the JSON the command writes (the
-    command adds ``rrd`` to it): (report, raw round-trip samples by series, ns)."""
-    report, raw = measure_report(
-        config_file,
-        overrides,
-        run_dir,
-        duration_s,
-        baseline_s=baseline_s,
-        sweep_sizes=sweep_sizes,
-        sweep_count=sweep_count,
-        back_to_back_count=back_to_back_count,
-        old_timing=old_timing,
-        progress=progress,
-    )
-    return report.to_json(), raw
-
-
-def measure_report(
     config_file: Path | None,
     overrides: Sequence[str],
     run_dir: Path,
@@ -1309,9 +1274,9 @@ def build_report(
 # -- output -------------------------------------------------------------------------------
 
 
-def write_json(report: LatencyReport | Mapping[str, Any], path: Path) -> None:
-    """The report as JSON at ``path`` (a report given as JSON is written as it is)."""
-    content = report.to_json() if isinstance(report, LatencyReport) else report
+def write_json(report: LatencyReport, path: Path) -> None:
+    """The report as JSON at ``path``."""
+    content = report.to_json()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(content, indent=2) + "\n")
@@ -1333,12 +1298,9 @@ def fitted_bins_us(raw: Mapping[str, np.ndarray]) -> np.ndarray:
     )
 
 
-def write_png(
-    report: LatencyReport | Mapping[str, Any], raw: Mapping[str, np.ndarray], path: Path
-) -> None:
+def write_png(report: LatencyReport, raw: Mapping[str, np.ndarray], path: Path) -> None:
     """Round-trip histograms (stack and baselines), per-hop p50/p99 against the floor,
-    and the payload sweep, in one figure (the report as a record or as its JSON)."""
-    report = _typed(report)
+    and the payload sweep, in one figure."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -1408,13 +1370,9 @@ def write_png(
     plt.close(fig)
 
 
-def log_to_rerun(
-    report: LatencyReport | Mapping[str, Any], raw: Mapping[str, np.ndarray], path: Path
-) -> None:
+def log_to_rerun(report: LatencyReport, raw: Mapping[str, np.ndarray], path: Path) -> None:
     """The same figures into a Rerun recording (application ``zenoh-teleop``): one bar
-    chart per round-trip histogram and the percentiles of every hop, stack and floor
-    (the report as a record or as its JSON)."""
-    report = _typed(report)
+    chart per round-trip histogram and the percentiles of every hop, stack and floor."""
     import rerun as rr
 
     from teleop.viz.entities import APPLICATION_ID

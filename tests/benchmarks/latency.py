@@ -40,8 +40,8 @@ def main() -> int:
                 baseline_s=args.baseline_duration,
                 progress=latency.print_progress,
             )
-            reports.append(report)
-            for line in report["conclusions"]:
+            reports.append(report.to_json())
+            for line in report.conclusions:
                 print(f"repeat {i}: {line}")
 
     def med(path: tuple[str, ...]) -> float | None:

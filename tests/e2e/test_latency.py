@@ -176,7 +176,7 @@ def test_report_files(stack_run, floor_run, tmp_path):
             assert f"idle CPU {cpu} halts, its poller says: {why}" in report["conclusions"]
     latency.write_json(record, tmp_path / "out.json")
     latency.write_png(record, raw, tmp_path / "out.png")
-    latency.log_to_rerun(report, raw, tmp_path / "out.rrd")  # as the command gives it
+    latency.log_to_rerun(record, raw, tmp_path / "out.rrd")
     assert json.loads((tmp_path / "out.json").read_text())["hops"] == report["hops"]
     assert (tmp_path / "out.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     verify = subprocess.run(
