@@ -61,6 +61,10 @@ SUGGESTION_CUTOFF = 0.5
 MAX_FREEZE_S = 3600.0
 # How often the injector looks at the clock while a thaw is due (s; not a control loop).
 THAW_POLL_S = 0.005
+# How often the injector asks again for the pid of the next fault's service while that
+# service is not running yet (s): it must know it before the fault is due, as a lockstep
+# run races ahead while the supervisor answers.
+PID_RETRY_S = 0.2
 NS_PER_S = 1_000_000_000
 NS_PER_MS = 1_000_000
 
@@ -395,8 +399,14 @@ class FaultInjector:
         return self._started_ns + round(spec.at_s * NS_PER_S)
 
     def on_ready(self, service: str, t_ns: int) -> None:
-        """``service``'s ready token appeared at ``t_ns``: a killed one is back."""
+        """``service``'s ready token appeared at ``t_ns``: a killed one is back, and the
+        faults still to come on it take the pid of the process now running (looked up
+        ahead of their instant)."""
         with self._cond:
+            for record in self.records:
+                if record.spec.service == service and not record.inject_ns:
+                    record.pid = 0
+                    self._cond.notify_all()
             for record in self.records:
                 if (
                     record.spec.service == service
@@ -428,9 +438,13 @@ class FaultInjector:
                 due = [self._thaw_due_ns(r) for r in thaws]
                 if self.realtime and pending and self._started_ns:
                     due.append(self._due_ns(pending[0].spec))
+                if pending and not pending[0].pid:  # not running yet: ask again soon
+                    due.append(self.hooks.now_ns() + round(PID_RETRY_S * NS_PER_S))
                 timeout_s = None
                 if due:
-                    timeout_s = min(THAW_POLL_S, max(0, min(due) - self.hooks.now_ns()) / NS_PER_S)
+                    timeout_s = max(0, min(due) - self.hooks.now_ns()) / NS_PER_S
+                    if thaws or self.realtime:
+                        timeout_s = min(THAW_POLL_S, timeout_s)
                 self._cond.wait(timeout_s)
             for record in thaws:  # closed while frozen
                 self._signal(record, signal.SIGCONT)

@@ -4,6 +4,7 @@ restarts."""
 
 from __future__ import annotations
 
+import os
 import signal
 import threading
 from pathlib import Path
@@ -222,6 +223,39 @@ def test_in_realtime_a_fault_is_due_on_the_clock_from_the_plants_start():
     finally:
         injector.close()
     assert injector.records[0].inject_ns == 6 * S
+
+
+def test_the_pid_of_a_service_not_running_at_start_is_known_before_its_fault_is_due():
+    """Lockstep races ahead while a supervisor answers: the pid of a service that was not
+    running when the injector started is looked up again once its ready token comes (or
+    a retry later), not at the fault's instant."""
+    running = threading.Event()
+    found = threading.Event()
+    asked: list[str] = []
+
+    def pid_of(name: str) -> int:
+        asked.append(name)
+        if not running.is_set():
+            raise RuntimeError("controller: no such process yet")
+        found.set()
+        return os.getpgrp()  # a process group that exists, as a running service's
+
+    killed = threading.Event()
+    hooks = InjectorHooks(pid_of, lambda pid, signum: killed.set(), lambda n: None, int)
+    injector = FaultInjector([FaultSpec("controller", KILL, 1.0)], hooks)
+    injector.start()
+    try:
+        injector.on_state(0, 0)
+        running.set()
+        injector.on_ready("controller", 1)
+        assert found.wait(5)  # looked up ahead, on the ready token
+        calls = len(asked)
+        injector.on_state(1 * S, 1000)
+        assert killed.wait(5)
+    finally:
+        injector.close()
+    assert len(asked) == calls  # nothing asked at the instant
+    assert injector.records[0].pid == os.getpgrp() and injector.records[0].t_s == 1.0
 
 
 def test_a_fault_on_a_service_that_is_not_running_is_reported_not_injected():
