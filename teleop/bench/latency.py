@@ -58,6 +58,7 @@ from teleop.core.service_summaries import (
     ControllerSummary,
     HmdSummary,
     PlantSummary,
+    json_number,
     record_of,
 )
 from teleop.core.summary import RunSummary
@@ -493,9 +494,8 @@ def _count(content: Mapping[str, object], key: str) -> int:
 
 
 def _figure(content: Mapping[str, object], key: str) -> float | None:
-    """A number of a summary's JSON as written (an int stays an int), None if not written."""
-    value = content.get(key)
-    return value if isinstance(value, int | float) else None
+    """A number of a summary's JSON as written, None if not written."""
+    return json_number(content.get(key))
 
 
 @dataclass(frozen=True)

@@ -194,7 +194,7 @@ class EyeViewReceived:
         return cls(
             received=_int(content.get("received")),
             received_shm=_int(content.get("received_shm")),
-            logged_bytes_per_frame=_float(content.get("logged_bytes_per_frame")),
+            logged_bytes_per_frame=json_number(content.get("logged_bytes_per_frame")),
             latency_ms={k: v for k, v in content.items() if k.endswith("_ms")},
         )
 
@@ -297,5 +297,6 @@ def _int(value: object) -> int | None:
     return value if isinstance(value, int) else None
 
 
-def _float(value: object) -> float | None:
-    return value if isinstance(value, int | float) else None  # as written: 0 stays 0
+def json_number(value: object) -> float | None:
+    """A number of a summary's JSON as written (an int stays an int), None if not one."""
+    return value if isinstance(value, int | float) else None
