@@ -16,6 +16,7 @@ import threading
 from typing import Any
 
 import numpy as np
+import zenoh
 
 from teleop.bus.messages import (
     JOINT_COMMAND,
@@ -36,6 +37,7 @@ logger = logging.getLogger(__name__)
 
 class PlantService(Service):
     name = "plant"
+    _bad_release_logged = False
 
     def open(self) -> None:
         super().open()
@@ -53,7 +55,14 @@ class PlantService(Service):
         store = None
         if self.options.run_dir is not None:  # checkpoints, and a restart resumes from them
             store = CheckpointStore(checkpoint_path(self.options.run_dir, self.instance))
-        self.loop = PlantLoop(self.config, self, MonotonicClock(), store)
+        holds_ns = self.options.hold_at_ns
+        self.loop = PlantLoop(self.config, self, MonotonicClock(), store, holds_ns)
+        if holds_ns:  # the launcher's releases, those declared before this start included
+            self.keep(
+                session.liveliness().declare_subscriber(
+                    topics.released_all, self._on_released, history=True
+                )
+            )
         self.subscribe_events("operator_events", self._on_event)
         self.keep(
             subscribe(session, topics.joint_command, JOINT_COMMAND, self._on_command, self.drops)
@@ -64,6 +73,19 @@ class PlantService(Service):
     def _on_event(self, rec: np.ndarray, rx_ns: int) -> None:
         if int(rec["event"]) == Event.TASK_DONE:
             self.loop.on_task_done(int(rec["step"]))
+
+    def _on_released(self, sample: zenoh.Sample) -> None:
+        """A release token (graph.RELEASED_TOKEN) appeared: the holds up to its instant
+        are released. Its withdrawal (the launcher's end) releases nothing."""
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
+        at_ns = self.topics.released_ns_of(str(sample.key_expr))
+        if at_ns is None:
+            if not self._bad_release_logged:  # logged once: a peer may declare many
+                logger.warning("ignored a release token with no sim instant: %s", sample.key_expr)
+                self._bad_release_logged = True
+            return
+        self.loop.release(at_ns)
 
     def _on_command(self, rec: np.ndarray, rx_ns: int) -> None:
         """Accept commands for exactly this arm; anything else is counted and dropped."""

@@ -43,7 +43,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from teleop.bus import graph
-from teleop.bus.graph import ALIVE_TOKEN, PROTOCOL_TOKEN, READY_TOKEN, ROOT
+from teleop.bus.graph import ALIVE_TOKEN, PROTOCOL_TOKEN, READY_TOKEN, RELEASED_TOKEN, ROOT
 from teleop.bus.messages import PROTOCOL_VERSION
 from teleop.core.config import OPERATOR_SITE
 
@@ -189,7 +189,9 @@ def access_control(
     """
     prefixes = [f"{ROOT}/{robot_id}" for robot_id in robot_ids]
     tokens = [
-        f"{p}/{kind}/*" for p in prefixes for kind in (ALIVE_TOKEN, READY_TOKEN, PROTOCOL_TOKEN)
+        f"{p}/{kind}/*"
+        for p in prefixes
+        for kind in (ALIVE_TOKEN, READY_TOKEN, PROTOCOL_TOKEN, RELEASED_TOKEN)
     ]
     recovered = {s.key for s in graph.STREAMS if s.recovered}
     rules, subjects, policies = [], [], []
@@ -235,6 +237,8 @@ def _participant_rules(
                   for kind in (ALIVE_TOKEN, READY_TOKEN)]  # fmt: skip
     # The version this stack speaks, and no other: a client that reads it can trust it.
     own_tokens += [f"{p}/{PROTOCOL_TOKEN}/{PROTOCOL_VERSION}" for p in own]
+    if role == LAUNCHER:  # it alone releases a lockstep plant held at a fault's instant
+        own_tokens += [f"{p}/{RELEASED_TOKEN}/*" for p in own]
     mine = [
         _rule(f"{name}-tokens", ["liveliness_token"], "ingress", own_tokens),
         _rule(f"{name}-peer-tokens", ["liveliness_token"], "egress", tokens),

@@ -209,6 +209,7 @@ def event_on_own_stream(stream_name: str, event: int) -> bool:
 ALIVE_TOKEN = "alive"
 READY_TOKEN = "ready"
 PROTOCOL_TOKEN = "protocol"
+RELEASED_TOKEN = "released"
 TOKENS: tuple[tuple[str, str], ...] = (
     (f"{ALIVE_TOKEN}/<service>", "declared once the service's publishers and subscribers "
      "exist; gone when it ends (killed: milliseconds; frozen: after the link lease)"),
@@ -217,6 +218,11 @@ TOKENS: tuple[tuple[str, str], ...] = (
     (f"{PROTOCOL_TOKEN}/<version>", "the protocol version the stack speaks (every service "
      "declares it with its alive token, the access list lets none declare another): a "
      "client reads it with a liveliness get before its first record"),
+    (f"{RELEASED_TOKEN}/<sim_ns>", "lockstep fault injection (`teleop run --kill`, "
+     "`--freeze`): the launcher declares it once it has injected the faults due at that "
+     "sim instant; the plant, told the instants (`--hold-at`), waits at the first state "
+     "there until it sees the token, so a fault lands on its tick however busy the "
+     "machine is"),
 )  # fmt: skip
 
 

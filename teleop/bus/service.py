@@ -18,6 +18,7 @@ import contextlib
 import faulthandler
 import json
 import logging
+import math
 import os
 import signal
 import sys
@@ -90,6 +91,9 @@ class ServiceOptions:
     peers: tuple[str, ...] = ()
     # Run until stopped instead of for run.duration_s (``teleop up``).
     continuous: bool = False
+    # The plant in lockstep: sim instants (ns) at which it waits for the launcher's
+    # release (fault injection, teleop.sim.pacing.LockstepHolds).
+    hold_at_ns: tuple[int, ...] = ()
 
 
 class Service:
@@ -658,7 +662,31 @@ def build_service_parser(name: str) -> argparse.ArgumentParser:
         "it sees them all alive",
     )
     parser.add_argument("--continuous", action="store_true", help="run until stopped")
+    parser.add_argument(
+        "--hold-at",
+        dest="hold_at_ns",
+        type=sim_instants_ns,
+        default=(),
+        metavar="T[,T...]",
+        help="the plant in lockstep: sim seconds at which it waits for the launcher's "
+        "release before stepping on (where `teleop run` injects a fault)",
+    )
     return parser
+
+
+def sim_instants_ns(text: str) -> tuple[int, ...]:
+    """``--hold-at``'s comma-separated sim seconds, as ns (argparse's type: a bad one is
+    a usage error that says which)."""
+    instants = []
+    for part in (p.strip() for p in text.split(",")):
+        try:
+            seconds = float(part)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{part!r} is not a number of seconds") from None
+        if not math.isfinite(seconds) or seconds < 0:
+            raise argparse.ArgumentTypeError(f"{part!r}: sim seconds, finite and >= 0")
+        instants.append(round(seconds * NS_PER_S))
+    return tuple(instants)
 
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -733,6 +761,7 @@ def service_main(service_class: type[Service], argv: list[str] | None = None) ->
         await_services=tuple(s for s in args.await_services.split(",") if s),
         peers=tuple(s for s in args.peers.split(",") if s),
         continuous=args.continuous,
+        hold_at_ns=args.hold_at_ns,
     )
     scheduled_as = service_class.scheduling_as or service_class.name
     pinning = pin_to_cpus(config.cpu.for_service(scheduled_as, config.run.mode))

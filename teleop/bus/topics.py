@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 
-from teleop.bus.graph import ALIVE_TOKEN, PROTOCOL_TOKEN, READY_TOKEN, ROOT, STREAMS
+from teleop.bus.graph import ALIVE_TOKEN, PROTOCOL_TOKEN, READY_TOKEN, RELEASED_TOKEN, ROOT, STREAMS
 
 __all__ = ["ROOT", "Topics"]
 
@@ -44,6 +44,7 @@ class Topics:
     alive_all: str = field(init=False)  # every service's liveliness token
     ready_all: str = field(init=False)  # every service's "ready" token
     protocol_all: str = field(init=False)  # the protocol version tokens
+    released_all: str = field(init=False)  # the launcher's lockstep release tokens
 
     def __post_init__(self) -> None:
         if not self.robot_id or any(c in self.robot_id for c in "/*$?#"):
@@ -53,6 +54,7 @@ class Topics:
         object.__setattr__(self, "alive_all", _key(self.robot_id, f"{ALIVE_TOKEN}/*"))
         object.__setattr__(self, "ready_all", _key(self.robot_id, f"{READY_TOKEN}/*"))
         object.__setattr__(self, "protocol_all", _key(self.robot_id, f"{PROTOCOL_TOKEN}/*"))
+        object.__setattr__(self, "released_all", _key(self.robot_id, f"{RELEASED_TOKEN}/*"))
 
     def alive(self, service: str, *, ready: bool = False) -> str:
         """Liveliness token key of one service, e.g. ``teleop/arm0/alive/plant``;
@@ -66,6 +68,23 @@ class Topics:
         """Liveliness token key of a protocol version, e.g. ``teleop/arm0/protocol/8``."""
         return _key(self.robot_id, f"{PROTOCOL_TOKEN}/{int(version)}")
 
+    def released(self, sim_ns: int) -> str:
+        """Liveliness token key releasing a lockstep plant held at sim instant ``sim_ns``
+        (and before), e.g. ``teleop/arm0/released/1500000000``."""
+        if sim_ns < 0:
+            raise ValueError(f"sim instant {sim_ns} ns: not before the run's start")
+        return _key(self.robot_id, f"{RELEASED_TOKEN}/{int(sim_ns)}")
+
+    def released_ns_of(self, key: str) -> int | None:
+        """The sim instant (ns) of a release token's key (:meth:`released`'s inverse);
+        None for a key that is not one (its last chunk not a plain decimal number)."""
+        prefix, _, chunk = str(key).rpartition("/")
+        if prefix != _key(self.robot_id, RELEASED_TOKEN) or not (
+            chunk.isascii() and chunk.isdigit()
+        ):
+            return None
+        return int(chunk)
+
     def service_of(self, alive_key: str) -> str:
         """The service name of a liveliness key (inverse of :meth:`alive`)."""
         return str(alive_key).rsplit("/", 1)[-1]
@@ -77,5 +96,6 @@ _ATTRIBUTES = {f.name for f in fields(Topics)} - {
     "alive_all",
     "ready_all",
     "protocol_all",
+    "released_all",
 }
 assert _ATTRIBUTES == {s.name for s in STREAMS}, sorted(_ATTRIBUTES ^ {s.name for s in STREAMS})

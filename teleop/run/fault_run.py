@@ -6,6 +6,7 @@ starts the world over, and the summary's ``faults``."""
 from __future__ import annotations
 
 import os
+import threading
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -17,6 +18,7 @@ from teleop.bus.messages import PLANT_STATE, DropCounter
 from teleop.bus.session import subscribe
 from teleop.bus.topics import Topics
 from teleop.control.kinematics import build_arm_model, tool_jacobian
+from teleop.core.clock import NS_PER_S
 from teleop.core.config import Config
 from teleop.run.failure import ProgramWatch, RunError
 from teleop.run.faults import (
@@ -32,6 +34,10 @@ from teleop.run.faults import (
 from teleop.run.supervise import Stack
 
 
+def _no_holds(at_s: float) -> None:
+    """A realtime run's release: its plant keeps time and is never held."""
+
+
 class FaultRun:
     """The bus side of fault injection in a run (teleop.run.faults): the plant's states
     recorded and fed to the injector, ready tokens watched for restarts, the run failed
@@ -43,15 +49,32 @@ class FaultRun:
         self.arm = build_arm_model(config.robot)  # tool speed from joint state
         self.states = StateLog(self.arm.n_joints)
         self.injector: FaultInjector | None = None
-        self._started_ns = 0  # the plant's STARTED stamp, if it came before start()
+        # What the bus told before start() made the injector, handed to it there: the
+        # plant's STARTED stamp and its newest state (sim ns, step). A lockstep plant
+        # may already hold at a fault's instant, sending no state until released.
+        self._handover = threading.Lock()
+        self._started_ns = 0
+        self._newest: tuple[int, int] | None = None
+        self._session: zenoh.Session | None = None  # the launcher's, for release tokens
+        self._topics: Topics | None = None
+        self._released: list[zenoh.LivelinessToken] = []
+
+    @property
+    def hold_at_s(self) -> tuple[float, ...]:
+        """The sim instants at which a lockstep plant waits for this run's releases (the
+        faults' instants); none in realtime, where sim time keeps wall-clock time."""
+        return () if self.realtime else tuple(spec.at_s for spec in self.specs)
 
     def subscribe(self, session: zenoh.Session, topics: Topics, drops: DropCounter) -> list[Any]:
         """The plant's states (the observers' batched copy) and every ready token."""
+        self._session, self._topics = session, topics
 
         def on_state(rec: np.ndarray, rx_ns: int) -> None:
             self.states.add(rec)
-            if self.injector is not None:
-                self.injector.on_state(int(rec["sim_time_ns"]), int(rec["step"]))
+            with self._handover:
+                self._newest = int(rec["sim_time_ns"]), int(rec["step"])
+                if self.injector is not None:
+                    self.injector.on_state(*self._newest)
 
         def on_token(sample: zenoh.Sample) -> None:
             if sample.kind != zenoh.SampleKind.PUT:
@@ -75,11 +98,16 @@ class FaultRun:
             signal_group=os.killpg,
             expect_restart=watch.expect_restart,
             now_ns=time.monotonic_ns,
+            release=self._release if not self.realtime else _no_holds,
         )
-        self.injector = FaultInjector(self.specs, hooks, realtime=self.realtime)
-        if self._started_ns:
-            self.injector.on_started(self._started_ns)
-        self.injector.start()
+        injector = FaultInjector(self.specs, hooks, realtime=self.realtime)
+        with self._handover:
+            if self._started_ns:
+                injector.on_started(self._started_ns)
+            if self._newest is not None:
+                injector.on_state(*self._newest)
+            self.injector = injector
+        injector.start()
 
         def checked() -> None:
             check()
@@ -102,13 +130,24 @@ class FaultRun:
 
     def on_started(self, t_ns: int) -> None:
         """The plant's STARTED event (stamped ``t_ns``): realtime faults are due from it."""
-        self._started_ns = self._started_ns or t_ns
-        if self.injector is not None:
-            self.injector.on_started(t_ns)
+        with self._handover:
+            self._started_ns = self._started_ns or t_ns
+            if self.injector is not None:
+                self.injector.on_started(t_ns)
+
+    def _release(self, at_s: float) -> None:
+        """Declare the token that lets the lockstep plant held at sim ``at_s`` step on
+        (graph.RELEASED_TOKEN); kept until the run ends, so a restarted plant finds it."""
+        assert self._session is not None and self._topics is not None
+        key = self._topics.released(round(at_s * NS_PER_S))
+        self._released.append(self._session.liveliness().declare_token(key))
 
     def close(self) -> None:
         if self.injector is not None:
             self.injector.close()
+        for token in self._released:
+            token.undeclare()
+        self._released.clear()
 
     def _speed_at(self, arrays: dict[str, np.ndarray]) -> Callable[[int], float]:
         def speed_at(i: int) -> float:

@@ -332,12 +332,14 @@ class InjectorHooks:
     the leader of its process group (looked up before the fault's instant: asking the
     supervisor takes milliseconds); ``signal_group(pid, signum)`` signals that group;
     ``expect_restart(name)`` tells the failure watch a restart follows; ``now_ns()`` the
-    host's monotonic clock."""
+    host's monotonic clock; ``release(at_s)``, once the faults due at sim ``at_s`` are
+    injected: lets a lockstep plant held there step on (a realtime run has no holds)."""
 
     pid_of: Callable[[str], int]
     signal_group: Callable[[int, int], None]
     expect_restart: Callable[[str], None]
     now_ns: Callable[[], int]
+    release: Callable[[float], None]
 
 
 @dataclass
@@ -352,7 +354,8 @@ class FaultInjector:
     ``realtime``: sim time keeps wall-clock time, so a fault is due ``at_s`` after the
     plant's start on the host's clock: on time even when this process, a normally
     scheduled one beside realtime services, gets the state stream late. Lockstep: due on
-    the first state at or past ``at_s`` (the sim waits for its slowest peer).
+    the first state at or past ``at_s``, where the plant waits (it is told the instants,
+    teleop.sim.pacing.LockstepHolds) until the injector, having injected, releases it.
     """
 
     faults: Sequence[FaultSpec]
@@ -434,6 +437,7 @@ class FaultInjector:
                     self._inject(record)
                     if record.spec.kind == FREEZE and record.inject_ns:
                         thaws.append(record)
+                    self._unlocked(self.hooks.release, record.spec.at_s)
                 self._next_due_s = pending[0].spec.at_s if pending else math.inf
                 due = [self._thaw_due_ns(r) for r in thaws]
                 if self.realtime and pending and self._started_ns:
@@ -445,7 +449,8 @@ class FaultInjector:
                     timeout_s = max(0, min(due) - self.hooks.now_ns()) / NS_PER_S
                     if thaws or self.realtime:
                         timeout_s = min(THAW_POLL_S, timeout_s)
-                self._cond.wait(timeout_s)
+                if not self._closed:  # close() may have come while a hook ran unlocked
+                    self._cond.wait(timeout_s)
             for record in thaws:  # closed while frozen
                 self._signal(record, signal.SIGCONT)
                 record.thaw_ns = self.hooks.now_ns()
@@ -457,14 +462,20 @@ class FaultInjector:
         """Look the next fault's pid up ahead of its instant, the lock released meanwhile
         (asking a supervisor that shares a starved machine can take a good part of a
         second, and the bus callbacks must not wait on it)."""
-        self._cond.release()
         try:
-            pid = self.hooks.pid_of(record.spec.service)
+            pid = self._unlocked(self.hooks.pid_of, record.spec.service)
         except Exception:  # the stack's errors: looked up again at the instant
             pid = 0
+        record.pid = pid
+
+    def _unlocked(self, hook: Callable[[Any], Any], arg: Any) -> Any:
+        """``hook(arg)`` with the lock released: the bus callbacks never wait on a call
+        to the supervisor or to Zenoh (which may wait on them)."""
+        self._cond.release()
+        try:
+            return hook(arg)
         finally:
             self._cond.acquire()
-        record.pid = pid
 
     def _inject(self, record: FaultRecord) -> None:
         spec = record.spec

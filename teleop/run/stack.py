@@ -235,13 +235,15 @@ def service_programs(
     credentials: Mapping[str, Path] | None = None,
     restarts: Mapping[str, dict[str, int]] | None = None,
     modules: Mapping[str, str] | None = None,
+    hold_at_s: Sequence[float] = (),
 ) -> list[Program]:
     """The supervisord programs of ``services``, each given the same config and
     overrides, then its place in the run's ``mesh`` (a :func:`peer_mesh` of the
     services, and of the outside ones too if any) and its ``credentials`` file, if any
     (:func:`run_credentials`); ``restarts``: how a service's restarts start
     (:func:`restart_priorities`); ``modules``: the program of a service that is not
-    services/<name>.py (a person's operator)."""
+    services/<name>.py (a person's operator); ``hold_at_s``: the sim instants at which
+    a lockstep plant waits for the launcher's release (its faults' instants)."""
     programs = []
     for name in services:
         role, robot = graph.role_of(name), graph.robot_of(name)
@@ -266,6 +268,8 @@ def service_programs(
             command += ["--peers", ",".join(peers)]
         if continuous:
             command.append("--continuous")
+        if role == PLANT and hold_at_s:
+            command += ["--hold-at", ",".join(repr(float(t)) for t in hold_at_s)]
         if restarts and restarts.get(role):
             command = restart_priority.command(run_dir, name, command, **restarts[role])
         programs.append(
@@ -494,12 +498,15 @@ def plan_stack(
     endpoint: str | None = None,
     without_timeout_s: float = DEFAULT_WITHOUT_TIMEOUT_S,
     credentials: dict[str, Path] | None = None,
+    hold_at_s: Sequence[float] = (),
 ) -> StackPlan:
     """The one launch recipe: the mesh's endpoint (``endpoint``, or a loopback port of
     ``ports``), the run's overrides, credentials for every participant (``credentials``:
     given, as a site's from the other site's launcher), an explicit mesh of the
     services (outside ones included), their programs (and the idle pollers'), and the
-    outside services' Zenoh configs and join instructions, all written to ``run_dir``."""
+    outside services' Zenoh configs and join instructions, all written to ``run_dir``;
+    ``hold_at_s``: a lockstep run's fault instants, where the plant waits for the
+    launcher (:func:`service_programs`)."""
     tls = config.bus.mutual_tls
     endpoint = endpoint or loopback_endpoint(ports, tls)
     web = prepare_web_operator(config, run_dir, ports)  # --operator web: port, token
@@ -534,6 +541,7 @@ def plan_stack(
         mesh=mesh,
         restarts=restarts,
         modules=dict(services.modules),
+        hold_at_s=hold_at_s,
     )
     programs = [p for p in every if p.name not in services.foreground]
     programs += idle_poll_programs(polled_cpus, run_dir)
@@ -600,6 +608,7 @@ def run_on_services(
         plan = plan_stack(
             Launch.RUN, config, config_file, overrides, run_dir, ports, layout,
             without_timeout_s=without_timeout_s,
+            hold_at_s=faults.hold_at_s if faults is not None else (),
         )  # fmt: skip
         wall_start = time.perf_counter()
         _run_plan(

@@ -15,7 +15,9 @@ step, publish, checkpoint) and keeps its own state under its own lock:
   with the last one.
 - :class:`LockstepPacer`: the plant publishes a state and steps when the command that
   answers it (``state_seq``) arrives, inside the command callback, so a cycle costs no
-  thread hand-off: deterministic, as fast as plant + controller allow.
+  thread hand-off: deterministic, as fast as plant + controller allow. Told the
+  instants of a run's faults (:class:`LockstepHolds`), it waits at each for the
+  launcher's release, so a fault lands on its tick however late the launcher hears.
 
 All three run on an injected clock: the tests drive each on the fake clock.
 """
@@ -25,6 +27,7 @@ from __future__ import annotations
 import collections
 import itertools
 import threading
+from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass
 from typing import Protocol
 
@@ -61,18 +64,27 @@ class Pacer(Protocol):
 
 
 def make_pacer(
-    config: Config, outputs: PlantOutputs, clock: Clock, store: CheckpointStore | None = None
+    config: Config,
+    outputs: PlantOutputs,
+    clock: Clock,
+    store: CheckpointStore | None = None,
+    holds_ns: Sequence[int] = (),
 ) -> Pacer:
     """The step core and the pacer of the configured timing mode, chosen once.
 
-    Lockstep in lockstep mode. In realtime teleoperation the haptic device's clock paces
-    the commands (with ``plant.apply_on_arrival``); in path following each command
-    answers the plant's own state, so the plant's tick is the loop's only clock and the
-    newest command is the one to apply.
+    Lockstep in lockstep mode, held at the sim instants ``holds_ns`` until released
+    (:class:`LockstepHolds`; a realtime plant keeps time, it cannot be held: ValueError).
+    In realtime teleoperation the haptic device's clock paces the commands (with
+    ``plant.apply_on_arrival``); in path following each command answers the plant's own
+    state, so the plant's tick is the loop's only clock and the newest command is the one
+    to apply.
     """
     if config.run.mode == "lockstep":
         sent = SentTicks(outputs, config.plant.lockstep_states_in_flight)
-        return LockstepPacer(PlantStepCore(config, sent, clock, store), sent)
+        core = PlantStepCore(config, sent, clock, store)
+        return LockstepPacer(core, sent, LockstepHolds(holds_ns))
+    if holds_ns:
+        raise ValueError("a plant is held at fault instants in lockstep only (run.mode)")
     core = PlantStepCore(config, outputs, clock, store)
     if config.plant.apply_on_arrival and config.run.teleoperated:
         return DeviceClockPacer(core)
@@ -433,6 +445,37 @@ class SentTicks:
                 self.outputs.put_bytes(stream, data)
 
 
+class LockstepHolds:
+    """The sim instants at which a lockstep plant waits before stepping on, and which of
+    them are released.
+
+    ``teleop run --kill/--freeze`` in lockstep: the launcher hears the plant's states late
+    (a normally scheduled process, batched copies) while the run races at several times
+    real time, so a fault injected when it hears the instant would land seconds of sim
+    time late on a busy machine. Told the instants, the plant holds at the first state at
+    or past each until the launcher, having injected, releases it (a release token,
+    graph.RELEASED_TOKEN). A release at instant t releases every hold at or before t: a
+    restarted plant, resuming before an instant already passed, finds it released by the
+    tokens still declared. A release can only let the run go on; the plant's own limits
+    and watchdog steer the arm as ever.
+    """
+
+    def __init__(self, at_ns: Iterable[int]) -> None:
+        self._at_ns = sorted({int(t) for t in at_ns})
+        self.released_ns = -1  # every hold at or before this instant is released
+
+    def holding(self, sim_time_ns: int) -> bool:
+        """Whether a plant whose newest state is at ``sim_time_ns`` waits before stepping."""
+        return any(self.released_ns < t <= sim_time_ns for t in self._at_ns)
+
+    def release(self, at_ns: int) -> None:
+        """Release every hold at or before ``at_ns``."""
+        self.released_ns = max(self.released_ns, at_ns)
+
+    def __bool__(self) -> bool:
+        return bool(self._at_ns)
+
+
 class LockstepPacer:
     """Lockstep: each step applies the answer to the pending state, in its callback.
 
@@ -440,11 +483,16 @@ class LockstepPacer:
     before the first answer, then only waits, re-sending the pending state if it goes
     unanswered and ending the run if it stays so (:meth:`waited`). Both under ``lock``.
     Step k applies the command answering state k - ``plant.lockstep_delay_steps``.
+    At a hold (:class:`LockstepHolds`) the answer is kept until :meth:`release`.
     """
 
-    def __init__(self, core: PlantStepCore, sent: SentTicks) -> None:
+    def __init__(
+        self, core: PlantStepCore, sent: SentTicks, holds: LockstepHolds | None = None
+    ) -> None:
         self.core = core
         self.sent = sent  # the core's outputs, keeping the states in flight for a re-send
+        self.holds = holds if holds is not None else LockstepHolds(())
+        self._held: dict[int, tuple[np.ndarray, int]] = {}  # answers kept at a hold, by state
         self.lock = threading.Lock()  # the run thread and the command callback
         self.delay_steps = core.config.plant.lockstep_delay_steps
         self.cycle_stats = LockstepCycleStats()
@@ -501,6 +549,7 @@ class LockstepPacer:
             self._last_step_ns = core.clock.now_ns()
             if not core.should_step():
                 self._done.set()  # the steps before commands were the whole run
+            self._flush_at_hold()
 
     def waited(self, last_step: int) -> bool:
         """Every LOCKSTEP_RESEND_S without the run ending: if the plant has not stepped
@@ -521,12 +570,16 @@ class LockstepPacer:
                 return True
             self._running = False  # a late answer steps nothing now
             self._done.set()  # the run thread's wait ends
-            core.abort(
-                Abort.LOCKSTEP_TIMEOUT,
-                f"lockstep: no answer to state {self.pending_state} for "
-                f"{waited_ns / NS_PER_S:.1f} s (plant.lockstep_timeout_s = "
-                f"{core.config.plant.lockstep_timeout_s:g}): the controller is gone or stuck",
-            )
+            timeout = f"(plant.lockstep_timeout_s = {core.config.plant.lockstep_timeout_s:g})"
+            if self.holds.holding(self._sim_time_ns()):
+                why = (f"lockstep: held at sim {self._sim_time_ns() / NS_PER_S:.3f} s for "
+                       f"{waited_ns / NS_PER_S:.1f} s {timeout}: no release from the "
+                       "launcher, which injects a fault there")  # fmt: skip
+            else:
+                why = (f"lockstep: no answer to state {self.pending_state} for "
+                       f"{waited_ns / NS_PER_S:.1f} s {timeout}: the controller is gone or "
+                       "stuck")  # fmt: skip
+            core.abort(Abort.LOCKSTEP_TIMEOUT, why)
             return False
 
     def republish_pending(self) -> None:
@@ -540,23 +593,56 @@ class LockstepPacer:
         """
         self.sent.resend()
 
-    def _cycle(self, command: np.ndarray, rx_ns: int) -> None:
-        """Apply the command answering the pending state, step, publish the next state."""
-        core = self.core
+    def release(self, at_ns: int) -> None:
+        """The launcher released the holds at or before sim instant ``at_ns`` (on a Zenoh
+        thread): the answers kept at one are taken now, in the order they came."""
         with self.lock:
-            if not self._running or self._done.is_set():
-                return
-            if int(command["state_seq"]) != self.pending_state:
+            self.holds.release(at_ns)
+            held, self._held = self._held, {}
+            for state_seq in sorted(held):  # the pending state's answer first
+                self._cycle_locked(*held[state_seq])
+
+    def _sim_time_ns(self) -> int:
+        return int(self.core.state_rec["sim_time_ns"])
+
+    def _cycle(self, command: np.ndarray, rx_ns: int) -> None:
+        """Apply the command answering the pending state, step, publish the next state;
+        at a hold, keep it until released."""
+        with self.lock:
+            self._cycle_locked(command, rx_ns)
+
+    def _cycle_locked(self, command: np.ndarray, rx_ns: int) -> None:
+        core = self.core
+        if not self._running or self._done.is_set():
+            return
+        state_seq = int(command["state_seq"])
+        if self.holds and self.holds.holding(self._sim_time_ns()):
+            # Held: the first answer to each state in flight is kept, as it would have
+            # been taken (the answers to the states after the pending one come meanwhile,
+            # and are not sent twice).
+            if self.pending_state <= state_seq <= core.state_seq and state_seq not in self._held:
+                self._held[state_seq] = (command.copy(), rx_ns)
+            else:
                 core.unanswered_commands += 1
-                return
-            applied_ns = core.clock.now_ns()
-            self._last_step_ns = applied_ns
-            core.apply(command)
-            if not core.should_step():
-                self._done.set()
-            answered_tx_ns = int(command["trace_ns"][Stage.PLANT_STATE_TX])  # its state's
-            core.publish_state(command, rx_ns, applied_ns)
-            self.cycle_stats.add(answered_tx_ns, core.state_rec["trace_ns"])
+            return
+        if state_seq != self.pending_state:
+            core.unanswered_commands += 1
+            return
+        applied_ns = core.clock.now_ns()
+        self._last_step_ns = applied_ns
+        core.apply(command)
+        if not core.should_step():
+            self._done.set()
+        answered_tx_ns = int(command["trace_ns"][Stage.PLANT_STATE_TX])  # its state's
+        core.publish_state(command, rx_ns, applied_ns)
+        self.cycle_stats.add(answered_tx_ns, core.state_rec["trace_ns"])
+        self._flush_at_hold()
+
+    def _flush_at_hold(self) -> None:
+        """The newest state reached a hold: the observers' copy of the states goes out
+        now (not when its batch fills), so the launcher sees the instant."""
+        if self.holds and self.holds.holding(self._sim_time_ns()):
+            self.core.outputs.flush()
 
     def figures(self) -> PacingFigures:
         return PacingFigures(lockstep_cycle_us=self.cycle_stats.summary())

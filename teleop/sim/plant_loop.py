@@ -10,6 +10,7 @@ or resumed from a checkpoint) and end are the same in every mode: they live here
 from __future__ import annotations
 
 import threading
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +20,7 @@ from teleop.bus.messages import Event
 from teleop.core.clock import Clock
 from teleop.core.config import Config
 from teleop.sim.checkpoint import CheckpointStore
-from teleop.sim.pacing import Pacer, make_pacer
+from teleop.sim.pacing import LockstepPacer, Pacer, make_pacer
 from teleop.sim.stepping import PlantOutputs, PlantStepCore
 
 
@@ -33,9 +34,16 @@ class PlantLoop:
         outputs: PlantOutputs,
         clock: Clock,
         store: CheckpointStore | None = None,
+        holds_ns: Sequence[int] = (),
     ) -> None:
-        self.pacer: Pacer = make_pacer(config, outputs, clock, store)
+        self.pacer: Pacer = make_pacer(config, outputs, clock, store, holds_ns)
         self.core: PlantStepCore = self.pacer.core
+
+    def release(self, at_ns: int) -> None:
+        """The launcher released the lockstep holds at or before sim ``at_ns`` (a plant
+        made with ``holds_ns``, which only lockstep has)."""
+        assert isinstance(self.pacer, LockstepPacer), "holds are lockstep's"
+        self.pacer.release(at_ns)
 
     def on_command(self, rec: np.ndarray, rx_ns: int) -> None:
         """A JOINT_COMMAND for this arm arrived at ``rx_ns`` (on a Zenoh thread)."""

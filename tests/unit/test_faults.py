@@ -7,6 +7,8 @@ from __future__ import annotations
 import os
 import signal
 import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -162,6 +164,14 @@ def test_a_plant_that_comes_back_at_step_0_reset_the_world():
 # -- the injector --------------------------------------------------------------------------
 
 
+def _wait_until(condition: Callable[[], bool], timeout_s: float = 5.0) -> None:
+    """Wait for another thread's work (a bound against a hang, not a measurement)."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "not reached"
+        time.sleep(0.001)
+
+
 class FakeClock:
     def __init__(self) -> None:
         self.t_ns = 0
@@ -184,7 +194,9 @@ def test_the_injector_kills_and_freezes_on_sim_time_and_thaws_on_close():
         done.set()
 
     faults = [FaultSpec("controller", KILL, 1.0), FaultSpec("haptic", FREEZE, 2.0, 3600.0)]
-    hooks = InjectorHooks(pids.__getitem__, signal_group, expected.append, clock.now_ns)
+    released: list[float] = []
+    hooks = InjectorHooks(pids.__getitem__, signal_group, expected.append, clock.now_ns,
+                          released.append)  # fmt: skip
     injector = FaultInjector(faults, hooks)
     injector.start()
     try:
@@ -195,12 +207,14 @@ def test_the_injector_kills_and_freezes_on_sim_time_and_thaws_on_close():
         assert done.wait(5)
         done.clear()
         assert sent == [("controller", signal.SIGKILL)] and expected == ["controller"]
+        _wait_until(lambda: released == [1.0])  # the held plant steps on once injected
         injector.on_ready("controller", 8 * S)
         injector.on_state(int(2.001 * S), 2001)
         assert done.wait(5)
     finally:
         injector.close()
     assert sent[1:] == [("haptic", signal.SIGSTOP), ("haptic", signal.SIGCONT)]
+    assert released == [1.0, 2.0]
     kill, freeze = injector.records
     assert (kill.t_s, kill.step, kill.inject_ns, kill.ready_ns) == (1.0, 1000, 7 * S, 8 * S)
     assert freeze.t_s == pytest.approx(2.001) and freeze.thaw_ns == 7 * S
@@ -211,7 +225,7 @@ def test_in_realtime_a_fault_is_due_on_the_clock_from_the_plants_start():
     has received the states of that instant yet."""
     clock, done = FakeClock(), threading.Event()
     hooks = InjectorHooks(lambda name: 10, lambda pid, signum: done.set(), lambda n: None,
-                          clock.now_ns)  # fmt: skip
+                          clock.now_ns, lambda at_s: None)  # fmt: skip
     injector = FaultInjector([FaultSpec("controller", KILL, 1.0)], hooks, realtime=True)
     injector.start()
     try:
@@ -241,7 +255,8 @@ def test_the_pid_of_a_service_not_running_at_start_is_known_before_its_fault_is_
         return os.getpgrp()  # a process group that exists, as a running service's
 
     killed = threading.Event()
-    hooks = InjectorHooks(pid_of, lambda pid, signum: killed.set(), lambda n: None, int)
+    hooks = InjectorHooks(pid_of, lambda pid, signum: killed.set(), lambda n: None, int,
+                          lambda at_s: None)  # fmt: skip
     injector = FaultInjector([FaultSpec("controller", KILL, 1.0)], hooks)
     injector.start()
     try:
@@ -265,11 +280,14 @@ def test_a_fault_on_a_service_that_is_not_running_is_reported_not_injected():
         asked.release()
         return 0  # supervisord's pid of a program that is not running
 
-    hooks = InjectorHooks(pid_of, lambda pid, signum: None, lambda name: None, int)
+    released = threading.Event()
+    hooks = InjectorHooks(pid_of, lambda pid, signum: None, lambda name: None, int,
+                          lambda at_s: released.set())  # fmt: skip
     injector = FaultInjector([FaultSpec("hmd", KILL, 0.0)], hooks)
     injector.start()
     injector.on_state(0, 0)
     assert asked.acquire(timeout=5) and asked.acquire(timeout=5)  # ahead, then at the instant
+    assert released.wait(5)  # a held lockstep run goes on without the fault
     injector.close()
     (record,) = injector.records
     assert record.error.startswith("no process") and record.inject_ns == 0

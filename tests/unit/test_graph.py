@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from teleop.bus import graph
+from teleop.bus.access import LAUNCHER, Credentials, access_control
 from teleop.bus.messages import Event, Stage, code_tables
 from teleop.bus.topics import Topics
 from teleop.core.config import SCENARIO_SPECS, SCENARIOS, load_config
@@ -107,3 +108,32 @@ def test_whether_a_scenario_is_teleoperated_decides_its_stack():
             assert hand <= services and {"haptic_state", "force_feedback"} <= streams
         else:
             assert not hand & services and not {"haptic_state", "force_feedback"} & streams
+
+
+def test_only_the_launcher_may_declare_a_release_and_every_participant_sees_it():
+    """A lockstep plant held at a fault's instant steps on at the launcher's release token
+    (graph.RELEASED_TOKEN): the access list lets the launcher alone declare one."""
+    topics = Topics("arm0")
+    key = topics.released(1_500_000_000)
+    assert key == "teleop/arm0/released/1500000000"
+    assert topics.released_ns_of(key) == 1_500_000_000
+    for bad in (
+        "teleop/arm0/released/-1",
+        "teleop/arm0/released/1.5",
+        "teleop/arm1/released/1",
+        "teleop/arm0/ready/plant",
+        "teleop/arm0/released/",
+        "teleop/arm0/released/١",
+    ):
+        assert topics.released_ns_of(bad) is None, bad
+    with pytest.raises(ValueError):
+        topics.released(-1)
+    names = ["plant", "controller", LAUNCHER]
+    acl = access_control({n: Credentials.generate(n) for n in names}, ("arm0",))
+    rules = {rule["id"]: rule for rule in acl["rules"]}
+    declares = {name: rules[f"{name}-tokens"]["key_exprs"] for name in names}
+    assert topics.released_all in declares[LAUNCHER]
+    assert all(topics.released_all not in declares[n] for n in ("plant", "controller"))
+    # The plant may watch for it and be sent it.
+    assert topics.released_all in rules["plant-watch-in"]["key_exprs"]
+    assert topics.released_all in rules["plant-peer-tokens"]["key_exprs"]

@@ -30,11 +30,11 @@ TELEOP = ('run.scenario="grasp"', 'run.mode="realtime"')
 PERIOD_NS = 1_000_000
 
 
-def make(*overrides: str):
+def make(*overrides: str, holds_ns: tuple[int, ...] = ()):
     """The configured pacer at the start of a run (not yet paced), its outputs, its clock."""
     config = load_config(None, overrides)
     outputs, clock = Recorded(), FakeClock(start_ns=10**12)
-    pacer = make_pacer(config, outputs, clock)
+    pacer = make_pacer(config, outputs, clock, holds_ns=holds_ns)
     pacer.core.begin_run(None)
     return pacer, outputs, clock
 
@@ -286,8 +286,10 @@ def test_device_clock_pacing_steps_nothing_outside_its_run():
 
 
 # -- lockstep ----------------------------------------------------------------------------
-def started(*overrides: str) -> tuple[LockstepPacer, Recorded, FakeClock]:
-    pacer, out, clock = make('run.mode="lockstep"', *overrides)
+def started(
+    *overrides: str, holds_ns: tuple[int, ...] = ()
+) -> tuple[LockstepPacer, Recorded, FakeClock]:
+    pacer, out, clock = make('run.mode="lockstep"', *overrides, holds_ns=holds_ns)
     assert isinstance(pacer, LockstepPacer)
     pacer.start()
     return pacer, out, clock
@@ -357,6 +359,71 @@ def test_lockstep_without_an_answer_re_sends_then_ends_the_run_after_its_bound()
     steps = core.plant.step_count
     pacer.on_command(command(1, pacer.pending_state, clock.now_ns()), clock.now_ns())
     assert core.plant.step_count == steps  # a late answer steps nothing
+
+
+def _answer_pending(pacer: LockstepPacer, clock: FakeClock, seq: int) -> None:
+    pacer.on_command(command(seq, pacer.pending_state, clock.now_ns()), clock.now_ns())
+
+
+def test_lockstep_holds_at_a_fault_instant_until_released_then_steps_with_the_kept_answer():
+    """Told a fault's instant, the plant waits at the first state at or past it (the
+    observers' copy flushed, so the launcher sees it) and steps on with the answer it kept
+    once released; a release at a later instant releases every hold up to it."""
+    period_ns = load_config(None, ['run.mode="lockstep"']).tick_s * NS_PER_S
+    hold_1, hold_2 = round(2.5 * period_ns), round(5 * period_ns)
+    pacer, out, clock = started("plant.lockstep_delay_steps=0", holds_ns=(hold_2, hold_1))
+    core = pacer.core
+    for seq in range(1, 3):
+        _answer_pending(pacer, clock, seq)
+    flushes = out.flushes
+    _answer_pending(pacer, clock, 3)  # state 3 (3 periods) is the first past hold 1
+    assert core.plant.step_count == 3 and int(core.state_rec["sim_time_ns"]) >= hold_1
+    assert out.flushes == flushes + 1  # the observers see it now
+    _answer_pending(pacer, clock, 4)
+    assert core.plant.step_count == 3 and out.flushes == flushes + 1  # held
+    assert pacer.waited(core.plant.step_count) and out.resent  # still re-sends meanwhile
+    pacer.release(hold_1 - 1)  # not yet this one
+    assert core.plant.step_count == 3
+    pacer.release(hold_1)
+    assert core.plant.step_count == 4 and int(core.state_rec["cmd_seq_applied"]) == 4
+    _answer_pending(pacer, clock, 5)
+    pacer.release(hold_2 + round(10 * period_ns))  # released before the plant got there
+    for seq in range(6, 10):
+        _answer_pending(pacer, clock, seq)
+    assert core.plant.step_count == 9
+
+
+def test_a_held_plant_keeps_the_answers_to_every_state_in_flight_and_takes_them_in_order():
+    """With a state in flight besides the pending one, its answer comes during the hold
+    too; the controller sends it once, so it is kept, not dropped as not yet due."""
+    pacer, out, clock = started("plant.lockstep_delay_steps=1", holds_ns=(0,))
+    core = pacer.core
+    assert core.state_seq == 1 and pacer.pending_state == 0  # state 1 at sim > 0: held
+    _answer_pending(pacer, clock, 1)
+    pacer.on_command(command(2, state_seq=1, now_ns=clock.now_ns()), clock.now_ns())
+    pacer.on_command(command(3, state_seq=0, now_ns=clock.now_ns()), clock.now_ns())
+    assert core.plant.step_count == 1 and core.unanswered_commands == 1  # 0's answered
+    pacer.release(0)
+    assert core.plant.step_count == 3 and pacer.pending_state == 2
+    assert [int(r["cmd_seq_applied"]) for r in out.records["plant_state"][-2:]] == [1, 2]
+
+
+def test_a_plant_held_without_a_release_ends_the_run_saying_it_was_held():
+    pacer, out, clock = started("plant.lockstep_timeout_s=5", "plant.lockstep_delay_steps=0",
+                                holds_ns=(0,))  # fmt: skip
+    _answer_pending(pacer, clock, 1)
+    core = pacer.core
+    assert core.plant.step_count == 0
+    clock.advance(5 * NS_PER_S)
+    assert not pacer.waited(core.plant.step_count)
+    assert core.aborted and "no release from the launcher" in (core.failure or "")
+    pacer.release(0)  # too late: the run is over
+    assert core.plant.step_count == 0
+
+
+def test_only_a_lockstep_plant_can_be_held():
+    with pytest.raises(ValueError, match="lockstep only"):
+        make(*TELEOP, holds_ns=(NS_PER_S,))
 
 
 def test_a_lockstep_run_starts_steps_on_answers_and_finishes():

@@ -9,10 +9,13 @@ import subprocess
 import sys
 import threading
 
+import pytest
+
 from teleop.bench.relay import FLOOR_STAND_INS, RELAYS, PlantRelay
 from teleop.bus.service import (
     Service,
     ServiceOptions,
+    build_service_parser,
     fifo_scheduling,
     pin_to_cpus,
     read_summary,
@@ -233,3 +236,13 @@ def test_a_stop_signal_repeated_while_stopping_prints_where_each_thread_is():
     assert done.stdout.strip() == "stopped", done.stderr
     assert "signal SIGTERM again" in done.stderr
     assert "Thread 0x" in done.stderr and "in watch" in done.stderr
+
+
+def test_hold_at_takes_sim_seconds_and_refuses_anything_else(capsys):
+    parser = build_service_parser("plant")
+    assert parser.parse_args(["--hold-at", "1.5,4"]).hold_at_ns == (1_500_000_000, 4 * 10**9)
+    assert parser.parse_args([]).hold_at_ns == ()
+    for bad in ("nan", "-1", "1.5,x", "inf"):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["--hold-at", bad])
+        assert "--hold-at" in capsys.readouterr().err
