@@ -25,7 +25,6 @@ import dataclasses
 import json
 import math
 import os
-import statistics
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -749,25 +748,22 @@ def _latency_across_sites(args: argparse.Namespace) -> int:
         print(line, file=sys.stderr)
 
     report = sites.measure(args.pings, 1000.0, args.rounds, delays, progress=to_stderr)
-    stack_ok = True
     if args.with_stack:
         stack = sites.measure_stack(args.run_dir / "stack", args.overrides, progress=to_stderr)
-        report["stack"] = stack
-        stack_ok = stack["success"] and bool(stack.get("loops"))
+        report = dataclasses.replace(report, stack=stack)
     json_path = args.json if args.json is not None else args.run_dir / SITES_REPORT_FILE
     json_path.parent.mkdir(parents=True, exist_ok=True)
-    json_path.write_text(json.dumps(report, indent=2) + "\n")
+    json_path.write_text(json.dumps(report.to_json(), indent=2) + "\n")
     print("\n".join(sites.table(report)))
-    if args.with_stack:
-        routers = [r[sites.ROUTERS] for r in report["rounds"]]
-        floor = {k: statistics.median(r[k] for r in routers) for k in ("p50_ms", "p99_ms")}
-        print("\n" + "\n".join(sites.stack_table(report["stack"], floor)))
+    if report.stack is not None:
+        floor = report.routers_floor_ms()
+        print("\n" + "\n".join(sites.stack_table(report.stack, floor)))
     print(f"report: {json_path}")
-    return 1 if report["lost"] or not stack_ok else 0
+    return 0 if report.clean else 1
 
 
 def _latency(args: argparse.Namespace) -> int:
-    from teleop.bench import latency
+    from teleop.bench import latency, loop_stats
 
     if args.across_sites:
         return _latency_across_sites(args)
@@ -775,8 +771,8 @@ def _latency(args: argparse.Namespace) -> int:
         raise ConfigError("--delays-ms and --with-stack: with --across-sites only")
     if args.duration is None:
         args.duration = DEFAULT_LATENCY_DURATION_S
-    if args.duration <= latency.WARMUP_S:
-        raise ConfigError(f"--duration must exceed the {latency.WARMUP_S:g} s warm-up")
+    if args.duration <= loop_stats.WARMUP_S:
+        raise ConfigError(f"--duration must exceed the {loop_stats.WARMUP_S:g} s warm-up")
     latency.config_of(args.config, args.overrides)  # bad --set values fail here, exit 2
     kwargs = {}
     if args.sweep_count is not None:

@@ -14,7 +14,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from teleop.bench.latency import HOPS
+from teleop.bench.loop_stats import HOPS
 from teleop.core import markdown
 
 HEADER = """# Latency of the bilateral loop

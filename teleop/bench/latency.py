@@ -19,15 +19,12 @@ the trace of every rendered feedback (``haptic.trace.npy``), the floor origin th
 of every returned payload. A hop is the difference of two stamps of one trace; the
 round trip is ``FEEDBACK_RENDERED - HAPTIC_SAMPLE``: handle sampled -> controller ->
 plant (command in a physics step) -> plant state -> controller -> force set on the
-handle's motors. Percentiles come from HDR histograms (``hdrhistogram``: 3 significant
-digits, so within 0.1 % of the exact order statistic).
+handle's motors (:mod:`teleop.bench.loop_stats`).
 
-The figures are typed records (:class:`LatencyStats`, :class:`LoopAnalysis`, the
-services' counters, :class:`LatencyReport`); JSON is written and read only by their
-``to_json``/``from_json``. The services' counters are read from the stack's
-:class:`~teleop.core.summary.RunSummary`: through the services' records
-(:mod:`teleop.core.service_summaries`) where those have the field, else from the
-service's summary JSON (:func:`_service_json`).
+The figures are typed records (the loop's, :mod:`teleop.bench.loop_stats`; the services'
+counters, :mod:`teleop.bench.run_counts`; :class:`LatencyReport`); JSON is written and
+read only by their ``to_json``/``from_json``. This module runs the measurements and
+writes the report.
 """
 
 from __future__ import annotations
@@ -37,16 +34,49 @@ import math
 import os
 import sys
 import time
-from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import asdict, dataclass, fields, replace
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from teleop.bench.loop_stats import (
+    HOPS,
+    PERCENTILES,
+    ROUND_TRIP,
+    ChainAccounting,
+    FloorRatio,
+    LatencyStats,
+    LoopAnalysis,
+    after_warmup,
+    analyse,
+    chain_accounting,
+    complete_loops,
+    hop_ns,
+    hops_from_json,
+    hops_json,
+    overhead,
+    stats_us,
+    warm_loops,
+)
 from teleop.bench.relay import RELAYS, FloorOrigin, floor_provider, unmeasurable_reason
-from teleop.bus.messages import EYE_VIEW, PLANT_STATE, Stage
+from teleop.bench.run_counts import (
+    DeadlineMisses,
+    HapticMisses,
+    LostCounts,
+    PlantMisses,
+    ReorderedCounts,
+    ServiceRates,
+    ShedCounts,
+    cpu_share,
+    deadline_misses,
+    service_rates,
+    shed_counters,
+    stream_counters,
+)
+from teleop.bus.messages import EYE_VIEW, PLANT_STATE
 from teleop.bus.service import fifo_scheduling
 from teleop.bus.session import close_session, open_session, wait_alive
 from teleop.bus.topics import Topics
@@ -54,13 +84,6 @@ from teleop.core.clock import NS_PER_S, NS_PER_US
 from teleop.core.config import Config, EyeViewConfig, load_config
 from teleop.core.net import LoopbackPorts
 from teleop.core.rundir import HAPTIC_SAMPLES_FILE, HAPTIC_TRACE_FILE, SHED_FILE_SUFFIX
-from teleop.core.service_summaries import (
-    ControllerSummary,
-    HmdSummary,
-    PlantSummary,
-    json_number,
-    record_of,
-)
 from teleop.core.summary import RunSummary
 from teleop.run.stack import (
     ALIVE_TIMEOUT_S,
@@ -74,15 +97,7 @@ from teleop.run.stack import (
 )
 from teleop.run.supervise import Program, Stack
 
-# HDR histogram range and precision: 1 ns .. 60 s, 3 significant digits.
-HDR_LOWEST_NS = 1
-HDR_HIGHEST_NS = 60 * NS_PER_S
-HDR_SIGNIFICANT_DIGITS = 3
-# The percentiles every report gives (JSON key -> percentile).
-PERCENTILES = {"p50": 50.0, "p90": 90.0, "p99": 99.0, "p999": 99.9}
 # Samples of the first second of a run are start-up (imports warming, links opening,
-# the plant's grid locking to the commands): left out of every figure.
-WARMUP_S = 1.0
 # One eye-view frame at the default size (record + RGB pixels, see EyeViewConfig).
 EYE_VIEW_FRAME_BYTES = EYE_VIEW.frame_bytes(EyeViewConfig().width_px, EyeViewConfig().height_px)
 # The payload sweep, bytes: small record, a page, big records, 1 MiB, one eye-view frame.
@@ -99,8 +114,6 @@ FLOOR_WARMUP_COUNT = 50
 DEFAULT_BASELINE_MAX_S = 20.0
 # The scenario that keeps the operator moving for the whole run.
 LATENCY_SCENARIO_FILE = "latency.toml"
-# A floor figure below this (us) is "no such stage" (a relay does not wait): no ratio.
-MIN_RATIO_BASE_US = 1.0
 # Histogram bins of the figure and the recording (log-spaced, 10 us .. 1 s).
 FIGURE_BINS_US = np.logspace(1, 6, 151)
 # The PNG's histograms: bins per decade, and the factor the axis extends past the data.
@@ -108,317 +121,7 @@ FIGURE_BINS_PER_DECADE = 30
 FIGURE_MARGIN = 1.2
 
 
-@dataclass(frozen=True)
-class Hop:
-    """One stage-to-stage interval of the loop; ``kind``: transport, compute or wait."""
-
-    name: str
-    start: Stage
-    end: Stage
-    kind: str
-
-
-HOPS: tuple[Hop, ...] = (
-    Hop("haptic_to_controller", Stage.HAPTIC_SAMPLE, Stage.CONTROLLER_RX, "transport"),
-    Hop("controller_command", Stage.CONTROLLER_RX, Stage.CONTROLLER_TX, "compute"),
-    Hop("controller_to_plant", Stage.CONTROLLER_TX, Stage.PLANT_RX, "transport"),
-    Hop("plant_wait", Stage.PLANT_RX, Stage.PLANT_APPLIED, "wait"),
-    Hop("plant_step", Stage.PLANT_APPLIED, Stage.PLANT_STATE_TX, "compute"),
-    Hop("plant_to_controller", Stage.PLANT_STATE_TX, Stage.CONTROLLER_STATE_RX, "transport"),
-    Hop("controller_feedback", Stage.CONTROLLER_STATE_RX, Stage.FEEDBACK_TX, "compute"),
-    Hop("controller_to_haptic", Stage.FEEDBACK_TX, Stage.FEEDBACK_RX, "transport"),
-    Hop("haptic_render", Stage.FEEDBACK_RX, Stage.FEEDBACK_RENDERED, "wait"),
-)
-ROUND_TRIP = Hop("round_trip", Stage.HAPTIC_SAMPLE, Stage.FEEDBACK_RENDERED, "total")
-LOOP_STAGES = tuple(Stage)  # every stamp of one loop, in loop order
-
 ProgressFn = Callable[[str], None]
-
-
-# -- statistics ---------------------------------------------------------------------------
-
-
-def histogram(values_ns: Iterable[int]) -> Any:
-    """An HDR histogram of latencies in ns (values clamped into its range)."""
-    from hdrh.histogram import HdrHistogram
-
-    hist = HdrHistogram(HDR_LOWEST_NS, HDR_HIGHEST_NS, HDR_SIGNIFICANT_DIGITS)
-    for value in np.clip(np.asarray(values_ns, dtype=np.int64), HDR_LOWEST_NS, HDR_HIGHEST_NS):
-        hist.record_value(int(value))
-    return hist
-
-
-@dataclass(frozen=True)
-class LatencyStats:
-    """count, percentiles (PERCENTILES), max and mean of latencies, in us; the figures are
-    None without a sample. ``not_measured``: why a payload-sweep size was not sent.
-    JSON keys drop the unit (``p50``, ``max``): the report's key says ``_us``."""
-
-    count: int
-    p50_us: float | None = None
-    p90_us: float | None = None
-    p99_us: float | None = None
-    p999_us: float | None = None
-    max_us: float | None = None
-    mean_us: float | None = None
-    not_measured: str | None = None
-
-    def percentile_us(self, key: str) -> float | None:
-        """The figure of a PERCENTILES key (``p50``, ...), or ``max``/``mean``."""
-        return getattr(self, f"{key}_us")
-
-    def to_json(self) -> dict[str, float | str | None]:
-        out: dict[str, float | str | None] = {"count": self.count}
-        out |= {key: self.percentile_us(key) for key in (*PERCENTILES, "max", "mean")}
-        if self.not_measured is not None:
-            out["not_measured"] = self.not_measured
-        return out
-
-    @classmethod
-    def from_json(cls, content: Mapping[str, Any]) -> LatencyStats:
-        """The record of a JSON figure set; a key it lacks is None (an empty ``{}``: 0 loops)."""
-        figures = {f"{key}_us": content.get(key) for key in (*PERCENTILES, "max", "mean")}
-        return cls(
-            int(content.get("count", 0)), **figures, not_measured=content.get("not_measured")
-        )
-
-
-def stats_us(values_ns: np.ndarray) -> LatencyStats:
-    """count, p50, p90, p99, p999, max and mean of latencies given in ns, reported in us.
-
-    Percentiles are the HDR histogram's (the smallest recorded value with at least that
-    share of samples at or below it, to 3 significant digits); max and mean are exact.
-    """
-    values_ns = np.asarray(values_ns, dtype=np.int64)
-    if values_ns.size == 0:
-        return LatencyStats(0)
-    hist = histogram(values_ns)
-    percentiles = {
-        f"{key}_us": hist.get_value_at_percentile(pct) / NS_PER_US
-        for key, pct in PERCENTILES.items()
-    }
-    return LatencyStats(
-        int(values_ns.size),
-        **percentiles,
-        max_us=float(values_ns.max()) / NS_PER_US,
-        mean_us=float(values_ns.mean()) / NS_PER_US,
-    )
-
-
-def complete_loops(traces: np.ndarray) -> np.ndarray:
-    """Rows of ``traces`` (n, N_STAGES) that hold every stamp of one loop."""
-    traces = np.asarray(traces, dtype=np.int64).reshape(-1, len(Stage))
-    return traces[(traces[:, list(LOOP_STAGES)] > 0).all(axis=1)]
-
-
-def after_warmup(traces: np.ndarray, warmup_s: float = WARMUP_S) -> np.ndarray:
-    """Rows whose handle sample is at least ``warmup_s`` after the first one's."""
-    if traces.shape[0] == 0:
-        return traces
-    start_ns = traces[:, Stage.HAPTIC_SAMPLE]
-    return traces[start_ns >= start_ns.min() + round(warmup_s * NS_PER_S)]
-
-
-def hop_ns(traces: np.ndarray, hop: Hop) -> np.ndarray:
-    """The hop's durations (ns), one per row."""
-    return traces[:, hop.end] - traces[:, hop.start]
-
-
-def non_monotonic(traces: np.ndarray) -> int:
-    """Rows whose stamps decrease somewhere along the loop (must be 0)."""
-    stamps = traces[:, list(LOOP_STAGES)]
-    return int((np.diff(stamps, axis=1) < 0).any(axis=1).sum())
-
-
-def warm_loops(*traces: np.ndarray) -> np.ndarray:
-    """The complete loops of each run's traces after that run's own warm-up, together."""
-    return np.concatenate([after_warmup(complete_loops(t)) for t in traces])
-
-
-def hops_json(hops_us: Mapping[str, LatencyStats]) -> dict[str, dict[str, float | str | None]]:
-    """Each hop's figures as JSON, by hop name."""
-    return {name: figures.to_json() for name, figures in hops_us.items()}
-
-
-def hops_from_json(content: Mapping[str, Any]) -> dict[str, LatencyStats]:
-    """Each hop's figures of a JSON object by hop name."""
-    return {name: LatencyStats.from_json(figures) for name, figures in content.items()}
-
-
-@dataclass(frozen=True)
-class LoopAnalysis:
-    """The round trip and every hop (HOPS, by name) of complete loops, in us, and the
-    loops whose stamps go back in time (must be 0)."""
-
-    round_trip_us: LatencyStats
-    hops_us: Mapping[str, LatencyStats]
-    non_monotonic: int
-
-
-def analyse(*traces: np.ndarray) -> LoopAnalysis:
-    """Round trip and every hop of complete loops (after the warm-up of each run whose
-    traces are given), in us."""
-    loops = warm_loops(*traces)
-    return LoopAnalysis(
-        round_trip_us=stats_us(hop_ns(loops, ROUND_TRIP)),
-        hops_us={hop.name: stats_us(hop_ns(loops, hop)) for hop in HOPS},
-        non_monotonic=non_monotonic(loops),
-    )
-
-
-@dataclass(frozen=True)
-class AcrossClocks:
-    """The loop split across two sites on two clocks (:func:`across_clocks`): the clocks'
-    offset (robot minus operator site, s) and its uncertainty (us), the round trip on the
-    operator site's clock, the robot site's part and each way across (us). No loop: every
-    figure None."""
-
-    loops: int
-    offset_s: float | None = None
-    offset_uncertainty_us: float | None = None
-    round_trip_us: LatencyStats | None = None
-    robot_site_us: LatencyStats | None = None
-    operator_to_robot_us: LatencyStats | None = None
-    robot_to_operator_us: LatencyStats | None = None
-
-    def to_json(self) -> dict[str, Any]:
-        """The JSON object (only ``loops`` when no loop closed)."""
-        if not self.loops:
-            return {"loops": self.loops}
-        out: dict[str, Any] = {}
-        for f in fields(self):
-            value = getattr(self, f.name)
-            out[f.name] = value.to_json() if isinstance(value, LatencyStats) else value
-        return out
-
-    @classmethod
-    def from_json(cls, content: Mapping[str, Any]) -> AcrossClocks:
-        """The record of :meth:`to_json`'s keys in ``content`` (other keys are left)."""
-        figures = {
-            f.name: LatencyStats.from_json(content[f.name])
-            for f in fields(cls)
-            if f.name.endswith("_us") and f.name in content and f.name != "offset_uncertainty_us"
-        }
-        return cls(
-            loops=content["loops"],
-            offset_s=content.get("offset_s"),
-            offset_uncertainty_us=content.get("offset_uncertainty_us"),
-            **figures,
-        )
-
-
-def across_clocks(*traces: np.ndarray) -> AcrossClocks:
-    """The loop split across two sites on two clocks: the operator site's stamps
-    (HAPTIC_SAMPLE, FEEDBACK_RX, FEEDBACK_RENDERED) on one, the robot site's
-    (CONTROLLER_RX to FEEDBACK_TX) on another. The round trip is on the sampling side's
-    clock alone; each way across is found as NTP does: per loop, the clocks' offset
-    ``((t1 - t0) + (t2 - t3)) / 2`` (robot minus operator) and the time on the wire
-    ``(t3 - t0) - (t2 - t1)``; the offset taken from the loop with the least wire time,
-    whose half is its uncertainty (the two ways need not be equal). In us (the offset in
-    s) after the warm-up."""
-    loops = warm_loops(*traces)
-    if loops.shape[0] == 0:
-        return AcrossClocks(0)
-    t0, t1 = loops[:, Stage.HAPTIC_SAMPLE], loops[:, Stage.CONTROLLER_RX]
-    t2, t3 = loops[:, Stage.FEEDBACK_TX], loops[:, Stage.FEEDBACK_RX]
-    wire_ns = (t3 - t0) - (t2 - t1)
-    best = int(np.argmin(wire_ns))
-    # Halved in integers: two stamps hours apart are beyond a float's ns resolution.
-    offset_ns = ((t1[best] - t0[best]) + (t2[best] - t3[best])) // 2
-    return AcrossClocks(
-        loops=int(loops.shape[0]),
-        offset_s=offset_ns / NS_PER_S,
-        offset_uncertainty_us=float(wire_ns[best]) / 2 / NS_PER_US,
-        round_trip_us=stats_us(hop_ns(loops, ROUND_TRIP)),
-        robot_site_us=stats_us(t2 - t1),
-        operator_to_robot_us=stats_us(t1 - t0 - offset_ns),
-        robot_to_operator_us=stats_us(t3 - t2 + offset_ns),
-    )
-
-
-@dataclass(frozen=True)
-class ChainAccounting:
-    """Handle samples between the first and the last that came back (:func:`chain_accounting`)."""
-
-    samples: int
-    returned: int
-    missing: int
-    shed: int
-    unaccounted: int
-    duplicates: int
-
-    def to_json(self) -> dict[str, int]:
-        return asdict(self)
-
-
-def chain_accounting(
-    samples: np.ndarray, traces: np.ndarray, shed_ns: np.ndarray | None = None
-) -> ChainAccounting:
-    """Did every handle sample come back exactly once, or was it shed on purpose?
-
-    ``samples`` (n, 2): (seq, HAPTIC_SAMPLE ns) of every published HAPTIC_STATE;
-    ``traces``: the rendered feedback traces; ``shed_ns``: HAPTIC_SAMPLE stamps of the
-    samples a service shed while behind schedule (its ``.shed.npy`` files). Between the
-    first and the last sample that came back, a sample that never did is ``missing``,
-    ``shed`` if a service says it dropped it, else ``unaccounted`` (must be 0); one that
-    came back twice or more counts in ``duplicates`` (each extra time).
-    """
-    loops = complete_loops(traces)
-    if loops.shape[0] == 0:
-        return ChainAccounting(0, 0, 0, 0, 0, 0)
-    returned = loops[:, Stage.HAPTIC_SAMPLE]
-    unique, counts = np.unique(returned, return_counts=True)
-    sample_ns = np.asarray(samples, dtype=np.int64).reshape(-1, 2)[:, 1]
-    window = sample_ns[(sample_ns >= unique.min()) & (sample_ns <= unique.max())]
-    missing = np.setdiff1d(window, unique)
-    shed = np.zeros(0, np.int64) if shed_ns is None else np.asarray(shed_ns).reshape(-1)
-    return ChainAccounting(
-        samples=int(window.size),
-        returned=int(unique.size),
-        missing=int(missing.size),
-        shed=int(np.isin(missing, shed).sum()),
-        unaccounted=int(np.setdiff1d(missing, shed).size),
-        duplicates=int((counts - 1).sum()),
-    )
-
-
-@dataclass(frozen=True)
-class FloorRatio:
-    """A figure's p50 and p99 over the floor's: the ratio (None where the floor's is below
-    MIN_RATIO_BASE_US, or either is missing) and the extra us (None if either is missing)."""
-
-    p50_ratio: float | None
-    p50_extra_us: float | None
-    p99_ratio: float | None
-    p99_extra_us: float | None
-
-    @classmethod
-    def of(cls, mine: LatencyStats, base: LatencyStats) -> FloorRatio:
-        values: dict[str, float | None] = {}
-        for key in ("p50", "p99"):
-            a, b = mine.percentile_us(key), base.percentile_us(key)
-            if a is None or b is None:
-                values[f"{key}_ratio"] = values[f"{key}_extra_us"] = None
-                continue
-            values[f"{key}_ratio"] = a / b if b >= MIN_RATIO_BASE_US else None
-            values[f"{key}_extra_us"] = a - b
-        return cls(**values)
-
-    def to_json(self) -> dict[str, float | None]:
-        return asdict(self)
-
-
-def overhead(stack: LoopAnalysis, floor: LoopAnalysis) -> dict[str, FloorRatio]:
-    """Each hop's and the round trip's (``round_trip``) p50/p99 over the floor's: ratio
-    and extra us.
-
-    A ratio is None where the floor's figure is below MIN_RATIO_BASE_US (a wait the bare
-    relay does not have).
-    """
-    result = {"round_trip": FloorRatio.of(stack.round_trip_us, floor.round_trip_us)}
-    for name, figures in stack.hops_us.items():
-        result[name] = FloorRatio.of(figures, floor.hops_us[name])
-    return result
 
 
 # -- running the stack --------------------------------------------------------------------
@@ -473,214 +176,6 @@ def run_stack(
     shed = [np.load(path).reshape(-1) for path in sorted(run_dir.glob(f"*{SHED_FILE_SUFFIX}"))]
     shed_ns = np.concatenate([np.zeros(0, np.int64), *shed])
     return StackRun(label, RunSummary.from_json(summary), traces, samples, shed_ns, analyse(traces))
-
-
-# -- what the report reads of the services' summaries -------------------------------------
-
-
-def _service_json(summary: RunSummary, role: str, *section: str) -> Mapping[str, object]:
-    """A service's summary JSON (or a section of it: ``arrival``, ``loop``), for the
-    counters its record in teleop.core.service_summaries does not have; empty if absent."""
-    content: object = (summary.services or {}).get(role, {})
-    for key in section:
-        content = content.get(key, {}) if isinstance(content, Mapping) else {}
-    return content if isinstance(content, Mapping) else {}
-
-
-def _count(content: Mapping[str, object], key: str) -> int:
-    """A counter of a summary's JSON, 0 if not written."""
-    value = content.get(key, 0)
-    return int(value) if isinstance(value, int | float) else 0
-
-
-def _figure(content: Mapping[str, object], key: str) -> float | None:
-    """A number of a summary's JSON as written, None if not written."""
-    return json_number(content.get(key))
-
-
-@dataclass(frozen=True)
-class ShedCounts:
-    """Inputs dropped on purpose because a service was behind (:func:`shed_counters`)."""
-
-    haptic: int
-    state: int
-    feedback: int
-    command: int
-    command_late: int
-    command_stale: int
-
-    @property
-    def total(self) -> int:
-        return sum(asdict(self).values())
-
-    def to_json(self) -> dict[str, int]:
-        return asdict(self)
-
-
-@dataclass(frozen=True)
-class LostCounts:
-    """Messages per stream the bus never delivered (gaps in ``seq``)."""
-
-    haptic: int
-    command: int
-    state: int
-    feedback: int
-
-    def to_json(self) -> dict[str, int]:
-        return asdict(self)
-
-
-@dataclass(frozen=True)
-class ReorderedCounts:
-    """Messages per stream that came after a newer one."""
-
-    haptic: int
-    command: int
-    feedback: int
-
-    @property
-    def total(self) -> int:
-        return sum(asdict(self).values())
-
-    def to_json(self) -> dict[str, int]:
-        return asdict(self)
-
-
-def shed_counters(summary: RunSummary) -> ShedCounts:
-    """Inputs dropped on purpose because a service was behind (a CPU stall): the
-    controller's too-old haptic samples and states, the haptic device's too-old
-    feedback, the plant's too-old commands, those that came after their device period
-    was stepped (merged into the next step) and those too stale to apply. Each is a
-    handle sample that never comes back (a state or feedback without one is counted
-    too)."""
-    arrival = _service_json(summary, "plant", "arrival")
-    controller = _service_json(summary, "controller")
-    return ShedCounts(
-        haptic=_count(controller, "haptic_shed"),
-        state=_count(controller, "states_shed"),
-        feedback=_count(_service_json(summary, "haptic"), "feedback_shed"),
-        command=_count(arrival, "commands_shed"),
-        command_late=_count(arrival, "commands_late"),
-        command_stale=_count(arrival, "commands_stale"),
-    )
-
-
-def stream_counters(summary: RunSummary) -> tuple[LostCounts, ReorderedCounts]:
-    """(lost, reordered) per stream, from the services' own sequence checks: a gap in a
-    stream's ``seq`` is a message the bus never delivered."""
-    arrival = _service_json(summary, "plant", "arrival")
-    controller = _service_json(summary, "controller")
-    haptic = _service_json(summary, "haptic")
-    skipped_states = ControllerSummary.from_json(controller).skipped_states
-    lost = LostCounts(
-        haptic=_count(controller, "haptic_lost"),
-        command=_count(arrival, "commands_lost"),
-        state=int(skipped_states or 0),
-        feedback=_count(haptic, "feedback_lost"),
-    )
-    reordered = ReorderedCounts(
-        haptic=_count(controller, "haptic_reordered"),
-        command=_count(arrival, "commands_reordered"),
-        feedback=_count(haptic, "feedback_reordered"),
-    )
-    return lost, reordered
-
-
-@dataclass(frozen=True)
-class ServiceRates:
-    """Loop or message rate of each service over the run (Hz); None: not known."""
-
-    plant_hz: float | None
-    haptic_hz: float | None
-    controller_hz: float | None
-    hmd_hz: float | None
-
-    def to_json(self) -> dict[str, float | None]:
-        return {f.name.removesuffix("_hz"): getattr(self, f.name) for f in fields(self)}
-
-
-def service_rates(summary: RunSummary) -> ServiceRates:
-    """Loop or message rate of each service over the run (Hz)."""
-    wall_s = summary.wall_s or 0.0
-
-    def per_s(count: float | None) -> float | None:
-        return float(count) / wall_s if count is not None and wall_s > 0 else None
-
-    hmd = HmdSummary.from_json(_service_json(summary, "hmd"))
-    return ServiceRates(
-        plant_hz=_figure(_service_json(summary, "plant"), "rate_hz"),
-        haptic_hz=_figure(_service_json(summary, "haptic"), "rate_hz"),
-        controller_hz=per_s(_figure(_service_json(summary, "controller"), "cycles")),
-        hmd_hz=per_s(hmd.published),
-    )
-
-
-def cpu_share(summary: RunSummary) -> dict[str, float | None]:
-    """Each service's CPU time over the run's wall time (1.0 = one core all the time;
-    start-up included, so a short run overstates it), by service name."""
-    wall_s = summary.stack_wall_s or 0.0
-    shares = {}
-    for name in summary.services or {}:
-        cpu_s = record_of(name, _service_json(summary, name)).cpu_s
-        shares[name] = cpu_s / wall_s if wall_s > 0 and cpu_s is not None else None
-    return shares
-
-
-@dataclass(frozen=True)
-class PlantMisses:
-    """The plant's device periods without a command, its stalls, overruns and skipped
-    ticks, as its summary gives them (None: not written)."""
-
-    steps: int | None
-    periods_without_command: int | None
-    stalls: int | None
-    overrun_fraction: float | None
-    skipped_ticks: int | None
-
-
-@dataclass(frozen=True)
-class HapticMisses:
-    """The haptic device loop's overruns, skipped ticks and lateness (None: not written)."""
-
-    steps: int | None
-    overruns: int | None
-    skipped_ticks: int | None
-    lateness_p99_us: float | None
-
-
-@dataclass(frozen=True)
-class DeadlineMisses:
-    """Each periodic loop's misses (:func:`deadline_misses`)."""
-
-    plant: PlantMisses
-    haptic: HapticMisses
-
-    def to_json(self) -> dict[str, dict[str, float | None]]:
-        return {"plant": asdict(self.plant), "haptic": asdict(self.haptic)}
-
-
-def deadline_misses(summary: RunSummary) -> DeadlineMisses:
-    """Each periodic loop's misses: the plant's device periods without a command and stalls,
-    the haptic device loop's overruns and skipped ticks."""
-    plant = PlantSummary.from_json(_service_json(summary, "plant"))
-    arrival = _service_json(summary, "plant", "arrival")
-    haptic = _service_json(summary, "haptic")
-    haptic_loop = _service_json(summary, "haptic", "loop")
-    return DeadlineMisses(
-        plant=PlantMisses(
-            steps=plant.steps,
-            periods_without_command=_figure(arrival, "steps_without_command"),
-            stalls=_figure(arrival, "stalls"),
-            overrun_fraction=plant.overrun_fraction,
-            skipped_ticks=_figure(_service_json(summary, "plant"), "skipped_ticks"),
-        ),
-        haptic=HapticMisses(
-            steps=_figure(haptic, "steps"),
-            overruns=_figure(haptic_loop, "overruns"),
-            skipped_ticks=_figure(haptic_loop, "skipped"),
-            lateness_p99_us=_figure(haptic_loop, "lateness_p99_us"),
-        ),
-    )
 
 
 # -- running the floor --------------------------------------------------------------------

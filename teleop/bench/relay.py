@@ -6,7 +6,7 @@ between the same number of Python processes, with the same Zenoh config, QoS and
 payload size, and does no work: each relay stamps the time a payload arrives and the
 time it forwards it, into the slots of :class:`teleop.bus.messages.Stage` the real service
 would stamp, so the floor and the stack are split into the same hops
-(:data:`teleop.bench.latency.HOPS`) and compared hop by hop.
+(:data:`teleop.bench.loop_stats.HOPS`) and compared hop by hop.
 
 Payload layout (little-endian): ``seq`` u8, then ``trace_ns`` i8[N_STAGES] (the header's
 stamps, same indices), then zero padding up to the payload size. A relay forwards the

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from teleop.bench.latency import AcrossClocks, LatencyStats, across_clocks
+from teleop.bench.loop_stats import AcrossClocks, LatencyStats, across_clocks
 from teleop.bench.netem import LinkImpairment, running_proxy
 from teleop.bench.ping import paced_round_trips_ms
 from teleop.bus import graph
@@ -204,10 +204,11 @@ def stats(trips_ms: np.ndarray) -> PathTrips:
 
 @dataclass(frozen=True)
 class SitesReport:
-    """The ``teleop latency --across-sites`` report (:func:`measure_report`): each round's
+    """The ``teleop latency --across-sites`` report (:func:`measure`): each round's
     paths (by path, in the order measured), each delay through the emulator, the
     routers' median ratios to the direct path (None without a round), the samples that
-    never came back and the load average (1, 5, 15 min) before and after."""
+    never came back, the load average (1, 5, 15 min) before and after, and with
+    ``--with-stack`` the realtime grasp across the sites (:func:`measure_stack`)."""
 
     load_average_start: tuple[float, ...]
     pings: int
@@ -218,8 +219,27 @@ class SitesReport:
     routers_over_direct_p99: float | None
     load_average_end: tuple[float, ...]
     lost: int
+    stack: StackAcrossSites | None = None
+
+    def routers_floor_ms(self) -> dict[str, float] | None:
+        """The bare ends' round trip through the routers, medians over the rounds
+        (``p50_ms``, ``p99_ms``); None without a round."""
+        routers = [r[ROUTERS] for r in self.rounds if ROUTERS in r]
+        if not routers:
+            return None
+        return {
+            key: float(np.median([getattr(trips, key) for trips in routers]))
+            for key in ("p50_ms", "p99_ms")
+        }
+
+    @property
+    def clean(self) -> bool:
+        """Every sample came back, and the stack (if run) succeeded and closed loops."""
+        stack_ok = self.stack is None or (self.stack.success and self.stack.loop.loops > 0)
+        return not self.lost and stack_ok
 
     def to_json(self) -> dict[str, Any]:
+        stack = {} if self.stack is None else {"stack": self.stack.to_json()}
         return {
             "load_average_start": list(self.load_average_start),
             "pings": self.pings,
@@ -230,11 +250,12 @@ class SitesReport:
             "routers_over_direct_p99": self.routers_over_direct_p99,
             "load_average_end": list(self.load_average_end),
             "lost": self.lost,
+            **stack,
         }
 
     @classmethod
     def from_json(cls, content: Mapping[str, Any]) -> SitesReport:
-        """The record of a report as :meth:`to_json` writes it (a ``stack`` in it is left)."""
+        """The record of a report as :meth:`to_json` writes it."""
         return cls(
             load_average_start=tuple(content["load_average_start"]),
             pings=content["pings"],
@@ -247,21 +268,11 @@ class SitesReport:
             routers_over_direct_p99=content.get("routers_over_direct_p99"),
             load_average_end=tuple(content["load_average_end"]),
             lost=content["lost"],
+            stack=StackAcrossSites.from_json(content["stack"]) if "stack" in content else None,
         )
 
 
 def measure(
-    pings: int,
-    rate_hz: float,
-    rounds: int,
-    delays_ms: Sequence[float],
-    progress: Callable[[str], None] = lambda line: None,
-) -> dict[str, Any]:
-    """:func:`measure_report`'s report as the JSON the command writes."""
-    return measure_report(pings, rate_hz, rounds, delays_ms, progress).to_json()
-
-
-def measure_report(
     pings: int,
     rate_hz: float,
     rounds: int,
@@ -311,11 +322,8 @@ def measure_report(
     )
 
 
-def table(report: SitesReport | Mapping[str, Any]) -> list[str]:
-    """The report (a record, or its JSON) as Markdown lines: a row per path (medians over
-    the rounds)."""
-    if not isinstance(report, SitesReport):
-        report = SitesReport.from_json(report)
+def table(report: SitesReport) -> list[str]:
+    """The report as Markdown lines: a row per path (medians over the rounds)."""
     lines = [
         f"Round trip across two sites on this host: {report.pings} samples per path at "
         f"{report.rate_hz:g} Hz, load average {report.load_average_start[0]:.2f} before",
@@ -378,7 +386,7 @@ def wait_plant_end(run_dir: Path, timeout_s: float, plant: str = graph.PLANT) ->
 
 @dataclass(frozen=True)
 class StackAcrossSites:
-    """The realtime grasp split across two sites (:func:`measure_stack_record`): its
+    """The realtime grasp split across two sites (:func:`measure_stack`): its
     outcome as the plant's summary gives it (``braked_steps``: the plant's steps braked by
     the watchdog) and the loop on the two clocks."""
 
@@ -408,19 +416,12 @@ class StackAcrossSites:
 
 def measure_stack(
     run_dir: Path, settings: Sequence[str] = (), progress: Callable[[str], None] = print
-) -> dict[str, Any]:
-    """:func:`measure_stack_record`'s figures as the JSON the command writes."""
-    return measure_stack_record(run_dir, settings, progress).to_json()
-
-
-def measure_stack_record(
-    run_dir: Path, settings: Sequence[str] = (), progress: Callable[[str], None] = print
 ) -> StackAcrossSites:
     """The realtime grasp (seed 0) split across two sites on this host (``teleop up
     --site robot`` and ``--site operator``, their routers over mutual TLS on loopback),
     each site on its own clock as far as the stack knows: the loop's round trip on the
     operator site's clock, each way across from the clocks' offset estimated from the
-    loop's stamps (:func:`teleop.bench.latency.across_clocks`), and the run's outcome.
+    loop's stamps (:func:`teleop.bench.loop_stats.across_clocks`), and the run's outcome.
     ``settings``: more ``--set`` values for both sites."""
     robot_dir, operator_dir = run_dir / "robot", run_dir / "operator"
     listen = f"tls/127.0.0.1:{free_loopback_port()}"
@@ -450,13 +451,9 @@ def measure_stack_record(
     )
 
 
-def stack_table(
-    stack: StackAcrossSites | Mapping[str, Any], floor_routers_ms: Mapping[str, float] | None
-) -> list[str]:
-    """The stack's loop across the sites (a record, or its JSON) as Markdown lines, beside
-    the routers' floor (``p50_ms``, ``p99_ms``)."""
-    if not isinstance(stack, StackAcrossSites):
-        stack = StackAcrossSites.from_json(stack)
+def stack_table(stack: StackAcrossSites, floor_routers_ms: Mapping[str, float] | None) -> list[str]:
+    """The stack's loop across the sites as Markdown lines, beside the routers' floor
+    (``p50_ms``, ``p99_ms``: :meth:`SitesReport.routers_floor_ms`)."""
     loop = stack.loop
     if not loop.loops:
         return ["the stack across the sites closed no loop"]

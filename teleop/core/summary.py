@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -239,13 +239,62 @@ class Criterion:
 
 
 @dataclass(frozen=True)
+class FaultOutcome:
+    """One injected fault (``teleop run --kill / --freeze``) and what followed, as the
+    summary's ``faults`` has it (measured by teleop.run.faults; docs/faults.md): when
+    (``t_s``, sim time), the freeze asked for and the time frozen, until the tool was
+    braked, the service restarted and the loop resumed (from the injection; None: not
+    measured, or never), the run's success; ``error``: the fault could not be injected."""
+
+    service: str
+    kind: str
+    t_s: float | None = None
+    freeze_s: float | None = None
+    frozen_s: float | None = None
+    brake_ms: float | None = None
+    restart_s: float | None = None
+    resumed_s: float | None = None
+    success: bool | None = None
+    error: str = ""
+
+    @classmethod
+    def from_json(cls, content: Mapping[str, object]) -> FaultOutcome:
+        def number(key: str) -> float | None:
+            value = content.get(key)
+            is_number = isinstance(value, int | float) and not isinstance(value, bool)
+            return float(value) if is_number else None  # type: ignore[arg-type]
+
+        success = content.get("success")
+        return cls(
+            service=str(content.get("service", "")),
+            kind=str(content.get("kind", "")),
+            t_s=number("t_s"),
+            freeze_s=number("freeze_s"),
+            frozen_s=number("frozen_s"),
+            brake_ms=number("brake_ms"),
+            restart_s=number("restart_s"),
+            resumed_s=number("resumed_s"),
+            success=success if isinstance(success, bool) else None,
+            error=str(content.get("error") or ""),
+        )
+
+    def to_json(self) -> dict[str, object]:
+        """The JSON object: every field, ``error`` only when there is one."""
+        out: dict[str, object] = {f.name: getattr(self, f.name) for f in fields(self)}
+        if not self.error:
+            del out["error"]
+        return out
+
+
+@dataclass(frozen=True)
 class RunSummary:
     """The run summary as a typed record: one attribute per :data:`SUMMARY_FIELDS` entry,
     in its order, of its JSON type (a test holds the two together). None: the run did not
     write the field, or wrote null. Arrays are tuples; the criteria are
-    :class:`Criterion`; a robot's section under ``robots`` is a RunSummary of its own;
-    the objects whose layout belongs to another module (the services' own summaries, the
-    machine, the protective stops) stay JSON objects.
+    :class:`Criterion`, the faults :class:`FaultOutcome`; a robot's section under
+    ``robots`` is a RunSummary of its own; the objects whose layout belongs to another
+    module (the services' own summaries, the machine, the protective stops) stay JSON
+    objects.
 
     ``written``: the fields the run wrote, in its order (default: those not None). It
     keeps a field the run left out apart from one it wrote as null (an in-process run
@@ -325,7 +374,7 @@ class RunSummary:
     machine: Mapping[str, object] | None = None
     refused_privileges: tuple[str, ...] | None = None
     eye_view: Mapping[str, object] | None = None
-    faults: tuple[Mapping[str, object], ...] | None = None
+    faults: tuple[FaultOutcome, ...] | None = None
     rrd: str | None = None
     cpu_s_per_sim_s: Mapping[str, float] | None = None
     robots: Mapping[str, RunSummary] | None = None
@@ -354,6 +403,8 @@ class RunSummary:
                 continue
             if name == "criteria" and value is not None:
                 value = tuple(Criterion.from_json(c) for c in _objects(name, value))
+            elif name == "faults" and value is not None:
+                value = tuple(FaultOutcome.from_json(c) for c in _objects(name, value))
             elif name == "robots" and value is not None:
                 value = {rid: cls.from_json(s) for rid, s in _object(name, value).items()}
             elif spec.type == "array" and value is not None:
@@ -396,7 +447,7 @@ def _objects(name: str, value: object) -> list[Mapping[str, object]]:
 
 def json_value(value: object) -> object:
     """A field's value as JSON: tuples as arrays, records as their objects."""
-    if isinstance(value, Criterion | RunSummary):
+    if isinstance(value, Criterion | FaultOutcome | RunSummary):
         return value.to_json()
     if isinstance(value, tuple):
         return [json_value(item) for item in value]

@@ -158,7 +158,7 @@ def run_summary(
             **idle_poll.to_json(),
             "machine": machine.to_json(),
             "refused_privileges": refused_privileges(machine),
-            "faults": faults.report(success) if faults is not None else [],
+            "faults": [o.to_json() for o in faults.report(success)] if faults else [],
             "run_dir": str(run_dir),
             "services": summaries,
         }

@@ -20,6 +20,7 @@ from teleop.bus.topics import Topics
 from teleop.control.kinematics import build_arm_model, tool_jacobian
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import Config
+from teleop.core.summary import FaultOutcome
 from teleop.run.failure import ProgramWatch, RunError
 from teleop.run.faults import (
     FaultInjector,
@@ -156,10 +157,10 @@ class FaultRun:
 
         return speed_at
 
-    def report(self, success: bool | None) -> list[dict[str, Any]]:
-        """The summary's ``faults``: one object per fault (teleop.run.faults)."""
+    def report(self, success: bool | None) -> list[FaultOutcome]:
+        """The summary's ``faults``: one record per fault (teleop.run.faults)."""
         if self.injector is None:
-            return [{"service": s.service, "kind": s.kind, "error": "not injected"}
+            return [FaultOutcome(s.service, s.kind, success=success, error="not injected")
                     for s in self.specs]  # fmt: skip
         arrays = self.states.arrays()
         speed_at = self._speed_at(arrays)

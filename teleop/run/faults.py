@@ -34,13 +34,14 @@ import re
 import signal
 import threading
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from teleop.bus.messages import Flag, Stage
 from teleop.core.config import ConfigError
+from teleop.core.summary import FaultOutcome
 
 logger = logging.getLogger(__name__)
 
@@ -256,50 +257,51 @@ def fault_report(
     speed_at: Callable[[int], float],
     success: bool | None,
     end_ns: int | None = None,
-) -> dict[str, Any]:
-    """The summary's object for one fault: what was injected, when, and what followed
+) -> FaultOutcome:
+    """The summary's record of one fault: what was injected, when, and what followed
     (see the module's docstring). ``speed_at(i)``: tool speed of state ``i`` (m/s);
     ``end_ns``: the brake is looked for before this instant (default: the service back,
     or the record's end)."""
     spec = record.spec
-    out: dict[str, Any] = {
-        "service": spec.service,
-        "kind": spec.kind,
-        "t_s": None if math.isnan(record.t_s) else round(record.t_s, 4),
-        "freeze_s": spec.freeze_s if spec.kind == FREEZE else None,
-        "frozen_s": None,
-        "brake_ms": None,
-        "restart_s": None,
-        "resumed_s": None,
-        "success": success,
-    }
+    outcome = FaultOutcome(
+        service=spec.service,
+        kind=spec.kind,
+        t_s=None if math.isnan(record.t_s) else round(record.t_s, 4),
+        freeze_s=spec.freeze_s if spec.kind == FREEZE else None,
+        success=success,
+    )
     if record.error:
-        out["error"] = record.error
-        return out
+        return replace(outcome, error=record.error)
     t_ns = arrays["t_ns"]
     before = int(np.searchsorted(t_ns, record.inject_ns, side="right")) - 1
     if before >= 0:  # the plant's sim time at the instant of injection
-        out["t_s"] = round(int(arrays["sim_time_ns"][before]) / NS_PER_S, 4)
+        outcome = replace(outcome, t_s=round(int(arrays["sim_time_ns"][before]) / NS_PER_S, 4))
     if spec.kind == FREEZE and record.thaw_ns:
-        out["frozen_s"] = round((record.thaw_ns - record.inject_ns) / NS_PER_S, 4)
+        outcome = replace(outcome, frozen_s=_seconds(record.thaw_ns - record.inject_ns))
     back_ns = record.back_ns
     if end_ns is None:
         end_ns = back_ns if back_ns else np.iinfo(np.int64).max
     on_path = spec.service in RESUME_STAGE  # off it, the arm is not the fault's to stop
     brake = brake_index(t_ns, speed_at, record.inject_ns, end_ns) if on_path else None
     if brake is not None:
-        out["brake_ms"] = round(max(0, int(t_ns[brake]) - record.inject_ns) / NS_PER_MS, 2)
+        brake_ns = max(0, int(t_ns[brake]) - record.inject_ns)
+        outcome = replace(outcome, brake_ms=round(brake_ns / NS_PER_MS, 2))
     if spec.kind == KILL and record.ready_ns:
-        out["restart_s"] = round((record.ready_ns - record.inject_ns) / NS_PER_S, 4)
+        outcome = replace(outcome, restart_s=_seconds(record.ready_ns - record.inject_ns))
     if back_ns:
         stamps = stage_stamps(arrays, spec.service)
         if stamps is None:
-            out["resumed_s"] = round((back_ns - record.inject_ns) / NS_PER_S, 4)
+            outcome = replace(outcome, resumed_s=_seconds(back_ns - record.inject_ns))
         else:
             resumed = resumed_index(t_ns, stamps, arrays["braking"], back_ns)
             if resumed is not None:
-                out["resumed_s"] = round((int(t_ns[resumed]) - record.inject_ns) / NS_PER_S, 4)
-    return out
+                resumed_ns = int(t_ns[resumed]) - record.inject_ns
+                outcome = replace(outcome, resumed_s=_seconds(resumed_ns))
+    return outcome
+
+
+def _seconds(duration_ns: int) -> float:
+    return round(duration_ns / NS_PER_S, 4)
 
 
 def world_reset(record: FaultRecord, arrays: dict[str, np.ndarray]) -> bool:

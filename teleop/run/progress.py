@@ -15,7 +15,7 @@ from typing import Any
 
 from teleop.core.config import TELEOPERATED
 from teleop.core.criteria import judge_summary
-from teleop.core.summary import RunSummary
+from teleop.core.summary import FaultOutcome, RunSummary
 from teleop.sim.proximity import FAR_DISTANCE_M
 
 # A progress line at least every this many seconds of sim time, and at each new phase.
@@ -233,15 +233,15 @@ def _clearance_line(summary: RunSummary) -> str:
     return line
 
 
-def fault_line(fault: Mapping[str, Any]) -> str:
+def fault_line(fault: FaultOutcome) -> str:
     """One injected fault and what followed (teleop.run.faults), for a person."""
-    what = f"{fault.get('kind')} {fault.get('service')} at {_num(fault.get('t_s'), '.2f', ' s')}"
-    if fault.get("error"):
-        return f"{what}: {fault['error']}"
+    what = f"{fault.kind} {fault.service} at {_num(fault.t_s, '.2f', ' s')}"
+    if fault.error:
+        return f"{what}: {fault.error}"
     return (
-        f"{what}: braked {_num(fault.get('brake_ms'), '.1f', ' ms')}, restarted "
-        f"{_num(fault.get('restart_s'), '.2f', ' s')}, resumed "
-        f"{_num(fault.get('resumed_s'), '.2f', ' s')} (from the fault)"
+        f"{what}: braked {_num(fault.brake_ms, '.1f', ' ms')}, restarted "
+        f"{_num(fault.restart_s, '.2f', ' s')}, resumed "
+        f"{_num(fault.resumed_s, '.2f', ' s')} (from the fault)"
     )
 
 

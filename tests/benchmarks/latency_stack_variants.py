@@ -27,7 +27,7 @@ from variants import (
     variant_parser,
 )
 
-from teleop.bench import latency
+from teleop.bench import latency, run_counts
 
 VARIANTS: dict[str, dict] = {
     "default": {},
@@ -51,11 +51,11 @@ VARIANTS: dict[str, dict] = {
 def one_variant(name: str, duration_s: float, run_dir: Path, out: Path) -> None:
     """Child process: run the stack with one variant, write its figures to ``out``."""
     run = latency.run_stack(name, None, VARIANTS[name].get("overrides", []), duration_s, run_dir)
-    cpu = latency.cpu_share(run.summary)
+    cpu = run_counts.cpu_share(run.summary)
     figures = {
         "round_trip": run.analysis.round_trip_us.to_json(),
         "cpu_cores": sum(v for v in cpu.values() if v is not None),
-        "shed": latency.shed_counters(run.summary).total,
+        "shed": run_counts.shed_counters(run.summary).total,
     }
     out.write_text(json.dumps(figures))
 

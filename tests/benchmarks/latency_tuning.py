@@ -33,7 +33,7 @@ from variants import (
     variant_parser,
 )
 
-from teleop.bench import latency
+from teleop.bench import latency, loop_stats
 
 VARIANTS: dict[str, dict] = {
     "default": {},
@@ -76,8 +76,8 @@ def main() -> int:
         "--paced", type=float, default=10.0, help="paced seconds per run (more than the warm-up)"
     )
     args = parser.parse_args()
-    if args.paced <= latency.WARMUP_S:  # a run all warm-up has no percentiles to report
-        parser.error(f"--paced must exceed the {latency.WARMUP_S:g} s warm-up")
+    if args.paced <= loop_stats.WARMUP_S:  # a run all warm-up has no percentiles to report
+        parser.error(f"--paced must exceed the {loop_stats.WARMUP_S:g} s warm-up")
     if args.one:
         one_variant(args.one, args.paced, args.run_dir, args.out)
         return 0

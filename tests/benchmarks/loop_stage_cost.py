@@ -39,7 +39,8 @@ import numpy as np
 from services.controller import ControllerService
 from services.haptic import HapticService
 from services.plant import PlantService
-from teleop.bench.latency import HOPS, stack_overrides
+from teleop.bench.latency import stack_overrides
+from teleop.bench.loop_stats import HOPS
 from teleop.bus.messages import FORCE_FEEDBACK, HAPTIC_STATE, JOINT_COMMAND, PLANT_STATE
 from teleop.bus.service import Service, ServiceOptions
 from teleop.bus.session import deliver

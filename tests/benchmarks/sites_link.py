@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from teleop.bench import sites as sites_bench
-from teleop.bench.latency import LatencyStats, across_clocks
+from teleop.bench.loop_stats import LatencyStats, across_clocks
 from teleop.core import markdown
 from teleop.core.config import STABILISERS, load_config
 from teleop.core.rundir import HAPTIC_TRACE_FILE

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from teleop.bench.latency import analyse
+from teleop.bench.loop_stats import analyse
 from teleop.bus import graph
 from teleop.core.rundir import HAPTIC_TRACE_FILE, RUN_SUMMARY_FILE
 

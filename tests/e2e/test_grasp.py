@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from teleop.bench.latency import across_clocks
+from teleop.bench.loop_stats import across_clocks
 from teleop.control.feedback import STANDARD_GRAVITY_M_S2
 from teleop.core.config import load_config
 from teleop.core.rundir import HAPTIC_TRACE_FILE

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from teleop.bench import latency
+from teleop.bench import latency, loop_stats, run_counts
 from teleop.bench.relay import FLOOR_STAND_INS
 from teleop.bus.messages import Stage
 from teleop.bus.service import fifo_scheduling
@@ -58,21 +58,21 @@ def floor_run(floor_dir) -> latency.FloorRun:
 
 
 def test_stamps_follow_the_loop_in_order(stack_run):
-    loops = latency.complete_loops(stack_run.traces)
+    loops = loop_stats.complete_loops(stack_run.traces)
     assert loops.shape[0] > 0
-    assert latency.non_monotonic(loops) == 0
+    assert loop_stats.non_monotonic(loops) == 0
     # Each hop is a real interval: starts after the previous one (loop order) and none
     # is negative; the round trip is the sum of its hops.
-    for hop in latency.HOPS:
-        assert (latency.hop_ns(loops, hop) >= 0).all(), hop.name
+    for hop in loop_stats.HOPS:
+        assert (loop_stats.hop_ns(loops, hop) >= 0).all(), hop.name
 
 
 @needs_realtime_stack
 def test_no_sample_lost_or_counted_twice_at_1khz(stack_run):
-    lost, reordered = latency.stream_counters(stack_run.summary)
-    assert lost == latency.LostCounts(haptic=0, command=0, state=0, feedback=0)
-    assert reordered == latency.ReorderedCounts(haptic=0, command=0, feedback=0)
-    chain = latency.chain_accounting(stack_run.samples, stack_run.traces, stack_run.shed_ns)
+    lost, reordered = run_counts.stream_counters(stack_run.summary)
+    assert lost == run_counts.LostCounts(haptic=0, command=0, state=0, feedback=0)
+    assert reordered == run_counts.ReorderedCounts(haptic=0, command=0, feedback=0)
+    chain = loop_stats.chain_accounting(stack_run.samples, stack_run.traces, stack_run.shed_ns)
     assert chain.duplicates == 0
     # Every handle sample came back exactly once, unless a service behind its schedule
     # (a CPU stall on a loaded host) shed it on purpose and logged it: nothing vanishes.
@@ -81,7 +81,7 @@ def test_no_sample_lost_or_counted_twice_at_1khz(stack_run):
     # About ten seconds at 1 kHz came back (the device loop skips late ticks rather than
     # bursting, so a loaded machine samples a little less than 1 kHz).
     period_s = 1e-3
-    assert chain.returned >= 0.1 * (STACK_DURATION_S - latency.WARMUP_S) / period_s
+    assert chain.returned >= 0.1 * (STACK_DURATION_S - loop_stats.WARMUP_S) / period_s
 
 
 def test_report_equals_a_reference_computation_on_the_raw_files(stack_run):
@@ -91,7 +91,7 @@ def test_report_equals_a_reference_computation_on_the_raw_files(stack_run):
     # Reference: plain numpy on the file, independent of the module's helpers.
     complete = traces[(traces > 0).all(axis=1)]
     first_ns = complete[:, Stage.HAPTIC_SAMPLE].min()
-    kept = complete[complete[:, Stage.HAPTIC_SAMPLE] >= first_ns + latency.WARMUP_S * NS_PER_S]
+    kept = complete[complete[:, Stage.HAPTIC_SAMPLE] >= first_ns + loop_stats.WARMUP_S * NS_PER_S]
     analysis = stack_run.analysis
     round_trip_ns = kept[:, Stage.FEEDBACK_RENDERED] - kept[:, Stage.HAPTIC_SAMPLE]
     assert_matches_reference(analysis.round_trip_us, round_trip_ns)
@@ -101,11 +101,11 @@ def test_report_equals_a_reference_computation_on_the_raw_files(stack_run):
 
 def test_floor_chain_returns_every_payload_with_the_loop_stamps(floor_run):
     assert floor_run.sent == floor_run.received > 0
-    loops = latency.complete_loops(floor_run.paced_traces)
+    loops = loop_stats.complete_loops(floor_run.paced_traces)
     assert loops.shape[0] == floor_run.received
-    assert latency.non_monotonic(loops) == 0
+    assert loop_stats.non_monotonic(loops) == 0
     # The relays do no work: nothing waits between the plant's arrival and its step.
-    assert (latency.hop_ns(loops, latency.HOPS[3]) == 0).all()
+    assert (loop_stats.hop_ns(loops, loop_stats.HOPS[3]) == 0).all()
     assert floor_run.back_to_back.count == 200
     assert [floor_run.sweep[size].count for size in (64, 65536)] == [20, 20]
 
@@ -135,8 +135,8 @@ def test_a_floor_bracketing_the_stack_counts_both_halves(floor_run, stack_run):
     assert both.sent == 2 * floor_run.sent and both.received == 2 * floor_run.received
     assert both.paced_by_part == (floor_run.paced.round_trip_us,) * 2
     # Each half loses its own warm-up: the reference is each part's loops, concatenated.
-    loops = latency.after_warmup(latency.complete_loops(floor_run.paced_traces))
-    reference_ns = np.concatenate([latency.hop_ns(loops, latency.ROUND_TRIP)] * 2)
+    loops = loop_stats.after_warmup(loop_stats.complete_loops(floor_run.paced_traces))
+    reference_ns = np.concatenate([loop_stats.hop_ns(loops, loop_stats.ROUND_TRIP)] * 2)
     assert_matches_reference(both.paced.round_trip_us, reference_ns)
     report, raw = latency.build_report(stack_run, stack_run, both, floor_run, None)
     assert report.floor_parts_us == (floor_run.paced.round_trip_us,) * 2
@@ -150,15 +150,15 @@ def test_report_files(stack_run, floor_run, tmp_path):
     assert latency.LatencyReport.from_json(report) == record
     for key in ("round_trip_us", "floor_us", "floor_back_to_back_us", "shm_off_round_trip_us"):
         assert set(report[key]) >= {"count", "p50", "p90", "p99", "p999", "max"}
-    assert set(report["hops"]) == {hop.name for hop in latency.HOPS}
+    assert set(report["hops"]) == {hop.name for hop in loop_stats.HOPS}
     assert set(report["lost"]) >= {"haptic", "command"} and "reordered" in report
     assert set(report["rate_hz"]) == {"plant", "haptic", "controller", "hmd"}
     assert [row["bytes"] for row in report["payload_sweep"]] == [64, 65536]
     # The p50 split: the transport hops' and the other stages' p50s, summed.
     (split,) = [line for line in report["conclusions"] if line.startswith("where the p50 goes")]
     hops = report["hops"]
-    transport_us = sum(hops[h.name]["p50"] for h in latency.HOPS if h.kind == "transport")
-    work_us = sum(hops[h.name]["p50"] for h in latency.HOPS if h.kind != "transport")
+    transport_us = sum(hops[h.name]["p50"] for h in loop_stats.HOPS if h.kind == "transport")
+    work_us = sum(hops[h.name]["p50"] for h in loop_stats.HOPS if h.kind != "transport")
     assert f"transport hops {transport_us:.0f} us" in split
     assert f"compute and wait stages {work_us:.0f} us" in split
     assert f"controller_command {hops['controller_command']['p50']:.0f}" in split

@@ -8,7 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from teleop.bench import latency
+from teleop.bench import loop_stats
 
 
 def test_cli_refuses_a_run_shorter_than_the_warmup():
@@ -29,7 +29,7 @@ def test_loop_stage_cost_benchmark_replays_every_stage(tmp_path):
     args = [sys.executable, str(script), "--periods", "20", "--rounds", "1", "--json", str(out)]
     subprocess.run(args, check=True, timeout=120, stdin=subprocess.DEVNULL, capture_output=True)
     stages = json.loads(out.read_text())["stages_us"]
-    expected = [hop.name for hop in latency.HOPS if hop.kind in ("compute", "wait")]
+    expected = [hop.name for hop in loop_stats.HOPS if hop.kind in ("compute", "wait")]
     assert sorted(stages) == sorted(expected)
     for figures in stages.values():
         assert figures["warm"] > 0 and figures["cold"] > 0

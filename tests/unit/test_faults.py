@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from teleop.bus.messages import PLANT_STATE, Flag, Stage
+from teleop.core.summary import FaultOutcome
 from teleop.run.failure import ProgramWatch, ServiceFailed
 from teleop.run.faults import (
     FREEZE,
@@ -111,10 +112,10 @@ def test_a_killed_controller_brake_restart_and_resume_are_measured_from_the_stat
     record = FaultRecord(FaultSpec("controller", KILL, 5.0), t_s=5.0, inject_ns=inject,
                          ready_ns=400 * MS)  # fmt: skip
     report = fault_report(record, arrays, _speed(arrays), success=True)
-    assert report["brake_ms"] == pytest.approx(50.0, abs=1.01)  # below 1 mm/s at ~150 ms
-    assert report["restart_s"] == pytest.approx(0.3)
-    assert report["resumed_s"] == pytest.approx(0.35)
-    assert report["success"] is True and report["kind"] == KILL
+    assert report.brake_ms == pytest.approx(50.0, abs=1.01)  # below 1 mm/s at ~150 ms
+    assert report.restart_s == pytest.approx(0.3)
+    assert report.resumed_s == pytest.approx(0.35)
+    assert report.success is True and report.kind == KILL
 
 
 def test_a_frozen_haptic_device_resumes_with_its_first_new_sample():
@@ -126,12 +127,12 @@ def test_a_frozen_haptic_device_resumes_with_its_first_new_sample():
     record = FaultRecord(FaultSpec("haptic", FREEZE, 1.0, 0.15), t_s=1.0, inject_ns=100 * MS,
                          thaw_ns=250 * MS)  # fmt: skip
     report = fault_report(record, arrays, _speed(arrays), success=False)
-    assert report["brake_ms"] == 0.0  # already still when frozen
-    assert report["restart_s"] is None  # a freeze has no restart
-    assert report["t_s"] == 0.1  # the plant's sim time at the injection, from its states
-    assert report["frozen_s"] == pytest.approx(0.15)
+    assert report.brake_ms == 0.0  # already still when frozen
+    assert report.restart_s is None  # a freeze has no restart
+    assert report.t_s == 0.1  # the plant's sim time at the injection, from its states
+    assert report.frozen_s == pytest.approx(0.15)
     # the first state after the thaw carrying a sample taken after it: at 300 ms (sample 295)
-    assert report["resumed_s"] == pytest.approx(0.2)
+    assert report.resumed_s == pytest.approx(0.2)
 
 
 def test_a_service_off_the_command_path_resumes_when_back_and_need_not_brake():
@@ -140,16 +141,19 @@ def test_a_service_off_the_command_path_resumes_when_back_and_need_not_brake():
     record = FaultRecord(FaultSpec("recorder", KILL, 0.1), t_s=0.1, inject_ns=100 * MS,
                          ready_ns=700 * MS)  # fmt: skip
     report = fault_report(record, arrays, _speed(arrays), success=True)
-    assert report["brake_ms"] is None  # the arm never stopped
-    assert report["restart_s"] == pytest.approx(0.6)
-    assert report["resumed_s"] == pytest.approx(0.6)
+    assert report.brake_ms is None  # the arm never stopped
+    assert report.restart_s == pytest.approx(0.6)
+    assert report.resumed_s == pytest.approx(0.6)
 
 
 def test_a_fault_that_could_not_be_injected_reports_its_error():
     record = FaultRecord(FaultSpec("hmd", KILL, 1.0), error="SIGKILL failed: not running")
     report = fault_report(record, _log([{"t": 1}]), lambda i: 0.0, success=None)
-    assert report["error"].startswith("SIGKILL failed")
-    assert report["brake_ms"] is None and report["resumed_s"] is None
+    assert report.error.startswith("SIGKILL failed")
+    assert report.brake_ms is None and report.resumed_s is None
+    assert report.to_json()["error"] == report.error  # written only when there is one
+    assert "error" not in FaultOutcome("hmd", KILL).to_json()
+    assert FaultOutcome.from_json(report.to_json()) == report
 
 
 def test_a_plant_that_comes_back_at_step_0_reset_the_world():

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 from teleop.bench import doc
-from teleop.bench.latency import HOPS
+from teleop.bench.loop_stats import HOPS
 
 
 def report() -> dict:

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from teleop.bench import latency
+from teleop.bench import latency, loop_stats, run_counts
 from teleop.bus.messages import N_STAGES, Stage
 from teleop.bus.stamps import StampLog
 from teleop.core.clock import NS_PER_S, NS_PER_US
@@ -30,9 +30,9 @@ def _reference(values_ns: np.ndarray, pct: float) -> float:
     return float(np.sort(values_ns)[rank - 1]) / NS_PER_US
 
 
-def assert_matches_reference(figures: latency.LatencyStats, values_ns: np.ndarray) -> None:
+def assert_matches_reference(figures: loop_stats.LatencyStats, values_ns: np.ndarray) -> None:
     assert figures.count == values_ns.size
-    for key, pct in latency.PERCENTILES.items():
+    for key, pct in loop_stats.PERCENTILES.items():
         exact = _reference(values_ns, pct)
         assert figures.percentile_us(key) == pytest.approx(
             exact, rel=HDR_RELATIVE_PRECISION, abs=1e-3
@@ -51,8 +51,8 @@ def _synthetic_traces(n: int, rng: np.random.Generator) -> np.ndarray:
 def test_percentiles_match_numpy_within_hdr_precision():
     rng = np.random.default_rng(0)
     values_ns = rng.lognormal(mean=np.log(300e3), sigma=0.8, size=20_000).astype(np.int64)
-    assert_matches_reference(latency.stats_us(values_ns), values_ns)
-    empty = latency.stats_us(np.array([], dtype=np.int64))
+    assert_matches_reference(loop_stats.stats_us(values_ns), values_ns)
+    empty = loop_stats.stats_us(np.array([], dtype=np.int64))
     assert empty.p99_us is None and empty.count == 0
     assert empty.to_json() == {"count": 0} | dict.fromkeys(
         ("p50", "p90", "p99", "p999", "max", "mean")
@@ -64,28 +64,28 @@ def test_hops_add_up_to_the_round_trip_and_incomplete_loops_are_left_out():
     traces = _synthetic_traces(3000, rng)
     broken = traces[:10].copy()
     broken[:, Stage.PLANT_APPLIED] = 0  # a state the plant stepped without a new command
-    loops = latency.complete_loops(np.vstack([traces, broken]))
+    loops = loop_stats.complete_loops(np.vstack([traces, broken]))
     assert loops.shape[0] == 3000
-    total = sum(latency.hop_ns(loops, hop) for hop in latency.HOPS)
-    np.testing.assert_array_equal(total, latency.hop_ns(loops, latency.ROUND_TRIP))
-    report = latency.analyse(traces)
-    kept = latency.after_warmup(traces)
-    assert kept.shape[0] == 3000 - round(latency.WARMUP_S * NS_PER_S / PERIOD_NS)
-    assert_matches_reference(report.round_trip_us, latency.hop_ns(kept, latency.ROUND_TRIP))
+    total = sum(loop_stats.hop_ns(loops, hop) for hop in loop_stats.HOPS)
+    np.testing.assert_array_equal(total, loop_stats.hop_ns(loops, loop_stats.ROUND_TRIP))
+    report = loop_stats.analyse(traces)
+    kept = loop_stats.after_warmup(traces)
+    assert kept.shape[0] == 3000 - round(loop_stats.WARMUP_S * NS_PER_S / PERIOD_NS)
+    assert_matches_reference(report.round_trip_us, loop_stats.hop_ns(kept, loop_stats.ROUND_TRIP))
     assert report.non_monotonic == 0
     swapped = traces.copy()
     swapped[5, Stage.PLANT_RX], swapped[5, Stage.PLANT_APPLIED] = (
         swapped[5, Stage.PLANT_APPLIED],
         swapped[5, Stage.PLANT_RX],
     )
-    assert latency.non_monotonic(swapped) == 1
+    assert loop_stats.non_monotonic(swapped) == 1
 
 
 def test_chain_accounting_finds_missing_and_duplicate_samples():
     rng = np.random.default_rng(2)
     traces = _synthetic_traces(100, rng)
     samples = np.stack([np.arange(100), traces[:, Stage.HAPTIC_SAMPLE]], axis=1)
-    assert latency.chain_accounting(samples, traces).to_json() == {
+    assert loop_stats.chain_accounting(samples, traces).to_json() == {
         "samples": 100,
         "returned": 100,
         "missing": 0,
@@ -95,21 +95,23 @@ def test_chain_accounting_finds_missing_and_duplicate_samples():
     }
     damaged = np.vstack([np.delete(traces, [40, 41], axis=0), traces[[7]]])
     shed = traces[[41], Stage.HAPTIC_SAMPLE]
-    counts = latency.chain_accounting(samples, damaged, shed)
+    counts = loop_stats.chain_accounting(samples, damaged, shed)
     assert counts.missing == 2 and counts.duplicates == 1
     assert counts.shed == 1 and counts.unaccounted == 1
 
 
 def test_overhead_is_a_ratio_to_the_floor_and_none_without_a_floor_stage():
-    stack = latency.LoopAnalysis(_figures(300.0, 900.0), {"plant_wait": _figures(5.0, 9.0)}, 0)
-    floor = latency.LoopAnalysis(_figures(200.0, 600.0), {"plant_wait": _figures(0.001, 0.001)}, 0)
-    result = latency.overhead(stack, floor)
+    stack = loop_stats.LoopAnalysis(_figures(300.0, 900.0), {"plant_wait": _figures(5.0, 9.0)}, 0)
+    floor = loop_stats.LoopAnalysis(
+        _figures(200.0, 600.0), {"plant_wait": _figures(0.001, 0.001)}, 0
+    )
+    result = loop_stats.overhead(stack, floor)
     assert result["round_trip"].p50_ratio == pytest.approx(1.5)
     assert result["round_trip"].p99_extra_us == pytest.approx(300.0)
     assert result["plant_wait"].p50_ratio is None
     assert result["plant_wait"].p50_extra_us == pytest.approx(4.999)
-    missing = latency.overhead(stack, latency.LoopAnalysis(latency.LatencyStats(0), {
-        "plant_wait": latency.LatencyStats(0)}, 0))  # fmt: skip
+    missing = loop_stats.overhead(stack, loop_stats.LoopAnalysis(loop_stats.LatencyStats(0), {
+        "plant_wait": loop_stats.LatencyStats(0)}, 0))  # fmt: skip
     assert missing["round_trip"].to_json() == dict.fromkeys(
         ("p50_ratio", "p50_extra_us", "p99_ratio", "p99_extra_us")
     )
@@ -125,16 +127,16 @@ def test_stamp_log_keeps_the_newest_rows_and_saves_them_oldest_first(tmp_path):
     np.testing.assert_array_equal(np.load(tmp_path / "x.npy"), log.rows)
 
 
-def _figures(p50_us: float | None, p99_us: float | None = None) -> latency.LatencyStats:
+def _figures(p50_us: float | None, p99_us: float | None = None) -> loop_stats.LatencyStats:
     """Figures of a run with the given p50 and p99 (us)."""
-    return latency.LatencyStats(10, p50_us=p50_us, p99_us=p99_us)
+    return loop_stats.LatencyStats(10, p50_us=p50_us, p99_us=p99_us)
 
 
 def _report(**changes) -> latency.LatencyReport:
     """A report with no loops, counters at 0 and no payload sweep, with ``changes``."""
-    none = latency.LatencyStats(0)
-    no_hops = {hop.name: none for hop in latency.HOPS}
-    ratio = latency.FloorRatio(None, None, None, None)
+    none = loop_stats.LatencyStats(0)
+    no_hops = {hop.name: none for hop in loop_stats.HOPS}
+    ratio = loop_stats.FloorRatio(None, None, None, None)
     report = latency.LatencyReport(
         round_trip_us=none,
         hops_us=no_hops,
@@ -149,16 +151,16 @@ def _report(**changes) -> latency.LatencyReport:
         floor_shm_off_us=none,
         floor_shm_off_back_to_back_us=none,
         overhead={"round_trip": ratio} | dict.fromkeys(no_hops, ratio),
-        lost=latency.LostCounts(0, 0, 0, 0),
-        reordered=latency.ReorderedCounts(0, 0, 0),
-        shed=latency.ShedCounts(0, 0, 0, 0, 0, 0),
-        chain=latency.ChainAccounting(10, 10, 0, 0, 0, 0),
+        lost=run_counts.LostCounts(0, 0, 0, 0),
+        reordered=run_counts.ReorderedCounts(0, 0, 0),
+        shed=run_counts.ShedCounts(0, 0, 0, 0, 0, 0),
+        chain=loop_stats.ChainAccounting(10, 10, 0, 0, 0, 0),
         non_monotonic=0,
-        rates=latency.ServiceRates(None, None, None, None),
+        rates=run_counts.ServiceRates(None, None, None, None),
         cpu_share={"plant": None},
-        deadline_misses=latency.DeadlineMisses(
-            latency.PlantMisses(None, None, None, None, None),
-            latency.HapticMisses(None, None, None, None),
+        deadline_misses=run_counts.DeadlineMisses(
+            run_counts.PlantMisses(None, None, None, None, None),
+            run_counts.HapticMisses(None, None, None, None),
         ),
         payload_sweep=(),
         dropped_messages=0,
@@ -173,13 +175,13 @@ def test_conclusions_name_the_frame_and_1mib_sizes_and_a_side_that_got_nothing()
         round_trip_us=stats,
         floor_us=_figures(250.0, 600.0),
         floor_back_to_back_us=_figures(None, 300.0),
-        overhead={"round_trip": latency.FloorRatio(None, None, 1.5, None)},
+        overhead={"round_trip": loop_stats.FloorRatio(None, None, 1.5, None)},
         machine=latency.Machine(2, (0.5, 0.5, 0.5), (0, 1), None),
         payload_sweep=(
             latency.SweepRow(64, stats, stats, 1.0, False),
             latency.SweepRow(latency.EYE_VIEW_FRAME_BYTES, _figures(400.0), _figures(800.0),
                              2.0, True),
-            latency.SweepRow(1 << 20, _figures(1000.0), latency.LatencyStats(0), None, False),
+            latency.SweepRow(1 << 20, _figures(1000.0), loop_stats.LatencyStats(0), None, False),
         ),
     )  # fmt: skip
     lines = latency.conclusions(report)
@@ -198,17 +200,17 @@ def test_conclusions_name_the_frame_and_1mib_sizes_and_a_side_that_got_nothing()
 
 
 def test_the_report_reads_back_from_its_json_as_written():
-    stats = latency.stats_us(np.array([200_000, 300_000, 900_000]))
+    stats = loop_stats.stats_us(np.array([200_000, 300_000, 900_000]))
     report = _report(
         round_trip_us=stats,
         floor_parts_us=(stats, stats),
         payload_sweep=(
             latency.SweepRow(64, stats, None, None, False),
-            latency.SweepRow(65536, latency.LatencyStats(0, not_measured="too big"), stats,
+            latency.SweepRow(65536, loop_stats.LatencyStats(0, not_measured="too big"), stats,
                              None, False),
         ),
         old_timing_round_trip_us=stats,
-        old_timing_hops_us={hop.name: stats for hop in latency.HOPS},
+        old_timing_hops_us={hop.name: stats for hop in loop_stats.HOPS},
         conclusions=("a line",),
         machine=latency.Machine(2, (0.5, 0.5, 0.5), (0,), {"1": "off"}, (0.1, 0.2, 0.3)),
         duration_s=5.0,
@@ -232,15 +234,15 @@ def test_the_services_counters_are_read_from_the_run_summary():
         "hmd": {"published": 90},
     }  # fmt: skip
     summary = RunSummary.from_json({"services": services, "wall_s": 2.0, "stack_wall_s": 4.0})
-    assert latency.shed_counters(summary) == latency.ShedCounts(5, 0, 0, 2, 0, 0)
-    lost, reordered = latency.stream_counters(summary)
-    assert lost == latency.LostCounts(haptic=0, command=3, state=6, feedback=0)
-    assert reordered == latency.ReorderedCounts(haptic=0, command=0, feedback=7)
-    assert latency.service_rates(summary).to_json() == {
+    assert run_counts.shed_counters(summary) == run_counts.ShedCounts(5, 0, 0, 2, 0, 0)
+    lost, reordered = run_counts.stream_counters(summary)
+    assert lost == run_counts.LostCounts(haptic=0, command=3, state=6, feedback=0)
+    assert reordered == run_counts.ReorderedCounts(haptic=0, command=0, feedback=7)
+    assert run_counts.service_rates(summary).to_json() == {
         "plant": 250.0, "haptic": None, "controller": 250.0, "hmd": 45.0}  # fmt: skip
-    assert latency.cpu_share(summary) == {
+    assert run_counts.cpu_share(summary) == {
         "plant": None, "controller": 0.25, "haptic": None, "hmd": None}  # fmt: skip
-    assert latency.deadline_misses(summary).to_json() == {
+    assert run_counts.deadline_misses(summary).to_json() == {
         "plant": {"steps": 100, "periods_without_command": None, "stalls": 4,
                   "overrun_fraction": 0.0, "skipped_ticks": 1},
         "haptic": {"steps": None, "overruns": 8, "skipped_ticks": None,
@@ -288,7 +290,7 @@ def test_the_floor_sends_only_sizes_its_pools_carry_and_says_why_not_the_others(
     # needs the SHM path (the low-latency transport would lose it without an error).
     assert unmeasurable_reason(1 << 20, BusConfig(shm=False), None) == ""
     assert "pool of 0 B" in unmeasurable_reason(65536, bus, None)
-    not_sent = latency.LatencyStats(0, not_measured=reason)
+    not_sent = loop_stats.LatencyStats(0, not_measured=reason)
     report = _report(payload_sweep=(latency.SweepRow(1 << 20, not_sent, _figures(900.0), None,
                                                      False),))  # fmt: skip
     assert f"1048576 B: not measured over SHM ({reason})" in latency.conclusions(report)
@@ -306,9 +308,9 @@ def test_across_two_clocks_the_offset_is_found_within_its_uncertainty_and_each_w
     robot = slice(Stage.CONTROLLER_RX, Stage.FEEDBACK_TX + 1)
     traces[:, robot] += out_ns[:, None]
     traces[:, Stage.FEEDBACK_RX :] += (out_ns + back_ns)[:, None]
-    true_round_trip = latency.hop_ns(latency.warm_loops(traces), latency.ROUND_TRIP)
+    true_round_trip = loop_stats.hop_ns(loop_stats.warm_loops(traces), loop_stats.ROUND_TRIP)
     traces[:, robot] += behind_ns
-    figures = latency.across_clocks(traces)
+    figures = loop_stats.across_clocks(traces)
     uncertainty_ns = figures.offset_uncertainty_us * NS_PER_US
     assert 3.5e6 < uncertainty_ns < 4.5e6  # half the least out + back: (5 + 2) / 2 ms-ish
     assert abs(figures.offset_s * NS_PER_S - behind_ns) <= uncertainty_ns
@@ -316,4 +318,4 @@ def test_across_two_clocks_the_offset_is_found_within_its_uncertainty_and_each_w
     assert abs(out_us.p50_us * NS_PER_US - 5.5e6) <= uncertainty_ns + 0.1e6
     assert abs(back_us.p50_us * NS_PER_US - 2.5e6) <= uncertainty_ns + 0.1e6
     assert_matches_reference(figures.round_trip_us, true_round_trip)
-    assert latency.across_clocks(traces[:0]).to_json() == {"loops": 0}
+    assert loop_stats.across_clocks(traces[:0]).to_json() == {"loops": 0}

@@ -1,14 +1,16 @@
 """The across-sites report's records: the JSON the command writes reads back as the same
-record, and its tables are the same from the record or from its JSON."""
+record, with the stack's run when there is one; the tables and the verdict read the
+record."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
 
 from teleop.bench import sites
-from teleop.bench.latency import AcrossClocks, stats_us
+from teleop.bench.loop_stats import AcrossClocks, stats_us
 
 
 def _report() -> sites.SitesReport:
@@ -42,23 +44,33 @@ def test_the_sites_report_reads_back_from_its_json_and_tables_alike():
     assert content["delays"][0]["delay_ms"] == 5.0
     assert sites.SitesReport.from_json(content) == report
     lines = sites.table(report)
-    assert lines == sites.table(content)
     assert "| routers + netem |" in "\n".join(lines).replace("  ", " ")
     assert lines[-1] == "2 samples never came back"
+    assert not report.clean  # samples lost
+    assert report.routers_floor_ms() == {"p50_ms": 0.3, "p99_ms": 0.6}
 
 
-def test_the_stack_across_sites_tables_alike_from_its_record_or_json():
+def _stack(success: bool = True, loops: int = 3) -> sites.StackAcrossSites:
     figures = stats_us(np.array([1_000_000, 2_000_000, 3_000_000]))
-    loop = AcrossClocks(3, 0.5, 100.0, figures, figures, figures, figures)
-    stack = sites.StackAcrossSites(True, "", 1.0, 0, 1000, loop)
+    loop = AcrossClocks(loops, 0.5, 100.0, figures, figures, figures, figures)
+    return sites.StackAcrossSites(success, "", 1.0, 0, 1000, loop)
+
+
+def test_the_stack_across_sites_reads_back_in_its_report_and_tables():
+    stack = _stack()
     content = json.loads(json.dumps(stack.to_json()))
     assert list(content)[:6] == ["success", "failure", "realtime_factor", "braked_steps",
                                  "steps", "loops"]  # fmt: skip
     assert sites.StackAcrossSites.from_json(content) == stack
-    floor = {"p50_ms": 0.3, "p99_ms": 0.6}
-    lines = sites.stack_table(stack, floor)
-    assert lines == sites.stack_table(content, floor)
+    report = dataclasses.replace(_report(), lost=0, stack=stack)
+    written = json.loads(json.dumps(report.to_json()))
+    assert written["stack"] == content and sites.SitesReport.from_json(written) == report
+    assert report.clean
+    assert not dataclasses.replace(report, stack=_stack(success=False)).clean
+    assert not dataclasses.replace(report, stack=_stack(loops=0)).clean
+    lines = sites.stack_table(stack, report.routers_floor_ms())
     assert lines[0].startswith("The realtime grasp across two sites: success, realtime factor")
+    assert any("floor: bare ends through the routers" in line for line in lines)
     none = sites.StackAcrossSites(False, "no loop", None, None, None, AcrossClocks(0))
     assert none.to_json()["loops"] == 0
-    assert sites.stack_table(none.to_json(), None) == ["the stack across the sites closed no loop"]
+    assert sites.stack_table(none, None) == ["the stack across the sites closed no loop"]
