@@ -24,7 +24,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TypeVar
 
-from teleop.core.summary import json_value
+from teleop.core.summary import PhaseTime, json_value
 
 R = TypeVar("R", bound="ServiceSummary")
 
@@ -80,7 +80,11 @@ class ServiceSummary:
             if f.name == "earlier_incarnations":
                 value = tuple(cls.from_json(_mapping(e)) for e in _sequence(value))
             elif value is not None and _is_tuple(hints[f.name]):
-                value = tuple(_sequence(value))
+                item = _tuple_item(hints[f.name])
+                items = _sequence(value)
+                if hasattr(item, "from_json"):  # a record per item (PhaseTime)
+                    items = [item.from_json(_mapping(i)) for i in items]
+                value = tuple(items)
             values[f.name] = value
         return cls(**values)
 
@@ -176,7 +180,7 @@ class OperatorSummary(ServiceSummary):
     success: bool | None = None
     failure: str | None = None  # why it gave up ("": it did not)
     task_duration_s: float | None = None
-    phases: tuple[Mapping[str, object], ...] | None = None
+    phases: tuple[PhaseTime, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -283,6 +287,12 @@ def _is_json_of(value: object, hint: object) -> bool:
 
 def _is_tuple(hint: object) -> bool:
     return any(typing.get_origin(a) is tuple for a in (hint, *typing.get_args(hint)))
+
+
+def _tuple_item(hint: object) -> object:
+    """The item type of a ``tuple[T, ...] | None`` hint."""
+    tuples = [a for a in (hint, *typing.get_args(hint)) if typing.get_origin(a) is tuple]
+    return typing.get_args(tuples[0])[0]
 
 
 def _mapping(value: object) -> Mapping[str, object]:

@@ -20,6 +20,7 @@ object per service, its fields its own).
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -239,6 +240,28 @@ class Criterion:
 
 
 @dataclass(frozen=True)
+class PhaseTime:
+    """One phase of the operator's task as it began: its index among the task's phases
+    (the scenario's, or a person's task's), its name and the sim time it began at (s)."""
+
+    phase: int
+    name: str
+    sim_time_s: float
+
+    @classmethod
+    def from_json(cls, content: Mapping[str, object]) -> PhaseTime:
+        phase, sim_time_s = content.get("phase"), content.get("sim_time_s")
+        return cls(
+            phase=phase if isinstance(phase, int) and not isinstance(phase, bool) else -1,
+            name=str(content.get("name", "")),
+            sim_time_s=float(sim_time_s) if isinstance(sim_time_s, int | float) else math.nan,
+        )
+
+    def to_json(self) -> dict[str, object]:
+        return {"phase": self.phase, "name": self.name, "sim_time_s": self.sim_time_s}
+
+
+@dataclass(frozen=True)
 class FaultOutcome:
     """One injected fault (``teleop run --kill / --freeze``) and what followed, as the
     summary's ``faults`` has it (measured by teleop.run.faults; docs/faults.md): when
@@ -291,7 +314,8 @@ class RunSummary:
     """The run summary as a typed record: one attribute per :data:`SUMMARY_FIELDS` entry,
     in its order, of its JSON type (a test holds the two together). None: the run did not
     write the field, or wrote null. Arrays are tuples; the criteria are
-    :class:`Criterion`, the faults :class:`FaultOutcome`; a robot's section under
+    :class:`Criterion`, the phases :class:`PhaseTime`, the faults :class:`FaultOutcome`;
+    a robot's section under
     ``robots`` is a RunSummary of its own; the objects whose layout belongs to another
     module (the services' own summaries, the machine, the protective stops) stay JSON
     objects.
@@ -350,7 +374,7 @@ class RunSummary:
     stale_feedback_events: int | None = None
     max_obstacle_force_n: float | None = None
     held_weight_n: float | None = None
-    phases: tuple[Mapping[str, object], ...] | None = None
+    phases: tuple[PhaseTime, ...] | None = None
     operator_failure: str | None = None
     # The run on the services.
     overrun_fraction: float | None = None
@@ -403,6 +427,8 @@ class RunSummary:
                 continue
             if name == "criteria" and value is not None:
                 value = tuple(Criterion.from_json(c) for c in _objects(name, value))
+            elif name == "phases" and value is not None:
+                value = tuple(PhaseTime.from_json(c) for c in _objects(name, value))
             elif name == "faults" and value is not None:
                 value = tuple(FaultOutcome.from_json(c) for c in _objects(name, value))
             elif name == "robots" and value is not None:
@@ -447,7 +473,7 @@ def _objects(name: str, value: object) -> list[Mapping[str, object]]:
 
 def json_value(value: object) -> object:
     """A field's value as JSON: tuples as arrays, records as their objects."""
-    if isinstance(value, Criterion | FaultOutcome | RunSummary):
+    if isinstance(value, Criterion | FaultOutcome | PhaseTime | RunSummary):
         return value.to_json()
     if isinstance(value, tuple):
         return [json_value(item) for item in value]

@@ -15,7 +15,7 @@ from typing import Any
 
 from teleop.core.config import TELEOPERATED
 from teleop.core.criteria import judge_summary
-from teleop.core.summary import FaultOutcome, RunSummary
+from teleop.core.summary import FaultOutcome, PhaseTime, RunSummary
 from teleop.sim.proximity import FAR_DISTANCE_M
 
 # A progress line at least every this many seconds of sim time, and at each new phase.
@@ -245,9 +245,8 @@ def fault_line(fault: FaultOutcome) -> str:
     )
 
 
-def _phases_reached(phases: Any) -> str:
+def _phases_reached(phases: Sequence[PhaseTime] | None) -> str:
     """How many phases the operator began, and the last one's name."""
-    if not isinstance(phases, list | tuple) or not phases:
+    if not phases:
         return "none begun"
-    last = phases[-1].get("name", "?") if isinstance(phases[-1], Mapping) else "?"
-    return f"{len(phases)} begun, the last: {last}"
+    return f"{len(phases)} begun, the last: {phases[-1].name}"

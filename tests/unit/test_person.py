@@ -14,6 +14,7 @@ from services.keyboard import KeyboardOperatorService
 from teleop.bus.messages import Button, Event
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import ConfigError, load_config
+from teleop.core.summary import PhaseTime
 from teleop.core.ticks import expected_valid_from, is_sample_tick, lead_ticks, next_sample_tick
 from teleop.devices.person.intent import (
     DEFAULT_KEYS,
@@ -267,7 +268,7 @@ def test_a_grasp_carry_and_placing_end_the_task_a_success():
     done = [e for e in t.events if e[0] == Event.TASK_DONE]
     assert len(done) == 1 and done[0][3] == 1.0
     assert done[0][2] == done[0][1] + TASK_DONE_AHEAD_TICKS
-    assert t.task.phase_times[1] == {"name": "carry", "sim_time_s": 0.1}
+    assert t.task.phase_times[1] == PhaseTime(CARRY, "carry", 0.1)
 
 
 def test_fingers_that_touch_and_leave_within_milliseconds_change_no_phase():

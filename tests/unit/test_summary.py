@@ -17,6 +17,8 @@ from teleop.core.summary import (
     SUMMARY_VERSION,
     VERSION_FIELD,
     Criterion,
+    FaultOutcome,
+    PhaseTime,
     RunSummary,
     SummaryError,
     read_run_summary,
@@ -120,6 +122,29 @@ def test_a_summary_of_several_robots_reads_its_sections_as_records():
     assert RunSummary(scenario="grasp", success=False).to_json() == {
         "scenario": "grasp", "success": False,
     }  # fmt: skip
+
+
+def test_the_phases_and_faults_read_as_records_and_write_back_as_read():
+    content = {
+        "scenario": "grasp",
+        "phases": [{"phase": 0, "name": "approach", "sim_time_s": 0.004},
+                   {"phase": 1, "name": "open", "sim_time_s": 1.5}],
+        "faults": [{"service": "controller", "kind": "kill", "t_s": 1.5, "freeze_s": None,
+                    "frozen_s": None, "brake_ms": 2.0, "restart_s": 0.6, "resumed_s": 1.6,
+                    "success": True},
+                   {"service": "hmd", "kind": "kill", "t_s": None, "freeze_s": None,
+                    "frozen_s": None, "brake_ms": None, "restart_s": None, "resumed_s": None,
+                    "success": None, "error": "no process to signal"}],
+    }  # fmt: skip
+    record = RunSummary.from_json(content)
+    assert record.phases == (PhaseTime(0, "approach", 0.004), PhaseTime(1, "open", 1.5))
+    assert record.faults is not None and record.faults[1].error == "no process to signal"
+    assert record.faults[0] == FaultOutcome(
+        "controller", "kill", 1.5, brake_ms=2.0, restart_s=0.6, resumed_s=1.6, success=True
+    )
+    assert json.loads(json.dumps(record.to_json())) == content
+    with pytest.raises(SummaryError, match="phases: not an array of objects"):
+        RunSummary.from_json({"scenario": "grasp", "phases": ["approach"]})
 
 
 def test_running_doc_embeds_the_current_summary_table():

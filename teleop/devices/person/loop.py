@@ -49,6 +49,7 @@ import numpy as np
 from teleop.bus.messages import Button, Event
 from teleop.core.clock import NS_PER_S
 from teleop.core.config import Config
+from teleop.core.summary import PhaseTime
 from teleop.core.ticks import hand_schedule
 from teleop.devices.person.intent import HandIntent, hand_command
 from teleop.devices.scripted.routing import SceneKnowledge
@@ -131,7 +132,7 @@ class WorldTask:
         self._placed_since_tick: int | None = None
         self._objects: dict[str, np.ndarray] | None = None
         self._hold_change: tuple[bool, int] | None = None  # (holding, since tick), pending
-        self.phase_times: list[dict[str, Any]] = []
+        self.phase_times: list[PhaseTime] = []
         self.start_tick: int | None = None
         self.done_tick: int | None = None
 
@@ -141,7 +142,7 @@ class WorldTask:
         self.phase = phase
         if self.start_tick is None:
             self.start_tick = tick
-        self.phase_times.append({"name": PHASES[phase], "sim_time_s": tick * self.tick_s})
+        self.phase_times.append(PhaseTime(phase, PHASES[phase], tick * self.tick_s))
         emit(Event.PHASE, tick, tick, float(phase))
 
     def start(self, tick: int, emit: Emit) -> None:
@@ -372,7 +373,7 @@ class PersonLoop:
         if task.start_tick is not None and task.done_tick is not None:
             duration_s = (task.done_tick - task.start_tick) * self.tick_s
         return {
-            "phases": task.phase_times,
+            "phases": [phase.to_json() for phase in task.phase_times],
             "task_done": task.done,
             "success": task.success if task.done else None,
             "failure": "" if task.success or not task.done else "ended by the person",

@@ -20,6 +20,7 @@ from teleop.core.config import (
     Config,
     ConfigError,
 )
+from teleop.core.summary import PhaseTime
 from teleop.core.ticks import hand_schedule, head_schedule, scene_schedule
 from teleop.devices.scripted.operator import HandCommand, ObservationBuffer, ScriptedOperator
 from teleop.devices.scripted.routing import SceneKnowledge
@@ -144,7 +145,7 @@ class ScriptedLoop:
         self.withheld_inputs = 0  # joined: decisions made before anything was seen
         self.skipped_decisions = 0  # realtime: sample ticks a late operator skipped
         self.frozen_views = 0  # realtime: poses that came after a frozen view
-        self.phase_times: list[dict[str, Any]] = []
+        self.phase_times: list[PhaseTime] = []
 
     def hmd_seen(self) -> None:
         """An HMD is in the run (its liveliness token or a HEAD_POSE): lockstep decisions
@@ -241,13 +242,8 @@ class ScriptedLoop:
         self.outputs.hand(s + self.hand_schedule.lead_ticks, command)
         if command.phase != self._phase_reported and command.phase >= 0:
             self._phase_reported = command.phase
-            self.phase_times.append(
-                {
-                    "phase": command.phase,
-                    "name": self.scenario.phases[command.phase].name,
-                    "sim_time_s": s * self.tick_s,
-                }
-            )
+            name = self.scenario.phases[command.phase].name
+            self.phase_times.append(PhaseTime(command.phase, name, s * self.tick_s))
             self.outputs.event(Event.PHASE, s, s, float(command.phase))
         for event, value in self.operator.events:
             self.outputs.event(event, s, s, value)
@@ -271,7 +267,7 @@ class ScriptedLoop:
             duration_s = (op.done_tick - op.task_start_tick) * self.tick_s
         return {
             "scenario": self.scenario.source,
-            "phases": self.phase_times,
+            "phases": [phase.to_json() for phase in self.phase_times],
             "task_done": op.done,
             "success": op.success if op.done else None,
             "failure": op.failure,
