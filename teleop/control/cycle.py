@@ -51,7 +51,7 @@ from teleop.bus.messages import (
     next_run_event,
 )
 from teleop.bus.session import Latest
-from teleop.bus.stamps import Inbound, StampLog
+from teleop.bus.stamps import Inbound, SeqCheck, StampLog
 from teleop.control.clearance import ClearanceModel
 from teleop.control.feedback import (
     FeedbackComponents,
@@ -124,6 +124,8 @@ class ControllerCore:
         self._out_lock = threading.Lock()
         self._last_seq = -1
         self._realtime = config.run.mode == "realtime"
+        self._state_seq = SeqCheck()  # realtime: which states are taken (see on_state)
+        self.states_refused = 0  # realtime: states out of order (stale, forged, a restart's first)
         # Lockstep: per stream, copies of the records that answered the newest states (by
         # state seq), each to be sent again, byte for byte, when the plant sends its
         # state again: every state in flight may be the one whose answer was lost, and
@@ -154,10 +156,20 @@ class ControllerCore:
         copy)."""
         with self._lock:
             seq = int(rec["seq"])
-            # Realtime: the plant never re-sends, and the state stream is taken newest-only
-            # (teleop.bus.graph), which may skip a new run's state 0: any seq going back
-            # is the plant starting over.
-            started_over = self._realtime and 0 <= seq < self._last_seq
+            started_over = False
+            if self._realtime:
+                # The plant never re-sends, and the state stream may be taken newest-only
+                # (teleop.bus.graph), which may skip a new run's state 0. A seq going back
+                # is the plant starting over once SeqCheck's rule says so (a run of states
+                # in order), never on one state: a single stale or forged one would
+                # otherwise make the controller forget its task.
+                restarts = self._state_seq.restarts
+                if not self._state_seq.accept(seq):
+                    self.states_refused += 1
+                    return
+                # Re-anchored on a run that went back (not one that jumped ahead).
+                restarted = self._state_seq.restarts != restarts
+                started_over = restarted and 0 <= seq <= self._last_seq
             if (seq == 0 and int(rec["t_source_ns"]) != self._run_start_ns) or started_over:
                 self._run_start_ns = int(rec["t_source_ns"])  # a new run (or plant restart):
                 self.reset()  # forget the task state
@@ -254,6 +266,7 @@ class ControllerCore:
         return {
             "cycles": self.cycles,
             "skipped_states": self.skipped_states,
+            "states_refused": self.states_refused,
             "commands_resent": self.commands_resent,
             "runs": self.runs,
             "compute_mean_us": mean_compute_us,

@@ -154,16 +154,22 @@ def test_the_path_cycle_answers_each_state_once_and_restarts_on_a_new_run():
     assert cycle.runs == 2 and cycle.summary()["cycles"] == 4
 
 
-def test_a_realtime_cycle_takes_a_seq_going_back_for_a_new_run_whose_state_0_it_skipped():
+def test_a_realtime_cycle_takes_seqs_going_back_for_a_new_run_whose_state_0_it_skipped():
     """Realtime: the state stream is taken newest-only, so a controller busy when the
-    plant starts over may never see the new run's state 0; the lower seq says it."""
+    plant starts over may never see the new run's state 0; lower seqs in order say it.
+    One state going back (stale, or forged) is refused and changes nothing."""
     cycle, sent, clock, config = make(PathCycle, 'run.mode="realtime"')
     now = clock.now_ns()
     for seq in (0, 1, 2, 5):  # 3 and 4 skipped (behind): counted
         cycle.on_state(state(config, seq, now), now)
     assert cycle.runs == 1 and cycle.skipped_states == 2
-    cycle.on_state(state(config, 3, now, start_ns=2), now)  # a new run, its 0-2 skipped
-    assert cycle.runs == 2 and cycle.summary()["cycles"] == 5
+    cycle.on_state(state(config, 1, now, start_ns=7), now)  # one stale or forged state
+    assert cycle.runs == 1 and cycle.states_refused == 1
+    cycle.on_state(state(config, 6, now), now)  # the run goes on
+    assert cycle.runs == 1 and cycle.summary()["cycles"] == 5
+    for seq in (3, 4, 5):  # a new run, its 0-2 skipped: taken up on its third state
+        cycle.on_state(state(config, seq, now, start_ns=2), now)
+    assert cycle.runs == 2 and cycle.states_refused == 3 and cycle.summary()["cycles"] == 6
     lockstep, _, _, _ = make(PathCycle, 'run.mode="lockstep"')
     for seq in (0, 1, 2, 5, 3):  # lockstep: a lower seq is a re-send, never a new run
         lockstep.on_state(state(config, seq, now), now)
