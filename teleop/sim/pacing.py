@@ -486,12 +486,10 @@ class LockstepPacer:
     At a hold (:class:`LockstepHolds`) the answer is kept until :meth:`release`.
     """
 
-    def __init__(
-        self, core: PlantStepCore, sent: SentTicks, holds: LockstepHolds | None = None
-    ) -> None:
+    def __init__(self, core: PlantStepCore, sent: SentTicks, holds: LockstepHolds) -> None:
         self.core = core
         self.sent = sent  # the core's outputs, keeping the states in flight for a re-send
-        self.holds = holds if holds is not None else LockstepHolds(())
+        self.holds = holds  # none told: never held
         self._held: dict[int, tuple[np.ndarray, int]] = {}  # answers kept at a hold, by state
         self.lock = threading.Lock()  # the run thread and the command callback
         self.delay_steps = core.config.plant.lockstep_delay_steps
