@@ -15,10 +15,9 @@ from teleop.core.service_summaries import (
     ControllerSummary,
     HmdSummary,
     PlantSummary,
-    json_number,
     record_of,
 )
-from teleop.core.summary import RunSummary
+from teleop.core.summary import RunSummary, json_number
 
 # -- what the report reads of the services' summaries -------------------------------------
 

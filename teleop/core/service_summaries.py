@@ -24,7 +24,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TypeVar
 
-from teleop.core.summary import PhaseTime, json_value
+from teleop.core.summary import PhaseTime, json_number, json_value
 
 R = TypeVar("R", bound="ServiceSummary")
 
@@ -305,8 +305,3 @@ def _sequence(value: object) -> list[object]:
 
 def _int(value: object) -> int | None:
     return value if isinstance(value, int) else None
-
-
-def json_number(value: object) -> float | None:
-    """A number of a summary's JSON as written (an int stays an int), None if not one."""
-    return value if isinstance(value, int | float) else None

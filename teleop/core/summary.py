@@ -250,11 +250,11 @@ class PhaseTime:
 
     @classmethod
     def from_json(cls, content: Mapping[str, object]) -> PhaseTime:
-        phase, sim_time_s = content.get("phase"), content.get("sim_time_s")
+        phase, sim_time_s = content.get("phase"), json_number(content.get("sim_time_s"))
         return cls(
             phase=phase if isinstance(phase, int) and not isinstance(phase, bool) else -1,
             name=str(content.get("name", "")),
-            sim_time_s=float(sim_time_s) if isinstance(sim_time_s, int | float) else math.nan,
+            sim_time_s=math.nan if sim_time_s is None else sim_time_s,
         )
 
     def to_json(self) -> dict[str, object]:
@@ -282,21 +282,16 @@ class FaultOutcome:
 
     @classmethod
     def from_json(cls, content: Mapping[str, object]) -> FaultOutcome:
-        def number(key: str) -> float | None:
-            value = content.get(key)
-            is_number = isinstance(value, int | float) and not isinstance(value, bool)
-            return float(value) if is_number else None  # type: ignore[arg-type]
-
         success = content.get("success")
         return cls(
             service=str(content.get("service", "")),
             kind=str(content.get("kind", "")),
-            t_s=number("t_s"),
-            freeze_s=number("freeze_s"),
-            frozen_s=number("frozen_s"),
-            brake_ms=number("brake_ms"),
-            restart_s=number("restart_s"),
-            resumed_s=number("resumed_s"),
+            t_s=json_number(content.get("t_s")),
+            freeze_s=json_number(content.get("freeze_s")),
+            frozen_s=json_number(content.get("frozen_s")),
+            brake_ms=json_number(content.get("brake_ms")),
+            restart_s=json_number(content.get("restart_s")),
+            resumed_s=json_number(content.get("resumed_s")),
             success=success if isinstance(success, bool) else None,
             error=str(content.get("error") or ""),
         )
@@ -469,6 +464,12 @@ def _objects(name: str, value: object) -> list[Mapping[str, object]]:
     if not all(isinstance(item, Mapping) for item in items):
         raise SummaryError(f"{name}: not an array of objects")
     return items
+
+
+def json_number(value: object) -> float | None:
+    """A number of a summary's JSON as written (an int stays an int), None if not one (a
+    boolean is no number here, though Python counts it an int)."""
+    return value if isinstance(value, int | float) and not isinstance(value, bool) else None
 
 
 def json_value(value: object) -> object:
